@@ -1,0 +1,285 @@
+"""Noise-statistics estimators that run inside the Gaussian filter engine.
+
+Both estimators see the same per-step quantities (:class:`UpdateContext`) and return the noise
+statistics the filter should use at the next step. All estimates are kept as full matrices
+``(..., n, n)`` per batch element plus their Cholesky factors.
+
+Positive definiteness. Unbiased estimators subtract a covariance term and can leave the cone of
+positive-definite matrices (a known weakness of Sage-Husa). We never let the filter see such a
+matrix: when an updated estimate is not positive definite, it is symmetrised and its eigenvalues
+are raised to a floor ``floor_rel * trace(previous) / dim`` (documented projection), and the step
+is flagged in ``StepInfo.noise_fallback``. ``diagonal=True`` estimates only the variances (paper
+004 Eq. 67-68 uses diagonal ``Q`` and ``R``), each floored the same way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..core.model import Noise
+
+__all__ = ["SageHusa", "MovingWindow", "NoiseEstimatorState", "UpdateContext"]
+
+
+@dataclass(frozen=True)
+class UpdateContext:
+    """Quantities of one filter step used by the noise estimators (batch dims ``...``).
+
+    Attributes:
+        x_post: ``(..., n)`` posterior mean.
+        f_mean: ``(..., n)`` ``sum_i W_i f(xi_{i,k-1})`` without ``q`` (paper 003 Eq. 37).
+        spread: ``(..., n, n)`` ``sum_i W_i (gamma_i - x_pred)(gamma_i - x_pred)^T`` (Eq. 36).
+        gain: ``(..., n, m)``.
+        innovation: ``(..., m)`` ``e_k = y_k - z_pred`` (Eq. 35).
+        cov_post: ``(..., n, n)`` posterior covariance ``P_k``.
+        y: ``(..., m)`` measurement.
+        h_mean: ``(..., m)`` ``sum_i W_i h(xi_{i,k|k-1})`` without ``r`` (Eq. 39).
+        pzz_noR: ``(..., m, m)`` ``sum_i W_i (eta_i - z)(eta_i - z)^T`` (Eq. 38).
+        missing: ``(...)`` bool.
+    """
+
+    x_post: Tensor
+    f_mean: Tensor
+    spread: Tensor
+    gain: Tensor
+    innovation: Tensor
+    cov_post: Tensor
+    y: Tensor
+    h_mean: Tensor
+    pzz_noR: Tensor
+    missing: Tensor
+
+
+@dataclass(frozen=True)
+class NoiseEstimatorState:
+    """Current estimates (full matrices and factors) and bookkeeping; batch dims leading."""
+
+    q: Tensor
+    Q: Tensor
+    chol_Q: Tensor
+    r: Tensor
+    R: Tensor
+    chol_R: Tensor
+    count: Tensor
+    fallback: Tensor
+    buf_Q: Tensor | None = None
+    buf_R: Tensor | None = None
+    buf_valid: Tensor | None = None
+
+    def noise(self) -> Noise:
+        return Noise(self.q, self.chol_Q, self.r, self.chol_R)
+
+
+def _expand(x: Tensor | None, batch_shape, tail, like: Tensor) -> Tensor:
+    if x is None:
+        return like.new_zeros(*batch_shape, *tail)
+    x = x.to(dtype=like.dtype, device=like.device)
+    return x.expand(*batch_shape, *tail).clone()
+
+
+def _project_pd(
+    C: Tensor, prev: Tensor, floor_rel: float, diagonal: bool
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Return ``(C_pd, chol, fallback)``; see the module docstring."""
+    C = 0.5 * (C + C.mT)
+    n = C.shape[-1]
+    floor = (floor_rel * torch.diagonal(prev, dim1=-2, dim2=-1).sum(-1) / n).clamp_min(1e-300)
+    if diagonal:
+        d = torch.diagonal(C, dim1=-2, dim2=-1)
+        fb = (d < floor[..., None]).any(-1)
+        d = torch.maximum(d, floor[..., None])
+        C = torch.diag_embed(d)
+        return C, torch.diag_embed(d.sqrt()), fb
+    L, info = torch.linalg.cholesky_ex(C)
+    fb = info > 0
+    if bool(fb.any()):
+        w, V = torch.linalg.eigh(C)
+        w = torch.maximum(w, floor[..., None])
+        Cp = (V * w.unsqueeze(-2)) @ V.mT
+        Cp = 0.5 * (Cp + Cp.mT)
+        C = torch.where(fb[..., None, None], Cp, C)
+        L2, info2 = torch.linalg.cholesky_ex(C)
+        if bool((info2 > 0).any()):  # pragma: no cover - floor makes this PD
+            raise torch.linalg.LinAlgError("noise estimate projection failed")
+        L = L2
+    return C, L, fb
+
+
+def _outer(v: Tensor) -> Tensor:
+    return v.unsqueeze(-1) * v.unsqueeze(-2)
+
+
+@dataclass(frozen=True)
+class SageHusa:
+    """Sage-Husa noise-statistics estimator adapted to SRUKF (paper 003 Eq. 40-43; ImSRUKF).
+
+    With ``d_k = 1 / k`` (the paper) or, with ``forgetting=b`` in ``(0, 1)``, the fading-memory
+    weight ``d_k = (1 - b) / (1 - b^k)``:
+
+        q_k = (1 - d_k) q_{k-1} + d_k (x_k - sum W f(xi_{k-1}))                         (Eq. 40)
+        Q_k = (1 - d_k) Q_{k-1} + d_k (K e e^T K^T + P_k - sum W (g - x)(g - x)^T)      (Eq. 41)
+        r_k = (1 - d_k) r_{k-1} + d_k (y_k - sum W h(xi_{k|k-1}))                       (Eq. 42)
+        R_k = (1 - d_k) R_{k-1} + d_k (e e^T - sum W (eta - z)(eta - z)^T)             (Eq. 43)
+
+    Attributes:
+        estimate: which statistics to adapt, a subset of ``("q", "Q", "r", "R")``.
+        forgetting: ``None`` for ``1/k`` averaging, else ``b`` in ``(0, 1)``.
+        diagonal: estimate only variances.
+        floor_rel: eigenvalue floor of the positive-definite projection (module docstring).
+        frozen: keep the initial statistics (adaptation off; the filter is then exactly SRUKF).
+    """
+
+    estimate: tuple[str, ...] = ("q", "Q", "r", "R")
+    forgetting: float | None = None
+    diagonal: bool = False
+    floor_rel: float = 1e-6
+    frozen: bool = False
+
+    def __post_init__(self):
+        bad = set(self.estimate) - {"q", "Q", "r", "R"}
+        if bad:
+            raise ValueError(f"estimate must be a subset of ('q', 'Q', 'r', 'R'), got {bad}")
+        if self.forgetting is not None and not 0.0 < self.forgetting < 1.0:
+            raise ValueError(f"forgetting must be in (0, 1) or None, got {self.forgetting}")
+
+    def init(self, noise: Noise, batch_shape, n: int, m: int, like: Tensor) -> NoiseEstimatorState:
+        cQ = _expand(noise.chol_Q, batch_shape, (n, n), like)
+        cR = _expand(noise.chol_R, batch_shape, (m, m), like)
+        return NoiseEstimatorState(
+            q=_expand(noise.q, batch_shape, (n,), like),
+            Q=cQ @ cQ.mT,
+            chol_Q=cQ,
+            r=_expand(noise.r, batch_shape, (m,), like),
+            R=cR @ cR.mT,
+            chol_R=cR,
+            count=torch.zeros(batch_shape, dtype=like.dtype, device=like.device),
+            fallback=torch.zeros(batch_shape, dtype=torch.bool, device=like.device),
+        )
+
+    def _weight(self, count: Tensor) -> Tensor:
+        if self.forgetting is None:
+            return 1.0 / count
+        b = self.forgetting
+        return (1.0 - b) / (1.0 - b**count)
+
+    def update(self, s: NoiseEstimatorState, c: UpdateContext) -> NoiseEstimatorState:
+        if self.frozen:
+            return s
+        keep = c.missing
+        count = torch.where(keep, s.count, s.count + 1)
+        d = self._weight(count.clamp_min(1.0))
+        d1, d2 = d[..., None], d[..., None, None]
+        q, Q, cQ, r, R, cR = s.q, s.Q, s.chol_Q, s.r, s.R, s.chol_R
+        fb = torch.zeros_like(s.fallback)
+        if "q" in self.estimate:
+            q = torch.where(keep[..., None], q, (1 - d1) * q + d1 * (c.x_post - c.f_mean))
+        if "Q" in self.estimate:
+            Ke = (c.gain @ c.innovation.unsqueeze(-1)).squeeze(-1)
+            new = (1 - d2) * Q + d2 * (_outer(Ke) + c.cov_post - c.spread)
+            new, cnew, f1 = _project_pd(new, Q, self.floor_rel, self.diagonal)
+            Q = torch.where(keep[..., None, None], Q, new)
+            cQ = torch.where(keep[..., None, None], cQ, cnew)
+            fb = fb | (f1 & ~keep)
+        if "r" in self.estimate:
+            r = torch.where(keep[..., None], r, (1 - d1) * r + d1 * (c.y - c.h_mean))
+        if "R" in self.estimate:
+            new = (1 - d2) * R + d2 * (_outer(c.innovation) - c.pzz_noR)
+            new, cnew, f2 = _project_pd(new, R, self.floor_rel, self.diagonal)
+            R = torch.where(keep[..., None, None], R, new)
+            cR = torch.where(keep[..., None, None], cR, cnew)
+            fb = fb | (f2 & ~keep)
+        return NoiseEstimatorState(q, Q, cQ, r, R, cR, count, fb)
+
+
+@dataclass(frozen=True)
+class MovingWindow:
+    """Moving-window unbiased estimator of ``Q`` and ``R`` (paper 004 Theorem 2, Eq. 47-48; ARUKF).
+
+        Q_{k-1} = 1/N sum_{j=1..N} [P_{k-j} + K e e^T K^T - sum W (xi - x)(xi - x)^T]_{k-j}   (Eq. 47)
+        R_k     = 1/N sum_{j=1..N} [e e^T - (1 - N^T N / mu) C P_{k|k-1} C^T - mu M M^T]_{k-j} (Eq. 48)
+
+    For a nonlinear ``h``, ``C P_{k|k-1} C^T`` is the sigma-point ``sum W (eta - z)(eta - z)^T``.
+    ``mu`` is not defined in the extracted text; we take ``mu = gamma^2`` of the robust bound,
+    the value that makes Eq. 48 the innovation-matching counterpart of Eq. 29. Without a robust
+    bound (``M = 0``) Eq. 48 is plain innovation matching. Until ``warmup`` valid steps are in
+    the window, the model's noise statistics are used.
+
+    Attributes:
+        window: ``N``, the window length.
+        M: ``(m,)``/``(m, j)`` uncertainty direction, or ``None``.
+        N: scalar uncertainty gain.
+        mu: the Lemma-1 scalar of Eq. 48 (``None``: 1, only used when ``M`` is given).
+        warmup: valid steps needed before the estimates are used (default: ``window``).
+    """
+
+    window: int = 50
+    M: Tensor | None = None
+    N: float = 0.0
+    mu: float | None = None
+    warmup: int | None = None
+    estimate: tuple[str, ...] = ("Q", "R")
+    diagonal: bool = False
+    floor_rel: float = 1e-6
+    frozen: bool = False
+
+    def __post_init__(self):
+        if not isinstance(self.window, int) or self.window < 1:
+            raise ValueError(f"window must be a positive int, got {self.window!r}")
+        bad = set(self.estimate) - {"Q", "R"}
+        if bad:
+            raise ValueError(f"estimate must be a subset of ('Q', 'R'), got {bad}")
+
+    def init(self, noise: Noise, batch_shape, n: int, m: int, like: Tensor) -> NoiseEstimatorState:
+        base = SageHusa().init(noise, batch_shape, n, m, like)
+        W = self.window
+        return NoiseEstimatorState(
+            **{k: getattr(base, k) for k in ("q", "Q", "chol_Q", "r", "R", "chol_R", "count")},
+            fallback=base.fallback,
+            buf_Q=like.new_zeros(W, *batch_shape, n, n),
+            buf_R=like.new_zeros(W, *batch_shape, m, m),
+            buf_valid=torch.zeros(W, *batch_shape, dtype=torch.bool, device=like.device),
+        )
+
+    def update(self, s: NoiseEstimatorState, c: UpdateContext) -> NoiseEstimatorState:
+        if self.frozen:
+            return s
+        m = c.innovation.shape[-1]
+        Ke = (c.gain @ c.innovation.unsqueeze(-1)).squeeze(-1)
+        termQ = c.cov_post + _outer(Ke) - c.spread
+        termR = _outer(c.innovation)
+        if self.M is not None:
+            mu = 1.0 if self.mu is None else self.mu
+            M = torch.as_tensor(self.M, dtype=c.y.dtype, device=c.y.device)
+            M = M.unsqueeze(-1) if M.dim() == 1 else M
+            if M.shape[0] != m:
+                raise ValueError(f"MovingWindow.M must have shape (m,) or (m, j), m={m}")
+            termR = termR - (1.0 - self.N**2 / mu) * c.pzz_noR - mu * (M @ M.mT)
+        else:
+            termR = termR - c.pzz_noR
+        valid = ~c.missing
+        buf_Q = torch.cat([s.buf_Q[1:], termQ.unsqueeze(0)])
+        buf_R = torch.cat([s.buf_R[1:], termR.unsqueeze(0)])
+        buf_valid = torch.cat([s.buf_valid[1:], valid.unsqueeze(0)])
+        nv = buf_valid.sum(0).to(c.y.dtype)
+        ready = nv >= (self.window if self.warmup is None else self.warmup)
+        wv = buf_valid.to(c.y.dtype)
+        Q, cQ, R, cR = s.Q, s.chol_Q, s.R, s.chol_R
+        fb = torch.zeros_like(s.fallback)
+        denom = nv.clamp_min(1.0)
+        if "Q" in self.estimate:
+            mean = (wv[..., None, None] * buf_Q).sum(0) / denom[..., None, None]
+            new, cnew, f1 = _project_pd(mean, Q, self.floor_rel, self.diagonal)
+            Q = torch.where(ready[..., None, None], new, Q)
+            cQ = torch.where(ready[..., None, None], cnew, cQ)
+            fb = fb | (f1 & ready)
+        if "R" in self.estimate:
+            mean = (wv[..., None, None] * buf_R).sum(0) / denom[..., None, None]
+            new, cnew, f2 = _project_pd(mean, R, self.floor_rel, self.diagonal)
+            R = torch.where(ready[..., None, None], new, R)
+            cR = torch.where(ready[..., None, None], cnew, cR)
+            fb = fb | (f2 & ready)
+        count = s.count + valid.to(s.count.dtype)
+        return NoiseEstimatorState(s.q, Q, cQ, s.r, R, cR, count, fb, buf_Q, buf_R, buf_valid)

@@ -1,0 +1,19 @@
+"""Core abstractions: state-space models, Gaussian beliefs, square-root linear algebra."""
+
+from .belief import GaussianBelief
+from .linalg import cho_solve_right, chol_downdate, chol_update, safe_cholesky, symmetrize, tria
+from .model import Noise, StateSpaceModel, joint_state_parameter_model, linear_gaussian_model
+
+__all__ = [
+    "GaussianBelief",
+    "Noise",
+    "StateSpaceModel",
+    "joint_state_parameter_model",
+    "linear_gaussian_model",
+    "tria",
+    "chol_update",
+    "chol_downdate",
+    "cho_solve_right",
+    "safe_cholesky",
+    "symmetrize",
+]

@@ -1,0 +1,80 @@
+"""Gaussian beliefs in square-root form, with leading batch dimensions."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .validation import check_chol, check_finite
+
+__all__ = ["GaussianBelief"]
+
+
+@dataclass(frozen=True)
+class GaussianBelief:
+    """A batch of Gaussian beliefs ``N(mean, chol chol^T)``.
+
+    Attributes:
+        mean: ``(..., n)``.
+        chol: ``(..., n, n)`` lower-triangular square root of the covariance.
+    """
+
+    mean: Tensor
+    chol: Tensor
+
+    @classmethod
+    def from_cov(cls, mean: Tensor, cov: Tensor) -> GaussianBelief:
+        """Build from a full covariance ``(..., n, n)`` (Cholesky-factorised once)."""
+        mean = torch.as_tensor(mean)
+        cov = torch.as_tensor(cov, dtype=mean.dtype, device=mean.device)
+        L, info = torch.linalg.cholesky_ex(0.5 * (cov + cov.mT))
+        if bool((info > 0).any()):
+            raise ValueError("cov must be symmetric positive definite, shape (..., n, n)")
+        return cls(mean, L)
+
+    @property
+    def cov(self) -> Tensor:
+        """Full covariance ``chol chol^T``, ``(..., n, n)``."""
+        return self.chol @ self.chol.mT
+
+    @property
+    def dim(self) -> int:
+        return self.mean.shape[-1]
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        return self.mean.shape[:-1]
+
+    def to(self, *args, **kwargs) -> GaussianBelief:
+        return GaussianBelief(self.mean.to(*args, **kwargs), self.chol.to(*args, **kwargs))
+
+    def expand(self, *batch_shape: int) -> GaussianBelief:
+        """Repeat the belief over new leading batch dimensions (e.g. Monte Carlo runs)."""
+        n = self.dim
+        return GaussianBelief(
+            self.mean.expand(*batch_shape, n).clone(),
+            self.chol.expand(*batch_shape, n, n).clone(),
+        )
+
+    def __getitem__(self, idx) -> GaussianBelief:
+        if not isinstance(idx, tuple):
+            idx = (idx,)
+        return GaussianBelief(self.mean[idx + (slice(None),)], self.chol[idx + (slice(None),) * 2])
+
+    def validate(self, name: str = "belief") -> GaussianBelief:
+        """Check shapes, finiteness and a positive diagonal; raise ``ValueError`` naming ``name``."""
+        if not isinstance(self.mean, Tensor) or not isinstance(self.chol, Tensor):
+            raise TypeError(f"{name}: mean and chol must be torch.Tensor")
+        if self.mean.dim() < 1:
+            raise ValueError(f"{name}.mean must have shape (..., n), got {tuple(self.mean.shape)}")
+        n = self.mean.shape[-1]
+        if self.chol.shape != self.mean.shape + (n,):
+            raise ValueError(
+                f"{name}.chol must have shape {tuple(self.mean.shape) + (n,)} "
+                f"(..., n, n) to match mean, got {tuple(self.chol.shape)}"
+            )
+        check_finite(self.mean, f"{name}.mean")
+        check_chol(self.chol, f"{name}.chol", n)
+        return self

@@ -1,0 +1,259 @@
+"""State-space models: per-sample transition and measurement functions with additive Gaussian noise.
+
+Convention (used by every filter, simulator and particle filter in the library): for
+``k = 1, 2, ...``
+
+    x_k = f(x_{k-1}, u_k, k) + w_k,   w_k ~ N(q_k, Q_k)      (paper 000 Eq. 1)
+    y_k = h(x_k, u_k, k) + v_k,       v_k ~ N(r_k, R_k)      (paper 000 Eq. 2)
+
+``f`` and ``h`` are written for ONE sample: ``x`` has shape ``(n,)``, ``u`` shape ``(p,)`` or
+``None``, ``k`` is a Python ``int``; they return ``(n,)`` and ``(m,)``. The library batches them
+with ``torch.func.vmap`` over runs, sigma points and particles, so a model is written once.
+Models that already handle arbitrary leading dimensions can say so with ``batched=True``.
+
+Noise is given by its mean and a lower square-root factor of its covariance, each either a
+tensor (constant) or a callable ``k -> tensor`` (per step). Square-root factors may carry
+leading batch dimensions (e.g. one ``Q`` per Monte Carlo run).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+from torch.func import jacfwd, vmap
+
+__all__ = ["StateSpaceModel", "Noise", "joint_state_parameter_model", "linear_gaussian_model"]
+
+Fn = Callable[[Tensor, "Tensor | None", int], Tensor]
+TensorOrFn = "Tensor | Callable[[int], Tensor]"
+
+
+@dataclass(frozen=True)
+class Noise:
+    """Additive noise statistics for one step.
+
+    Attributes:
+        q: process-noise mean ``(..., n)`` or ``None`` (zero).
+        chol_Q: process-noise square root ``(..., n, n)``.
+        r: measurement-noise mean ``(..., m)`` or ``None`` (zero).
+        chol_R: measurement-noise square root ``(..., m, m)``.
+    """
+
+    q: Tensor | None
+    chol_Q: Tensor
+    r: Tensor | None
+    chol_R: Tensor
+
+
+def _at(v, k: int):
+    return v(k) if callable(v) else v
+
+
+def _apply(fn: Fn, x: Tensor, u: Tensor | None, k: int, batched: bool) -> Tensor:
+    """Evaluate a per-sample function on ``x`` of shape ``(..., n)`` (and ``u`` ``(..., p)``)."""
+    if batched:
+        return fn(x, u, k)
+    lead = x.shape[:-1]
+    xf = x.reshape(-1, x.shape[-1])
+    if u is None:
+        out = vmap(lambda xi: fn(xi, None, k))(xf)
+    else:
+        uf = torch.broadcast_to(u, lead + u.shape[-1:]).reshape(-1, u.shape[-1])
+        out = vmap(lambda xi, ui: fn(xi, ui, k))(xf, uf)
+    return out.reshape(*lead, out.shape[-1])
+
+
+def _jacobian(fn: Fn, x: Tensor, u: Tensor | None, k: int) -> Tensor:
+    """Jacobian ``d fn / d x`` at each of the leading-batch points: ``(..., out, n)``."""
+    lead = x.shape[:-1]
+    xf = x.reshape(-1, x.shape[-1])
+    if u is None:
+        J = vmap(jacfwd(lambda xi: fn(xi, None, k)))(xf)
+    else:
+        uf = torch.broadcast_to(u, lead + u.shape[-1:]).reshape(-1, u.shape[-1])
+        J = vmap(jacfwd(lambda xi, ui: fn(xi, ui, k)))(xf, uf)
+    return J.reshape(*lead, J.shape[-2], J.shape[-1])
+
+
+@dataclass(frozen=True)
+class StateSpaceModel:
+    """A nonlinear state-space model with additive Gaussian noise (see module docstring).
+
+    Attributes:
+        f: per-sample transition ``f(x (n,), u (p,) | None, k) -> (n,)``; ``None`` means the
+            random walk ``x_k = x_{k-1} + w_k`` (the optimiser face, paper 003 Eq. 45), which the
+            filters propagate exactly without sigma points or Jacobians.
+        h: per-sample measurement ``h(x (n,), u, k) -> (m,)``.
+        state_dim: ``n``.
+        obs_dim: ``m``.
+        chol_Q: ``(..., n, n)`` lower square root of ``Q``, or ``k -> tensor``.
+        chol_R: ``(..., m, m)`` lower square root of ``R``, or ``k -> tensor``.
+        q: process-noise mean ``(..., n)``, ``k -> tensor`` or ``None``.
+        r: measurement-noise mean ``(..., m)``, ``k -> tensor`` or ``None``.
+        control_dim: ``p`` (0 when the model takes no control).
+        batched: ``f``/``h`` already accept arbitrary leading dimensions (skip ``vmap``).
+        jac_f, jac_h: optional analytic Jacobians with the same signature, returning
+            ``(n, n)`` / ``(m, n)`` per sample; by default ``torch.func.jacfwd`` is used.
+    """
+
+    f: Fn | None
+    h: Fn
+    state_dim: int
+    obs_dim: int
+    chol_Q: Tensor | Callable[[int], Tensor]
+    chol_R: Tensor | Callable[[int], Tensor]
+    q: Tensor | Callable[[int], Tensor] | None = None
+    r: Tensor | Callable[[int], Tensor] | None = None
+    control_dim: int = 0
+    batched: bool = False
+    jac_f: Fn | None = field(default=None, repr=False)
+    jac_h: Fn | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        if not callable(self.h):
+            raise TypeError("h must be a callable h(x, u, k) -> (m,)")
+        if self.f is not None and not callable(self.f):
+            raise TypeError("f must be a callable f(x, u, k) -> (n,) or None (random walk)")
+        for name in ("state_dim", "obs_dim"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} must be a positive int, got {v!r}")
+        if not isinstance(self.control_dim, int) or self.control_dim < 0:
+            raise ValueError(f"control_dim must be a non-negative int, got {self.control_dim!r}")
+
+    # -- noise --------------------------------------------------------------------------
+    def noise(self, k: int) -> Noise:
+        """Noise statistics at step ``k`` (callables are evaluated here)."""
+        return Noise(_at(self.q, k), _at(self.chol_Q, k), _at(self.r, k), _at(self.chol_R, k))
+
+    # -- batched evaluation -------------------------------------------------------------
+    def transition(self, x: Tensor, u: Tensor | None, k: int) -> Tensor:
+        """Noise-free ``f`` on ``x`` of shape ``(..., n)``; returns ``(..., n)``."""
+        if self.f is None:
+            return x
+        return _apply(self.f, x, u, k, self.batched)
+
+    def observe(self, x: Tensor, u: Tensor | None, k: int) -> Tensor:
+        """Noise-free ``h`` on ``x`` of shape ``(..., n)``; returns ``(..., m)``."""
+        return _apply(self.h, x, u, k, self.batched)
+
+    def transition_jacobian(self, x: Tensor, u: Tensor | None, k: int) -> Tensor:
+        """``df/dx`` at ``x`` ``(..., n)``: ``(..., n, n)`` (identity for the random walk)."""
+        if self.f is None:
+            eye = torch.eye(self.state_dim, dtype=x.dtype, device=x.device)
+            return eye.expand(*x.shape[:-1], self.state_dim, self.state_dim)
+        if self.jac_f is not None:
+            return _apply_matrix(self.jac_f, x, u, k, self.batched)
+        return _jacobian(self.f, x, u, k)
+
+    def observation_jacobian(self, x: Tensor, u: Tensor | None, k: int) -> Tensor:
+        """``dh/dx`` at ``x`` ``(..., n)``: ``(..., m, n)``."""
+        if self.jac_h is not None:
+            return _apply_matrix(self.jac_h, x, u, k, self.batched)
+        return _jacobian(self.h, x, u, k)
+
+
+def _apply_matrix(fn: Fn, x: Tensor, u: Tensor | None, k: int, batched: bool) -> Tensor:
+    if batched:
+        return fn(x, u, k)
+    lead = x.shape[:-1]
+    flat = lambda xi, ui: fn(xi, ui, k).reshape(-1)  # noqa: E731
+    xf = x.reshape(-1, x.shape[-1])
+    if u is None:
+        out = vmap(lambda xi: flat(xi, None))(xf)
+    else:
+        uf = torch.broadcast_to(u, lead + u.shape[-1:]).reshape(-1, u.shape[-1])
+        out = vmap(flat)(xf, uf)
+    J0 = fn(xf[0], None if u is None else uf[0], k)
+    return out.reshape(*lead, *J0.shape)
+
+
+def linear_gaussian_model(
+    F: Tensor,
+    H: Tensor,
+    chol_Q: Tensor,
+    chol_R: Tensor,
+    *,
+    B: Tensor | None = None,
+    q: Tensor | None = None,
+    r: Tensor | None = None,
+) -> StateSpaceModel:
+    """``x_k = F x_{k-1} + B u_k + w_k``, ``y_k = H x_k + v_k`` as a :class:`StateSpaceModel`.
+
+    ``F``: ``(n, n)``, ``H``: ``(m, n)``, ``B``: ``(n, p)`` or ``None``. The filters treat it as any
+    nonlinear model (sigma points / Jacobians), which is what the exactness tests rely on.
+    """
+    n, m = F.shape[-1], H.shape[-2]
+    if B is None:
+        f = lambda x, u, k: F @ x  # noqa: E731
+        p = 0
+    else:
+        f = lambda x, u, k: F @ x + B @ u  # noqa: E731
+        p = B.shape[-1]
+    h = lambda x, u, k: H @ x  # noqa: E731
+    return StateSpaceModel(
+        f=f, h=h, state_dim=n, obs_dim=m, chol_Q=chol_Q, chol_R=chol_R, q=q, r=r, control_dim=p
+    )
+
+
+def joint_state_parameter_model(
+    f: Callable[[Tensor, Tensor, Tensor | None, int], Tensor],
+    h: Callable[[Tensor, Tensor, Tensor | None, int], Tensor],
+    *,
+    state_dim: int,
+    param_dim: int,
+    obs_dim: int,
+    chol_Q: Tensor | Callable[[int], Tensor],
+    chol_D: Tensor | Callable[[int], Tensor],
+    chol_R: Tensor | Callable[[int], Tensor],
+    q: Tensor | None = None,
+    r: Tensor | None = None,
+    control_dim: int = 0,
+) -> StateSpaceModel:
+    """Augment unknown parameters ``theta`` as random-walk states (paper 000 Eq. 3-4; paper 004 Eq. 12-13).
+
+    ``x^e_k = [f(x_{k-1}, theta_{k-1}, u_k, k); theta_{k-1}] + [w; d]``,
+    ``y_k = h(x_k, theta_k, u_k, k) + v``. The assistant model ``theta_k = theta_{k-1}`` is the
+    paper's choice when the fault's law of change is unknown.
+
+    Args:
+        f: per-sample ``f(x (n,), theta (d,), u, k) -> (n,)``.
+        h: per-sample ``h(x, theta, u, k) -> (m,)``.
+        chol_Q: ``(n, n)`` square root of the state-noise covariance.
+        chol_D: ``(d, d)`` square root of the parameter random-walk covariance.
+        chol_R: ``(m, m)``.
+    Returns:
+        A :class:`StateSpaceModel` on the ``n + d`` dimensional augmented state.
+    """
+    n, d = state_dim, param_dim
+
+    def fa(z, u, k):
+        x, th = z[:n], z[n:]
+        return torch.cat([f(x, th, u, k), th])
+
+    def ha(z, u, k):
+        return h(z[:n], z[n:], u, k)
+
+    def block(k: int) -> Tensor:
+        SQ, SD = _at(chol_Q, k), _at(chol_D, k)
+        out = SQ.new_zeros(*SQ.shape[:-2], n + d, n + d)
+        out[..., :n, :n] = SQ
+        out[..., n:, n:] = SD
+        return out
+
+    const = not callable(chol_Q) and not callable(chol_D)
+    qa = None if q is None else torch.cat([q, q.new_zeros(d)])
+    return StateSpaceModel(
+        f=fa,
+        h=ha,
+        state_dim=n + d,
+        obs_dim=obs_dim,
+        chol_Q=block(0) if const else block,
+        chol_R=chol_R,
+        q=qa,
+        r=r,
+        control_dim=control_dim,
+    )

@@ -1,0 +1,46 @@
+"""Filters: the Gaussian engine and its configurations, sequence runners, particle filters."""
+
+from .gaussian import (
+    FILTERS,
+    FilterState,
+    GaussianFilter,
+    StepInfo,
+    Taylor,
+    arukf,
+    ckf,
+    ekf,
+    imsrukf,
+    make_filter,
+    rukf,
+    sckf,
+    srukf,
+    stekf,
+    stsckf,
+    stukf,
+    ukf,
+)
+from .run import Forecast, Trajectory, forecast, run
+
+__all__ = [
+    "FILTERS",
+    "FilterState",
+    "GaussianFilter",
+    "StepInfo",
+    "Taylor",
+    "arukf",
+    "ckf",
+    "ekf",
+    "imsrukf",
+    "make_filter",
+    "rukf",
+    "sckf",
+    "srukf",
+    "stekf",
+    "stsckf",
+    "stukf",
+    "ukf",
+    "Forecast",
+    "Trajectory",
+    "forecast",
+    "run",
+]

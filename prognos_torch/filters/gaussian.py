@@ -1,0 +1,674 @@
+"""One square-root predict/update engine for every Gaussian filter of the library.
+
+EKF, UKF, SRUKF, CKF, SCKF, their strong-tracking versions (STEKF, STUKF, STSCKF), the
+noise-adaptive ImSRUKF and the robust/adaptive RUKF/ARUKF are *configurations* of
+:class:`GaussianFilter`: a moment rule (Taylor linearisation or a sigma-point rule), a covariance
+algebra (square-root or full), and optional adaptation pieces (fading factor, noise estimator,
+robust bound). There is one step function; nothing is copied per variant.
+
+Step ``k`` (model convention of :mod:`prognos_torch.core.model`):
+
+1. Propagate the posterior at ``k-1`` through ``f``: predicted mean ``x_pred`` and the
+   "spread" factor ``A`` with ``A A^T = sum_i W_i (gamma_i - x_pred)(gamma_i - x_pred)^T``
+   (EKF: ``A = F S``; random walk: ``A = S``).
+2. Prior square root ``S_pred = Tria([sqrt(lambda_k) A, S_Q])`` (paper 000 Eq. 25/36; paper 003
+   Eq. 16-18), with ``lambda_k = 1`` unless a fading factor is configured. Negative sigma-point
+   weights enter as Cholesky downdates (paper 003 Eq. 17).
+3. Measurement moments under the prior: predicted measurement, ``P_xz``, innovation factor
+   ``S_zz = Tria([Z, S_R])`` (paper 000 Eq. 40; paper 003 Eq. 22-24).
+4. Gain ``K = (P_xz / S_zz^T) / S_zz`` by triangular solves (paper 000 Eq. 44), mean update, and
+   the posterior square root ``Tria([chi - K Z, K S_R])`` (paper 000 Eq. 46, a Joseph form valid
+   for any weights) or, when the sigma points are not redrawn, ``cholupdate(S_pred, K S_zz, -1)``
+   (paper 003 Eq. 28-29).
+
+Missing data: a measurement vector containing NaN is *missing*; the step then only predicts
+(the posterior equals the prior, the log-likelihood contribution is 0, ``nis`` is NaN, the
+fading factor is 1 and noise estimators hold). Partially observed vectors are treated as missing
+as a whole.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import torch
+from torch import Tensor
+
+from ..adapt.noise import MovingWindow, NoiseEstimatorState, SageHusa, UpdateContext
+from ..adapt.robust import RobustBound
+from ..adapt.strong_tracking import StrongTracking, StrongTrackingState, fading_factor
+from ..core.belief import GaussianBelief
+from ..core.linalg import cho_solve_right, chol_downdate, safe_cholesky, symmetrize, tria
+from ..core.model import Noise, StateSpaceModel
+from ..quadrature import SigmaPoints, cubature, julier, unscented
+
+__all__ = [
+    "Taylor",
+    "GaussianFilter",
+    "FilterState",
+    "StepInfo",
+    "ekf",
+    "ukf",
+    "srukf",
+    "ckf",
+    "sckf",
+    "stekf",
+    "stukf",
+    "stsckf",
+    "imsrukf",
+    "rukf",
+    "arukf",
+    "make_filter",
+    "FILTERS",
+]
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+@dataclass(frozen=True)
+class Taylor:
+    """First-order Taylor linearisation (EKF); Jacobians by ``torch.func.jacfwd`` or the model's."""
+
+
+@dataclass(frozen=True)
+class FilterState:
+    """Everything a filter carries between steps (no hidden state on filter objects).
+
+    Attributes:
+        belief: posterior at the last step.
+        fading: strong-tracking state (``V_k``) or ``None``.
+        noise: noise-estimator state or ``None``.
+    """
+
+    belief: GaussianBelief
+    fading: StrongTrackingState | None = None
+    noise: NoiseEstimatorState | None = None
+
+
+@dataclass(frozen=True)
+class StepInfo:
+    """Diagnostics of one step (batch dims ``...``).
+
+    Attributes:
+        prior: the predicted belief ``N(x_{k|k-1}, S S^T)`` (after fading).
+        innovation: ``(..., m)`` ``y_k - z_{k|k-1}`` (zeros where missing).
+        chol_innovation: ``(..., m, m)`` square root of the innovation covariance.
+        log_likelihood: ``(...)`` ``log N(y_k; z_{k|k-1}, S_zz S_zz^T)`` (0 where missing).
+        nis: ``(...)`` normalised innovation squared (NaN where missing).
+        fading_factor: ``(...)`` ``lambda_k`` (1 without strong tracking).
+        noise: the noise statistics used in this step.
+        noise_fallback: ``(...)`` bool, true where a noise estimate had to be projected to PD.
+        missing: ``(...)`` bool.
+        gain: ``(..., n, m)`` Kalman gain.
+    """
+
+    prior: GaussianBelief
+    innovation: Tensor
+    chol_innovation: Tensor
+    log_likelihood: Tensor
+    nis: Tensor
+    fading_factor: Tensor
+    noise: Noise
+    noise_fallback: Tensor
+    missing: Tensor
+    gain: Tensor
+
+
+@dataclass(frozen=True)
+class _Propagation:
+    mean: Tensor  # (..., n) predicted mean including q
+    f_mean: Tensor  # (..., n) sum W f(xi), without q
+    pos: Tensor  # (..., n, Lp) spread factor (positive weights)
+    neg: Tensor | None  # (..., n, Ln) negative-weight part
+    points: Tensor | None  # (..., L, n) propagated sigma points incl. q (for redraw=False)
+
+
+@dataclass(frozen=True)
+class _Prior:
+    mean: Tensor
+    chol: Tensor
+    cov: Tensor | None  # kept by the full-covariance algebra
+
+
+@dataclass(frozen=True)
+class _Moments:
+    z: Tensor  # (..., m) predicted measurement including r
+    dx_pos: Tensor  # (..., n, Lp)
+    dz_pos: Tensor  # (..., m, Lp)
+    dx_neg: Tensor | None
+    dz_neg: Tensor | None
+    joseph: bool  # dx factors reproduce the prior covariance exactly
+    H: Tensor | None  # Jacobian (Taylor rule)
+
+    def pxz(self) -> Tensor:
+        P = self.dx_pos @ self.dz_pos.mT
+        if self.dx_neg is not None:
+            P = P - self.dx_neg @ self.dz_neg.mT
+        return P
+
+    def pzz(self) -> Tensor:
+        P = self.dz_pos @ self.dz_pos.mT
+        if self.dz_neg is not None:
+            P = P - self.dz_neg @ self.dz_neg.mT
+        return P
+
+    def pzz_trace(self) -> Tensor:
+        t = (self.dz_pos * self.dz_pos).sum((-2, -1))
+        if self.dz_neg is not None:
+            t = t - (self.dz_neg * self.dz_neg).sum((-2, -1))
+        return t
+
+
+def _split_weights(wc: Tensor) -> tuple[Tensor, Tensor]:
+    pos = (wc > 0).nonzero().squeeze(-1)
+    neg = (wc < 0).nonzero().squeeze(-1)
+    return pos, neg
+
+
+def _weighted_columns(D: Tensor, wc: Tensor, idx: Tensor) -> Tensor:
+    """``D``: ``(..., L, d)`` deviations -> ``(..., d, len(idx))`` columns ``sqrt|w_i| D_i``."""
+    return (D[..., idx, :] * wc[idx].abs().sqrt().unsqueeze(-1)).mT
+
+
+def _bcast(x: Tensor, batch_shape: torch.Size, tail: tuple[int, ...]) -> Tensor:
+    return x.expand(*batch_shape, *tail)
+
+
+@dataclass(frozen=True)
+class GaussianFilter:
+    """A Gaussian filter configuration; see the module docstring.
+
+    Attributes:
+        rule: :class:`Taylor` (EKF) or a :class:`~prognos_torch.quadrature.SigmaPoints` rule.
+        sqrt: square-root algebra (QR/Cholesky updates) if true, else full covariances.
+        redraw: redraw sigma points from the prior before the measurement update (SRUKF of
+            paper 003 and SCKF of paper 000 do); ``False`` reuses the propagated points
+            (filterpy's UKF does, which ignores ``Q`` in ``P_xz`` and ``P_zz``).
+        fading: ``None``, a constant fading factor ``>= 1``, or :class:`StrongTracking`.
+        noise: ``None``, :class:`SageHusa` or :class:`MovingWindow`.
+        robust: ``None`` or :class:`RobustBound` (paper 004 Theorem 1).
+        name: label for tables.
+    """
+
+    rule: Taylor | SigmaPoints
+    sqrt: bool = True
+    redraw: bool = True
+    fading: StrongTracking | float | None = None
+    noise: SageHusa | MovingWindow | None = None
+    robust: RobustBound | None = None
+    name: str = ""
+
+    def __post_init__(self):
+        if not isinstance(self.rule, (Taylor, SigmaPoints)):
+            raise TypeError(f"rule must be Taylor() or a SigmaPoints rule, got {type(self.rule)}")
+        if isinstance(self.fading, (int, float)) and not isinstance(self.fading, bool):
+            if not self.fading >= 1.0:
+                raise ValueError(f"a constant fading factor must be >= 1, got {self.fading}")
+        elif self.fading is not None and not isinstance(self.fading, StrongTracking):
+            raise TypeError("fading must be None, a float >= 1 or StrongTracking")
+        if self.robust is not None and not self.redraw:
+            raise ValueError("the robust update needs redraw=True (Joseph-form posterior)")
+
+    # ------------------------------------------------------------------ state
+    def init(self, model: StateSpaceModel, belief: GaussianBelief, k: int = 0) -> FilterState:
+        """Initial :class:`FilterState` for ``belief`` (validated; ``k``: step of the noise used)."""
+        belief.validate("belief")
+        if belief.dim != model.state_dim:
+            raise ValueError(
+                f"belief.mean must have shape (..., {model.state_dim}) for this model, "
+                f"got {tuple(belief.mean.shape)}"
+            )
+        bs, like = belief.batch_shape, belief.mean
+        fstate = None
+        if isinstance(self.fading, StrongTracking):
+            fstate = self.fading.init(bs, model.obs_dim, like.dtype, like.device)
+        nstate = None
+        if self.noise is not None:
+            noise = self._checked_noise(model, k, belief)
+            nstate = self.noise.init(noise, bs, model.state_dim, model.obs_dim, like)
+        return FilterState(belief, fstate, nstate)
+
+    # ------------------------------------------------------------------ noise
+    def _checked_noise(self, model: StateSpaceModel, k: int, belief: GaussianBelief) -> Noise:
+        noise = model.noise(k)
+        n, m, bs = model.state_dim, model.obs_dim, belief.batch_shape
+        dt, dev = belief.mean.dtype, belief.mean.device
+
+        def conv(x, name, tail, what):
+            if x is None:
+                return None
+            if not isinstance(x, Tensor):
+                x = torch.as_tensor(x, dtype=dt, device=dev)
+            if x.device != dev:
+                raise ValueError(f"{name} is on {x.device}, the belief on {dev}")
+            x = x.to(dt)
+            t = tuple(x.shape)
+            if t[len(t) - len(tail) :] != tail or (
+                len(t) > len(tail) and t[: len(t) - len(tail)] != tuple(bs)
+            ):
+                raise ValueError(
+                    f"{name} must have shape {what} with {tail} or batch shape "
+                    f"{tuple(bs)} + {tail}, got {t}"
+                )
+            return x
+
+        return Noise(
+            conv(noise.q, "model.q", (n,), "(n,)"),
+            conv(noise.chol_Q, "model.chol_Q", (n, n), "(n, n)"),
+            conv(noise.r, "model.r", (m,), "(m,)"),
+            conv(noise.chol_R, "model.chol_R", (m, m), "(m, m)"),
+        )
+
+    def _noise(self, model, state: FilterState, k: int) -> Noise:
+        if state.noise is not None:
+            return state.noise.noise()
+        return self._checked_noise(model, k, state.belief)
+
+    # ------------------------------------------------------------------ stages
+    def _sigma(self, n: int, like: Tensor):
+        xi, wm, wc = self.rule.points(n, dtype=like.dtype, device=like.device)
+        return xi, wm, wc
+
+    def _propagate(self, model, belief: GaussianBelief, u, k: int, q) -> _Propagation:
+        m, S = belief.mean, belief.chol
+        if model.f is None:  # random walk: exact for every rule
+            mean = m if q is None else m + q
+            return _Propagation(mean, m, S, None, None)
+        if isinstance(self.rule, Taylor):
+            fx = model.transition(m, u, k)
+            F = model.transition_jacobian(m, u, k)
+            mean = fx if q is None else fx + q
+            return _Propagation(mean, fx, F @ S, None, None)
+        xi, wm, wc = self._sigma(model.state_dim, m)
+        X = m.unsqueeze(-2) + xi @ S.mT  # (..., L, n), paper 000 Eq. 21
+        uu = None if u is None else u.unsqueeze(-2)
+        Y = model.transition(X, uu, k)  # Eq. 23 / paper 003 Eq. 14
+        f_mean = (wm.unsqueeze(-1) * Y).sum(-2)  # Eq. 24
+        mean = f_mean if q is None else f_mean + q
+        D = Y - f_mean.unsqueeze(-2)
+        ip, ineg = _split_weights(wc)
+        pos = _weighted_columns(D, wc, ip)
+        neg = _weighted_columns(D, wc, ineg) if ineg.numel() else None
+        pts = Y if q is None else Y + q.unsqueeze(-2)
+        return _Propagation(mean, f_mean, pos, neg, pts)
+
+    def _prior(self, prop: _Propagation, chol_Q: Tensor, lam: Tensor | None) -> _Prior:
+        bs = prop.mean.shape[:-1]
+        n = prop.mean.shape[-1]
+        pos, neg = prop.pos, prop.neg
+        if lam is not None:
+            sl = lam.sqrt()[..., None, None]
+            pos = sl * pos
+            neg = None if neg is None else sl * neg
+        SQ = _bcast(chol_Q, bs, (n, n))
+        if self.sqrt:
+            S = tria(torch.cat([pos, SQ], dim=-1))  # paper 000 Eq. 25/36; paper 003 Eq. 16
+            if neg is not None:
+                S = chol_downdate(S, neg)  # paper 003 Eq. 17 (negative W_0)
+            return _Prior(prop.mean, S, None)
+        P = pos @ pos.mT + SQ @ SQ.mT
+        if neg is not None:
+            P = P - neg @ neg.mT
+        P = symmetrize(P)
+        return _Prior(prop.mean, safe_cholesky(P), P)
+
+    def _moments(self, model, prior: _Prior, prop: _Propagation, u, k: int, r) -> _Moments:
+        x, S = prior.mean, prior.chol
+        if isinstance(self.rule, Taylor):
+            hx = model.observe(x, u, k)
+            H = model.observation_jacobian(x, u, k)
+            z = hx if r is None else hx + r
+            return _Moments(z, S, H @ S, None, None, True, H)
+        xi, wm, wc = self._sigma(model.state_dim, x)
+        if self.redraw or prop.points is None:
+            X = x.unsqueeze(-2) + xi @ S.mT  # paper 000 Eq. 37
+            joseph = True
+        else:
+            X = prop.points  # reuse propagated points (filterpy)
+            joseph = False
+        uu = None if u is None else u.unsqueeze(-2)
+        eta = model.observe(X, uu, k)  # Eq. 38
+        h_mean = (wm.unsqueeze(-1) * eta).sum(-2)
+        z = h_mean if r is None else h_mean + r  # Eq. 39
+        dZ = eta - h_mean.unsqueeze(-2)
+        dX = X - x.unsqueeze(-2)
+        ip, ineg = _split_weights(wc)
+        has_neg = ineg.numel() > 0
+        return _Moments(
+            z,
+            _weighted_columns(dX, wc, ip),
+            _weighted_columns(dZ, wc, ip),
+            _weighted_columns(dX, wc, ineg) if has_neg else None,
+            _weighted_columns(dZ, wc, ineg) if has_neg else None,
+            joseph,
+            None,
+        )
+
+    def _innovation_chol(self, mom: _Moments, chol_R: Tensor) -> Tensor:
+        bs = mom.z.shape[:-1]
+        mdim = mom.z.shape[-1]
+        SR = _bcast(chol_R, bs, (mdim, mdim))
+        if self.robust is not None:
+            g2, nu = self.robust.gamma**2, self.robust.nu
+            M = self.robust.M_matrix(mdim, SR.dtype, SR.device)
+            cols = [
+                mom.dz_pos,
+                math.sqrt(g2 - nu) * _bcast(M, bs, M.shape),
+                math.sqrt(1 - nu / g2) * SR,
+            ]
+        else:
+            cols = [mom.dz_pos, SR]
+        if self.sqrt:
+            Szz = tria(torch.cat(cols, dim=-1))  # paper 000 Eq. 40; paper 003 Eq. 22
+            if mom.dz_neg is not None:
+                Szz = chol_downdate(Szz, mom.dz_neg)  # paper 003 Eq. 23
+            return Szz
+        P = sum(c @ c.mT for c in cols)
+        if mom.dz_neg is not None:
+            P = P - mom.dz_neg @ mom.dz_neg.mT
+        return safe_cholesky(P)
+
+    def _posterior_chol(
+        self, prior: _Prior, mom: _Moments, K: Tensor, Szz: Tensor, chol_R
+    ) -> Tensor:
+        bs = prior.mean.shape[:-1]
+        mdim = mom.z.shape[-1]
+        SR = _bcast(chol_R, bs, (mdim, mdim))
+        rob = self.robust
+        c = 1.0 if rob is None else math.sqrt(rob.lam)
+        if not self.sqrt:
+            if rob is None:
+                U = K @ Szz
+                P = prior.cov - U @ U.mT
+            else:
+                A = mom.dx_pos - K @ mom.dz_pos
+                P = rob.lam * (A @ A.mT) + (K @ SR) @ (K @ SR).mT
+                M = rob.M_matrix(mdim, SR.dtype, SR.device)
+                P = P + rob.gamma**2 * (K @ M) @ (K @ M).mT
+                if mom.dx_neg is not None:
+                    B = mom.dx_neg - K @ mom.dz_neg
+                    P = P - rob.lam * (B @ B.mT)
+            return safe_cholesky(symmetrize(P))
+        if not mom.joseph:
+            return chol_downdate(prior.chol, K @ Szz)  # paper 003 Eq. 28-29
+        cols = [c * (mom.dx_pos - K @ mom.dz_pos), K @ SR]  # paper 000 Eq. 46
+        if rob is not None:  # paper 004 Eq. 28 in square-root form
+            M = rob.M_matrix(mdim, SR.dtype, SR.device)
+            cols.append(rob.gamma * (K @ M))
+        S = tria(torch.cat(cols, dim=-1))
+        if mom.dx_neg is not None:
+            S = chol_downdate(S, c * (mom.dx_neg - K @ mom.dz_neg))
+        return S
+
+    # ------------------------------------------------------------------ public steps
+    def predict(
+        self, model, state: FilterState, u: Tensor | None = None, k: int = 1
+    ) -> FilterState:
+        """Time update only (multi-step-ahead prediction; ``lambda = 1``, noise estimates held)."""
+        u = self._check_u(model, u, state.belief)
+        noise = self._noise(model, state, k)
+        prop = self._propagate(model, state.belief, u, k, noise.q)
+        lam = None
+        if isinstance(self.fading, (int, float)):
+            lam = torch.full(
+                state.belief.batch_shape,
+                float(self.fading),
+                dtype=prop.mean.dtype,
+                device=prop.mean.device,
+            )
+        prior = self._prior(prop, noise.chol_Q, lam)
+        return replace(state, belief=GaussianBelief(prior.mean, prior.chol))
+
+    def predict_measurement(
+        self, model, belief: GaussianBelief, u: Tensor | None = None, k: int = 1
+    ) -> GaussianBelief:
+        """Predictive distribution of ``y_k`` given a belief on ``x_k``: ``N(z, S_zz S_zz^T)``."""
+        u = self._check_u(model, u, belief)
+        noise = self._checked_noise(model, k, belief)
+        prior = _Prior(belief.mean, belief.chol, belief.cov if not self.sqrt else None)
+        dummy = _Propagation(belief.mean, belief.mean, belief.chol, None, None)
+        mom = self._moments(model, prior, dummy, u, k, noise.r)
+        return GaussianBelief(mom.z, self._innovation_chol(mom, noise.chol_R))
+
+    def step(
+        self,
+        model: StateSpaceModel,
+        state: FilterState,
+        y: Tensor,
+        u: Tensor | None = None,
+        k: int = 1,
+    ) -> tuple[FilterState, StepInfo]:
+        """One predict/update step with measurement ``y`` ``(..., m)`` (NaN: missing).
+
+        Args:
+            model: the state-space model.
+            state: :class:`FilterState` at ``k - 1`` (from :meth:`init` or a previous step).
+            y: ``(..., m)`` with the belief's batch shape.
+            u: control ``(..., p)`` or ``(p,)`` (shared by all batch elements), or ``None``.
+            k: step index passed to ``f``, ``h`` and per-step noise.
+        Returns:
+            The new state and a :class:`StepInfo`.
+        """
+        belief = state.belief
+        y = self._check_y(model, y, belief)
+        u = self._check_u(model, u, belief)
+        noise = self._noise(model, state, k)
+        missing = torch.isnan(y).any(-1)
+        prop = self._propagate(model, belief, u, k, noise.q)
+
+        fstate = state.fading
+        lam = None
+        if isinstance(self.fading, StrongTracking):
+            prior_l = self._prior(prop, noise.chol_Q, None)
+            mom_l = self._moments(model, prior_l, prop, u, k, noise.r)
+            eps_l = torch.where(missing[..., None], torch.zeros_like(y), y - mom_l.z)
+            lam, fstate = fading_factor(
+                self.fading,
+                state.fading,
+                eps_l,
+                missing,
+                mom_l.H,
+                _bcast(noise.chol_Q, belief.batch_shape, noise.chol_Q.shape[-2:]),
+                _bcast(noise.chol_R, belief.batch_shape, noise.chol_R.shape[-2:]),
+                prior_l.chol,
+                mom_l.pzz_trace(),
+                mom_l.pxz() if mom_l.H is None else None,
+            )
+            if bool((lam > 1).any()):
+                prior = self._prior(prop, noise.chol_Q, lam)  # paper 000 Eq. 36
+                mom = self._moments(model, prior, prop, u, k, noise.r)
+            else:
+                prior, mom = prior_l, mom_l
+        else:
+            if self.fading is not None:
+                lam = torch.full(
+                    belief.batch_shape, float(self.fading), dtype=y.dtype, device=y.device
+                )
+            prior = self._prior(prop, noise.chol_Q, lam)
+            mom = self._moments(model, prior, prop, u, k, noise.r)
+
+        Szz = self._innovation_chol(mom, noise.chol_R)
+        K = cho_solve_right(mom.pxz(), Szz)  # paper 000 Eq. 44
+        eps = torch.where(missing[..., None], torch.zeros_like(y), y - mom.z)
+        mean = prior.mean + (K @ eps.unsqueeze(-1)).squeeze(-1)  # Eq. 45
+        chol = self._posterior_chol(prior, mom, K, Szz, noise.chol_R)
+        mean = torch.where(missing[..., None], prior.mean, mean)
+        chol = torch.where(missing[..., None, None], prior.chol, chol)
+
+        w = torch.linalg.solve_triangular(Szz, eps.unsqueeze(-1), upper=False).squeeze(-1)
+        nis = (w * w).sum(-1)
+        logdet = 2.0 * torch.log(torch.diagonal(Szz, dim1=-2, dim2=-1)).sum(-1)
+        ll = -0.5 * (y.shape[-1] * _LOG_2PI + logdet + nis)
+        ll = torch.where(missing, torch.zeros_like(ll), ll)
+        nis = torch.where(missing, torch.full_like(nis, float("nan")), nis)
+
+        nstate = state.noise
+        fallback = torch.zeros(belief.batch_shape, dtype=torch.bool, device=y.device)
+        if nstate is not None:
+            spread = prop.pos @ prop.pos.mT
+            if prop.neg is not None:
+                spread = spread - prop.neg @ prop.neg.mT
+            h_mean = mom.z if noise.r is None else mom.z - noise.r
+            ctx = UpdateContext(
+                x_post=mean,
+                f_mean=prop.f_mean,
+                spread=spread,
+                gain=K,
+                innovation=eps,
+                cov_post=chol @ chol.mT,
+                y=torch.where(missing[..., None], mom.z, y),
+                h_mean=h_mean,
+                pzz_noR=mom.pzz(),
+                missing=missing,
+            )
+            nstate = self.noise.update(nstate, ctx)
+            fallback = nstate.fallback
+        if lam is None:
+            lam = torch.ones(belief.batch_shape, dtype=y.dtype, device=y.device)
+        info = StepInfo(
+            prior=GaussianBelief(prior.mean, prior.chol),
+            innovation=eps,
+            chol_innovation=Szz,
+            log_likelihood=ll,
+            nis=nis,
+            fading_factor=lam,
+            noise=noise,
+            noise_fallback=fallback,
+            missing=missing,
+            gain=K,
+        )
+        return FilterState(GaussianBelief(mean, chol), fstate, nstate), info
+
+    # ------------------------------------------------------------------ checks
+    @staticmethod
+    def _check_y(model, y, belief: GaussianBelief) -> Tensor:
+        if not isinstance(y, Tensor):
+            raise TypeError(f"y must be a torch.Tensor of shape (..., {model.obs_dim})")
+        want = tuple(belief.batch_shape) + (model.obs_dim,)
+        if tuple(y.shape) != want:
+            raise ValueError(f"y must have shape {want} (batch shape + (m,)), got {tuple(y.shape)}")
+        if y.device != belief.mean.device:
+            raise ValueError(f"y is on {y.device}, the belief on {belief.mean.device}")
+        if torch.isinf(y).any():
+            raise ValueError("y contains inf (use NaN to mark a missing measurement)")
+        return y.to(belief.mean.dtype)
+
+    @staticmethod
+    def _check_u(model, u, belief: GaussianBelief) -> Tensor | None:
+        if model.control_dim == 0:
+            if u is not None:
+                raise ValueError("u was given but the model has control_dim=0")
+            return None
+        if u is None:
+            raise ValueError(
+                f"u is required: shape (..., {model.control_dim}) or ({model.control_dim},)"
+            )
+        if not isinstance(u, Tensor):
+            raise TypeError("u must be a torch.Tensor")
+        p = model.control_dim
+        if tuple(u.shape) not in ((p,), tuple(belief.batch_shape) + (p,)):
+            raise ValueError(
+                f"u must have shape ({p},) or {tuple(belief.batch_shape) + (p,)}, got "
+                f"{tuple(u.shape)}"
+            )
+        if not bool(torch.isfinite(u).all()):
+            raise ValueError("u contains non-finite values")
+        return u.to(belief.mean.dtype)
+
+
+# ---------------------------------------------------------------------- configurations
+def ekf(*, sqrt: bool = True, **kw) -> GaussianFilter:
+    """Extended Kalman filter (Jacobians by ``torch.func``)."""
+    return GaussianFilter(Taylor(), sqrt=sqrt, name=kw.pop("name", "EKF"), **kw)
+
+
+def ukf(
+    alpha: float = 1.0, beta: float = 2.0, kappa: float | None = 0.0, *, sqrt: bool = False, **kw
+) -> GaussianFilter:
+    """Unscented KF with the scaled rule (full covariance algebra by default)."""
+    return GaussianFilter(
+        unscented(alpha, beta, kappa), sqrt=sqrt, name=kw.pop("name", "UKF"), **kw
+    )
+
+
+def srukf(kappa: float | None = 1.0, *, rule: SigmaPoints | None = None, **kw) -> GaussianFilter:
+    """Square-root UKF of paper 003 (Eq. 10-30), Julier's rule with ``kappa = 1`` by default."""
+    return GaussianFilter(rule or julier(kappa), sqrt=True, name=kw.pop("name", "SRUKF"), **kw)
+
+
+def ckf(**kw) -> GaussianFilter:
+    """Cubature KF (full covariance algebra)."""
+    return GaussianFilter(cubature(), sqrt=False, name=kw.pop("name", "CKF"), **kw)
+
+
+def sckf(**kw) -> GaussianFilter:
+    """Square-root cubature KF (paper 000 Eq. 21-46 without fading)."""
+    return GaussianFilter(cubature(), sqrt=True, name=kw.pop("name", "SCKF"), **kw)
+
+
+def stekf(rho: float = 0.95, beta: float = 1.0, **kw) -> GaussianFilter:
+    """Strong-tracking EKF / SFEKF (paper 000 Eq. 7-12)."""
+    return ekf(fading=StrongTracking(rho, beta), name=kw.pop("name", "STEKF"), **kw)
+
+
+def stukf(rho: float = 0.95, beta: float = 1.0, kappa: float | None = 1.0, **kw) -> GaussianFilter:
+    """Strong-tracking UKF (derivative-free fading factor on the SRUKF engine)."""
+    return srukf(kappa, fading=StrongTracking(rho, beta), name=kw.pop("name", "STUKF"), **kw)
+
+
+def stsckf(rho: float = 0.95, beta: float = 1.0, **kw) -> GaussianFilter:
+    """Strong-tracking square-root cubature KF (paper 000 Sec. 3.3, Eq. 21-46)."""
+    return sckf(fading=StrongTracking(rho, beta), name=kw.pop("name", "STSCKF"), **kw)
+
+
+def imsrukf(kappa: float | None = 1.0, *, noise: SageHusa | None = None, **kw) -> GaussianFilter:
+    """ImSRUKF: SRUKF with the Sage-Husa noise-statistics estimator (paper 003 Sec. III-B)."""
+    return srukf(kappa, noise=noise or SageHusa(), name=kw.pop("name", "ImSRUKF"), **kw)
+
+
+def rukf(
+    gamma: float, M: Tensor, N: float = 1.0, *, alpha: float = 1.0, kappa: float = 1.0, **kw
+) -> GaussianFilter:
+    """Robust UKF of paper 004 (Theorem 1, steps 1-5): sigma points of Eq. 36, gain Eq. 29.
+
+    Paper 004 Eq. 36 uses ``xi = x +- a sqrt((n + 1) P)``, i.e. the scaled rule with
+    ``alpha = a`` and ``kappa = 1``.
+    """
+    return GaussianFilter(
+        unscented(alpha, 0.0, kappa),
+        sqrt=True,
+        robust=RobustBound(gamma, M, N),
+        name=kw.pop("name", "RUKF"),
+        **kw,
+    )
+
+
+def arukf(
+    gamma: float, M: Tensor, N: float = 1.0, *, window: int = 50, diagonal: bool = True, **kw
+) -> GaussianFilter:
+    """Adaptive robust UKF of paper 004 (Sec. 3): RUKF + moving-window Q/R estimator (Eq. 47-49)."""
+    est = MovingWindow(window=window, M=M, N=N, mu=gamma**2, diagonal=diagonal)
+    return rukf(gamma, M, N, noise=est, name=kw.pop("name", "ARUKF"), **kw)
+
+
+FILTERS = {
+    "ekf": ekf,
+    "ukf": ukf,
+    "srukf": srukf,
+    "ckf": ckf,
+    "sckf": sckf,
+    "stekf": stekf,
+    "stukf": stukf,
+    "stsckf": stsckf,
+    "imsrukf": imsrukf,
+}
+
+
+def make_filter(name: str, **kw) -> GaussianFilter:
+    """Build a configured filter by name (``ekf``, ``ukf``, ``srukf``, ``ckf``, ``sckf``,
+    ``stekf``, ``stukf``, ``stsckf``, ``imsrukf``)."""
+    key = name.lower()
+    if key not in FILTERS:
+        raise ValueError(f"unknown filter {name!r}; choose one of {sorted(FILTERS)}")
+    return FILTERS[key](**kw)

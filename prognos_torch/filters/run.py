@@ -1,0 +1,180 @@
+"""Running a Gaussian filter over a sequence, and predict-only forecasting."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..core.belief import GaussianBelief
+from ..core.model import StateSpaceModel
+from .gaussian import FilterState, GaussianFilter
+
+__all__ = ["Trajectory", "Forecast", "run", "forecast"]
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Filter output over ``T`` steps (time leading, batch dims ``...`` after it).
+
+    Attributes:
+        means: ``(T, ..., n)`` posterior means.
+        chols: ``(T, ..., n, n)`` posterior square roots.
+        pred_means, pred_chols: the priors ``x_{k|k-1}`` (after fading).
+        innovations: ``(T, ..., m)``.
+        chol_innovations: ``(T, ..., m, m)``.
+        log_likelihoods: ``(T, ...)`` per-step terms; ``log_likelihood`` their sum ``(...)``.
+        nis: ``(T, ...)``; fading_factors: ``(T, ...)``.
+        chol_Q, chol_R: ``(T, ..., n, n)``/``(T, ..., m, m)`` noise square roots used per step
+            (only with a noise estimator, else ``None``); q, r likewise.
+        noise_fallback: ``(T, ...)`` bool.
+        final: the :class:`FilterState` after the last step (resume from it).
+    """
+
+    means: Tensor
+    chols: Tensor
+    pred_means: Tensor
+    pred_chols: Tensor
+    innovations: Tensor
+    chol_innovations: Tensor
+    log_likelihoods: Tensor
+    nis: Tensor
+    fading_factors: Tensor
+    noise_fallback: Tensor
+    chol_Q: Tensor | None
+    chol_R: Tensor | None
+    q: Tensor | None
+    r: Tensor | None
+    final: FilterState
+
+    @property
+    def log_likelihood(self) -> Tensor:
+        return self.log_likelihoods.sum(0)
+
+    @property
+    def covs(self) -> Tensor:
+        return self.chols @ self.chols.mT
+
+
+def _check_seq(x: Tensor | None, name: str, T: int | None, tail: int, batch) -> None:
+    if x is None:
+        return
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor")
+    ok = x.dim() >= 2 and x.shape[-1] == tail and (T is None or x.shape[0] == T)
+    ok = (
+        ok and tuple(x.shape[1:-1]) in ((), tuple(batch))
+        if name == "us"
+        else ok and tuple(x.shape[1:-1]) == tuple(batch)
+    )
+    if not ok:
+        want = f"(T, {', '.join(map(str, batch)) + ', ' if len(batch) else ''}{tail})"
+        raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
+
+
+def run(
+    filt: GaussianFilter,
+    model: StateSpaceModel,
+    init: GaussianBelief | FilterState,
+    ys: Tensor,
+    us: Tensor | None = None,
+    *,
+    k0: int = 0,
+) -> Trajectory:
+    """Filter the measurements ``ys`` ``(T, ..., m)`` (NaN rows: missing, predict only).
+
+    Step ``t`` (0-based) uses ``k = k0 + t + 1``, the control ``us[t]`` (``(T, ..., p)`` or
+    ``(T, p)`` shared by the batch) and measurement ``ys[t]``. ``init`` is the belief on
+    ``x_{k0}`` (or a :class:`FilterState` to resume).
+    """
+    state = init if isinstance(init, FilterState) else filt.init(model, init, k0 + 1)
+    bs = state.belief.batch_shape
+    _check_seq(ys, "ys", None, model.obs_dim, bs)
+    T = ys.shape[0]
+    if model.control_dim:
+        if us is None:
+            raise ValueError(f"us is required: shape (T, ..., {model.control_dim})")
+        _check_seq(us, "us", T, model.control_dim, bs)
+    elif us is not None:
+        raise ValueError("us was given but the model has control_dim=0")
+    keys = (
+        "means",
+        "chols",
+        "pred_means",
+        "pred_chols",
+        "innovations",
+        "chol_innovations",
+        "log_likelihoods",
+        "nis",
+        "fading_factors",
+        "noise_fallback",
+        "chol_Q",
+        "chol_R",
+        "q",
+        "r",
+    )
+    out = {k: [] for k in keys}
+    for t in range(T):
+        state, info = filt.step(model, state, ys[t], None if us is None else us[t], k=k0 + t + 1)
+        out["means"].append(state.belief.mean)
+        out["chols"].append(state.belief.chol)
+        out["pred_means"].append(info.prior.mean)
+        out["pred_chols"].append(info.prior.chol)
+        out["innovations"].append(info.innovation)
+        out["chol_innovations"].append(info.chol_innovation)
+        out["log_likelihoods"].append(info.log_likelihood)
+        out["nis"].append(info.nis)
+        out["fading_factors"].append(info.fading_factor)
+        out["noise_fallback"].append(info.noise_fallback)
+        if state.noise is not None:
+            out["chol_Q"].append(state.noise.chol_Q)
+            out["chol_R"].append(state.noise.chol_R)
+            out["q"].append(state.noise.q)
+            out["r"].append(state.noise.r)
+    stacked = {k: (torch.stack(v) if v else None) for k, v in out.items()}
+    if T == 0:
+        raise ValueError("ys must hold at least one step, shape (T, ..., m) with T >= 1")
+    return Trajectory(**stacked, final=state)
+
+
+@dataclass(frozen=True)
+class Forecast:
+    """Predict-only output over ``H`` steps: state and measurement predictive moments.
+
+    Attributes:
+        means, chols: ``(H, ..., n)``, ``(H, ..., n, n)`` state predictions ``x_{k+j|k}``.
+        y_means, y_chols: ``(H, ..., m)``, ``(H, ..., m, m)`` measurement predictions.
+    """
+
+    means: Tensor
+    chols: Tensor
+    y_means: Tensor
+    y_chols: Tensor
+
+
+def forecast(
+    filt: GaussianFilter,
+    model: StateSpaceModel,
+    init: GaussianBelief | FilterState,
+    steps: int,
+    us: Tensor | None = None,
+    *,
+    k0: int = 0,
+) -> Forecast:
+    """Multi-step-ahead prediction without measurements (``k = k0 + 1 .. k0 + steps``)."""
+    if not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"steps must be a positive int, got {steps!r}")
+    state = init if isinstance(init, FilterState) else filt.init(model, init, k0 + 1)
+    if model.control_dim:
+        _check_seq(us, "us", steps, model.control_dim, state.belief.batch_shape)
+    means, chols, ym, yc = [], [], [], []
+    for j in range(steps):
+        u = None if us is None else us[j]
+        state = filt.predict(model, state, u, k=k0 + j + 1)
+        yb = filt.predict_measurement(model, state.belief, u, k=k0 + j + 1)
+        means.append(state.belief.mean)
+        chols.append(state.belief.chol)
+        ym.append(yb.mean)
+        yc.append(yb.chol)
+    return Forecast(torch.stack(means), torch.stack(chols), torch.stack(ym), torch.stack(yc))
