@@ -1,0 +1,375 @@
+"""From predicted trajectories to fault probability and remaining-useful-life (RUL) distributions.
+
+Paper 002 (Li et al., LS-SVR + strong tracking PF) turns the ``p``-step-ahead particle
+predictions ``x^i_{k+j}`` (weights ``w^i_k`` frozen over the horizon) into
+
+* the fault probability per future step (their unnumbered equation after step 2)::
+
+      fault(j, k) = sum_i w^i_k I(x^i_{k+j} in Omega_0),   j = 1..p
+
+  with ``Omega_0`` the failure region ``{x >= threshold}`` (or ``{x <= threshold}``);
+* the RUL of each particle ``l^i`` (first step at which its path enters ``Omega_0``, times the
+  step length) and the RUL expectation, Eq. 28::
+
+      RUL = sum_i l^i w^i
+
+Eq. 28 presumes that every particle crosses within the predicted horizon (the paper keeps
+predicting "until the predicted values of all particles reach a predefined failure
+threshold"). Here the horizon ``H`` is finite, so paths that never cross are *censored*: their
+RUL is only known to exceed ``H * dt``. :func:`rul_distribution` keeps that mass apart and never
+reports a number for it; the expectation is returned only when the censored mass is at most a
+stated tolerance.
+
+Shapes: ``samples`` is ``(..., N, H)`` (N sample paths / particles, H future steps), weights
+``(..., N)``; leading batch dimensions (e.g. prediction times) are carried through.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..core.validation import as_tensor
+
+__all__ = [
+    "RULDistribution",
+    "fault_probability",
+    "fault_probability_gaussian",
+    "rul_distribution",
+]
+
+_DIRECTIONS = ("above", "below")
+
+
+# --------------------------------------------------------------------------- validation helpers
+def _check_direction(direction: str) -> str:
+    if direction not in _DIRECTIONS:
+        raise ValueError(f"direction must be 'above' or 'below', got {direction!r}")
+    return direction
+
+
+def _check_threshold(threshold) -> float:
+    if isinstance(threshold, bool):
+        raise TypeError("threshold must be a real number, got bool")
+    if isinstance(threshold, Tensor):
+        if threshold.numel() != 1 or threshold.dim() > 1:
+            raise ValueError(
+                f"threshold must be a scalar (0-dim tensor or number), got shape "
+                f"{tuple(threshold.shape)}"
+            )
+        threshold = threshold.item()
+    try:
+        value = float(threshold)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"threshold must be a real number, got {type(threshold)}") from exc
+    if not math.isfinite(value):
+        raise ValueError(f"threshold must be finite, got {value}")
+    return value
+
+
+def _check_samples(samples) -> Tensor:
+    samples = as_tensor(samples, "samples")
+    if not samples.is_floating_point():
+        samples = samples.to(torch.float64)
+    if samples.dim() < 2:
+        raise ValueError(
+            f"samples must have shape (..., N, H) (N paths, H steps), got {tuple(samples.shape)}"
+        )
+    n_paths, horizon = samples.shape[-2], samples.shape[-1]
+    if horizon < 1:
+        raise ValueError(f"samples must have a horizon H >= 1 (last axis), got H = {horizon}")
+    if n_paths < 1:
+        raise ValueError(f"samples must hold N >= 1 paths (axis -2), got N = {n_paths}")
+    if bool(torch.isnan(samples).any()):
+        raise ValueError("samples contains NaN; shape (..., N, H)")
+    return samples
+
+
+def check_weights(weights, batch_shape: Sequence[int], n: int, device, name: str = "weights"):
+    """Normalised importance weights ``(*batch_shape, n)`` as float64; ``None`` gives ``1/n``.
+
+    Raises ``ValueError`` (naming ``name``) for a wrong shape, NaN/inf, negative entries, rows that
+    are all zero, or rows that do not sum to one within ``1e-6 + 4 n eps(dtype)``. Weights are
+    never renormalised silently.
+    """
+    shape = (*tuple(batch_shape), n)
+    if weights is None:
+        return torch.full(shape, 1.0 / n, dtype=torch.float64, device=device)
+    w = as_tensor(weights, name, device=device)
+    if not w.is_floating_point():
+        raise TypeError(f"{name} must be a floating tensor of shape {shape}, got {w.dtype}")
+    if tuple(w.shape) != shape:
+        raise ValueError(f"{name} must have shape {shape} (..., N), got {tuple(w.shape)}")
+    if bool(torch.isnan(w).all(-1).any()):
+        raise ValueError(f"{name} are all NaN for some batch element; shape {shape}")
+    if not bool(torch.isfinite(w).all()):
+        raise ValueError(f"{name} contain NaN or inf; shape {shape}")
+    if bool((w < 0).any()):
+        raise ValueError(f"{name} must be non-negative")
+    if bool((w == 0).all(-1).any()):
+        raise ValueError(f"{name} are all zero for some batch element; shape {shape}")
+    tol = 1e-6 + 4.0 * n * torch.finfo(w.dtype).eps
+    w64 = w.to(torch.float64)
+    dev = (w64.sum(-1) - 1.0).abs()
+    if bool((dev > tol).any()):
+        raise ValueError(
+            f"{name} must sum to one along the last axis (max |sum - 1| = {dev.max().item():.3g})"
+        )
+    return w64
+
+
+def _crossed(samples: Tensor, threshold: float, direction: str) -> Tensor:
+    # Failure region Omega_0 (paper 002): reaching the threshold counts as failure.
+    return samples >= threshold if direction == "above" else samples <= threshold
+
+
+# --------------------------------------------------------------------------- fault probability
+def fault_probability(
+    samples: Tensor,
+    threshold: float,
+    weights: Tensor | None = None,
+    direction: str = "above",
+) -> Tensor:
+    """Weighted probability that the predicted state is in the failure region at each step.
+
+    Paper 002, fault(j, k) = sum_i w^i_k I(x^i_{k+j} in Omega_0), j = 1..H, with
+    ``Omega_0 = {x >= threshold}`` (``direction="above"``) or ``{x <= threshold}`` ("below").
+    This is the per-step marginal probability, not the probability of having crossed *by* step j
+    (that is ``rul_distribution(...).cdf``).
+
+    Args:
+        samples: ``(..., N, H)`` predicted sample paths / particles.
+        threshold: finite scalar failure threshold.
+        weights: ``(..., N)`` normalised non-negative weights; ``None`` means ``1/N``.
+        direction: ``"above"`` or ``"below"``.
+
+    Returns:
+        ``(..., H)`` float64 probabilities on the device of ``samples``.
+    """
+    direction = _check_direction(direction)
+    samples = _check_samples(samples)
+    thr = _check_threshold(threshold)
+    w = check_weights(weights, samples.shape[:-2], samples.shape[-2], samples.device)
+    hit = _crossed(samples, thr, direction).to(torch.float64)
+    return (w.unsqueeze(-1) * hit).sum(-2)
+
+
+def fault_probability_gaussian(
+    mean: Tensor,
+    std: Tensor,
+    threshold: float,
+    direction: str = "above",
+) -> Tensor:
+    """Fault probability of a Gaussian prediction ``N(mean, std^2)`` at each step.
+
+    ``P(x >= c) = 1 - Phi((c - m) / s) = erfc((c - m) / (s sqrt 2)) / 2`` ("above"),
+    ``P(x <= c) = Phi((c - m) / s)`` ("below"): the Gaussian counterpart of paper 002's
+    fault(j, k). ``std == 0`` is a point prediction: the indicator of the failure region.
+
+    Args:
+        mean: ``(..., H)`` predicted means.
+        std: ``(..., H)`` predicted standard deviations (>= 0), same shape as ``mean``.
+        threshold: finite scalar failure threshold.
+        direction: ``"above"`` or ``"below"``.
+
+    Returns:
+        ``(..., H)`` float64 probabilities on the device of ``mean``.
+    """
+    direction = _check_direction(direction)
+    thr = _check_threshold(threshold)
+    mean = as_tensor(mean, "mean")
+    std = as_tensor(std, "std", device=mean.device)
+    if mean.dim() < 1:
+        raise ValueError(f"mean must have shape (..., H), got {tuple(mean.shape)}")
+    if mean.shape[-1] < 1:
+        raise ValueError("mean must have a horizon H >= 1 (last axis)")
+    if tuple(std.shape) != tuple(mean.shape):
+        raise ValueError(
+            f"std must have the shape of mean {tuple(mean.shape)}, got {tuple(std.shape)}"
+        )
+    mean = mean.to(torch.float64)
+    std = std.to(torch.float64)
+    if not bool(torch.isfinite(mean).all()):
+        raise ValueError("mean contains non-finite values; shape (..., H)")
+    if not bool(torch.isfinite(std).all()) or bool((std < 0).any()):
+        raise ValueError("std must be finite and >= 0; shape (..., H)")
+    sign = 1.0 if direction == "above" else -1.0
+    z = sign * (thr - mean) / (std * math.sqrt(2.0))
+    p = 0.5 * torch.special.erfc(z)
+    # std == 0: the prediction is a point; reaching the threshold counts as failure.
+    point = _crossed(mean, thr, direction).to(torch.float64)
+    return torch.where(std > 0, p, point)
+
+
+# --------------------------------------------------------------------------- RUL distribution
+@dataclass(frozen=True, eq=False)
+class RULDistribution:
+    """Discrete RUL distribution from first-passage times of sample paths (paper 002, Eq. 28).
+
+    The RUL takes the values ``support = dt * (1, ..., H)``; mass that never crosses within the
+    horizon is kept apart as ``censored_mass`` (RUL > ``H * dt``, value unknown).
+
+    Attributes:
+        first_passage: ``(..., N)`` int64, 1-based step at which each path first enters the
+            failure region; ``-1`` marks a censored path (no crossing within ``H`` steps).
+        weights: ``(..., N)`` float64 normalised path weights.
+        pmf: ``(..., H)`` float64, ``pmf[..., j-1] = sum_i w^i I(first_passage_i = j)``;
+            ``pmf.sum(-1) = 1 - censored_mass``.
+        censored_mass: ``(...)`` float64 weight of the censored paths.
+        expectation: ``(...)`` float64 Eq. 28 over the crossing paths,
+            ``sum_j j dt pmf_j / sum_j pmf_j``; NaN wherever ``censored`` is True.
+        dt: step length (time per prediction step).
+        tol: censored-mass tolerance under which ``expectation`` is reported.
+    """
+
+    first_passage: Tensor
+    weights: Tensor
+    pmf: Tensor
+    censored_mass: Tensor
+    expectation: Tensor
+    dt: float
+    tol: float
+
+    @property
+    def horizon(self) -> int:
+        """Number of predicted steps ``H``."""
+        return self.pmf.shape[-1]
+
+    @property
+    def support(self) -> Tensor:
+        """``(H,)`` RUL values ``dt * (1..H)`` of the pmf entries."""
+        steps = torch.arange(1, self.horizon + 1, dtype=torch.float64, device=self.pmf.device)
+        return steps * self.dt
+
+    @property
+    def censored(self) -> Tensor:
+        """``(...)`` bool: censored mass exceeds ``tol``; the expectation is then withheld."""
+        return self.censored_mass > self.tol
+
+    @property
+    def rul_lower_bound(self) -> float:
+        """The censored mass has RUL > ``H * dt``; this is that bound."""
+        return self.horizon * self.dt
+
+    @property
+    def path_censored(self) -> Tensor:
+        """``(..., N)`` bool: the path never crosses within the horizon."""
+        return self.first_passage < 0
+
+    @property
+    def path_rul(self) -> Tensor:
+        """``(..., N)`` float64 RUL ``l^i = dt * first_passage`` per path; NaN when censored."""
+        rul = self.first_passage.to(torch.float64) * self.dt
+        return torch.where(self.path_censored, torch.full_like(rul, math.nan), rul)
+
+    @property
+    def cdf(self) -> Tensor:
+        """``(..., H)`` ``P(RUL <= j dt)``: probability of having crossed by step j."""
+        return self.pmf.cumsum(-1)
+
+    @property
+    def mean(self) -> Tensor:
+        """Alias of ``expectation`` (Eq. 28); NaN where censored."""
+        return self.expectation
+
+    @property
+    def median(self) -> Tensor:
+        """``quantile(0.5)``; NaN when more than half of the mass is censored."""
+        return self.quantile(0.5)
+
+    def quantile(self, q: float | Sequence[float] | Tensor) -> Tensor:
+        """Lower quantile ``Q(q) = min{l in support : P(RUL <= l) >= q}``, q in (0, 1].
+
+        The censored mass counts as the upper tail (RUL > ``H dt``), so ``Q(q)`` is well defined
+        whenever ``q <= 1 - censored_mass``; otherwise the quantile lies beyond the horizon and
+        NaN is returned. A scalar ``q`` gives shape ``(...)``, a 1-D ``q`` gives ``(..., Q)``.
+        """
+        qs = torch.as_tensor(q, dtype=torch.float64, device=self.pmf.device)
+        if qs.dim() > 1:
+            raise ValueError(f"q must be a scalar or 1-D, got shape {tuple(qs.shape)}")
+        if not bool(((qs > 0) & (qs <= 1)).all()):
+            raise ValueError("q must lie in (0, 1]")
+        scalar = qs.dim() == 0
+        qs = qs.reshape(-1)
+        h = self.horizon
+        cdf = self.cdf.unsqueeze(-2)  # (..., 1, H)
+        reached = cdf >= qs[:, None] - 1e-12  # (..., Q, H)
+        steps = torch.arange(h, device=self.pmf.device)
+        idx = torch.where(reached, steps, torch.full_like(steps, h)).amin(-1)  # (..., Q)
+        val = (idx + 1).to(torch.float64) * self.dt
+        val = torch.where(idx >= h, torch.full_like(val, math.nan), val)
+        return val[..., 0] if scalar else val
+
+
+def rul_distribution(
+    samples: Tensor,
+    threshold: float,
+    weights: Tensor | None = None,
+    dt: float = 1.0,
+    direction: str = "above",
+    tol: float = 0.0,
+) -> RULDistribution:
+    """RUL distribution from the first passage of each predicted path through the threshold.
+
+    For path i, ``first_passage_i = min{j in 1..H : x^i_{k+j} in Omega_0}`` and its RUL is
+    ``l^i = dt * first_passage_i`` (paper 002, Fig. 11 and Eq. 28); a path with no crossing
+    within ``H`` steps is censored (RUL > ``H dt``). The pmf over steps ``1..H`` is weighted by
+    ``weights`` and sums to ``1 - censored_mass``. The expectation (Eq. 28,
+    ``sum_i l^i w^i`` renormalised over the crossing paths) is returned only where
+    ``censored_mass <= tol``; elsewhere it is NaN and ``censored`` is True. With the default
+    ``tol = 0`` the expectation exists only when every path with positive weight crosses, as in
+    the paper. A positive ``tol`` accepts a conditional mean that ignores up to ``tol`` mass
+    beyond the horizon (so it underestimates the unconditional mean).
+
+    Args:
+        samples: ``(..., N, H)`` predicted sample paths / particles.
+        threshold: finite scalar failure threshold.
+        weights: ``(..., N)`` normalised non-negative weights; ``None`` means ``1/N``.
+        dt: positive step length (time units per step).
+        direction: ``"above"`` (failure when ``x >= threshold``) or ``"below"``.
+        tol: censored-mass tolerance in ``[0, 1)``.
+
+    Returns:
+        :class:`RULDistribution` with batch shape ``samples.shape[:-2]``.
+    """
+    direction = _check_direction(direction)
+    samples = _check_samples(samples)
+    thr = _check_threshold(threshold)
+    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not math.isfinite(dt) or dt <= 0:
+        raise ValueError(f"dt must be a finite positive number, got {dt!r}")
+    if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not 0.0 <= tol < 1.0:
+        raise ValueError(f"tol must be a number in [0, 1), got {tol!r}")
+    n_paths, horizon = samples.shape[-2], samples.shape[-1]
+    w = check_weights(weights, samples.shape[:-2], n_paths, samples.device)
+
+    crossed = _crossed(samples, thr, direction)  # (..., N, H)
+    steps = torch.arange(horizon, device=samples.device)
+    # First crossing index (0-based); H marks "never crossed" (censored).
+    idx = torch.where(crossed, steps, torch.full_like(steps, horizon)).amin(-1)  # (..., N)
+    hit = idx < horizon
+    first_passage = torch.where(hit, idx + 1, torch.full_like(idx, -1))
+
+    mass = torch.zeros((*w.shape[:-1], horizon + 1), dtype=torch.float64, device=w.device)
+    mass.scatter_add_(-1, idx, w)
+    pmf = mass[..., :horizon]
+    censored_mass = mass[..., horizon]
+
+    # Eq. 28 over the crossing paths: sum_j (j dt) pmf_j / sum_j pmf_j.
+    support = (steps + 1).to(torch.float64) * float(dt)
+    crossing_mass = pmf.sum(-1)
+    expectation = (pmf * support).sum(-1) / crossing_mass
+    withheld = (censored_mass > tol) | (crossing_mass <= 0)
+    expectation = torch.where(withheld, torch.full_like(expectation, math.nan), expectation)
+    return RULDistribution(
+        first_passage=first_passage,
+        weights=w,
+        pmf=pmf,
+        censored_mass=censored_mass,
+        expectation=expectation,
+        dt=float(dt),
+        tol=float(tol),
+    )
