@@ -1,0 +1,15 @@
+"""Small learners as plain ``torch.nn.Module``s (no knowledge of filters).
+
+* :class:`ELM`: extreme learning machine, ridge and ROS-ELM online learning (paper 000).
+* :class:`LSSVR`: least-squares support vector regression with input Jacobian (paper 002).
+* :class:`ANFIS`: first-order Sugeno ANFIS with grid rules, Eq. 44 parameter order (paper 003).
+
+Every ``forward`` maps ``(..., n_in) -> (..., n_out)`` with pure tensor code, so it can be used
+with ``torch.func.functional_call``, ``vmap``, ``jacrev`` and ``jacfwd``.
+"""
+
+from .anfis import ANFIS
+from .elm import ELM
+from .lssvr import LSSVR
+
+__all__ = ["ELM", "LSSVR", "ANFIS"]

@@ -1,0 +1,298 @@
+"""Least-squares support vector regression (paper 002, Eq. 1-8 and Eq. 17-26).
+
+Training solves the KKT system of paper 002, Eq. 4::
+
+    [ Omega + I / C   e ] [alpha]   [Y]
+    [ e^T             0 ] [  b  ] = [0]
+
+with ``Omega_ij = phi(P_i, P_j)`` and prediction ``f(P) = sum_i alpha_i phi(P_i, P) + b`` (Eq. 8).
+
+Kernels (paper 002, Eq. 5-7):
+
+* ``"linear"``: ``phi(x, y) = <x, y>`` (Eq. 5);
+* ``"poly"``: ``phi(x, y) = (coef0 + <x, y>)^degree``; the paper's Eq. 6 is ``coef0 = 1``,
+  ``degree = 2`` (the defaults);
+* ``"rbf"``: ``phi(x, y) = exp(-||x - y||^2 / (2 sigma^2))`` (Eq. 7 with ``delta = sigma`` and
+  Eq. 24: the width enters as ``2 sigma^2``, not ``sigma^2`` or ``gamma``).
+
+The input derivative used by the EKF/SFEKF (Eq. 17-26) is the Jacobian of Eq. 8 with respect to
+the input: :meth:`LSSVR.input_gradient` computes it by automatic differentiation for any kernel.
+For the RBF kernel it equals Eq. 25,
+``sum_i alpha_i phi(P_i, P_s) (-1 / sigma^2) (P_s - P_i)``, and its last component is Eq. 23
+(the derivative with respect to the newest embedded value ``x_s``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+from .elm import (
+    as_data,
+    as_targets,
+    check_dtype_arg,
+    check_forward_input,
+    check_pos_int,
+)
+
+__all__ = [
+    "LSSVR",
+    "KERNELS",
+    "linear_kernel",
+    "poly_kernel",
+    "rbf_kernel",
+    "kernel_matrix",
+    "solve_kkt",
+]
+
+KERNELS = ("rbf", "linear", "poly")
+
+
+# --------------------------------------------------------------------------- functional core
+
+
+def linear_kernel(X: Tensor, Y: Tensor) -> Tensor:
+    """``phi(x, y) = <x, y>`` (paper 002, Eq. 5).
+
+    ``X (..., N1, n)``, ``Y (N2, n)`` -> ``(..., N1, N2)``; likewise for the other kernels.
+    """
+    return X @ Y.mT
+
+
+def poly_kernel(X: Tensor, Y: Tensor, degree: int = 2, coef0: float = 1.0) -> Tensor:
+    """``phi(x, y) = (coef0 + <x, y>)^degree`` (paper 002, Eq. 6: ``coef0=1, degree=2``)."""
+    return (X @ Y.mT + coef0) ** degree
+
+
+def rbf_kernel(X: Tensor, Y: Tensor, sigma: Tensor | float) -> Tensor:
+    """``phi(x, y) = exp(-||x - y||^2 / (2 sigma^2))`` (paper 002, Eq. 7 and Eq. 24).
+
+    The squared distances are formed from explicit differences (not ``|x|^2 + |y|^2 - 2 x.y``),
+    which is exact at ``x = y`` and has a clean derivative there.
+    """
+    d2 = ((X.unsqueeze(-2) - Y) ** 2).sum(-1)
+    return torch.exp(-d2 / (2.0 * sigma * sigma))
+
+
+def kernel_matrix(
+    X: Tensor,
+    Y: Tensor,
+    kernel: str,
+    *,
+    sigma: Tensor | float = 1.0,
+    degree: int = 2,
+    coef0: float = 1.0,
+) -> Tensor:
+    """Kernel matrix ``phi(X_i, Y_j)``: ``X (..., N1, n)``, ``Y (N2, n)`` -> ``(..., N1, N2)``."""
+    if kernel == "rbf":
+        return rbf_kernel(X, Y, sigma)
+    if kernel == "linear":
+        return linear_kernel(X, Y)
+    if kernel == "poly":
+        return poly_kernel(X, Y, degree, coef0)
+    raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+
+
+def solve_kkt(Omega: Tensor, Y: Tensor, C: Tensor | float) -> tuple[Tensor, Tensor]:
+    """Solve the LS-SVR KKT system (paper 002, Eq. 4) by eliminating ``b``.
+
+    With ``A = Omega + I / C`` (symmetric positive definite for ``C > 0``), ``eta = A^{-1} e`` and
+    ``nu = A^{-1} Y`` (two solves with one Cholesky factorisation, shared by all outputs)::
+
+        b = e^T nu / e^T eta,    alpha = nu - eta b.
+
+    Differentiable (also with respect to ``C`` and kernel hyper-parameters inside ``Omega``).
+
+    Args:
+        Omega: kernel matrix ``(M, M)``.
+        Y: targets ``(M, n_out)``.
+        C: regularisation parameter ``C > 0``.
+    Returns:
+        ``(alpha, b)``: ``(M, n_out)`` and ``(n_out,)``.
+    Raises:
+        ValueError: if ``Omega + I / C`` is not positive definite.
+    """
+    M = Omega.shape[-1]
+    A = Omega + torch.eye(M, dtype=Omega.dtype, device=Omega.device) / C
+    L, info = torch.linalg.cholesky_ex(A)
+    if bool((info > 0).any()):
+        raise ValueError(
+            "Omega + I/C (LS-SVR KKT system, Eq. 4) is not positive definite: "
+            "the kernel matrix is not positive semi-definite or C is too large"
+        )
+    e = torch.ones(M, 1, dtype=Omega.dtype, device=Omega.device)
+    sol = torch.cholesky_solve(torch.cat([e, Y], dim=-1), L)
+    eta, nu = sol[:, :1], sol[:, 1:]
+    b = nu.sum(0) / eta.sum(0)  # e^T nu / e^T eta, (n_out,)
+    alpha = nu - eta * b
+    return alpha, b
+
+
+# --------------------------------------------------------------------------- module
+
+
+class LSSVR(nn.Module):
+    """LS-SVR regressor ``f(P) = sum_i alpha_i phi(P_i, P) + b`` (paper 002, Eq. 4-8).
+
+    Parameters (registration order): ``alpha`` ``(M, n_out)`` Lagrange multipliers, ``b``
+    ``(n_out,)`` bias, ``log_sigma`` (RBF width, log form) and ``log_C`` (regularisation, log form),
+    both 0-d. ``alpha`` and ``b`` are trainable; ``log_sigma``/``log_C`` have
+    ``requires_grad=trainable_hyper``. ``log_C`` enters only :meth:`fit` (Eq. 4), not the
+    prediction; ``log_sigma`` is used by the RBF kernel only.
+
+    Buffer: ``support_vectors`` ``(M, n_in)``, the training inputs ``P_i`` (set by :meth:`fit`).
+    Before :meth:`fit` the model has ``M = 0`` and ``forward`` raises. :meth:`fit` replaces
+    ``alpha`` by a new ``Parameter`` when ``M`` changes (re-create optimisers afterwards);
+    ``load_state_dict`` resizes ``alpha`` and ``support_vectors`` to the stored shapes.
+
+    Args:
+        kernel: ``"rbf"``, ``"linear"`` or ``"poly"`` (Eq. 5-7).
+        sigma: RBF width ``sigma > 0`` in ``exp(-||x - y||^2 / (2 sigma^2))``.
+        C: regularisation ``C > 0`` (Eq. 1).
+        degree: polynomial degree (``"poly"``), positive int.
+        coef0: polynomial offset (``"poly"``).
+        n_out: number of outputs (independent regressions sharing the factorisation).
+        trainable_hyper: make ``log_sigma`` and ``log_C`` trainable.
+        dtype: floating dtype of parameters and support vectors.
+    """
+
+    def __init__(
+        self,
+        kernel: str = "rbf",
+        sigma: float = 1.0,
+        C: float = 10.0,
+        degree: int = 2,
+        coef0: float = 1.0,
+        n_out: int = 1,
+        trainable_hyper: bool = False,
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        super().__init__()
+        if kernel not in KERNELS:
+            raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+        for name, v in (("sigma", sigma), ("C", C)):
+            if not isinstance(v, (int, float)) or not (0.0 < float(v) < math.inf):
+                raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+        self.kernel = kernel
+        self.degree = check_pos_int(degree, "degree")
+        if not isinstance(coef0, (int, float)) or not math.isfinite(float(coef0)):
+            raise ValueError(f"coef0 must be a finite number, got {coef0!r}")
+        self.coef0 = float(coef0)
+        self.n_out = check_pos_int(n_out, "n_out")
+        self.trainable_hyper = bool(trainable_hyper)
+        check_dtype_arg(dtype)
+        self.alpha = nn.Parameter(torch.zeros(0, n_out, dtype=dtype))
+        self.b = nn.Parameter(torch.zeros(n_out, dtype=dtype))
+        self.log_sigma = nn.Parameter(
+            torch.tensor(math.log(sigma), dtype=dtype), requires_grad=self.trainable_hyper
+        )
+        self.log_C = nn.Parameter(
+            torch.tensor(math.log(C), dtype=dtype), requires_grad=self.trainable_hyper
+        )
+        self.register_buffer("support_vectors", torch.zeros(0, 0, dtype=dtype))
+
+    def extra_repr(self) -> str:
+        return (
+            f"kernel={self.kernel!r}, n_in={self.n_in}, n_sv={self.alpha.shape[0]}, "
+            f"n_out={self.n_out}, trainable_hyper={self.trainable_hyper}"
+        )
+
+    @property
+    def n_in(self) -> int | None:
+        """Input dimension (``None`` before :meth:`fit`)."""
+        sv = self.support_vectors
+        return int(sv.shape[1]) if sv.shape[0] > 0 else None
+
+    @property
+    def sigma(self) -> Tensor:
+        """RBF width ``sigma = exp(log_sigma)``."""
+        return torch.exp(self.log_sigma)
+
+    @property
+    def C(self) -> Tensor:
+        """Regularisation ``C = exp(log_C)``."""
+        return torch.exp(self.log_C)
+
+    def _kernel(self, X: Tensor, Y: Tensor, log_sigma: Tensor) -> Tensor:
+        return kernel_matrix(
+            X, Y, self.kernel, sigma=torch.exp(log_sigma), degree=self.degree, coef0=self.coef0
+        )
+
+    # ---------------------------------------------------------------- forward (functional)
+    def forward(self, x: Tensor) -> Tensor:
+        """Prediction ``f(x) = sum_i alpha_i phi(P_i, x) + b`` (Eq. 8).
+
+        Args:
+            x: ``(..., n_in)`` (typically ``(B, n_in)``), module dtype and device.
+        Returns:
+            ``(..., n_out)``.
+        """
+        sv = self.support_vectors
+        if sv.shape[0] == 0:
+            raise RuntimeError("LSSVR is not fitted: call fit(X, y) first")
+        check_forward_input(x, sv.shape[1], self.alpha)
+        return self._kernel(x, sv, self.log_sigma) @ self.alpha + self.b
+
+    def input_gradient(self, x: Tensor) -> Tensor:
+        """Jacobian of Eq. 8 with respect to the input, ``df/dx`` (generalises Eq. 20-26).
+
+        Computed with ``torch.func.jacrev`` per sample (works for every kernel, inside and
+        outside ``torch.no_grad``). For an embedding ``P_s = [x_{s-m+1}, ..., x_s]`` the
+        derivative with respect to the newest value ``x_s`` (Eq. 23/26) is ``[..., -1]``.
+
+        Args:
+            x: ``(B, n_in)``.
+        Returns:
+            ``(B, n_out, n_in)``.
+        """
+        sv = self.support_vectors
+        if sv.shape[0] == 0:
+            raise RuntimeError("LSSVR is not fitted: call fit(X, y) first")
+        n_in = sv.shape[1]
+        check_forward_input(x, n_in, self.alpha)
+        if x.dim() != 2:
+            raise ValueError(f"x must have shape (B, n_in) with n_in={n_in}, got {tuple(x.shape)}")
+        return torch.func.vmap(torch.func.jacrev(self.forward))(x)
+
+    # ---------------------------------------------------------------- training (stateful)
+    @torch.no_grad()
+    def fit(self, X, y) -> LSSVR:
+        """Train on ``M`` samples: solve the KKT system (Eq. 4) in float64.
+
+        The support vectors, ``alpha`` and ``b`` are stored in the module dtype.
+
+        Args:
+            X: inputs ``P_i``, ``(M, n_in)``.
+            y: targets ``(M, n_out)`` (or ``(M,)`` if ``n_out == 1``).
+        Returns:
+            ``self``.
+        """
+        dev = self.alpha.device
+        X64 = as_data(X, "X", device=dev)
+        Y64 = as_targets(y, "y", device=dev, n_rows=X64.shape[0], n_out=self.n_out)
+        log_sigma = self.log_sigma.detach().to(torch.float64)
+        Omega = self._kernel(X64, X64, log_sigma)
+        alpha, b = solve_kkt(Omega, Y64, torch.exp(self.log_C.detach().to(torch.float64)))
+        dtype = self.alpha.dtype
+        if self.alpha.shape != alpha.shape:
+            self.alpha = nn.Parameter(alpha.to(dtype), requires_grad=self.alpha.requires_grad)
+        else:
+            self.alpha.copy_(alpha.to(dtype))
+        self.b.copy_(b.to(dtype))
+        self.support_vectors = X64.to(dtype)
+        return self
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # The number of support vectors is data dependent: resize before copying.
+        key = prefix + "alpha"
+        if key in state_dict and state_dict[key].shape != self.alpha.shape:
+            self.alpha = nn.Parameter(
+                self.alpha.new_empty(state_dict[key].shape),
+                requires_grad=self.alpha.requires_grad,
+            )
+        key = prefix + "support_vectors"
+        if key in state_dict and state_dict[key].shape != self.support_vectors.shape:
+            self.support_vectors = self.support_vectors.new_empty(state_dict[key].shape)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
