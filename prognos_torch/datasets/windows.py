@@ -1,0 +1,248 @@
+"""Time-delay windows, recursive multi-step inputs, min-max scaling and chronological splits.
+
+Paper 002, Eq. 9-10 (recursive prediction with an m-th order model): the input matrix P stacks
+sliding windows ``p_i = [x_i, ..., x_{i+m-1}]`` and the target vector holds the next samples
+``x_{i+m}``. As printed, Eq. 9-10 end with the row ``[x_{k-m+1}, ..., x_k]`` paired with
+``x_{k+1}``, a sample not observed at time k (the indices are off by one, and Eq. 11-13 switch
+between ``l - m`` and ``k - m + 1`` rows); :func:`embed` pairs every window with the next
+*observed* sample, so T samples give T - m pairs. Eq. 12-14 then forecast recursively: the
+window for step j + 1 drops its oldest entry and appends the forecast for step j
+(``P_{k-m+j} = [x_{k-m+j}, ..., x_k, x^_{k+1}, ..., x^_{k+j-1}]``), see :func:`shift_append`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from prognos_torch.core.validation import as_tensor
+
+__all__ = ["embed", "shift_append", "MinMaxScaler", "chronological_split"]
+
+
+def _check_m(m, T: int) -> int:
+    if isinstance(m, bool) or not isinstance(m, int) or m < 1:
+        raise ValueError(f"embedding dimension m must be a positive int, got {m!r}")
+    if m >= T:
+        raise ValueError(
+            f"embedding dimension m={m} is too large for a series of length T={T}: "
+            f"need T >= m + 1 to form at least one (window, target) pair"
+        )
+    return m
+
+
+def embed(series: Tensor, m: int) -> tuple[Tensor, Tensor]:
+    """Sliding-window (input, target) pairs of paper 002, Eq. 9-10.
+
+    Args:
+        series: shape (T,) for a scalar series or (T, d) for a vector series; time first.
+        m: embedding dimension (model order), 1 <= m <= T - 1.
+
+    Returns:
+        ``inputs`` of shape (T - m, m) (or (T - m, m, d)) with row i = ``[x_i, ..., x_{i+m-1}]``,
+        oldest first, and ``targets`` of shape (T - m,) (or (T - m, d)) with ``x_{i+m}``.
+        Fresh tensors with the dtype and device of ``series``.
+    """
+    x = as_tensor(series, "series")
+    if x.dim() not in (1, 2):
+        raise ValueError(f"series must have shape (T,) or (T, d), got {tuple(x.shape)}")
+    m = _check_m(m, x.shape[0])
+    windows = x.unfold(0, m, 1)  # (T - m + 1, m) or (T - m + 1, d, m)
+    if x.dim() == 2:
+        windows = windows.transpose(1, 2)  # (T - m + 1, m, d)
+    return windows[:-1].clone(), x[m:].clone()
+
+
+def shift_append(window: Tensor, new_value: Tensor, *, time_dim: int = -1) -> Tensor:
+    """Recursive multi-step input update of paper 002, Eq. 12-14.
+
+    Drops the oldest entry along ``time_dim`` and appends ``new_value`` as the newest:
+    ``[x_{k-m+j}, ..., x^_{k+j-1}] -> [x_{k-m+j+1}, ..., x^_{k+j-1}, new_value]``.
+
+    Args:
+        window: shape (..., m) for a scalar series (``time_dim=-1``, batch dims leading, e.g.
+            particles), or (..., m, d) for a vector series with ``time_dim=-2``.
+        new_value: the window's shape with ``time_dim`` removed: (...) or (..., d).
+        time_dim: the window's time axis.
+
+    Returns:
+        A new tensor shaped like ``window`` (differentiable, vmap-friendly; no in-place ops).
+    """
+    if not isinstance(window, Tensor):
+        raise TypeError(f"window must be a tensor of shape (..., m), got {type(window)}")
+    if window.dim() == 0:
+        raise ValueError("window must have shape (..., m) with m >= 1, got a scalar")
+    dim = time_dim % window.dim() if -window.dim() <= time_dim < window.dim() else None
+    if dim is None:
+        raise ValueError(
+            f"time_dim={time_dim} is out of range for window of shape {tuple(window.shape)}"
+        )
+    new_value = torch.as_tensor(new_value, dtype=window.dtype, device=window.device)
+    expected = window.shape[:dim] + window.shape[dim + 1 :]
+    if tuple(new_value.shape) != tuple(expected):
+        raise ValueError(
+            f"new_value must have shape {tuple(expected)} (window {tuple(window.shape)} without "
+            f"time_dim={time_dim}), got {tuple(new_value.shape)}"
+        )
+    m = window.shape[dim]
+    return torch.cat((window.narrow(dim, 1, m - 1), new_value.unsqueeze(dim)), dim=dim)
+
+
+def _minmax_forward(x: Tensor, data_min: Tensor, data_max: Tensor, lo: float, hi: float) -> Tensor:
+    return lo + (x - data_min) * ((hi - lo) / (data_max - data_min))
+
+
+def _minmax_inverse(y: Tensor, data_min: Tensor, data_max: Tensor, lo: float, hi: float) -> Tensor:
+    return data_min + (y - lo) * ((data_max - data_min) / (hi - lo))
+
+
+class MinMaxScaler:
+    """Min-max scaling to ``feature_range`` with a remembered range.
+
+    ``y = lo + (x - x_min) (hi - lo) / (x_max - x_min)`` per feature (last axis of a 2-D input,
+    or the whole series for a 1-D input). Values outside the fitted range map outside
+    ``feature_range``: nothing is clipped. Fitting a constant feature raises ``ValueError``
+    (the scale would divide by zero).
+
+    ``transform``/``inverse_transform`` follow the dtype and device of their argument. The state
+    is plain: ``{"data_min": Tensor, "data_max": Tensor, "feature_range": (lo, hi)}``.
+    """
+
+    def __init__(self, feature_range: tuple[float, float] = (0.0, 1.0)) -> None:
+        lo, hi = self._check_range(feature_range)
+        self.feature_range = (lo, hi)
+        self.data_min: Tensor | None = None
+        self.data_max: Tensor | None = None
+
+    @staticmethod
+    def _check_range(feature_range) -> tuple[float, float]:
+        try:
+            lo, hi = (float(v) for v in feature_range)
+        except (TypeError, ValueError) as exc:
+            raise TypeError(
+                f"feature_range must be a pair (lo, hi), got {feature_range!r}"
+            ) from exc
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise ValueError(f"feature_range must be finite with lo < hi, got {(lo, hi)}")
+        return lo, hi
+
+    @property
+    def fitted(self) -> bool:
+        return self.data_min is not None
+
+    def fit(self, x: Tensor) -> MinMaxScaler:
+        """Remember the range of ``x``: shape (T,) (one range) or (T, d) (one per column)."""
+        x = as_tensor(x, "x")
+        if x.dim() not in (1, 2) or x.shape[0] == 0:
+            raise ValueError(f"x must have shape (T,) or (T, d) with T >= 1, got {tuple(x.shape)}")
+        if not x.is_floating_point():
+            x = x.to(torch.float64)
+        if not bool(torch.isfinite(x).all()):
+            raise ValueError("x contains non-finite values; cannot fit a min-max range")
+        data_min, data_max = x.amin(0), x.amax(0)
+        constant = (data_max == data_min).reshape(-1)
+        if bool(constant.any()):
+            cols = torch.nonzero(constant).flatten().tolist()
+            where = "the series is" if x.dim() == 1 else f"column(s) {cols} are"
+            raise ValueError(f"x: {where} constant; min-max scaling is undefined (max == min)")
+        self.data_min, self.data_max = data_min, data_max
+        return self
+
+    def _state_for(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        if not self.fitted:
+            raise RuntimeError("MinMaxScaler is not fitted: call fit() or load_state_dict() first")
+        per_column = self.data_min.dim() == 1
+        if per_column and (x.dim() == 0 or x.shape[-1] != self.data_min.shape[0]):
+            raise ValueError(
+                f"x must have shape (..., {self.data_min.shape[0]}) to match the fitted range, "
+                f"got {tuple(x.shape)}"
+            )
+        return (
+            self.data_min.to(dtype=x.dtype, device=x.device),
+            self.data_max.to(dtype=x.dtype, device=x.device),
+        )
+
+    def _as_input(self, x) -> Tensor:
+        x = as_tensor(x, "x")
+        if not x.is_floating_point():
+            x = x.to(self.data_min.dtype if self.fitted else torch.float64)
+        return x
+
+    def transform(self, x: Tensor) -> Tensor:
+        """Scale ``x``: any shape for a 1-D fit, shape (..., d) for a per-column fit."""
+        x = self._as_input(x)
+        data_min, data_max = self._state_for(x)
+        return _minmax_forward(x, data_min, data_max, *self.feature_range)
+
+    def inverse_transform(self, y: Tensor) -> Tensor:
+        """Undo :meth:`transform` (same shapes)."""
+        y = self._as_input(y)
+        data_min, data_max = self._state_for(y)
+        return _minmax_inverse(y, data_min, data_max, *self.feature_range)
+
+    def fit_transform(self, x: Tensor) -> Tensor:
+        return self.fit(x).transform(x)
+
+    def state_dict(self) -> dict:
+        """Plain state (tensors and floats): safe for ``torch.save(..., weights_only=True)``."""
+        if not self.fitted:
+            raise RuntimeError("MinMaxScaler is not fitted: nothing to save")
+        return {
+            "data_min": self.data_min.clone(),
+            "data_max": self.data_max.clone(),
+            "feature_range": self.feature_range,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore a state from :meth:`state_dict` (validated, no pickling involved)."""
+        missing = {"data_min", "data_max", "feature_range"} - set(state)
+        if missing:
+            raise ValueError(f"state is missing keys {sorted(missing)}")
+        data_min = as_tensor(state["data_min"], "state['data_min']")
+        data_max = as_tensor(state["data_max"], "state['data_max']")
+        if data_min.shape != data_max.shape or data_min.dim() > 1:
+            raise ValueError(
+                "state['data_min'] and state['data_max'] must have the same shape () or (d,), "
+                f"got {tuple(data_min.shape)} and {tuple(data_max.shape)}"
+            )
+        if not bool((data_max > data_min).all()):
+            raise ValueError("state['data_max'] must exceed state['data_min'] elementwise")
+        self.feature_range = self._check_range(state["feature_range"])
+        self.data_min, self.data_max = data_min.clone(), data_max.clone()
+
+
+def chronological_split(
+    x: Tensor | np.ndarray | Sequence,
+    train_fraction: float | None = None,
+    *,
+    n_train: int | None = None,
+) -> tuple:
+    """Split along the first (time) axis without shuffling: ``x[:n_train], x[n_train:]``.
+
+    Give exactly one of ``train_fraction`` in (0, 1) (``n_train = floor(fraction * T)``) or
+    ``n_train``; both parts must be non-empty (1 <= n_train <= T - 1).
+    """
+    if (train_fraction is None) == (n_train is None):
+        raise ValueError("give exactly one of train_fraction or n_train")
+    try:
+        T = len(x)
+    except TypeError as exc:
+        raise TypeError(
+            f"x must be a tensor, array or sequence with a time axis, got {type(x)}"
+        ) from exc
+    if train_fraction is not None:
+        if not (isinstance(train_fraction, (int, float)) and 0.0 < train_fraction < 1.0):
+            raise ValueError(f"train_fraction must lie in (0, 1), got {train_fraction!r}")
+        n_train = int(math.floor(train_fraction * T))
+    elif isinstance(n_train, bool) or not isinstance(n_train, (int, np.integer)):
+        raise ValueError(f"n_train must be an int, got {n_train!r}")
+    if not 1 <= n_train <= T - 1:
+        raise ValueError(
+            f"n_train={n_train} leaves an empty part of a series of length {T}: "
+            f"need 1 <= n_train <= {T - 1}"
+        )
+    return x[:n_train], x[n_train:]
