@@ -7,7 +7,8 @@ statistics the filter should use at the next step. All estimates are kept as ful
 Positive definiteness. Unbiased estimators subtract a covariance term and can leave the cone of
 positive-definite matrices (a known weakness of Sage-Husa). We never let the filter see such a
 matrix: when an updated estimate is not positive definite, it is symmetrised and its eigenvalues
-are raised to a floor ``floor_rel * trace(previous) / dim`` (documented projection), and the step
+are raised to a floor ``max(floor_rel * trace(previous) / dim, 1e-10 * max |eig|)``
+(documented projection), and the step
 is flagged in ``StepInfo.noise_fallback``. ``diagonal=True`` estimates only the variances (paper
 004 Eq. 67-68 uses diagonal ``Q`` and ``R``), each floored the same way.
 """
@@ -97,7 +98,9 @@ def _project_pd(
     fb = info > 0
     if bool(fb.any()):
         w, V = torch.linalg.eigh(C)
-        w = torch.maximum(w, floor[..., None])
+        # the floor is also kept above round-off relative to the largest eigenvalue
+        fl = torch.maximum(floor, 1e-10 * w.abs().amax(-1))
+        w = torch.maximum(w, fl[..., None])
         Cp = (V * w.unsqueeze(-2)) @ V.mT
         Cp = 0.5 * (Cp + Cp.mT)
         C = torch.where(fb[..., None, None], Cp, C)

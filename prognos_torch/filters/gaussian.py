@@ -160,15 +160,48 @@ class _Moments:
         return t
 
 
-def _split_weights(wc: Tensor) -> tuple[Tensor, Tensor]:
-    pos = (wc > 0).nonzero().squeeze(-1)
-    neg = (wc < 0).nonzero().squeeze(-1)
-    return pos, neg
+@dataclass(frozen=True)
+class _Sigma:
+    """A rule's unit points for one dimension, with the weight split done once."""
+
+    xi: Tensor  # (L, n)
+    wm: Tensor  # (L,)
+    pos: Tensor  # indices with wc > 0
+    neg: Tensor | None  # indices with wc < 0 (None if there are none)
+    sw_pos: Tensor  # sqrt(wc[pos])
+    sw_neg: Tensor | None  # sqrt(-wc[neg])
+
+    def columns(self, D: Tensor) -> tuple[Tensor, Tensor | None]:
+        """``D``: ``(..., L, d)`` deviations -> ``(..., d, Lp)``, ``(..., d, Ln)`` columns ``sqrt|w| D_i``."""
+        pos = (D[..., self.pos, :] * self.sw_pos.unsqueeze(-1)).mT
+        if self.neg is None:
+            return pos, None
+        return pos, (D[..., self.neg, :] * self.sw_neg.unsqueeze(-1)).mT
 
 
-def _weighted_columns(D: Tensor, wc: Tensor, idx: Tensor) -> Tensor:
-    """``D``: ``(..., L, d)`` deviations -> ``(..., d, len(idx))`` columns ``sqrt|w_i| D_i``."""
-    return (D[..., idx, :] * wc[idx].abs().sqrt().unsqueeze(-1)).mT
+_SIGMA_CACHE: dict = {}
+
+
+def _sigma_points(rule: SigmaPoints, n: int, like: Tensor) -> _Sigma:
+    key = (rule, n, like.dtype, like.device)
+    sig = _SIGMA_CACHE.get(key)
+    if sig is None:
+        xi, wm, wc = rule.points(n, dtype=like.dtype, device=like.device)
+        pos = (wc > 0).nonzero().squeeze(-1)
+        neg = (wc < 0).nonzero().squeeze(-1)
+        has_neg = neg.numel() > 0
+        sig = _Sigma(
+            xi,
+            wm,
+            pos,
+            neg if has_neg else None,
+            wc[pos].sqrt(),
+            (-wc[neg]).sqrt() if has_neg else None,
+        )
+        if len(_SIGMA_CACHE) > 256:
+            _SIGMA_CACHE.clear()
+        _SIGMA_CACHE[key] = sig
+    return sig
 
 
 def _bcast(x: Tensor, batch_shape: torch.Size, tail: tuple[int, ...]) -> Tensor:
@@ -266,10 +299,6 @@ class GaussianFilter:
         return self._checked_noise(model, k, state.belief)
 
     # ------------------------------------------------------------------ stages
-    def _sigma(self, n: int, like: Tensor):
-        xi, wm, wc = self.rule.points(n, dtype=like.dtype, device=like.device)
-        return xi, wm, wc
-
     def _propagate(self, model, belief: GaussianBelief, u, k: int, q) -> _Propagation:
         m, S = belief.mean, belief.chol
         if model.f is None:  # random walk: exact for every rule
@@ -280,16 +309,13 @@ class GaussianFilter:
             F = model.transition_jacobian(m, u, k)
             mean = fx if q is None else fx + q
             return _Propagation(mean, fx, F @ S, None, None)
-        xi, wm, wc = self._sigma(model.state_dim, m)
-        X = m.unsqueeze(-2) + xi @ S.mT  # (..., L, n), paper 000 Eq. 21
+        sig = _sigma_points(self.rule, model.state_dim, m)
+        X = m.unsqueeze(-2) + sig.xi @ S.mT  # (..., L, n), paper 000 Eq. 21
         uu = None if u is None else u.unsqueeze(-2)
         Y = model.transition(X, uu, k)  # Eq. 23 / paper 003 Eq. 14
-        f_mean = (wm.unsqueeze(-1) * Y).sum(-2)  # Eq. 24
+        f_mean = sig.wm @ Y  # Eq. 24
         mean = f_mean if q is None else f_mean + q
-        D = Y - f_mean.unsqueeze(-2)
-        ip, ineg = _split_weights(wc)
-        pos = _weighted_columns(D, wc, ip)
-        neg = _weighted_columns(D, wc, ineg) if ineg.numel() else None
+        pos, neg = sig.columns(Y - f_mean.unsqueeze(-2))  # Eq. 26
         pts = Y if q is None else Y + q.unsqueeze(-2)
         return _Propagation(mean, f_mean, pos, neg, pts)
 
@@ -320,30 +346,20 @@ class GaussianFilter:
             H = model.observation_jacobian(x, u, k)
             z = hx if r is None else hx + r
             return _Moments(z, S, H @ S, None, None, True, H)
-        xi, wm, wc = self._sigma(model.state_dim, x)
+        sig = _sigma_points(self.rule, model.state_dim, x)
         if self.redraw or prop.points is None:
-            X = x.unsqueeze(-2) + xi @ S.mT  # paper 000 Eq. 37
+            X = x.unsqueeze(-2) + sig.xi @ S.mT  # paper 000 Eq. 37
             joseph = True
         else:
             X = prop.points  # reuse propagated points (filterpy)
             joseph = False
         uu = None if u is None else u.unsqueeze(-2)
         eta = model.observe(X, uu, k)  # Eq. 38
-        h_mean = (wm.unsqueeze(-1) * eta).sum(-2)
+        h_mean = sig.wm @ eta
         z = h_mean if r is None else h_mean + r  # Eq. 39
-        dZ = eta - h_mean.unsqueeze(-2)
-        dX = X - x.unsqueeze(-2)
-        ip, ineg = _split_weights(wc)
-        has_neg = ineg.numel() > 0
-        return _Moments(
-            z,
-            _weighted_columns(dX, wc, ip),
-            _weighted_columns(dZ, wc, ip),
-            _weighted_columns(dX, wc, ineg) if has_neg else None,
-            _weighted_columns(dZ, wc, ineg) if has_neg else None,
-            joseph,
-            None,
-        )
+        dz_pos, dz_neg = sig.columns(eta - h_mean.unsqueeze(-2))  # Eq. 41
+        dx_pos, dx_neg = sig.columns(X - x.unsqueeze(-2))  # Eq. 43
+        return _Moments(z, dx_pos, dz_pos, dx_neg, dz_neg, joseph, None)
 
     def _innovation_chol(self, mom: _Moments, chol_R: Tensor) -> Tensor:
         bs = mom.z.shape[:-1]
@@ -637,7 +653,7 @@ def rukf(
     """
     return GaussianFilter(
         unscented(alpha, 0.0, kappa),
-        sqrt=True,
+        sqrt=kw.pop("sqrt", True),
         robust=RobustBound(gamma, M, N),
         name=kw.pop("name", "RUKF"),
         **kw,

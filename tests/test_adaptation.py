@@ -1,0 +1,193 @@
+"""Strong tracking, Sage-Husa, moving-window and robust pieces of the filter engine."""
+
+import math
+
+import pytest
+import torch
+
+from prognos_torch.adapt import MovingWindow, SageHusa
+from prognos_torch.core import GaussianBelief, linear_gaussian_model
+from prognos_torch.filters import arukf, imsrukf, rukf, run, sckf, srukf, stsckf
+from prognos_torch.filters.gaussian import GaussianFilter
+from prognos_torch.quadrature import unscented
+from prognos_torch.systems.three_tank import simulate_three_tank, three_tank_joint_model
+
+dt = torch.float64
+
+
+def test_strong_tracking_three_tank_az2_drift():
+    """Paper 000 Sec. 6: joint state/parameter filter with the assistant model az2_k = az2_{k-1}."""
+    R = 20
+    sim = simulate_three_tank(200, R, generator=torch.Generator().manual_seed(0))
+    truth = sim.theta[1:, :, 0]
+    model = three_tank_joint_model(chol_D=1e-4)
+    m0 = torch.tensor([1.0, 0.95, 0.9, 0.6], dtype=dt).expand(R, 4).clone()
+    S0 = torch.diag(torch.tensor([1e-3, 1e-3, 1e-3, 1e-2], dtype=dt)).expand(R, 4, 4).clone()
+    b0 = GaussianBelief(m0, S0)
+    plain = run(sckf(), model, b0, sim.y)
+    strong = run(stsckf(), model, b0, sim.y)
+    rmse = lambda tr: (tr.means[..., 3] - truth).pow(2).mean(0).sqrt()  # noqa: E731 (per run)
+    r_plain, r_strong = rmse(plain), rmse(strong)
+    assert bool((r_strong < r_plain).all())  # every one of the 20 seeds
+    assert float(r_strong.mean()) < 0.2 * float(r_plain.mean())
+    lam = strong.fading_factors
+    assert torch.equal(plain.fading_factors, torch.ones_like(lam))
+    assert float(lam[3:10].median()) < 1.05  # before the drift has grown: near 1
+    assert float(lam[100:].mean()) > 1.5  # while az2 ramps: above 1
+
+
+def _lin_data(T=3000, B=8, seed=0):
+    F = torch.tensor([[0.9, 0.2], [0.0, 0.8]], dtype=dt)
+    H = torch.eye(2, dtype=dt)
+    SQ = torch.diag(torch.tensor([0.3, 0.2], dtype=dt))
+    SR = torch.diag(torch.tensor([1.0, 0.5], dtype=dt))
+    g = torch.Generator().manual_seed(seed)
+    x, xs, ys = torch.zeros(B, 2, dtype=dt), [], []
+    for _ in range(T):
+        x = x @ F.T + torch.randn(B, 2, generator=g, dtype=dt) @ SQ.T
+        xs.append(x)
+        ys.append(x @ H.T + torch.randn(B, 2, generator=g, dtype=dt) @ SR.T)
+    b0 = GaussianBelief(torch.zeros(B, 2, dtype=dt), torch.eye(2, dtype=dt).expand(B, 2, 2).clone())
+    return F, H, SQ, SR, torch.stack(xs), torch.stack(ys), b0
+
+
+@pytest.mark.parametrize("factor", [100.0, 0.01])
+def test_sage_husa_recovers_R_misspecified_100x(factor):
+    F, H, SQ, SR, xs, ys, b0 = _lin_data()
+    half = xs.shape[0] // 2
+    rmse = lambda tr: float((tr.means[half:] - xs[half:]).pow(2).mean().sqrt())  # noqa: E731
+    good = linear_gaussian_model(F, H, SQ, SR)
+    bad = linear_gaussian_model(F, H, SQ, SR * math.sqrt(factor))
+    tr = run(imsrukf(noise=SageHusa(estimate=("R",))), bad, b0, ys)
+    R_hat = (tr.chol_R[-1] @ tr.chol_R[-1].mT).mean(0)
+    assert torch.allclose(R_hat.diagonal(), (SR @ SR.T).diagonal(), rtol=0.1)
+    r_opt, r_bad, r_ad = rmse(run(srukf(), good, b0, ys)), rmse(run(srukf(), bad, b0, ys)), rmse(tr)
+    assert r_ad < r_bad and r_ad < 1.02 * r_opt
+
+
+@pytest.mark.parametrize("factor", [100.0, 0.01])
+def test_sage_husa_moves_Q_towards_truth(factor):
+    F, H, SQ, SR, xs, ys, b0 = _lin_data()
+    half = xs.shape[0] // 2
+    rmse = lambda tr: float((tr.means[half:] - xs[half:]).pow(2).mean().sqrt())  # noqa: E731
+    bad = linear_gaussian_model(F, H, SQ * math.sqrt(factor), SR)
+    tr = run(imsrukf(noise=SageHusa(estimate=("Q",), forgetting=0.99)), bad, b0, ys)
+    Q_hat = (tr.chol_Q[-1] @ tr.chol_Q[-1].mT).mean(0).diagonal()
+    ratio = Q_hat / (SQ @ SQ.T).diagonal()
+    assert bool((ratio > 1 / 3).all() and (ratio < 3).all())  # from 100x off to within 3x
+    assert rmse(tr) < rmse(run(srukf(), bad, b0, ys))
+
+
+def test_frozen_sage_husa_is_exactly_srukf():
+    F, H, SQ, SR, xs, ys, b0 = _lin_data(T=50, B=2)
+    model = linear_gaussian_model(F, H, SQ, SR)
+    a = run(srukf(), model, b0, ys)
+    b = run(imsrukf(noise=SageHusa(frozen=True)), model, b0, ys)
+    assert torch.equal(a.means, b.means)
+
+
+def test_moving_window_estimates_R_on_linear_model():
+    F, H, SQ, SR, xs, ys, b0 = _lin_data(T=1500, B=8)
+    bad = linear_gaussian_model(F, H, SQ, 10 * SR)
+    est = MovingWindow(window=200, estimate=("R",), diagonal=True)
+    tr = run(GaussianFilter(unscented(1.0, 0.0, 1.0), noise=est), bad, b0, ys)
+    R_hat = (tr.chol_R[-1] @ tr.chol_R[-1].mT).mean(0).diagonal()
+    assert torch.allclose(R_hat, (SR @ SR.T).diagonal(), rtol=0.2)
+
+
+def test_robust_ukf_reduces_to_ukf_and_inflates_covariance():
+    F, H, SQ, SR, xs, ys, b0 = _lin_data(T=60, B=2)
+    model = linear_gaussian_model(F, H, SQ, SR)
+    M0 = torch.zeros(2, dtype=dt)
+    ref = run(GaussianFilter(unscented(1.0, 0.0, 1.0)), model, b0, ys)
+    big = run(rukf(1e6, M0, N=1.0), model, b0, ys)  # M = 0, gamma -> inf: the UKF
+    assert torch.allclose(big.means, ref.means, atol=1e-8)
+    assert torch.allclose(big.covs, ref.covs, atol=1e-8)
+    # with uncertainty, the robust bound P_k (Eq. 28) dominates the nominal covariance
+    rob = run(rukf(1.05, torch.full((2,), 0.1, dtype=dt), N=1.0), model, b0, ys)
+    gap = torch.linalg.eigvalsh(rob.covs[-1] - ref.covs[-1])
+    assert bool((gap > -1e-12).all())
+    full = run(rukf(1.05, torch.full((2,), 0.1, dtype=dt), N=1.0, sqrt=False), model, b0, ys)
+    assert torch.allclose(full.means, rob.means, atol=1e-9)
+    assert torch.allclose(full.covs, rob.covs, atol=1e-9)
+    with pytest.raises(ValueError, match="gamma"):
+        rukf(0.5, M0, N=1.0)
+    ad = run(arukf(1.05, torch.full((2,), 0.01, dtype=dt), window=20), model, b0, ys)
+    assert bool(torch.isfinite(ad.means).all()) and ad.chol_R is not None
+
+
+# ------------------------------------------------------------------------- bad input
+def _model():
+    return linear_gaussian_model(
+        torch.eye(2, dtype=dt),
+        torch.eye(2, dtype=dt)[:1],
+        torch.eye(2, dtype=dt),
+        torch.eye(1, dtype=dt),
+    )
+
+
+def test_bad_input_errors_name_the_argument():
+    model = _model()
+    b0 = GaussianBelief(torch.zeros(3, 2, dtype=dt), torch.eye(2, dtype=dt).expand(3, 2, 2).clone())
+    f = sckf()
+    st = f.init(model, b0)
+    with pytest.raises(ValueError, match=r"y must have shape \(3, 1\)"):
+        f.step(model, st, torch.zeros(2, 1, dtype=dt))
+    with pytest.raises(ValueError, match="ys must have shape"):
+        run(f, model, b0, torch.zeros(5, 4, 1, dtype=dt))
+    with pytest.raises(ValueError, match="belief.chol must have shape"):
+        f.init(model, GaussianBelief(torch.zeros(2, dtype=dt), torch.eye(3, dtype=dt)))
+    with pytest.raises(ValueError, match="belief.mean contains non-finite"):
+        f.init(
+            model,
+            GaussianBelief(torch.tensor([float("nan"), 0.0], dtype=dt), torch.eye(2, dtype=dt)),
+        )
+    with pytest.raises(ValueError, match="belief.chol must have a positive diagonal"):
+        f.init(
+            model,
+            GaussianBelief(
+                torch.zeros(2, dtype=dt), torch.diag(torch.tensor([1.0, -1.0], dtype=dt))
+            ),
+        )
+    with pytest.raises(ValueError, match="cov must be symmetric positive definite"):
+        GaussianBelief.from_cov(
+            torch.zeros(2, dtype=dt), torch.tensor([[1.0, 2.0], [2.0, 1.0]], dtype=dt)
+        )
+    bad_Q = linear_gaussian_model(
+        torch.eye(2, dtype=dt),
+        torch.eye(2, dtype=dt)[:1],
+        torch.eye(3, dtype=dt),
+        torch.eye(1, dtype=dt),
+    )
+    with pytest.raises(ValueError, match=r"model.chol_Q must have shape"):
+        f.step(bad_Q, f.init(bad_Q, b0), torch.zeros(3, 1, dtype=dt))
+    with pytest.raises(ValueError, match="mismatched|batch shape"):
+        wrong_batch = linear_gaussian_model(
+            torch.eye(2, dtype=dt),
+            torch.eye(2, dtype=dt)[:1],
+            torch.eye(2, dtype=dt).expand(4, 2, 2),
+            torch.eye(1, dtype=dt),
+        )
+        f.step(wrong_batch, f.init(wrong_batch, b0), torch.zeros(3, 1, dtype=dt))
+    with pytest.raises(ValueError, match="inf"):
+        f.step(model, st, torch.full((3, 1), float("inf"), dtype=dt))
+    with pytest.raises(ValueError, match="u was given"):
+        f.step(model, st, torch.zeros(3, 1, dtype=dt), u=torch.zeros(3, 1, dtype=dt))
+    with pytest.raises(TypeError, match="y must be a torch.Tensor"):
+        f.step(model, st, [[0.0]] * 3)
+
+
+def test_nan_measurement_means_predict_only():
+    model = _model()
+    b0 = GaussianBelief(torch.zeros(2, 2, dtype=dt), torch.eye(2, dtype=dt).expand(2, 2, 2).clone())
+    f = stsckf()
+    st = f.init(model, b0)
+    y = torch.tensor([[1.0], [float("nan")]], dtype=dt)
+    new, info = f.step(model, st, y)
+    pred = f.predict(model, st)
+    assert torch.equal(new.belief.mean[1], pred.belief.mean[1])
+    assert torch.allclose(new.belief.chol[1], pred.belief.chol[1])
+    assert not torch.allclose(new.belief.chol[0], pred.belief.chol[0])
+    assert bool(info.missing[1]) and not bool(info.missing[0])
+    assert float(info.log_likelihood[1]) == 0.0 and bool(torch.isnan(info.nis[1]))
+    assert float(info.fading_factor[1]) == 1.0

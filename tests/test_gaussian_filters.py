@@ -1,0 +1,272 @@
+"""The Gaussian filter engine against exact references (Kalman filter, filterpy, finite differences)."""
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from prognos_torch.core import GaussianBelief, StateSpaceModel, linear_gaussian_model
+from prognos_torch.filters import (
+    ckf,
+    ekf,
+    forecast,
+    imsrukf,
+    run,
+    sckf,
+    srukf,
+    stsckf,
+    ukf,
+)
+from prognos_torch.filters.gaussian import GaussianFilter
+from prognos_torch.quadrature import cubature, gauss_hermite, julier, unscented
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _kalman_reference import kalman_filter  # noqa: E402
+
+t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
+
+
+def random_lgssm(seed, n, m, T):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(n, n))
+    F = 0.97 * A / np.max(np.abs(np.linalg.eigvals(A)))
+    H = rng.normal(size=(m, n))
+    LQ = np.tril(rng.normal(size=(n, n))) * 0.1 + np.eye(n) * 0.3
+    LR = np.tril(rng.normal(size=(m, m))) * 0.1 + np.eye(m) * 0.5
+    q, r = rng.normal(size=n) * 0.1, rng.normal(size=m) * 0.1
+    m0, P0 = rng.normal(size=n), np.eye(n) * 2.0
+    # simulate so that the measurements are plausible for the model
+    x, ys = m0.copy(), []
+    for _ in range(T):
+        x = F @ x + q + LQ @ rng.normal(size=n)
+        ys.append(H @ x + r + LR @ rng.normal(size=m))
+    ys = np.array(ys)
+    ys[T // 3] = np.nan  # one missing measurement: predict only
+    model = linear_gaussian_model(t(F), t(H), t(LQ), t(LR), q=t(q), r=t(r))
+    ref = kalman_filter(F, H, LQ @ LQ.T, LR @ LR.T, m0, P0, ys, q=q, r=r)
+    return model, GaussianBelief.from_cov(t(m0), t(P0)), t(ys), ref
+
+
+ALL_FILTERS = {
+    "EKF": ekf(),
+    "EKF-full": ekf(sqrt=False),
+    "UKF": ukf(),
+    "UKF-scaled-sqrt": ukf(alpha=0.5, beta=2.0, kappa=0.0, sqrt=True),
+    "UKF-julier(3-n)": srukf(kappa=None),
+    "SRUKF": srukf(),
+    "CKF": ckf(),
+    "SCKF": sckf(),
+    "STSCKF(fading=1)": sckf(fading=1.0),
+    "ImSRUKF(frozen)": imsrukf(
+        noise=__import__("prognos_torch.adapt", fromlist=["x"]).SageHusa(frozen=True)
+    ),
+}
+
+
+@pytest.mark.parametrize("name", list(ALL_FILTERS))
+@pytest.mark.parametrize("seed,n,m", [(0, 20, 5), (1, 7, 3), (2, 2, 1)])
+def test_linear_gaussian_matches_kalman(name, seed, n, m):
+    model, b0, ys, (mr, Pr, llr) = random_lgssm(seed, n, m, 200)
+    tr = run(ALL_FILTERS[name], model, b0, ys)
+    assert torch.allclose(tr.means, t(mr), atol=1e-8, rtol=0)
+    assert torch.allclose(tr.covs, t(Pr), atol=1e-8, rtol=0)
+    assert abs(float(tr.log_likelihood) - llr) < 1e-8 * max(1.0, abs(llr))
+    assert bool(torch.isnan(tr.nis[200 // 3]))
+
+
+def test_ckf_equals_ukf_alpha1_beta0_kappa0():
+    def f(x, u, k):
+        return torch.stack([x[0] + 0.1 * torch.sin(x[1]), 0.9 * x[1] + 0.05 * x[0] ** 2, x[2]])
+
+    def h(x, u, k):
+        return torch.stack([x[0] * x[2], torch.atan(x[1])])
+
+    model = StateSpaceModel(
+        f,
+        h,
+        3,
+        2,
+        chol_Q=0.1 * torch.eye(3, dtype=torch.float64),
+        chol_R=0.2 * torch.eye(2, dtype=torch.float64),
+    )
+    ys = torch.randn(40, 2, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    b0 = GaussianBelief(t([0.5, -0.2, 1.0]), torch.eye(3, dtype=torch.float64))
+    a = run(sckf(), model, b0, ys)
+    b = run(GaussianFilter(unscented(1.0, 0.0, 0.0), sqrt=True), model, b0, ys)
+    c = run(GaussianFilter(unscented(1.0, 0.0, 0.0), sqrt=False), model, b0, ys)
+    assert torch.allclose(a.means, b.means, atol=1e-12)
+    assert torch.allclose(a.covs, b.covs, atol=1e-12)
+    # square-root and full algebra agree on a nonlinear model too
+    assert torch.allclose(b.means, c.means, atol=1e-10)
+    assert torch.allclose(b.covs, c.covs, atol=1e-10)
+    e1, e2 = run(ekf(), model, b0, ys), run(ekf(sqrt=False), model, b0, ys)
+    assert torch.allclose(e1.means, e2.means, atol=1e-10)
+    assert torch.allclose(e1.covs, e2.covs, atol=1e-10)
+
+
+@pytest.mark.parametrize(
+    "rule", [cubature(), unscented(0.5, 2.0, 1.0), julier(1.0), julier(None), gauss_hermite(3)]
+)
+def test_quadrature_exact_on_quadratics(rule):
+    n = 3
+    g = torch.Generator().manual_seed(0)
+    m = torch.randn(n, generator=g, dtype=torch.float64)
+    L = torch.tril(torch.randn(n, n, generator=g, dtype=torch.float64)) + 2 * torch.eye(n)
+    A = torch.randn(n, n, generator=g, dtype=torch.float64)
+    b = torch.randn(n, generator=g, dtype=torch.float64)
+    P = L @ L.T
+    xi, wm, wc = rule.points(n)
+    X = m + xi @ L.T
+    vals = ((X @ A) * X).sum(-1) + X @ b  # x^T A x + b^T x
+    exact = m @ A @ m + torch.trace(A @ P) + b @ m
+    assert torch.allclose((wm * vals).sum(), exact, atol=1e-10)
+    # covariance of a linear map is exact with the covariance weights
+    Y = X @ A.T
+    ybar = (wm[:, None] * Y).sum(0)
+    cov = ((Y - ybar).T * wc) @ (Y - ybar)
+    assert torch.allclose(cov, A @ P @ A.T, atol=1e-9)
+
+
+def test_ekf_jacobians_equal_finite_differences():
+    def f(x, u, k):
+        return torch.stack([torch.sin(x[0]) * x[1], x[0] ** 3 + torch.exp(0.1 * x[1])])
+
+    model = StateSpaceModel(
+        f, lambda x, u, k: x[:1] ** 2, 2, 1, chol_Q=torch.eye(2), chol_R=torch.eye(1)
+    )
+    x = torch.tensor([[0.3, -1.2], [1.1, 0.4]], dtype=torch.float64)
+    J = model.transition_jacobian(x, None, 0)
+    eps = 1e-6
+    for j in range(2):
+        d = torch.zeros(2, dtype=torch.float64)
+        d[j] = eps
+        fd = (model.transition(x + d, None, 0) - model.transition(x - d, None, 0)) / (2 * eps)
+        assert torch.allclose(J[..., j], fd, atol=1e-8)
+
+
+def test_batched_run_equals_loop_over_runs():
+    model, b0, ys, _ = random_lgssm(4, 4, 2, 50)
+    B = 3
+    g = torch.Generator().manual_seed(1)
+    means = b0.mean + 0.1 * torch.randn(B, 4, generator=g, dtype=torch.float64)
+    yb = ys.unsqueeze(1) + 0.05 * torch.randn(50, B, 2, generator=g, dtype=torch.float64)
+    for filt in (stsckf(), srukf(), ekf(), imsrukf()):
+        bel = GaussianBelief(means, b0.chol.expand(B, 4, 4).clone())
+        tb = run(filt, model, bel, yb)
+        for i in range(B):
+            ti = run(filt, model, GaussianBelief(means[i], b0.chol), yb[:, i])
+            assert torch.allclose(tb.means[:, i], ti.means, atol=1e-12)
+            assert torch.allclose(tb.chols[:, i], ti.chols, atol=1e-12)
+            assert torch.allclose(tb.fading_factors[:, i], ti.fading_factors, atol=1e-12)
+
+
+def ungm():
+    def f(x, u, k):
+        return (
+            0.5 * x + 25 * x / (1 + x**2) + 8 * torch.cos(torch.as_tensor(1.2 * k, dtype=x.dtype))
+        )
+
+    def h(x, u, k):
+        return x**2 / 20.0
+
+    return StateSpaceModel(f, h, 1, 1, chol_Q=t([[math.sqrt(10.0)]]), chol_R=t([[1.0]]))
+
+
+def test_matches_filterpy_ukf_on_ungm():
+    filterpy = pytest.importorskip("filterpy.kalman")
+    model = ungm()
+    rng = np.random.default_rng(0)
+    x, ys = 0.1, []
+    for k in range(1, 101):
+        x = 0.5 * x + 25 * x / (1 + x**2) + 8 * math.cos(1.2 * k) + math.sqrt(10) * rng.normal()
+        ys.append(x**2 / 20 + rng.normal())
+    alpha, beta, kappa = 1.0, 2.0, 2.0
+    pts = filterpy.MerweScaledSigmaPoints(1, alpha=alpha, beta=beta, kappa=kappa)
+    fp = filterpy.UnscentedKalmanFilter(
+        dim_x=1,
+        dim_z=1,
+        dt=1.0,
+        points=pts,
+        fx=lambda x, dt, k: 0.5 * x + 25 * x / (1 + x**2) + 8 * math.cos(1.2 * k),
+        hx=lambda x: x**2 / 20.0,
+    )
+    fp.x, fp.P, fp.Q, fp.R = (
+        np.array([0.1]),
+        np.array([[2.0]]),
+        np.array([[10.0]]),
+        np.array([[1.0]]),
+    )
+    ref_m, ref_P = [], []
+    for k, y in enumerate(ys, start=1):
+        fp.predict(k=k)
+        fp.update(np.array([y]))
+        ref_m.append(fp.x.copy())
+        ref_P.append(fp.P.copy())
+    # filterpy redraws sigma points from the predicted (x, P) before the update, as we do
+    b0 = GaussianBelief.from_cov(t([0.1]), t([[2.0]]))
+    for sqrt in (False, True):
+        tr = run(
+            GaussianFilter(unscented(alpha, beta, kappa), sqrt=sqrt), model, b0, t(ys)[:, None]
+        )
+        assert torch.allclose(tr.means, t(np.array(ref_m)), atol=1e-8, rtol=0)
+        assert torch.allclose(tr.covs, t(np.array(ref_P)), atol=1e-8, rtol=0)
+
+
+def test_reused_sigma_points_square_root_equals_full():
+    # redraw=False keeps the propagated points (posterior by Cholesky downdate, paper 003 Eq. 29)
+    model = ungm()
+    ys = 5 * torch.randn(60, 1, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    b0 = GaussianBelief.from_cov(t([0.1]), t([[2.0]]))
+    a = run(GaussianFilter(unscented(1.0, 2.0, 2.0), sqrt=False, redraw=False), model, b0, ys)
+    b = run(GaussianFilter(unscented(1.0, 2.0, 2.0), sqrt=True, redraw=False), model, b0, ys)
+    assert torch.allclose(a.means, b.means, atol=1e-9)
+    assert torch.allclose(a.covs, b.covs, atol=1e-9)
+    c = run(GaussianFilter(unscented(1.0, 2.0, 2.0), sqrt=False), model, b0, ys)
+    assert not torch.allclose(a.means, c.means, atol=1e-3)  # the two variants really differ
+
+
+def stiff_model(dtype):
+    # two fast-decaying modes and two slow ones, time constants 1e-3 .. 1 apart, tiny Q on one
+    F = torch.diag(torch.tensor([0.9999, 0.999, 0.2, 1e-3], dtype=dtype))
+    F[0, 1] = 0.05
+    H = torch.tensor([[1.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 1.0]], dtype=dtype)
+    SQ = torch.diag(torch.tensor([1e-4, 1e-3, 1.0, 1e-6], dtype=dtype))
+    SR = torch.diag(torch.tensor([1e-3, 1e-2], dtype=dtype))
+    return linear_gaussian_model(F, H, SQ, SR)
+
+
+def test_covariances_stay_spd_over_10000_steps_float64():
+    T, B = 10_000, 4
+    model = stiff_model(torch.float64)
+    g = torch.Generator().manual_seed(0)
+    ys = 1e-2 * torch.randn(T, B, 2, generator=g, dtype=torch.float64)
+    b0 = GaussianBelief(
+        torch.zeros(B, 4, dtype=torch.float64),
+        torch.eye(4, dtype=torch.float64).expand(B, 4, 4).clone(),
+    )
+    for filt in (sckf(), srukf(), ekf()):
+        tr = run(filt, model, b0, ys)
+        d = torch.diagonal(tr.chols, dim1=-2, dim2=-1)
+        assert bool(torch.isfinite(tr.chols).all()) and bool((d > 0).all())
+        P = tr.covs[-1]
+        assert torch.allclose(P, P.mT)
+        assert bool((torch.linalg.eigvalsh(P) > 0).all())
+
+
+def test_forecast_equals_repeated_prediction_of_kalman():
+    model, b0, ys, _ = random_lgssm(5, 3, 2, 10)
+    F = model.transition_jacobian(torch.zeros(3, dtype=torch.float64), None, 0)
+    fc = forecast(sckf(), model, b0, 4)
+    m, P = b0.mean, b0.cov
+    SQ = model.chol_Q
+    for j in range(4):
+        m = F @ m + model.q
+        P = F @ P @ F.T + SQ @ SQ.T
+        assert torch.allclose(fc.means[j], m, atol=1e-12)
+        assert torch.allclose(fc.chols[j] @ fc.chols[j].T, P, atol=1e-12)
+    H = model.observation_jacobian(m, None, 0)
+    SR = model.chol_R
+    assert torch.allclose(fc.y_chols[-1] @ fc.y_chols[-1].T, H @ P @ H.T + SR @ SR.T, atol=1e-12)
