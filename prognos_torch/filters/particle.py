@@ -1,0 +1,844 @@
+"""Particle filters on the library's :class:`~prognos_torch.core.model.StateSpaceModel`.
+
+Model (additive Gaussian noise, :mod:`prognos_torch.core.model`)::
+
+    x_k = f(x_{k-1}, u_k, k) + w_k,  w_k ~ N(q_k, Q_k);   y_k = h(x_k, u_k, k) + v_k,  v_k ~ N(r_k, R_k)
+
+Particles have shape ``(..., N, n)``: the leading dims ``...`` are independent runs (Monte Carlo
+runs, assets), ``N`` the particle count. Log-weights ``(..., N)`` are kept normalised
+(``logsumexp = 0``). All randomness comes from an explicit ``torch.Generator``.
+
+Variants (one :class:`ParticleFilter` configuration each, one step function):
+
+- **SIR / bootstrap** (``proposal=None``): ``x_k^i ~ p(x_k | x_{k-1}^i)``,
+  ``w_k^i ∝ w_{k-1}^i p(y_k | x_k^i)``.
+- **Gaussian-proposal PFs** (``proposal=`` a :class:`~prognos_torch.filters.gaussian.GaussianFilter`):
+  every particle carries its own Gaussian ``N(x_{k-1}^i, P_{k-1}^i)`` (the engine's
+  :class:`~prognos_torch.filters.gaussian.FilterState` with the particles as a batch dimension).
+  ONE engine step with ``y_k`` gives ``N(xbar_k^i, Phat_k^i)``; the particle is drawn from it and
+  reweighted by
+
+      w_k^i ∝ w_{k-1}^i p(y_k | x_k^i) p(x_k^i | x_{k-1}^i) / q(x_k^i | x_{k-1}^i, y_k)
+
+  (paper 002, STPF step 3; Van der Merwe et al., "The unscented particle filter", 2000, Sec. 4).
+  The carried covariance becomes ``Phat_k^i`` and the mean is replaced by the drawn particle, as in
+  the UPF/EKPF of Van der Merwe et al. With :func:`ekf` this is the EKPF (de Freitas et al.),
+  with :func:`ukf`/:func:`srukf` the UPF, and with the strong-tracking EKF (SFEKF, :func:`stekf`,
+  whose ``FilterState.fading`` holds each particle's ``V_k``) the **STPF** of paper 002
+  (Eq. 27, steps 1-7).
+
+Paper 002, Eq. 27 reads ``q(x_k^i | x_{k-1}^i, y_k) = N(xhat_{k+1|k}^i, P_{k+1|k}^i)``; the
+indices are garbled in the extracted text (and the surrounding sentence calls it "the
+approximate posterior state pdf", and step 2 says SFEKF *updates* each particle with ``y_k``).
+We use the SFEKF posterior ``N(xhat_{k|k}^i, P_{k|k}^i)``, the standard EKPF/UPF choice, which
+is what step 2 describes. Step 6 of the paper redraws particles from the per-particle Gaussians
+when resampling; that would leave the weights wrong (the draw is not from the weighted target),
+so we resample ancestors (particles, their Gaussians and fading states together) instead.
+
+Missing measurements (a ``y_k`` with NaN, per run): the particles are only propagated through
+``p(x_k | x_{k-1})`` and the weights are unchanged; the carried Gaussians are predicted.
+
+Robustness: a particle whose proposal Gaussian is not finite or not positive definite is drawn
+from the transition prior instead (a valid per-particle proposal; counted in
+``prior_fallback``); non-finite particles or weight increments get zero weight. When every
+weight of a run is zero or non-finite (weight collapse), a :class:`WeightCollapseWarning` is
+issued and that run's weights are reset to uniform over its finite particles; its
+log-likelihood increment is then ``-inf`` (the estimate of ``p(y_k | y_{1:k-1})`` is 0).
+Estimates are therefore never NaN unless every particle of a run is non-finite, which raises
+``FloatingPointError``.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass, fields, is_dataclass, replace
+
+import torch
+from torch import Tensor
+
+from ..core.belief import GaussianBelief
+from ..core.model import Noise, StateSpaceModel
+from .gaussian import FilterState, GaussianFilter, Taylor, ekf, stekf, ukf
+from .resampling import Resampler, ess, get_resampler
+
+__all__ = [
+    "ParticleFilter",
+    "ParticleState",
+    "ParticleStepInfo",
+    "ParticleTrajectory",
+    "WeightCollapseWarning",
+    "ProposalFallbackWarning",
+    "gather_particles",
+    "where_particles",
+    "sir",
+    "ekpf",
+    "upf",
+    "stpf",
+    "PARTICLE_FILTERS",
+    "make_particle_filter",
+]
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+# Tensors of the engine's FilterState have the batch dims leading, except the moving-window
+# noise buffers, which carry the window dim first (prognos_torch.adapt.noise.MovingWindow).
+ENGINE_LEADING_DIMS: dict[str, int] = {"buf_Q": 1, "buf_R": 1, "buf_valid": 1}
+
+
+class WeightCollapseWarning(RuntimeWarning):
+    """Every particle weight of a run was zero or non-finite; the weights were reset."""
+
+
+class ProposalFallbackWarning(RuntimeWarning):
+    """Some per-particle Gaussian proposals were invalid; those particles used the prior."""
+
+
+# ---------------------------------------------------------------------- per-particle trees
+def _particle_view(t: Tensor, v: Tensor, lead: int, nb: int) -> Tensor:
+    """Reshape ``t`` ``(*batch, N)`` so that it lines up with ``v``'s batch+particle dims."""
+    tail = v.dim() - lead - nb - 1
+    return t.reshape((1,) * lead + tuple(t.shape) + (1,) * tail)
+
+
+def _check_leaf(v: Tensor, name: str, lead: int, want: tuple[int, ...]) -> None:
+    got = tuple(v.shape[lead : lead + len(want)])
+    if got != want:
+        raise ValueError(
+            f"{name}: dims {lead}..{lead + len(want) - 1} must be the batch and particle dims "
+            f"{want}, got shape {tuple(v.shape)}"
+        )
+
+
+def _tree_map(fn, obj, others, name: str, leading: dict[str, int]):
+    if obj is None:
+        return None
+    if isinstance(obj, Tensor):
+        return fn(obj, [o for o in others], leading.get(name, 0), name)
+    if is_dataclass(obj) and not isinstance(obj, type):
+        kw = {}
+        for f in fields(obj):
+            if not f.init:
+                continue
+            kw[f.name] = _tree_map(
+                fn, getattr(obj, f.name), [getattr(o, f.name) for o in others], f.name, leading
+            )
+        return replace(obj, **kw)
+    if isinstance(obj, (int, float, bool, str)):
+        return obj
+    raise TypeError(f"{name}: cannot map over particles of a {type(obj).__name__}")
+
+
+def gather_particles(obj, ancestors: Tensor, *, leading: dict[str, int] | None = None):
+    """Select particles ``ancestors`` in every tensor of a (nested) frozen dataclass.
+
+    Args:
+        obj: a tensor, ``None`` or a dataclass of those (e.g. the engine's
+            :class:`~prognos_torch.filters.gaussian.FilterState` with ``GaussianBelief``,
+            ``StrongTrackingState`` and ``NoiseEstimatorState`` inside), whose tensors have the
+            batch dims ``...`` and the particle dim ``N`` leading: ``(..., N, *tail)``.
+        ancestors: ``(..., N)`` int64 indices into the particle dim.
+        leading: field name -> number of extra dims before the batch dims (default
+            :data:`ENGINE_LEADING_DIMS`: the moving-window buffers ``(W, ..., N, ...)``).
+    Returns:
+        The same structure with ``out[..., j, ...] = obj[..., ancestors[..., j], ...]``.
+    """
+    leading = ENGINE_LEADING_DIMS if leading is None else leading
+    want = tuple(ancestors.shape)
+    nb = len(want) - 1
+
+    def fn(v, _others, lead, name):
+        _check_leaf(v, name, lead, want)
+        idx = _particle_view(ancestors, v, lead, nb).expand(v.shape)
+        return torch.gather(v, lead + nb, idx)
+
+    return _tree_map(fn, obj, [], "obj", leading)
+
+
+def where_particles(mask: Tensor, a, b, *, leading: dict[str, int] | None = None):
+    """Per-particle ``torch.where(mask, a, b)`` over two trees of the same structure.
+
+    ``mask``: ``(..., N)`` bool; ``a``, ``b``: as in :func:`gather_particles`.
+    """
+    leading = ENGINE_LEADING_DIMS if leading is None else leading
+    want = tuple(mask.shape)
+    nb = len(want) - 1
+
+    def fn(v, others, lead, name):
+        w = others[0]
+        _check_leaf(v, name, lead, want)
+        return torch.where(_particle_view(mask, v, lead, nb), v, w)
+
+    return _tree_map(fn, a, [b], "a", leading)
+
+
+# ---------------------------------------------------------------------- state and outputs
+@dataclass(frozen=True)
+class ParticleState:
+    """A weighted particle set (batch dims ``...`` leading).
+
+    Attributes:
+        particles: ``(..., N, n)``.
+        log_weights: ``(..., N)``, normalised (``logsumexp`` over ``N`` is 0).
+        proposal: per-particle Gaussian filter state with batch dims ``(..., N)`` (Gaussian-proposal
+            PFs; its ``belief.mean`` equals ``particles``), or ``None`` (bootstrap).
+    """
+
+    particles: Tensor
+    log_weights: Tensor
+    proposal: FilterState | None = None
+
+    @property
+    def num_particles(self) -> int:
+        return self.log_weights.shape[-1]
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        return self.log_weights.shape[:-1]
+
+    @property
+    def weights(self) -> Tensor:
+        return self.log_weights.exp()
+
+
+@dataclass(frozen=True)
+class ParticleStepInfo:
+    """Diagnostics of one particle-filter step (batch dims ``...``).
+
+    Attributes:
+        mean: ``(..., n)`` weighted posterior mean ``sum_i w_k^i x_k^i`` (paper 002 step 5).
+        cov: ``(..., n, n)`` weighted posterior covariance.
+        ess: ``(...)`` effective sample size ``1 / sum_i (w_k^i)^2`` before resampling.
+        resampled: ``(...)`` bool, whether the run was resampled after this step.
+        log_likelihood: ``(...)`` estimate of ``log p(y_k | y_{1:k-1})`` (0 where missing).
+        collapsed: ``(...)`` bool, weight collapse (weights reset, see module docstring).
+        prior_fallback: ``(...)`` number of particles drawn from the prior because their
+            Gaussian proposal was invalid.
+        fading_factor: ``(...)`` weighted mean of the particles' fading factors ``lambda_k``
+            (1 without strong tracking).
+        missing: ``(...)`` bool.
+        particles: ``(..., N, n)`` the weighted particle set before resampling.
+        log_weights: ``(..., N)`` its normalised log-weights.
+    """
+
+    mean: Tensor
+    cov: Tensor
+    ess: Tensor
+    resampled: Tensor
+    log_likelihood: Tensor
+    collapsed: Tensor
+    prior_fallback: Tensor
+    fading_factor: Tensor
+    missing: Tensor
+    particles: Tensor
+    log_weights: Tensor
+
+    @property
+    def std(self) -> Tensor:
+        return torch.diagonal(self.cov, dim1=-2, dim2=-1).sqrt()
+
+
+@dataclass(frozen=True)
+class ParticleTrajectory:
+    """Particle-filter output over ``T`` steps (time leading, batch dims after it).
+
+    Attributes:
+        means: ``(T, ..., n)``; covs: ``(T, ..., n, n)``.
+        ess: ``(T, ...)`` before resampling; resampled, collapsed, missing: ``(T, ...)`` bool.
+        log_likelihoods: ``(T, ...)`` per-step estimates; ``log_likelihood`` their sum.
+        prior_fallback: ``(T, ...)`` counts; fading_factors: ``(T, ...)``.
+        particles, log_weights: ``(T, ..., N, n)``/``(T, ..., N)`` before resampling (only with
+            ``keep_particles=True``, else ``None``).
+        final: the :class:`ParticleState` after the last step (resume from it).
+    """
+
+    means: Tensor
+    covs: Tensor
+    ess: Tensor
+    resampled: Tensor
+    log_likelihoods: Tensor
+    collapsed: Tensor
+    prior_fallback: Tensor
+    fading_factors: Tensor
+    missing: Tensor
+    particles: Tensor | None
+    log_weights: Tensor | None
+    final: ParticleState
+
+    @property
+    def stds(self) -> Tensor:
+        return torch.diagonal(self.covs, dim1=-2, dim2=-1).sqrt()
+
+    @property
+    def log_likelihood(self) -> Tensor:
+        return self.log_likelihoods.sum(0)
+
+
+# ---------------------------------------------------------------------- checks and noise
+def _check_generator(generator, like: Tensor) -> None:
+    if not isinstance(generator, torch.Generator):
+        raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
+    if generator.device.type != like.device.type:
+        raise ValueError(f"generator is on {generator.device}, the particles on {like.device}")
+
+
+def _noise(model: StateSpaceModel, k: int, bs: torch.Size, like: Tensor) -> Noise:
+    """Model noise at step ``k``, converted and checked: each tensor ``tail`` or ``bs + tail``."""
+    raw = model.noise(k)
+    n, m = model.state_dim, model.obs_dim
+
+    def conv(x, name, tail):
+        if x is None:
+            return None
+        if not isinstance(x, Tensor):
+            x = torch.as_tensor(x, dtype=like.dtype, device=like.device)
+        if x.device != like.device:
+            raise ValueError(f"{name} is on {x.device}, the particles on {like.device}")
+        x = x.to(like.dtype)
+        if tuple(x.shape) not in (tail, tuple(bs) + tail):
+            raise ValueError(
+                f"{name} must have shape {tail} or (batch shape {tuple(bs)}) + {tail}, "
+                f"got {tuple(x.shape)}"
+            )
+        return x
+
+    noise = Noise(
+        conv(raw.q, "model.q", (n,)),
+        conv(raw.chol_Q, "model.chol_Q", (n, n)),
+        conv(raw.r, "model.r", (m,)),
+        conv(raw.chol_R, "model.chol_R", (m, m)),
+    )
+    if not bool((torch.diagonal(noise.chol_R, dim1=-2, dim2=-1) > 0).all()):
+        raise ValueError("model.chol_R must have a positive diagonal (R positive definite)")
+    return noise
+
+
+def _pdim(x: Tensor | None, tail: int) -> Tensor | None:
+    """Insert the particle dim into a noise tensor that carries the batch dims."""
+    if x is None or x.dim() == tail:
+        return x
+    return x.unsqueeze(-tail - 1)
+
+
+def _gauss_logpdf(e: Tensor, S: Tensor) -> Tensor:
+    """``log N(e; 0, S S^T)`` for residuals ``e`` ``(..., N, d)`` and ``S`` ``(d, d)`` or
+    ``(..., d, d)`` (shared by the particles). Returns ``(..., N)``."""
+    d = e.shape[-1]
+    z = torch.linalg.solve_triangular(S, e.mT, upper=False)  # (..., d, N)
+    logdet = 2.0 * torch.log(torch.diagonal(S, dim1=-2, dim2=-1)).sum(-1)
+    return -0.5 * (d * _LOG_2PI + logdet.unsqueeze(-1) + (z * z).sum(-2))
+
+
+def _particle_model(model: StateSpaceModel, bs_ndim: int, N: int) -> StateSpaceModel:
+    """The model as the engine sees it with batch dims ``(..., N)``: noise tensors that carry the
+    run batch dims get the particle dim inserted (the engine requires the full batch shape)."""
+    if bs_ndim == 0:
+        return model
+
+    def lift(v, tail):
+        if v is None:
+            return None
+
+        def at(k):
+            t = v(k) if callable(v) else v
+            if isinstance(t, Tensor) and t.dim() > tail:
+                t = t.unsqueeze(-tail - 1)
+                t = t.expand(*t.shape[: -tail - 1], N, *t.shape[-tail:])
+            return t
+
+        if callable(v):
+            return at
+        return at(0)
+
+    return replace(
+        model,
+        q=lift(model.q, 1),
+        chol_Q=lift(model.chol_Q, 2),
+        r=lift(model.r, 1),
+        chol_R=lift(model.chol_R, 2),
+    )
+
+
+# ---------------------------------------------------------------------- the filter
+@dataclass(frozen=True)
+class ParticleFilter:
+    """A particle-filter configuration (see the module docstring).
+
+    Attributes:
+        num_particles: ``N >= 1``.
+        proposal: ``None`` (bootstrap SIR) or a Gaussian filter run per particle for the proposal.
+        resample_threshold: resample a run when ``N_eff < resample_threshold * N``, in
+            ``[0, 1]`` (paper 002 step 6: ``1/3``; ``0`` never resamples; ``1`` resamples
+            whenever the weights are not uniform).
+        resampler: ``"systematic"``, ``"stratified"``, ``"residual"``, ``"multinomial"`` or a
+            callable ``(log_w (..., N), generator) -> ancestors (..., N)``.
+        name: label for tables.
+    """
+
+    num_particles: int = 1000
+    proposal: GaussianFilter | None = None
+    resample_threshold: float = 0.5
+    resampler: str | Resampler = "systematic"
+    name: str = ""
+
+    def __post_init__(self):
+        N = self.num_particles
+        if isinstance(N, bool) or not isinstance(N, int) or N < 1:
+            raise ValueError(f"num_particles must be a positive int, got {N!r}")
+        thr = self.resample_threshold
+        if isinstance(thr, bool) or not isinstance(thr, (int, float)) or not 0.0 <= thr <= 1.0:
+            raise ValueError(f"resample_threshold must be a number in [0, 1], got {thr!r}")
+        if self.proposal is not None and not isinstance(self.proposal, GaussianFilter):
+            raise TypeError(
+                "proposal must be None (bootstrap) or a GaussianFilter (e.g. ekf(), ukf(), "
+                f"stekf()), got {type(self.proposal).__name__}"
+            )
+        get_resampler(self.resampler)  # validates names
+
+    # ------------------------------------------------------------------ init
+    def init(
+        self,
+        model: StateSpaceModel,
+        belief: GaussianBelief,
+        *,
+        generator: torch.Generator,
+        k: int = 0,
+    ) -> ParticleState:
+        """Draw ``N`` particles ``x_0^i ~ N(mean, chol chol^T)`` with weights ``1/N`` (paper 002
+        STPF step 1); Gaussian-proposal PFs give each particle the covariance ``P_0``.
+
+        Args:
+            belief: ``mean (..., n)``, ``chol (..., n, n)``; its batch dims are the runs.
+            generator: on the belief's device.
+            k: step index of the first measurement minus one (noise of step ``k + 1`` is used
+                to initialise noise estimators, as in :func:`prognos_torch.filters.run`).
+        Returns:
+            :class:`ParticleState` with particles ``(..., N, n)``.
+        """
+        if not isinstance(belief, GaussianBelief):
+            raise TypeError(f"belief must be a GaussianBelief, got {type(belief).__name__}")
+        belief.validate("belief")
+        if belief.dim != model.state_dim:
+            raise ValueError(
+                f"belief.mean must have shape (..., {model.state_dim}) for this model, "
+                f"got {tuple(belief.mean.shape)}"
+            )
+        mean, chol = belief.mean, belief.chol
+        _check_generator(generator, mean)
+        bs, n, N = belief.batch_shape, model.state_dim, self.num_particles
+        eps = torch.randn(*bs, N, n, generator=generator, dtype=mean.dtype, device=mean.device)
+        x0 = mean.unsqueeze(-2) + eps @ chol.mT
+        lw = torch.full((*bs, N), -math.log(N), dtype=mean.dtype, device=mean.device)
+        fs = None
+        if self.proposal is not None:
+            pb = GaussianBelief(x0, chol.unsqueeze(-3).expand(*bs, N, n, n).clone())
+            fs = self.proposal.init(_particle_model(model, len(bs), N), pb, k + 1)
+        return ParticleState(x0, lw, fs)
+
+    # ------------------------------------------------------------------ checks
+    def _check_state(self, model, state) -> None:
+        if not isinstance(state, ParticleState):
+            raise TypeError(f"state must be a ParticleState, got {type(state).__name__}")
+        x, lw = state.particles, state.log_weights
+        if x.dim() < 2 or x.shape[-1] != model.state_dim or tuple(x.shape[:-1]) != tuple(lw.shape):
+            raise ValueError(
+                f"state.particles must have shape (..., N, {model.state_dim}) and "
+                f"state.log_weights (..., N) with the same leading dims, got "
+                f"{tuple(x.shape)} and {tuple(lw.shape)}"
+            )
+        if (self.proposal is None) != (state.proposal is None):
+            raise ValueError(
+                "state.proposal must be a FilterState for a Gaussian-proposal filter and None "
+                "for the bootstrap filter (build the state with this filter's init)"
+            )
+
+    @staticmethod
+    def _check_y(model, y, bs, like) -> Tensor:
+        if not isinstance(y, Tensor):
+            raise TypeError(f"y must be a torch.Tensor of shape (..., {model.obs_dim})")
+        want = tuple(bs) + (model.obs_dim,)
+        if tuple(y.shape) != want:
+            raise ValueError(f"y must have shape {want} (batch shape + (m,)), got {tuple(y.shape)}")
+        if y.device != like.device:
+            raise ValueError(f"y is on {y.device}, the particles on {like.device}")
+        if torch.isinf(y).any():
+            raise ValueError("y contains inf (use NaN to mark a missing measurement)")
+        return y.to(like.dtype)
+
+    @staticmethod
+    def _check_u(model, u, bs, like) -> Tensor | None:
+        if model.control_dim == 0:
+            if u is not None:
+                raise ValueError("u was given but the model has control_dim=0")
+            return None
+        p = model.control_dim
+        if u is None:
+            raise ValueError(f"u is required: shape ({p},) or {tuple(bs) + (p,)}")
+        if not isinstance(u, Tensor):
+            raise TypeError("u must be a torch.Tensor")
+        if tuple(u.shape) not in ((p,), tuple(bs) + (p,)):
+            raise ValueError(
+                f"u must have shape ({p},) or {tuple(bs) + (p,)}, got {tuple(u.shape)}"
+            )
+        if not bool(torch.isfinite(u).all()):
+            raise ValueError("u contains non-finite values")
+        return u.to(like.dtype)
+
+    # ------------------------------------------------------------------ stages
+    def _transition_sample(self, model, x_prev, u_p, k, noise, eps):
+        """``f(x_{k-1}) + q`` and a draw ``f(x_{k-1}) + q + S_Q eps`` (paper 002 Eq. 15)."""
+        fq = model.transition(x_prev, u_p, k)
+        q = _pdim(noise.q, 1)
+        if q is not None:
+            fq = fq + q
+        return fq, None if eps is None else fq + eps @ noise.chol_Q.mT
+
+    def _log_lik(self, model, x, y, u_p, k, noise) -> Tensor:
+        """``log p(y_k | x_k^i)`` ``(..., N)`` (paper 002 Eq. 16)."""
+        hx = model.observe(x, u_p, k)
+        r = _pdim(noise.r, 1)
+        if r is not None:
+            hx = hx + r
+        return _gauss_logpdf(y.unsqueeze(-2) - hx, noise.chol_R)
+
+    def predict(
+        self,
+        model: StateSpaceModel,
+        state: ParticleState,
+        u: Tensor | None = None,
+        k: int = 1,
+        *,
+        generator: torch.Generator,
+    ) -> ParticleState:
+        """Propagate the particles through ``p(x_k | x_{k-1})``; weights unchanged (multi-step
+        prediction, paper 002 "LS-SVR STPF method for failure prognosis", step 2)."""
+        self._check_state(model, state)
+        x_prev = state.particles
+        _check_generator(generator, x_prev)
+        bs = state.batch_shape
+        u = self._check_u(model, u, bs, x_prev)
+        u_p = None if u is None or u.dim() == 1 else u.unsqueeze(-2)
+        noise = _noise(model, k, bs, x_prev)
+        eps = torch.randn(
+            x_prev.shape, generator=generator, dtype=x_prev.dtype, device=x_prev.device
+        )
+        _, x = self._transition_sample(model, x_prev, u_p, k, noise, eps)
+        fs = state.proposal
+        if fs is not None:
+            fs = replace(fs, belief=GaussianBelief(x, fs.belief.chol))
+        return ParticleState(x, state.log_weights, fs)
+
+    def _propose_gaussian(self, model, state, y, y_safe, u, u_p, k, noise, eps, missing):
+        """Per-particle Gaussian proposal (paper 002 STPF steps 2-3; Van der Merwe et al. 2000).
+
+        Returns the new particles, the log-weight increments
+        ``log p(y|x) + log p(x|x_prev) - log q(x|x_prev, y)``, the carried filter state, the
+        number of prior-fallback particles per run and the particles' fading factors.
+        """
+        x_prev, fs = state.particles, state.proposal
+        bs, N, n = state.batch_shape, state.num_particles, model.state_dim
+        dt, dev = x_prev.dtype, x_prev.device
+        if not bool((torch.diagonal(noise.chol_Q, dim1=-2, dim2=-1) > 0).all()):
+            raise ValueError(
+                "model.chol_Q must have a positive diagonal for a Gaussian-proposal particle "
+                "filter (the transition density p(x_k | x_{k-1}) enters the weights)"
+            )
+        pmodel = _particle_model(model, len(bs), N)
+        y_e = y.unsqueeze(-2).expand(*bs, N, model.obs_dim)
+        u_e = None if u is None or u.dim() == 1 else u_p.expand(*bs, N, u.shape[-1])
+        # the per-particle Gaussian is centred on the particle (Van der Merwe et al., Sec. 4)
+        fs_in = replace(fs, belief=GaussianBelief(x_prev, fs.belief.chol))
+        prop = self.proposal
+        try:
+            fs_step, pinfo = prop.step(pmodel, fs_in, y_e, u_e, k)  # ONE engine step, Eq. 27
+            mu, L = fs_step.belief.mean, fs_step.belief.chol
+            diag = torch.diagonal(L, dim1=-2, dim2=-1)
+            ok = torch.isfinite(mu).all(-1) & torch.isfinite(L).all(-1).all(-1) & (diag > 0).all(-1)
+            lam_i = pinfo.fading_factor
+            # the engine's prior mean is exactly f(x_prev) + q for the Taylor rule (fading scales
+            # only the covariance) and for the random walk; reuse it instead of calling f again
+            exact_prior = (model.f is None or isinstance(prop.rule, Taylor)) and prop.noise is None
+            fq = pinfo.prior.mean if exact_prior else None
+        except torch.linalg.LinAlgError:
+            fs_step, ok, fq = fs_in, torch.zeros((*bs, N), dtype=torch.bool, device=dev), None
+            mu, L = x_prev, fs.belief.chol
+            diag = torch.diagonal(L, dim1=-2, dim2=-1)
+            lam_i = torch.ones((*bs, N), dtype=dt, device=dev)
+        if fq is None or not bool(torch.isfinite(fq).all()):
+            fq, _ = self._transition_sample(model, x_prev, u_p, k, noise, None)
+        x_tr = fq + eps @ noise.chol_Q.mT  # draw from p(x_k | x_{k-1}) (fallback, missing y)
+        # sample from the proposal N(mu, L L^T) (Eq. 27); its log density uses eps directly
+        x_q = mu + (L @ eps.unsqueeze(-1)).squeeze(-1)
+        log_q = -0.5 * (n * _LOG_2PI + (eps * eps).sum(-1)) - torch.log(diag).sum(-1)
+        use_q = ok & ~missing[..., None]
+        x = torch.where(use_q[..., None], x_q, x_tr)
+        log_lik = self._log_lik(model, x, y_safe, u_p, k, noise)
+        log_trans = _gauss_logpdf(x - fq, noise.chol_Q)
+        inc = torch.where(use_q, log_lik + log_trans - log_q, log_lik)  # STPF step 3
+        n_bad = (~ok & ~missing[..., None]).sum(-1)
+        all_ok = bool(ok.all())
+        if not all_ok:
+            if bool((n_bad > 0).any()):
+                warnings.warn(
+                    f"step {k}: {int(n_bad.sum())} particle proposals were not finite/positive "
+                    "definite; those particles were drawn from the transition prior",
+                    ProposalFallbackWarning,
+                    stacklevel=3,
+                )
+            fs_step = where_particles(ok, fs_step, fs_in)
+        fs_new = replace(fs_step, belief=GaussianBelief(x, fs_step.belief.chol))
+        return x, inc, fs_new, n_bad, lam_i
+
+    def step(
+        self,
+        model: StateSpaceModel,
+        state: ParticleState,
+        y: Tensor,
+        u: Tensor | None = None,
+        k: int = 1,
+        *,
+        generator: torch.Generator,
+    ) -> tuple[ParticleState, ParticleStepInfo]:
+        """One propagate / reweight / estimate / resample step (paper 002 STPF steps 2-6).
+
+        Args:
+            model: the state-space model (additive Gaussian noise; per-step noise honoured).
+            state: :class:`ParticleState` at ``k - 1``.
+            y: ``(..., m)`` measurement of each run (NaN: missing, propagate only).
+            u: control ``(p,)`` or ``(..., p)``, or ``None``.
+            k: step index passed to ``f``, ``h`` and the noise callables.
+            generator: ``torch.Generator`` on the particles' device.
+        Returns:
+            The new (possibly resampled) state and a :class:`ParticleStepInfo`.
+        """
+        self._check_state(model, state)
+        x_prev, lw_prev = state.particles, state.log_weights
+        _check_generator(generator, x_prev)
+        bs, N = state.batch_shape, state.num_particles
+        dt, dev = x_prev.dtype, x_prev.device
+        y = self._check_y(model, y, bs, x_prev)
+        u = self._check_u(model, u, bs, x_prev)
+        u_p = None if u is None or u.dim() == 1 else u.unsqueeze(-2)
+        missing = torch.isnan(y).any(-1)  # (...)
+        y_safe = torch.where(missing[..., None], torch.zeros_like(y), y)
+        noise = _noise(model, k, bs, x_prev)
+
+        eps = torch.randn(x_prev.shape, generator=generator, dtype=dt, device=dev)
+        lam = torch.ones(bs, dtype=dt, device=dev)
+        if self.proposal is None:
+            fallback = torch.zeros(bs, dtype=torch.long, device=dev)
+            fs_new = None
+            _, x = self._transition_sample(model, x_prev, u_p, k, noise, eps)
+            inc = self._log_lik(model, x, y_safe, u_p, k, noise)
+            lam_prop = None
+        else:
+            x, inc, fs_new, fallback, lam_prop = self._propose_gaussian(
+                model, state, y, y_safe, u, u_p, k, noise, eps, missing
+            )
+
+        # missing runs: propagate only, weights unchanged
+        inc = torch.where(missing[..., None], torch.zeros_like(inc), inc)
+        finite_x = torch.isfinite(x).all(-1)
+        inc = torch.where(torch.isfinite(inc) & finite_x, inc, torch.full_like(inc, -math.inf))
+        lw_un = lw_prev + inc
+        ll = torch.logsumexp(lw_un, -1)  # log sum_i W_{k-1}^i w_inc^i ~ log p(y_k | y_{1:k-1})
+        collapsed = ~torch.isfinite(ll)
+        if bool(collapsed.any()):
+            if bool((collapsed & ~finite_x.any(-1)).any()):
+                raise FloatingPointError(
+                    f"step {k}: every particle of a run is non-finite (check f, h and the noise)"
+                )
+            warnings.warn(
+                f"step {k}: particle weights collapsed (all zero or non-finite) in "
+                f"{int(collapsed.sum())} of {collapsed.numel()} runs; weights reset to uniform",
+                WeightCollapseWarning,
+                stacklevel=2,
+            )
+            reset = torch.where(
+                finite_x, torch.zeros_like(lw_un), torch.full_like(lw_un, -math.inf)
+            )
+            lw_un = torch.where(collapsed[..., None], reset, lw_un)
+            ll = torch.where(collapsed, torch.full_like(ll, -math.inf), ll)
+        lw = lw_un - torch.logsumexp(lw_un, -1, keepdim=True)  # STPF step 4
+
+        # estimates (STPF step 5); zero-weight particles may be non-finite: mask them
+        W = lw.exp()
+        xs = torch.where((W > 0)[..., None], x, torch.zeros_like(x))
+        mean = (W.unsqueeze(-2) @ xs).squeeze(-2)
+        d = xs - mean.unsqueeze(-2)
+        cov = (d * W.unsqueeze(-1)).mT @ d
+        cov = 0.5 * (cov + cov.mT)
+        n_eff = ess(lw)
+        if lam_prop is not None:
+            lam = (
+                W * torch.where(torch.isfinite(lam_prop), lam_prop, torch.ones_like(lam_prop))
+            ).sum(-1)
+
+        x_w, lw_w = x, lw
+        # resampling (STPF step 6): particles, weights and every per-particle Gaussian
+        do = n_eff < self.resample_threshold * N
+        if bool(do.any()):
+            anc = get_resampler(self.resampler)(lw, generator)
+            keep = torch.arange(N, device=dev).expand(*bs, N)
+            anc = torch.where(do[..., None], anc, keep)
+            x = gather_particles(x, anc)
+            if fs_new is not None:
+                fs_new = gather_particles(fs_new, anc)
+            lw = torch.where(do[..., None], torch.full_like(lw, -math.log(N)), lw)
+
+        ll = torch.where(missing, torch.zeros_like(ll), ll)
+        info = ParticleStepInfo(
+            mean=mean,
+            cov=cov,
+            ess=n_eff,
+            resampled=do,
+            log_likelihood=ll,
+            collapsed=collapsed,
+            prior_fallback=fallback,
+            fading_factor=lam,
+            missing=missing,
+            particles=x_w,
+            log_weights=lw_w,
+        )
+        return ParticleState(x, lw, fs_new), info
+
+    # ------------------------------------------------------------------ run
+    def run(
+        self,
+        model: StateSpaceModel,
+        init: GaussianBelief | ParticleState,
+        ys: Tensor,
+        us: Tensor | None = None,
+        *,
+        generator: torch.Generator,
+        k0: int = 0,
+        keep_particles: bool = False,
+    ) -> ParticleTrajectory:
+        """Filter the measurements ``ys`` ``(T, ..., m)`` (NaN rows: missing).
+
+        Step ``t`` (0-based) uses ``k = k0 + t + 1``, ``us[t]`` (``(T, ..., p)`` or ``(T, p)``)
+        and ``ys[t]``. ``init`` is the belief on ``x_{k0}`` (particles are drawn from it) or a
+        :class:`ParticleState` to resume. With ``keep_particles`` the weighted particle sets
+        (before resampling) are returned as well.
+        """
+        if isinstance(init, ParticleState):
+            state = init
+            self._check_state(model, state)
+        else:
+            state = self.init(model, init, generator=generator, k=k0)
+        bs = state.batch_shape
+        m = model.obs_dim
+        if not isinstance(ys, Tensor):
+            raise TypeError(f"ys must be a torch.Tensor of shape (T, ..., {m})")
+        want = f"(T, {', '.join(map(str, bs)) + ', ' if len(bs) else ''}{m})"
+        if ys.dim() < 2 or tuple(ys.shape[1:]) != tuple(bs) + (m,) or ys.shape[0] < 1:
+            raise ValueError(f"ys must have shape {want} with T >= 1, got {tuple(ys.shape)}")
+        T = ys.shape[0]
+        if model.control_dim:
+            p = model.control_dim
+            if (
+                not isinstance(us, Tensor)
+                or us.dim() < 2
+                or us.shape[0] != T
+                or tuple(us.shape[1:]) not in ((p,), tuple(bs) + (p,))
+            ):
+                raise ValueError(f"us must have shape (T, {p}) or (T, ..., {p}) with T = {T}")
+        elif us is not None:
+            raise ValueError("us was given but the model has control_dim=0")
+        keys = (
+            "means",
+            "covs",
+            "ess",
+            "resampled",
+            "log_likelihoods",
+            "collapsed",
+            "prior_fallback",
+            "fading_factors",
+            "missing",
+        )
+        out = {key: [] for key in keys}
+        parts, lws = [], []
+        for t in range(T):
+            u = None if us is None else us[t]
+            state, info = self.step(model, state, ys[t], u, k0 + t + 1, generator=generator)
+            if keep_particles:
+                parts.append(info.particles)
+                lws.append(info.log_weights)
+            out["means"].append(info.mean)
+            out["covs"].append(info.cov)
+            out["ess"].append(info.ess)
+            out["resampled"].append(info.resampled)
+            out["log_likelihoods"].append(info.log_likelihood)
+            out["collapsed"].append(info.collapsed)
+            out["prior_fallback"].append(info.prior_fallback)
+            out["fading_factors"].append(info.fading_factor)
+            out["missing"].append(info.missing)
+        stacked = {key: torch.stack(v) for key, v in out.items()}
+        return ParticleTrajectory(
+            **stacked,
+            particles=torch.stack(parts) if parts else None,
+            log_weights=torch.stack(lws) if lws else None,
+            final=state,
+        )
+
+
+# ---------------------------------------------------------------------- configurations
+def sir(num_particles: int = 1000, **kw) -> ParticleFilter:
+    """Bootstrap (SIR) particle filter: transition prior as proposal."""
+    return ParticleFilter(num_particles, None, name=kw.pop("name", "PF"), **kw)
+
+
+def ekpf(
+    num_particles: int = 1000, *, proposal: GaussianFilter | None = None, **kw
+) -> ParticleFilter:
+    """Extended Kalman particle filter: a per-particle EKF step as proposal."""
+    return ParticleFilter(num_particles, proposal or ekf(), name=kw.pop("name", "EKPF"), **kw)
+
+
+def upf(
+    num_particles: int = 1000, *, proposal: GaussianFilter | None = None, **kw
+) -> ParticleFilter:
+    """Unscented particle filter (Van der Merwe et al. 2000): a per-particle UKF step as proposal
+    (scaled rule ``alpha=1, beta=2, kappa=0``, square-root algebra, by default)."""
+    prop = proposal or ukf(1.0, 2.0, 0.0, sqrt=True)
+    return ParticleFilter(num_particles, prop, name=kw.pop("name", "UPF"), **kw)
+
+
+def stpf(
+    num_particles: int = 1000,
+    rho: float = 0.95,
+    beta: float = 1.0,
+    *,
+    resample_threshold: float = 1.0 / 3.0,
+    **kw,
+) -> ParticleFilter:
+    """Strong-tracking particle filter of paper 002 (Eq. 27, steps 1-7): a per-particle SFEKF
+    (strong-tracking EKF, paper 000 Eq. 7-12, forgetting ``rho``, weakening ``beta``) step as
+    proposal; resampling when ``N_eff < N/3`` (step 6)."""
+    return ParticleFilter(
+        num_particles,
+        stekf(rho, beta),
+        resample_threshold=resample_threshold,
+        name=kw.pop("name", "STPF"),
+        **kw,
+    )
+
+
+PARTICLE_FILTERS: dict[str, Callable[..., ParticleFilter]] = {
+    "sir": sir,
+    "pf": sir,
+    "ekpf": ekpf,
+    "upf": upf,
+    "stpf": stpf,
+}
+
+
+def make_particle_filter(name: str, **kw) -> ParticleFilter:
+    """Build a particle filter by name (``sir``/``pf``, ``ekpf``, ``upf``, ``stpf``)."""
+    key = name.lower()
+    if key not in PARTICLE_FILTERS:
+        raise ValueError(
+            f"unknown particle filter {name!r}; choose one of {sorted(PARTICLE_FILTERS)}"
+        )
+    return PARTICLE_FILTERS[key](**kw)

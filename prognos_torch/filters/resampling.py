@@ -1,0 +1,179 @@
+"""Resampling schemes for particle filters and the effective sample size.
+
+Every resampler takes weights of shape ``(..., N)`` (log-weights by default, or non-negative
+weights with ``log=False``; neither needs to be normalised), an explicit ``torch.Generator`` and
+returns ancestor indices ``(..., N)`` (``int64``): offspring ``j`` of batch element ``b`` is a
+copy of particle ``ancestors[b, j]``. All schemes are unbiased, ``E[#offspring of i] = N w_i``
+(Douc, Cappe & Moulines, "Comparison of resampling schemes for particle filtering", 2005):
+
+- :func:`multinomial`: ``N`` i.i.d. draws from the categorical distribution ``w``;
+  ``Var[#offspring of i] = N w_i (1 - w_i)``.
+- :func:`stratified`: one uniform in each stratum ``[j/N, (j+1)/N)``.
+- :func:`systematic`: one uniform ``U`` shared by all strata, points ``(j + U)/N``; the number of
+  offspring of ``i`` is ``floor(N w_i)`` or ``ceil(N w_i)``.
+- :func:`residual`: ``floor(N w_i)`` deterministic copies, the remaining
+  ``R = N - sum floor(N w_i)`` drawn multinomially from the residual weights
+  ``(N w_i - floor(N w_i)) / R``.
+
+All draws are inverse-CDF look-ups (``torch.searchsorted``) on the normalised cumulative weights,
+batched over the leading dimensions: no Python loop over particles or batch elements.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "multinomial",
+    "systematic",
+    "stratified",
+    "residual",
+    "ess",
+    "normalize_log_weights",
+    "RESAMPLERS",
+    "get_resampler",
+]
+
+Resampler = Callable[..., Tensor]
+
+
+def _check_generator(generator, like: Tensor) -> None:
+    if not isinstance(generator, torch.Generator):
+        raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
+    if generator.device.type != like.device.type:
+        raise ValueError(
+            f"generator is on {generator.device}, the weights on {like.device}: "
+            "create the generator on the weights' device"
+        )
+
+
+def _normalized(weights: Tensor, log: bool) -> Tensor:
+    """Validated, normalised probabilities ``(..., N)`` (floating point)."""
+    if not isinstance(weights, Tensor):
+        raise TypeError("weights must be a torch.Tensor of shape (..., N)")
+    if weights.dim() < 1 or weights.shape[-1] < 1:
+        raise ValueError(
+            f"weights must have shape (..., N) with N >= 1, got {tuple(weights.shape)}"
+        )
+    if not weights.is_floating_point():
+        raise TypeError(f"weights must be a floating-point tensor, got {weights.dtype}")
+    if log:
+        if torch.isnan(weights).any() or (weights == float("inf")).any():
+            raise ValueError("log-weights must not contain NaN or +inf")
+        mx = weights.amax(-1, keepdim=True)
+        if (mx == float("-inf")).any():
+            raise ValueError("log-weights are -inf for every particle of a batch element")
+        return torch.softmax(weights, dim=-1)
+    if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()):
+        raise ValueError("weights must be finite and non-negative (or pass log=True)")
+    s = weights.sum(-1, keepdim=True)
+    if bool((s <= 0).any()):
+        raise ValueError("weights sum to zero for a batch element")
+    return weights / s
+
+
+def _cdf(w: Tensor) -> Tensor:
+    # dividing by the last element makes cdf[..., -1] == 1 exactly, so every u in [0, 1) finds an
+    # index < N, and zero-weight particles (flat cdf steps) are never selected (right=True).
+    c = torch.cumsum(w, dim=-1)
+    return (c / c[..., -1:]).contiguous()
+
+
+def _lookup(cdf: Tensor, u: Tensor) -> Tensor:
+    idx = torch.searchsorted(cdf, u.contiguous(), right=True)
+    return idx.clamp_max(cdf.shape[-1] - 1)
+
+
+def _uniform(shape, generator, like: Tensor) -> Tensor:
+    return torch.rand(shape, generator=generator, dtype=like.dtype, device=like.device)
+
+
+def multinomial(weights: Tensor, generator: torch.Generator, *, log: bool = True) -> Tensor:
+    """Multinomial resampling: ``N`` i.i.d. ancestors from ``Cat(w)``; returns ``(..., N)``."""
+    w = _normalized(weights, log)
+    _check_generator(generator, w)
+    return _lookup(_cdf(w), _uniform(w.shape, generator, w))
+
+
+def stratified(weights: Tensor, generator: torch.Generator, *, log: bool = True) -> Tensor:
+    """Stratified resampling: ``u_j = (j + U_j) / N`` with independent ``U_j ~ U[0, 1)``."""
+    w = _normalized(weights, log)
+    _check_generator(generator, w)
+    N = w.shape[-1]
+    j = torch.arange(N, dtype=w.dtype, device=w.device)
+    u = (j + _uniform(w.shape, generator, w)) / N
+    return _lookup(_cdf(w), u.clamp_max(1.0 - torch.finfo(w.dtype).eps))
+
+
+def systematic(weights: Tensor, generator: torch.Generator, *, log: bool = True) -> Tensor:
+    """Systematic resampling: ``u_j = (j + U) / N`` with one ``U ~ U[0, 1)`` per batch element."""
+    w = _normalized(weights, log)
+    _check_generator(generator, w)
+    N = w.shape[-1]
+    j = torch.arange(N, dtype=w.dtype, device=w.device)
+    u = (j + _uniform(w.shape[:-1] + (1,), generator, w)) / N
+    return _lookup(_cdf(w), u.clamp_max(1.0 - torch.finfo(w.dtype).eps))
+
+
+def residual(weights: Tensor, generator: torch.Generator, *, log: bool = True) -> Tensor:
+    """Residual resampling: ``floor(N w_i)`` copies of ``i``, the rest multinomial on residuals.
+
+    Batched without a loop: offspring slot ``j < D = sum_i floor(N w_i)`` is filled by the
+    particle whose cumulative deterministic count first exceeds ``j``; slots ``j >= D`` by
+    inverse-CDF draws from the residual weights.
+    """
+    w = _normalized(weights, log)
+    _check_generator(generator, w)
+    N = w.shape[-1]
+    Nw = N * w
+    det = torch.floor(Nw)
+    cum_det = torch.cumsum(det, dim=-1).contiguous()  # exact small integers in floating point
+    D = cum_det[..., -1:]  # (..., 1)
+    j = torch.arange(N, dtype=w.dtype, device=w.device).expand(w.shape).contiguous()
+    det_idx = _lookup(cum_det, j)
+    res = (Nw - det).clamp_min(0.0)
+    has_res = res.sum(-1, keepdim=True) > 0
+    # when no residual is left (D == N) the residual draws are unused; keep the cdf well defined
+    res = torch.where(has_res, res, torch.ones_like(res))
+    res_idx = _lookup(_cdf(res), _uniform(w.shape, generator, w))
+    return torch.where(j < D, det_idx, res_idx)
+
+
+def normalize_log_weights(log_w: Tensor) -> tuple[Tensor, Tensor]:
+    """``(log_w - logsumexp(log_w), logsumexp(log_w))`` over the last dimension."""
+    lse = torch.logsumexp(log_w, dim=-1, keepdim=True)
+    return log_w - lse, lse.squeeze(-1)
+
+
+def ess(log_w: Tensor) -> Tensor:
+    """Effective sample size ``1 / sum_i w_i^2`` of (unnormalised) log-weights ``(..., N)``.
+
+    Computed in log space, ``exp(2 logsumexp(l) - logsumexp(2 l))``; returns ``(...)``. It lies in
+    ``[1, N]`` for finite weights.
+    """
+    if not isinstance(log_w, Tensor) or log_w.dim() < 1:
+        raise ValueError("log_w must be a tensor of shape (..., N)")
+    return torch.exp(2.0 * torch.logsumexp(log_w, -1) - torch.logsumexp(2.0 * log_w, -1))
+
+
+RESAMPLERS: dict[str, Resampler] = {
+    "multinomial": multinomial,
+    "stratified": stratified,
+    "systematic": systematic,
+    "residual": residual,
+}
+
+
+def get_resampler(resampler: str | Resampler) -> Resampler:
+    """A resampler by name (``multinomial``, ``stratified``, ``systematic``, ``residual``) or a
+    callable ``(log_w (..., N), generator) -> ancestors (..., N)`` passed through."""
+    if callable(resampler):
+        return resampler
+    if not isinstance(resampler, str) or resampler.lower() not in RESAMPLERS:
+        raise ValueError(
+            f"resampler must be one of {sorted(RESAMPLERS)} or a callable, got {resampler!r}"
+        )
+    return RESAMPLERS[resampler.lower()]
