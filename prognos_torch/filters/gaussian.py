@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import torch
 from torch import Tensor
@@ -86,6 +87,21 @@ class FilterState:
     noise: NoiseEstimatorState | None = None
 
 
+def innovation_stats(innovation: Tensor, chol_innovation: Tensor, missing: Tensor):
+    """Normalised innovation squared and Gaussian log-likelihood of innovations.
+
+    Works on any leading dims (one step, or a whole stacked trajectory). Missing steps get
+    ``nis = NaN`` and a log-likelihood contribution of 0.
+    """
+    w = torch.linalg.solve_triangular(chol_innovation, innovation.unsqueeze(-1), upper=False)
+    nis = w.squeeze(-1).pow(2).sum(-1)
+    logdet = 2.0 * torch.log(torch.diagonal(chol_innovation, dim1=-2, dim2=-1)).sum(-1)
+    ll = -0.5 * (innovation.shape[-1] * _LOG_2PI + logdet + nis)
+    ll = torch.where(missing, torch.zeros_like(ll), ll)
+    nis = torch.where(missing, torch.full_like(nis, float("nan")), nis)
+    return nis, ll
+
+
 @dataclass(frozen=True)
 class StepInfo:
     """Diagnostics of one step (batch dims ``...``).
@@ -94,25 +110,37 @@ class StepInfo:
         prior: the predicted belief ``N(x_{k|k-1}, S S^T)`` (after fading).
         innovation: ``(..., m)`` ``y_k - z_{k|k-1}`` (zeros where missing).
         chol_innovation: ``(..., m, m)`` square root of the innovation covariance.
-        log_likelihood: ``(...)`` ``log N(y_k; z_{k|k-1}, S_zz S_zz^T)`` (0 where missing).
-        nis: ``(...)`` normalised innovation squared (NaN where missing).
         fading_factor: ``(...)`` ``lambda_k`` (1 without strong tracking).
         noise: the noise statistics used in this step.
         noise_fallback: ``(...)`` bool, true where a noise estimate had to be projected to PD.
         missing: ``(...)`` bool.
         gain: ``(..., n, m)`` Kalman gain.
+
+    ``log_likelihood`` (``log N(y_k; z_{k|k-1}, S_zz S_zz^T)``, 0 where missing) and ``nis``
+    (normalised innovation squared, NaN where missing) are computed on first access, so the
+    hot loop does not pay for them when nobody reads them.
     """
 
     prior: GaussianBelief
     innovation: Tensor
     chol_innovation: Tensor
-    log_likelihood: Tensor
-    nis: Tensor
     fading_factor: Tensor
     noise: Noise
     noise_fallback: Tensor
     missing: Tensor
     gain: Tensor
+
+    @cached_property
+    def _stats(self):
+        return innovation_stats(self.innovation, self.chol_innovation, self.missing)
+
+    @property
+    def nis(self) -> Tensor:
+        return self._stats[0]
+
+    @property
+    def log_likelihood(self) -> Tensor:
+        return self._stats[1]
 
 
 @dataclass(frozen=True)
@@ -471,6 +499,7 @@ class GaussianFilter:
         u = self._check_u(model, u, belief)
         noise = self._noise(model, state, k)
         missing = torch.isnan(y).any(-1)
+        any_missing = bool(missing.any())
         prop = self._propagate(model, belief, u, k, noise.q)
 
         fstate = state.fading
@@ -506,18 +535,14 @@ class GaussianFilter:
 
         Szz = self._innovation_chol(mom, noise.chol_R)
         K = cho_solve_right(mom.pxz(), Szz)  # paper 000 Eq. 44
-        eps = torch.where(missing[..., None], torch.zeros_like(y), y - mom.z)
+        eps = y - mom.z
+        if any_missing:
+            eps = torch.where(missing[..., None], torch.zeros_like(y), eps)
         mean = prior.mean + (K @ eps.unsqueeze(-1)).squeeze(-1)  # Eq. 45
         chol = self._posterior_chol(prior, mom, K, Szz, noise.chol_R)
-        mean = torch.where(missing[..., None], prior.mean, mean)
-        chol = torch.where(missing[..., None, None], prior.chol, chol)
-
-        w = torch.linalg.solve_triangular(Szz, eps.unsqueeze(-1), upper=False).squeeze(-1)
-        nis = (w * w).sum(-1)
-        logdet = 2.0 * torch.log(torch.diagonal(Szz, dim1=-2, dim2=-1)).sum(-1)
-        ll = -0.5 * (y.shape[-1] * _LOG_2PI + logdet + nis)
-        ll = torch.where(missing, torch.zeros_like(ll), ll)
-        nis = torch.where(missing, torch.full_like(nis, float("nan")), nis)
+        if any_missing:
+            mean = torch.where(missing[..., None], prior.mean, mean)
+            chol = torch.where(missing[..., None, None], prior.chol, chol)
 
         nstate = state.noise
         fallback = torch.zeros(belief.batch_shape, dtype=torch.bool, device=y.device)
@@ -546,8 +571,6 @@ class GaussianFilter:
             prior=GaussianBelief(prior.mean, prior.chol),
             innovation=eps,
             chol_innovation=Szz,
-            log_likelihood=ll,
-            nis=nis,
             fading_factor=lam,
             noise=noise,
             noise_fallback=fallback,

@@ -9,7 +9,7 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
-from .gaussian import FilterState, GaussianFilter
+from .gaussian import FilterState, GaussianFilter, innovation_stats
 
 __all__ = ["Trajectory", "Forecast", "run", "forecast"]
 
@@ -105,14 +105,13 @@ def run(
         "pred_chols",
         "innovations",
         "chol_innovations",
-        "log_likelihoods",
-        "nis",
         "fading_factors",
         "noise_fallback",
         "chol_Q",
         "chol_R",
         "q",
         "r",
+        "missing",
     )
     out = {k: [] for k in keys}
     for t in range(T):
@@ -123,8 +122,7 @@ def run(
         out["pred_chols"].append(info.prior.chol)
         out["innovations"].append(info.innovation)
         out["chol_innovations"].append(info.chol_innovation)
-        out["log_likelihoods"].append(info.log_likelihood)
-        out["nis"].append(info.nis)
+        out["missing"].append(info.missing)
         out["fading_factors"].append(info.fading_factor)
         out["noise_fallback"].append(info.noise_fallback)
         if state.noise is not None:
@@ -132,9 +130,13 @@ def run(
             out["chol_R"].append(state.noise.chol_R)
             out["q"].append(state.noise.q)
             out["r"].append(state.noise.r)
-    stacked = {k: (torch.stack(v) if v else None) for k, v in out.items()}
     if T == 0:
         raise ValueError("ys must hold at least one step, shape (T, ..., m) with T >= 1")
+    stacked = {k: (torch.stack(v) if v else None) for k, v in out.items()}
+    # one vectorised pass over the whole trajectory instead of one per step
+    stacked["nis"], stacked["log_likelihoods"] = innovation_stats(
+        stacked["innovations"], stacked["chol_innovations"], stacked.pop("missing")
+    )
     return Trajectory(**stacked, final=state)
 
 

@@ -1,0 +1,143 @@
+"""Time per step of the Gaussian filter engine on the optimiser-face problem (random-walk state,
+learner output as the measurement), against filterpy's UKF on the same n = 44 problem.
+
+    python benchmarks/bench_filters.py [--steps 200] [--threads 1]
+
+Problems: n = 4 (linear regression on 3 inputs + bias), n = 44 (paper 003's ANFIS, 3 inputs,
+2 sigmoid MFs), n = 200 (ELM output weights, 200 hidden nodes). Batch 1 and 256 independent runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import platform
+import time
+
+import numpy as np
+import torch
+from torch.func import functional_call, vmap
+
+from prognos_torch.core import GaussianBelief, StateSpaceModel
+from prognos_torch.filters import ekf, sckf, srukf
+from prognos_torch.learners import ANFIS, ELM
+
+
+def learner_problem(n: int):
+    if n == 4:
+        module = torch.nn.Linear(3, 1, dtype=torch.float64)
+    elif n == 44:
+        module = ANFIS(3, 2)
+    elif n == 200:
+        module = ELM(3, 200)
+    else:
+        raise ValueError(n)
+    names = [k for k, p in module.named_parameters() if p.requires_grad]
+    shapes = [dict(module.named_parameters())[k].shape for k in names]
+    sizes = [math.prod(s) for s in shapes]
+    fixed = {k: p for k, p in module.named_parameters() if not p.requires_grad}
+    assert sum(sizes) == n
+
+    def unflat(theta):
+        parts = torch.split(theta, sizes)
+        return {k: p.reshape(s) for k, p, s in zip(names, parts, shapes)} | fixed
+
+    def one(theta, u):
+        return functional_call(module, unflat(theta), (u.unsqueeze(0),)).reshape(-1)
+
+    def h(theta, u, k):  # theta (..., n), u (3,) -> (..., 1)
+        flat = theta.reshape(-1, n)
+        out = vmap(one, in_dims=(0, None))(flat, u)
+        return out.reshape(*theta.shape[:-1], 1)
+
+    theta0 = torch.cat([p.detach().reshape(-1) for k, p in module.named_parameters() if k in names])
+    return module, h, theta0
+
+
+def time_engine(filt, n, batch, steps, seed=0):
+    module, h, theta0 = learner_problem(n)
+    g = torch.Generator().manual_seed(seed)
+    us = torch.rand(steps, 3, generator=g, dtype=torch.float64)
+    ys = torch.rand(steps, *((batch,) if batch > 1 else ()), 1, generator=g, dtype=torch.float64)
+    model_for = lambda u: StateSpaceModel(  # noqa: E731
+        None, lambda th, _u, k: h(th, u, k), n, 1,
+        chol_Q=1e-3 * torch.eye(n, dtype=torch.float64), chol_R=0.1 * torch.eye(1, dtype=torch.float64),
+        batched=True,
+    )
+    bs = (batch,) if batch > 1 else ()
+    b0 = GaussianBelief(theta0.expand(*bs, n).clone(), 0.1 * torch.eye(n, dtype=torch.float64).expand(*bs, n, n).clone())
+    state = filt.init(model_for(us[0]), b0)
+    # warm-up
+    for k in range(3):
+        state, _ = filt.step(model_for(us[k]), state, ys[k], k=k + 1)
+    t0 = time.perf_counter()
+    for k in range(steps):
+        state, _ = filt.step(model_for(us[k]), state, ys[k], k=k + 1)
+    return (time.perf_counter() - t0) / steps
+
+
+def numpy_anfis(theta, u):
+    """Paper 003 Eq. 1-5 in NumPy, theta in the order of Eq. 44 (3 inputs, 2 MFs)."""
+    alpha = theta[:32].reshape(4, 8)  # (n_in + 1, R), rule index fastest
+    b = theta[32:38].reshape(3, 2)
+    beta = theta[38:44].reshape(3, 2)
+    mu = 1.0 / (1.0 + np.exp(-b * (u[:, None] - beta)))
+    w = np.ones(8)
+    for i, (l1, l2, l3) in enumerate(np.ndindex(2, 2, 2)):
+        w[i] = mu[0, l1] * mu[1, l2] * mu[2, l3]
+    w = w / w.sum()
+    return np.array([w @ (alpha[:3].T @ u + alpha[3])])
+
+
+def time_filterpy(steps, torch_module: bool):
+    from filterpy.kalman import JulierSigmaPoints, UnscentedKalmanFilter
+
+    module, h, theta0 = learner_problem(44)
+    n = 44
+    rng = np.random.default_rng(0)
+    us = rng.random((steps, 3))
+    if torch_module:
+        def hx(theta, u):
+            with torch.no_grad():
+                return h(torch.as_tensor(theta), torch.as_tensor(u), 0).numpy()
+    else:
+        hx = numpy_anfis
+    f = UnscentedKalmanFilter(dim_x=n, dim_z=1, dt=1.0, fx=lambda x, dt: x, hx=hx,
+                              points=JulierSigmaPoints(n, kappa=1.0))
+    f.x = theta0.numpy().copy()
+    f.P = 0.01 * np.eye(n)
+    f.Q = 1e-6 * np.eye(n)
+    f.R = np.array([[0.01]])
+    t0 = time.perf_counter()
+    for k in range(steps):
+        f.predict()
+        f.update(np.array([rng.random()]), u=us[k])
+    return (time.perf_counter() - t0) / steps
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[4, 44, 200])
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    print(f"# torch {torch.__version__}, {platform.processor() or platform.machine()}, "
+          f"threads={args.threads}, {time.strftime('%Y-%m-%d')}")
+    print("| filter | n | batch | ms / step | ms / step / run |")
+    print("|---|---|---|---|---|")
+    for n in args.sizes:
+        for name, filt in (("SRUKF", srukf()), ("SCKF", sckf()), ("EKF", ekf())):
+            for batch in (1, 256):
+                steps = args.steps if batch == 1 else max(5, args.steps // (10 if n < 200 else 40))
+                s = time_engine(filt, n, batch, steps)
+                print(f"| {name} | {n} | {batch} | {1e3 * s:.3f} | {1e3 * s / batch:.4f} |", flush=True)
+    if 44 in args.sizes:
+        for tm in (False, True):
+            s = time_filterpy(max(20, args.steps // 4), tm)
+            label = "filterpy UKF, torch ANFIS" if tm else "filterpy UKF, NumPy ANFIS"
+            print(f"| {label} | 44 | 1 | {1e3 * s:.3f} | {1e3 * s:.4f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
