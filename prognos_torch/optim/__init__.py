@@ -1,0 +1,35 @@
+"""The optimiser face of the filter engine: learners trained by Kalman filtering.
+
+* :class:`ParameterBridge`: module parameters <-> the filter state ``theta`` (paper 003 Eq. 44),
+  the module as ``g(theta, x)`` (Eq. 46), vectorised over many ``theta`` and differentiated.
+* :class:`KalmanOptimizer` (and :class:`EKF`, :class:`SRUKF`, :class:`ImSRUKF`): a
+  ``torch.optim.Optimizer`` whose ``step`` is one step of the library's Gaussian filter on the
+  random-walk model of Eq. 45-46.
+* :func:`fit`: one training loop for Kalman and gradient optimisers.
+"""
+
+from .fit import History, fit
+from .kalman import (
+    EKF,
+    OPTIMIZER_NOISE,
+    SRUKF,
+    ImSRUKF,
+    KalmanOptimizer,
+    KalmanStep,
+    noise_factor,
+)
+from .params import ParameterBridge, Selector
+
+__all__ = [
+    "ParameterBridge",
+    "Selector",
+    "KalmanOptimizer",
+    "KalmanStep",
+    "EKF",
+    "SRUKF",
+    "ImSRUKF",
+    "noise_factor",
+    "OPTIMIZER_NOISE",
+    "fit",
+    "History",
+]

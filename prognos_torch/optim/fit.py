@@ -1,0 +1,297 @@
+"""One training loop for Kalman-filter and gradient optimisers.
+
+:func:`fit` trains a module with any of
+
+* a :class:`~prognos_torch.optim.kalman.KalmanOptimizer` (``step(inputs, targets)``, one filter
+  step per mini-batch, no gradients), including a batch of Monte Carlo runs (``runs=R``);
+* a gradient optimiser such as ``torch.optim.Adam`` or ``torch.optim.SGD``, and
+  ``torch.optim.LBFGS``: ``step(closure)`` with a closure that evaluates the loss on the
+  mini-batch and calls ``loss.backward()``.
+
+Comparisons are like for like: the same mini-batches in the same order (``shuffle`` draws one
+permutation per epoch from ``generator``), the same number of passes, and the same metrics,
+evaluated after every epoch on the whole training set (and ``val``) in float64.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor, nn
+
+from .kalman import KalmanOptimizer
+
+__all__ = ["fit", "History", "METRICS"]
+
+
+def _mae(pred: Tensor, target: Tensor, dims) -> Tensor:
+    return (pred - target).abs().mean(dims)
+
+
+def _rmse(pred: Tensor, target: Tensor, dims) -> Tensor:
+    return (pred - target).square().mean(dims).sqrt()  # paper 003 Eq. 49
+
+
+def _mse(pred: Tensor, target: Tensor, dims) -> Tensor:
+    return (pred - target).square().mean(dims)
+
+
+#: Built-in metrics (paper 003 Eq. 48-49), computed in float64 over all output entries.
+#: Non-finite predictions give NaN (a diverged run is reported, not raised).
+METRICS: dict[str, Callable[[Tensor, Tensor, tuple[int, ...]], Tensor]] = {
+    "mae": _mae,
+    "rmse": _rmse,
+    "mse": _mse,
+}
+
+
+@dataclass
+class History:
+    """Per-epoch record of a :func:`fit` call.
+
+    Each metric value is a float64 tensor: ``()`` for one run, ``(R,)`` for ``R`` Monte Carlo
+    runs of a :class:`KalmanOptimizer`.
+
+    Attributes:
+        metrics: metric names, in order.
+        epoch: 1-based epoch numbers.
+        train: ``{metric: [value per epoch]}`` on the whole training set after each epoch.
+        val: the same on ``val`` (empty lists if no ``val`` was given).
+        loss: mean training loss of the optimiser steps in each epoch (Kalman: the mean squared
+            innovation before each update; gradient optimisers: ``loss_fn`` before each step).
+        time: seconds spent in the optimiser steps of each epoch (evaluation excluded).
+        steps: number of optimiser steps taken in total.
+        best_epoch: epoch with the lowest mean validation value of the first metric (``None``
+            without ``val``).
+        stopped_early: whether early stopping ended the training.
+    """
+
+    metrics: tuple[str, ...]
+    epoch: list[int] = field(default_factory=list)
+    train: dict[str, list[Tensor]] = field(default_factory=dict)
+    val: dict[str, list[Tensor]] = field(default_factory=dict)
+    loss: list[Tensor] = field(default_factory=list)
+    time: list[float] = field(default_factory=list)
+    steps: int = 0
+    best_epoch: int | None = None
+    stopped_early: bool = False
+
+    @property
+    def train_time(self) -> float:
+        """Total seconds spent in optimiser steps."""
+        return float(sum(self.time))
+
+    def last(self, split: str = "train") -> dict[str, Tensor]:
+        """Metric values of the last epoch on ``"train"`` or ``"val"``."""
+        src = {"train": self.train, "val": self.val}.get(split)
+        if src is None:
+            raise ValueError(f"split must be 'train' or 'val', got {split!r}")
+        return {k: v[-1] for k, v in src.items() if v}
+
+
+def _check_data(data, name: str) -> tuple[Tensor, Tensor]:
+    if not (isinstance(data, (tuple, list)) and len(data) == 2):
+        raise TypeError(f"{name} must be a pair (X, Y) of tensors")
+    X, Y = data
+    if not isinstance(X, Tensor) or not isinstance(Y, Tensor):
+        raise TypeError(f"{name} must be a pair (X, Y) of tensors, got {type(X)}, {type(Y)}")
+    if X.dim() < 1 or Y.dim() < 1 or X.shape[0] != Y.shape[0] or X.shape[0] == 0:
+        raise ValueError(
+            f"{name}: X and Y must have the same non-zero number of rows (N, ...), got "
+            f"{tuple(X.shape)} and {tuple(Y.shape)}"
+        )
+    return X, Y
+
+
+def _metric_fns(metrics) -> list[tuple[str, Callable]]:
+    if isinstance(metrics, str):
+        metrics = (metrics,)
+    out = []
+    for m in metrics:
+        if isinstance(m, str):
+            if m not in METRICS:
+                raise ValueError(f"metrics: unknown metric {m!r}; choose from {sorted(METRICS)}")
+            out.append((m, METRICS[m]))
+        elif callable(m):
+            name = getattr(m, "__name__", "metric")
+            out.append((name, lambda p, t, dims, m=m: m(p, t)))
+        else:
+            raise TypeError(f"metrics must contain names or callables, got {type(m)}")
+    if not out:
+        raise ValueError("metrics must name at least one metric")
+    return out
+
+
+@torch.no_grad()
+def _evaluate(module, optimizer, X: Tensor, Y: Tensor, fns) -> dict[str, Tensor]:
+    if isinstance(optimizer, KalmanOptimizer) and optimizer.runs is not None:
+        pred = optimizer.predict(X)  # (R, N, ...)
+        dims = tuple(range(1, pred.dim()))
+    else:
+        pred = module(X)
+        dims = tuple(range(pred.dim()))
+    if pred.shape[-Y.dim() :] != Y.shape:
+        raise ValueError(
+            f"the model output {tuple(pred.shape)} does not match the targets {tuple(Y.shape)}"
+        )
+    p64, t64 = pred.to(torch.float64), Y.to(device=pred.device, dtype=torch.float64)
+    return {name: fn(p64, t64, dims) for name, fn in fns}
+
+
+def fit(
+    module: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    train: tuple[Tensor, Tensor],
+    *,
+    epochs: int = 1,
+    batch_size: int = 1,
+    shuffle: bool = False,
+    generator: torch.Generator | None = None,
+    val: tuple[Tensor, Tensor] | None = None,
+    early_stopping: int | None = None,
+    restore_best: bool = True,
+    drop_last: bool = False,
+    progress: bool = True,
+    metrics: Sequence[str | Callable] = ("mae", "rmse"),
+    loss_fn: Callable[[Tensor, Tensor], Tensor] | None = None,
+) -> History:
+    """Train ``module`` with ``optimizer`` on ``train = (X, Y)``; the one loop for all optimisers.
+
+    Args:
+        module: the learner (the optimiser must have been built on its parameters).
+        optimizer: a :class:`KalmanOptimizer` or a ``torch.optim.Optimizer`` (Adam, SGD, LBFGS,
+            ...). Gradient optimisers get a closure that zeroes the gradients, evaluates
+            ``loss_fn(module(xb), yb)`` and calls ``backward()``.
+        train: inputs ``X`` ``(N, ...)`` and targets ``Y`` ``(N, ...)`` (``module(X).shape``).
+        epochs: number of passes over ``train``.
+        batch_size: samples per optimiser step (Kalman: the measurement vector of one step).
+        shuffle: draw a new order of the samples each epoch (``torch.randperm`` with
+            ``generator``); otherwise the samples are used in order (time order for series).
+        generator: ``torch.Generator`` for ``shuffle`` (required when ``shuffle`` is true).
+        val: optional validation pair, evaluated after every epoch.
+        early_stopping: patience in epochs (``None``: off): stop when the first metric on
+            ``val`` (mean over runs) has not improved for that many epochs. Needs ``val``.
+        restore_best: with early stopping, restore the module and optimiser state of the best
+            epoch at the end.
+        drop_last: skip the last mini-batch of an epoch if it is smaller than ``batch_size``
+            (a Kalman optimiser with a noise estimator or strong tracking needs equal sizes).
+        progress: show a ``tqdm`` progress bar.
+        metrics: names in :data:`METRICS` or callables ``(pred, target) -> Tensor``.
+        loss_fn: loss of gradient optimisers (default: mean squared error).
+    Returns:
+        :class:`History`.
+    """
+    X, Y = _check_data(train, "train")
+    if val is not None:
+        Xv, Yv = _check_data(val, "val")
+    if not isinstance(optimizer, torch.optim.Optimizer):
+        raise TypeError(f"optimizer must be a torch.optim.Optimizer, got {type(optimizer)}")
+    if not isinstance(module, nn.Module):
+        raise TypeError(f"module must be a torch.nn.Module, got {type(module)}")
+    for name, v in (("epochs", epochs), ("batch_size", batch_size)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ValueError(f"{name} must be a positive int, got {v!r}")
+    if shuffle and not isinstance(generator, torch.Generator):
+        raise ValueError("shuffle=True needs an explicit torch.Generator (generator=...)")
+    if early_stopping is not None:
+        if isinstance(early_stopping, bool) or not isinstance(early_stopping, int):
+            raise ValueError(
+                f"early_stopping must be None or a positive int, got {early_stopping!r}"
+            )
+        if early_stopping < 1:
+            raise ValueError(f"early_stopping must be a positive int, got {early_stopping}")
+        if val is None:
+            raise ValueError("early_stopping needs val=(X_val, Y_val)")
+    fns = _metric_fns(metrics)
+    kalman = isinstance(optimizer, KalmanOptimizer)
+    if kalman and optimizer.module is not module:
+        raise ValueError("optimizer is a KalmanOptimizer built on a different module")
+    if loss_fn is None:
+        loss_fn = nn.functional.mse_loss
+
+    N = X.shape[0]
+    n_batches = N // batch_size if drop_last else -(-N // batch_size)
+    if n_batches == 0:
+        raise ValueError(f"batch_size={batch_size} with drop_last leaves no batch of N={N} samples")
+    hist = History(metrics=tuple(name for name, _ in fns))
+    for name, _ in fns:
+        hist.train[name] = []
+        hist.val[name] = []
+
+    try:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=epochs * n_batches, disable=not progress, desc="fit", leave=False)
+    except ImportError:  # pragma: no cover - tqdm is a dependency
+        bar = None
+
+    was_training = module.training
+    best_value, best_state, since_best = float("inf"), None, 0
+    try:
+        for epoch in range(1, epochs + 1):
+            if shuffle:
+                order = torch.randperm(N, generator=generator).to(X.device)
+            else:
+                order = torch.arange(N, device=X.device)
+            module.train()
+            losses = []
+            t0 = time.perf_counter()
+            for b in range(n_batches):
+                idx = order[b * batch_size : (b + 1) * batch_size]
+                xb, yb = X[idx], Y[idx]
+                if kalman:
+                    loss = optimizer.step(xb, yb).loss
+                else:
+
+                    def closure(xb=xb, yb=yb):
+                        optimizer.zero_grad()
+                        out = loss_fn(module(xb), yb)
+                        out.backward()
+                        return out
+
+                    loss = optimizer.step(closure)
+                losses.append(loss.detach().to(torch.float64))
+                hist.steps += 1
+                if bar is not None:
+                    bar.update(1)
+            hist.time.append(time.perf_counter() - t0)
+            hist.loss.append(torch.stack(losses).mean(0))
+            hist.epoch.append(epoch)
+
+            module.eval()
+            for name, v in _evaluate(module, optimizer, X, Y, fns).items():
+                hist.train[name].append(v)
+            if val is not None:
+                vals = _evaluate(module, optimizer, Xv, Yv, fns)
+                for name, v in vals.items():
+                    hist.val[name].append(v)
+                monitored = float(vals[hist.metrics[0]].mean())
+                if monitored < best_value:
+                    best_value, since_best = monitored, 0
+                    hist.best_epoch = epoch
+                    if early_stopping is not None and restore_best:
+                        best_state = (
+                            copy.deepcopy(module.state_dict()),
+                            copy.deepcopy(optimizer.state_dict()),
+                        )
+                else:
+                    since_best += 1
+            if bar is not None:
+                bar.set_postfix(
+                    {k: f"{float(v[-1].mean()):.4g}" for k, v in hist.train.items()}, refresh=False
+                )
+            if early_stopping is not None and since_best >= early_stopping:
+                hist.stopped_early = epoch < epochs
+                break
+    finally:
+        if bar is not None:
+            bar.close()
+        module.train(was_training)
+    if best_state is not None and hist.best_epoch != hist.epoch[-1]:
+        module.load_state_dict(best_state[0])
+        optimizer.load_state_dict(best_state[1])
+    return hist
