@@ -34,6 +34,7 @@ from prognos_torch.filters.particle import (
 )
 from prognos_torch.filters.resampling import (
     ess,
+    normalize_log_weights,
     get_resampler,
     multinomial,
     residual,
@@ -165,6 +166,41 @@ def test_batched_runs_and_per_step_noise(factory):
     assert tr.ess.shape == (T, B) and tr.resampled.shape == (T, B)
 
 
+@pytest.mark.parametrize("factory", [sir, ekpf])
+def test_controls_per_run_and_kept_particles(factory):
+    """Controls ``(T, B, p)`` per run: x_k = 0.8 x_{k-1} + 0.5 u_k + w_k (KF with q_k = B u_k)."""
+    B, T, N = 2, 12, 4000
+    model = linear_gaussian_model(t([[0.8]]), t([[1.0]]), t([[0.4]]), t([[0.5]]), B=t([[0.5]]))
+    rng = np.random.default_rng(7)
+    us = rng.normal(size=(T, B, 1)) * 2.0
+    ys = rng.normal(size=(T, B, 1)) + us
+    b0 = GaussianBelief(
+        torch.zeros(B, 1, dtype=torch.float64), torch.ones(B, 1, 1, dtype=torch.float64)
+    )
+    pf = factory(N)
+    tr = pf.run(model, b0, t(ys), t(us), generator=gen(3), keep_particles=True)
+    for b in range(B):
+        ref_m, ref_s = _kf_per_step(
+            np.array([[0.8]]),
+            np.array([[1.0]]),
+            lambda k: np.array([[0.16]]),
+            lambda k: np.array([[0.25]]),
+            lambda k, b=b: 0.5 * us[k - 1, b],
+            lambda k: np.zeros(1),
+            np.zeros(1),
+            np.eye(1),
+            ys[:, b],
+        )
+        tol = K_MC * ref_s / np.sqrt(tr.ess[:, b].numpy())[:, None]
+        assert np.all(np.abs(tr.means[:, b].numpy() - ref_m) <= tol)
+    # the kept weighted particle sets reproduce the reported estimates exactly
+    assert tr.particles.shape == (T, B, N, 1) and tr.log_weights.shape == (T, B, N)
+    W = tr.log_weights.exp()
+    assert torch.allclose((W.unsqueeze(-1) * tr.particles).sum(-2), tr.means, atol=1e-12)
+    with pytest.raises(ValueError, match="us must have shape"):
+        pf.run(model, b0, t(ys), generator=gen(3))
+
+
 def test_predict_and_state_consistency():
     F, H, LQ, LR, q, r, m0, P0 = _lgssm_2d()
     model = linear_gaussian_model(t(F), t(H), t(LQ), t(LR), q=t(q), r=t(r))
@@ -268,6 +304,8 @@ def test_ess_closed_form():
     assert torch.allclose(ess(torch.zeros(2, 7, dtype=torch.float64)), t([7.0, 7.0]))
     one = t([0.0, -math.inf, -math.inf])
     assert torch.allclose(ess(one), t(1.0))
+    lw, lse = normalize_log_weights(torch.log(w) + 3.0)
+    assert torch.allclose(lw.exp(), w) and torch.allclose(lse, t(3.0))
 
 
 def test_resampler_bad_inputs():

@@ -529,7 +529,9 @@ class ParticleFilter:
             fs = replace(fs, belief=GaussianBelief(x, fs.belief.chol))
         return ParticleState(x, state.log_weights, fs)
 
-    def _propose_gaussian(self, model, state, y, y_safe, u, u_p, k, noise, eps, missing):
+    def _propose_gaussian(
+        self, model, state, y, y_safe, u, u_p, k, noise, eps, missing, any_missing
+    ):
         """Per-particle Gaussian proposal (paper 002 STPF steps 2-3; Van der Merwe et al. 2000).
 
         Returns the new particles, the log-weight increments
@@ -565,19 +567,26 @@ class ParticleFilter:
             mu, L = x_prev, fs.belief.chol
             diag = torch.diagonal(L, dim1=-2, dim2=-1)
             lam_i = torch.ones((*bs, N), dtype=dt, device=dev)
-        if fq is None or not bool(torch.isfinite(fq).all()):
+        all_ok = bool(ok.all())
+        # (when every proposal is finite, so is fq: mu = fq + K e would not be finite otherwise)
+        if fq is None or (not all_ok and not bool(torch.isfinite(fq).all())):
             fq, _ = self._transition_sample(model, x_prev, u_p, k, noise, None)
-        x_tr = fq + eps @ noise.chol_Q.mT  # draw from p(x_k | x_{k-1}) (fallback, missing y)
         # sample from the proposal N(mu, L L^T) (Eq. 27); its log density uses eps directly
         x_q = mu + (L @ eps.unsqueeze(-1)).squeeze(-1)
         log_q = -0.5 * (n * _LOG_2PI + (eps * eps).sum(-1)) - torch.log(diag).sum(-1)
-        use_q = ok & ~missing[..., None]
-        x = torch.where(use_q[..., None], x_q, x_tr)
+        fast = all_ok and not any_missing
+        if fast:
+            x = x_q
+        else:  # draw from p(x_k | x_{k-1}) where the proposal is invalid or y is missing
+            use_q = ok & ~missing[..., None]
+            x = torch.where(use_q[..., None], x_q, fq + eps @ noise.chol_Q.mT)
         log_lik = self._log_lik(model, x, y_safe, u_p, k, noise)
         log_trans = _gauss_logpdf(x - fq, noise.chol_Q)
-        inc = torch.where(use_q, log_lik + log_trans - log_q, log_lik)  # STPF step 3
-        n_bad = (~ok & ~missing[..., None]).sum(-1)
-        all_ok = bool(ok.all())
+        inc = log_lik + log_trans - log_q  # STPF step 3 (in log space)
+        n_bad = torch.zeros(bs, dtype=torch.long, device=dev)
+        if not fast:
+            inc = torch.where(use_q, inc, log_lik)
+            n_bad = (~ok & ~missing[..., None]).sum(-1)
         if not all_ok:
             if bool((n_bad > 0).any()):
                 warnings.warn(
@@ -621,7 +630,8 @@ class ParticleFilter:
         u = self._check_u(model, u, bs, x_prev)
         u_p = None if u is None or u.dim() == 1 else u.unsqueeze(-2)
         missing = torch.isnan(y).any(-1)  # (...)
-        y_safe = torch.where(missing[..., None], torch.zeros_like(y), y)
+        any_missing = bool(missing.any())
+        y_safe = torch.where(missing[..., None], torch.zeros_like(y), y) if any_missing else y
         noise = _noise(model, k, bs, x_prev)
 
         eps = torch.randn(x_prev.shape, generator=generator, dtype=dt, device=dev)
@@ -634,11 +644,12 @@ class ParticleFilter:
             lam_prop = None
         else:
             x, inc, fs_new, fallback, lam_prop = self._propose_gaussian(
-                model, state, y, y_safe, u, u_p, k, noise, eps, missing
+                model, state, y, y_safe, u, u_p, k, noise, eps, missing, any_missing
             )
 
         # missing runs: propagate only, weights unchanged
-        inc = torch.where(missing[..., None], torch.zeros_like(inc), inc)
+        if any_missing:
+            inc = torch.where(missing[..., None], torch.zeros_like(inc), inc)
         finite_x = torch.isfinite(x).all(-1)
         inc = torch.where(torch.isfinite(inc) & finite_x, inc, torch.full_like(inc, -math.inf))
         lw_un = lw_prev + inc
