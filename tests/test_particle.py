@@ -34,9 +34,9 @@ from prognos_torch.filters.particle import (
 )
 from prognos_torch.filters.resampling import (
     ess,
-    normalize_log_weights,
     get_resampler,
     multinomial,
+    normalize_log_weights,
     residual,
     stratified,
     systematic,
