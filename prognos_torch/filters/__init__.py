@@ -19,6 +19,18 @@ from .gaussian import (
     stukf,
     ukf,
 )
+from .particle import (
+    PARTICLE_FILTERS,
+    ParticleFilter,
+    ParticleState,
+    ParticleTrajectory,
+    ekpf,
+    make_particle_filter,
+    sir,
+    stpf,
+    upf,
+)
+from .resampling import ess, multinomial, residual, stratified, systematic
 from .run import Forecast, Trajectory, forecast, run
 
 __all__ = [
@@ -43,4 +55,18 @@ __all__ = [
     "Trajectory",
     "forecast",
     "run",
+    "PARTICLE_FILTERS",
+    "ParticleFilter",
+    "ParticleState",
+    "ParticleTrajectory",
+    "ekpf",
+    "make_particle_filter",
+    "sir",
+    "stpf",
+    "upf",
+    "ess",
+    "multinomial",
+    "residual",
+    "stratified",
+    "systematic",
 ]

@@ -522,7 +522,12 @@ class GaussianFilter:
             )
             if bool((lam > 1).any()):
                 prior = self._prior(prop, noise.chol_Q, lam)  # paper 000 Eq. 36
-                mom = self._moments(model, prior, prop, u, k, noise.r)
+                if mom_l.H is not None:  # Taylor: same mean, same h and Jacobian, new factor
+                    mom = _Moments(
+                        mom_l.z, prior.chol, mom_l.H @ prior.chol, None, None, True, mom_l.H
+                    )
+                else:
+                    mom = self._moments(model, prior, prop, u, k, noise.r)
             else:
                 prior, mom = prior_l, mom_l
         else:
