@@ -46,14 +46,6 @@ def _cmd_study(args) -> int:
         for name, st in studies.items():
             print(f"{name:20s} paper {st.paper:8s} {st.title}")
         return 0 if args.list else 2
-    names = list(studies) if args.name == "all" else [args.name]
-    unknown = [n for n in names if n not in studies]
-    if unknown:
-        print(
-            f"error: unknown study {unknown[0]!r}; valid: {', '.join(studies)} or all",
-            file=sys.stderr,
-        )
-        return 2
     try:
         cfg = StudyConfig(
             runs=args.runs,
@@ -65,6 +57,14 @@ def _cmd_study(args) -> int:
         )
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    names = list(studies) if args.name == "all" else [args.name]
+    unknown = [n for n in names if n not in studies]
+    if unknown:
+        print(
+            f"error: unknown study {unknown[0]!r}; valid: {', '.join(studies)} or all",
+            file=sys.stderr,
+        )
         return 2
     for n in names:
         _, text = run_study(studies[n], cfg)

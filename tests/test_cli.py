@@ -1,0 +1,55 @@
+"""The prognos command and the study result files."""
+
+import json
+
+import pytest
+
+from prognos_torch.cli import main
+from prognos_torch.studies import Study, StudyConfig, StudyResult, format_table, write_outputs
+
+
+def test_format_table_mean_std_and_paper_column():
+    res = StudyResult(
+        rows=[
+            {"run": 0, "method": "A", "MAE": 1.0, "time_s": 0.5},
+            {"run": 1, "method": "A", "MAE": 3.0, "time_s": 0.5},
+            {"run": 0, "method": "B", "MAE": 2.0, "time_s": 1.0},
+        ],
+        metrics=["MAE", "time_s"],
+        paper={"A": {"MAE": 0.25}},
+    )
+    table = format_table(res)
+    lines = table.splitlines()
+    assert lines[0] == "| method | runs | MAE (ours) | MAE (paper) | time_s (ours) |"
+    assert lines[2].startswith("| A | 2 | 2.0000 ± 1.4142 | 0.2500 |")  # std with ddof=1
+    assert lines[3].startswith("| B | 1 | 2.0000 ± 0.0000 | — |")
+
+
+def test_write_outputs_files(tmp_path):
+    st = Study("toy", "000", "Toy", run=lambda cfg, out: None, default_runs=2)
+    res = StudyResult(rows=[{"run": 0, "method": "A", "MAE": 1.0}], metrics=["MAE"], notes="n")
+    text = write_outputs(st, StudyConfig(out=tmp_path), res, tmp_path, 0.1)
+    assert "| A | 1 |" in text and (tmp_path / "table.md").read_text() == text
+    assert (tmp_path / "results.csv").read_text().splitlines() == ["run,method,MAE", "0,A,1.0"]
+    meta = json.loads((tmp_path / "run.json").read_text())
+    assert meta["study"] == "toy" and "torch" in meta["versions"] and "machine" in meta
+
+
+def test_bad_study_options(capsys):
+    assert main(["study", "no-such-study"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown study 'no-such-study'; valid:" in err
+    with pytest.raises(ValueError, match="runs must be a positive int"):
+        StudyConfig(runs=0)
+    with pytest.raises(ValueError, match="device must be 'cpu' or 'cuda'"):
+        StudyConfig(device="tpu")
+    import torch
+
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="CUDA is not available"):
+            StudyConfig(device="cuda")
+        assert main(["study", "no-such-study", "--device", "cuda"]) == 2
+        assert "CUDA is not available" in capsys.readouterr().err
+    assert main(["study", "no-such-study", "--runs", "0"]) == 2
+    assert "runs must be a positive int" in capsys.readouterr().err
+    assert main(["study", "--list"]) == 0
