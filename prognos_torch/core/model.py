@@ -129,6 +129,37 @@ class StateSpaceModel:
         """Noise statistics at step ``k`` (callables are evaluated here)."""
         return Noise(_at(self.q, k), _at(self.chol_Q, k), _at(self.r, k), _at(self.chol_R, k))
 
+    def checked_noise(self, k: int, batch_shape, like: Tensor, owner: str = "belief") -> Noise:
+        """Noise at step ``k`` converted to ``like``'s dtype and checked against ``batch_shape``.
+
+        Each tensor must have its plain shape (``(n,)``, ``(n, n)``, ``(m,)``, ``(m, m)``) or
+        ``batch_shape`` followed by it; anything else is a ``ValueError`` naming the field.
+        """
+        noise = self.noise(k)
+        n, m, bs = self.state_dim, self.obs_dim, tuple(batch_shape)
+
+        def conv(x, name, tail, what):
+            if x is None:
+                return None
+            if not isinstance(x, Tensor):
+                x = torch.as_tensor(x, dtype=like.dtype, device=like.device)
+            if x.device != like.device:
+                raise ValueError(f"{name} is on {x.device}, the {owner} on {like.device}")
+            x = x.to(like.dtype)
+            if tuple(x.shape) not in (tail, bs + tail):
+                raise ValueError(
+                    f"{name} must have shape {what} with {tail} or batch shape {bs} + {tail}, "
+                    f"got {tuple(x.shape)}"
+                )
+            return x
+
+        return Noise(
+            conv(noise.q, "model.q", (n,), "(n,)"),
+            conv(noise.chol_Q, "model.chol_Q", (n, n), "(n, n)"),
+            conv(noise.r, "model.r", (m,), "(m,)"),
+            conv(noise.chol_R, "model.chol_R", (m, m), "(m, m)"),
+        )
+
     # -- batched evaluation -------------------------------------------------------------
     def transition(self, x: Tensor, u: Tensor | None, k: int) -> Tensor:
         """Noise-free ``f`` on ``x`` of shape ``(..., n)``; returns ``(..., n)``."""

@@ -291,35 +291,9 @@ class GaussianFilter:
         return FilterState(belief, fstate, nstate)
 
     # ------------------------------------------------------------------ noise
-    def _checked_noise(self, model: StateSpaceModel, k: int, belief: GaussianBelief) -> Noise:
-        noise = model.noise(k)
-        n, m, bs = model.state_dim, model.obs_dim, belief.batch_shape
-        dt, dev = belief.mean.dtype, belief.mean.device
-
-        def conv(x, name, tail, what):
-            if x is None:
-                return None
-            if not isinstance(x, Tensor):
-                x = torch.as_tensor(x, dtype=dt, device=dev)
-            if x.device != dev:
-                raise ValueError(f"{name} is on {x.device}, the belief on {dev}")
-            x = x.to(dt)
-            t = tuple(x.shape)
-            if t[len(t) - len(tail) :] != tail or (
-                len(t) > len(tail) and t[: len(t) - len(tail)] != tuple(bs)
-            ):
-                raise ValueError(
-                    f"{name} must have shape {what} with {tail} or batch shape "
-                    f"{tuple(bs)} + {tail}, got {t}"
-                )
-            return x
-
-        return Noise(
-            conv(noise.q, "model.q", (n,), "(n,)"),
-            conv(noise.chol_Q, "model.chol_Q", (n, n), "(n, n)"),
-            conv(noise.r, "model.r", (m,), "(m,)"),
-            conv(noise.chol_R, "model.chol_R", (m, m), "(m, m)"),
-        )
+    @staticmethod
+    def _checked_noise(model: StateSpaceModel, k: int, belief: GaussianBelief) -> Noise:
+        return model.checked_noise(k, belief.batch_shape, belief.mean)
 
     def _noise(self, model, state: FilterState, k: int) -> Noise:
         if state.noise is not None:

@@ -285,30 +285,7 @@ def _check_generator(generator, like: Tensor) -> None:
 
 def _noise(model: StateSpaceModel, k: int, bs: torch.Size, like: Tensor) -> Noise:
     """Model noise at step ``k``, converted and checked: each tensor ``tail`` or ``bs + tail``."""
-    raw = model.noise(k)
-    n, m = model.state_dim, model.obs_dim
-
-    def conv(x, name, tail):
-        if x is None:
-            return None
-        if not isinstance(x, Tensor):
-            x = torch.as_tensor(x, dtype=like.dtype, device=like.device)
-        if x.device != like.device:
-            raise ValueError(f"{name} is on {x.device}, the particles on {like.device}")
-        x = x.to(like.dtype)
-        if tuple(x.shape) not in (tail, tuple(bs) + tail):
-            raise ValueError(
-                f"{name} must have shape {tail} or (batch shape {tuple(bs)}) + {tail}, "
-                f"got {tuple(x.shape)}"
-            )
-        return x
-
-    noise = Noise(
-        conv(raw.q, "model.q", (n,)),
-        conv(raw.chol_Q, "model.chol_Q", (n, n)),
-        conv(raw.r, "model.r", (m,)),
-        conv(raw.chol_R, "model.chol_R", (m, m)),
-    )
+    noise = model.checked_noise(k, bs, like, owner="particles")
     if not bool((torch.diagonal(noise.chol_R, dim1=-2, dim2=-1) > 0).all()):
         raise ValueError("model.chol_R must have a positive diagonal (R positive definite)")
     return noise
