@@ -167,7 +167,11 @@ def write_outputs(
     """Write ``table.md``, ``results.csv`` and ``run.json``; return the table text."""
     out_dir.mkdir(parents=True, exist_ok=True)
     table = format_table(result)
-    runs = cfg.runs or study.default_runs
+    # runs actually made (quick mode may use fewer than asked): the most rows of any method
+    counts: dict[str, int] = {}
+    for r in result.rows:
+        counts[r["method"]] = counts.get(r["method"], 0) + 1
+    runs = max(counts.values()) if counts else 0
     text = [
         f"# {study.title}",
         "",
