@@ -41,7 +41,7 @@ from ..adapt.strong_tracking import StrongTracking, StrongTrackingState
 from ..core.belief import GaussianBelief
 from ..core.linalg import tria
 from ..core.model import StateSpaceModel
-from ..filters.gaussian import FilterState, GaussianFilter, StepInfo, make_filter
+from ..filters.gaussian import FilterState, GaussianFilter, StepInfo, Taylor, make_filter
 from .params import ParameterBridge
 
 __all__ = [
@@ -215,18 +215,6 @@ def _dataclass_dict(obj) -> dict | None:
 class KalmanOptimizer(torch.optim.Optimizer):
     """Train a module by Gaussian filtering of its parameters (paper 003 Eq. 44-46).
 
-    ImSRUKF in the optimiser face. Paper 003 estimates all four noise statistics (Eq. 40-43).
-    With the random walk of Eq. 45, Eq. 40 makes ``q`` the running mean of the parameter
-    updates, which the next prediction adds again: a persistent drift; and Eq. 42's ``r`` is a
-    bias of the filter's measurement prediction that the trained module does not carry. On the
-    Lorenz set-up of paper 003 (``tests/test_optim.py``, 10 ANFIS initialisations, one pass)
-    both ruin the training: mean test MAE 0.21 when ``q`` is estimated too, 0.23 with ``r``,
-    0.59 with both, against 0.0034 with ``Q`` and ``R`` only. So ``filter="imsrukf"``
-    estimates ``Q`` and ``R`` only (Eq. 41, 43), ``Q`` as a diagonal (:data:`OPTIMIZER_NOISE`;
-    the rank-one terms of Eq. 41 leave a full 44 x 44 estimate indefinite at almost every step,
-    so it is projected every step; the full form gave MAE 0.0072 and costs an eigendecomposition
-    per step). Pass ``noise=SageHusa()`` for the paper's full estimator.
-
     One parameter group (like ``LBFGS``); its options are ``param_groups[0]``. Usage::
 
         opt = KalmanOptimizer(model, filter="imsrukf", P0=1.0, Q=1e-6, R=1e-3)
@@ -240,8 +228,9 @@ class KalmanOptimizer(torch.optim.Optimizer):
         filter: a filter name of :func:`~prognos_torch.filters.gaussian.make_filter` (``"ekf"``,
             ``"srukf"``, ``"imsrukf"``, ``"ukf"``, ``"ckf"``, ``"sckf"``, ``"stekf"``, ``"stukf"``,
             ``"stsckf"``) or a configured :class:`GaussianFilter`.
-        P0: prior covariance of ``theta_0``: scalar variance, ``(n,)`` variances or ``(n, n)``.
-        Q: random-walk covariance of Eq. 45 (scalar, ``(n,)`` or ``(n, n)``; ``0`` allowed).
+        P0: prior covariance of ``theta_0``: scalar variance, ``(n,)`` variances, ``(n, n)``, or
+            a dict ``{parameter name: variance}`` (:meth:`ParameterBridge.expand`).
+        Q: random-walk covariance of Eq. 45 (as ``P0``; ``0`` allowed).
         R: measurement-noise covariance of ONE output vector (scalar, ``(n_out,)`` or
             ``(n_out, n_out)`` with ``n_out`` the last dimension of the model output); a mini-batch
             uses it block-diagonally.
@@ -257,6 +246,23 @@ class KalmanOptimizer(torch.optim.Optimizer):
         jacobian: ``"auto"``, ``"rev"``, ``"fwd"`` or ``"autograd"``: how the EKF differentiates
             ``g`` (see :meth:`ParameterBridge.jacobian`).
         chunk_size: vectorise at most this many parameter vectors / Jacobian products at once.
+
+    ImSRUKF in the optimiser face. Paper 003 estimates all four noise statistics (Eq. 40-43).
+    With the random walk of Eq. 45, Eq. 40 makes ``q`` the running mean of the parameter
+    updates, which the next prediction adds again: a persistent drift; and Eq. 42's ``r`` is a
+    bias of the filter's measurement prediction that the trained module does not carry. On the
+    Lorenz set-up of paper 003 (``tests/test_optim.py``, 10 ANFIS initialisations, one pass)
+    both ruin the training: mean test MAE 0.21 when ``q`` is estimated too, 0.23 with ``r``,
+    0.59 with both, against 0.0034 with ``Q`` and ``R`` only. So ``filter="imsrukf"``
+    estimates ``Q`` and ``R`` only (Eq. 41, 43), ``Q`` as a diagonal (:data:`OPTIMIZER_NOISE`;
+    the rank-one terms of Eq. 41 leave a full 44 x 44 estimate indefinite at almost every step,
+    so it is projected every step; the full form gave MAE 0.0072 and costs an eigendecomposition
+    per step). Pass ``noise=SageHusa()`` for the paper's full estimator. Note that while ``P``
+    is being learned, ``e e^T`` is mostly smaller than ``H P H^T``, so the ``R`` of Eq. 43 is
+    mostly negative and held at the estimator's positive floor (the filter then trusts the
+    targets and the spread of ``P``); on Lorenz this was more accurate than SRUKF with fixed
+    ``R`` after 5 passes (mean test MAE 0.0017 vs 0.0050), less accurate after one (0.0034 vs
+    0.0012).
     """
 
     def __init__(
@@ -324,7 +330,6 @@ class KalmanOptimizer(torch.optim.Optimizer):
         self._R_scalar = R.dim() == 0
         self._chol_R_cache: dict[int, Tensor] = {}
         self._out_shapes: dict[tuple, torch.Size] = {}
-        self._jac_mode: dict[int, str] = {}
 
     def _initial_state(self, theta0) -> dict:
         runs, n = self.runs, self.bridge.numel
@@ -467,15 +472,38 @@ class KalmanOptimizer(torch.optim.Optimizer):
         mode = self.param_groups[0]["jacobian"]
         if mode == "auto":
             mode = "fwd" if b.numel <= M else "autograd"
+        if isinstance(self._filter.rule, Taylor) and mode == "autograd":
+            # the EKF asks for h and then for its Jacobian at the same point: one reverse pass
+            # gives both, the Jacobian is handed over by identity of the evaluation point
+            last: list = [None, None]
+
+            def h(th, u, k):
+                out, J = b.measurement_and_jacobian(th, x, chunk_size=chunk)
+                last[0], last[1] = th, J
+                return out
+
+            def jac_h(th, u, k):
+                if last[0] is th:
+                    return last[1]
+                return b.jacobian(th, x, mode=mode, chunk_size=chunk)
+
+        else:
+
+            def h(th, u, k):
+                return b.measurement(th, x, chunk_size=chunk)
+
+            def jac_h(th, u, k):
+                return b.jacobian(th, x, mode=mode, chunk_size=chunk)
+
         return StateSpaceModel(
             f=None,  # Eq. 45: theta_k = theta_{k-1} + w_k (exact in the engine)
-            h=lambda th, u, k: b.measurement(th, x, chunk_size=chunk),  # Eq. 46
+            h=h,  # Eq. 46: t_k = g(theta_k, u_k) + v_k
             state_dim=b.numel,
             obs_dim=M,
             chol_Q=self._chol_Q,
             chol_R=self._chol_R(out_shape),
             batched=True,
-            jac_h=lambda th, u, k: b.jacobian(th, x, mode=mode, chunk_size=chunk),
+            jac_h=jac_h,
         )
 
     def _engine_state(self, model: StateSpaceModel) -> FilterState:

@@ -302,7 +302,21 @@ class ParameterBridge:
         J = vmap(jac)(theta.reshape(-1, self.numel))
         return J.reshape(*lead, *J.shape[1:])
 
-    def _jacobian_autograd(self, theta: Tensor, x: Tensor, chunk_size: int | None) -> Tensor:
+    def measurement_and_jacobian(
+        self, theta: Tensor, x: Tensor, *, chunk_size: int | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """:meth:`measurement` ``(..., M)`` and :meth:`jacobian` ``(..., M, n)`` (mode
+        ``"autograd"``) from one forward and one reverse pass."""
+        theta = self._check_theta(theta).to(torch.float64)
+        return self._jacobian_autograd(theta, x, chunk_size, with_output=True)
+
+    def _jacobian_autograd(
+        self, theta: Tensor, x: Tensor, chunk_size: int | None, with_output: bool = False
+    ):
+        J, out = self._autograd_rows(theta, x, chunk_size)
+        return (out, J) if with_output else J
+
+    def _autograd_rows(self, theta: Tensor, x: Tensor, chunk_size: int | None):
         with torch.enable_grad():
             t = theta.detach().requires_grad_(True)
             out = self.measurement(t, x)  # (..., M)
@@ -310,7 +324,7 @@ class ParameterBridge:
             total = out.reshape(-1, M).sum(0)  # row j: sum over leading indices of output j
             if M == 1:
                 (g,) = torch.autograd.grad(total, t)
-                return g.unsqueeze(-2)
+                return g.unsqueeze(-2), out.detach()
             eye = torch.eye(M, dtype=total.dtype, device=total.device)
             step = M if chunk_size is None else chunk_size
             rows = []
@@ -319,4 +333,4 @@ class ParameterBridge:
                     total, t, eye[a : a + step], retain_graph=a + step < M, is_grads_batched=True
                 )
                 rows.append(g)
-            return torch.cat(rows).movedim(0, -2)
+            return torch.cat(rows).movedim(0, -2), out.detach()
