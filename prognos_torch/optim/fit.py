@@ -254,6 +254,8 @@ def fit(
                         return out
 
                     loss = optimizer.step(closure)
+                    if loss is None:  # an optimiser whose step does not return the loss
+                        loss = torch.tensor(float("nan"))
                 losses.append(loss.detach().to(torch.float64))
                 hist.steps += 1
                 if bar is not None:
