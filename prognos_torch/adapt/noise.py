@@ -7,7 +7,8 @@ statistics the filter should use at the next step. All estimates are kept as ful
 Positive definiteness. Unbiased estimators subtract a covariance term and can leave the cone of
 positive-definite matrices (a known weakness of Sage-Husa). We never let the filter see such a
 matrix: when an updated estimate is not positive definite, it is symmetrised and its eigenvalues
-are raised to a floor ``max(floor_rel * trace(previous) / dim, 1e-10 * max |eig|)``
+are raised to a floor ``max(floor_rel * trace(initial) / dim, 1e-10 * max |eig|)`` — relative
+to the *initial* statistic, so repeated projections cannot ratchet the floor down —
 (documented projection), and the step
 is flagged in ``StepInfo.noise_fallback``. ``diagonal=True`` estimates only the variances (paper
 004 Eq. 67-68 uses diagonal ``Q`` and ``R``), each floored the same way.
@@ -15,7 +16,7 @@ is flagged in ``StepInfo.noise_fallback``. ``diagonal=True`` estimates only the 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -66,6 +67,8 @@ class NoiseEstimatorState:
     chol_R: Tensor
     count: Tensor
     fallback: Tensor
+    floor_Q: Tensor
+    floor_R: Tensor
     buf_Q: Tensor | None = None
     buf_R: Tensor | None = None
     buf_valid: Tensor | None = None
@@ -81,13 +84,9 @@ def _expand(x: Tensor | None, batch_shape, tail, like: Tensor) -> Tensor:
     return x.expand(*batch_shape, *tail).clone()
 
 
-def _project_pd(
-    C: Tensor, prev: Tensor, floor_rel: float, diagonal: bool
-) -> tuple[Tensor, Tensor, Tensor]:
+def _project_pd(C: Tensor, floor: Tensor, diagonal: bool) -> tuple[Tensor, Tensor, Tensor]:
     """Return ``(C_pd, chol, fallback)``; see the module docstring."""
     C = 0.5 * (C + C.mT)
-    n = C.shape[-1]
-    floor = (floor_rel * torch.diagonal(prev, dim1=-2, dim2=-1).sum(-1) / n).clamp_min(1e-300)
     if diagonal:
         d = torch.diagonal(C, dim1=-2, dim2=-1)
         fb = (d < floor[..., None]).any(-1)
@@ -151,15 +150,21 @@ class SageHusa:
     def init(self, noise: Noise, batch_shape, n: int, m: int, like: Tensor) -> NoiseEstimatorState:
         cQ = _expand(noise.chol_Q, batch_shape, (n, n), like)
         cR = _expand(noise.chol_R, batch_shape, (m, m), like)
+        Q, R = cQ @ cQ.mT, cR @ cR.mT
+        floor = lambda C: (  # noqa: E731
+            self.floor_rel * torch.diagonal(C, dim1=-2, dim2=-1).sum(-1) / C.shape[-1]
+        ).clamp_min(1e-300)
         return NoiseEstimatorState(
             q=_expand(noise.q, batch_shape, (n,), like),
-            Q=cQ @ cQ.mT,
+            Q=Q,
             chol_Q=cQ,
             r=_expand(noise.r, batch_shape, (m,), like),
-            R=cR @ cR.mT,
+            R=R,
             chol_R=cR,
             count=torch.zeros(batch_shape, dtype=like.dtype, device=like.device),
             fallback=torch.zeros(batch_shape, dtype=torch.bool, device=like.device),
+            floor_Q=floor(Q),
+            floor_R=floor(R),
         )
 
     def _weight(self, count: Tensor) -> Tensor:
@@ -182,7 +187,7 @@ class SageHusa:
         if "Q" in self.estimate:
             Ke = (c.gain @ c.innovation.unsqueeze(-1)).squeeze(-1)
             new = (1 - d2) * Q + d2 * (_outer(Ke) + c.cov_post - c.spread)
-            new, cnew, f1 = _project_pd(new, Q, self.floor_rel, self.diagonal)
+            new, cnew, f1 = _project_pd(new, s.floor_Q, self.diagonal)
             Q = torch.where(keep[..., None, None], Q, new)
             cQ = torch.where(keep[..., None, None], cQ, cnew)
             fb = fb | (f1 & ~keep)
@@ -190,11 +195,11 @@ class SageHusa:
             r = torch.where(keep[..., None], r, (1 - d1) * r + d1 * (c.y - c.h_mean))
         if "R" in self.estimate:
             new = (1 - d2) * R + d2 * (_outer(c.innovation) - c.pzz_noR)
-            new, cnew, f2 = _project_pd(new, R, self.floor_rel, self.diagonal)
+            new, cnew, f2 = _project_pd(new, s.floor_R, self.diagonal)
             R = torch.where(keep[..., None, None], R, new)
             cR = torch.where(keep[..., None, None], cR, cnew)
             fb = fb | (f2 & ~keep)
-        return NoiseEstimatorState(q, Q, cQ, r, R, cR, count, fb)
+        return replace(s, q=q, Q=Q, chol_Q=cQ, r=r, R=R, chol_R=cR, count=count, fallback=fb)
 
 
 @dataclass(frozen=True)
@@ -236,11 +241,10 @@ class MovingWindow:
             raise ValueError(f"estimate must be a subset of ('Q', 'R'), got {bad}")
 
     def init(self, noise: Noise, batch_shape, n: int, m: int, like: Tensor) -> NoiseEstimatorState:
-        base = SageHusa().init(noise, batch_shape, n, m, like)
+        base = SageHusa(floor_rel=self.floor_rel).init(noise, batch_shape, n, m, like)
         W = self.window
-        return NoiseEstimatorState(
-            **{k: getattr(base, k) for k in ("q", "Q", "chol_Q", "r", "R", "chol_R", "count")},
-            fallback=base.fallback,
+        return replace(
+            base,
             buf_Q=like.new_zeros(W, *batch_shape, n, n),
             buf_R=like.new_zeros(W, *batch_shape, m, m),
             buf_valid=torch.zeros(W, *batch_shape, dtype=torch.bool, device=like.device),
@@ -274,15 +278,26 @@ class MovingWindow:
         denom = nv.clamp_min(1.0)
         if "Q" in self.estimate:
             mean = (wv[..., None, None] * buf_Q).sum(0) / denom[..., None, None]
-            new, cnew, f1 = _project_pd(mean, Q, self.floor_rel, self.diagonal)
+            new, cnew, f1 = _project_pd(mean, s.floor_Q, self.diagonal)
             Q = torch.where(ready[..., None, None], new, Q)
             cQ = torch.where(ready[..., None, None], cnew, cQ)
             fb = fb | (f1 & ready)
         if "R" in self.estimate:
             mean = (wv[..., None, None] * buf_R).sum(0) / denom[..., None, None]
-            new, cnew, f2 = _project_pd(mean, R, self.floor_rel, self.diagonal)
+            new, cnew, f2 = _project_pd(mean, s.floor_R, self.diagonal)
             R = torch.where(ready[..., None, None], new, R)
             cR = torch.where(ready[..., None, None], cnew, cR)
             fb = fb | (f2 & ready)
         count = s.count + valid.to(s.count.dtype)
-        return NoiseEstimatorState(s.q, Q, cQ, s.r, R, cR, count, fb, buf_Q, buf_R, buf_valid)
+        return replace(
+            s,
+            Q=Q,
+            chol_Q=cQ,
+            R=R,
+            chol_R=cR,
+            count=count,
+            fallback=fb,
+            buf_Q=buf_Q,
+            buf_R=buf_R,
+            buf_valid=buf_valid,
+        )
