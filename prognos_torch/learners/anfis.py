@@ -222,6 +222,26 @@ class ANFIS(nn.Module):
         ubar = torch.cat([x, torch.ones_like(x[..., :1])], dim=-1)  # [u_1 .. u_n, 1]
         return torch.einsum("...i,...m,omi->...o", wbar, ubar, self.alpha)  # Eq. 5
 
+    def forward_with(self, params: dict[str, Tensor], x: Tensor) -> Tensor:
+        """``forward`` with parameters batched over leading dims (sigma points, runs), no ``vmap``.
+
+        Args:
+            params: any of ``alpha`` ``(..., n_out, n_inputs + 1, R)`` and the premise parameters
+                ``(..., n_inputs, n_mfs)`` (missing ones are the module's own); one set of
+                leading dims ``...`` shared by all.
+            x: ``(B, n_inputs)`` shared by every parameter set.
+        Returns:
+            ``(..., B, n_out)``, equal to ``torch.func.vmap`` of ``functional_call`` over ``...``.
+        """
+        check_forward_input(x, self.n_inputs, self.alpha)
+        alpha = params.get("alpha", self.alpha)
+        premises = tuple(
+            params.get(name, getattr(self, name)).unsqueeze(-3) for name in self.premise_names
+        )  # (..., 1, n, L): broadcast against the batch of inputs
+        wbar = normalized_firing(log_membership(x, self.mf, premises))  # (..., B, R), Eq. 1-4
+        ubar = torch.cat([x, torch.ones_like(x[..., :1])], dim=-1)  # (B, n + 1)
+        return torch.einsum("...bi,bm,...omi->...bo", wbar, ubar, alpha)  # Eq. 5
+
     # ---------------------------------------------------------------- initialisation helpers
     @torch.no_grad()
     def _set_premises(self, lo: Tensor, hi: Tensor) -> None:

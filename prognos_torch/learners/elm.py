@@ -308,6 +308,23 @@ class ELM(nn.Module):
         check_forward_input(x, self.n_in, self.beta)
         return self.hidden(x) @ self.beta
 
+    def forward_with(self, params: dict[str, Tensor], x: Tensor) -> Tensor:
+        """``forward`` with parameters batched over leading dims, without ``vmap``.
+
+        Args:
+            params: any of ``a`` ``(..., L, n_in)``, ``b`` ``(..., L)``, ``beta`` ``(..., L, n_out)``
+                (missing ones are the module's own); all share the same leading dims ``...``.
+            x: ``(B, n_in)`` shared by every parameter set.
+        Returns:
+            ``(..., B, n_out)``, equal to ``torch.func.vmap`` of ``functional_call`` over ``...``.
+        """
+        check_forward_input(x, self.n_in, self.beta)
+        a = params.get("a", self.a)
+        b = params.get("b", self.b)
+        beta = params.get("beta", self.beta)
+        H = self._g(x @ a.mT + b.unsqueeze(-2))  # (..., B, L), Eq. 48
+        return H @ beta  # Eq. 47
+
     # ---------------------------------------------------------------- training (stateful)
     def _hidden64(self, x: Tensor) -> Tensor:
         """Hidden outputs in float64 for the least-squares solvers."""

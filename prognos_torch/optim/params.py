@@ -237,6 +237,10 @@ class ParameterBridge:
         if theta.dim() == 1:
             return self.functional(theta, x)
         lead = theta.shape[:-1]
+        fast = getattr(self.module, "forward_with", None)
+        if fast is not None and chunk_size is None and x.dim() == 2:
+            # the learner broadcasts over batched parameters itself: one pass, no vmap
+            return fast(self.unflatten(theta), x)
         out = vmap(lambda t: self.functional(t, x), chunk_size=chunk_size)(
             theta.reshape(-1, self.numel)
         )
