@@ -313,14 +313,20 @@ def plot_training_curves(
     *,
     logy: bool = True,
     title: str | None = None,
+    xlabel: str = "epoch",
+    x_step: float = 1.0,
 ) -> Figure:
-    """Loss per epoch for several optimisers, one line per ``label -> (E,)`` entry."""
+    """Loss curves for several optimisers, one line per ``label -> (E,)`` entry.
+
+    Point ``e`` (1-based) is drawn at ``e * x_step`` on an axis labelled ``xlabel`` (per epoch by
+    default; e.g. ``xlabel="step", x_step=50`` for a loss recorded every 50 steps).
+    """
     fig, ax = _new()
     for label, y in _series(curves, "curves", "loss"):
-        ax.plot(np.arange(1, len(y) + 1), y, lw=1.2, label=label)
+        ax.plot(x_step * np.arange(1, len(y) + 1), y, lw=1.2, label=label)
     if logy:
         ax.set_yscale("log")
-    ax.set_xlabel("epoch")
+    ax.set_xlabel(xlabel)
     ax.set_ylabel("loss")
     ax.set_title(title or "Training curves")
     ax.legend(loc="best")

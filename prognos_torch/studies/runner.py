@@ -247,8 +247,10 @@ def discover_studies(directory: Path | None = None) -> dict[str, Study]:
     for path in sorted(d.glob("*.py")):
         if path.name.startswith("_"):
             continue
-        spec = importlib.util.spec_from_file_location(f"prognos_trainers.{path.stem}", path)
+        name = f"prognos_trainers.{path.stem}"
+        spec = importlib.util.spec_from_file_location(name, path)
         mod = importlib.util.module_from_spec(spec)
+        sys.modules[name] = mod  # dataclasses and pickling look the module up by name
         spec.loader.exec_module(mod)
         st = getattr(mod, "STUDY", None)
         if isinstance(st, Study):
