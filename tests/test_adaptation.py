@@ -95,25 +95,49 @@ def test_moving_window_estimates_R_on_linear_model():
     assert torch.allclose(R_hat, (SR @ SR.T).diagonal(), rtol=0.2)
 
 
-def test_robust_ukf_reduces_to_ukf_and_inflates_covariance():
+@pytest.mark.parametrize("form", ["lemma", "scalar"])
+def test_robust_ukf_reduces_to_ukf_and_inflates_covariance(form):
     F, H, SQ, SR, xs, ys, b0 = _lin_data(T=60, B=2)
     model = linear_gaussian_model(F, H, SQ, SR)
     M0 = torch.zeros(2, dtype=dt)
     ref = run(GaussianFilter(unscented(1.0, 0.0, 1.0)), model, b0, ys)
-    big = run(rukf(1e6, M0, N=1.0), model, b0, ys)  # M = 0, gamma -> inf: the UKF
+    big = run(rukf(1e6, M0, N=1.0, form=form), model, b0, ys)  # M = 0, gamma -> inf: the UKF
     assert torch.allclose(big.means, ref.means, atol=1e-8)
     assert torch.allclose(big.covs, ref.covs, atol=1e-8)
     # with uncertainty, the robust bound P_k (Eq. 28) dominates the nominal covariance
-    rob = run(rukf(1.05, torch.full((2,), 0.1, dtype=dt), N=1.0), model, b0, ys)
+    Mu = torch.full((2,), 0.1, dtype=dt)
+    rob = run(rukf(1.05, Mu, N=1.0, form=form), model, b0, ys)
     gap = torch.linalg.eigvalsh(rob.covs[-1] - ref.covs[-1])
     assert bool((gap > -1e-12).all())
-    full = run(rukf(1.05, torch.full((2,), 0.1, dtype=dt), N=1.0, sqrt=False), model, b0, ys)
+    full = run(rukf(1.05, Mu, N=1.0, form=form, sqrt=False), model, b0, ys)
     assert torch.allclose(full.means, rob.means, atol=1e-9)
     assert torch.allclose(full.covs, rob.covs, atol=1e-9)
-    with pytest.raises(ValueError, match="gamma"):
-        rukf(0.5, M0, N=1.0)
-    ad = run(arukf(1.05, torch.full((2,), 0.01, dtype=dt), window=20), model, b0, ys)
+    ad = run(
+        arukf(1.05, torch.full((2,), 0.01, dtype=dt), 0.5, window=20, form=form), model, b0, ys
+    )
     assert bool(torch.isfinite(ad.means).all()) and ad.chol_R is not None
+
+
+def test_robust_bound_lemma_inflation_and_gamma_checks():
+    from prognos_torch.adapt import RobustBound
+
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(3, 3, generator=g, dtype=dt)
+    P = 0.1 * (A @ A.T) + 0.05 * torch.eye(3, dtype=dt)
+    N = torch.randn(2, 3, generator=g, dtype=dt)
+    rb = RobustBound(2.0, torch.zeros(2, dtype=dt), N, form="lemma")
+    S = rb.inflate(torch.linalg.cholesky(P))
+    expected = torch.linalg.inv(torch.linalg.inv(P) - N.T @ N / 4.0)  # test-only explicit form
+    assert torch.allclose(S @ S.T, expected, atol=1e-12)
+    assert torch.equal(S, torch.tril(S)) and bool((torch.diagonal(S) > 0).all())
+    with pytest.raises(ValueError, match="too small"):
+        RobustBound(0.1, torch.zeros(2, dtype=dt), 10.0, form="lemma").inflate(
+            torch.linalg.cholesky(P)
+        )
+    with pytest.raises(ValueError, match="gamma"):
+        rukf(0.5, torch.zeros(2, dtype=dt), N=1.0, form="scalar")
+    with pytest.raises(ValueError, match="form"):
+        RobustBound(1.05, torch.zeros(2, dtype=dt), 1.0, form="other")
 
 
 # ------------------------------------------------------------------------- bad input

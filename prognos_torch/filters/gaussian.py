@@ -321,7 +321,11 @@ class GaussianFilter:
         pts = Y if q is None else Y + q.unsqueeze(-2)
         return _Propagation(mean, f_mean, pos, neg, pts)
 
-    def _prior(self, prop: _Propagation, chol_Q: Tensor, lam: Tensor | None) -> _Prior:
+    def _prior(
+        self, prop: _Propagation, chol_Q: Tensor, lam: Tensor | None, update: bool = False
+    ) -> _Prior:
+        """Prior factor ``Tria([sqrt(lambda) A, S_Q])``; before an update with a robust bound of
+        the ``"lemma"`` form, the bound ``P~`` of :class:`RobustBound` replaces it."""
         bs = prop.mean.shape[:-1]
         n = prop.mean.shape[-1]
         pos, neg = prop.pos, prop.neg
@@ -334,11 +338,16 @@ class GaussianFilter:
             S = tria(torch.cat([pos, SQ], dim=-1))  # paper 000 Eq. 25/36; paper 003 Eq. 16
             if neg is not None:
                 S = chol_downdate(S, neg)  # paper 003 Eq. 17 (negative W_0)
+            if update and self.robust is not None:
+                S = self.robust.inflate(S)
             return _Prior(prop.mean, S, None)
         P = pos @ pos.mT + SQ @ SQ.mT
         if neg is not None:
             P = P - neg @ neg.mT
         P = symmetrize(P)
+        if update and self.robust is not None and self.robust.form == "lemma":
+            S = self.robust.inflate(safe_cholesky(P))
+            return _Prior(prop.mean, S, S @ S.mT)
         return _Prior(prop.mean, safe_cholesky(P), P)
 
     def _moments(self, model, prior: _Prior, prop: _Propagation, u, k: int, r) -> _Moments:
@@ -368,13 +377,9 @@ class GaussianFilter:
         mdim = mom.z.shape[-1]
         SR = _bcast(chol_R, bs, (mdim, mdim))
         if self.robust is not None:
-            g2, nu = self.robust.gamma**2, self.robust.nu
+            cM, cR, _ = self.robust.coefficients()
             M = self.robust.M_matrix(mdim, SR.dtype, SR.device)
-            cols = [
-                mom.dz_pos,
-                math.sqrt(g2 - nu) * _bcast(M, bs, M.shape),
-                math.sqrt(1 - nu / g2) * SR,
-            ]
+            cols = [mom.dz_pos, cM * _bcast(M, bs, M.shape), cR * SR]
         else:
             cols = [mom.dz_pos, SR]
         if self.sqrt:
@@ -394,19 +399,19 @@ class GaussianFilter:
         mdim = mom.z.shape[-1]
         SR = _bcast(chol_R, bs, (mdim, mdim))
         rob = self.robust
-        c = 1.0 if rob is None else math.sqrt(rob.lam)
+        c = 1.0 if rob is None else rob.coefficients()[2]
         if not self.sqrt:
             if rob is None:
                 U = K @ Szz
                 P = prior.cov - U @ U.mT
             else:
                 A = mom.dx_pos - K @ mom.dz_pos
-                P = rob.lam * (A @ A.mT) + (K @ SR) @ (K @ SR).mT
+                P = c * c * (A @ A.mT) + (K @ SR) @ (K @ SR).mT
                 M = rob.M_matrix(mdim, SR.dtype, SR.device)
                 P = P + rob.gamma**2 * (K @ M) @ (K @ M).mT
                 if mom.dx_neg is not None:
                     B = mom.dx_neg - K @ mom.dz_neg
-                    P = P - rob.lam * (B @ B.mT)
+                    P = P - c * c * (B @ B.mT)
             return safe_cholesky(symmetrize(P))
         if not mom.joseph:
             return chol_downdate(prior.chol, K @ Szz)  # paper 003 Eq. 28-29
@@ -479,7 +484,7 @@ class GaussianFilter:
         fstate = state.fading
         lam = None
         if isinstance(self.fading, StrongTracking):
-            prior_l = self._prior(prop, noise.chol_Q, None)
+            prior_l = self._prior(prop, noise.chol_Q, None, update=True)
             mom_l = self._moments(model, prior_l, prop, u, k, noise.r)
             eps_l = torch.where(missing[..., None], torch.zeros_like(y), y - mom_l.z)
             lam, fstate = fading_factor(
@@ -495,7 +500,7 @@ class GaussianFilter:
                 mom_l.pxz() if mom_l.H is None else None,
             )
             if bool((lam > 1).any()):
-                prior = self._prior(prop, noise.chol_Q, lam)  # paper 000 Eq. 36
+                prior = self._prior(prop, noise.chol_Q, lam, update=True)  # paper 000 Eq. 36
                 if mom_l.H is not None:  # Taylor: same mean, same h and Jacobian, new factor
                     mom = _Moments(
                         mom_l.z, prior.chol, mom_l.H @ prior.chol, None, None, True, mom_l.H
@@ -509,7 +514,7 @@ class GaussianFilter:
                 lam = torch.full(
                     belief.batch_shape, float(self.fading), dtype=y.dtype, device=y.device
                 )
-            prior = self._prior(prop, noise.chol_Q, lam)
+            prior = self._prior(prop, noise.chol_Q, lam, update=True)
             mom = self._moments(model, prior, prop, u, k, noise.r)
 
         Szz = self._innovation_chol(mom, noise.chol_R)
@@ -646,28 +651,51 @@ def imsrukf(kappa: float | None = 1.0, *, noise: SageHusa | None = None, **kw) -
 
 
 def rukf(
-    gamma: float, M: Tensor, N: float = 1.0, *, alpha: float = 1.0, kappa: float = 1.0, **kw
+    gamma: float,
+    M: Tensor,
+    N: float | Tensor = 1.0,
+    *,
+    alpha: float = 1.0,
+    kappa: float = 1.0,
+    form: str = "scalar",
+    **kw,
 ) -> GaussianFilter:
     """Robust UKF of paper 004 (Theorem 1, steps 1-5): sigma points of Eq. 36, gain Eq. 29.
 
     Paper 004 Eq. 36 uses ``xi = x +- a sqrt((n + 1) P)``, i.e. the scaled rule with
-    ``alpha = a`` and ``kappa = 1``.
+    ``alpha = a`` and ``kappa = 1``. ``form``: the reading of the bound (see
+    :class:`~prognos_torch.adapt.robust.RobustBound`; ``"scalar"`` is Eq. 28-29 as printed).
     """
     return GaussianFilter(
         unscented(alpha, 0.0, kappa),
         sqrt=kw.pop("sqrt", True),
-        robust=RobustBound(gamma, M, N),
+        robust=RobustBound(gamma, M, N, form=form),
         name=kw.pop("name", "RUKF"),
         **kw,
     )
 
 
 def arukf(
-    gamma: float, M: Tensor, N: float = 1.0, *, window: int = 50, diagonal: bool = True, **kw
+    gamma: float,
+    M: Tensor,
+    N: float | Tensor = 1.0,
+    *,
+    window: int = 50,
+    diagonal: bool = True,
+    form: str = "scalar",
+    **kw,
 ) -> GaussianFilter:
-    """Adaptive robust UKF of paper 004 (Sec. 3): RUKF + moving-window Q/R estimator (Eq. 47-49)."""
-    est = MovingWindow(window=window, M=M, N=N, mu=gamma**2, diagonal=diagonal)
-    return rukf(gamma, M, N, noise=est, name=kw.pop("name", "ARUKF"), **kw)
+    """Adaptive robust UKF of paper 004 (Sec. 3): RUKF + moving-window Q/R estimator (Eq. 47-49).
+
+    With ``form="lemma"`` the innovation covariance is matched against ``C P~ C^T + gamma^2 M M^T``
+    (``P~`` already holds the ``N`` bound); with ``"scalar"`` against Eq. 48 as printed
+    (``(1 - N^2 / mu) C P C^T + mu M M^T``, ``mu = gamma^2``).
+    """
+    if form == "lemma":
+        est = MovingWindow(window=window, M=M, N=0.0, mu=gamma**2, diagonal=diagonal)
+    else:
+        est = MovingWindow(window=window, M=M, N=float(N), mu=gamma**2, diagonal=diagonal)
+    return rukf(gamma, M, N, form=form, noise=est, name=kw.pop("name", "ARUKF"), **kw)
 
 
 FILTERS = {
