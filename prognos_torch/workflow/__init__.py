@@ -1,0 +1,59 @@
+"""Use the library on your own data: a series from a CSV, a fitted learner, forecasts, RUL.
+
+::
+
+    from prognos_torch.workflow import load_series, fit_series, load_model
+
+    s = load_series("data.csv", column="hi", time_column="t")       # float64 Series
+    model = fit_series(s, learner="anfis", optimizer="ekf")           # m chosen by validation
+    print(model.metrics)                                              # held-out tail scores
+    model.save("model.pt")                                            # safe file, no pickle
+    model = load_model("model.pt")
+    fc = model.forecast(s, horizon=50)                                # mean and 95 % band
+    r = model.rul(s, threshold=0.8, filter="stpf")                    # RUL distribution
+
+Modules: :mod:`.data` (:func:`load_series`), :mod:`.model` (:func:`fit_series`, learners and
+optimisers by name), :mod:`.predict` (:func:`forecast`, :func:`rul`), :mod:`.store`
+(:func:`save_model`, :func:`load_model` on :mod:`prognos_torch.io`), :mod:`.plots`. The
+``prognos fit | forecast | rul`` commands are thin wrappers around these functions.
+"""
+
+from .data import FILL_METHODS, Series, load_series, parse_where
+from .model import (
+    DEFAULT_OPTIMIZER,
+    LEARNER_DEFAULTS,
+    LEARNERS,
+    OPTIMIZER_DEFAULTS,
+    OPTIMIZERS,
+    FittedModel,
+    fit_series,
+    select_embedding,
+)
+from .plots import plot_forecast, plot_rul
+from .predict import FILTER_NAMES, ForecastResult, RULResult, forecast, holdout_metrics, rul
+from .store import load_model, save_model
+
+__all__ = [
+    "Series",
+    "load_series",
+    "parse_where",
+    "FILL_METHODS",
+    "LEARNERS",
+    "OPTIMIZERS",
+    "DEFAULT_OPTIMIZER",
+    "LEARNER_DEFAULTS",
+    "OPTIMIZER_DEFAULTS",
+    "FittedModel",
+    "fit_series",
+    "select_embedding",
+    "ForecastResult",
+    "RULResult",
+    "FILTER_NAMES",
+    "forecast",
+    "rul",
+    "holdout_metrics",
+    "save_model",
+    "load_model",
+    "plot_forecast",
+    "plot_rul",
+]

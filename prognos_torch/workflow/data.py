@@ -1,0 +1,422 @@
+"""A univariate series from a CSV column or an array: parsing, row selection, gaps, time axis.
+
+Rules (each violation raises ``ValueError``/``FileNotFoundError`` with a one-line message that
+names the file, column and line):
+
+* the CSV has a header row; the delimiter is ``,``, ``;`` or a tab (sniffed);
+* ``where`` keeps the rows whose cell equals the given value (``channel=5`` matches ``5`` and
+  ``5.0``): how a *long* table such as the shipped IMS features (one row per snapshot and
+  channel) becomes one series;
+* empty cells and ``nan``/``NA``/``null`` are *missing*; missing values are an error unless
+  ``fill="linear"`` (interpolate over time; a gap at either end cannot be interpolated and is
+  an error) or ``fill="drop"`` (remove those rows); any other non-numeric cell or an infinite
+  value is an error;
+* the time column holds numbers or ISO 8601 date-times (converted to days since the first row),
+  strictly increasing; without one, time is the row index (step 1).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["Series", "load_series", "parse_where", "FILL_METHODS"]
+
+FILL_METHODS = ("linear", "drop")
+_MISSING = {"", "nan", "na", "n/a", "null", "none", "-"}
+
+
+@dataclass(frozen=True)
+class Series:
+    """A univariate series, float64.
+
+    Attributes:
+        values: ``(T,)`` float64, finite.
+        time: ``(T,)`` float64 strictly increasing, or ``None`` (row index).
+        name: the value column (or ``"series"`` for an array).
+        time_name: the time column, or ``None``.
+        time_unit: ``"days"`` for date-times (days since ``start``), the time column's name for
+            numeric time, ``"steps"`` without a time column.
+        start: ISO 8601 date-time of the first row when the time column holds date-times.
+        source: the CSV path, or ``None``.
+    """
+
+    values: Tensor
+    time: Tensor | None = None
+    name: str = "series"
+    time_name: str | None = None
+    time_unit: str = "steps"
+    start: str | None = None
+    source: str | None = None
+
+    def __len__(self) -> int:
+        return int(self.values.shape[0])
+
+    @property
+    def t(self) -> Tensor:
+        """``(T,)`` time axis: :attr:`time`, or ``0, 1, ..., T - 1``."""
+        if self.time is not None:
+            return self.time
+        return torch.arange(len(self), dtype=torch.float64, device=self.values.device)
+
+    @property
+    def dt(self) -> float:
+        """Time per step: the median spacing of :attr:`time` (1 without a time column)."""
+        if self.time is None or len(self) < 2:
+            return 1.0
+        return float(torch.diff(self.time).median())
+
+    def head(self, n: int) -> Series:
+        """The first ``n`` rows (a chronological training part)."""
+        return Series(
+            self.values[:n],
+            None if self.time is None else self.time[:n],
+            self.name,
+            self.time_name,
+            self.time_unit,
+            self.start,
+            self.source,
+        )
+
+
+def parse_where(where) -> dict[str, str]:
+    """``None``, a mapping ``{column: value}`` or strings ``"column=value"`` -> a dict."""
+    if where is None:
+        return {}
+    if isinstance(where, Mapping):
+        return {str(k): str(v).strip() for k, v in where.items()}
+    if isinstance(where, str):
+        where = [where]
+    out = {}
+    for item in where:
+        if not isinstance(item, str) or "=" not in item:
+            raise ValueError(f"where: expected COLUMN=VALUE, got {item!r}")
+        key, value = item.split("=", 1)
+        if not key.strip():
+            raise ValueError(f"where: expected COLUMN=VALUE, got {item!r}")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def _cells_equal(cell: str, value: str) -> bool:
+    cell = cell.strip()
+    if cell == value:
+        return True
+    try:
+        return float(cell) == float(value)
+    except ValueError:
+        return False
+
+
+def _parse_number(cell: str) -> float | None:
+    """A float, ``None`` for a missing cell; ``ValueError`` for anything else."""
+    text = cell.strip()
+    if text.lower() in _MISSING:
+        return None
+    value = float(text)  # raises ValueError for non-numbers
+    if math.isnan(value):
+        return None
+    return value
+
+
+def _read_csv(path: Path) -> tuple[list[str], list[list[str]]]:
+    if not path.exists():
+        raise FileNotFoundError(f"data file not found: {path}")
+    if not path.is_file():
+        raise ValueError(f"data path is not a file: {path}")
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as handle:
+            sample = handle.read(64 * 1024)
+            handle.seek(0)
+            try:
+                dialect = csv.Sniffer().sniff(sample, delimiters=",;\t")
+            except csv.Error:
+                dialect = csv.excel
+            rows = list(csv.reader(handle, dialect))
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a UTF-8 text CSV file") from None
+    except csv.Error as exc:
+        raise ValueError(f"{path}: malformed CSV ({exc})") from None
+    if not rows or not any(cell.strip() for cell in rows[0]):
+        raise ValueError(f"{path}: empty file (a header row with column names is required)")
+    header = [cell.strip() for cell in rows[0]]
+    return header, rows[1:]
+
+
+def _lines(lines: Sequence[int], limit: int = 5) -> str:
+    shown = ", ".join(str(v) for v in lines[:limit])
+    return shown + (f" and {len(lines) - limit} more" if len(lines) > limit else "")
+
+
+def _parse_time(cells: list[str], lines: list[int], path: str, col: str):
+    """Numbers, or ISO 8601 date-times -> days since the first row."""
+    numeric = []
+    for cell, line in zip(cells, lines):
+        try:
+            numeric.append(float(cell))
+        except ValueError:
+            if numeric:  # numbers first, then something else
+                raise ValueError(
+                    f"{path}, line {line}: time column {col!r} value {cell!r} is not a number"
+                ) from None
+            break
+    else:
+        if not all(math.isfinite(v) for v in numeric):
+            raise ValueError(f"{path}: time column {col!r} has non-finite values")
+        return np.asarray(numeric, dtype=np.float64), col, None
+    stamps = []
+    for cell, line in zip(cells, lines):
+        try:
+            stamps.append(np.datetime64(cell.strip(), "ns"))
+        except ValueError:
+            raise ValueError(
+                f"{path}, line {line}: time column {col!r} value {cell!r} is neither a number "
+                "nor an ISO 8601 date-time"
+            ) from None
+        if np.isnat(stamps[-1]):
+            raise ValueError(f"{path}, line {line}: time column {col!r} is empty")
+    stamps = np.asarray(stamps)
+    days = (stamps - stamps[0]) / np.timedelta64(1, "D")
+    return days.astype(np.float64), "days", str(stamps[0].astype("datetime64[s]"))
+
+
+def _fill(values: np.ndarray, time: np.ndarray | None, where: list, fill, lines, label: str):
+    missing = np.isnan(values)
+    if not missing.any():
+        return values, time, lines
+    bad = [lines[i] for i in np.flatnonzero(missing)]
+    if fill is None:
+        raise ValueError(
+            f"{label} has {len(bad)} missing value(s) at {where[0]} {_lines(bad)}; pass "
+            "fill='linear' (interpolate) or fill='drop' (remove those rows)"
+        )
+    if fill == "drop":
+        keep = ~missing
+        kept_lines = [ln for ln, k in zip(lines, keep) if k]
+        return values[keep], None if time is None else time[keep], kept_lines
+    # linear interpolation over time (or the index); ends cannot be interpolated
+    if missing[0] or missing[-1]:
+        end = "start" if missing[0] else "end"
+        raise ValueError(
+            f"{label} has missing value(s) at the {end} ({where[0]} {_lines(bad)}) that "
+            "cannot be interpolated; use fill='drop'"
+        )
+    x = time if time is not None else np.arange(values.shape[0], dtype=np.float64)
+    out = values.copy()
+    out[missing] = np.interp(x[missing], x[~missing], values[~missing])
+    return out, time, lines
+
+
+def load_series(
+    source: str | os.PathLike | Tensor | np.ndarray | Sequence[float],
+    column: str | None = None,
+    *,
+    time_column: str | None = None,
+    time=None,
+    where=None,
+    fill: str | None = None,
+    last: int | None = None,
+    until: float | str | None = None,
+    name: str | None = None,
+    time_unit: str | None = None,
+) -> Series:
+    """Load a univariate series from a CSV column or an array.
+
+    Args:
+        source: path of a CSV file with a header row, or a 1-D array/tensor of values.
+        column: the value column (CSV); may be omitted when the file has exactly one column
+            besides ``time_column`` and the ``where`` columns.
+        time_column: optional time column (CSV): numbers or ISO 8601 date-times.
+        time: optional ``(T,)`` time values for an array ``source``.
+        where: rows to keep, e.g. ``{"channel": "5"}`` or ``["channel=5"]`` (CSV).
+        fill: ``None`` (missing values are an error), ``"linear"`` or ``"drop"``.
+        last: keep only the last ``last`` rows (after ``where`` and ``until``, before gap
+            handling).
+        name: the series' name (arrays; a CSV series is named after its column).
+        time_unit: unit of ``time`` for an array (default ``"time"``, ``"steps"`` without time).
+        until: keep only rows with time ``<= until`` (needs a time): a number in the series'
+            time unit (days for date-times, measured from the first row) or an ISO 8601
+            date-time. Backtesting: forecast from a past origin and compare with what followed.
+
+    Returns:
+        :class:`Series` (float64 values, time if given).
+    """
+    if fill is not None and fill not in FILL_METHODS:
+        raise ValueError(f"fill must be None, 'linear' or 'drop', got {fill!r}")
+    if last is not None and (isinstance(last, bool) or not isinstance(last, int) or last < 1):
+        raise ValueError(f"last must be a positive int, got {last!r}")
+    if isinstance(source, (str, os.PathLike)):
+        if name is not None or time_unit is not None:
+            raise ValueError("name and time_unit apply to arrays; a CSV series takes its names")
+        return _load_csv(Path(source), column, time_column, parse_where(where), fill, last, until)
+    if column is not None or time_column is not None or where is not None:
+        raise ValueError("column, time_column and where apply to CSV files, not to arrays")
+    for arg, v in (("name", name), ("time_unit", time_unit)):
+        if v is not None and (not isinstance(v, str) or not v):
+            raise ValueError(f"{arg} must be a non-empty string, got {v!r}")
+    if isinstance(source, Tensor):
+        arr = source.detach().to("cpu", torch.float64).numpy()
+    else:
+        try:
+            arr = np.asarray(source, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise TypeError(
+                f"source must be a CSV path or a 1-D array of numbers, got {type(source).__name__}"
+            ) from None
+    if arr.ndim != 1:
+        raise ValueError(f"source must be 1-D (T,), got shape {arr.shape}")
+    tarr = None
+    if time is not None:
+        tarr = (
+            time.detach().to("cpu", torch.float64).numpy()
+            if isinstance(time, Tensor)
+            else np.asarray(time, dtype=np.float64)
+        )
+        if tarr.shape != arr.shape:
+            raise ValueError(f"time must have shape {arr.shape} like source, got {tarr.shape}")
+    if until is not None:
+        if tarr is None:
+            raise ValueError("until needs a time axis: pass time=...")
+        keep = tarr <= _until_value(until, None)
+        arr, tarr = arr[keep], tarr[keep]
+    if last is not None:
+        arr = arr[-last:]
+        tarr = None if tarr is None else tarr[-last:]
+    if np.isinf(arr).any():
+        i = int(np.flatnonzero(np.isinf(arr))[0])
+        raise ValueError(f"source has an infinite value at index {i}")
+    idx = list(range(arr.shape[0]))
+    arr, tarr, _ = _fill(arr, tarr, ["index"], fill, idx, "source")
+    unit = "steps" if tarr is None else (time_unit or "time")
+    return _finish(arr, tarr, name or "series", None, unit, None, None)
+
+
+def _finish(values, time, name, time_name, unit, start, source, lines=None) -> Series:
+    if values.shape[0] == 0:
+        raise ValueError(f"series {name!r} is empty after selecting rows")
+    if time is not None:
+        if not np.isfinite(time).all():
+            raise ValueError(f"time of series {name!r} has non-finite values")
+        steps = np.diff(time)
+        if (steps <= 0).any():
+            i = int(np.flatnonzero(steps <= 0)[0])
+            where = f"line {lines[i + 1]}" if lines is not None else f"index {i + 1}"
+            what = f"time column {time_name!r}" if time_name else "time"
+            prefix = f"{source}, " if source else ""
+            raise ValueError(
+                f"{prefix}{where}: {what} must be strictly increasing ({time[i + 1]:g} follows "
+                f"{time[i]:g})"
+            )
+    return Series(
+        values=torch.as_tensor(values, dtype=torch.float64).clone(),
+        time=None if time is None else torch.as_tensor(time, dtype=torch.float64).clone(),
+        name=name,
+        time_name=time_name,
+        time_unit=unit,
+        start=start,
+        source=source,
+    )
+
+
+def _until_value(until, start: str | None) -> float:
+    """``until`` as a number on the series' time axis (days since ``start`` for date-times)."""
+    if isinstance(until, bool):
+        raise ValueError(f"until must be a number or an ISO 8601 date-time, got {until!r}")
+    if isinstance(until, (int, float)):
+        if not math.isfinite(until):
+            raise ValueError(f"until must be finite, got {until!r}")
+        return float(until)
+    if isinstance(until, str):
+        try:
+            return float(until)
+        except ValueError:
+            pass
+        if start is None:
+            raise ValueError(
+                f"until={until!r} is a date-time but the time column does not hold date-times"
+            )
+        try:
+            stamp = np.datetime64(until.strip(), "ns")
+        except ValueError:
+            raise ValueError(
+                f"until must be a number or an ISO 8601 date-time, got {until!r}"
+            ) from None
+        return float((stamp - np.datetime64(start, "ns")) / np.timedelta64(1, "D"))
+    raise ValueError(f"until must be a number or an ISO 8601 date-time, got {until!r}")
+
+
+def _load_csv(path, column, time_column, where, fill, last, until) -> Series:
+    header, rows = _read_csv(path)
+    index = {name: j for j, name in enumerate(header)}
+    for col, what in [(time_column, "time column")] + [(c, "where column") for c in where]:
+        if col is not None and col not in index:
+            raise ValueError(f"{path}: no {what} {col!r}; columns: {', '.join(header)}")
+    if column is None:
+        others = [h for h in header if h != time_column and h not in where]
+        if len(others) != 1:
+            raise ValueError(
+                f"{path}: name the value column with column=...; columns: {', '.join(header)}"
+            )
+        column = others[0]
+    if column not in index:
+        raise ValueError(f"{path}: no column {column!r}; columns: {', '.join(header)}")
+    j = index[column]
+    jt = index[time_column] if time_column is not None else None
+    wj = [(index[c], v) for c, v in where.items()]
+
+    cells, tcells, lines = [], [], []
+    for line, row in enumerate(rows, start=2):
+        if not row or not any(c.strip() for c in row):
+            continue  # blank line
+        if len(row) != len(header):
+            raise ValueError(f"{path}, line {line}: {len(row)} cells, header has {len(header)}")
+        if not all(_cells_equal(row[k], v) for k, v in wj):
+            continue
+        cells.append(row[j])
+        tcells.append(row[jt] if jt is not None else None)
+        lines.append(line)
+    if not cells:
+        sel = f" matching {', '.join(f'{k}={v}' for k, v in where.items())}" if where else ""
+        raise ValueError(f"{path}: no data rows{sel}")
+    time, unit, start = None, "steps", None
+    if jt is not None:
+        empty = [ln for c, ln in zip(tcells, lines) if not c.strip()]
+        if empty:
+            raise ValueError(
+                f"{path}: time column {time_column!r} is empty at line(s) {_lines(empty)}"
+            )
+        time, unit, start = _parse_time(tcells, lines, str(path), time_column)
+    if until is not None:
+        if time is None:
+            raise ValueError("until needs a time column (time_column=...)")
+        keep = time <= _until_value(until, start)
+        if not keep.any():
+            raise ValueError(f"{path}: no data rows at or before until={until!r}")
+        cells = [c for c, k in zip(cells, keep) if k]
+        lines = [ln for ln, k in zip(lines, keep) if k]
+        time = time[keep]
+    if last is not None:
+        cells, lines = cells[-last:], lines[-last:]
+        time = None if time is None else time[-last:]
+
+    values = np.empty(len(cells), dtype=np.float64)
+    for i, (cell, line) in enumerate(zip(cells, lines)):
+        try:
+            v = _parse_number(cell)
+        except ValueError:
+            raise ValueError(
+                f"{path}, line {line}: column {column!r} value {cell.strip()!r} is not a number"
+            ) from None
+        if v is not None and not math.isfinite(v):
+            raise ValueError(f"{path}, line {line}: column {column!r} value {cell!r} is infinite")
+        values[i] = math.nan if v is None else v
+    values, time, lines = _fill(values, time, ["line(s)"], fill, lines, f"{path}: {column!r}")
+    return _finish(values, time, column, time_column, unit, start, str(path), lines)

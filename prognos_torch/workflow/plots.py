@@ -1,0 +1,163 @@
+"""Figures of the workflow: a forecast with its band, and an RUL distribution with its paths.
+
+Each function draws on a fresh :class:`matplotlib.figure.Figure` (Agg canvas, no pyplot state),
+renders the PNG in memory and writes it atomically (temporary file, then rename), so a failed
+call never leaves a partial image behind.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from ..io import atomic_write
+from .data import Series
+from .predict import ForecastResult, RULResult
+
+__all__ = ["plot_forecast", "plot_rul", "time_label"]
+
+
+def _np(x) -> np.ndarray:
+    return x.detach().to("cpu").double().numpy()
+
+
+def time_label(series: Series) -> str:
+    """Axis label of a series' time."""
+    if series.time_unit == "days":
+        return f"days since {series.start}" if series.start else "days"
+    if series.time_unit == "steps":
+        return "step"
+    return series.time_unit
+
+
+def _write(fig: Figure, path: str | os.PathLike) -> Figure:
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    atomic_write(path, buf.getvalue())
+    return fig
+
+
+def _history_tail(series: Series, horizon: int, history: int | None) -> tuple:
+    n = len(series) if history is None else min(len(series), history)
+    if history is None:
+        n = min(len(series), max(4 * horizon, 200))
+    return _np(series.t)[-n:], _np(series.values)[-n:]
+
+
+def plot_forecast(
+    path: str | os.PathLike,
+    result: ForecastResult,
+    *,
+    truth: Series | None = None,
+    history: int | None = None,
+    title: str | None = None,
+) -> Figure:
+    """History, forecast mean and band (and the held-out truth, if given).
+
+    Args:
+        path: PNG file to write.
+        result: :func:`~prognos_torch.workflow.forecast` output.
+        truth: optional series with the actual values after the forecast origin (e.g. the full
+            series when the forecast was made from its training part); drawn up to a quarter
+            of the horizon past the forecast's end.
+        history: number of past values shown (default ``max(4 H, 200)``).
+    """
+    fig = Figure(figsize=(7.5, 4.0))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    th, xh = _history_tail(result.history, result.horizon, history)
+    tf = _np(result.time)
+    ax.plot(th, xh, color="0.25", lw=1.0, label="observed")
+    if truth is not None:
+        tt, xt = _np(truth.t), _np(truth.values)
+        sel = (tt > th[-1]) & (tt <= tf[-1] + 0.25 * (tf[-1] - th[-1]))
+        ax.plot(tt[sel], xt[sel], color="k", lw=1.0, ls=":", label="observed after origin")
+    pct = f"{100 * result.level:g} %"
+    ax.fill_between(
+        tf, _np(result.lower), _np(result.upper), color="C0", alpha=0.25, label=f"{pct} band"
+    )
+    ax.plot(tf, _np(result.mean), color="C0", lw=1.5, label=f"forecast ({result.filter.upper()})")
+    ax.axvline(th[-1], color="0.6", lw=0.8, ls="--")
+    ax.set_xlabel(time_label(result.history))
+    ax.set_ylabel(result.history.name)
+    ax.set_title(title or f"{result.horizon}-step forecast of {result.history.name}")
+    ax.legend(loc="best", fontsize=8)
+    return _write(fig, path)
+
+
+def _weighted_quantiles(samples: np.ndarray, w: np.ndarray, qs) -> np.ndarray:
+    order = np.argsort(samples, axis=0)
+    s = np.take_along_axis(samples, order, axis=0)
+    cw = np.cumsum(w[order], axis=0)
+    out = []
+    for q in qs:
+        idx = np.minimum((cw < q - 1e-12).sum(0), samples.shape[0] - 1)
+        out.append(s[idx, np.arange(samples.shape[1])])
+    return np.stack(out)
+
+
+def plot_rul(
+    path: str | os.PathLike,
+    result: RULResult,
+    *,
+    history: int | None = None,
+    n_paths: int = 20,
+    title: str | None = None,
+) -> Figure:
+    """Top: history, predicted paths (5-95 % band, median, a few paths) and the threshold.
+    Bottom: the RUL pmf (paper 002, Fig. 11-12), with the censored mass stated."""
+    fig = Figure(figsize=(7.5, 6.0))
+    FigureCanvasAgg(fig)
+    ax, bx = fig.add_subplot(2, 1, 1), fig.add_subplot(2, 1, 2)
+    th, xh = _history_tail(result.history, result.horizon, history)
+    paths, w = _np(result.paths), _np(result.weights)
+    tf = result.t_last + result.dt * np.arange(1, result.horizon + 1)
+    lo, med, hi = _weighted_quantiles(paths, w, (0.05, 0.5, 0.95))
+    ax.plot(th, xh, color="0.25", lw=1.0, label="observed")
+    ax.fill_between(tf, lo, hi, color="C1", alpha=0.25, label="paths 5-95 %")
+    top = np.argsort(-w, kind="stable")[:n_paths]
+    for i in top:
+        ax.plot(tf, paths[i], color="C1", lw=0.4, alpha=0.5)
+    ax.plot(tf, med, color="C1", lw=1.5, label="median path")
+    ax.axhline(result.threshold, color="C3", lw=1.0, ls="--", label="threshold")
+    ax.set_xlabel(time_label(result.history))
+    ax.set_ylabel(result.history.name)
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(title or f"RUL at {result.t_last:g} ({result.filter.upper()})")
+
+    d = result.distribution
+    support, pmf = _np(d.support), _np(d.pmf)
+    bx.bar(support, pmf, width=result.dt, color="C0", alpha=0.7, label="RUL pmf")
+    s = result.summary()
+    if s["median"] is not None:
+        bx.axvline(s["median"], color="k", lw=1.0, label=f"median {s['median']:.4g}")
+    if s["mean"] is not None:
+        bx.axvline(s["mean"], color="C3", lw=1.0, ls="--", label=f"mean {s['mean']:.4g}")
+    if result.fully_censored:
+        bx.text(
+            0.5,
+            0.5,
+            f"no path reaches {result.threshold:g} within {result.bound:g} {result.time_unit}",
+            transform=bx.transAxes,
+            ha="center",
+        )
+    elif result.censored_mass > 0:
+        bx.text(
+            0.98,
+            0.9,
+            f"P(RUL > {result.bound:g}) = {result.censored_mass:.2f}",
+            transform=bx.transAxes,
+            ha="right",
+            fontsize=8,
+        )
+    bx.set_xlim(0, result.bound + result.dt)
+    bx.set_xlabel(f"RUL ({result.time_unit})")
+    bx.set_ylabel("probability")
+    if s["median"] is not None or s["mean"] is not None:
+        bx.legend(loc="upper left", fontsize=8)
+    return _write(fig, path)

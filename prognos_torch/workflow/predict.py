@@ -1,0 +1,433 @@
+"""Forecasts with an uncertainty band and RUL distributions from a fitted one-step learner.
+
+The learner becomes the m-order state-space model of paper 002 (Eq. 15-19,
+:func:`~prognos_torch.prognosis.forecast.learner_transition_model`) on the scaled series::
+
+    P_{s+1} = [x_{s-m+2}, ..., x_s, f(P_s)] + w_s,    y_s = x_s + v_s
+
+Noise: the one-step training residual RMSE ``sigma`` (scaled units) is split equally between
+process and measurement noise, ``q = r = sigma / sqrt(2)``, so that the one-step predictive
+variance matches the training residuals. ``w_s`` acts on the newest element only (Eq. 19) for
+the Gaussian filters and the bootstrap particle filter; the Gaussian-proposal particle filters
+(EKPF, STPF) need a transition *density*, so their shifted elements get a small extra noise
+``0.3 q`` (with ``0.01 q`` the STPF's effective sample size collapsed to about 1 of 500 on the
+test series; ``0.3 q`` keeps it near 90).
+
+Both :func:`forecast` and :func:`rul` first run a filter over the last ``filter_steps``
+observations (the belief starts at the observed window with std ``r`` per element), then predict
+``horizon`` steps from the filtered belief:
+
+* Gaussian filters (``sckf`` default, ``stsckf``, ``ukf``, ``ekf``, ...): the band is the
+  engine's predict-only propagation (:func:`~prognos_torch.prognosis.forecast.gaussian_paths`),
+  ``mean -+ z std`` of the next *measurements*; for the RUL, particles are drawn from the
+  filtered Gaussian;
+* particle filters (``pf`` = bootstrap SIR, ``ekpf``, ``stpf`` = paper 002's strong-tracking PF,
+  ``upf``): weighted sample paths (:func:`~prognos_torch.prognosis.forecast.particle_paths`),
+  band from weighted quantiles.
+
+RUL (paper 002, Eq. 28 and Fig. 11): the first passage of each sample path of the *state*
+``x`` (no measurement noise) through the threshold, weighted;
+:func:`~prognos_torch.prognosis.rul.rul_distribution` keeps paths that do not cross within the
+horizon apart as censored mass (their RUL only exceeds ``horizon * dt``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..core.belief import GaussianBelief
+from ..filters import make_filter, make_particle_filter
+from ..filters import run as run_filter
+from ..prognosis.forecast import gaussian_paths, learner_transition_model, particle_paths
+from ..prognosis.rul import RULDistribution, rul_distribution
+from .data import Series
+from .model import FittedModel
+
+__all__ = [
+    "ForecastResult",
+    "RULResult",
+    "forecast",
+    "rul",
+    "holdout_metrics",
+    "FILTER_NAMES",
+    "GAUSSIAN_FILTERS",
+    "PARTICLE_NAMES",
+    "JITTER",
+]
+
+#: Gaussian filters accepted by :func:`forecast` and :func:`rul` (engine configurations).
+GAUSSIAN_FILTERS = ("sckf", "stsckf", "ckf", "ukf", "srukf", "stukf", "ekf", "stekf")
+#: Particle filters accepted (``pf`` is the bootstrap SIR filter).
+PARTICLE_NAMES = ("pf", "sir", "ekpf", "upf", "stpf")
+FILTER_NAMES = GAUSSIAN_FILTERS + PARTICLE_NAMES
+#: Relative noise on the shifted window elements for Gaussian-proposal particle filters.
+JITTER = 0.3
+_GAUSSIAN_PROPOSAL = ("ekpf", "upf", "stpf")
+
+
+@dataclass(frozen=True)
+class ForecastResult:
+    """A ``horizon``-step forecast in data units.
+
+    Attributes:
+        time: ``(H,)`` forecast times ``t_last + dt * (1..H)``.
+        mean: ``(H,)`` predicted mean; lower, upper: ``(H,)`` central ``level`` band.
+        std: ``(H,)`` predictive std (Gaussian filters) or the weighted std of the paths.
+        level: band probability.
+        filter: filter name.
+        history: the series the forecast starts from.
+        samples: ``(N, H)`` sample paths (particle filters), else ``None``.
+        weights: ``(N,)`` their weights, else ``None``.
+    """
+
+    time: Tensor
+    mean: Tensor
+    lower: Tensor
+    upper: Tensor
+    std: Tensor
+    level: float
+    filter: str
+    history: Series
+    samples: Tensor | None = None
+    weights: Tensor | None = None
+
+    @property
+    def horizon(self) -> int:
+        return int(self.mean.shape[0])
+
+
+@dataclass(frozen=True)
+class RULResult:
+    """RUL distribution at the end of a series.
+
+    Attributes:
+        distribution: :class:`~prognos_torch.prognosis.rul.RULDistribution` in time units
+            (``dt`` = the series' step).
+        threshold: failure threshold (data units); direction: ``"above"`` or ``"below"``.
+        horizon: predicted steps; dt: time per step; time_unit: unit of RUL values.
+        t_last: time of the last observation.
+        paths: ``(N, H)`` predicted state paths (data units); weights: ``(N,)``.
+        filter: filter name; n_particles: ``N``.
+        history: the series.
+    """
+
+    distribution: RULDistribution
+    threshold: float
+    direction: str
+    horizon: int
+    dt: float
+    time_unit: str
+    t_last: float
+    paths: Tensor
+    weights: Tensor
+    filter: str
+    n_particles: int
+    history: Series
+
+    @property
+    def crossing_probability(self) -> float:
+        """Probability that the threshold is reached within the horizon (the pmf's total)."""
+        return min(1.0, max(0.0, float(self.distribution.pmf.sum())))
+
+    @property
+    def censored_mass(self) -> float:
+        """Probability that the threshold is not reached within the horizon."""
+        return min(1.0, max(0.0, float(self.distribution.censored_mass)))
+
+    @property
+    def fully_censored(self) -> bool:
+        """No path reaches the threshold within the horizon: only ``RUL > horizon * dt`` is known."""
+        return not bool((self.distribution.pmf > 0).any())
+
+    @property
+    def bound(self) -> float:
+        """``horizon * dt``: the censored mass has RUL beyond this."""
+        return self.horizon * self.dt
+
+    def summary(self) -> dict[str, float | None]:
+        """Mean (Eq. 28, only when nothing is censored), median and the 5/95 % quantiles; a value
+        beyond the horizon is ``None``."""
+        d = self.distribution
+
+        def val(x) -> float | None:
+            x = float(x)
+            return None if math.isnan(x) else x
+
+        q = d.quantile([0.05, 0.5, 0.95])
+        return {
+            "mean": val(d.expectation),
+            "median": val(q[1]),
+            "q05": val(q[0]),
+            "q95": val(q[2]),
+        }
+
+
+# ----------------------------------------------------------------------------- internals
+def _check_int(v, name: str, lo: int = 1) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+        raise ValueError(f"{name} must be an int >= {lo}, got {v!r}")
+    return v
+
+
+def _check_filter(name) -> str:
+    if not isinstance(name, str) or name.lower() not in FILTER_NAMES:
+        raise ValueError(f"unknown filter {name!r}; choose one of {', '.join(FILTER_NAMES)}")
+    return name.lower()
+
+
+def _noise(model: FittedModel) -> tuple[float, float]:
+    sigma = float(model.config["residual_rmse"])
+    sigma = max(sigma, 1e-6)  # a perfect fit would leave no band and degenerate filters
+    q = sigma / math.sqrt(2.0)
+    return q, q
+
+
+def _transition(model: FittedModel, name: str, z: Tensor):
+    m = model.m
+    q, r = _noise(model)
+    if name in _GAUSSIAN_PROPOSAL and m > 1:
+        diag = torch.full((m,), JITTER * q, dtype=z.dtype, device=z.device)
+        diag[-1] = q
+        chol_Q = torch.diag(diag)
+    else:
+        chol_Q = q  # Eq. 19: noise on the newest element only
+    return learner_transition_model(model.learner, m, chol_Q, r), r
+
+
+def _scaled(model: FittedModel, series: Series) -> Tensor:
+    if not isinstance(series, Series):
+        raise TypeError(f"series must be a Series (load_series(...)), got {type(series).__name__}")
+    m = model.m
+    if len(series) < m + 1:
+        raise ValueError(
+            f"series {series.name!r} has {len(series)} values; the model's embedding m={m} "
+            f"needs at least m + 1 = {m + 1}"
+        )
+    dev = next(iter(model.learner.parameters())).device
+    return model.scaler.transform(series.values.to(dev))
+
+
+def _filtered(model: FittedModel, z: Tensor, name: str, filter_steps: int, n_particles, seed):
+    """Run the filter over the last ``filter_steps`` values; return ``(kind, result, ssm)``."""
+    m = model.m
+    ssm, r = _transition(model, name, z)
+    steps = min(filter_steps, z.shape[0] - m)
+    s0 = z.shape[0] - steps - m
+    eye = torch.eye(m, dtype=z.dtype, device=z.device)
+    belief = GaussianBelief(z[s0 : s0 + m].clone(), r * eye)
+    ys = z[s0 + m :, None]
+    if name in GAUSSIAN_FILTERS:
+        filt = make_filter(name)
+        if steps > 0:
+            return "gaussian", (filt, run_filter(filt, ssm, belief, ys).final), ssm
+        return "gaussian", (filt, belief), ssm
+    gen = torch.Generator(device=z.device).manual_seed(seed)
+    pf = make_particle_filter(name, num_particles=n_particles)
+    if steps > 0:
+        final = pf.run(ssm, belief, ys, generator=gen).final
+        particles, weights = final.particles, final.weights
+    else:
+        state = pf.init(ssm, belief, generator=gen)
+        particles, weights = state.particles, state.weights
+    return "particle", (particles, weights, gen), ssm
+
+
+def _future_time(series: Series, horizon: int) -> Tensor:
+    t = series.t
+    steps = torch.arange(1, horizon + 1, dtype=torch.float64, device=t.device)
+    return t[-1] + series.dt * steps
+
+
+# ----------------------------------------------------------------------------- public
+def forecast(
+    model: FittedModel,
+    series: Series,
+    horizon: int,
+    *,
+    level: float = 0.95,
+    filter: str = "sckf",
+    filter_steps: int = 100,
+    n_particles: int = 500,
+    seed: int | None = None,
+) -> ForecastResult:
+    """Forecast ``horizon`` steps after the end of ``series`` with a central ``level`` band.
+
+    Args:
+        model: a :class:`FittedModel`.
+        series: the observed series (at least ``m + 1`` values); its end is the forecast origin.
+        horizon: number of steps ``H >= 1``.
+        level: band probability in (0, 1).
+        filter: a Gaussian filter name (``sckf``, ``stsckf``, ``ukf``, ``ekf``, ...) or a particle
+            filter (``pf``, ``ekpf``, ``stpf``, ``upf``); see the module notes.
+        filter_steps: observations filtered before predicting (at most ``T - m``).
+        n_particles: particles (particle filters).
+        seed: particle draws (default: the model's seed).
+
+    Returns:
+        :class:`ForecastResult` in data units.
+    """
+    horizon = _check_int(horizon, "horizon")
+    filter_steps = _check_int(filter_steps, "filter_steps", 0)
+    n_particles = _check_int(n_particles, "n_particles")
+    name = _check_filter(filter)
+    if isinstance(level, bool) or not isinstance(level, (int, float)) or not 0 < level < 1:
+        raise ValueError(f"level must be a number in (0, 1), got {level!r}")
+    seed = int(model.config.get("seed", 0)) if seed is None else seed
+    z = _scaled(model, series)
+    kind, res, ssm = _filtered(model, z, name, filter_steps, n_particles, seed)
+    inv = model.scaler.inverse_transform
+    span = float(model.scaler.data_max - model.scaler.data_min)
+    if kind == "gaussian":
+        filt, state = res
+        gp = gaussian_paths(filt, ssm, state, horizon, level=float(level))
+        mean, lower, upper = inv(gp.mean), inv(gp.lower), inv(gp.upper)
+        std, samples, weights = gp.std * span, None, None
+    else:
+        particles, weights, gen = res
+        sp = particle_paths(
+            ssm,
+            particles,
+            horizon,
+            generator=gen,
+            weights=weights,
+            measurement_noise=True,
+            level=float(level),
+        )
+        mean, lower, upper = inv(sp.mean), inv(sp.lower), inv(sp.upper)
+        std, samples, weights = sp.std * span, inv(sp.samples), sp.weights
+    return ForecastResult(
+        time=_future_time(series, horizon),
+        mean=mean,
+        lower=lower,
+        upper=upper,
+        std=std,
+        level=float(level),
+        filter=name,
+        history=series,
+        samples=samples,
+        weights=weights,
+    )
+
+
+def rul(
+    model: FittedModel,
+    series: Series,
+    threshold: float,
+    *,
+    horizon: int = 200,
+    direction: str = "auto",
+    filter: str = "stpf",
+    filter_steps: int = 100,
+    n_particles: int = 500,
+    seed: int | None = None,
+) -> RULResult:
+    """RUL distribution at the end of ``series`` for a failure ``threshold`` (data units).
+
+    Args:
+        model: a :class:`FittedModel`.
+        series: the observed series (at least ``m + 1`` values).
+        threshold: failure threshold in data units.
+        horizon: predicted steps; paths not crossing by then are censored.
+        direction: ``"above"`` (failure when the value reaches ``threshold`` from below),
+            ``"below"``, or ``"auto"``: above when ``threshold`` exceeds the last observed value.
+        filter: ``stpf`` (default, paper 002), ``pf``, ``ekpf``, ``upf``, or a Gaussian filter
+            (``sckf``, ...) whose final belief is sampled.
+        filter_steps, n_particles, seed: as :func:`forecast`.
+
+    Returns:
+        :class:`RULResult` (RUL in the series' time unit).
+
+    Raises:
+        ValueError: bad arguments, or a last observed value that already reaches the threshold.
+    """
+    horizon = _check_int(horizon, "horizon")
+    filter_steps = _check_int(filter_steps, "filter_steps", 0)
+    n_particles = _check_int(n_particles, "n_particles")
+    name = _check_filter(filter)
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)):
+        raise ValueError(f"threshold must be a number, got {threshold!r}")
+    threshold = float(threshold)
+    if not math.isfinite(threshold):
+        raise ValueError(f"threshold must be finite, got {threshold}")
+    if direction not in ("auto", "above", "below"):
+        raise ValueError(f"direction must be 'auto', 'above' or 'below', got {direction!r}")
+    last = float(series.values[-1]) if isinstance(series, Series) and len(series) else math.nan
+    if direction == "auto":
+        if threshold == last:
+            raise ValueError(
+                f"threshold {threshold:g} equals the last observed value; the RUL is 0"
+            )
+        direction = "above" if threshold > last else "below"
+    elif (direction == "above" and last >= threshold) or (
+        direction == "below" and last <= threshold
+    ):
+        raise ValueError(
+            f"the last observed value {last:g} already reaches the threshold {threshold:g} "
+            f"(direction {direction!r}); the RUL is 0"
+        )
+    seed = int(model.config.get("seed", 0)) if seed is None else seed
+    z = _scaled(model, series)
+    kind, res, ssm = _filtered(model, z, name, filter_steps, n_particles, seed)
+    if kind == "gaussian":
+        _, state = res
+        belief = state.belief if hasattr(state, "belief") else state
+        gen = torch.Generator(device=z.device).manual_seed(seed)
+        e = torch.randn(n_particles, model.m, generator=gen, dtype=z.dtype, device=z.device)
+        particles = belief.mean + e @ belief.chol.mT
+        weights = None
+    else:
+        particles, weights, gen = res
+    sp = particle_paths(ssm, particles, horizon, generator=gen, weights=weights)
+    paths = model.scaler.inverse_transform(sp.samples)
+    dist = rul_distribution(paths, threshold, sp.weights, dt=series.dt, direction=direction)
+    t = series.t
+    return RULResult(
+        distribution=dist,
+        threshold=threshold,
+        direction=direction,
+        horizon=horizon,
+        dt=series.dt,
+        time_unit=series.time_unit,
+        t_last=float(t[-1]),
+        paths=paths,
+        weights=sp.weights,
+        filter=name,
+        n_particles=int(particles.shape[-2]),
+        history=series,
+    )
+
+
+def holdout_metrics(model: FittedModel, series: Series, n_train: int) -> dict[str, float]:
+    """Scores on the held-out tail ``series.values[n_train:]`` (data units).
+
+    * ``rmse``, ``mae``: the :func:`forecast` (SCKF, 95 % band) made at the end of the training
+      part over the whole tail, against the tail;
+    * ``coverage``: fraction of tail values inside that band;
+    * ``one_step_rmse``: the learner's one-step predictions from the true windows;
+    * ``persistence_rmse``: the last training value held constant (a baseline).
+    """
+    from ..metrics import mae, rmse
+
+    tail = series.values[n_train:]
+    H = tail.shape[0]
+    fc = forecast(model, series.head(n_train), H)
+    z = model.scaler.transform(series.values)
+    m = model.m
+    windows = z.unfold(0, m, 1)[n_train - m : -1]  # windows ending just before each tail value
+    with torch.no_grad():
+        one = model.scaler.inverse_transform(model.learner(windows)[..., 0])
+    inside = ((tail >= fc.lower) & (tail <= fc.upper)).to(torch.float64).mean()
+    persistence = series.values[n_train - 1].expand(H)
+    return {
+        "horizon": H,
+        "rmse": float(rmse(fc.mean, tail)),
+        "mae": float(mae(fc.mean, tail)),
+        "coverage": float(inside),
+        "level": fc.level,
+        "one_step_rmse": float(rmse(one, tail)),
+        "persistence_rmse": float(rmse(persistence, tail)),
+    }
