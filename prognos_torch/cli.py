@@ -3,6 +3,11 @@
 prognos study --list
 prognos study NAME [--runs N] [--quick] [--out DIR] [--device cpu|cuda] [--seed S]
 prognos study all [--quick] ...
+prognos fit DATA.csv --column COL [--time-column T] [--learner L] [--optimizer O] --out model.pt
+prognos forecast model.pt DATA.csv --horizon 50 [--plot forecast.png]
+prognos rul model.pt DATA.csv --threshold X [--filter stpf|pf|ekpf|sckf] [--plot rul.png]
+
+Run ``prognos COMMAND --help`` for the options and examples of each command.
 """
 
 from __future__ import annotations
@@ -73,12 +78,514 @@ def _cmd_study(args) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------------- fit / forecast / rul
+_DATA_HELP = """data options (fit; forecast and rul reuse the model's unless given):
+  DATA.csv has a header row; delimiter , ; or tab. Empty cells and nan/NA are missing values:
+  an error unless --fill linear (interpolate) or --fill drop (remove the rows). The time column
+  may hold numbers or ISO 8601 date-times (then time is in days since the first row).
+  --where COL=VALUE keeps matching rows: how a long table (one row per snapshot and channel,
+  like datasets/ims/test1_features.csv) becomes one series.
+exit status: 0 success, 2 bad input (one line on stderr, nothing written), 3 censored RUL."""
+
+
+def _wrap(text: str) -> str:
+    import textwrap
+
+    return textwrap.fill(text, 92)
+
+
+def _add_data_options(p) -> None:
+    g = p.add_argument_group("data")
+    g.add_argument(
+        "--column",
+        help="value column (fit: may be omitted when the file has one other column; "
+        "forecast, rul: default the model's)",
+    )
+    g.add_argument("--time-column", help="time column: numbers or ISO 8601 date-times")
+    g.add_argument(
+        "--where",
+        action="append",
+        metavar="COL=VALUE",
+        help="keep rows whose COL equals VALUE (repeatable), e.g. --where channel=5",
+    )
+    g.add_argument("--last", type=int, metavar="N", help="use only the last N rows")
+    g.add_argument(
+        "--until",
+        metavar="T",
+        help="use only rows with time <= T (a number in the time unit, or an ISO date-time); "
+        "forecast and rul then also compare with the rows after T (backtesting)",
+    )
+    g.add_argument(
+        "--fill", metavar="linear|drop", help="handle missing values: interpolate or drop rows"
+    )
+
+
+def _add_fit(sub) -> None:
+    p = sub.add_parser(
+        "fit",
+        help="fit a one-step forecaster to a CSV column and save it (safe model file)",
+        description=_wrap(
+            "Fit a learner (ELM, LS-SVR, ANFIS) to one column of a CSV file: min-max scaling, "
+            "embedding dimension chosen by validation error unless --embedding is given, "
+            "training by the chosen optimiser, scores on the held-out tail, and a model file "
+            "that holds the learner's tensors and its configuration (JSON, never pickle)."
+        ),
+        epilog="examples:\n"
+        "  prognos fit data.csv --column hi --time-column t --out model.pt\n"
+        "  prognos fit data.csv --column hi --learner anfis --optimizer imsrukf --out model.pt\n"
+        "  prognos fit datasets/ims/test1_features.csv --column rms --where channel=5 \\\n"
+        "      --time-column timestamp --learner elm --out ims.pt\n"
+        "  prognos fit data.csv --column hi --learner elm --learner-option n_hidden=40 "
+        "--out m.pt\n\n"
+        "learners and their default optimisers: elm (closed-form ridge), lssvr (closed-form "
+        "KKT solve),\n  anfis (ekf, one pass, paper 003 settings). optimisers: closed-form, ekf, "
+        "srukf, imsrukf, adam, lbfgs.\n\n" + _DATA_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("data", type=Path, help="CSV file")
+    _add_data_options(p)
+    g = p.add_argument_group("model")
+    g.add_argument("--learner", default="anfis", help="elm, lssvr or anfis (default anfis)")
+    g.add_argument(
+        "--optimizer",
+        help="closed-form, ekf, srukf, imsrukf, adam or lbfgs (default: the learner's)",
+    )
+    g.add_argument(
+        "--embedding", "-m", type=int, help="embedding dimension m (default: by validation)"
+    )
+    g.add_argument("--epochs", type=int, help="passes of an iterative optimiser")
+    g.add_argument(
+        "--holdout",
+        default="0.2",
+        help="final values kept for evaluation: a fraction (0.2) or a count (50); 0 for none",
+    )
+    g.add_argument("--seed", type=int, default=0, help="seed of initialisation and sampling")
+    g.add_argument(
+        "--learner-option", action="append", metavar="KEY=VALUE", help="e.g. n_hidden=40"
+    )
+    g.add_argument("--optimizer-option", action="append", metavar="KEY=VALUE", help="e.g. R=1e-2")
+    p.add_argument("--out", type=Path, required=True, help="model file to write")
+    p.set_defaults(func=_cmd_fit)
+
+
+def _add_prediction_options(p, default_filter: str) -> None:
+    g = p.add_argument_group("prediction")
+    g.add_argument(
+        "--filter",
+        default=default_filter,
+        help=f"sckf, stsckf, ukf, ekf, pf, ekpf, stpf, upf (default {default_filter})",
+    )
+    g.add_argument(
+        "--filter-steps",
+        type=int,
+        default=100,
+        help="observations filtered before predicting (default 100)",
+    )
+    g.add_argument("--particles", type=int, default=500, help="particles (default 500)")
+    g.add_argument("--seed", type=int, help="seed of the particle draws (default: the model's)")
+    g.add_argument("--plot", type=Path, help="PNG figure to write")
+
+
+def _add_forecast(sub) -> None:
+    p = sub.add_parser(
+        "forecast",
+        help="forecast the next steps of a series with an uncertainty band",
+        description=_wrap(
+            "Forecast HORIZON steps after the end of the series with a saved model: the "
+            "learner as an m-order state-space model (paper 002), a filter over the last "
+            "observations, then predict-only steps with a central band."
+        ),
+        epilog="examples:\n"
+        "  prognos forecast model.pt data.csv --horizon 50 --plot forecast.png\n"
+        "  prognos forecast model.pt data.csv --horizon 50 --filter stpf --csv forecast.csv\n"
+        "  prognos forecast model.pt data.csv --until 120 --horizon 50 --plot backtest.png\n"
+        "      (forecast from t = 120 and compare with the values observed after it)\n\n"
+        + _DATA_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("model", type=Path, help="model file from prognos fit")
+    p.add_argument("data", type=Path, help="CSV file")
+    p.add_argument("--horizon", type=int, required=True, help="steps to forecast")
+    p.add_argument("--level", type=float, default=0.95, help="band probability (default 0.95)")
+    p.add_argument("--csv", type=Path, help="write every forecast step to this CSV")
+    _add_data_options(p)
+    _add_prediction_options(p, "sckf")
+    p.set_defaults(func=_cmd_forecast)
+
+
+def _add_rul(sub) -> None:
+    p = sub.add_parser(
+        "rul",
+        help="remaining useful life distribution for a failure threshold",
+        description=_wrap(
+            "RUL distribution at the end of the series: a filter over the last observations, "
+            "sample paths of the learner's state-space model, and the first passage of each "
+            "path through the threshold (paper 002, Eq. 28). Paths that do not reach the "
+            "threshold within the horizon are censored: their RUL is only known to exceed "
+            "horizon x dt, and the mean is withheld while any mass is censored."
+        ),
+        epilog="examples:\n"
+        "  prognos rul model.pt data.csv --threshold 0.8 --plot rul.png\n"
+        "  prognos rul model.pt data.csv --threshold 0.8 --filter pf --horizon 400\n\n"
+        + _DATA_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("model", type=Path, help="model file from prognos fit")
+    p.add_argument("data", type=Path, help="CSV file")
+    p.add_argument("--threshold", type=float, required=True, help="failure threshold")
+    p.add_argument(
+        "--direction",
+        default="auto",
+        help="above, below or auto (above when the threshold exceeds the last value)",
+    )
+    p.add_argument("--horizon", type=int, default=200, help="steps predicted (default 200)")
+    _add_data_options(p)
+    _add_prediction_options(p, "stpf")
+    p.set_defaults(func=_cmd_rul)
+
+
+class _CensoredRUL(Exception):
+    pass
+
+
+def _options(items, what: str) -> dict:
+    """``KEY=VALUE`` strings -> dict; values parsed as int, float, bool or kept as strings."""
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ValueError(f"{what}: expected KEY=VALUE, got {item!r}")
+        key, text = (v.strip() for v in item.split("=", 1))
+        value: object = text
+        if text.lower() in ("true", "false"):
+            value = text.lower() == "true"
+        else:
+            for conv in (int, float):
+                try:
+                    value = conv(text)
+                    break
+                except ValueError:
+                    pass
+        out[key] = value
+    return out
+
+
+def _holdout(text: str):
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"--holdout must be a fraction or a count, got {text!r}") from None
+
+
+def _check_out_folder(path: Path | None, what: str) -> None:
+    if path is None:
+        return
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{what}: folder {folder} does not exist")
+    if path.is_dir():
+        raise ValueError(f"{what}: {path} is a folder, expected a file name")
+
+
+def _fmt(v, digits: int = 4) -> str:
+    if v is None:
+        return "n/a"
+    if isinstance(v, float):
+        return f"{v:.{digits}g}"
+    return str(v)
+
+
+def _table(rows: list[tuple], header: tuple) -> str:
+    cells = [tuple(str(c) for c in header)] + [tuple(_fmt(c) for c in r) for r in rows]
+    widths = [max(len(r[j]) for r in cells) for j in range(len(header))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in cells]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def _series_from_args(args, data_cfg: dict | None = None, *, truth: bool = False):
+    """The series named by the data options (defaults: ``data_cfg``, the model's); with
+    ``truth`` the same rows without ``--until`` and ``--last`` (what followed the origin)."""
+    from .workflow import load_series, parse_where
+
+    cfg = dict(data_cfg or {})
+    column = args.column or cfg.get("column")
+    time_column = args.time_column or cfg.get("time_column")
+    where = parse_where(args.where if args.where else cfg.get("where") or None)
+    fill = args.fill if args.fill is not None else cfg.get("fill")
+    series = load_series(
+        args.data,
+        column,
+        time_column=time_column,
+        where=where or None,
+        fill=fill,
+        last=None if truth else args.last,
+        until=None if truth else args.until,
+    )
+    used = {"column": series.name, "time_column": time_column, "where": where, "fill": fill}
+    return series, used
+
+
+def _describe(series, data_cfg: dict) -> str:
+    where = data_cfg.get("where") or {}
+    sel = f" ({', '.join(f'{k}={v}' for k, v in where.items())})" if where else ""
+    return f"{series.name!r}{sel} from {series.source}"
+
+
+def _cmd_fit(args) -> int:
+    from .workflow import fit_series
+
+    _check_out_folder(args.out, "--out")
+    series, data_cfg = _series_from_args(args)
+    oopts = _options(args.optimizer_option, "--optimizer-option")
+    if args.epochs is not None:
+        oopts["epochs"] = args.epochs
+    model = fit_series(
+        series,
+        args.learner,
+        args.optimizer,
+        args.embedding,
+        holdout=_holdout(args.holdout),
+        seed=args.seed,
+        learner_options=_options(args.learner_option, "--learner-option"),
+        optimizer_options=oopts,
+        data=data_cfg,
+    )
+    cfg = model.config
+    span = float(model.scaler.data_max - model.scaler.data_min)
+    n_train, n_hold = cfg["series"]["n_train"], cfg["holdout"]["n"]
+    sel = cfg["m_selection"]
+    how, scores = "given", ""
+    if sel is not None:
+        c = sel["candidates"]
+        how = f"chosen by one-step validation RMSE over m = {c[0]}..{c[-1]}"
+        scores = "validation RMSE by m: " + ", ".join(
+            f"{m}: {_fmt(None if v is None else v * span, 3)}" for m, v in zip(c, sel["val_rmse"])
+        )
+    tr = cfg["train"]
+    how_trained = (
+        "closed-form solve" if cfg["optimizer"] == "closed-form" else f"{tr['epochs']} epoch(s)"
+    )
+    rows = [
+        ("learner", f"{cfg['learner'].upper()} ({cfg['optimizer']})"),
+        ("rows", f"{cfg['series']['n']} (training {n_train}, held out {n_hold})"),
+        ("embedding m", f"{model.m}, {how}"),
+        ("scaler range", f"[{_fmt(cfg['scaler']['data_min'])}, {_fmt(cfg['scaler']['data_max'])}]"),
+        (
+            "training",
+            f"{how_trained}, {tr['seconds']:.2f} s, one-step RMSE "
+            f"{_fmt(cfg['residual_rmse'] * span)}",
+        ),
+    ]
+    print(f"fit {_describe(series, data_cfg)}")
+    print(_table(rows, ("item", "value")))
+    if scores:
+        print(scores)
+    mt = model.metrics
+    if mt:
+        print(f"\nheld-out tail: {mt['horizon']} steps forecast from the end of the training part")
+        print(
+            _table(
+                [
+                    ("forecast RMSE", mt["rmse"]),
+                    ("forecast MAE", mt["mae"]),
+                    (f"{100 * mt['level']:g} % band coverage", mt["coverage"]),
+                    ("one-step RMSE", mt["one_step_rmse"]),
+                    ("persistence RMSE", mt["persistence_rmse"]),
+                ],
+                ("metric", "value"),
+            )
+        )
+    model.save(args.out)
+    print(f"\nmodel written to {args.out}")
+    return 0
+
+
+def _load_for_prediction(args):
+    from .workflow import load_model
+
+    for path, what in ((args.plot, "--plot"), (getattr(args, "csv", None), "--csv")):
+        _check_out_folder(path, what)
+    model = load_model(args.model)
+    series, data_cfg = _series_from_args(args, model.config.get("data"))
+    return model, series, data_cfg
+
+
+def _cmd_forecast(args) -> int:
+    import torch
+
+    from .io import atomic_write
+    from .workflow import forecast, plot_forecast
+
+    model, series, data_cfg = _load_for_prediction(args)
+    truth = _series_from_args(args, data_cfg, truth=True)[0] if args.until else None
+    fc = forecast(
+        model,
+        series,
+        args.horizon,
+        level=args.level,
+        filter=args.filter,
+        filter_steps=args.filter_steps,
+        n_particles=args.particles,
+        seed=args.seed,
+    )
+    H = fc.horizon
+    actual = None
+    if truth is not None:
+        after = truth.values[truth.t > series.t[-1]][:H]
+        actual = after if after.numel() else None
+    show = sorted({int(round(i * (H - 1) / 9)) for i in range(10)}) if H > 10 else range(H)
+    header = ("step", f"time ({series.time_unit})", "mean", "lower", "upper")
+    rows = []
+    for i in show:
+        row = (i + 1, float(fc.time[i]), float(fc.mean[i]), float(fc.lower[i]))
+        row += (float(fc.upper[i]),)
+        if actual is not None:
+            row += (float(actual[i]) if i < actual.numel() else None,)
+        rows.append(row)
+    if actual is not None:
+        header += ("actual",)
+    unit = series.time_unit
+    pct = f"{100 * fc.level:g} %"
+    print(
+        f"forecast of {_describe(series, data_cfg)}: {H} steps after t = "
+        f"{float(series.t[-1]):g} {unit}, {fc.filter.upper()}, {pct} band"
+    )
+    print(_table(rows, header))
+    if actual is not None:
+        n = actual.numel()
+        err = (fc.mean[:n] - actual).square().mean().sqrt()
+        inside = ((actual >= fc.lower[:n]) & (actual <= fc.upper[:n])).to(torch.float64).mean()
+        last = series.values[-1].expand(n)
+        pers = (last - actual).square().mean().sqrt()
+        print(
+            f"against the {n} observed values after t = {float(series.t[-1]):g}: RMSE "
+            f"{_fmt(float(err))}, band coverage {_fmt(float(inside))}, persistence RMSE "
+            f"{_fmt(float(pers))}"
+        )
+    if args.csv is not None:
+        lines = ["step,time,mean,lower,upper"] + [
+            f"{i + 1},{float(fc.time[i])!r},{float(fc.mean[i])!r},{float(fc.lower[i])!r},"
+            f"{float(fc.upper[i])!r}"
+            for i in range(H)
+        ]
+        atomic_write(args.csv, ("\n".join(lines) + "\n").encode())
+        print(f"forecast written to {args.csv}")
+    if args.plot is not None:
+        plot_forecast(args.plot, fc, truth=truth)
+        print(f"figure written to {args.plot}")
+    return 0
+
+
+def _observed_rul(res, truth) -> str | float:
+    """Time from the origin to the first later observation that reaches the threshold."""
+    t, x = truth.t, truth.values
+    after = t > res.t_last
+    hit = (x >= res.threshold) if res.direction == "above" else (x <= res.threshold)
+    idx = (after & hit).nonzero()
+    if idx.numel() == 0:
+        return "not reached in the data"
+    return float(t[idx[0, 0]] - res.t_last)
+
+
+def _cmd_rul(args) -> int:
+    from .workflow import plot_rul, rul
+
+    model, series, data_cfg = _load_for_prediction(args)
+    truth = _series_from_args(args, data_cfg, truth=True)[0] if args.until else None
+    res = rul(
+        model,
+        series,
+        args.threshold,
+        horizon=args.horizon,
+        direction=args.direction,
+        filter=args.filter,
+        filter_steps=args.filter_steps,
+        n_particles=args.particles,
+        seed=args.seed,
+    )
+    unit, s = res.time_unit, res.summary()
+    cm = res.censored_mass
+    mean = s["mean"]
+    if mean is None:
+        mean = (
+            f"n/a ({100 * cm:.0f} % of paths do not reach the threshold in the horizon)"
+            if cm > 0
+            else "n/a"
+        )
+    print(
+        f"RUL of {_describe(series, data_cfg)} at t = {res.t_last:g} {unit}: threshold "
+        f"{res.threshold:g} ({res.direction}), {res.filter.upper()} with {res.n_particles} "
+        f"particles, horizon {res.horizon} steps = {res.bound:g} {unit}"
+    )
+    print(
+        _table(
+            [
+                ("P(threshold reached within horizon)", res.crossing_probability),
+                (f"mean RUL ({unit}, paper 002 Eq. 28)", mean),
+                (f"median RUL ({unit})", s["median"]),
+                (f"5 % quantile ({unit})", s["q05"]),
+                (f"95 % quantile ({unit})", s["q95"]),
+            ]
+            + (
+                [("observed RUL (" + unit + ")", _observed_rul(res, truth))]
+                if truth is not None
+                else []
+            ),
+            ("quantity", "value"),
+        )
+    )
+    if args.plot is not None:
+        plot_rul(args.plot, res)
+        print(f"figure written to {args.plot}")
+    if res.fully_censored:
+        raise _CensoredRUL(
+            f"censored RUL: no predicted path reaches the threshold {res.threshold:g} within the "
+            f"horizon of {res.horizon} steps ({res.bound:g} {unit}); the RUL exceeds "
+            f"{res.bound:g} {unit} (raise --horizon to look further, or check --threshold)"
+        )
+    return 0
+
+
+def _workflow(cmd):
+    """Run a workflow command: one-line errors on stderr, exit 2 (bad input) or 3 (censored)."""
+
+    def wrapped(args) -> int:
+        import torch
+
+        from .io import ModelFileError
+
+        torch.set_num_threads(1)  # tiny matrices: threads only add overhead (see tests/conftest)
+        try:
+            return cmd(args)
+        except _CensoredRUL as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 3
+        except (ValueError, TypeError, OSError, ModelFileError) as exc:
+            text = " ".join(str(exc).split()) or type(exc).__name__
+            print(f"error: {text}", file=sys.stderr)
+            return 2
+
+    return wrapped
+
+
+_cmd_fit = _workflow(_cmd_fit)
+_cmd_forecast = _workflow(_cmd_forecast)
+_cmd_rul = _workflow(_cmd_rul)
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="prognos", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     sub = ap.add_subparsers(dest="command")
     _add_study(sub)
+    _add_fit(sub)
+    _add_forecast(sub)
+    _add_rul(sub)
     return ap
 
 
