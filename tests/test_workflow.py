@@ -1,0 +1,422 @@
+"""The "use it on your own data" workflow: CSV series, fitting, forecasts, RUL, safe model files.
+
+References are independent: NumPy windows, scaling, ridge and LS-SVR KKT solves, first-passage
+times computed by hand, datetime arithmetic from the standard library, and crafted files that
+would run code if they were ever unpickled.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import pickle
+import struct
+import subprocess
+import sys
+import textwrap
+from datetime import datetime
+
+import numpy as np
+import pytest
+import torch
+
+from prognos_torch import __version__
+from prognos_torch.io import (
+    MAGIC,
+    ModelFileError,
+    load_model_file,
+    save_model_file,
+    versions_compatible,
+)
+from prognos_torch.workflow import (
+    fit_series,
+    forecast,
+    load_model,
+    load_series,
+    plot_forecast,
+    plot_rul,
+    rul,
+    select_embedding,
+)
+
+
+def _series_values(T=120, seed=0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(T) * 0.5
+    x = 1.0 + 0.01 * t + 0.3 * np.sin(2 * np.pi * t / 12) + 0.03 * rng.standard_normal(T)
+    return t, x
+
+
+def _write_csv(path, header, rows, sep=","):
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write(sep.join(header) + "\n")
+        for r in rows:
+            fh.write(sep.join(str(c) for c in r) + "\n")
+
+
+def _np_windows(z, m):
+    X = np.array([z[i : i + m] for i in range(len(z) - m)])
+    return X, np.array(z[m:])
+
+
+# --------------------------------------------------------------------------- load_series
+def test_load_series_csv_values_time_and_where(tmp_path):
+    t, x = _series_values(12)
+    rows = []
+    for i in range(12):
+        for ch in (1, 2):
+            stamp = datetime(2024, 1, 1, 0, 0).replace(hour=i)
+            rows.append((stamp.isoformat(), ch, repr(float(x[i] * ch))))
+    path = tmp_path / "d.csv"
+    _write_csv(path, ("timestamp", "channel", "value"), rows, sep=";")
+    s = load_series(path, "value", time_column="timestamp", where=["channel=2"])
+    assert s.values.dtype == torch.float64
+    np.testing.assert_array_equal(s.values.numpy(), x * 2)
+    # days since the first row, from the standard library
+    days = [
+        (datetime(2024, 1, 1, i) - datetime(2024, 1, 1, 0)).total_seconds() / 86400
+        for i in range(12)
+    ]
+    np.testing.assert_allclose(s.time.numpy(), days, rtol=0, atol=1e-12)
+    assert s.time_unit == "days" and s.start == "2024-01-01T00:00:00"
+    assert s.dt == pytest.approx(1 / 24)
+    # numeric where value matches 2.0; until as an ISO date-time and as days
+    s2 = load_series(path, "value", time_column="timestamp", where={"channel": "2.0"},
+                     until="2024-01-01T05:00")  # fmt: skip
+    assert len(s2) == 6
+    s3 = load_series(path, "value", time_column="timestamp", where={"channel": 2}, until=5 / 24)
+    assert torch.equal(s2.values, s3.values)
+    assert len(load_series(path, "value", where=["channel=1"], last=4)) == 4
+
+
+def test_load_series_gaps_fill_and_errors(tmp_path):
+    path = tmp_path / "g.csv"
+    _write_csv(path, ("t", "x"), [(0, 1.0), (1, ""), (2, "nan"), (4, 7.0), (5, 8.0)])
+    with pytest.raises(ValueError, match=r"2 missing value\(s\) at line\(s\) 3, 4; pass fill="):
+        load_series(path, "x", time_column="t")
+    lin = load_series(path, "x", time_column="t", fill="linear")
+    np.testing.assert_allclose(lin.values.numpy(), np.interp([0, 1, 2, 4, 5], [0, 4, 5], [1, 7, 8]))
+    drop = load_series(path, "x", time_column="t", fill="drop")
+    np.testing.assert_array_equal(drop.values.numpy(), [1.0, 7.0, 8.0])
+    np.testing.assert_array_equal(drop.time.numpy(), [0.0, 4.0, 5.0])
+
+    _write_csv(path, ("t", "x"), [(0, ""), (1, 2.0), (2, 3.0)])
+    with pytest.raises(ValueError, match="at the start .* cannot be interpolated; use fill='drop'"):
+        load_series(path, "x", fill="linear")
+    _write_csv(path, ("t", "x"), [(0, 1.0), (1, "abc"), (2, 3.0)])
+    with pytest.raises(ValueError, match=r"line 3: column 'x' value 'abc' is not a number"):
+        load_series(path, "x")
+    with pytest.raises(ValueError, match=r"no column 'y'; columns: t, x"):
+        load_series(path, "y")
+    with pytest.raises(FileNotFoundError, match="data file not found"):
+        load_series(tmp_path / "missing.csv", "x")
+    _write_csv(path, ("t", "x"), [(0, 1.0), (2, 2.0), (1, 3.0)])
+    with pytest.raises(ValueError, match=r"line 4: time column 't' must be strictly increasing"):
+        load_series(path, "x", time_column="t")
+    with pytest.raises(ValueError, match="fill must be None, 'linear' or 'drop'"):
+        load_series(path, "x", fill="spline")
+    with pytest.raises(ValueError, match=r"source must be 1-D"):
+        load_series(np.zeros((3, 2)))
+
+
+# --------------------------------------------------------------------------- fitting
+def test_select_embedding_scores_match_numpy_windows():
+    _, x = _series_values(100)
+    z = torch.as_tensor((x - x.min()) / (x.max() - x.min()))
+    opts = {"n_hidden": 10, "activation": "sigmoid", "lam": 1e-6}
+    m, scores = select_embedding(z, "elm", opts, (2, 3, 4), seed=3)
+    T, split = 100, 100 - math.ceil(0.2 * 100)
+    from prognos_torch.learners import ELM
+
+    for mm in (2, 3, 4):
+        # same validation targets z[split:], training targets z[4:split] for every m
+        Xt = np.array([z[i - mm : i].numpy() for i in range(4, split)])
+        Xv = np.array([z[i - mm : i].numpy() for i in range(split, T)])
+        net = ELM(mm, 10, 1, "sigmoid", torch.Generator().manual_seed(3))
+        a, b = net.a.detach().numpy(), net.b.detach().numpy()
+        H = 1 / (1 + np.exp(-(Xt @ a.T + b)))
+        beta = np.linalg.solve(H.T @ H + 1e-6 * np.eye(10), H.T @ z[4:split].numpy())
+        pred = (1 / (1 + np.exp(-(Xv @ a.T + b)))) @ beta
+        ref = np.sqrt(np.mean((pred - z[split:].numpy()) ** 2))
+        assert scores[mm] == pytest.approx(ref, rel=1e-6)
+    assert m == min(scores, key=scores.get)
+
+
+def test_fit_elm_closed_form_and_ekf_equal_numpy_ridge():
+    """Ridge on NumPy windows of the min-max scaled training part; the EKF on the ELM output
+    weights with Q = 0, P0 = 1, R = 1e-3 is recursive least squares = ridge with lam = R / P0."""
+    _, x = _series_values(90)
+    s = load_series(x)
+    m, n_train = 3, 72
+    xt = x[:n_train]
+    z = (xt - xt.min()) / (xt.max() - xt.min())
+    X, y = _np_windows(z, m)
+    for optimizer, lam in (("closed-form", 1e-6), ("ekf", 1e-3)):
+        model = fit_series(s, "elm", optimizer, m, holdout=18, seed=5)
+        a, b = model.learner.a.detach().numpy(), model.learner.b.detach().numpy()
+        H = 1 / (1 + np.exp(-(X @ a.T + b)))
+        beta = np.linalg.solve(H.T @ H + lam * np.eye(H.shape[1]), H.T @ y)
+        np.testing.assert_allclose(
+            model.learner.beta.detach().numpy()[:, 0], beta, rtol=1e-6, atol=1e-8
+        )
+        assert model.config["scaler"]["data_min"] == xt.min()
+        assert model.config["scaler"]["data_max"] == xt.max()
+        res = np.sqrt(np.mean((H @ model.learner.beta.detach().numpy()[:, 0] - y) ** 2))
+        assert model.config["residual_rmse"] == pytest.approx(res, rel=1e-9)
+
+
+def test_fit_lssvr_closed_form_equals_numpy_kkt_and_holdout_metrics():
+    _, x = _series_values(60)
+    s = load_series(x)
+    model = fit_series(s, "lssvr", None, 2, holdout=10)
+    assert model.config["optimizer"] == "closed-form"
+    xt = x[:50]
+    z = (xt - xt.min()) / (xt.max() - xt.min())
+    X, y = _np_windows(z, 2)
+    sigma, C = 0.5, 100.0
+    K = np.exp(-((X[:, None, :] - X[None, :, :]) ** 2).sum(-1) / (2 * sigma**2))
+    n = len(y)
+    A = np.block([[K + np.eye(n) / C, np.ones((n, 1))], [np.ones((1, n)), np.zeros((1, 1))]])
+    sol = np.linalg.solve(A, np.concatenate([y, [0.0]]))
+    np.testing.assert_allclose(model.learner.alpha.detach().numpy()[:, 0], sol[:n], atol=1e-8)
+    # held-out metrics: one-step predictions from the true windows and persistence, by hand
+    zz = (x - xt.min()) / (xt.max() - xt.min())
+    Xtail = np.array([zz[i - 2 : i] for i in range(50, 60)])
+    Kt = np.exp(-((Xtail[:, None, :] - X[None, :, :]) ** 2).sum(-1) / (2 * sigma**2))
+    one = (Kt @ sol[:n] + sol[n]) * (xt.max() - xt.min()) + xt.min()
+    mt = model.metrics
+    assert mt["one_step_rmse"] == pytest.approx(np.sqrt(np.mean((one - x[50:]) ** 2)), rel=1e-8)
+    assert mt["persistence_rmse"] == pytest.approx(np.sqrt(np.mean((x[49] - x[50:]) ** 2)))
+    fc = forecast(model, s.head(50), 10)
+    assert mt["rmse"] == pytest.approx(float((fc.mean - s.values[50:]).square().mean().sqrt()))
+    inside = ((s.values[50:] >= fc.lower) & (s.values[50:] <= fc.upper)).double().mean()
+    assert mt["coverage"] == pytest.approx(float(inside))
+
+
+def test_fit_bad_input():
+    s = load_series(np.linspace(0, 1, 5))
+    with pytest.raises(ValueError, match=r"has 5 values; embedding m=5 needs at least m \+ 1 = 6"):
+        fit_series(s, "elm", None, 5)
+    with pytest.raises(ValueError, match="unknown learner 'svm'; choose one of elm, lssvr, anfis"):
+        fit_series(s, "svm")
+    with pytest.raises(ValueError, match="unknown optimizer 'sgd'; choose one of closed-form"):
+        fit_series(s, "elm", "sgd")
+    with pytest.raises(ValueError, match="constant over its"):
+        fit_series(load_series(np.ones(30)), "elm", None, 2)
+    with pytest.raises(ValueError, match=r"unknown elm learner option\(s\) \['n_hiden'\]"):
+        fit_series(load_series(np.arange(30.0)), "elm", None, 2, learner_options={"n_hiden": 3})
+
+
+# --------------------------------------------------------------------------- scaling, forecast, RUL
+def test_forecast_and_rul_are_affine_equivariant():
+    """Min-max scaling makes the fitted problem identical for a x + c (a > 0): forecasts map by
+    the same affine map, and the RUL for the mapped threshold is the same distribution."""
+    t, x = _series_values(80)
+    a, c = 3.0, -2.0
+    s1, s2 = load_series(x, time=t), load_series(a * x + c, time=t)
+    m1 = fit_series(s1, "elm", None, 3, holdout=0)
+    m2 = fit_series(s2, "elm", None, 3, holdout=0)
+    f1, f2 = forecast(m1, s1, 12), forecast(m2, s2, 12)
+    for k in ("mean", "lower", "upper"):
+        torch.testing.assert_close(getattr(f2, k), a * getattr(f1, k) + c, rtol=1e-7, atol=1e-7)
+    torch.testing.assert_close(f1.time, t[-1] + 0.5 * torch.arange(1, 13, dtype=torch.float64))
+    r1 = rul(m1, s1, 1.5, horizon=40, filter="pf", n_particles=64, filter_steps=10)
+    r2 = rul(m2, s2, a * 1.5 + c, horizon=40, filter="pf", n_particles=64, filter_steps=10)
+    torch.testing.assert_close(r2.distribution.pmf, r1.distribution.pmf)
+
+
+def test_rul_first_passage_by_hand_and_censoring():
+    t, x = _series_values(80)
+    s = load_series(x, time=t)
+    model = fit_series(s, "elm", None, 3, holdout=0)
+    thr = float(x[-1]) + 0.2
+    r = rul(model, s, thr, horizon=30, filter="sckf", n_particles=50, seed=1)
+    assert r.direction == "above"
+    paths, w = r.paths.numpy(), r.weights.numpy()
+    pmf = np.zeros(30)
+    for p, wi in zip(paths, w):
+        hit = np.flatnonzero(p >= thr)
+        if hit.size:
+            pmf[hit[0]] += wi
+    np.testing.assert_allclose(r.distribution.pmf.numpy(), pmf, atol=1e-12)
+    assert r.crossing_probability == pytest.approx(pmf.sum())
+    np.testing.assert_allclose(r.distribution.support.numpy(), 0.5 * np.arange(1, 31))
+    far = rul(model, s, 1e6, horizon=20, filter="sckf", n_particles=20)
+    assert far.fully_censored and far.summary() == dict.fromkeys(("mean", "median", "q05", "q95"))
+    low = rul(model, s, -1e6, horizon=5, filter="sckf", n_particles=10)
+    assert low.direction == "below" and low.fully_censored
+    with pytest.raises(ValueError, match="already reaches the threshold"):
+        rul(model, s, float(x[-1]) + 1, direction="below")
+    with pytest.raises(ValueError, match="unknown filter 'kf'"):
+        rul(model, s, thr, filter="kf")
+
+
+def test_plots_written(tmp_path):
+    t, x = _series_values(60)
+    s = load_series(x, time=t)
+    model = fit_series(s, "elm", None, 2, holdout=0)
+    fc = forecast(model, s, 8, filter="pf", n_particles=30, filter_steps=5)
+    assert fc.samples.shape == (30, 8)
+    plot_forecast(tmp_path / "f.png", fc, truth=s)
+    plot_rul(tmp_path / "r.png", rul(model, s, 2.0, horizon=20, filter="pf", n_particles=30))
+    for name in ("f.png", "r.png"):
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.png", "r.png"]  # no temp files
+
+
+# --------------------------------------------------------------------------- model files
+def _rewrite(path, edit_header=None, body_edit=None, fmt=None):
+    """Re-pack a model file after editing its header JSON, recomputing a valid digest."""
+    raw = path.read_bytes()
+    pre = struct.Struct("<12sIQ32s")
+    magic, f, n, _ = pre.unpack(raw[: pre.size])
+    body = raw[pre.size :]
+    (hl,) = struct.unpack("<Q", body[:8])
+    header = json.loads(body[8 : 8 + hl])
+    rest = body[8 + hl :]
+    if edit_header:
+        edit_header(header)
+    head = json.dumps(header).encode()
+    body = struct.pack("<Q", len(head)) + head + rest
+    if body_edit:
+        body = body_edit(body)
+    digest = hashlib.sha256(body).digest()
+    path.write_bytes(pre.pack(magic, fmt or f, len(body), digest) + body)
+
+
+class _Evil:
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (exec, (f"open({self.marker!r}, 'w').close()",))
+
+
+def test_model_file_round_trip_in_a_fresh_process(tmp_path):
+    t, x = _series_values(90)
+    s = load_series(x, time=t)
+    model = fit_series(s, "anfis", "ekf", 2, holdout=10, seed=4)
+    path = tmp_path / "model.pt"
+    model.save(path)
+    again = load_model(path)
+    assert again.config == model.config
+    for k, v in model.learner.state_dict().items():
+        assert torch.equal(again.learner.state_dict()[k], v) and v.dtype == torch.float64
+    fc = forecast(model, s, 15)
+    r = rul(model, s, 1.8, horizon=40, filter="ekpf", n_particles=40, filter_steps=10, seed=2)
+    np.save(tmp_path / "x.npy", x)
+    np.save(tmp_path / "t.npy", t)
+    script = textwrap.dedent(
+        f"""
+        import json, numpy as np, torch
+        torch.set_num_threads(1)
+        from prognos_torch.workflow import forecast, load_model, load_series, rul
+        d = {str(tmp_path)!r}
+        s = load_series(np.load(d + "/x.npy"), time=np.load(d + "/t.npy"))
+        model = load_model(d + "/model.pt")
+        fc = forecast(model, s, 15)
+        r = rul(model, s, 1.8, horizon=40, filter="ekpf", n_particles=40, filter_steps=10, seed=2)
+        print(json.dumps({{"mean": fc.mean.tolist(), "lower": fc.lower.tolist(),
+                          "upper": fc.upper.tolist(), "pmf": r.distribution.pmf.tolist()}}))
+        """
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, check=True, timeout=120
+    )
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    for k in ("mean", "lower", "upper"):
+        assert torch.equal(torch.tensor(got[k], dtype=torch.float64), getattr(fc, k))
+    assert torch.equal(torch.tensor(got["pmf"], dtype=torch.float64), r.distribution.pmf)
+
+
+def test_model_file_rejects_tampering_truncation_versions_and_pickles(tmp_path):
+    s = load_series(_series_values(40)[1])
+    model = fit_series(s, "elm", None, 2, holdout=0)
+    good = tmp_path / "good.pt"
+    model.save(good)
+    raw = good.read_bytes()
+    assert raw.startswith(MAGIC)
+
+    bad = tmp_path / "bad.pt"
+    flipped = bytearray(raw)
+    flipped[-3] ^= 0x01  # one bit of the tensor bytes
+    bad.write_bytes(bytes(flipped))
+    with pytest.raises(ModelFileError, match="failed its SHA-256 check"):
+        load_model(bad)
+    bad.write_bytes(raw[:-100])
+    with pytest.raises(ModelFileError, match="is truncated"):
+        load_model(bad)
+    bad.write_bytes(raw[:30])
+    with pytest.raises(ModelFileError, match="is truncated"):
+        load_model(bad)
+
+    bad.write_bytes(raw)
+    _rewrite(bad, lambda h: h.update(library_version="9.0.0"))
+    with pytest.raises(
+        ModelFileError, match=r"written by prognos_torch 9.0.0, which is incompatible"
+    ):
+        load_model(bad)
+    bad.write_bytes(raw)
+    _rewrite(bad, fmt=2)
+    with pytest.raises(ModelFileError, match="format version 2"):
+        load_model(bad)
+    bad.write_bytes(raw)
+    _rewrite(bad, lambda h: h["config"].update(m=3))  # config no longer matches the tensors
+    with pytest.raises(ModelFileError, match="does not match its configuration"):
+        load_model(bad)
+    assert versions_compatible(__version__) and not versions_compatible("0.99.0")
+
+    # files whose payload would run code when unpickled: never executed
+    live = tmp_path / "live_marker"
+    pickle.loads(pickle.dumps(_Evil(live)))  # the payload is live ...
+    assert live.exists()
+    marker = tmp_path / "marker"
+    evil = pickle.dumps(_Evil(marker))
+    bad.write_bytes(evil)
+    with pytest.raises(ModelFileError, match="looks like a Python pickle"):
+        load_model(bad)
+    torch.save({"model": _Evil(marker)}, bad)
+    with pytest.raises(ModelFileError, match="zip archive .* never loaded"):
+        load_model(bad)
+    # a well-formed container (valid digest) that carries the pickle as a tensor's bytes
+    bad.write_bytes(raw)
+    _rewrite(
+        bad,
+        lambda h: h["tensors"].append(
+            {"name": "x", "dtype": "object", "shape": [len(evil)], "offset": 0, "nbytes": len(evil)}
+        ),
+    )
+    with pytest.raises(ModelFileError, match="dtype 'object'; allowed"):
+        load_model(bad)
+    bad.write_bytes(raw)
+    _rewrite(bad, body_edit=lambda b: b + evil)
+    with pytest.raises(ModelFileError, match="unreferenced bytes"):
+        load_model(bad)
+    assert not marker.exists()
+
+
+def test_io_round_trip_dtypes_and_exact_json(tmp_path):
+    tensors = {
+        "f64": torch.tensor([[1.0, -2.5e-300], [math.pi, 0.1]], dtype=torch.float64),
+        "f32": torch.tensor([0.1, 2.0], dtype=torch.float32),
+        "i64": torch.tensor([1, -(2**60)], dtype=torch.int64),
+        "b": torch.tensor([True, False]),
+        "empty": torch.zeros(0, 3, dtype=torch.float64),
+    }
+    cfg = {"a": 0.1, "b": [1, 2.5e-17, None, True], "c": {"d": "x"}}
+    path = tmp_path / "f.bin"
+    save_model_file(path, cfg, tensors, kind="k")
+    mf = load_model_file(path, kind="k")
+    assert mf.config == cfg and mf.library_version == __version__ and mf.format_version == 1
+    for k, v in tensors.items():
+        assert mf.tensors[k].dtype == v.dtype and torch.equal(mf.tensors[k], v)
+    with pytest.raises(ModelFileError, match="holds a 'k', expected a 'other'"):
+        load_model_file(path, kind="other")
+    with pytest.raises(ValueError, match="non-finite numbers"):
+        save_model_file(path, {"x": float("nan")}, {})
+    with pytest.raises(TypeError, match="allowed"):
+        save_model_file(path, {}, {"c": torch.zeros(2, dtype=torch.complex128)})
+    assert load_model_file(path).config == cfg  # the failed saves left the file intact
+    assert sorted(os.listdir(tmp_path)) == ["f.bin"]

@@ -1,0 +1,220 @@
+"""``prognos fit | forecast | rul``: end to end, the shipped IMS table, and bad input.
+
+Bad input must give exit status 2 (3 for a censored RUL), exactly one ``error:`` line on stderr,
+and leave the output folder as it was.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import pickle
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from prognos_torch.cli import main
+from prognos_torch.datasets import default_data_dir
+from prognos_torch.workflow import forecast, load_model, load_series
+
+IMS = default_data_dir() / "test1_features.csv"
+
+
+def _make_csv(path: Path, T: int = 120, gaps=(), bad=None) -> np.ndarray:
+    rng = np.random.default_rng(1)
+    t = np.arange(T) * 0.5
+    x = 1.0 + 0.01 * t + 0.3 * np.sin(2 * np.pi * t / 12) + 0.03 * rng.standard_normal(T)
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["hours", "vibration", "temp"])
+        for i in range(T):
+            v = "" if i in gaps else (bad if bad is not None and i == 7 else repr(float(x[i])))
+            w.writerow([repr(float(t[i])), v, "20"])
+    return x
+
+
+def _read_forecast_csv(path: Path) -> dict[str, torch.Tensor]:
+    with open(path) as fh:
+        rows = list(csv.DictReader(fh))
+    return {k: torch.tensor([float(r[k]) for r in rows], dtype=torch.float64) for k in rows[0]}
+
+
+def _one_error_line(capsys, pattern: str) -> str:
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith("error: ")
+    assert pattern in err, err
+    return err
+
+
+def test_cli_end_to_end_and_identical_forecast_in_a_fresh_process(tmp_path, capsys):
+    data = tmp_path / "data.csv"
+    _make_csv(data)
+    model = tmp_path / "model.pt"
+    fit = ["fit", str(data), "--column", "vibration", "--time-column", "hours"]
+    fit += ["--learner", "anfis", "--optimizer", "imsrukf", "--embedding", "2", "--out", str(model)]
+    assert main(fit) == 0
+    out = capsys.readouterr().out
+    assert "ANFIS (imsrukf)" in out and "forecast RMSE" in out and "persistence RMSE" in out
+
+    fc_csv, fc_png = tmp_path / "fc.csv", tmp_path / "fc.png"
+    args = ["forecast", str(model), str(data), "--horizon", "25"]
+    assert main(args + ["--csv", str(fc_csv), "--plot", str(fc_png)]) == 0
+    out = capsys.readouterr().out
+    assert "25 steps after t = 59.5 hours, SCKF, 95 % band" in out
+    assert fc_png.read_bytes()[:4] == b"\x89PNG"
+    got = _read_forecast_csv(fc_csv)
+    ref = forecast(load_model(model), load_series(data, "vibration", time_column="hours"), 25)
+    for k in ("mean", "lower", "upper"):
+        assert torch.equal(got[k], getattr(ref, k))
+    assert torch.equal(got["time"], ref.time)
+
+    # a fresh process loads the file and writes the identical forecast
+    fresh = tmp_path / "fresh.csv"
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    subprocess.run(
+        [sys.executable, "-m", "prognos_torch.cli", *args, "--csv", str(fresh)],
+        check=True,
+        capture_output=True,
+        env=env,
+        timeout=120,
+    )
+    assert fresh.read_bytes() == fc_csv.read_bytes()
+
+    rul_png = tmp_path / "rul.png"
+    rul = ["rul", str(model), str(data), "--threshold", "1.6", "--horizon", "60"]
+    rul += ["--filter", "pf", "--particles", "100", "--filter-steps", "20", "--plot", str(rul_png)]
+    code = main(rul)
+    out = capsys.readouterr().out
+    assert code == 0
+    assert "threshold 1.6 (above), PF with 100 particles, horizon 60 steps = 30 hours" in out
+    assert "P(threshold reached within horizon)" in out and rul_png.exists()
+
+
+def test_cli_on_the_shipped_ims_table(tmp_path, capsys):
+    model, png = tmp_path / "ims.pt", tmp_path / "ims_forecast.png"
+    sel = ["--column", "rms", "--where", "channel=5", "--time-column", "timestamp"]
+    sel += ["--until", "33.3"]
+    fit = ["fit", str(IMS), *sel, "--last", "300", "--learner", "elm", "--embedding", "4"]
+    assert main(fit + ["--holdout", "30", "--out", str(model)]) == 0
+    out = capsys.readouterr().out
+    assert "'rms' (channel=5)" in out and "300 (training 270, held out 30)" in out
+    # forecast and rul read the same column and rows from the model file's data options
+    assert main(["forecast", str(model), str(IMS), "--until", "33.3", "--horizon", "20",
+                 "--plot", str(png)]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert "against the 20 observed values after t = 33.2994" in out
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    rul = ["rul", str(model), str(IMS), "--until", "33.3", "--threshold", "0.18"]
+    rul += ["--filter", "pf", "--particles", "100", "--filter-steps", "20", "--horizon", "150"]
+    assert main(rul) == 0
+    out = capsys.readouterr().out
+    lines = {ln.split("  ")[0]: ln for ln in out.splitlines()}
+    assert "P(threshold reached within horizon)" in lines
+    assert "median RUL (days)" in lines and "observed RUL (days)" in lines
+    median = float(lines["median RUL (days)"].split()[-1])
+    assert 0 < median <= 150 * 10 / 1440 + 1e-9  # within the horizon (10-minute steps)
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        "missing_file",
+        "missing_column",
+        "non_numeric",
+        "nan_gaps",
+        "too_short",
+        "unknown_learner",
+        "unknown_optimizer",
+        "pickle_model",
+        "missing_out_folder",
+    ],
+)
+def test_cli_bad_input_one_line_error_nothing_written(tmp_path, capsys, case):
+    data = tmp_path / "data.csv"
+    out = tmp_path / "model.pt"
+    fit = ["fit", str(data), "--column", "vibration", "--time-column", "hours", "--learner"]
+    fit += ["elm", "--out", str(out)]
+    marker = tmp_path / "marker"
+    if case == "missing_file":
+        argv, pattern = fit, f"data file not found: {data}"
+    elif case == "missing_column":
+        _make_csv(data)
+        argv = [a if a != "vibration" else "vib" for a in fit]
+        pattern = "no column 'vib'; columns: hours, vibration, temp"
+    elif case == "non_numeric":
+        _make_csv(data, bad="n/a?")
+        argv, pattern = fit, "line 9: column 'vibration' value 'n/a?' is not a number"
+    elif case == "nan_gaps":
+        _make_csv(data, gaps=(10, 11, 50))
+        argv = fit
+        pattern = "3 missing value(s) at line(s) 12, 13, 52; pass fill='linear'"
+    elif case == "too_short":
+        _make_csv(data, T=4)
+        argv = fit + ["--embedding", "4"]
+        pattern = "has 4 values; embedding m=4 needs at least m + 1 = 5"
+    elif case == "unknown_learner":
+        _make_csv(data)
+        argv = [a if a != "elm" else "xgboost" for a in fit]
+        pattern = "unknown learner 'xgboost'; choose one of elm, lssvr, anfis"
+    elif case == "unknown_optimizer":
+        _make_csv(data)
+        argv = fit + ["--optimizer", "rmsprop"]
+        pattern = "unknown optimizer 'rmsprop'; choose one of closed-form, ekf"
+    elif case == "pickle_model":
+        _make_csv(data)
+
+        class Evil:
+            def __reduce__(self):
+                return (exec, (f"open({str(marker)!r}, 'w').close()",))
+
+        out.write_bytes(pickle.dumps(Evil()))
+        argv = ["forecast", str(out), str(data), "--horizon", "5", "--plot"]
+        argv += [str(tmp_path / "f.png")]
+        pattern = "is not a prognos model file: it looks like a Python pickle"
+    else:
+        _make_csv(data)
+        argv = [a if a != str(out) else str(tmp_path / "no" / "model.pt") for a in fit]
+        pattern = "--out: folder"
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert main(argv) == 2
+    _one_error_line(capsys, pattern)
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+    assert not marker.exists()
+
+
+def test_cli_fill_censored_rul_and_help(tmp_path, capsys):
+    data = tmp_path / "data.csv"
+    _make_csv(data, gaps=(10, 11))
+    model = tmp_path / "m.pt"
+    base = ["--column", "vibration", "--time-column", "hours", "--fill", "linear"]
+    assert main(["fit", str(data), *base, "--learner", "elm", "-m", "3", "--out", str(model)]) == 0
+    capsys.readouterr()
+    png = tmp_path / "rul.png"
+    argv = ["rul", str(model), str(data), "--threshold", "1e6", "--horizon", "30"]
+    argv += ["--filter", "sckf", "--particles", "50", "--plot", str(png)]
+    assert main(argv) == 3
+    captured = capsys.readouterr()
+    assert "n/a (100 % of paths do not reach the threshold in the horizon)" in captured.out
+    err = captured.err.strip()
+    assert err.splitlines() == [err] and err.startswith(
+        "error: censored RUL: no predicted path reaches the threshold 1e+06 within the horizon "
+        "of 30 steps (15 hours); the RUL exceeds 15 hours"
+    )
+    assert png.exists()  # the (complete) figure shows the paths that stay below
+    argv = ["rul", str(model), str(data), "--threshold", "-5", "--direction", "above"]
+    assert main(argv) == 2
+    _one_error_line(capsys, "already reaches the threshold -5 (direction 'above')")
+    for cmd, example in (
+        ("fit", "prognos fit data.csv --column hi --learner anfis --optimizer imsrukf"),
+        ("forecast", "prognos forecast model.pt data.csv --horizon 50 --plot forecast.png"),
+        ("rul", "prognos rul model.pt data.csv --threshold 0.8 --plot rul.png"),
+    ):
+        with pytest.raises(SystemExit) as exc:
+            main([cmd, "--help"])
+        assert exc.value.code == 0
+        assert example in capsys.readouterr().out
