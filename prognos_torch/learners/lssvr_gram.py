@@ -1,0 +1,114 @@
+"""Fast evaluation of a trained Gaussian-kernel LS-SVR (paper 002, Eq. 8 and Eq. 25).
+
+:class:`~prognos_torch.learners.LSSVR` evaluates its RBF kernel from explicit differences
+``(B, M, n)`` (exact at ``x = P_i``) and its input Jacobian with ``vmap(jacrev(...))``. Inside a
+particle filter, where ``B`` is runs x particles (10^3-10^5 windows) and ``M`` the number of
+training windows (~10^3), both are memory-bound and slow. :class:`LSSVRGram` is a frozen copy
+of a fitted RBF LS-SVR that evaluates the same formulas through matrix products:
+
+* prediction (Eq. 8 with the kernel of Eq. 24)::
+
+      d_i(x) = |x|^2 - 2 <x, P_i> + |P_i|^2,   f(x) = sum_i alpha_i exp(-d_i / (2 sigma^2)) + b
+
+  (the products with the support vectors are one ``addmm``);
+* input gradient (Eq. 25, closed form)::
+
+      df/dx = -(1 / sigma^2) sum_i alpha_i phi_i (x - P_i)
+            = -(1 / sigma^2) [ (sum_i alpha_i phi_i) x - sum_i alpha_i phi_i P_i ]
+
+  whose last component is Eq. 23/26 (the derivative with respect to the newest value).
+
+The squared-distance expansion loses absolute accuracy ``~ eps (|x|^2 + |P_i|^2)``; relative to
+``2 sigma^2`` this is negligible unless the inputs are many orders of magnitude larger than the
+kernel width (the tests compare with :class:`LSSVR` to 1e-12).
+
+It exposes ``n_in``, ``n_out``, ``forward`` and ``input_gradient`` like :class:`LSSVR`, so it
+plugs into :func:`~prognos_torch.prognosis.forecast.learner_transition_model` (e.g. with
+``jacobian="input_gradient"``) unchanged. It has buffers only (no parameters): it is an
+evaluator, not a trainable model; re-create it after re-fitting the LS-SVR.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from .elm import check_forward_input
+from .lssvr import LSSVR
+
+__all__ = ["LSSVRGram"]
+
+
+class LSSVRGram(nn.Module):
+    """Frozen Gram-expansion evaluator of a fitted RBF :class:`LSSVR` (paper 002, Eq. 8, 25).
+
+    With ``c = 1 / (2 sigma^2)`` the log-kernel is affine in ``x`` apart from ``-c |x|^2``::
+
+        log phi(P_i, x) = (2 c P_i)^T x - c |P_i|^2 - c |x|^2
+
+    so one ``addmm`` with the precomputed ``2 c P^T`` and ``-c |P_i|^2`` gives all kernel values.
+    Round-off may leave ``log phi`` a few ulps above 0 at ``x = P_i``; that changes ``phi`` by
+    ~1e-16 relative, so nothing is clamped.
+
+    Buffers (dtype and device of the source model; ``.to(...)`` moves them): ``support_vectors``
+    ``(M, n_in)``, ``alpha`` ``(M, n_out)``, ``b`` ``(n_out,)``, ``inv_two_sigma2`` (0-d ``c``),
+    ``sv_scaled_t`` ``(n_in, M)`` = ``2 c P^T``, ``sv_log_norm`` ``(M,)`` = ``-c |P_i|^2``,
+    ``alpha_sv`` ``(M, n_out * n_in)`` = ``alpha_i P_i`` (for Eq. 25).
+
+    Args:
+        lssvr: a fitted :class:`LSSVR` with ``kernel="rbf"``.
+    Raises:
+        TypeError: ``lssvr`` is not an :class:`LSSVR`.
+        ValueError: the kernel is not ``"rbf"`` or the model is not fitted.
+    """
+
+    def __init__(self, lssvr: LSSVR) -> None:
+        super().__init__()
+        if not isinstance(lssvr, LSSVR):
+            raise TypeError(f"lssvr must be a fitted LSSVR, got {type(lssvr).__name__}")
+        if lssvr.kernel != "rbf":
+            raise ValueError(f"LSSVRGram needs kernel='rbf', got kernel={lssvr.kernel!r}")
+        sv = lssvr.support_vectors.detach()
+        if sv.shape[0] == 0:
+            raise ValueError("lssvr is not fitted: call lssvr.fit(X, y) first")
+        sigma = lssvr.sigma.detach()
+        alpha = lssvr.alpha.detach()
+        c = 1.0 / (2.0 * sigma * sigma)
+        self.n_in = int(sv.shape[1])
+        self.n_out = int(lssvr.n_out)
+        self.register_buffer("support_vectors", sv.clone())
+        self.register_buffer("alpha", alpha.clone())
+        self.register_buffer("b", lssvr.b.detach().clone())
+        self.register_buffer("inv_two_sigma2", c.clone())
+        self.register_buffer("sv_scaled_t", (2.0 * c * sv).mT.contiguous())
+        self.register_buffer("sv_log_norm", -c * (sv * sv).sum(-1))
+        alpha_sv = alpha.unsqueeze(-1) * sv.unsqueeze(-2)  # (M, n_out, n_in)
+        self.register_buffer("alpha_sv", alpha_sv.reshape(sv.shape[0], -1).contiguous())
+
+    def extra_repr(self) -> str:
+        return f"n_in={self.n_in}, n_sv={self.support_vectors.shape[0]}, n_out={self.n_out}"
+
+    def _phi(self, x: Tensor) -> Tensor:
+        """Kernel values ``phi(P_i, x)`` (Eq. 24), ``(..., n_in) -> (..., M)``."""
+        x2 = x.reshape(-1, self.n_in)
+        logk = torch.addmm(self.sv_log_norm, x2, self.sv_scaled_t)  # 2c P.x - c|P|^2
+        # - c|x|^2; round-off can leave log phi ~ +1e-16 at x = P_i: harmless, no clamp
+        phi = torch.exp(logk - self.inv_two_sigma2 * (x2 * x2).sum(-1, keepdim=True))
+        return phi.reshape(*x.shape[:-1], phi.shape[-1])
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Prediction ``f(x)`` (Eq. 8): ``x (..., n_in) -> (..., n_out)``."""
+        check_forward_input(x, self.n_in, self.alpha)
+        return self._phi(x) @ self.alpha + self.b
+
+    def input_gradient(self, x: Tensor) -> Tensor:
+        """Closed-form Jacobian ``df/dx`` (Eq. 25): ``x (B, n_in) -> (B, n_out, n_in)``."""
+        check_forward_input(x, self.n_in, self.alpha)
+        if x.dim() != 2:
+            raise ValueError(
+                f"x must have shape (B, n_in) with n_in={self.n_in}, got {tuple(x.shape)}"
+            )
+        phi = self._phi(x)  # (B, M)
+        s = phi @ self.alpha  # (B, n_out): sum_i alpha_i phi_i
+        wp = (phi @ self.alpha_sv).reshape(-1, self.n_out, self.n_in)  # sum_i alpha_i phi_i P_i
+        return -2.0 * self.inv_two_sigma2 * (s.unsqueeze(-1) * x.unsqueeze(-2) - wp)
