@@ -17,6 +17,7 @@ is flagged in ``StepInfo.noise_fallback``. ``diagonal=True`` estimates only the 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import torch
 from torch import Tensor
@@ -30,29 +31,68 @@ __all__ = ["SageHusa", "MovingWindow", "NoiseEstimatorState", "UpdateContext"]
 class UpdateContext:
     """Quantities of one filter step used by the noise estimators (batch dims ``...``).
 
+    Covariances are handed over as square-root factors; the full matrices (and their diagonals,
+    which is all a ``diagonal=True`` estimator needs) are formed on first access.
+
     Attributes:
         x_post: ``(..., n)`` posterior mean.
         f_mean: ``(..., n)`` ``sum_i W_i f(xi_{i,k-1})`` without ``q`` (paper 003 Eq. 37).
-        spread: ``(..., n, n)`` ``sum_i W_i (gamma_i - x_pred)(gamma_i - x_pred)^T`` (Eq. 36).
+        spread_pos, spread_neg: ``(..., n, L)`` factors with
+            ``spread = sum_i W_i (gamma_i - x_pred)(gamma_i - x_pred)^T = A_+ A_+^T - A_- A_-^T``
+            (Eq. 36); ``spread_neg`` may be ``None``.
         gain: ``(..., n, m)``.
         innovation: ``(..., m)`` ``e_k = y_k - z_pred`` (Eq. 35).
-        cov_post: ``(..., n, n)`` posterior covariance ``P_k``.
+        chol_post: ``(..., n, n)`` posterior square root (``P_k = S S^T``).
         y: ``(..., m)`` measurement.
         h_mean: ``(..., m)`` ``sum_i W_i h(xi_{i,k|k-1})`` without ``r`` (Eq. 39).
-        pzz_noR: ``(..., m, m)`` ``sum_i W_i (eta_i - z)(eta_i - z)^T`` (Eq. 38).
+        dz_pos, dz_neg: ``(..., m, L)`` factors of ``sum_i W_i (eta_i - z)(eta_i - z)^T`` (Eq. 38).
         missing: ``(...)`` bool.
     """
 
     x_post: Tensor
     f_mean: Tensor
-    spread: Tensor
+    spread_pos: Tensor
+    spread_neg: Tensor | None
     gain: Tensor
     innovation: Tensor
-    cov_post: Tensor
+    chol_post: Tensor
     y: Tensor
     h_mean: Tensor
-    pzz_noR: Tensor
+    dz_pos: Tensor
+    dz_neg: Tensor | None
     missing: Tensor
+
+    @staticmethod
+    def _gram(pos: Tensor, neg: Tensor | None) -> Tensor:
+        G = pos @ pos.mT
+        return G if neg is None else G - neg @ neg.mT
+
+    @staticmethod
+    def _gram_diag(pos: Tensor, neg: Tensor | None) -> Tensor:
+        d = pos.pow(2).sum(-1)
+        return d if neg is None else d - neg.pow(2).sum(-1)
+
+    @cached_property
+    def spread(self) -> Tensor:
+        return self._gram(self.spread_pos, self.spread_neg)
+
+    @cached_property
+    def cov_post(self) -> Tensor:
+        return self.chol_post @ self.chol_post.mT
+
+    @cached_property
+    def pzz_noR(self) -> Tensor:
+        return self._gram(self.dz_pos, self.dz_neg)
+
+    def diag(self, name: str) -> Tensor:
+        """Diagonal of ``spread``, ``cov_post`` or ``pzz_noR`` without forming the matrix."""
+        if name == "spread":
+            return self._gram_diag(self.spread_pos, self.spread_neg)
+        if name == "cov_post":
+            return self.chol_post.pow(2).sum(-1)
+        if name == "pzz_noR":
+            return self._gram_diag(self.dz_pos, self.dz_neg)
+        raise ValueError(f"unknown quantity {name!r}")
 
 
 @dataclass(frozen=True)
@@ -186,7 +226,11 @@ class SageHusa:
             q = torch.where(keep[..., None], q, (1 - d1) * q + d1 * (c.x_post - c.f_mean))
         if "Q" in self.estimate:
             Ke = (c.gain @ c.innovation.unsqueeze(-1)).squeeze(-1)
-            new = (1 - d2) * Q + d2 * (_outer(Ke) + c.cov_post - c.spread)
+            if self.diagonal:  # only the variances: no n x n products
+                term = torch.diag_embed(Ke * Ke + c.diag("cov_post") - c.diag("spread"))
+            else:
+                term = _outer(Ke) + c.cov_post - c.spread
+            new = (1 - d2) * Q + d2 * term
             new, cnew, f1 = _project_pd(new, s.floor_Q, self.diagonal)
             Q = torch.where(keep[..., None, None], Q, new)
             cQ = torch.where(keep[..., None, None], cQ, cnew)
@@ -194,7 +238,11 @@ class SageHusa:
         if "r" in self.estimate:
             r = torch.where(keep[..., None], r, (1 - d1) * r + d1 * (c.y - c.h_mean))
         if "R" in self.estimate:
-            new = (1 - d2) * R + d2 * (_outer(c.innovation) - c.pzz_noR)
+            if self.diagonal:
+                term = torch.diag_embed(c.innovation * c.innovation - c.diag("pzz_noR"))
+            else:
+                term = _outer(c.innovation) - c.pzz_noR
+            new = (1 - d2) * R + d2 * term
             new, cnew, f2 = _project_pd(new, s.floor_R, self.diagonal)
             R = torch.where(keep[..., None, None], R, new)
             cR = torch.where(keep[..., None, None], cR, cnew)

@@ -531,20 +531,19 @@ class GaussianFilter:
         nstate = state.noise
         fallback = torch.zeros(belief.batch_shape, dtype=torch.bool, device=y.device)
         if nstate is not None:
-            spread = prop.pos @ prop.pos.mT
-            if prop.neg is not None:
-                spread = spread - prop.neg @ prop.neg.mT
             h_mean = mom.z if noise.r is None else mom.z - noise.r
             ctx = UpdateContext(
                 x_post=mean,
                 f_mean=prop.f_mean,
-                spread=spread,
+                spread_pos=prop.pos,
+                spread_neg=prop.neg,
                 gain=K,
                 innovation=eps,
-                cov_post=chol @ chol.mT,
-                y=torch.where(missing[..., None], mom.z, y),
+                chol_post=chol,
+                y=torch.where(missing[..., None], mom.z, y) if any_missing else y,
                 h_mean=h_mean,
-                pzz_noR=mom.pzz(),
+                dz_pos=mom.dz_pos,
+                dz_neg=mom.dz_neg,
                 missing=missing,
             )
             nstate = self.noise.update(nstate, ctx)
