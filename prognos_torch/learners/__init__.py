@@ -11,5 +11,6 @@ with ``torch.func.functional_call``, ``vmap``, ``jacrev`` and ``jacfwd``.
 from .anfis import ANFIS
 from .elm import ELM
 from .lssvr import LSSVR
+from .lssvr_gram import LSSVRGram
 
-__all__ = ["ELM", "LSSVR", "ANFIS"]
+__all__ = ["ELM", "LSSVR", "LSSVRGram", "ANFIS"]
