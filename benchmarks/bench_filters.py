@@ -10,17 +10,16 @@ Problems: n = 4 (linear regression on 3 inputs + bias), n = 44 (paper 003's ANFI
 from __future__ import annotations
 
 import argparse
-import math
 import platform
 import time
 
 import numpy as np
 import torch
-from torch.func import functional_call, vmap
 
 from prognos_torch.core import GaussianBelief, StateSpaceModel
 from prognos_torch.filters import ekf, sckf, srukf
 from prognos_torch.learners import ANFIS, ELM
+from prognos_torch.optim import ParameterBridge
 
 
 def learner_problem(n: int):
@@ -32,26 +31,13 @@ def learner_problem(n: int):
         module = ELM(3, 200)
     else:
         raise ValueError(n)
-    names = [k for k, p in module.named_parameters() if p.requires_grad]
-    shapes = [dict(module.named_parameters())[k].shape for k in names]
-    sizes = [math.prod(s) for s in shapes]
-    fixed = {k: p for k, p in module.named_parameters() if not p.requires_grad}
-    assert sum(sizes) == n
-
-    def unflat(theta):
-        parts = torch.split(theta, sizes)
-        return {k: p.reshape(s) for k, p, s in zip(names, parts, shapes)} | fixed
-
-    def one(theta, u):
-        return functional_call(module, unflat(theta), (u.unsqueeze(0),)).reshape(-1)
+    bridge = ParameterBridge(module)  # the optimiser face's path: forward_with or vmap
+    assert bridge.numel == n
 
     def h(theta, u, k):  # theta (..., n), u (3,) -> (..., 1)
-        flat = theta.reshape(-1, n)
-        out = vmap(one, in_dims=(0, None))(flat, u)
-        return out.reshape(*theta.shape[:-1], 1)
+        return bridge.measurement(theta, u.unsqueeze(0))
 
-    theta0 = torch.cat([p.detach().reshape(-1) for k, p in module.named_parameters() if k in names])
-    return module, h, theta0
+    return module, h, bridge.flatten().to(torch.float64)
 
 
 def time_engine(filt, n, batch, steps, seed=0):
