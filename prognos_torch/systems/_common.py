@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, fields
+from fractions import Fraction
 from types import MappingProxyType
 from typing import NamedTuple
 
@@ -338,3 +339,17 @@ def minmax_normalize(series: Tensor, lo=None, hi=None) -> NormalizedSeries:
 def minmax_denormalize(values: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     """Inverse of :func:`minmax_normalize`: ``values * (hi - lo) + lo``."""
     return values * (hi - lo) + lo
+
+
+def accelerating_drift(k: int, base: float, rate: float, k_fault: int) -> float:
+    """Closed form of the drift recursion ``d_k = d_{k-1} + rate (k - k_fault)`` for ``k > k_fault``,
+    ``d_k = base`` before (paper 000 Eq. 61, paper 003 Eq. 51):
+    ``base + rate (k - k_fault)(k - k_fault + 1) / 2``.
+
+    Evaluated in exact rational arithmetic on the decimal values and rounded once: the correctly
+    rounded value of the recursion (no accumulated floating-point error).
+    """
+    j = k - k_fault
+    if j <= 0:
+        return float(base)
+    return float(Fraction(repr(float(base))) + Fraction(repr(float(rate))) * (j * (j + 1) // 2))

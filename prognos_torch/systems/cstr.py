@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from fractions import Fraction
 
 import torch
 from torch import Tensor
@@ -39,6 +38,7 @@ from torch.func import jacfwd
 from ..core.model import StateSpaceModel, joint_state_parameter_model
 from ._common import (
     SimulationResult,
+    accelerating_drift,
     as_chol,
     check_count,
     check_params_finite,
@@ -138,14 +138,7 @@ def cstr_feed_drift(k: int, params: CSTRParams | None = None) -> float:
     the sum of the recursion's increments ``rate * (j - k_fault)``, ``j = k_fault+1..k``.
     """
     p = params or CSTRParams()
-    j = k - p.k_fault
-    if j <= 0:
-        return float(p.C_AF)
-    # exact rational arithmetic on the decimal values, rounded once: the correctly rounded value
-    # of the recursion evaluated exactly (no accumulated floating-point error)
-    return float(
-        Fraction(repr(float(p.C_AF))) + Fraction(repr(float(p.drift_rate))) * (j * (j + 1) // 2)
-    )
+    return accelerating_drift(k, p.C_AF, p.drift_rate, p.k_fault)
 
 
 def cstr_steady_state(

@@ -31,7 +31,6 @@ derivative of ``sgn(d) sqrt(|d|)`` at ``d = 0`` (infinite) is replaced by 0.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from fractions import Fraction
 
 import torch
 from torch import Tensor
@@ -39,6 +38,7 @@ from torch import Tensor
 from ..core.model import StateSpaceModel, joint_state_parameter_model
 from ._common import (
     SimulationResult,
+    accelerating_drift,
     as_chol,
     check_count,
     check_params_finite,
@@ -144,14 +144,7 @@ def az2_drift(k: int, params: ThreeTankParams | None = None) -> float:
     the sum of the recursion's increments ``rate * (j - k_fault)``, ``j = k_fault+1..k``.
     """
     p = params or ThreeTankParams()
-    j = k - p.k_fault
-    if j <= 0:
-        return float(p.az2)
-    # exact rational arithmetic on the decimal values, rounded once: the correctly rounded value
-    # of the recursion evaluated exactly (no accumulated floating-point error)
-    return float(
-        Fraction(repr(float(p.az2))) + Fraction(repr(float(p.drift_rate))) * (j * (j + 1) // 2)
-    )
+    return accelerating_drift(k, p.az2, p.drift_rate, p.k_fault)
 
 
 def three_tank_equilibrium(
