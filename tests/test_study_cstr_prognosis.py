@@ -2,17 +2,15 @@
 
 from __future__ import annotations
 
-import csv
 import importlib.util
-import json
 import math
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 import torch
+from _study_helpers import check_outputs, read_rows, run_quick  # noqa: E402
 
-from prognos_torch.cli import main
 from prognos_torch.learners import ANFIS
 from prognos_torch.optim import ParameterBridge
 
@@ -29,32 +27,12 @@ def _trainer():
 
 @pytest.fixture(scope="module")
 def quick_out(tmp_path_factory):
-    out = tmp_path_factory.mktemp("cstr_prognosis")
-    rc = main(
-        ["study", "cstr-prognosis", "--quick", "--runs", "3", "--out", str(out), "--no-progress"]
-    )
-    assert rc == 0
-    return out / "cstr-prognosis"
-
-
-def _rows(d: Path) -> list[dict]:
-    with open(d / "results.csv") as fh:
-        return list(csv.DictReader(fh))
+    return run_quick(tmp_path_factory, "cstr-prognosis", runs=3)
 
 
 def test_quick_outputs_complete_and_finite(quick_out):
-    for name in ("table.md", "results.csv", "run.json"):
-        assert (quick_out / name).stat().st_size > 0
-    meta = json.loads((quick_out / "run.json").read_text())
-    assert meta["study"] == "cstr-prognosis" and meta["config"]["quick"] is True
+    meta, rows = check_outputs(quick_out, "cstr-prognosis", 4, METHODS, 3)
     assert meta["study_config"]["true_crossing"] == 223
-    assert len(meta["figures"]) == 4
-    for fig in meta["figures"]:
-        assert (quick_out / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    rows = _rows(quick_out)
-    assert sorted((int(r["run"]), r["method"]) for r in rows) == sorted(
-        (i, m) for i in range(3) for m in METHODS
-    )
     for r in rows:
         v = {k: float(r[k]) for k in ("MAE", "RMSE", "filt_RMSE", "time_s", "train_s")}
         assert all(math.isfinite(x) and x >= 0 for x in v.values())
@@ -78,7 +56,7 @@ def test_quick_strong_tracking_predicts_the_ramp_better_than_sckf(quick_out):
     # and its estimate lags the accelerating ramp; the fading factor lambda_k >= 1 keeps the gain
     # open. Full run (50 runs): SCKF/STSCKF ratio >= 2.6 (10-step prediction RMSE) and >= 3.2
     # (real-time filtering RMSE) in every run; asserted per run with a margin of about 30 %.
-    rows = _rows(quick_out)
+    rows = read_rows(quick_out)
     by = {(int(r["run"]), r["method"]): r for r in rows}
     for i in range(3):
         st, sc = by[(i, "STSCKF")], by[(i, "SCKF")]

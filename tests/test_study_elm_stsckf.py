@@ -2,16 +2,14 @@
 
 from __future__ import annotations
 
-import csv
 import importlib.util
-import json
 import math
 from pathlib import Path
 
 import pytest
 import torch
+from _study_helpers import check_outputs, read_rows, run_quick  # noqa: E402
 
-from prognos_torch.cli import main
 from prognos_torch.prognosis.forecast import MeasurementForecaster
 
 TRAINER = Path(__file__).resolve().parents[1] / "trainers" / "elm_stsckf.py"
@@ -26,29 +24,11 @@ def _trainer():
 
 @pytest.fixture(scope="module")
 def quick_out(tmp_path_factory):
-    out = tmp_path_factory.mktemp("elm_stsckf")
-    rc = main(["study", "elm-stsckf", "--quick", "--runs", "3", "--out", str(out), "--no-progress"])
-    assert rc == 0
-    return out / "elm-stsckf"
-
-
-def _rows(d: Path) -> list[dict]:
-    with open(d / "results.csv") as fh:
-        return list(csv.DictReader(fh))
+    return run_quick(tmp_path_factory, "elm-stsckf", runs=3)
 
 
 def test_quick_outputs_complete_and_finite(quick_out):
-    for name in ("table.md", "results.csv", "run.json"):
-        assert (quick_out / name).stat().st_size > 0
-    meta = json.loads((quick_out / "run.json").read_text())
-    assert meta["study"] == "elm-stsckf" and meta["config"]["quick"] is True
-    assert len(meta["figures"]) == 5
-    for fig in meta["figures"]:
-        assert (quick_out / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    rows = _rows(quick_out)
-    assert sorted((int(r["run"]), r["method"]) for r in rows) == sorted(
-        (i, m) for i in range(3) for m in ("SCKF", "STUKF", "STSCKF")
-    )
+    meta, rows = check_outputs(quick_out, "elm-stsckf", 5, ("SCKF", "STUKF", "STSCKF"), 3)
     for r in rows:
         v = {k: float(r[k]) for k in ("MAE", "RMSE", "MSE", "filt_RMSE", "time_s")}
         assert all(math.isfinite(x) and x >= 0 for x in v.values())
@@ -64,7 +44,7 @@ def test_quick_strong_tracking_follows_the_ramp_better_than_sckf(quick_out):
     # With the assistant model az2_k = az2_{k-1} and a small random walk (chol_D = 1e-4), the
     # SCKF's gain on az2 settles near zero and it lags the accelerating ramp of Eq. 61; the
     # fading factor (lambda_k >= 1) keeps the gain open. Asserted per run with a wide margin.
-    rows = _rows(quick_out)
+    rows = read_rows(quick_out)
     by = {(int(r["run"]), r["method"]): float(r["RMSE"]) for r in rows}
     for i in range(3):
         assert by[(i, "STSCKF")] < 0.5 * by[(i, "SCKF")]
