@@ -38,8 +38,7 @@ def tria(A: Tensor) -> Tensor:
     R = torch.linalg.qr(A.mT, mode="r").R  # (..., n, n) upper
     S = R.mT
     d = torch.diagonal(S, dim1=-2, dim2=-1)
-    sign = torch.where(d < 0, -torch.ones_like(d), torch.ones_like(d))
-    return S * sign.unsqueeze(-2)
+    return S * torch.where(d < 0, -1.0, 1.0).unsqueeze(-2)
 
 
 def chol_update(S: Tensor, V: Tensor) -> Tensor:
