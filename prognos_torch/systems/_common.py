@@ -353,3 +353,33 @@ def accelerating_drift(k: int, base: float, rate: float, k_fault: int) -> float:
     if j <= 0:
         return float(base)
     return float(Fraction(repr(float(base))) + Fraction(repr(float(rate))) * (j * (j + 1) // 2))
+
+
+def simulate_with_parameter(
+    model,
+    X0: Tensor,
+    n_steps: int,
+    runs: int,
+    generator: torch.Generator | None,
+    theta_at: Callable[[int], float],
+    dt: float,
+    *,
+    u: Tensor | None = None,
+    dtype=torch.float64,
+    device=None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Per-run noise draws, the shared simulation loop and the true scalar parameter path.
+
+    Returns ``t`` ``(T + 1,)``, ``x`` ``(T + 1, runs, n)``, ``y`` ``(T, runs, m)`` and
+    ``theta`` ``(T + 1, runs, 1)`` with ``theta[k] = theta_at(k)`` (no noise when ``generator`` is
+    ``None``).
+    """
+    e_w = e_v = None
+    if generator is not None:
+        shapes = [("normal", (model.state_dim,)), ("normal", (model.obs_dim,))]
+        e_w, e_v = draw_run_noise(generator, runs, n_steps, shapes, dtype=dtype, device=device)
+    x, y = simulate_model(model, X0, n_steps, e_w=e_w, e_v=e_v, u=u)
+    vals = [theta_at(k) for k in range(n_steps + 1)]
+    theta = torch.tensor(vals, dtype=dtype, device=device)[:, None, None].expand(-1, runs, 1)
+    t = torch.arange(n_steps + 1, dtype=dtype, device=device) * dt
+    return t, x, y, theta.clone()

@@ -45,11 +45,10 @@ from ._common import (
     check_positive,
     check_std,
     diag_chol,
-    draw_run_noise,
     initial_state,
     resolve_generator,
     rk4_step,
-    simulate_model,
+    simulate_with_parameter,
 )
 
 __all__ = [
@@ -294,19 +293,22 @@ def simulate_cstr(
         dtype=dtype,
         device=device,
     )
-    e_w = e_v = None
-    if g is not None:
-        e_w, e_v = draw_run_noise(
-            g, runs, n_steps, [("normal", (2,)), ("normal", (2,))], dtype=dtype, device=device
-        )
-    x, y = simulate_model(model, X0, n_steps, e_w=e_w, e_v=e_v)
-    caf = [cstr_feed_drift(k, p) if drift else p.C_AF for k in range(n_steps + 1)]
-    theta = torch.tensor(caf, dtype=dtype, device=device)[:, None, None].expand(-1, runs, 1)
+    t, x, y, theta = simulate_with_parameter(
+        model,
+        X0,
+        n_steps,
+        runs,
+        g,
+        lambda k: cstr_feed_drift(k, p) if drift else p.C_AF,
+        p.dt,
+        dtype=dtype,
+        device=device,
+    )
     return SimulationResult(
-        t=torch.arange(n_steps + 1, dtype=dtype, device=device) * p.dt,
+        t=t,
         x=x,
         y=y,
-        theta=theta.clone(),
+        theta=theta,
         u=None,
         meta={
             "system": "cstr",

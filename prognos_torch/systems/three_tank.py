@@ -45,12 +45,11 @@ from ._common import (
     check_positive,
     check_std,
     diag_chol,
-    draw_run_noise,
     euler_step,
     initial_state,
     input_sequence,
     resolve_generator,
-    simulate_model,
+    simulate_with_parameter,
 )
 
 __all__ = [
@@ -290,19 +289,23 @@ def simulate_three_tank(
         dtype=dtype,
         device=device,
     )
-    e_w = e_v = None
-    if gen is not None:
-        e_w, e_v = draw_run_noise(
-            gen, runs, n_steps, [("normal", (3,)), ("normal", (3,))], dtype=dtype, device=device
-        )
-    x, y = simulate_model(model, X0, n_steps, e_w=e_w, e_v=e_v, u=U)
-    az2 = [az2_drift(k, p) if drift else p.az2 for k in range(n_steps + 1)]
-    theta = torch.tensor(az2, dtype=dtype, device=device)[:, None, None].expand(-1, runs, 1)
+    t, x, y, theta = simulate_with_parameter(
+        model,
+        X0,
+        n_steps,
+        runs,
+        gen,
+        lambda k: az2_drift(k, p) if drift else p.az2,
+        p.dt,
+        u=U,
+        dtype=dtype,
+        device=device,
+    )
     return SimulationResult(
-        t=torch.arange(n_steps + 1, dtype=dtype, device=device) * p.dt,
+        t=t,
         x=x,
         y=y,
-        theta=theta.clone(),
+        theta=theta,
         u=U,
         meta={
             "system": "three_tank",
