@@ -411,7 +411,9 @@ def _load_for_prediction(args):
         _check_out_folder(path, what)
     model = load_model(args.model)
     series, data_cfg = _series_from_args(args, model.config.get("data"))
-    return model, series, data_cfg
+    # with --until, the rows after the cut are the truth to compare against
+    truth = _series_from_args(args, data_cfg, truth=True)[0] if args.until else None
+    return model, series, data_cfg, truth
 
 
 def _cmd_forecast(args) -> int:
@@ -420,8 +422,7 @@ def _cmd_forecast(args) -> int:
     from .io import atomic_write
     from .workflow import forecast, plot_forecast
 
-    model, series, data_cfg = _load_for_prediction(args)
-    truth = _series_from_args(args, data_cfg, truth=True)[0] if args.until else None
+    model, series, data_cfg, truth = _load_for_prediction(args)
     fc = forecast(
         model,
         series,
@@ -494,8 +495,7 @@ def _observed_rul(res, truth) -> str | float:
 def _cmd_rul(args) -> int:
     from .workflow import plot_rul, rul
 
-    model, series, data_cfg = _load_for_prediction(args)
-    truth = _series_from_args(args, data_cfg, truth=True)[0] if args.until else None
+    model, series, data_cfg, truth = _load_for_prediction(args)
     res = rul(
         model,
         series,
