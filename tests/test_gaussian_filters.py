@@ -270,3 +270,35 @@ def test_forecast_equals_repeated_prediction_of_kalman():
     H = model.observation_jacobian(m, None, 0)
     SR = model.chol_R
     assert torch.allclose(fc.y_chols[-1] @ fc.y_chols[-1].T, H @ P @ H.T + SR @ SR.T, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["SRUKF", "EKF", "SCKF"])
+def test_very_informative_measurements_match_kalman(name, monkeypatch):
+    """R tiny next to H P H^T: the posterior downdate would lose precision (determinant ratio far
+    below the threshold), so the engine switches to the Joseph-form QR; still exact."""
+    rng = np.random.default_rng(5)
+    n, m, T = 6, 2, 40
+    F = np.eye(n) + 0.05 * rng.normal(size=(n, n))
+    H = rng.normal(size=(m, n))
+    LQ, LR = 0.1 * np.eye(n), 1e-6 * np.eye(m)
+    m0, P0 = np.zeros(n), 4.0 * np.eye(n)
+    ys = rng.normal(size=(T, m))
+    model = linear_gaussian_model(t(F), t(H), t(LQ), t(LR))
+    mr, Pr, llr = kalman_filter(F, H, LQ @ LQ.T, LR @ LR.T, m0, P0, ys)
+    calls = []
+    import prognos_torch.filters.gaussian as engine
+
+    real = engine.chol_downdate_ex
+
+    def spy(S, V):
+        out = real(S, V)
+        calls.append(float(out[1].min()))
+        return out
+
+    monkeypatch.setattr(engine, "chol_downdate_ex", spy)
+    tr = run(ALL_FILTERS[name], model, GaussianBelief.from_cov(t(m0), t(P0)), t(ys))
+    assert min(calls) < engine._DOWNDATE_MIN_RATIO  # the fallback was exercised
+    scale = float(np.abs(Pr).max())
+    assert torch.allclose(tr.covs, t(Pr), atol=1e-8 * scale, rtol=0)
+    assert torch.allclose(tr.means, t(mr), atol=1e-7, rtol=0)
+    assert abs(float(tr.log_likelihood) - llr) < 1e-8 * max(1.0, abs(llr))

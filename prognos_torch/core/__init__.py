@@ -1,7 +1,15 @@
 """Core abstractions: state-space models, Gaussian beliefs, square-root linear algebra."""
 
 from .belief import GaussianBelief
-from .linalg import cho_solve_right, chol_downdate, chol_update, safe_cholesky, symmetrize, tria
+from .linalg import (
+    cho_solve_right,
+    chol_downdate,
+    chol_downdate_ex,
+    chol_update,
+    safe_cholesky,
+    symmetrize,
+    tria,
+)
 from .model import Noise, StateSpaceModel, joint_state_parameter_model, linear_gaussian_model
 
 __all__ = [
@@ -13,6 +21,7 @@ __all__ = [
     "tria",
     "chol_update",
     "chol_downdate",
+    "chol_downdate_ex",
     "cho_solve_right",
     "safe_cholesky",
     "symmetrize",

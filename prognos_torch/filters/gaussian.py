@@ -40,7 +40,14 @@ from ..adapt.noise import MovingWindow, NoiseEstimatorState, SageHusa, UpdateCon
 from ..adapt.robust import RobustBound
 from ..adapt.strong_tracking import StrongTracking, StrongTrackingState, fading_factor
 from ..core.belief import GaussianBelief
-from ..core.linalg import cho_solve_right, chol_downdate, safe_cholesky, symmetrize, tria
+from ..core.linalg import (
+    cho_solve_right,
+    chol_downdate,
+    chol_downdate_ex,
+    safe_cholesky,
+    symmetrize,
+    tria,
+)
 from ..core.model import Noise, StateSpaceModel
 from ..quadrature import SigmaPoints, cubature, julier, unscented
 
@@ -65,6 +72,9 @@ __all__ = [
 ]
 
 _LOG_2PI = math.log(2.0 * math.pi)
+#: Smallest ``det(P_post) / det(P_pred)`` for which the posterior is taken from the O(n^2)
+#: Cholesky downdate; below it (relative precision worse than about ``1e-10``) the Joseph-form QR.
+_DOWNDATE_MIN_RATIO = 1e-6
 
 
 @dataclass(frozen=True)
@@ -194,14 +204,15 @@ class _Sigma:
 
     xi: Tensor  # (L, n)
     wm: Tensor  # (L,)
-    pos: Tensor  # indices with wc > 0
+    pos: Tensor | None  # indices with wc > 0 (None: all of them)
     neg: Tensor | None  # indices with wc < 0 (None if there are none)
     sw_pos: Tensor  # sqrt(wc[pos])
     sw_neg: Tensor | None  # sqrt(-wc[neg])
 
     def columns(self, D: Tensor) -> tuple[Tensor, Tensor | None]:
         """``D``: ``(..., L, d)`` deviations -> ``(..., d, Lp)``, ``(..., d, Ln)`` columns ``sqrt|w| D_i``."""
-        pos = (D[..., self.pos, :] * self.sw_pos.unsqueeze(-1)).mT
+        Dp = D if self.pos is None else D[..., self.pos, :]
+        pos = (Dp * self.sw_pos.unsqueeze(-1)).mT
         if self.neg is None:
             return pos, None
         return pos, (D[..., self.neg, :] * self.sw_neg.unsqueeze(-1)).mT
@@ -221,7 +232,7 @@ def _sigma_points(rule: SigmaPoints, n: int, like: Tensor) -> _Sigma:
         sig = _Sigma(
             xi,
             wm,
-            pos,
+            None if pos.numel() == wc.numel() else pos,
             neg if has_neg else None,
             wc[pos].sqrt(),
             (-wc[neg]).sqrt() if has_neg else None,
@@ -359,17 +370,19 @@ class GaussianFilter:
             return _Moments(z, S, H @ S, None, None, True, H)
         sig = _sigma_points(self.rule, model.state_dim, x)
         if self.redraw or prop.points is None:
-            X = x.unsqueeze(-2) + sig.xi @ S.mT  # paper 000 Eq. 37
+            D = sig.xi @ S.mT  # X - x exactly
+            X = x.unsqueeze(-2) + D  # paper 000 Eq. 37
             joseph = True
         else:
             X = prop.points  # reuse propagated points (filterpy)
+            D = X - x.unsqueeze(-2)
             joseph = False
         uu = None if u is None else u.unsqueeze(-2)
         eta = model.observe(X, uu, k)  # Eq. 38
         h_mean = sig.wm @ eta
         z = h_mean if r is None else h_mean + r  # Eq. 39
         dz_pos, dz_neg = sig.columns(eta - h_mean.unsqueeze(-2))  # Eq. 41
-        dx_pos, dx_neg = sig.columns(X - x.unsqueeze(-2))  # Eq. 43
+        dx_pos, dx_neg = sig.columns(D)  # Eq. 43
         return _Moments(z, dx_pos, dz_pos, dx_neg, dz_neg, joseph, None)
 
     def _innovation_chol(self, mom: _Moments, chol_R: Tensor) -> Tensor:
@@ -415,14 +428,25 @@ class GaussianFilter:
             return safe_cholesky(symmetrize(P))
         if not mom.joseph:
             return chol_downdate(prior.chol, K @ Szz)  # paper 003 Eq. 28-29
+        ok = None
+        if rob is None:
+            # The sigma points (or F S) reproduce the prior, so Eq. 46's Joseph form equals
+            # P_pred - K S_zz S_zz^T K^T: the cholupdate of paper 003 Eq. 28-29, O(n^2 m)
+            # instead of a QR of (n, L + m). Where the downdate loses precision (determinant
+            # ratio below _DOWNDATE_MIN_RATIO: a very informative measurement) the Joseph QR
+            # is used instead.
+            S, ratio = chol_downdate_ex(prior.chol, K @ Szz)
+            ok = ratio > _DOWNDATE_MIN_RATIO
+            if bool(ok.all()):
+                return S
         cols = [c * (mom.dx_pos - K @ mom.dz_pos), K @ SR]  # paper 000 Eq. 46
         if rob is not None:  # paper 004 Eq. 28 in square-root form
             M = rob.M_matrix(mdim, SR.dtype, SR.device)
             cols.append(rob.gamma * (K @ M))
-        S = tria(torch.cat(cols, dim=-1))
+        SJ = tria(torch.cat(cols, dim=-1))
         if mom.dx_neg is not None:
-            S = chol_downdate(S, c * (mom.dx_neg - K @ mom.dz_neg))
-        return S
+            SJ = chol_downdate(SJ, c * (mom.dx_neg - K @ mom.dz_neg))
+        return SJ if ok is None else torch.where(ok[..., None, None], S, SJ)
 
     # ------------------------------------------------------------------ public steps
     def predict(
@@ -474,11 +498,13 @@ class GaussianFilter:
             The new state and a :class:`StepInfo`.
         """
         belief = state.belief
-        y = self._check_y(model, y, belief)
+        y, any_missing = self._check_y(model, y, belief)
         u = self._check_u(model, u, belief)
         noise = self._noise(model, state, k)
-        missing = torch.isnan(y).any(-1)
-        any_missing = bool(missing.any())
+        if any_missing:
+            missing = torch.isnan(y).any(-1)
+        else:
+            missing = torch.zeros(belief.batch_shape, dtype=torch.bool, device=y.device)
         prop = self._propagate(model, belief, u, k, noise.q)
 
         fstate = state.fading
@@ -529,8 +555,9 @@ class GaussianFilter:
             chol = torch.where(missing[..., None, None], prior.chol, chol)
 
         nstate = state.noise
-        fallback = torch.zeros(belief.batch_shape, dtype=torch.bool, device=y.device)
-        if nstate is not None:
+        if nstate is None:
+            fallback = torch.zeros(belief.batch_shape, dtype=torch.bool, device=y.device)
+        else:
             h_mean = mom.z if noise.r is None else mom.z - noise.r
             ctx = UpdateContext(
                 x_post=mean,
@@ -545,6 +572,7 @@ class GaussianFilter:
                 dz_pos=mom.dz_pos,
                 dz_neg=mom.dz_neg,
                 missing=missing,
+                any_missing=any_missing,
             )
             nstate = self.noise.update(nstate, ctx)
             fallback = nstate.fallback
@@ -564,7 +592,8 @@ class GaussianFilter:
 
     # ------------------------------------------------------------------ checks
     @staticmethod
-    def _check_y(model, y, belief: GaussianBelief) -> Tensor:
+    def _check_y(model, y, belief: GaussianBelief) -> tuple[Tensor, bool]:
+        """``y`` in the belief's dtype and whether any entry is missing (NaN)."""
         if not isinstance(y, Tensor):
             raise TypeError(f"y must be a torch.Tensor of shape (..., {model.obs_dim})")
         want = tuple(belief.batch_shape) + (model.obs_dim,)
@@ -572,9 +601,11 @@ class GaussianFilter:
             raise ValueError(f"y must have shape {want} (batch shape + (m,)), got {tuple(y.shape)}")
         if y.device != belief.mean.device:
             raise ValueError(f"y is on {y.device}, the belief on {belief.mean.device}")
+        if math.isfinite(float(y.sum())):  # one reduction: no NaN, no inf (the usual case)
+            return y.to(belief.mean.dtype), False
         if torch.isinf(y).any():
             raise ValueError("y contains inf (use NaN to mark a missing measurement)")
-        return y.to(belief.mean.dtype)
+        return y.to(belief.mean.dtype), bool(torch.isnan(y).any())
 
     @staticmethod
     def _check_u(model, u, belief: GaussianBelief) -> Tensor | None:

@@ -1,0 +1,73 @@
+"""Square-root linear algebra against dense references (Cholesky of the formed matrix, solves)."""
+
+import pytest
+import torch
+
+from prognos_torch.core.linalg import (
+    cho_solve_right,
+    chol_downdate,
+    chol_downdate_ex,
+    chol_update,
+    tria,
+)
+
+torch.set_num_threads(1)
+
+
+def _spd_factor(g, *shape, n):
+    A = torch.randn(*shape, n, n + 2, generator=g, dtype=torch.float64)
+    return torch.linalg.cholesky(A @ A.mT)
+
+
+@pytest.mark.parametrize("n,L", [(1, 5), (4, 2), (6, 13), (30, 61)])
+def test_tria_is_the_cholesky_factor(n, L):
+    g = torch.Generator().manual_seed(n)
+    A = torch.randn(3, n, L, generator=g, dtype=torch.float64)
+    S = tria(A)
+    if L >= n:
+        ref = torch.linalg.cholesky(A @ A.mT)
+        torch.testing.assert_close(S, ref, rtol=0, atol=1e-12 * float(ref.abs().max()))
+    else:  # rank-deficient: still a lower factor with a non-negative diagonal
+        torch.testing.assert_close(S @ S.mT, A @ A.mT, rtol=0, atol=1e-12)
+    assert torch.equal(S, S.tril())
+    assert bool((torch.diagonal(S, dim1=-2, dim2=-1) >= 0).all())
+
+
+@pytest.mark.parametrize("n", [1, 3, 20])
+@pytest.mark.parametrize("k", [1, 2, 4, 5, 9])  # rank-one loop (k <= 4) and dense path
+def test_update_and_downdate_equal_dense_cholesky(n, k):
+    g = torch.Generator().manual_seed(10 * n + k)
+    S = _spd_factor(g, 2, n=n)
+    V = torch.randn(2, n, k, generator=g, dtype=torch.float64)
+    up = chol_update(S, V)
+    ref = torch.linalg.cholesky(S @ S.mT + V @ V.mT)
+    torch.testing.assert_close(up, ref, rtol=0, atol=1e-12 * float(ref.abs().max()))
+    down, ratio = chol_downdate_ex(up, V)
+    torch.testing.assert_close(down, S, rtol=0, atol=1e-10 * float(S.abs().max()))
+    assert torch.equal(down, down.tril())
+    # the returned ratio is det(S' S'^T) / det(S S^T)
+    det = lambda L: torch.diagonal(L, dim1=-2, dim2=-1).square().prod(-1)  # noqa: E731
+    torch.testing.assert_close(ratio, det(S) / det(up), rtol=1e-9, atol=0)
+    if k == 1:  # vector form
+        torch.testing.assert_close(chol_downdate(up, V[..., 0]), down, rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("k", [1, 6])
+def test_downdate_to_an_indefinite_matrix_is_reported(k):
+    S = torch.eye(3, dtype=torch.float64).expand(2, 3, 3).clone()
+    V = torch.zeros(2, 3, k, dtype=torch.float64)
+    V[0, :, 0] = torch.tensor([1.0, 1.0, 1.0])  # I - v v^T has eigenvalue -2
+    V[1, :, 0] = torch.tensor([0.5, 0.0, 0.0])  # fine
+    _, ratio = chol_downdate_ex(S, V)
+    assert not bool(ratio[0] > 0) and bool(ratio[1] > 0)
+    with pytest.raises(torch.linalg.LinAlgError, match="positive definite"):
+        chol_downdate(S, V)
+
+
+@pytest.mark.parametrize("m", [1, 3])
+def test_cho_solve_right_equals_dense_solve(m):
+    g = torch.Generator().manual_seed(m)
+    S = _spd_factor(g, 4, n=m)
+    B = torch.randn(4, 5, m, generator=g, dtype=torch.float64)
+    ref = torch.linalg.solve(S @ S.mT, B.mT).mT
+    torch.testing.assert_close(cho_solve_right(B, S), ref, rtol=1e-12, atol=1e-12)
