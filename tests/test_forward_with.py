@@ -2,7 +2,7 @@
 
 import pytest
 import torch
-from torch.func import functional_call, vmap
+from torch.func import functional_call, jacrev, vmap
 
 from prognos_torch.learners import ANFIS, ELM
 from prognos_torch.optim import ParameterBridge
@@ -53,3 +53,56 @@ def test_bridge_uses_fast_path_with_selected_subset():
     fast = bridge.batched(theta, x)
     slow = bridge.batched(theta, x, chunk_size=3)  # chunked: the vmap path
     assert torch.allclose(fast, slow, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "module",
+    [
+        ANFIS(3, 2),
+        ANFIS(2, 3, mf="gaussian", n_out=2),
+        ANFIS(2, 2, mf="bell"),
+        ELM(3, 7, n_out=2),
+        ELM(2, 5, activation="tanh"),
+        ELM(2, 4, activation=torch.nn.functional.gelu),  # custom activation: g' by jvp
+    ],
+)
+def test_closed_form_jacobian_equals_autodiff(module):
+    """``forward_and_jacobian`` (hand-written back-propagation) against ``torch.func.jacrev``."""
+    g = torch.Generator().manual_seed(3)
+    n_in = module.alpha.shape[1] - 1 if isinstance(module, ANFIS) else module.n_in
+    x = torch.rand(4, n_in, generator=g, dtype=torch.float64)
+    names = [k for k, _ in module.named_parameters()]
+    params = {
+        k: p.detach() + 0.1 * torch.randn(3, *p.shape, generator=g, dtype=torch.float64)
+        for k, p in module.named_parameters()
+    }
+    if isinstance(module, ANFIS):
+        params = {k: (v.abs() + 0.5 if k in ("sigma", "a") else v) for k, v in params.items()}
+    out, jac = module.forward_and_jacobian(params, x)
+    assert torch.allclose(out, module.forward_with(params, x), rtol=0, atol=1e-14)
+    for r in range(3):
+        one = {k: v[r] for k, v in params.items()}
+        ref = jacrev(lambda d: functional_call(module, d, (x,)))(one)
+        for k in names:
+            assert jac[k][r].shape == ref[k].shape
+            assert torch.allclose(jac[k][r], ref[k], rtol=0, atol=1e-12), k
+    # only the asked-for parameters
+    _, part = module.forward_and_jacobian(params, x, names[-1:])
+    assert list(part) == names[-1:]
+
+
+@pytest.mark.parametrize("select", [None, ["b"], ["alpha", "beta"]])
+def test_bridge_auto_jacobian_uses_the_closed_form(select):
+    m = ANFIS(3, 2)
+    bridge = ParameterBridge(m, select)
+    g = torch.Generator().manual_seed(4)
+    theta = bridge.flatten() + 0.05 * torch.randn(5, bridge.numel, generator=g, dtype=torch.float64)
+    x = torch.rand(3, 3, generator=g, dtype=torch.float64)
+    assert bridge.has_closed_form_jacobian(x)
+    J = bridge.jacobian(theta, x)  # auto: closed form
+    ref = bridge.jacobian(theta, x, mode="rev")
+    assert J.shape == ref.shape == (5, 3, bridge.numel)
+    assert torch.allclose(J, ref, rtol=0, atol=1e-12)
+    out, J2 = bridge.measurement_and_jacobian(theta, x)
+    assert torch.equal(J2, J)
+    assert torch.allclose(out, bridge.measurement(theta, x), rtol=0, atol=1e-14)

@@ -75,7 +75,11 @@ def log_membership(u: Tensor, mf: str, premises: tuple[Tensor, ...]) -> Tensor:
     Returns:
         ``(..., n, n_mfs)``.
     """
-    x = u.unsqueeze(-1)
+    return _log_membership(u.unsqueeze(-1), mf, premises)
+
+
+def _log_membership(x: Tensor, mf: str, premises: tuple[Tensor, ...]) -> Tensor:
+    """The membership formulas, elementwise: ``x`` and the premises broadcast against each other."""
     if mf == "sigmoid":
         b, beta = premises
         return F.logsigmoid(b * (x - beta))  # log of Eq. 2
@@ -86,6 +90,39 @@ def log_membership(u: Tensor, mf: str, premises: tuple[Tensor, ...]) -> Tensor:
         a, b, c = premises
         return -torch.log1p(torch.abs((x - c) / a) ** (2.0 * b))
     raise ValueError(f"mf must be one of {sorted(MEMBERSHIPS)}, got {mf!r}")
+
+
+def _log_membership_grads(
+    x: Tensor, mf: str, premises: tuple[Tensor, ...], which: list[int]
+) -> list[Tensor]:
+    """Elementwise ``d log gamma / d p`` for the premise parameters ``premises[k]``, ``k`` in
+    ``which`` (same broadcasting as :func:`_log_membership`)."""
+    if mf == "sigmoid":
+        b, beta = premises
+        z = b * (x - beta)
+        s = torch.sigmoid(-z)  # d log sigma(z) / dz
+        grads = {0: s * (x - beta), 1: -s * b}
+    elif mf == "gaussian":
+        sigma, c = premises
+        dx = x - c
+        grads = {0: dx * dx / (sigma * sigma * sigma), 1: dx / (sigma * sigma)}
+    elif mf == "bell":
+        a, b, c = premises
+        t = (x - c) / a
+        at = torch.abs(t)
+        g = at ** (2.0 * b)
+        dl = -1.0 / (1.0 + g)  # d log gamma / d g
+        # dg/da = -2 b g / a; dg/dc = -2 b |t|^(2b - 1) sign(t) / a; dg/db = 2 g log|t| (0 at t = 0)
+        logt = torch.log(torch.where(at > 0, at, torch.ones_like(at)))
+        grads = {
+            0: dl * (-2.0 * b * g / a),
+            1: dl * (2.0 * g * logt),
+            2: dl * (-2.0 * b * at ** (2.0 * b - 1.0) * torch.sign(t) / a),
+        }
+    else:
+        raise ValueError(f"mf must be one of {sorted(MEMBERSHIPS)}, got {mf!r}")
+    shape = torch.broadcast_shapes(x.shape, *(p.shape for p in premises))
+    return [grads[k].expand(shape) for k in which]
 
 
 def normalized_firing(log_mu: Tensor) -> Tensor:
@@ -232,15 +269,97 @@ class ANFIS(nn.Module):
             x: ``(B, n_inputs)`` shared by every parameter set.
         Returns:
             ``(..., B, n_out)``, equal to ``torch.func.vmap`` of ``functional_call`` over ``...``.
+
+        The same Eq. 1-5 as :meth:`forward`, arranged for many parameter sets: every layer is
+        elementwise on contiguous ``(..., B, n_inputs * n_mfs)`` blocks or a matrix product
+        with a constant matrix (rule selection for Eq. 3, ``kron(ubar, I_R)`` for Eq. 5), so the
+        large leading dimension never meets a reduction over a tiny trailing one.
         """
+        return self._forward_parts(params, x)[0]
+
+    def _forward_parts(self, params: dict[str, Tensor], x: Tensor):
+        """Eq. 1-5 for batched parameters; returns the output and the intermediate layers."""
         check_forward_input(x, self.n_inputs, self.alpha)
+        if x.dim() != 2:
+            raise ValueError(f"x must have shape (B, {self.n_inputs}), got {tuple(x.shape)}")
         alpha = params.get("alpha", self.alpha)
-        premises = tuple(
-            params.get(name, getattr(self, name)).unsqueeze(-3) for name in self.premise_names
-        )  # (..., 1, n, L): broadcast against the batch of inputs
-        wbar = normalized_firing(log_membership(x, self.mf, premises))  # (..., B, R), Eq. 1-4
-        ubar = torch.cat([x, torch.ones_like(x[..., :1])], dim=-1)  # (B, n + 1)
-        return torch.einsum("...bi,bm,...omi->...bo", wbar, ubar, alpha)  # Eq. 5
+        premises = tuple(  # (..., 1, n * L), membership index fastest
+            params.get(name, getattr(self, name)).flatten(-2).unsqueeze(-2)
+            for name in self.premise_names
+        )
+        G, eye_R = self._constants(x)
+        xr = x.repeat_interleave(self.n_mfs, dim=-1)  # (B, n * L): u_j once per MF of input j
+        log_mu = _log_membership(xr, self.mf, premises)  # (..., B, n * L), log of Eq. 2
+        log_w = log_mu @ G  # (..., B, R), log of Eq. 3 (each rule picks one MF per input)
+        log_w = log_w - log_w.amax(-1, keepdim=True)
+        w = log_w.exp()
+        wbar = w / w.sum(-1, keepdim=True)  # Eq. 4
+        B = x.shape[0]
+        ubar = torch.cat([x, torch.ones_like(x[:, :1])], dim=-1)  # (B, n + 1)
+        # U[(m, i), (b, i')] = ubar[b, m] delta(i, i'), i.e. kron(ubar^T, I_R): f_i(u_b) = alpha_i . ubar_b
+        U = (ubar.mT[:, None, :, None] * eye_R[None, :, None, :]).reshape(-1, B * self.n_rules)
+        P = alpha.shape[-2] * alpha.shape[-1]
+        # one 2-D GEMM: a batched matmul of many (1, P) rows is several times slower
+        f = (alpha.reshape(-1, P) @ U).reshape(*alpha.shape[:-2], B, self.n_rules)
+        out = (f * wbar.unsqueeze(-3)).sum(-1).mT  # Eq. 5: (..., B, n_out)
+        return out, (premises, xr, G, wbar, ubar, f)
+
+    def forward_and_jacobian(
+        self, params: dict[str, Tensor], x: Tensor, names: tuple[str, ...] | None = None
+    ) -> tuple[Tensor, dict[str, Tensor]]:
+        """:meth:`forward_with` and the exact derivatives of the output by the parameters.
+
+        Back-propagation of Eq. 1-5 written out (used by the EKF, which needs the Jacobian of
+        the output with respect to all 44 parameters at every step)::
+
+            d t / d alpha_m^i   = t_i^(4) ubar_m                                  (Eq. 5)
+            d t / d log w_i     = t_i^(4) (f_i - t)                               (Eq. 4, softmax)
+            d t / d log mu_jl   = sum over the rules i using MF l of input j of d t / d log w_i
+            d t / d p_jl        = d t / d log mu_jl * d log mu_jl / d p_jl         (Eq. 2)
+
+        with ``d log mu / d p`` of the sigmoid ``log sigma(b (u - beta))``: ``sigma(-z)(u - beta)``
+        for ``b`` and ``-sigma(-z) b`` for ``beta``; Gaussian and bell formulas likewise.
+
+        Args:
+            params, x: as :meth:`forward_with`.
+            names: parameters to differentiate (default: all).
+        Returns:
+            ``(out, jac)``: ``out`` ``(..., B, n_out)`` and ``jac[name]``
+            ``(..., B, n_out, *shape)`` with ``shape`` the parameter's own shape.
+        """
+        names = tuple(n for n, _ in self.named_parameters()) if names is None else tuple(names)
+        out, (premises, xr, G, wbar, ubar, f) = self._forward_parts(params, x)
+        lead, B, o = out.shape[:-2], x.shape[0], self.n_out
+        jac: dict[str, Tensor] = {}
+        if "alpha" in names:  # (..., B, o, o', n + 1, R), zero for o != o'
+            base = ubar.unsqueeze(-1) * wbar.unsqueeze(-2)  # (..., B, n + 1, R)
+            eye_o = torch.eye(o, dtype=out.dtype, device=out.device)
+            jac["alpha"] = base[..., :, None, None, :, :] * eye_o[:, :, None, None]
+        wanted = [k for k, name in enumerate(self.premise_names) if name in names]
+        if wanted:
+            g = wbar.unsqueeze(-3) * (f - out.mT.unsqueeze(-1))  # (..., o, B, R): d t / d log w
+            d_log_mu = (g @ G.mT).movedim(-3, -2)  # (..., B, o, n * L)
+            for k, d in zip(wanted, _log_membership_grads(xr, self.mf, premises, wanted)):
+                J = d_log_mu * d.unsqueeze(-2)  # (..., B, o, n * L)
+                jac[self.premise_names[k]] = J.reshape(*lead, B, o, self.n_inputs, self.n_mfs)
+        unknown = set(names) - set(jac)
+        if unknown:
+            raise ValueError(f"ANFIS has no parameters {sorted(unknown)}")
+        return out, jac
+
+    def _constants(self, like: Tensor) -> tuple[Tensor, Tensor]:
+        """Rule-selection matrix ``(n * L, R)`` (Eq. 3 in log space) and ``I_R`` for ``like``."""
+        key = (like.dtype, like.device)
+        cache = self.__dict__.setdefault("_forward_constants", {})
+        if key not in cache:
+            G = torch.zeros(
+                self.n_inputs * self.n_mfs, self.n_rules, dtype=like.dtype, device=like.device
+            )
+            for i, rule in enumerate(self.rules()):
+                for j, l in enumerate(rule):
+                    G[j * self.n_mfs + l, i] = 1.0
+            cache[key] = (G, torch.eye(self.n_rules, dtype=like.dtype, device=like.device))
+        return cache[key]
 
     # ---------------------------------------------------------------- initialisation helpers
     @torch.no_grad()

@@ -325,6 +325,54 @@ class ELM(nn.Module):
         H = self._g(x @ a.mT + b.unsqueeze(-2))  # (..., B, L), Eq. 48
         return H @ beta  # Eq. 47
 
+    def forward_and_jacobian(
+        self, params: dict[str, Tensor], x: Tensor, names: tuple[str, ...] | None = None
+    ) -> tuple[Tensor, dict[str, Tensor]]:
+        """:meth:`forward_with` and the exact derivatives of the output by the parameters.
+
+        With ``z = x a^T + b`` and ``H = g(z)`` (Eq. 48), ``t = H beta`` (Eq. 47)::
+
+            d t_o / d beta_{h o'} = H_h delta(o, o')
+            d t_o / d b_h         = beta_{h o} g'(z_h)
+            d t_o / d a_{h j}     = beta_{h o} g'(z_h) x_j
+
+        ``g'`` comes from one forward-mode product of the (elementwise) activation, so custom
+        activations work too.
+
+        Args:
+            params, x: as :meth:`forward_with`.
+            names: parameters to differentiate (default: all).
+        Returns:
+            ``(out, jac)``: ``out`` ``(..., B, n_out)`` and ``jac[name]``
+            ``(..., B, n_out, *shape)``.
+        """
+        names = ("a", "b", "beta") if names is None else tuple(names)
+        unknown = set(names) - {"a", "b", "beta"}
+        if unknown:
+            raise ValueError(f"ELM has no parameters {sorted(unknown)}")
+        check_forward_input(x, self.n_in, self.beta)
+        a = params.get("a", self.a)
+        b = params.get("b", self.b)
+        beta = params.get("beta", self.beta)
+        z = x @ a.mT + b.unsqueeze(-2)  # (..., B, L)
+        if "a" in names or "b" in names:
+            H, dH = torch.func.jvp(self._g, (z,), (torch.ones_like(z),))
+        else:
+            H, dH = self._g(z), None
+        out = H @ beta  # (..., B, n_out)
+        o = out.shape[-1]
+        jac: dict[str, Tensor] = {}
+        if "beta" in names:  # (..., B, o, L, o')
+            eye_o = torch.eye(o, dtype=out.dtype, device=out.device)
+            jac["beta"] = H[..., :, None, :, None] * eye_o[:, None, :]
+        if dH is not None:
+            gb = dH.unsqueeze(-2) * beta.mT.unsqueeze(-3)  # (..., B, o, L): beta_ho g'(z_h)
+            if "b" in names:
+                jac["b"] = gb
+            if "a" in names:
+                jac["a"] = gb.unsqueeze(-1) * x[:, None, None, :]  # (..., B, o, L, n_in)
+        return out, jac
+
     # ---------------------------------------------------------------- training (stateful)
     def _hidden64(self, x: Tensor) -> Tensor:
         """Hidden outputs in float64 for the least-squares solvers."""

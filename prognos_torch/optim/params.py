@@ -256,6 +256,25 @@ class ParameterBridge:
         lead = theta.shape[:-1]
         return out.reshape(*lead, -1).to(torch.float64)
 
+    def has_closed_form_jacobian(self, x: Tensor, chunk_size: int | None = None) -> bool:
+        """Whether the module offers ``forward_and_jacobian`` (the library's learners do) and
+        it applies here (2-D input ``(B, n_in)``, no chunking)."""
+        return (
+            getattr(self.module, "forward_and_jacobian", None) is not None
+            and chunk_size is None
+            and isinstance(x, Tensor)
+            and x.dim() == 2
+        )
+
+    def _closed_form(self, theta: Tensor, x: Tensor) -> tuple[Tensor, Tensor]:
+        """Measurement ``(..., M)`` and Jacobian ``(..., M, n)`` from the module's own
+        ``forward_and_jacobian(params, x, names)`` (exact derivatives, no autograd)."""
+        lead = theta.shape[:-1]
+        out, jac = self.module.forward_and_jacobian(self.unflatten(theta), x, self.names)
+        M = out.shape[-2] * out.shape[-1]
+        J = torch.cat([jac[n].reshape(*lead, M, k) for n, k in zip(self.names, self.numels)], -1)
+        return out.reshape(*lead, M).to(torch.float64), J.to(torch.float64)
+
     def jacobian(
         self,
         theta: Tensor,
@@ -274,14 +293,18 @@ class ParameterBridge:
                 parameter), ``"autograd"`` (reverse mode with ``torch.autograd.grad`` on the
                 vectorised forward pass: the outputs of different leading indices depend only on
                 their own ``theta``, so the gradient of their sum gives every row at once; the
-                same numbers as ``"rev"`` with less overhead), or ``"auto"``: ``"fwd"`` when
-                ``n <= M``, else ``"autograd"``.
+                same numbers as ``"rev"`` with less overhead), or ``"auto"``: the module's
+                closed-form ``forward_and_jacobian`` when it has one (ELM, ANFIS; see
+                :meth:`has_closed_form_jacobian`), else ``"fwd"`` when ``n <= M``, else
+                ``"autograd"``.
             chunk_size: at most this many products at once (limits memory for large models).
         """
         theta = self._check_theta(theta)
         if mode not in ("auto", "rev", "fwd", "autograd"):
             raise ValueError(f"mode must be 'auto', 'rev', 'fwd' or 'autograd', got {mode!r}")
         theta = theta.to(torch.float64)
+        if mode == "auto" and self.has_closed_form_jacobian(x, chunk_size):
+            return self._closed_form(theta, x)[1]
         if mode == "auto":
             with torch.no_grad():
                 M = self.functional(theta.reshape(-1, self.numel)[0], x).numel()
@@ -307,11 +330,16 @@ class ParameterBridge:
         return J.reshape(*lead, *J.shape[1:])
 
     def measurement_and_jacobian(
-        self, theta: Tensor, x: Tensor, *, chunk_size: int | None = None
+        self, theta: Tensor, x: Tensor, *, chunk_size: int | None = None, mode: str = "auto"
     ) -> tuple[Tensor, Tensor]:
-        """:meth:`measurement` ``(..., M)`` and :meth:`jacobian` ``(..., M, n)`` (mode
-        ``"autograd"``) from one forward and one reverse pass."""
+        """:meth:`measurement` ``(..., M)`` and :meth:`jacobian` ``(..., M, n)`` from one pass:
+        the module's closed form (``mode="auto"``, when it has one) or one forward and one
+        reverse pass (``"autograd"``, and ``"auto"`` otherwise)."""
+        if mode not in ("auto", "autograd"):
+            raise ValueError(f"mode must be 'auto' or 'autograd', got {mode!r}")
         theta = self._check_theta(theta).to(torch.float64)
+        if mode == "auto" and self.has_closed_form_jacobian(x, chunk_size):
+            return self._closed_form(theta, x)
         return self._jacobian_autograd(theta, x, chunk_size, with_output=True)
 
     def _jacobian_autograd(
