@@ -47,6 +47,8 @@ class UpdateContext:
         h_mean: ``(..., m)`` ``sum_i W_i h(xi_{i,k|k-1})`` without ``r`` (Eq. 39).
         dz_pos, dz_neg: ``(..., m, L)`` factors of ``sum_i W_i (eta_i - z)(eta_i - z)^T`` (Eq. 38).
         missing: ``(...)`` bool.
+        any_missing: ``bool(missing.any())`` when the caller knows it (saves a device sync),
+            else ``None``.
     """
 
     x_post: Tensor
@@ -61,6 +63,11 @@ class UpdateContext:
     dz_pos: Tensor
     dz_neg: Tensor | None
     missing: Tensor
+    any_missing: bool | None = None
+
+    @cached_property
+    def has_missing(self) -> bool:
+        return bool(self.missing.any()) if self.any_missing is None else self.any_missing
 
     @staticmethod
     def _gram(pos: Tensor, neg: Tensor | None) -> Tensor:
@@ -217,37 +224,59 @@ class SageHusa:
         if self.frozen:
             return s
         keep = c.missing
-        count = torch.where(keep, s.count, s.count + 1)
-        d = self._weight(count.clamp_min(1.0))
-        d1, d2 = d[..., None], d[..., None, None]
+        # some batch elements skip this step (missing measurement)
+        held = c.has_missing if c.any_missing is None else c.any_missing
+
+        def hold(old: Tensor, new: Tensor, extra: int) -> Tensor:
+            if not held:
+                return new
+            return torch.where(keep.reshape(keep.shape + (1,) * extra), old, new)
+
+        def merge(fb: Tensor | None, f: Tensor) -> Tensor:  # fallback flags of updated runs
+            f = f & ~keep if held else f
+            return f if fb is None else fb | f
+
+        count = hold(s.count, s.count + 1, 0)
+        d = self._weight(count.clamp_min(1.0) if held else count)
+        d1 = d[..., None]
         q, Q, cQ, r, R, cR = s.q, s.Q, s.chol_Q, s.r, s.R, s.chol_R
-        fb = torch.zeros_like(s.fallback)
-        if "q" in self.estimate:
-            q = torch.where(keep[..., None], q, (1 - d1) * q + d1 * (c.x_post - c.f_mean))
-        if "Q" in self.estimate:
+        fb = None
+        if "q" in self.estimate:  # Eq. 40
+            q = hold(q, torch.lerp(q, c.x_post - c.f_mean, d1), 1)
+        if "Q" in self.estimate:  # Eq. 41
             Ke = (c.gain @ c.innovation.unsqueeze(-1)).squeeze(-1)
             if self.diagonal:  # only the variances: no n x n products
-                term = torch.diag_embed(Ke * Ke + c.diag("cov_post") - c.diag("spread"))
+                term = Ke * Ke + c.diag("cov_post") - c.diag("spread")
+                Q, cQ, f1 = self._diagonal_step(Q, cQ, term, d1, s.floor_Q, hold)
             else:
-                term = _outer(Ke) + c.cov_post - c.spread
-            new = (1 - d2) * Q + d2 * term
-            new, cnew, f1 = _project_pd(new, s.floor_Q, self.diagonal)
-            Q = torch.where(keep[..., None, None], Q, new)
-            cQ = torch.where(keep[..., None, None], cQ, cnew)
-            fb = fb | (f1 & ~keep)
-        if "r" in self.estimate:
-            r = torch.where(keep[..., None], r, (1 - d1) * r + d1 * (c.y - c.h_mean))
-        if "R" in self.estimate:
+                new = torch.lerp(Q, _outer(Ke) + c.cov_post - c.spread, d1[..., None])
+                new, cnew, f1 = _project_pd(new, s.floor_Q, False)
+                Q, cQ = hold(Q, new, 2), hold(cQ, cnew, 2)
+            fb = merge(fb, f1)
+        if "r" in self.estimate:  # Eq. 42
+            r = hold(r, torch.lerp(r, c.y - c.h_mean, d1), 1)
+        if "R" in self.estimate:  # Eq. 43
+            e = c.innovation
             if self.diagonal:
-                term = torch.diag_embed(c.innovation * c.innovation - c.diag("pzz_noR"))
+                term = e * e - c.diag("pzz_noR")
+                R, cR, f2 = self._diagonal_step(R, cR, term, d1, s.floor_R, hold)
             else:
-                term = _outer(c.innovation) - c.pzz_noR
-            new = (1 - d2) * R + d2 * term
-            new, cnew, f2 = _project_pd(new, s.floor_R, self.diagonal)
-            R = torch.where(keep[..., None, None], R, new)
-            cR = torch.where(keep[..., None, None], cR, cnew)
-            fb = fb | (f2 & ~keep)
+                new = torch.lerp(R, _outer(e) - c.pzz_noR, d1[..., None])
+                new, cnew, f2 = _project_pd(new, s.floor_R, False)
+                R, cR = hold(R, new, 2), hold(cR, cnew, 2)
+            fb = merge(fb, f2)
+        if fb is None:
+            fb = torch.zeros_like(s.fallback)
         return replace(s, q=q, Q=Q, chol_Q=cQ, r=r, R=R, chol_R=cR, count=count, fallback=fb)
+
+    @staticmethod
+    def _diagonal_step(C, chol_C, term, d1, floor, hold):
+        """``diag(C) <- (1 - d) diag(C) + d term``, floored (module docstring); vectors only."""
+        v = torch.lerp(torch.diagonal(C, dim1=-2, dim2=-1), term, d1)
+        fl = floor[..., None]
+        fb = (v < fl).any(-1)
+        v = torch.maximum(v, fl)
+        return hold(C, torch.diag_embed(v), 2), hold(chol_C, torch.diag_embed(v.sqrt()), 2), fb
 
 
 @dataclass(frozen=True)
