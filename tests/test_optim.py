@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 from torch import nn
+from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from prognos_torch.adapt.noise import SageHusa
 from prognos_torch.datasets.windows import MinMaxScaler, chronological_split, embed
@@ -230,12 +231,12 @@ def test_ekf_jacobian_modes_agree_and_single_run_predict():
     base = ANFIS(3, 2, generator=_gen(2)).init_premises(X)
     kw = dict(P0={"alpha": 1.0, "b": 1e-2, "beta": 1e-3}, Q=1e-6, R=1e-2)
     opts = {}
-    for mode in ("autograd", "rev", "fwd"):
+    for mode in ("autograd", "rev", "fwd", "auto"):  # auto: ANFIS's closed-form Jacobian
         m = copy.deepcopy(base)
         opts[mode] = EKF(m, jacobian=mode, **kw)
         for i in range(0, 10, 2):
             opts[mode].step(X[i : i + 2], Y[i : i + 2])
-    for mode in ("rev", "fwd"):
+    for mode in ("rev", "fwd", "auto"):
         torch.testing.assert_close(opts[mode].theta, opts["autograd"].theta, rtol=0, atol=1e-12)
     o = opts["autograd"]
     torch.testing.assert_close(o.predict(X), o.module(X), rtol=0, atol=0)
@@ -538,3 +539,36 @@ def test_lorenz_anfis_imsrukf_meets_table1_and_beats_adam():
     assert float(mae_k.mean()) <= 0.0386  # paper 003 Table I, ANFIS-ImSRUKF
     assert float(mae_k.mean()) < float(mae_a.mean())
     assert float(rmse_k.mean()) < float(rmse_a.mean())
+
+
+def test_step_hooks_run_and_public_tensors_support_autograd():
+    """torch.optim step hooks fire (the step is not wrapped by torch.optim's profiler wrapper),
+    and what the optimiser hands out is usable by autograd even though sigma-point steps run
+    under torch.inference_mode."""
+    X, Y = _linear_data(N=6, d=3, seed=9)
+    m = ANFIS(3, 2, generator=_gen(1)).init_premises(X)
+    o = SRUKF(m, P0=1e-2, Q=1e-6, R=1e-2)
+    calls = []
+    h1 = o.register_step_pre_hook(lambda opt, a, k: calls.append("pre"))
+    h2 = o.register_step_post_hook(lambda opt, a, k: calls.append("post"))
+    h3 = register_optimizer_step_post_hook(lambda opt, a, k: calls.append("global"))
+    try:
+        o.step(X[:2], Y[:2])
+        twin = copy.deepcopy(o)
+        # a pre-hook may replace the arguments (here: the targets by zeros)
+        h4 = o.register_step_pre_hook(lambda opt, a, k: ((a[0], a[1], torch.zeros_like(a[2])), k))
+        o.step(X[2:3], Y[2:3])
+        h4.remove()
+    finally:
+        for h in (h1, h2, h3):
+            h.remove()
+    assert calls == ["pre", "post", "global"] * 2
+    twin.step(X[2:3], torch.zeros_like(Y[2:3]))
+    assert torch.equal(o.theta, twin.theta)
+    w = torch.ones(m.alpha.numel() + 12, dtype=torch.float64, requires_grad=True)
+    (w * o.theta).sum().backward()
+    (o.parameter_covariance().sum() * w.sum()).backward()
+    (o.belief.mean * w).sum().backward()
+    (o.filter_state.belief.chol.sum() * w.sum()).backward()
+    assert torch.isfinite(w.grad).all()
+    o.step(X[3:4], Y[3:4])  # stepping on after those reads still works
