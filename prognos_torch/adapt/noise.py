@@ -267,7 +267,10 @@ class SageHusa:
             fb = merge(fb, f2)
         if fb is None:
             fb = torch.zeros_like(s.fallback)
-        return replace(s, q=q, Q=Q, chol_Q=cQ, r=r, R=R, chol_R=cR, count=count, fallback=fb)
+        # positional construction: dataclasses.replace costs more than the update's arithmetic
+        return NoiseEstimatorState(
+            q, Q, cQ, r, R, cR, count, fb, s.floor_Q, s.floor_R, s.buf_Q, s.buf_R, s.buf_valid
+        )
 
     @staticmethod
     def _diagonal_step(C, chol_C, term, d1, floor, hold):

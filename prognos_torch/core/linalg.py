@@ -65,16 +65,20 @@ def _rank_one(S: Tensor, v: Tensor, sign: float) -> tuple[Tensor, Tensor]:
     """
     w = torch.linalg.solve_triangular(S, v.unsqueeze(-1), upper=False).squeeze(-1)
     w2 = w * w
-    s = torch.cumsum(w2, dim=-1).mul_(sign).add_(1.0)  # s_j, (..., n)
-    s_prev = s - sign * w2  # s_{j-1}
+    c = torch.cumsum(w2, dim=-1)
+    if sign < 0:
+        s = 1.0 - c  # s_j, (..., n)
+        s_prev = s + w2  # s_{j-1}
+    else:
+        s = 1.0 + c
+        s_prev = s - w2
     Sw = S * w.unsqueeze(-2)
     T = Sw.flip(-1).cumsum(-1).flip(-1).sub_(Sw)  # T_j = sum_{i > j} w_i S_i
-    r = s_prev.rsqrt()
-    a = s.sqrt()
-    b = (sign * w) * r / a
-    a = a * r
+    a = (s / s_prev).sqrt_()  # sqrt(s_j / s_{j-1})
+    b = w * a / s  # w_j / sqrt(s_j s_{j-1})
     # negative s (a failed downdate) gives NaN here; the caller sees it in the ratio s_n
-    return torch.addcmul(S * a.unsqueeze(-2), T, b.unsqueeze(-2)), s[..., -1]
+    S2 = torch.addcmul(S * a.unsqueeze(-2), T, b.unsqueeze(-2), value=sign)
+    return S2, s[..., -1]
 
 
 #: Rank of an update/downdate up to which sequential O(n^2) rank-one steps beat one dense

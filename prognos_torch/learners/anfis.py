@@ -287,15 +287,15 @@ class ANFIS(nn.Module):
             params.get(name, getattr(self, name)).flatten(-2).unsqueeze(-2)
             for name in self.premise_names
         )
-        G, eye_R = self._constants(x)
-        xr = x.repeat_interleave(self.n_mfs, dim=-1)  # (B, n * L): u_j once per MF of input j
+        G, eye_R, E = self._constants(x)
+        xr = x @ E  # (B, n * L): u_j once per MF of input j (E = kron(I_n, 1_L^T), exact)
         log_mu = _log_membership(xr, self.mf, premises)  # (..., B, n * L), log of Eq. 2
         log_w = log_mu @ G  # (..., B, R), log of Eq. 3 (each rule picks one MF per input)
         log_w = log_w - log_w.amax(-1, keepdim=True)
         w = log_w.exp()
         wbar = w / w.sum(-1, keepdim=True)  # Eq. 4
         B = x.shape[0]
-        ubar = torch.cat([x, torch.ones_like(x[:, :1])], dim=-1)  # (B, n + 1)
+        ubar = F.pad(x, (0, 1), value=1.0)  # (B, n + 1): [u_1 .. u_n, 1]
         # U[(m, i), (b, i')] = ubar[b, m] delta(i, i'), i.e. kron(ubar^T, I_R): f_i(u_b) = alpha_i . ubar_b
         U = (ubar.mT[:, None, :, None] * eye_R[None, :, None, :]).reshape(-1, B * self.n_rules)
         P = alpha.shape[-2] * alpha.shape[-1]
@@ -347,8 +347,9 @@ class ANFIS(nn.Module):
             raise ValueError(f"ANFIS has no parameters {sorted(unknown)}")
         return out, jac
 
-    def _constants(self, like: Tensor) -> tuple[Tensor, Tensor]:
-        """Rule-selection matrix ``(n * L, R)`` (Eq. 3 in log space) and ``I_R`` for ``like``."""
+    def _constants(self, like: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """For ``like``'s dtype and device: the rule-selection matrix ``(n * L, R)`` (Eq. 3 in
+        log space), ``I_R``, and ``kron(I_n, 1_L^T)`` ``(n, n * L)`` (each input once per MF)."""
         key = (like.dtype, like.device)
         cache = self.__dict__.setdefault("_forward_constants", {})
         if key not in cache:
@@ -358,7 +359,9 @@ class ANFIS(nn.Module):
             for i, rule in enumerate(self.rules()):
                 for j, l in enumerate(rule):
                     G[j * self.n_mfs + l, i] = 1.0
-            cache[key] = (G, torch.eye(self.n_rules, dtype=like.dtype, device=like.device))
+            E = torch.eye(self.n_inputs, dtype=like.dtype, device=like.device)
+            E = E.repeat_interleave(self.n_mfs, dim=-1)
+            cache[key] = (G, torch.eye(self.n_rules, dtype=like.dtype, device=like.device), E)
         return cache[key]
 
     # ---------------------------------------------------------------- initialisation helpers

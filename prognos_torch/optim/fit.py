@@ -241,8 +241,12 @@ def fit(
             losses = []
             t0 = time.perf_counter()
             for b in range(n_batches):
-                idx = order[b * batch_size : (b + 1) * batch_size]
-                xb, yb = X[idx], Y[idx]
+                if shuffle:
+                    idx = order[b * batch_size : (b + 1) * batch_size]
+                    xb, yb = X[idx], Y[idx]
+                else:  # in order: views, no gather
+                    xb = X[b * batch_size : (b + 1) * batch_size]
+                    yb = Y[b * batch_size : (b + 1) * batch_size]
                 if kalman:
                     loss = optimizer.step(xb, yb).loss
                 else:

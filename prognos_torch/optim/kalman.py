@@ -349,6 +349,8 @@ class KalmanOptimizer(torch.optim.Optimizer):
         self._R_scalar = R.dim() == 0
         self._chol_R_cache: dict[int, Tensor] = {}
         self._out_shapes: dict[tuple, torch.Size] = {}
+        self._models: dict[tuple, StateSpaceModel] = {}
+        self._inputs: list = [None]
 
     def _initial_state(self, theta0) -> dict:
         runs, n = self.runs, self.bridge.numel
@@ -493,12 +495,22 @@ class KalmanOptimizer(torch.optim.Optimizer):
         return S
 
     def _model(self, x: Tensor, out_shape: torch.Size) -> StateSpaceModel:
-        """Paper 003 Eq. 45-46 for this mini-batch: random walk, ``h(theta) = g(theta, x)``."""
+        """Paper 003 Eq. 45-46 for this mini-batch: random walk, ``h(theta) = g(theta, x)``.
+
+        The model is built once per mini-batch shape; its ``h`` reads the current inputs from
+        ``self._inputs``, set here at every step.
+        """
         b, chunk = self.bridge, self._chunk
+        key = (tuple(x.shape), tuple(out_shape))
+        self._inputs[0] = x
+        model = self._models.get(key)
+        if model is not None:
+            return model
         M = math.prod(out_shape)
         mode = self.param_groups[0]["jacobian"]
         if mode == "auto" and not b.has_closed_form_jacobian(x, chunk):
             mode = "fwd" if b.numel <= M else "autograd"
+        inputs = self._inputs
         if isinstance(self._filter.rule, Taylor) and mode in ("auto", "autograd"):
             # the EKF asks for h and then for its Jacobian at the same point: one pass (the
             # learner's closed form, or forward + reverse) gives both, the Jacobian is handed
@@ -506,24 +518,25 @@ class KalmanOptimizer(torch.optim.Optimizer):
             last: list = [None, None]
 
             def h(th, u, k):
-                out, J = b.measurement_and_jacobian(th, x, chunk_size=chunk, mode=mode)
+                out, J = b.measurement_and_jacobian(th, inputs[0], chunk_size=chunk, mode=mode)
                 last[0], last[1] = th, J
                 return out
 
             def jac_h(th, u, k):
                 if last[0] is th:
-                    return last[1]
-                return b.jacobian(th, x, mode=mode, chunk_size=chunk)
+                    J, last[0], last[1] = last[1], None, None
+                    return J
+                return b.jacobian(th, inputs[0], mode=mode, chunk_size=chunk)
 
         else:
 
             def h(th, u, k):
-                return b.measurement(th, x, chunk_size=chunk)
+                return b.measurement(th, inputs[0], chunk_size=chunk)
 
             def jac_h(th, u, k):
-                return b.jacobian(th, x, mode=mode, chunk_size=chunk)
+                return b.jacobian(th, inputs[0], mode=mode, chunk_size=chunk)
 
-        return StateSpaceModel(
+        model = StateSpaceModel(
             f=None,  # Eq. 45: theta_k = theta_{k-1} + w_k (exact in the engine)
             h=h,  # Eq. 46: t_k = g(theta_k, u_k) + v_k
             state_dim=b.numel,
@@ -533,6 +546,8 @@ class KalmanOptimizer(torch.optim.Optimizer):
             batched=True,
             jac_h=jac_h,
         )
+        self._models[key] = model
+        return model
 
     def _engine_state(self, model: StateSpaceModel) -> FilterState:
         s = self.state[_STATE_KEY]

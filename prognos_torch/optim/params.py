@@ -216,8 +216,9 @@ class ParameterBridge:
         theta = self._check_theta(theta)
         if theta.dim() != 1:
             raise ValueError(f"theta must have shape ({self.numel},), got {tuple(theta.shape)}")
-        for p, v in zip(self._params, self.unflatten(theta.to(self.device)).values()):
-            p.copy_(v)
+        theta = theta.to(self.device)
+        for p, sl in zip(self._params, self.slices):
+            p.copy_(theta[sl].view_as(p))  # copy_ casts to the parameter dtype
 
     # ------------------------------------------------------------------ the model as g(theta, x)
     def functional(self, theta: Tensor, x: Tensor) -> Tensor:
