@@ -106,3 +106,17 @@ def test_bridge_auto_jacobian_uses_the_closed_form(select):
     out, J2 = bridge.measurement_and_jacobian(theta, x)
     assert torch.equal(J2, J)
     assert torch.allclose(out, bridge.measurement(theta, x), rtol=0, atol=1e-14)
+
+
+def test_bridge_reverse_mode_jacobian_works_under_inference_mode():
+    """A filter run under torch.inference_mode may still ask for autograd Jacobians."""
+    m = torch.nn.Linear(3, 2, dtype=torch.float64)  # no closed form: reverse mode
+    bridge = ParameterBridge(m)
+    g = torch.Generator().manual_seed(5)
+    theta = bridge.flatten() + torch.randn(2, bridge.numel, generator=g, dtype=torch.float64)
+    x = torch.rand(4, 3, generator=g, dtype=torch.float64)
+    ref = bridge.jacobian(theta, x, mode="rev")
+    with torch.inference_mode():
+        J = bridge.jacobian(theta.clone(), x.clone())
+        _, J2 = bridge.measurement_and_jacobian(theta.clone(), x.clone())
+    assert torch.allclose(J, ref, rtol=0, atol=1e-14) and torch.allclose(J2, ref, rtol=0, atol=1e-14)

@@ -350,6 +350,10 @@ class ParameterBridge:
         return (out, J) if with_output else J
 
     def _autograd_rows(self, theta: Tensor, x: Tensor, chunk_size: int | None):
+        if torch.is_inference_mode_enabled() or theta.is_inference() or x.is_inference():
+            # reverse mode needs ordinary tensors: leave inference mode for this computation
+            with torch.inference_mode(False):
+                return self._autograd_rows(theta.clone(), x.clone(), chunk_size)
         with torch.enable_grad():
             t = theta.detach().requires_grad_(True)
             out = self.measurement(t, x)  # (..., M)
