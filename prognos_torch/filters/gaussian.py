@@ -17,9 +17,11 @@ Step ``k`` (model convention of :mod:`prognos_torch.core.model`):
 3. Measurement moments under the prior: predicted measurement, ``P_xz``, innovation factor
    ``S_zz = Tria([Z, S_R])`` (paper 000 Eq. 40; paper 003 Eq. 22-24).
 4. Gain ``K = (P_xz / S_zz^T) / S_zz`` by triangular solves (paper 000 Eq. 44), mean update, and
-   the posterior square root ``Tria([chi - K Z, K S_R])`` (paper 000 Eq. 46, a Joseph form valid
-   for any weights) or, when the sigma points are not redrawn, ``cholupdate(S_pred, K S_zz, -1)``
-   (paper 003 Eq. 28-29).
+   the posterior square root ``cholupdate(S_pred, K S_zz, -1)`` (paper 003 Eq. 28-29; rank-one
+   downdates, O(n^2 m)). When the sigma points are redrawn from the prior (or for the EKF) this
+   equals the Joseph form ``Tria([chi - K Z, K S_R])`` of paper 000 Eq. 46, which is used
+   instead where the downdate would lose precision (a very informative measurement) and with
+   the robust bound of paper 004.
 
 Missing data: a measurement vector containing NaN is *missing*; the step then only predicts
 (the posterior equals the prior, the log-likelihood contribution is 0, ``nis`` is NaN, the
@@ -206,16 +208,16 @@ class _Sigma:
     wm: Tensor  # (L,)
     pos: Tensor | None  # indices with wc > 0 (None: all of them)
     neg: Tensor | None  # indices with wc < 0 (None if there are none)
-    sw_pos: Tensor  # sqrt(wc[pos])
-    sw_neg: Tensor | None  # sqrt(-wc[neg])
+    sw_pos: Tensor  # sqrt(wc[pos]), (Lp, 1)
+    sw_neg: Tensor | None  # sqrt(-wc[neg]), (Ln, 1)
 
     def columns(self, D: Tensor) -> tuple[Tensor, Tensor | None]:
         """``D``: ``(..., L, d)`` deviations -> ``(..., d, Lp)``, ``(..., d, Ln)`` columns ``sqrt|w| D_i``."""
         Dp = D if self.pos is None else D[..., self.pos, :]
-        pos = (Dp * self.sw_pos.unsqueeze(-1)).mT
+        pos = (Dp * self.sw_pos).mT
         if self.neg is None:
             return pos, None
-        return pos, (D[..., self.neg, :] * self.sw_neg.unsqueeze(-1)).mT
+        return pos, (D[..., self.neg, :] * self.sw_neg).mT
 
 
 _SIGMA_CACHE: dict = {}
@@ -234,8 +236,8 @@ def _sigma_points(rule: SigmaPoints, n: int, like: Tensor) -> _Sigma:
             wm,
             None if pos.numel() == wc.numel() else pos,
             neg if has_neg else None,
-            wc[pos].sqrt(),
-            (-wc[neg]).sqrt() if has_neg else None,
+            wc[pos].sqrt().unsqueeze(-1),
+            (-wc[neg]).sqrt().unsqueeze(-1) if has_neg else None,
         )
         if len(_SIGMA_CACHE) > 256:
             _SIGMA_CACHE.clear()
@@ -408,10 +410,22 @@ class GaussianFilter:
     def _posterior_chol(
         self, prior: _Prior, mom: _Moments, K: Tensor, Szz: Tensor, chol_R
     ) -> Tensor:
+        rob = self.robust
+        if self.sqrt and mom.joseph and rob is None:
+            # The sigma points (or F S) reproduce the prior, so Eq. 46's Joseph form equals
+            # P_pred - K S_zz S_zz^T K^T: the cholupdate of paper 003 Eq. 28-29, O(n^2 m)
+            # instead of a QR of (n, L + m). Where the downdate loses precision (determinant
+            # ratio below _DOWNDATE_MIN_RATIO: a very informative measurement) the Joseph QR
+            # is used instead.
+            S, ratio = chol_downdate_ex(prior.chol, K @ Szz)
+            ok = ratio > _DOWNDATE_MIN_RATIO
+            if bool(ok.all()):
+                return S
+        else:
+            ok = None
         bs = prior.mean.shape[:-1]
         mdim = mom.z.shape[-1]
         SR = _bcast(chol_R, bs, (mdim, mdim))
-        rob = self.robust
         c = 1.0 if rob is None else rob.coefficients()[2]
         if not self.sqrt:
             if rob is None:
@@ -428,17 +442,6 @@ class GaussianFilter:
             return safe_cholesky(symmetrize(P))
         if not mom.joseph:
             return chol_downdate(prior.chol, K @ Szz)  # paper 003 Eq. 28-29
-        ok = None
-        if rob is None:
-            # The sigma points (or F S) reproduce the prior, so Eq. 46's Joseph form equals
-            # P_pred - K S_zz S_zz^T K^T: the cholupdate of paper 003 Eq. 28-29, O(n^2 m)
-            # instead of a QR of (n, L + m). Where the downdate loses precision (determinant
-            # ratio below _DOWNDATE_MIN_RATIO: a very informative measurement) the Joseph QR
-            # is used instead.
-            S, ratio = chol_downdate_ex(prior.chol, K @ Szz)
-            ok = ratio > _DOWNDATE_MIN_RATIO
-            if bool(ok.all()):
-                return S
         cols = [c * (mom.dx_pos - K @ mom.dz_pos), K @ SR]  # paper 000 Eq. 46
         if rob is not None:  # paper 004 Eq. 28 in square-root form
             M = rob.M_matrix(mdim, SR.dtype, SR.device)
