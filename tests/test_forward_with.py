@@ -91,9 +91,19 @@ def test_closed_form_jacobian_equals_autodiff(module):
     assert list(part) == names[-1:]
 
 
-@pytest.mark.parametrize("select", [None, ["b"], ["alpha", "beta"]])
-def test_bridge_auto_jacobian_uses_the_closed_form(select):
-    m = ANFIS(3, 2)
+@pytest.mark.parametrize(
+    "module,select",
+    [
+        (ANFIS(3, 2), None),
+        (ANFIS(3, 2), ["b"]),
+        (ANFIS(3, 2), ["alpha"]),  # premises fixed: unbatched firing strengths
+        (ANFIS(3, 2, n_out=2), ["alpha", "beta"]),
+        (ELM(3, 6), None),  # beta only: unbatched hidden layer
+        (ELM(3, 6, n_out=2), ["a", "beta"]),
+    ],
+)
+def test_bridge_auto_jacobian_uses_the_closed_form(module, select):
+    m = module
     bridge = ParameterBridge(m, select)
     g = torch.Generator().manual_seed(4)
     theta = bridge.flatten() + 0.05 * torch.randn(5, bridge.numel, generator=g, dtype=torch.float64)
@@ -101,7 +111,8 @@ def test_bridge_auto_jacobian_uses_the_closed_form(select):
     assert bridge.has_closed_form_jacobian(x)
     J = bridge.jacobian(theta, x)  # auto: closed form
     ref = bridge.jacobian(theta, x, mode="rev")
-    assert J.shape == ref.shape == (5, 3, bridge.numel)
+    n_out = m(x).shape[-1]
+    assert J.shape == ref.shape == (5, 3 * n_out, bridge.numel)
     assert torch.allclose(J, ref, rtol=0, atol=1e-12)
     out, J2 = bridge.measurement_and_jacobian(theta, x)
     assert torch.equal(J2, J)
@@ -119,4 +130,6 @@ def test_bridge_reverse_mode_jacobian_works_under_inference_mode():
     with torch.inference_mode():
         J = bridge.jacobian(theta.clone(), x.clone())
         _, J2 = bridge.measurement_and_jacobian(theta.clone(), x.clone())
-    assert torch.allclose(J, ref, rtol=0, atol=1e-14) and torch.allclose(J2, ref, rtol=0, atol=1e-14)
+    assert torch.allclose(J, ref, rtol=0, atol=1e-14) and torch.allclose(
+        J2, ref, rtol=0, atol=1e-14
+    )

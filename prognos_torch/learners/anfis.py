@@ -345,7 +345,11 @@ class ANFIS(nn.Module):
         unknown = set(names) - set(jac)
         if unknown:
             raise ValueError(f"ANFIS has no parameters {sorted(unknown)}")
-        return out, jac
+        # parameters that were not batched give unbatched factors: broadcast to the output's
+        tail = {"alpha": 5}
+        return out, {
+            k: v.expand(*lead, *v.shape[v.dim() - tail.get(k, 4) :]) for k, v in jac.items()
+        }
 
     def _constants(self, like: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """For ``like``'s dtype and device: the rule-selection matrix ``(n * L, R)`` (Eq. 3 in

@@ -26,6 +26,10 @@ from prognos_torch.core.validation import check_finite
 __all__ = ["ELM", "ACTIVATIONS"]
 
 
+#: Trailing dimensions of each entry of ``ELM.forward_and_jacobian`` (B, o, parameter shape).
+_JAC_TAIL = {"a": 4, "b": 3, "beta": 4}
+
+
 def _gaussian(z: Tensor) -> Tensor:
     return torch.exp(-z * z)
 
@@ -371,7 +375,8 @@ class ELM(nn.Module):
                 jac["b"] = gb
             if "a" in names:
                 jac["a"] = gb.unsqueeze(-1) * x[:, None, None, :]  # (..., B, o, L, n_in)
-        return out, jac
+        lead = out.shape[:-2]  # parameters that were not batched give unbatched factors
+        return out, {k: v.expand(*lead, *v.shape[v.dim() - _JAC_TAIL[k] :]) for k, v in jac.items()}
 
     # ---------------------------------------------------------------- training (stateful)
     def _hidden64(self, x: Tensor) -> Tensor:
