@@ -565,6 +565,16 @@ def test_step_hooks_run_and_public_tensors_support_autograd():
     assert calls == ["pre", "post", "global"] * 2
     twin.step(X[2:3], torch.zeros_like(Y[2:3]))
     assert torch.equal(o.theta, twin.theta)
+    # a copy evaluates its own module (not the original's through a cached step model)
+    sub = SRUKF([m.alpha], module=m, P0=1e-2, Q=1e-6, R=1e-2)  # premises fixed, in the module
+    sub.step(X[:1], Y[:1])
+    dup = copy.deepcopy(sub)
+    assert dup.bridge.module is dup.module is not m
+    with torch.no_grad():
+        dup.module.b.add_(0.5)  # only the copy's premises change ...
+    sub.step(X[1:2], Y[1:2])
+    dup.step(X[1:2], Y[1:2])
+    assert not torch.equal(sub.theta, dup.theta)  # ... and only the copy sees it
     w = torch.ones(m.alpha.numel() + 12, dtype=torch.float64, requires_grad=True)
     (w * o.theta).sum().backward()
     (o.parameter_covariance().sum() * w.sum()).backward()

@@ -324,8 +324,11 @@ class KalmanOptimizer(torch.optim.Optimizer):
 
     def __getstate__(self) -> dict:
         # torch.optim keeps only defaults, state and param_groups; copy.deepcopy and pickle of
-        # a Kalman optimiser also need its bridge, module and configured filter
-        return self.__dict__.copy()
+        # a Kalman optimiser also need its bridge, module and configured filter. The per-shape
+        # step models close over this optimiser's bridge: rebuilt by the copy.
+        state = self.__dict__.copy()
+        state["_models"], state["_inputs"] = {}, [None]
+        return state
 
     def add_param_group(self, param_group: dict) -> None:
         if getattr(self, "param_groups", None):
