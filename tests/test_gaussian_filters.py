@@ -302,3 +302,73 @@ def test_very_informative_measurements_match_kalman(name, monkeypatch):
     assert torch.allclose(tr.covs, t(Pr), atol=1e-8 * scale, rtol=0)
     assert torch.allclose(tr.means, t(mr), atol=1e-7, rtol=0)
     assert abs(float(tr.log_likelihood) - llr) < 1e-8 * max(1.0, abs(llr))
+
+
+def _kalman_partial(F, H, Q, R, m0, P0, ys):
+    """Kalman filter that updates with the observed rows of each measurement (reference)."""
+    n = F.shape[0]
+    m, P, ll, means, covs = m0.copy(), P0.copy(), 0.0, [], []
+    for y in ys:
+        m, P = F @ m, F @ P @ F.T + Q
+        o = ~np.isnan(y)
+        if o.any():
+            Ho, Ro = H[o], R[np.ix_(o, o)]
+            S = Ho @ P @ Ho.T + Ro
+            e = y[o] - Ho @ m
+            K = np.linalg.solve(S, Ho @ P).T
+            m = m + K @ e
+            IKH = np.eye(n) - K @ Ho
+            P = IKH @ P @ IKH.T + K @ Ro @ K.T
+            ll += -0.5 * (o.sum() * math.log(2 * math.pi) + np.linalg.slogdet(S)[1])
+            ll += -0.5 * e @ np.linalg.solve(S, e)
+        means.append(m.copy())
+        covs.append(P.copy())
+    return np.array(means), np.array(covs), ll
+
+
+@pytest.mark.parametrize("name", ["EKF", "EKF-full", "UKF", "SRUKF", "SCKF", "UKF-julier(3-n)"])
+def test_partially_observed_measurements_match_kalman(name):
+    """NaN in some components: the update uses the observed ones, exactly (correlated R)."""
+    rng = np.random.default_rng(11)
+    n, m, T = 5, 3, 60
+    A = rng.normal(size=(n, n))
+    F = 0.95 * A / np.max(np.abs(np.linalg.eigvals(A)))
+    H = rng.normal(size=(m, n))
+    LQ = 0.3 * np.eye(n)
+    LR = np.tril(rng.normal(size=(m, m))) * 0.2 + 0.5 * np.eye(m)  # correlated noise
+    ys = rng.normal(size=(T, m))
+    ys[rng.random((T, m)) < 0.3] = np.nan  # ~30 % of the components missing
+    ys[7] = np.nan  # and one step missing as a whole
+    model = linear_gaussian_model(t(F), t(H), t(LQ), t(LR))
+    m0, P0 = np.zeros(n), 2.0 * np.eye(n)
+    mr, Pr, llr = _kalman_partial(F, H, LQ @ LQ.T, LR @ LR.T, m0, P0, ys)
+    tr = run(ALL_FILTERS[name], model, GaussianBelief.from_cov(t(m0), t(P0)), t(ys))
+    assert torch.allclose(tr.means, t(mr), atol=1e-8, rtol=0)
+    assert torch.allclose(tr.covs, t(Pr), atol=1e-8, rtol=0)
+    assert abs(float(tr.log_likelihood) - llr) < 1e-8 * max(1.0, abs(llr))
+    # a batch with different patterns per element equals the runs one by one
+    ys2 = t(np.stack([ys, ys[::-1].copy()], axis=1))  # (T, 2, m)
+    b2 = GaussianBelief.from_cov(t(m0), t(P0)).expand(2)
+    tb = run(ALL_FILTERS[name], model, b2, ys2)
+    for i in range(2):
+        ti = run(ALL_FILTERS[name], model, GaussianBelief.from_cov(t(m0), t(P0)), ys2[:, i])
+        assert torch.allclose(tb.means[:, i], ti.means, atol=1e-10, rtol=0)
+        assert torch.allclose(tb.log_likelihoods[:, i], ti.log_likelihoods, atol=1e-9, rtol=0)
+
+
+def test_partially_observed_steps_hold_adaptation():
+    """Strong tracking gives lambda = 1 and the noise estimator holds on a partial step."""
+    rng = np.random.default_rng(12)
+    n, m, T = 3, 2, 30
+    model = linear_gaussian_model(
+        t(0.9 * np.eye(n)), t(rng.normal(size=(m, n))), t(0.2 * np.eye(n)), t(0.3 * np.eye(m))
+    )
+    ys = t(rng.normal(size=(T, m)) * 3.0)  # large innovations: fading factors > 1
+    ys[10, 0] = float("nan")
+    b0 = GaussianBelief.from_cov(t(np.zeros(n)), t(np.eye(n)))
+    tr = run(stsckf(), model, b0, ys)
+    assert float(tr.fading_factors[10]) == 1.0 and bool((tr.fading_factors > 1).any())
+    tr = run(imsrukf(), model, b0, ys)
+    assert torch.equal(tr.chol_R[10], tr.chol_R[9]) and not torch.equal(tr.chol_R[9], tr.chol_R[8])
+    # the observed component still updates the state
+    assert not torch.allclose(tr.means[10], tr.pred_means[10])

@@ -23,10 +23,14 @@ Step ``k`` (model convention of :mod:`prognos_torch.core.model`):
    instead where the downdate would lose precision (a very informative measurement) and with
    the robust bound of paper 004.
 
-Missing data: a measurement vector containing NaN is *missing*; the step then only predicts
-(the posterior equals the prior, the log-likelihood contribution is 0, ``nis`` is NaN, the
-fading factor is 1 and noise estimators hold). Partially observed vectors are treated as missing
-as a whole.
+Missing data: NaN marks a missing measurement component. A vector that is NaN throughout is
+*missing*: the step only predicts (the posterior equals the prior, the log-likelihood
+contribution is 0, ``nis`` is NaN). A partially observed vector updates with its observed
+components only, exactly: the rows of the missing components are removed from the measurement
+moments and the noise factor, and a unit block keeps the innovation factor square, so the gain
+has zero columns there and ``nis`` and the log-likelihood are those of the observed components.
+Strong tracking (fading factor 1) and the noise estimators (estimates held) skip any step that is
+not fully observed; the robust bound of paper 004 treats a partially observed vector as missing.
 """
 
 from __future__ import annotations
@@ -99,16 +103,24 @@ class FilterState:
     noise: NoiseEstimatorState | None = None
 
 
-def innovation_stats(innovation: Tensor, chol_innovation: Tensor, missing: Tensor):
+def innovation_stats(
+    innovation: Tensor,
+    chol_innovation: Tensor,
+    missing: Tensor,
+    n_observed: Tensor | None = None,
+):
     """Normalised innovation squared and Gaussian log-likelihood of innovations.
 
     Works on any leading dims (one step, or a whole stacked trajectory). Missing steps get
-    ``nis = NaN`` and a log-likelihood contribution of 0.
+    ``nis = NaN`` and a log-likelihood contribution of 0. ``n_observed`` ``(...)``: number of
+    observed components of partially observed vectors (default: all ``m``); their innovation
+    is 0 and their innovation factor a unit block at the missing components.
     """
     w = torch.linalg.solve_triangular(chol_innovation, innovation.unsqueeze(-1), upper=False)
     nis = w.squeeze(-1).pow(2).sum(-1)
     logdet = 2.0 * torch.log(torch.diagonal(chol_innovation, dim1=-2, dim2=-1)).sum(-1)
-    ll = -0.5 * (innovation.shape[-1] * _LOG_2PI + logdet + nis)
+    m = innovation.shape[-1] if n_observed is None else n_observed.to(innovation.dtype)
+    ll = -0.5 * (m * _LOG_2PI + logdet + nis)
     ll = torch.where(missing, torch.zeros_like(ll), ll)
     nis = torch.where(missing, torch.full_like(nis, float("nan")), nis)
     return nis, ll
@@ -125,8 +137,10 @@ class StepInfo:
         fading_factor: ``(...)`` ``lambda_k`` (1 without strong tracking).
         noise: the noise statistics used in this step.
         noise_fallback: ``(...)`` bool, true where a noise estimate had to be projected to PD.
-        missing: ``(...)`` bool.
+        missing: ``(...)`` bool: no component observed (predict only).
         gain: ``(..., n, m)`` Kalman gain.
+        observed: ``(..., m)`` bool, the observed components, or ``None`` when every component
+            of every batch element was observed or missing as a whole.
 
     ``log_likelihood`` (``log N(y_k; z_{k|k-1}, S_zz S_zz^T)``, 0 where missing) and ``nis``
     (normalised innovation squared, NaN where missing) are computed on first access, so the
@@ -141,10 +155,12 @@ class StepInfo:
     noise_fallback: Tensor
     missing: Tensor
     gain: Tensor
+    observed: Tensor | None = None
 
     @cached_property
     def _stats(self):
-        return innovation_stats(self.innovation, self.chol_innovation, self.missing)
+        n_obs = None if self.observed is None else self.observed.sum(-1)
+        return innovation_stats(self.innovation, self.chol_innovation, self.missing, n_obs)
 
     @property
     def nis(self) -> Tensor:
@@ -243,6 +259,32 @@ def _sigma_points(rule: SigmaPoints, n: int, like: Tensor) -> _Sigma:
             _SIGMA_CACHE.clear()
         _SIGMA_CACHE[key] = sig
     return sig
+
+
+def _observed_part(mom: _Moments, chol_R: Tensor, observed: Tensor) -> tuple[_Moments, Tensor]:
+    """Measurement moments and noise factor restricted to the observed components.
+
+    The rows of missing components are zeroed in the deviations ``Z`` and in ``S_R``, and unit
+    columns ``E = diag(1 - o)`` are appended to ``S_R``. Then ``P_zz' = P_oo (+) I`` (block
+    diagonal up to the component order) and ``P_xz'`` has zero columns at the missing
+    components, so the gain is ``P_xo P_oo^{-1}`` on the observed ones and 0 elsewhere: the
+    exact update with the observed sub-vector, on the full-size arrays.
+    """
+    o = observed.to(mom.z.dtype)
+    row = o.unsqueeze(-1)  # (..., m, 1)
+    SR = chol_R * row
+    E = torch.diag_embed(1.0 - o)
+    SR = torch.cat([SR.expand(*E.shape[:-2], *SR.shape[-2:]), E], dim=-1)  # (..., m, 2m)
+    masked = _Moments(
+        mom.z,
+        mom.dx_pos,
+        mom.dz_pos * row,
+        mom.dx_neg,
+        None if mom.dz_neg is None else mom.dz_neg * row,
+        mom.joseph,
+        None if mom.H is None else mom.H * row,
+    )
+    return masked, SR
 
 
 def _bcast(x: Tensor, batch_shape: torch.Size, tail: tuple[int, ...]) -> Tensor:
@@ -390,7 +432,7 @@ class GaussianFilter:
     def _innovation_chol(self, mom: _Moments, chol_R: Tensor) -> Tensor:
         bs = mom.z.shape[:-1]
         mdim = mom.z.shape[-1]
-        SR = _bcast(chol_R, bs, (mdim, mdim))
+        SR = _bcast(chol_R, bs, (mdim, chol_R.shape[-1]))  # (m, m), or (m, 2m) when masked
         if self.robust is not None:
             cM, cR, _ = self.robust.coefficients()
             M = self.robust.M_matrix(mdim, SR.dtype, SR.device)
@@ -425,7 +467,7 @@ class GaussianFilter:
             ok = None
         bs = prior.mean.shape[:-1]
         mdim = mom.z.shape[-1]
-        SR = _bcast(chol_R, bs, (mdim, mdim))
+        SR = _bcast(chol_R, bs, (mdim, chol_R.shape[-1]))
         c = 1.0 if rob is None else rob.coefficients()[2]
         if not self.sqrt:
             if rob is None:
@@ -504,10 +546,16 @@ class GaussianFilter:
         y, any_missing = self._check_y(model, y, belief)
         u = self._check_u(model, u, belief)
         noise = self._noise(model, state, k)
+        observed = None
         if any_missing:
-            missing = torch.isnan(y).any(-1)
+            nan = torch.isnan(y)
+            incomplete = nan.any(-1)  # strong tracking and noise estimators skip these
+            missing = nan.all(-1) if self.robust is None else incomplete
+            if self.robust is None and bool((incomplete & ~missing).any()):
+                observed = ~nan  # some vector is partially observed: update with its part
         else:
             missing = torch.zeros(belief.batch_shape, dtype=torch.bool, device=y.device)
+            incomplete = missing
         prop = self._propagate(model, belief, u, k, noise.q)
 
         fstate = state.fading
@@ -515,12 +563,12 @@ class GaussianFilter:
         if isinstance(self.fading, StrongTracking):
             prior_l = self._prior(prop, noise.chol_Q, None, update=True)
             mom_l = self._moments(model, prior_l, prop, u, k, noise.r)
-            eps_l = torch.where(missing[..., None], torch.zeros_like(y), y - mom_l.z)
+            eps_l = torch.where(incomplete[..., None], torch.zeros_like(y), y - mom_l.z)
             lam, fstate = fading_factor(
                 self.fading,
                 state.fading,
                 eps_l,
-                missing,
+                incomplete,
                 mom_l.H,
                 _bcast(noise.chol_Q, belief.batch_shape, noise.chol_Q.shape[-2:]),
                 _bcast(noise.chol_R, belief.batch_shape, noise.chol_R.shape[-2:]),
@@ -546,13 +594,16 @@ class GaussianFilter:
             prior = self._prior(prop, noise.chol_Q, lam, update=True)
             mom = self._moments(model, prior, prop, u, k, noise.r)
 
-        Szz = self._innovation_chol(mom, noise.chol_R)
+        chol_R = noise.chol_R
+        if observed is not None:
+            mom, chol_R = _observed_part(mom, chol_R, observed)
+        Szz = self._innovation_chol(mom, chol_R)
         K = cho_solve_right(mom.pxz(), Szz)  # paper 000 Eq. 44
         eps = y - mom.z
         if any_missing:
-            eps = torch.where(missing[..., None], torch.zeros_like(y), eps)
+            eps = torch.where(torch.isnan(y), torch.zeros_like(y), eps)
         mean = prior.mean + (K @ eps.unsqueeze(-1)).squeeze(-1)  # Eq. 45
-        chol = self._posterior_chol(prior, mom, K, Szz, noise.chol_R)
+        chol = self._posterior_chol(prior, mom, K, Szz, chol_R)
         if any_missing:
             mean = torch.where(missing[..., None], prior.mean, mean)
             chol = torch.where(missing[..., None, None], prior.chol, chol)
@@ -570,11 +621,11 @@ class GaussianFilter:
                 gain=K,
                 innovation=eps,
                 chol_post=chol,
-                y=torch.where(missing[..., None], mom.z, y) if any_missing else y,
+                y=torch.where(torch.isnan(y), mom.z, y) if any_missing else y,
                 h_mean=h_mean,
                 dz_pos=mom.dz_pos,
                 dz_neg=mom.dz_neg,
-                missing=missing,
+                missing=incomplete,
                 any_missing=any_missing,
             )
             nstate = self.noise.update(nstate, ctx)
@@ -590,6 +641,7 @@ class GaussianFilter:
             noise_fallback=fallback,
             missing=missing,
             gain=K,
+            observed=observed,
         )
         return FilterState(GaussianBelief(mean, chol), fstate, nstate), info
 

@@ -82,7 +82,8 @@ def run(
     *,
     k0: int = 0,
 ) -> Trajectory:
-    """Filter the measurements ``ys`` ``(T, ..., m)`` (NaN rows: missing, predict only).
+    """Filter the measurements ``ys`` ``(T, ..., m)`` (NaN: missing; a row that is NaN
+    throughout only predicts, a partially NaN row updates with its observed components).
 
     Step ``t`` (0-based) uses ``k = k0 + t + 1``, the control ``us[t]`` (``(T, ..., p)`` or
     ``(T, p)`` shared by the batch) and measurement ``ys[t]``. ``init`` is the belief on
@@ -135,7 +136,10 @@ def run(
     stacked = {k: (torch.stack(v) if v else None) for k, v in out.items()}
     # one vectorised pass over the whole trajectory instead of one per step
     stacked["nis"], stacked["log_likelihoods"] = innovation_stats(
-        stacked["innovations"], stacked["chol_innovations"], stacked.pop("missing")
+        stacked["innovations"],
+        stacked["chol_innovations"],
+        stacked.pop("missing"),
+        (~torch.isnan(ys)).sum(-1),  # partially observed vectors count their observed part
     )
     return Trajectory(**stacked, final=state)
 
