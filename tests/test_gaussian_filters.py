@@ -297,7 +297,7 @@ def test_very_informative_measurements_match_kalman(name, monkeypatch):
 
     monkeypatch.setattr(engine, "chol_downdate_ex", spy)
     tr = run(ALL_FILTERS[name], model, GaussianBelief.from_cov(t(m0), t(P0)), t(ys))
-    assert min(calls) < engine._DOWNDATE_MIN_RATIO  # the fallback was exercised
+    assert min(calls) < engine._downdate_min_ratio(torch.float64)  # the fallback ran
     scale = float(np.abs(Pr).max())
     assert torch.allclose(tr.covs, t(Pr), atol=1e-8 * scale, rtol=0)
     assert torch.allclose(tr.means, t(mr), atol=1e-7, rtol=0)
@@ -372,3 +372,20 @@ def test_partially_observed_steps_hold_adaptation():
     assert torch.equal(tr.chol_R[10], tr.chol_R[9]) and not torch.equal(tr.chol_R[9], tr.chol_R[8])
     # the observed component still updates the state
     assert not torch.allclose(tr.means[10], tr.pred_means[10])
+
+
+@pytest.mark.parametrize("name", ["SRUKF", "SCKF", "EKF"])
+def test_float32_square_root_filters_track_the_float64_kalman_filter(name):
+    """float32 runs the same code path (posterior downdate with a float32 precision threshold)."""
+    model, b0, ys, (mr, Pr, _) = random_lgssm(1, 7, 3, 200)
+    n = model.state_dim
+    z = torch.zeros(n, dtype=torch.float64)
+    F, H = model.transition_jacobian(z, None, 0), model.observation_jacobian(z, None, 0)
+    m32 = linear_gaussian_model(
+        F.float(), H.float(), model.chol_Q.float(), model.chol_R.float(),
+        q=model.q.float(), r=model.r.float(),
+    )  # fmt: skip
+    tr = run(ALL_FILTERS[name], m32, GaussianBelief(b0.mean.float(), b0.chol.float()), ys.float())
+    assert tr.means.dtype == torch.float32
+    assert torch.allclose(tr.means.double(), t(mr), atol=2e-5, rtol=0)
+    assert torch.allclose(tr.covs.double(), t(Pr), atol=2e-5, rtol=0)

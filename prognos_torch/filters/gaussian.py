@@ -79,8 +79,13 @@ __all__ = [
 
 _LOG_2PI = math.log(2.0 * math.pi)
 #: Smallest ``det(P_post) / det(P_pred)`` for which the posterior is taken from the O(n^2)
-#: Cholesky downdate; below it (relative precision worse than about ``1e-10``) the Joseph-form QR.
-_DOWNDATE_MIN_RATIO = 1e-6
+#: Cholesky downdate, as a power of the dtype's epsilon (float64: 1.3e-6, float32: 2.5e-3);
+#: below it the Joseph-form QR (the downdate's rounding error grows like ``eps / ratio``).
+_DOWNDATE_MIN_RATIO_EXP = 0.375
+
+
+def _downdate_min_ratio(dtype: torch.dtype) -> float:
+    return torch.finfo(dtype).eps ** _DOWNDATE_MIN_RATIO_EXP
 
 
 @dataclass(frozen=True)
@@ -457,10 +462,10 @@ class GaussianFilter:
             # The sigma points (or F S) reproduce the prior, so Eq. 46's Joseph form equals
             # P_pred - K S_zz S_zz^T K^T: the cholupdate of paper 003 Eq. 28-29, O(n^2 m)
             # instead of a QR of (n, L + m). Where the downdate loses precision (determinant
-            # ratio below _DOWNDATE_MIN_RATIO: a very informative measurement) the Joseph QR
+            # ratio below _downdate_min_ratio: a very informative measurement) the Joseph QR
             # is used instead.
             S, ratio = chol_downdate_ex(prior.chol, K @ Szz)
-            ok = ratio > _DOWNDATE_MIN_RATIO
+            ok = ratio > _downdate_min_ratio(ratio.dtype)
             if bool(ok.all()):
                 return S
         else:
