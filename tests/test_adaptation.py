@@ -215,3 +215,46 @@ def test_nan_measurement_means_predict_only():
     assert bool(info.missing[1]) and not bool(info.missing[0])
     assert float(info.log_likelihood[1]) == 0.0 and bool(torch.isnan(info.nis[1]))
     assert float(info.fading_factor[1]) == 1.0
+
+
+@pytest.mark.parametrize("estimator", ["sage_husa", "moving_window"])
+def test_diagonal_estimates_equal_the_diagonal_of_full_estimates(estimator):
+    """The vector path of diagonal=True gives the diagonal of the full-matrix update, step after
+    step, including a step with a missing run (data chosen so that no estimate needs the
+    positive-definite projection: then the two must agree to rounding)."""
+    from prognos_torch.adapt.noise import UpdateContext
+    from prognos_torch.core.model import Noise
+
+    g = torch.Generator().manual_seed(3)
+    n, m, B, L = 4, 1, 5, 9
+    r = lambda *s: torch.randn(*s, generator=g, dtype=torch.float64)  # noqa: E731
+    eye = lambda k: torch.eye(k, dtype=torch.float64)  # noqa: E731
+    M = 0.1 * r(m)
+    make = {
+        "sage_husa": lambda d: SageHusa(("Q", "R"), diagonal=d),
+        "moving_window": lambda d: MovingWindow(window=3, diagonal=d, M=M, N=0.5, mu=2.0),
+    }[estimator]
+    full, diag = make(False), make(True)
+    like = torch.zeros(B, n, dtype=torch.float64)
+    sf, sd = (e.init(Noise(None, eye(n), None, eye(m)), (B,), n, m, like) for e in (full, diag))
+    for step in range(6):
+        missing = torch.zeros(B, dtype=torch.bool)
+        missing[1] = step == 3
+        A = r(B, n, n)
+        ctx = UpdateContext(
+            x_post=r(B, n), f_mean=r(B, n), spread_pos=0.3 * r(B, n, L), spread_neg=None,
+            gain=0.1 * r(B, n, m), innovation=3.0 + 0.1 * r(B, m),
+            chol_post=torch.linalg.cholesky(3 * eye(n) + 0.1 * A @ A.mT), y=r(B, m),
+            h_mean=r(B, m), dz_pos=0.2 * r(B, m, L), dz_neg=None, missing=missing,
+        )  # fmt: skip
+        sf, sd = full.update(sf, ctx), diag.update(sd, ctx)
+        assert not bool(sf.fallback.any()) and not bool(sd.fallback.any())
+        for F_, D_ in ((sf.Q, sd.Q), (sf.R, sd.R)):
+            assert torch.equal(D_, torch.diag_embed(torch.diagonal(D_, dim1=-2, dim2=-1)))
+            torch.testing.assert_close(
+                torch.diagonal(D_, dim1=-2, dim2=-1),
+                torch.diagonal(F_, dim1=-2, dim2=-1),
+                rtol=1e-12,
+                atol=1e-14,
+            )
+    assert bool((sd.Q != eye(n)).any())  # the estimates did move

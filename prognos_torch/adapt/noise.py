@@ -323,10 +323,12 @@ class MovingWindow:
     def init(self, noise: Noise, batch_shape, n: int, m: int, like: Tensor) -> NoiseEstimatorState:
         base = SageHusa(floor_rel=self.floor_rel).init(noise, batch_shape, n, m, like)
         W = self.window
+        # diagonal estimates keep only the diagonals of the window's terms
+        tq, tr = ((n,), (m,)) if self.diagonal else ((n, n), (m, m))
         return replace(
             base,
-            buf_Q=like.new_zeros(W, *batch_shape, n, n),
-            buf_R=like.new_zeros(W, *batch_shape, m, m),
+            buf_Q=like.new_zeros(W, *batch_shape, *tq),
+            buf_R=like.new_zeros(W, *batch_shape, *tr),
             buf_valid=torch.zeros(W, *batch_shape, dtype=torch.bool, device=like.device),
         )
 
@@ -334,37 +336,51 @@ class MovingWindow:
         if self.frozen:
             return s
         m = c.innovation.shape[-1]
-        Ke = (c.gain @ c.innovation.unsqueeze(-1)).squeeze(-1)
-        termQ = c.cov_post + _outer(Ke) - c.spread
-        termR = _outer(c.innovation)
+        e, dg = c.innovation, self.diagonal
+        Ke = (c.gain @ e.unsqueeze(-1)).squeeze(-1)
+        if dg:  # Eq. 47-48 on the diagonals only: no n x n products
+            termQ = c.diag("cov_post") + Ke * Ke - c.diag("spread")
+            termR, pzz = e * e, c.diag("pzz_noR")
+        else:
+            termQ = c.cov_post + _outer(Ke) - c.spread
+            termR, pzz = _outer(e), c.pzz_noR
         if self.M is not None:
             mu = 1.0 if self.mu is None else self.mu
             M = torch.as_tensor(self.M, dtype=c.y.dtype, device=c.y.device)
             M = M.unsqueeze(-1) if M.dim() == 1 else M
             if M.shape[0] != m:
                 raise ValueError(f"MovingWindow.M must have shape (m,) or (m, j), m={m}")
-            termR = termR - (1.0 - self.N**2 / mu) * c.pzz_noR - mu * (M @ M.mT)
+            MM = (M * M).sum(-1) if dg else M @ M.mT
+            termR = termR - (1.0 - self.N**2 / mu) * pzz - mu * MM
         else:
-            termR = termR - c.pzz_noR
+            termR = termR - pzz
         valid = ~c.missing
         buf_Q = torch.cat([s.buf_Q[1:], termQ.unsqueeze(0)])
         buf_R = torch.cat([s.buf_R[1:], termR.unsqueeze(0)])
         buf_valid = torch.cat([s.buf_valid[1:], valid.unsqueeze(0)])
         nv = buf_valid.sum(0).to(c.y.dtype)
         ready = nv >= (self.window if self.warmup is None else self.warmup)
-        wv = buf_valid.to(c.y.dtype)
         Q, cQ, R, cR = s.Q, s.chol_Q, s.R, s.chol_R
         fb = torch.zeros_like(s.fallback)
-        denom = nv.clamp_min(1.0)
+        # window mean over the valid steps: one contraction over the window axis
+        wv = buf_valid.to(c.y.dtype) / nv.clamp_min(1.0)  # (W, ...)
+        tail = 1 if dg else 2
+
+        def window_mean(buf: Tensor) -> Tensor:
+            return (wv.reshape(wv.shape + (1,) * tail) * buf).sum(0)
+
+        def project(mean: Tensor, floor: Tensor):
+            if dg:
+                return _project_pd(torch.diag_embed(mean), floor, True)
+            return _project_pd(mean, floor, False)
+
         if "Q" in self.estimate:
-            mean = (wv[..., None, None] * buf_Q).sum(0) / denom[..., None, None]
-            new, cnew, f1 = _project_pd(mean, s.floor_Q, self.diagonal)
+            new, cnew, f1 = project(window_mean(buf_Q), s.floor_Q)
             Q = torch.where(ready[..., None, None], new, Q)
             cQ = torch.where(ready[..., None, None], cnew, cQ)
             fb = fb | (f1 & ready)
         if "R" in self.estimate:
-            mean = (wv[..., None, None] * buf_R).sum(0) / denom[..., None, None]
-            new, cnew, f2 = _project_pd(mean, s.floor_R, self.diagonal)
+            new, cnew, f2 = project(window_mean(buf_R), s.floor_R)
             R = torch.where(ready[..., None, None], new, R)
             cR = torch.where(ready[..., None, None], cnew, cR)
             fb = fb | (f2 & ready)
