@@ -226,6 +226,46 @@ def test_runs_equal_separate_runs():
         torch.testing.assert_close(pred[r], m(X), rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.parametrize(
+    "filt,learner",
+    [("ekf", "anfis"), ("imsrukf", "anfis"), ("srukf", "elm"), ("ekf", "linear")],
+)
+def test_per_run_data_equals_separate_runs_and_fits(filt, learner):
+    """runs=R with per_run_data: run r is trained on its own (X_r, Y_r), exactly as alone; fit
+    batches along the sample axis and reports per-run metrics."""
+    R, N = 3, 10
+    data = [_linear_data(N=N, d=3, seed=20 + r) for r in range(R)]
+    X, Y = torch.stack([d[0] for d in data]), torch.stack([d[1] for d in data])  # (R, N, .)
+    if learner == "anfis":
+        mods = [ANFIS(3, 2, generator=_gen(s)).init_premises(X[0]) for s in range(R)]
+        P0 = {"alpha": 1.0, "b": 1e-2, "beta": 1e-3}
+    elif learner == "elm":
+        mods = [ELM(3, 6, generator=_gen(0)) for _ in range(R)]
+        P0 = 1.0
+    else:  # no closed-form Jacobian: the per-run EKF differentiates by torch.func
+        mods = [nn.Linear(3, 1, dtype=torch.float64) for _ in range(R)]
+        P0 = 1.0
+    kw = dict(filter=filt, P0=P0, Q=1e-6, R=1e-2)
+    base = copy.deepcopy(mods[0])
+    theta0 = ParameterBridge(base).stack(mods)
+    batch = KalmanOptimizer(base, runs=R, per_run_data=True, theta0=theta0, **kw)
+    singles = [KalmanOptimizer(copy.deepcopy(m), **kw) for m in mods]
+    hist = fit(base, batch, (X, Y), epochs=2, batch_size=2, progress=False, val=(X, Y))
+    for r, o in enumerate(singles):
+        fit(o.module, o, (X[r], Y[r]), epochs=2, batch_size=2, progress=False)
+        torch.testing.assert_close(batch.theta[r], o.theta, rtol=0, atol=1e-10)
+        torch.testing.assert_close(hist.val["mae"][-1][r], (o.module(X[r]) - Y[r]).abs().mean())
+    assert batch.predict(X).shape == (R, N, 1)
+    with pytest.raises(ValueError, match="runs=3"):
+        batch.step(X[:2, :1], Y[:2, :1])
+    with pytest.raises(ValueError, match="targets must have shape"):
+        batch.step(X[:, :1], Y[:, :2])
+    with pytest.raises(ValueError, match="per-run data"):
+        fit(base, batch, (X[0], Y[0]), progress=False)
+    with pytest.raises(ValueError, match="needs runs"):
+        KalmanOptimizer(copy.deepcopy(mods[0]), per_run_data=True)
+
+
 def test_ekf_jacobian_modes_agree_and_single_run_predict():
     X, Y = _linear_data(N=10, d=3, seed=6)
     base = ANFIS(3, 2, generator=_gen(2)).init_premises(X)

@@ -93,12 +93,25 @@ class History:
         return {k: v[-1] for k, v in src.items() if v}
 
 
-def _check_data(data, name: str) -> tuple[Tensor, Tensor]:
+def _check_data(data, name: str, runs: int | None = None) -> tuple[Tensor, Tensor]:
+    """``(X, Y)`` with rows along dim 0, or along dim 1 after ``runs`` (per-run data)."""
     if not (isinstance(data, (tuple, list)) and len(data) == 2):
         raise TypeError(f"{name} must be a pair (X, Y) of tensors")
     X, Y = data
     if not isinstance(X, Tensor) or not isinstance(Y, Tensor):
         raise TypeError(f"{name} must be a pair (X, Y) of tensors, got {type(X)}, {type(Y)}")
+    if runs is not None:
+        if X.dim() < 2 or Y.dim() < 2 or X.shape[0] != runs or Y.shape[0] != runs:
+            raise ValueError(
+                f"{name}: with per-run data X and Y must have shape (runs={runs}, N, ...), got "
+                f"{tuple(X.shape)} and {tuple(Y.shape)}"
+            )
+        if X.shape[1] != Y.shape[1] or X.shape[1] == 0:
+            raise ValueError(
+                f"{name}: X and Y must have the same non-zero number of rows (runs, N, ...), "
+                f"got {tuple(X.shape)} and {tuple(Y.shape)}"
+            )
+        return X, Y
     if X.dim() < 1 or Y.dim() < 1 or X.shape[0] != Y.shape[0] or X.shape[0] == 0:
         raise ValueError(
             f"{name}: X and Y must have the same non-zero number of rows (N, ...), got "
@@ -166,7 +179,8 @@ def fit(
         optimizer: a :class:`KalmanOptimizer` or a ``torch.optim.Optimizer`` (Adam, SGD, LBFGS,
             ...). Gradient optimisers get a closure that zeroes the gradients, evaluates
             ``loss_fn(module(xb), yb)`` and calls ``backward()``.
-        train: inputs ``X`` ``(N, ...)`` and targets ``Y`` ``(N, ...)`` (``module(X).shape``).
+        train: inputs ``X`` ``(N, ...)`` and targets ``Y`` ``(N, ...)`` (``module(X).shape``);
+            for a :class:`KalmanOptimizer` with ``per_run_data``, ``(R, N, ...)`` each.
         epochs: number of passes over ``train``.
         batch_size: samples per optimiser step (Kalman: the measurement vector of one step).
         shuffle: draw a new order of the samples each epoch (``torch.randperm`` with
@@ -185,9 +199,11 @@ def fit(
     Returns:
         :class:`History`.
     """
-    X, Y = _check_data(train, "train")
+    per_run = isinstance(optimizer, KalmanOptimizer) and optimizer.per_run_data
+    runs = optimizer.runs if per_run else None
+    X, Y = _check_data(train, "train", runs)
     if val is not None:
-        Xv, Yv = _check_data(val, "val")
+        Xv, Yv = _check_data(val, "val", runs)
     if not isinstance(optimizer, torch.optim.Optimizer):
         raise TypeError(f"optimizer must be a torch.optim.Optimizer, got {type(optimizer)}")
     if not isinstance(module, nn.Module):
@@ -213,7 +229,7 @@ def fit(
     if loss_fn is None:
         loss_fn = nn.functional.mse_loss
 
-    N = X.shape[0]
+    N = X.shape[1 if per_run else 0]  # per-run data: (runs, N, ...)
     n_batches = N // batch_size if drop_last else -(-N // batch_size)
     if n_batches == 0:
         raise ValueError(f"batch_size={batch_size} with drop_last leaves no batch of N={N} samples")
@@ -243,10 +259,10 @@ def fit(
             for b in range(n_batches):
                 if shuffle:
                     idx = order[b * batch_size : (b + 1) * batch_size]
-                    xb, yb = X[idx], Y[idx]
+                    xb, yb = (X[:, idx], Y[:, idx]) if per_run else (X[idx], Y[idx])
                 else:  # in order: views, no gather
-                    xb = X[b * batch_size : (b + 1) * batch_size]
-                    yb = Y[b * batch_size : (b + 1) * batch_size]
+                    sl = slice(b * batch_size, (b + 1) * batch_size)
+                    xb, yb = (X[:, sl], Y[:, sl]) if per_run else (X[sl], Y[sl])
                 if kalman:
                     loss = optimizer.step(xb, yb).loss
                 else:

@@ -23,8 +23,10 @@ checked on load), so that a resumed run is bit-identical to an uninterrupted one
 
 Batched Monte Carlo: ``runs=R`` with ``theta0`` ``(R, n)`` trains ``R`` independent parameter
 vectors (e.g. ``R`` initialisations of an ANFIS) on the same data in one vectorised filter call
-per step. The module's parameters are then left untouched; use :meth:`KalmanOptimizer.predict`
-or :attr:`KalmanOptimizer.theta`.
+per step; with ``per_run_data=True`` each run has its own data (inputs ``(R, *x)``, targets
+``(R, *out)``, e.g. ``R`` noise realisations; the model is evaluated with ``torch.func.vmap``
+over the runs). The module's parameters are then left untouched; use
+:meth:`KalmanOptimizer.predict` or :attr:`KalmanOptimizer.theta`.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from itertools import chain
 
 import torch
 from torch import Tensor, nn
+from torch.func import vmap
 from torch.optim.optimizer import _global_optimizer_post_hooks, _global_optimizer_pre_hooks
 
 from ..adapt.noise import MovingWindow, NoiseEstimatorState, SageHusa
@@ -254,6 +257,9 @@ class KalmanOptimizer(torch.optim.Optimizer):
             ``SageHusa``/``MovingWindow``. A noise estimator or strong tracking needs a constant
             measurement size (same mini-batch size at every step).
         runs: ``None`` for one run, or ``R`` for ``R`` independent runs in one batch.
+        per_run_data: with ``runs=R``, every run gets its own data: ``step`` and ``predict``
+            take inputs ``(R, *x)`` and targets ``(R, *out)`` (e.g. ``R`` noise realisations);
+            default ``False``: all runs see the same inputs and targets.
         theta0: initial mean ``(n,)`` (or ``(R, n)`` with ``runs``); default: the module's
             current parameters (repeated over runs).
         jacobian: ``"auto"``, ``"rev"``, ``"fwd"`` or ``"autograd"``: how the EKF differentiates
@@ -291,6 +297,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         fading=None,
         noise=None,
         runs: int | None = None,
+        per_run_data: bool = False,
         theta0: Tensor | None = None,
         jacobian: str = "auto",
         chunk_size: int | None = None,
@@ -305,6 +312,10 @@ class KalmanOptimizer(torch.optim.Optimizer):
             )
         if chunk_size is not None and (not isinstance(chunk_size, int) or chunk_size < 1):
             raise ValueError(f"chunk_size must be None or a positive int, got {chunk_size!r}")
+        if not isinstance(per_run_data, bool):
+            raise TypeError(f"per_run_data must be a bool, got {type(per_run_data)}")
+        if per_run_data and runs is None:
+            raise ValueError("per_run_data=True needs runs=R (the number of runs)")
         defaults = dict(
             filter=filter,
             P0=P0,
@@ -313,6 +324,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
             fading=fading,
             noise=noise,
             runs=runs,
+            per_run_data=per_run_data,
             jacobian=jacobian,
             chunk_size=chunk_size,
         )
@@ -429,9 +441,17 @@ class KalmanOptimizer(torch.optim.Optimizer):
     @torch.no_grad()
     def predict(self, inputs: Tensor) -> Tensor:
         """Model outputs at the posterior mean: ``module(inputs)`` for one run, ``(R, *out)``
-        with ``runs=R`` (module dtype)."""
+        with ``runs=R`` (module dtype). With ``per_run_data``, ``inputs`` is ``(R, *x)``."""
         x = self._check_inputs(inputs)
-        return self.bridge.batched(self.state[_STATE_KEY]["mean"], x, chunk_size=self._chunk)
+        mean, b, chunk = self.state[_STATE_KEY]["mean"], self.bridge, self._chunk
+        if self.per_run_data:
+            return vmap(lambda th, xr: b.batched(th, xr, chunk_size=chunk))(mean, x)
+        return b.batched(mean, x, chunk_size=chunk)
+
+    @property
+    def per_run_data(self) -> bool:
+        """Whether every run has its own inputs and targets (``(R, ...)``)."""
+        return bool(self.param_groups[0].get("per_run_data", False))
 
     # ------------------------------------------------------------------ the step
     @property
@@ -450,22 +470,29 @@ class KalmanOptimizer(torch.optim.Optimizer):
             raise ValueError(f"inputs is on {inputs.device} but the module is on {b.device}")
         if not all_finite(inputs):
             raise ValueError("inputs contains non-finite values (NaN or inf)")
+        if self.per_run_data and (inputs.dim() < 1 or inputs.shape[0] != self.runs):
+            raise ValueError(
+                f"inputs must have shape (runs={self.runs}, ...) with per_run_data=True, got "
+                f"{tuple(inputs.shape)}"
+            )
         return inputs
 
     def _check_batch(self, inputs, targets) -> tuple[Tensor, Tensor, torch.Size]:
         b = self.bridge
         x = self._check_inputs(inputs)
+        per_run = self.per_run_data
         key = tuple(x.shape)
         out_shape = self._out_shapes.get(key)
-        if out_shape is None:
+        if out_shape is None:  # the output of one run (per-run data: for its own inputs)
             theta = self.state[_STATE_KEY]["mean"].reshape(-1, b.numel)[0]
-            out_shape = b.functional(theta, x).shape
+            out_shape = b.functional(theta, x[0] if per_run else x).shape
             self._out_shapes[key] = out_shape
+        want = ((self.runs,) if per_run else ()) + tuple(out_shape)
         if not isinstance(targets, Tensor):
-            raise TypeError(f"targets must be a torch.Tensor of shape {tuple(out_shape)}")
-        if tuple(targets.shape) != tuple(out_shape):
+            raise TypeError(f"targets must be a torch.Tensor of shape {want}")
+        if tuple(targets.shape) != want:
             raise ValueError(
-                f"targets must have shape {tuple(out_shape)} (the model output for inputs of "
+                f"targets must have shape {want} (the model output for inputs of "
                 f"shape {tuple(x.shape)}), got {tuple(targets.shape)}"
             )
         if targets.dtype != b.dtype:
@@ -511,9 +538,14 @@ class KalmanOptimizer(torch.optim.Optimizer):
             return model
         M = math.prod(out_shape)
         mode = self.param_groups[0]["jacobian"]
-        if mode == "auto" and not b.has_closed_form_jacobian(x, chunk):
+        x1 = x[0] if self.per_run_data else x  # the inputs of one run
+        if mode == "auto" and not b.has_closed_form_jacobian(x1, chunk):
             mode = "fwd" if b.numel <= M else "autograd"
         inputs = self._inputs
+        if self.per_run_data:  # run r evaluates g(theta_r, x_r): vmap over the runs
+            if mode == "autograd":  # reverse mode through autograd does not vmap
+                mode = "rev"
+            return self._store_model(key, self._per_run_model(b, M, out_shape, mode, chunk))
         if isinstance(self._filter.rule, Taylor) and mode in ("auto", "autograd"):
             # the EKF asks for h and then for its Jacobian at the same point: one pass (the
             # learner's closed form, or forward + reverse) gives both, the Jacobian is handed
@@ -539,18 +571,35 @@ class KalmanOptimizer(torch.optim.Optimizer):
             def jac_h(th, u, k):
                 return b.jacobian(th, inputs[0], mode=mode, chunk_size=chunk)
 
-        model = StateSpaceModel(
+        return self._store_model(key, self._random_walk_model(h, jac_h, M, out_shape))
+
+    def _random_walk_model(self, h, jac_h, M: int, out_shape) -> StateSpaceModel:
+        return StateSpaceModel(
             f=None,  # Eq. 45: theta_k = theta_{k-1} + w_k (exact in the engine)
             h=h,  # Eq. 46: t_k = g(theta_k, u_k) + v_k
-            state_dim=b.numel,
+            state_dim=self.bridge.numel,
             obs_dim=M,
             chol_Q=self._chol_Q,
             chol_R=self._chol_R(out_shape),
             batched=True,
             jac_h=jac_h,
         )
+
+    def _store_model(self, key, model: StateSpaceModel) -> StateSpaceModel:
         self._models[key] = model
         return model
+
+    def _per_run_model(self, b, M: int, out_shape, mode: str, chunk) -> StateSpaceModel:
+        """Eq. 45-46 with per-run data: ``theta`` ``(R, ..., n)``, inputs ``(R, *x)``."""
+        inputs = self._inputs
+
+        def h(th, u, k):
+            return vmap(lambda t, xr: b.measurement(t, xr, chunk_size=chunk))(th, inputs[0])
+
+        def jac_h(th, u, k):
+            return vmap(lambda t, xr: b.jacobian(t, xr, mode=mode, chunk_size=chunk))(th, inputs[0])
+
+        return self._random_walk_model(h, jac_h, M, out_shape)
 
     def _engine_state(self, model: StateSpaceModel) -> FilterState:
         s = self.state[_STATE_KEY]
@@ -635,15 +684,20 @@ class KalmanOptimizer(torch.optim.Optimizer):
         if not isinstance(self._filter.rule, Taylor):
             return True
         mode = self.param_groups[0]["jacobian"]
+        if self.per_run_data and isinstance(inputs, Tensor) and inputs.dim() > 0:
+            inputs = inputs[0]
         return mode == "auto" and self.bridge.has_closed_form_jacobian(inputs, self._chunk)
 
     def _step(self, inputs: Tensor, targets: Tensor) -> KalmanStep:
         x, t, out_shape = self._check_batch(inputs, targets)
         model = self._model(x, out_shape)
         fstate = self._engine_state(model)
-        y = t.reshape(-1).to(torch.float64)
-        if self.runs is not None:
-            y = y.expand(self.runs, y.shape[0])
+        if self.per_run_data:
+            y = t.reshape(self.runs, -1).to(torch.float64)
+        else:
+            y = t.reshape(-1).to(torch.float64)
+            if self.runs is not None:
+                y = y.expand(self.runs, y.shape[0])
         s = self.state[_STATE_KEY]
         k = s["step"] + 1
         new, info = self._filter.step(model, fstate, y, None, k)
