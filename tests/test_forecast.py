@@ -547,3 +547,15 @@ def test_bad_inputs_raise_clear_errors():
         rolling_fault_prediction(sckf(), dmodel, ys_bad, fc, 3, 20, init=init)
     with pytest.raises(ValueError, match="param_index"):
         rolling_fault_prediction(sckf(), dmodel, ys_all[:40], fc, 3, 20, init=init, param_index=4)
+
+
+def test_transition_model_shift_std_gives_a_nonsingular_Q():
+    elm = ELM(3, 5, generator=torch.Generator().manual_seed(0))
+    plain = learner_transition_model(elm, 3, 0.2, 0.1).noise(1).chol_Q
+    shifted = learner_transition_model(elm, 3, 0.2, 0.1, shift_std=0.01).noise(1).chol_Q
+    assert torch.equal(plain, torch.diag(torch.tensor([0.0, 0.0, 0.2], dtype=plain.dtype)))
+    assert torch.equal(shifted, torch.diag(torch.tensor([0.01, 0.01, 0.2], dtype=plain.dtype)))
+    with pytest.raises(ValueError, match="shift_std"):
+        learner_transition_model(elm, 3, torch.eye(3, dtype=plain.dtype), 0.1, shift_std=0.01)
+    with pytest.raises(ValueError, match="shift_std"):
+        learner_transition_model(elm, 3, 0.2, 0.1, shift_std=-1.0)

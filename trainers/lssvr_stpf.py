@@ -456,8 +456,9 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     # ------------------------------------------------------------ proposal-structure diagnostic
     diag = None
     if not quick:
-        jit = torch.diag(torch.tensor([JITTER_DIAG * q] * (m - 1) + [q], dtype=z_train.dtype))
-        model_j = learner_transition_model(learner, m, jit.to(dev), r, jacobian="input_gradient")
+        model_j = learner_transition_model(
+            learner, m, q, r, jacobian="input_gradient", shift_std=JITTER_DIAG * q
+        )
         steps = 200
         gen = torch.Generator(device=dev).manual_seed(cfg.seed)
         out_j, _, _ = _filter_pass(

@@ -193,6 +193,7 @@ def learner_transition_model(
     n_out_index: int = 0,
     jacobian: str = "autograd",
     detach: bool = True,
+    shift_std: float = 0.0,
 ) -> StateSpaceModel:
     """A trained one-step predictor as an m-order state-space model (paper 002, Eq. 15-26).
 
@@ -205,7 +206,9 @@ def learner_transition_model(
     **Process noise structure.** Eq. 19 puts the noise on the new element only, so
     ``Q = q^2 e_m e_m^T`` and its lower square root is ``diag(0, ..., 0, q)``: singular, which
     the square-root filters handle exactly (``Tria([A, S_Q])`` needs no positive definite
-    ``S_Q``). Pass ``chol_Q`` as the number ``q`` to get that factor; pass an ``(m, m)`` (or
+    ``S_Q``). Pass ``chol_Q`` as the number ``q`` to get that factor, and ``shift_std`` ``s > 0``
+    for ``diag(s, ..., s, q)``: the particle filters with Gaussian proposals (EKPF, UPF, STPF)
+    weight by the transition density, which needs a nonsingular ``Q``. Or pass an ``(m, m)`` (or
     ``(..., m, m)`` with the belief's batch dims) lower factor, or a callable ``k -> tensor``, to
     use any other structure (e.g. a small jitter on the shifted elements). ``chol_R`` is the
     measurement std (a number) or a ``(1, 1)``/``(..., 1, 1)`` factor or a callable.
@@ -235,6 +238,8 @@ def learner_transition_model(
         n_out_index: which learner output is the next value ``x_{s+1}``.
         jacobian: ``"autograd"``, ``"engine"`` or ``"input_gradient"``.
         detach: evaluate the learner with detached parameters (default; see the module notes).
+        shift_std: std of the noise on the shifted (older) window elements when ``chol_Q`` is
+            a number (default 0: Eq. 19 exactly).
     Returns:
         A :class:`StateSpaceModel` with ``state_dim = m``, ``obs_dim = 1``, ``batched=True``.
     """
@@ -251,7 +256,14 @@ def learner_transition_model(
     if jacobian == "input_gradient" and not callable(getattr(learner, "input_gradient", None)):
         raise TypeError("jacobian='input_gradient' needs a learner with input_gradient(x)")
     dtype, device = _like(learner)
+    shift_std = float(shift_std)
+    if not math.isfinite(shift_std) or shift_std < 0:
+        raise ValueError(f"shift_std must be finite and >= 0, got {shift_std}")
+    if shift_std > 0 and (callable(chol_Q) or (isinstance(chol_Q, Tensor) and chol_Q.dim() > 0)):
+        raise ValueError("shift_std applies when chol_Q is a number (the std q of Eq. 19)")
     SQ = _as_chol(chol_Q, m, "chol_Q", dtype, device, newest_only=True)
+    if shift_std > 0:
+        SQ.diagonal()[:-1] = shift_std
     SR = _as_chol(chol_R, 1, "chol_R", dtype, device, newest_only=False)
     call = _frozen_call(learner, detach)
     idx = n_out_index

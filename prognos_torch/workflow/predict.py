@@ -186,16 +186,13 @@ def _noise(model: FittedModel) -> tuple[float, float]:
     return q, q
 
 
-def _transition(model: FittedModel, name: str, z: Tensor):
+def _transition(model: FittedModel, name: str):
     m = model.m
     q, r = _noise(model)
-    if name in _GAUSSIAN_PROPOSAL and m > 1:
-        diag = torch.full((m,), JITTER * q, dtype=z.dtype, device=z.device)
-        diag[-1] = q
-        chol_Q = torch.diag(diag)
-    else:
-        chol_Q = q  # Eq. 19: noise on the newest element only
-    return learner_transition_model(model.learner, m, chol_Q, r), r
+    # Eq. 19 puts the noise on the newest element only; Gaussian-proposal particle filters
+    # weight by the transition density and need a little on the shifted ones too
+    shift = JITTER * q if name in _GAUSSIAN_PROPOSAL else 0.0
+    return learner_transition_model(model.learner, m, q, r, shift_std=shift), r
 
 
 def _scaled(model: FittedModel, series: Series) -> Tensor:
@@ -214,7 +211,7 @@ def _scaled(model: FittedModel, series: Series) -> Tensor:
 def _filtered(model: FittedModel, z: Tensor, name: str, filter_steps: int, n_particles, seed):
     """Run the filter over the last ``filter_steps`` values; return ``(kind, result, ssm)``."""
     m = model.m
-    ssm, r = _transition(model, name, z)
+    ssm, r = _transition(model, name)
     steps = min(filter_steps, z.shape[0] - m)
     s0 = z.shape[0] - steps - m
     eye = torch.eye(m, dtype=z.dtype, device=z.device)
