@@ -17,11 +17,12 @@ Step ``k`` (model convention of :mod:`prognos_torch.core.model`):
 3. Measurement moments under the prior: predicted measurement, ``P_xz``, innovation factor
    ``S_zz = Tria([Z, S_R])`` (paper 000 Eq. 40; paper 003 Eq. 22-24).
 4. Gain ``K = (P_xz / S_zz^T) / S_zz`` by triangular solves (paper 000 Eq. 44), mean update, and
-   the posterior square root ``cholupdate(S_pred, K S_zz, -1)`` (paper 003 Eq. 28-29; closed-form
-   rank-one downdates, O(n^2 m), on large factors, ``S chol(I - W W^T)`` on small ones). When the sigma points are redrawn from the prior (or for the EKF) this
-   equals the Joseph form ``Tria([chi - K Z, K S_R])`` of paper 000 Eq. 46, which is used
-   instead where the downdate would lose precision (a very informative measurement) and with
-   the robust bound of paper 004.
+   the posterior square root ``cholupdate(S_pred, K S_zz, -1)`` (paper 003 Eq. 28-29;
+   closed-form rank-one downdates, O(n^2 m), on large factors, ``S chol(I - W W^T)`` on small
+   ones). When the sigma points are redrawn from the prior (or for the EKF) this equals the
+   Joseph form ``Tria([chi - K Z, K S_R])`` of paper 000 Eq. 46, which is used instead where the
+   downdate would lose precision (a very informative measurement) and with the robust bound of
+   paper 004.
 
 Missing data: NaN marks a missing measurement component. A vector that is NaN throughout is
 *missing*: the step only predicts (the posterior equals the prior, the log-likelihood
