@@ -65,7 +65,7 @@ class UpdateContext:
     missing: Tensor
     any_missing: bool | None = None
 
-    @cached_property
+    @property
     def has_missing(self) -> bool:
         return bool(self.missing.any()) if self.any_missing is None else self.any_missing
 
@@ -224,8 +224,7 @@ class SageHusa:
         if self.frozen:
             return s
         keep = c.missing
-        # some batch elements skip this step (missing measurement)
-        held = c.has_missing if c.any_missing is None else c.any_missing
+        held = c.has_missing  # some batch elements skip this step (missing measurement)
 
         def hold(old: Tensor, new: Tensor, extra: int) -> Tensor:
             if not held:

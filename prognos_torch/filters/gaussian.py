@@ -56,6 +56,7 @@ from ..core.linalg import (
     tria,
 )
 from ..core.model import Noise, StateSpaceModel
+from ..core.validation import all_finite
 from ..quadrature import SigmaPoints, cubature, julier, unscented
 
 __all__ = [
@@ -552,7 +553,7 @@ class GaussianFilter:
         y, any_missing = self._check_y(model, y, belief)
         u = self._check_u(model, u, belief)
         noise = self._noise(model, state, k)
-        observed = None
+        observed = nan = None
         if any_missing:
             nan = torch.isnan(y)
             incomplete = nan.any(-1)  # strong tracking and noise estimators skip these
@@ -607,7 +608,7 @@ class GaussianFilter:
         K = cho_solve_right(mom.pxz(), Szz)  # paper 000 Eq. 44
         eps = y - mom.z
         if any_missing:
-            eps = torch.where(torch.isnan(y), torch.zeros_like(y), eps)
+            eps = torch.where(nan, torch.zeros_like(y), eps)
         mean = prior.mean + (K @ eps.unsqueeze(-1)).squeeze(-1)  # Eq. 45
         chol = self._posterior_chol(prior, mom, K, Szz, chol_R)
         if any_missing:
@@ -627,7 +628,7 @@ class GaussianFilter:
                 gain=K,
                 innovation=eps,
                 chol_post=chol,
-                y=torch.where(torch.isnan(y), mom.z, y) if any_missing else y,
+                y=torch.where(nan, mom.z, y) if any_missing else y,
                 h_mean=h_mean,
                 dz_pos=mom.dz_pos,
                 dz_neg=mom.dz_neg,
@@ -662,7 +663,7 @@ class GaussianFilter:
             raise ValueError(f"y must have shape {want} (batch shape + (m,)), got {tuple(y.shape)}")
         if y.device != belief.mean.device:
             raise ValueError(f"y is on {y.device}, the belief on {belief.mean.device}")
-        if math.isfinite(float(y.sum())):  # one reduction: no NaN, no inf (the usual case)
+        if all_finite(y):  # one reduction in the usual case: no NaN, no inf
             return y.to(belief.mean.dtype), False
         if torch.isinf(y).any():
             raise ValueError("y contains inf (use NaN to mark a missing measurement)")
