@@ -46,6 +46,7 @@ from torch import Tensor, nn
 from .elm import (
     as_data,
     as_targets,
+    broadcast_jacobian,
     check_dtype_arg,
     check_forward_input,
     check_nonneg,
@@ -345,11 +346,7 @@ class ANFIS(nn.Module):
         unknown = set(names) - set(jac)
         if unknown:
             raise ValueError(f"ANFIS has no parameters {sorted(unknown)}")
-        # parameters that were not batched give unbatched factors: broadcast to the output's
-        tail = {"alpha": 5}
-        return out, {
-            k: v.expand(*lead, *v.shape[v.dim() - tail.get(k, 4) :]) for k, v in jac.items()
-        }
+        return out, broadcast_jacobian(self, jac, lead)
 
     def _constants(self, like: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """For ``like``'s dtype and device: the rule-selection matrix ``(n * L, R)`` (Eq. 3 in

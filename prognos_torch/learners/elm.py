@@ -26,10 +26,6 @@ from prognos_torch.core.validation import check_finite
 __all__ = ["ELM", "ACTIVATIONS"]
 
 
-#: Trailing dimensions of each entry of ``ELM.forward_and_jacobian`` (B, o, parameter shape).
-_JAC_TAIL = {"a": 4, "b": 3, "beta": 4}
-
-
 def _gaussian(z: Tensor) -> Tensor:
     return torch.exp(-z * z)
 
@@ -60,6 +56,19 @@ def check_dtype_arg(dtype: torch.dtype) -> torch.dtype:
     if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
         raise TypeError(f"dtype must be a floating-point torch.dtype, got {dtype!r}")
     return dtype
+
+
+def broadcast_jacobian(module: nn.Module, jac: dict[str, Tensor], lead) -> dict[str, Tensor]:
+    """Expand ``jac[name]`` ``(..., B, n_out, *shape)`` to the batch dims ``lead`` of the output.
+
+    A parameter that was not batched in ``forward_and_jacobian`` gives an unbatched factor; the
+    trailing dims are ``(B, n_out)`` and the parameter's own shape.
+    """
+    out = {}
+    for name, J in jac.items():
+        tail = 2 + getattr(module, name).dim()
+        out[name] = J.expand(*lead, *J.shape[J.dim() - tail :])
+    return out
 
 
 def check_forward_input(x: Tensor, n_in: int, ref: Tensor) -> None:
@@ -375,8 +384,7 @@ class ELM(nn.Module):
                 jac["b"] = gb
             if "a" in names:
                 jac["a"] = gb.unsqueeze(-1) * x[:, None, None, :]  # (..., B, o, L, n_in)
-        lead = out.shape[:-2]  # parameters that were not batched give unbatched factors
-        return out, {k: v.expand(*lead, *v.shape[v.dim() - _JAC_TAIL[k] :]) for k, v in jac.items()}
+        return out, broadcast_jacobian(self, jac, out.shape[:-2])
 
     # ---------------------------------------------------------------- training (stateful)
     def _hidden64(self, x: Tensor) -> Tensor:

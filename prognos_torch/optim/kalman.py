@@ -538,8 +538,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
             return model
         M = math.prod(out_shape)
         mode = self.param_groups[0]["jacobian"]
-        x1 = x[0] if self.per_run_data else x  # the inputs of one run
-        if mode == "auto" and not b.has_closed_form_jacobian(x1, chunk):
+        if mode == "auto" and not self._closed_form_applies(x):
             mode = "fwd" if b.numel <= M else "autograd"
         inputs = self._inputs
         if self.per_run_data:  # run r evaluates g(theta_r, x_r): vmap over the runs
@@ -683,10 +682,14 @@ class KalmanOptimizer(torch.optim.Optimizer):
         50 us (15 %) less per 44-parameter step than ``no_grad``."""
         if not isinstance(self._filter.rule, Taylor):
             return True
-        mode = self.param_groups[0]["jacobian"]
+        return self.param_groups[0]["jacobian"] == "auto" and self._closed_form_applies(inputs)
+
+    def _closed_form_applies(self, inputs) -> bool:
+        """The learner's closed-form Jacobian applies to these inputs (of one run, with
+        per-run data)."""
         if self.per_run_data and isinstance(inputs, Tensor) and inputs.dim() > 0:
             inputs = inputs[0]
-        return mode == "auto" and self.bridge.has_closed_form_jacobian(inputs, self._chunk)
+        return self.bridge.has_closed_form_jacobian(inputs, self._chunk)
 
     def _step(self, inputs: Tensor, targets: Tensor) -> KalmanStep:
         x, t, out_shape = self._check_batch(inputs, targets)
