@@ -11,6 +11,7 @@ model (see :func:`simulate_model`) and returns a :class:`SimulationResult` with 
 * :mod:`.three_tank` - DTS200 with ``az2`` drift (paper 000 Eq. 57-63).
 * :mod:`.lorenz` - Lorenz system and the Lorenz(x) series (paper 003 Eq. 47).
 * :mod:`.high_speed_train` - five-car train with actuator/coupler/sensor faults (paper 004).
+* :mod:`.battery` - equivalent-circuit battery with end of discharge (progpy's BatteryCircuit).
 
 Equations, parameter sources and the readings chosen where a paper is ambiguous:
 ``docs/systems.md``.
@@ -25,6 +26,12 @@ from ._common import (
     minmax_normalize,
     rk4_step,
     simulate_model,
+)
+from .battery import (
+    BatteryCircuitParams,
+    battery_circuit_model,
+    battery_eod_event,
+    simulate_battery,
 )
 from .cstr import (
     CSTRParams,
@@ -79,6 +86,10 @@ __all__ = [
     "draw_run_noise",
     "minmax_normalize",
     "minmax_denormalize",
+    "BatteryCircuitParams",
+    "battery_circuit_model",
+    "battery_eod_event",
+    "simulate_battery",
     "CSTRParams",
     "cstr_rhs",
     "cstr_step",

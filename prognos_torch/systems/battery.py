@@ -1,0 +1,385 @@
+"""Equivalent-circuit battery with an end-of-discharge event (Daigle & Sankararaman, 2013).
+
+The model is the one NASA's progpy ships as ``BatteryCircuit`` (progpy 1.9.0), written here from
+its documented equations and default parameters, so that the two can be compared step for
+step. State ``x = [tb, qb, qcp, qcs]`` (progpy's order): battery temperature (K) and the charges
+(C) in the capacitors ``Cb``, ``Ccp`` and ``Cs`` of the circuit. Control ``u = [i]``: the current
+drawn (A). Outputs ``y = [t, v]``: temperature (K) and terminal voltage (V). With
+
+    SOC  = (CMax - qMax + qb) / CMax
+    Cb   = Cbp0 SOC^3 + Cbp1 SOC^2 + Cbp2 SOC + Cbp3          (SOC-dependent capacitance)
+    Rcp  = Rcp0 + Rcp1 exp(Rcp2 (1 - SOC))                    (SOC-dependent resistance)
+    Vb   = qb / Cb,   Vcp = qcp / Ccp,   Vcs = qcs / Cs
+    v    = Vb - Vcp - Vcs
+    ib   = i + v / Rp,   icp = ib - Vcp / Rcp,   ics = ib - Vcs / Rs
+
+the dynamics are
+
+    d tb / dt  = (ha (Ta - tb) + hcs Vcs^2 / Rs + hcp Vcp^2 / Rcp) / Jt
+    d qb / dt  = -ib
+    d qcp / dt = icp
+    d qcs / dt = ics
+
+discretised, as progpy's ``next_state`` does, by one explicit Euler step ``x + dt dx/dt``. The
+end-of-discharge (EOD) event is ``v < VEOD``; progpy's event state is
+``min(SOC, (v - VEOD) / VDropoff)``.
+
+Conventions shared with progpy's simulator, so that trajectories and event times agree:
+
+* the current of the step from ``t_{k-1}`` to ``t_k = t_{k-1} + dt`` is the load evaluated at the
+  midpoint ``t_{k-1} + dt / 2`` (:func:`load_controls`);
+* the event is checked after each step: the EOD time is the first ``t_k`` with ``v(x_k) < VEOD``.
+
+progpy clips ``tb`` and ``qb`` at 0 in its simulator (``state_limits``). This model does not clip
+(nothing in the library clips silently); both stay far above 0 before the end of discharge, so
+trajectories up to the event are the same.
+
+``Cb`` is evaluated by Horner's rule and the temperature rate in its reduced form above, which
+are algebraically the forms progpy evaluates; the difference is rounding (relative ~1e-16).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..core.model import StateSpaceModel
+from ._common import (
+    SimulationResult,
+    check_count,
+    check_params_finite,
+    check_positive,
+    check_std,
+    diag_chol,
+    draw_run_noise,
+    initial_state,
+    resolve_generator,
+    simulate_model,
+)
+
+__all__ = [
+    "BatteryCircuitParams",
+    "LOAD_TIMES",
+    "LOAD_CURRENTS",
+    "battery_circuit_rhs",
+    "battery_circuit_step",
+    "battery_circuit_output",
+    "battery_voltage",
+    "battery_event_state",
+    "battery_eod_event",
+    "battery_circuit_model",
+    "piecewise_load",
+    "load_controls",
+    "simulate_battery",
+]
+
+#: Switching times (s) and currents (A) of progpy's documented battery example load: 2 A until
+#: 600 s, 1 A until 900 s, 4 A until 1800 s, 2 A until 3000 s, 3 A after that.
+LOAD_TIMES = (600.0, 900.0, 1800.0, 3000.0)
+LOAD_CURRENTS = (2.0, 1.0, 4.0, 2.0, 3.0)
+
+# progpy's UnscentedKalmanFilter defaults: Q = R = 1e-3 I.
+_Q_STD = 1e-3**0.5
+_R_STD = 1e-3**0.5
+
+
+@dataclass(frozen=True)
+class BatteryCircuitParams:
+    """Parameters of the circuit model; defaults are progpy 1.9.0's ``BatteryCircuit`` defaults.
+
+    Attributes:
+        qMax: maximum charge (C). CMax: maximum capacity (C).
+        VEOD: end-of-discharge voltage (V). VDropoff: voltage range of the event state (V).
+        Rp: parasitic resistance (Ohm).
+        Cbp0, Cbp1, Cbp2, Cbp3: coefficients of the capacitance ``Cb(SOC)`` (F).
+        Rs, Cs: resistance (Ohm) and capacitance (F) of the surface R-C pair.
+        Rcp0, Rcp1, Rcp2, Ccp: ``Rcp(SOC)`` coefficients (Ohm, Ohm, 1) and capacitance (F) of
+            the concentration-polarisation R-C pair.
+        Ta: ambient temperature (K). Jt: thermal capacity (J/K).
+        ha, hcp, hcs: heat-transfer coefficients (ambient, Rcp pair, Rs pair).
+        x0: full-charge initial state ``(tb, qb, qcp, qcs)``.
+    """
+
+    qMax: float = 7856.3254
+    CMax: float = 7777.0
+    VEOD: float = 3.0
+    VDropoff: float = 0.1
+    Rp: float = 1e4
+    Cbp0: float = -230.0
+    Cbp1: float = 1.2
+    Cbp2: float = 2079.9
+    Cbp3: float = 27.055726
+    Rs: float = 0.0538926
+    Cs: float = 234.387
+    Rcp0: float = 0.0697776
+    Rcp1: float = 1.50528e-17
+    Rcp2: float = 37.223
+    Ccp: float = 14.8223
+    Ta: float = 292.1
+    Jt: float = 800.0
+    ha: float = 0.5
+    hcp: float = 19.0
+    hcs: float = 1.0
+    x0: tuple[float, float, float, float] = (292.1, 7856.3254, 0.0, 0.0)
+
+    def __post_init__(self):
+        check_params_finite(self)
+        check_positive(self, "qMax", "CMax", "VDropoff", "Rp", "Rs", "Cs", "Ccp", "Jt", "Ta")
+        if len(self.x0) != 4:
+            raise ValueError(f"BatteryCircuitParams.x0 must hold 4 numbers, got {self.x0!r}")
+
+
+def _parts(x: Tensor, p: BatteryCircuitParams):
+    """``tb, Vcs, Vcp, Rcp, v`` of the state ``x`` ``(..., 4)``; each ``(...)``."""
+    tb, qb, qcp, qcs = x.unbind(-1)
+    vcs = qcs / p.Cs
+    vcp = qcp / p.Ccp
+    soc = (qb + (p.CMax - p.qMax)) / p.CMax
+    cb = ((p.Cbp0 * soc + p.Cbp1) * soc + p.Cbp2) * soc + p.Cbp3
+    rcp = p.Rcp0 + p.Rcp1 * torch.exp(p.Rcp2 * (1.0 - soc))
+    v = qb / cb - vcp - vcs
+    return tb, vcs, vcp, rcp, v, soc
+
+
+def _current(u: Tensor | None) -> Tensor:
+    if u is None:
+        raise ValueError("the battery model needs the current u of shape (..., 1)")
+    if u.shape[-1] != 1:
+        raise ValueError(f"u must have shape (..., 1) (the current in A), got {tuple(u.shape)}")
+    return u[..., 0]
+
+
+def battery_circuit_rhs(x: Tensor, u: Tensor, params: BatteryCircuitParams | None = None) -> Tensor:
+    """``dx/dt`` of the circuit model (module docstring).
+
+    Args:
+        x: ``(..., 4)`` states ``[tb, qb, qcp, qcs]``.
+        u: ``(..., 1)`` currents (A), broadcastable to ``x[..., :1]``.
+    Returns:
+        ``(..., 4)`` rates ``[dtb, dqb, dqcp, dqcs] / dt``.
+    """
+    p = params or BatteryCircuitParams()
+    i = _current(u)
+    tb, vcs, vcp, rcp, v, _ = _parts(x, p)
+    ib = i + v / p.Rp
+    dtb = (p.ha * (p.Ta - tb) + (p.hcs / p.Rs) * vcs * vcs + p.hcp * vcp * vcp / rcp) / p.Jt
+    return torch.stack([dtb, -ib, ib - vcp / rcp, ib - vcs / p.Rs], dim=-1)
+
+
+def battery_circuit_step(
+    x: Tensor, u: Tensor, dt: float, params: BatteryCircuitParams | None = None
+) -> Tensor:
+    """One Euler step ``x + dt * dx/dt`` (progpy's ``next_state``): ``(..., 4) -> (..., 4)``."""
+    return x + dt * battery_circuit_rhs(x, u, params)
+
+
+def battery_voltage(x: Tensor, params: BatteryCircuitParams | None = None) -> Tensor:
+    """Terminal voltage ``v = Vb - Vcp - Vcs`` (V) of ``x`` ``(..., 4)``: shape ``(...)``."""
+    return _parts(x, params or BatteryCircuitParams())[4]
+
+
+def battery_circuit_output(x: Tensor, params: BatteryCircuitParams | None = None) -> Tensor:
+    """Outputs ``[t, v]`` (K, V) of ``x`` ``(..., 4)``: shape ``(..., 2)`` (progpy's ``output``)."""
+    return torch.stack([x[..., 0], battery_voltage(x, params)], dim=-1)
+
+
+def battery_event_state(x: Tensor, params: BatteryCircuitParams | None = None) -> Tensor:
+    """progpy's EOD event state ``min(SOC, (v - VEOD) / VDropoff)``: ``(..., 4) -> (...)``."""
+    p = params or BatteryCircuitParams()
+    *_, v, soc = _parts(x, p)
+    return torch.minimum(soc, (v - p.VEOD) / p.VDropoff)
+
+
+def battery_eod_event(
+    params: BatteryCircuitParams | None = None,
+) -> Callable[[Tensor, int], Tensor]:
+    """The end-of-discharge event ``v(x) < VEOD`` as ``event(x (..., 4), k) -> bool (...)``.
+
+    This is the ``event`` argument of :func:`prognos_torch.prognosis.simulate_to_event`.
+    """
+    p = params or BatteryCircuitParams()
+
+    def event(x: Tensor, k: int) -> Tensor:
+        return _parts(x, p)[4] < p.VEOD
+
+    return event
+
+
+def battery_circuit_model(
+    dt: float = 1.0,
+    *,
+    params: BatteryCircuitParams | None = None,
+    process_noise_std=_Q_STD,
+    measurement_noise_std=_R_STD,
+    dtype=torch.float64,
+    device=None,
+) -> StateSpaceModel:
+    """The circuit model as a :class:`StateSpaceModel` (states in progpy's order, current as control).
+
+    ``f(x, u, k) = x + dt * dx/dt`` (:func:`battery_circuit_step`, ``u = [i]``,
+    ``control_dim = 1``), ``h(x, u, k) = [tb, v]`` (:func:`battery_circuit_output`). The model is
+    written for arbitrary leading dimensions (``batched=True``); ``model.transition`` and
+    ``model.observe`` evaluate it on ``(..., 4)``.
+
+    Args:
+        dt: step length (s), positive.
+        params: :class:`BatteryCircuitParams` (progpy's defaults).
+        process_noise_std: per-step std of ``w_k`` (one number or 4), i.e. ``chol_Q = diag``. The
+            default ``sqrt(1e-3)`` gives progpy's ``UnscentedKalmanFilter`` default ``Q = 1e-3 I``.
+            (progpy's simulator adds ``dt * N(0, process_noise)`` per step: for ``dt != 1`` pass
+            ``dt * process_noise`` here.)
+        measurement_noise_std: std of ``v_k`` (one number or 2); default ``sqrt(1e-3)``, progpy's
+            UKF default ``R = 1e-3 I``.
+    """
+    p = params or BatteryCircuitParams()
+    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not math.isfinite(dt) or dt <= 0:
+        raise ValueError(f"dt must be a finite positive number, got {dt!r}")
+    dt = float(dt)
+    SQ = diag_chol(check_std(process_noise_std, 4, "process_noise_std"), dtype, device)
+    SR = diag_chol(check_std(measurement_noise_std, 2, "measurement_noise_std"), dtype, device)
+
+    def f(x, u, k):
+        return battery_circuit_step(x, u, dt, p)
+
+    def h(x, u, k):
+        return battery_circuit_output(x, p)
+
+    return StateSpaceModel(
+        f=f, h=h, state_dim=4, obs_dim=2, chol_Q=SQ, chol_R=SR, control_dim=1, batched=True
+    )
+
+
+def piecewise_load(
+    times: Sequence[float] = LOAD_TIMES, values: Sequence[float] = LOAD_CURRENTS
+) -> Callable[[Tensor], Tensor]:
+    """A piecewise-constant load ``t -> value``: ``values[j]`` for ``times[j-1] <= t < times[j]``.
+
+    ``values`` has one more entry than ``times`` (the last holds after the last switch), as
+    progpy's ``Piecewise`` loading. The default is progpy's battery example load
+    (:data:`LOAD_TIMES`, :data:`LOAD_CURRENTS`). The returned function maps a tensor of times
+    ``(...)`` to ``(...)``.
+    """
+    ts = [float(t) for t in times]
+    vs = [float(v) for v in values]
+    if len(vs) != len(ts) + 1:
+        raise ValueError(
+            f"values must have one more entry than times, got {len(vs)} values for {len(ts)} times"
+        )
+    if any(not math.isfinite(t) for t in ts) or any(b <= a for a, b in zip(ts, ts[1:])):
+        raise ValueError(f"times must be finite and strictly increasing, got {tuple(ts)}")
+    if any(not math.isfinite(v) for v in vs):
+        raise ValueError(f"values must be finite, got {tuple(vs)}")
+
+    def load(t: Tensor) -> Tensor:
+        t = torch.as_tensor(t, dtype=torch.float64)
+        edges = torch.tensor(ts, dtype=t.dtype, device=t.device)
+        table = torch.tensor(vs, dtype=t.dtype, device=t.device)
+        return table[torch.bucketize(t, edges, right=True)]
+
+    return load
+
+
+def load_controls(
+    load: Callable[[Tensor], Tensor] | None = None,
+    steps: int = 10_000,
+    *,
+    dt: float = 1.0,
+    t0: float = 0.0,
+    dtype=torch.float64,
+    device=None,
+) -> Tensor:
+    """Controls ``(steps, 1)`` for steps ``k = 1..steps`` from ``t0``: ``u_k = load(t0 + (k - 1/2) dt)``.
+
+    The midpoint rule is progpy's: the load of the step from ``t_{k-1}`` to ``t_k`` is read at
+    ``t_{k-1} + dt / 2``. ``load`` defaults to :func:`piecewise_load` (progpy's example load).
+    """
+    check_count(steps, "steps")
+    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not math.isfinite(dt) or dt <= 0:
+        raise ValueError(f"dt must be a finite positive number, got {dt!r}")
+    load = load or piecewise_load()
+    k = torch.arange(1, steps + 1, dtype=torch.float64)
+    t_mid = (k - 0.5) * float(dt) + float(t0)
+    return load(t_mid).to(dtype=dtype, device=device).reshape(steps, 1)
+
+
+def simulate_battery(
+    n_steps: int,
+    runs: int = 1,
+    *,
+    params: BatteryCircuitParams | None = None,
+    x0=None,
+    u=None,
+    dt: float = 1.0,
+    noise: bool = True,
+    process_noise_std=0.0,
+    measurement_noise_std=_R_STD,
+    generator: torch.Generator | None = None,
+    dtype=torch.float64,
+    device=None,
+) -> SimulationResult:
+    """Simulate ``runs`` discharges of the circuit model for ``n_steps`` steps of ``dt``.
+
+    Args:
+        x0: ``(4,)`` or ``(runs, 4)`` initial state; default the full charge ``params.x0``.
+        u: ``(T, 1)`` or ``(T, runs, 1)`` currents; default :func:`load_controls` of progpy's
+            example load.
+        process_noise_std: per-step process-noise std (default 0: progpy's model default).
+        measurement_noise_std: std of the ``[t, v]`` measurements (default ``sqrt(1e-3)``).
+        noise: ``False`` switches all noise off (no generator needed).
+    Returns:
+        :class:`SimulationResult` with ``x`` ``(T+1, runs, 4)``, ``y`` ``(T, runs, 2)``,
+        ``u`` ``(T, runs, 1)``, ``t = k dt``. The run is not stopped at the EOD event.
+    """
+    p = params or BatteryCircuitParams()
+    check_count(n_steps, "n_steps")
+    check_count(runs, "runs")
+    gen = resolve_generator(generator, noise)
+    X0 = initial_state(p.x0 if x0 is None else x0, 4, runs, dtype, device)
+    if u is None:
+        u = load_controls(steps=n_steps, dt=dt, dtype=dtype, device=device)
+    U = torch.as_tensor(u, dtype=dtype, device=device)
+    if tuple(U.shape) == (n_steps, 1):
+        U = U.unsqueeze(1).expand(n_steps, runs, 1)
+    elif tuple(U.shape) != (n_steps, runs, 1):
+        raise ValueError(
+            f"u must have shape (T, 1) or (T, runs, 1) = ({n_steps}, {runs}, 1), "
+            f"got {tuple(U.shape)}"
+        )
+    model = battery_circuit_model(
+        dt,
+        params=p,
+        process_noise_std=process_noise_std,
+        measurement_noise_std=measurement_noise_std,
+        dtype=dtype,
+        device=device,
+    )
+    e_w = e_v = None
+    if gen is not None:
+        e_w, e_v = draw_run_noise(
+            gen, runs, n_steps, [("normal", (4,)), ("normal", (2,))], dtype=dtype, device=device
+        )
+    x, y = simulate_model(model, X0, n_steps, e_w=e_w, e_v=e_v, u=U)
+    return SimulationResult(
+        t=torch.arange(n_steps + 1, dtype=dtype, device=device) * float(dt),
+        x=x,
+        y=y,
+        theta=x.new_zeros(n_steps + 1, runs, 0),
+        u=U,
+        meta={
+            "system": "battery_circuit",
+            "paper": "Daigle & Sankararaman 2013 (progpy BatteryCircuit)",
+            "equations": "equivalent circuit, explicit Euler",
+            "dt": float(dt),
+            "time_unit": "s",
+            "state_names": ("tb", "qb", "qcp", "qcs"),
+            "measurement_names": ("t", "v"),
+            "param_names": (),
+            "process_noise_std": check_std(process_noise_std, 4, "process_noise_std"),
+            "measurement_noise_std": check_std(measurement_noise_std, 2, "measurement_noise_std"),
+            "noise": noise,
+        },
+    )
