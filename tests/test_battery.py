@@ -13,6 +13,7 @@ from prognos_torch.systems.battery import (
     LOAD_TIMES,
     BatteryCircuitParams,
     battery_circuit_model,
+    battery_circuit_rhs,
     battery_eod_event,
     battery_event_state,
     battery_voltage,
@@ -55,6 +56,7 @@ def test_next_state_and_output_equal_progpy(pp, dt):
     ref_next = pp.next_state(pp.StateContainer(X.copy()), pp.InputContainer(current[None]), dt)
     ref_out = pp.output(pp.StateContainer(X.copy()))
     ref_es = pp.event_state(pp.StateContainer(X.copy()))["EOD"]
+    ref_dx = pp.dx(pp.StateContainer(X.copy()), pp.InputContainer(current[None]))
     model = battery_circuit_model(dt)
     x, u = t(X.T), t(current[:, None])
     nxt = model.transition(x, u, 1)
@@ -62,6 +64,8 @@ def test_next_state_and_output_equal_progpy(pp, dt):
     np.testing.assert_allclose(nxt.numpy(), ref_next.matrix.T, rtol=1e-12, atol=1e-10)
     np.testing.assert_allclose(out.numpy(), ref_out.matrix.T, rtol=1e-12, atol=1e-10)
     np.testing.assert_allclose(battery_event_state(x).numpy(), ref_es, rtol=1e-12, atol=1e-10)
+    rhs = battery_circuit_rhs(x, u)
+    np.testing.assert_allclose(rhs.numpy(), ref_dx.matrix.T, rtol=1e-11, atol=1e-12)
     # single samples (what vmap-free callers pass) agree with the batch
     assert torch.equal(model.transition(x[3], u[3], 1), nxt[3])
 
@@ -105,7 +109,7 @@ def test_simulated_discharge_and_eod_time_equal_progpy(pp):
     for k in range(1, 5001):
         x = model.transition(x, U[k - 1], k)
         xs.append(x)
-        if bool(event(x, k)):
+        if bool(event(x)):
             eod = float(k)
             break
     ours = torch.stack(xs).numpy()

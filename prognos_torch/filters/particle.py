@@ -495,7 +495,7 @@ class ParticleFilter:
         _check_generator(generator, x_prev)
         bs = state.batch_shape
         u = self._check_u(model, u, bs, x_prev)
-        u_p = None if u is None or u.dim() == 1 else u.unsqueeze(-2)
+        u_p = None if u is None else u if u.dim() == 1 else u.unsqueeze(-2)
         noise = _noise(model, k, bs, x_prev)
         eps = torch.randn(
             x_prev.shape, generator=generator, dtype=x_prev.dtype, device=x_prev.device
@@ -525,7 +525,7 @@ class ParticleFilter:
             )
         pmodel = _particle_model(model, len(bs), N)
         y_e = y.unsqueeze(-2).expand(*bs, N, model.obs_dim)
-        u_e = None if u is None or u.dim() == 1 else u_p.expand(*bs, N, u.shape[-1])
+        u_e = None if u is None else u if u.dim() == 1 else u_p.expand(*bs, N, u.shape[-1])
         # the per-particle Gaussian is centred on the particle (Van der Merwe et al., Sec. 4)
         fs_in = replace(fs, belief=GaussianBelief(x_prev, fs.belief.chol))
         prop = self.proposal
@@ -605,7 +605,7 @@ class ParticleFilter:
         dt, dev = x_prev.dtype, x_prev.device
         y = self._check_y(model, y, bs, x_prev)
         u = self._check_u(model, u, bs, x_prev)
-        u_p = None if u is None or u.dim() == 1 else u.unsqueeze(-2)
+        u_p = None if u is None else u if u.dim() == 1 else u.unsqueeze(-2)
         missing = torch.isnan(y).any(-1)  # (...)
         any_missing = bool(missing.any())
         y_safe = torch.where(missing[..., None], torch.zeros_like(y), y) if any_missing else y

@@ -1,5 +1,6 @@
 """Prognosis: fault probability and remaining-useful-life distributions from predictions."""
 
+from .events import EventPrediction, sample_belief, simulate_to_event
 from .rul import RULDistribution, fault_probability, fault_probability_gaussian, rul_distribution
 
 __all__ = [
@@ -7,6 +8,9 @@ __all__ = [
     "fault_probability",
     "fault_probability_gaussian",
     "rul_distribution",
+    "EventPrediction",
+    "sample_belief",
+    "simulate_to_event",
 ]
 from .forecast import (
     FaultPrediction,

@@ -134,14 +134,14 @@ class BatteryCircuitParams:
 
 
 def _parts(x: Tensor, p: BatteryCircuitParams):
-    """``tb, Vcs, Vcp, Rcp, v`` of the state ``x`` ``(..., 4)``; each ``(...)``."""
+    """``tb, Vcs, Vcp, Rcp, v, SOC`` of the state ``x`` ``(..., 4)``; each ``(...)``."""
     tb, qb, qcp, qcs = x.unbind(-1)
     vcs = qcs / p.Cs
     vcp = qcp / p.Ccp
     soc = (qb + (p.CMax - p.qMax)) / p.CMax
     cb = ((p.Cbp0 * soc + p.Cbp1) * soc + p.Cbp2) * soc + p.Cbp3
-    rcp = p.Rcp0 + p.Rcp1 * torch.exp(p.Rcp2 * (1.0 - soc))
-    v = qb / cb - vcp - vcs
+    rcp = torch.exp((1.0 - soc) * p.Rcp2).mul_(p.Rcp1).add_(p.Rcp0)
+    v = (qb / cb).sub_(vcp).sub_(vcs)
     return tb, vcs, vcp, rcp, v, soc
 
 
@@ -153,6 +153,17 @@ def _current(u: Tensor | None) -> Tensor:
     return u[..., 0]
 
 
+def _rates(x: Tensor, u: Tensor, p: BatteryCircuitParams) -> Tensor:
+    i = _current(u)
+    tb, vcs, vcp, rcp, v, _ = _parts(x, p)
+    ib = torch.add(i, v, alpha=1.0 / p.Rp)  # i + v / Rp
+    g = vcp / rcp  # Vcp / Rcp
+    # (ha (Ta - tb) + hcs Vcs^2 / Rs + hcp Vcp^2 / Rcp) / Jt
+    dtb = (tb * (-p.ha / p.Jt)).add_(p.ha * p.Ta / p.Jt)
+    dtb = dtb.addcmul_(vcs, vcs, value=p.hcs / (p.Rs * p.Jt)).addcmul_(g, vcp, value=p.hcp / p.Jt)
+    return torch.stack([dtb, -ib, ib - g, torch.add(ib, vcs, alpha=-1.0 / p.Rs)], dim=-1)
+
+
 def battery_circuit_rhs(x: Tensor, u: Tensor, params: BatteryCircuitParams | None = None) -> Tensor:
     """``dx/dt`` of the circuit model (module docstring).
 
@@ -162,19 +173,42 @@ def battery_circuit_rhs(x: Tensor, u: Tensor, params: BatteryCircuitParams | Non
     Returns:
         ``(..., 4)`` rates ``[dtb, dqb, dqcp, dqcs] / dt``.
     """
-    p = params or BatteryCircuitParams()
-    i = _current(u)
-    tb, vcs, vcp, rcp, v, _ = _parts(x, p)
-    ib = i + v / p.Rp
-    dtb = (p.ha * (p.Ta - tb) + (p.hcs / p.Rs) * vcs * vcs + p.hcp * vcp * vcp / rcp) / p.Jt
-    return torch.stack([dtb, -ib, ib - vcp / rcp, ib - vcs / p.Rs], dim=-1)
+    return _rates(x, u, params or BatteryCircuitParams())
 
 
 def battery_circuit_step(
     x: Tensor, u: Tensor, dt: float, params: BatteryCircuitParams | None = None
 ) -> Tensor:
-    """One Euler step ``x + dt * dx/dt`` (progpy's ``next_state``): ``(..., 4) -> (..., 4)``."""
-    return x + dt * battery_circuit_rhs(x, u, params)
+    """One Euler step ``x + dt * dx/dt`` (progpy's ``next_state``): ``(..., 4) -> (..., 4)``.
+
+    The same equations as :func:`battery_circuit_rhs`, arranged for few tensor operations
+    (the Monte-Carlo EOD prediction calls it once per step on all samples): scalar factors are
+    folded into fused ``add``/``addcmul`` calls and ``qcs`` enters its own update as
+    ``qcs (1 - dt / (Cs Rs))``. Equal to ``x + dt * battery_circuit_rhs(x, u)`` up to rounding.
+    """
+    p = params or BatteryCircuitParams()
+    i = _current(u)
+    tb, qb, qcp, qcs = x.unbind(-1)
+    soc = qb.mul(1.0 / p.CMax).add_((p.CMax - p.qMax) / p.CMax)
+    cb = soc.mul(p.Cbp0).add_(p.Cbp1).mul_(soc).add_(p.Cbp2).mul_(soc).add_(p.Cbp3)
+    rcp = torch.rsub(soc, p.Rcp2, alpha=p.Rcp2).exp_().mul_(p.Rcp1).add_(p.Rcp0)
+    vcp = qcp / p.Ccp
+    g = vcp / rcp  # Vcp / Rcp
+    v = torch.add((qb / cb).sub_(vcp), qcs, alpha=-1.0 / p.Cs)  # Vb - Vcp - Vcs
+    ib = torch.add(i, v, alpha=1.0 / p.Rp)
+    # (ha (Ta - tb) + hcs Vcs^2 / Rs + hcp Vcp^2 / Rcp) / Jt
+    dtb = torch.rsub(tb, p.ha * p.Ta / p.Jt, alpha=p.ha / p.Jt)
+    dtb = dtb.addcmul_(qcs, qcs, value=p.hcs / (p.Rs * p.Jt * p.Cs * p.Cs))
+    dtb = dtb.addcmul_(g, vcp, value=p.hcp / p.Jt)
+    return torch.stack(
+        [
+            torch.add(tb, dtb, alpha=dt),
+            torch.add(qb, ib, alpha=-dt),
+            torch.add(qcp, ib - g, alpha=dt),
+            torch.add(qcs * (1.0 - dt / (p.Cs * p.Rs)), ib, alpha=dt),
+        ],
+        dim=-1,
+    )
 
 
 def battery_voltage(x: Tensor, params: BatteryCircuitParams | None = None) -> Tensor:
@@ -196,14 +230,14 @@ def battery_event_state(x: Tensor, params: BatteryCircuitParams | None = None) -
 
 def battery_eod_event(
     params: BatteryCircuitParams | None = None,
-) -> Callable[[Tensor, int], Tensor]:
-    """The end-of-discharge event ``v(x) < VEOD`` as ``event(x (..., 4), k) -> bool (...)``.
+) -> Callable[[Tensor], Tensor]:
+    """The end-of-discharge event ``v(x) < VEOD`` as ``event(x (..., 4)) -> bool (...)``.
 
     This is the ``event`` argument of :func:`prognos_torch.prognosis.simulate_to_event`.
     """
     p = params or BatteryCircuitParams()
 
-    def event(x: Tensor, k: int) -> Tensor:
+    def event(x: Tensor) -> Tensor:
         return _parts(x, p)[4] < p.VEOD
 
     return event
