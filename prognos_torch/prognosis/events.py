@@ -141,7 +141,7 @@ def simulate_to_event(
     k0: int = 0,
     process_noise: bool = False,
     generator: torch.Generator | None = None,
-    chunk: int = 32,
+    chunk: int | None = None,
 ) -> EventPrediction:
     """Propagate ``N`` samples together until each meets ``event`` (module docstring).
 
@@ -166,7 +166,8 @@ def simulate_to_event(
             ``x0``.
         generator: source of the process noise.
         chunk: steps between event checks; does not change the result (the noise is drawn
-            step by step, in the same order whatever the chunk).
+            step by step, in the same order whatever the chunk). Default: 32 steps, fewer for
+            large sample sets (the chunk's states stay within about 2 MB).
     Returns:
         :class:`EventPrediction`. The loop runs under ``torch.inference_mode`` (event times are
         step counts; nothing in the result carries a gradient).
@@ -201,6 +202,8 @@ def simulate_to_event(
             raise ValueError(f"{name} must be a finite number, got {v!r}")
     if dt <= 0:
         raise ValueError(f"dt must be positive, got {dt!r}")
+    if chunk is None:
+        chunk = max(2, min(32, 2**18 // max(1, x0.numel())))
     if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
         raise ValueError(f"chunk must be a positive int, got {chunk!r}")
     if process_noise and not isinstance(generator, torch.Generator):
