@@ -6,6 +6,7 @@ prognos study all [--quick] ...
 prognos fit DATA.csv --column COL [--time-column T] [--learner L] [--optimizer O] --out model.pt
 prognos forecast model.pt DATA.csv --horizon 50 [--plot forecast.png]
 prognos rul model.pt DATA.csv --threshold X [--filter stpf|pf|ekpf|sckf] [--plot rul.png]
+prognos rul FLEET.parquet --group-by asset --column value --time-column t --threshold X --out R.csv
 
 Run ``prognos COMMAND --help`` for the options and examples of each command.
 """
@@ -226,7 +227,9 @@ def _add_rul(sub) -> None:
         ),
         epilog="examples:\n"
         "  prognos rul model.pt data.csv --threshold 0.8 --plot rul.png\n"
-        "  prognos rul model.pt data.csv --threshold 0.8 --filter pf --horizon 400\n\n"
+        "  prognos rul model.pt data.csv --threshold 0.8 --filter pf --horizon 400\n"
+        "  prognos rul fleet.parquet --group-by asset --threshold 20 --out rul.parquet\n"
+        "      (a fleet: one RUL per asset; see prognos rul --group-by ASSET --help)\n\n"
         + _DATA_HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -590,6 +593,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["rul"] and any(a == "--group-by" or a.startswith("--group-by=") for a in argv):
+        from .fleet.cli import main as fleet_main  # fleet mode: a long table, one RUL per asset
+
+        return fleet_main(argv[1:])
     ap = build_parser()
     args = ap.parse_args(argv)
     if not getattr(args, "func", None):

@@ -1,0 +1,44 @@
+"""Fleets: RUL for many assets from one long table, batched, sharded, local or on Ray.
+
+* :func:`fleet_rul` - a table (asset, time, value columns) in, one row per asset out: ``asset,
+  n_rows, t_last, onset_time, rul_median, rul_q05, rul_q95, p_fail_within_horizon,
+  censored_mass, flags, message``;
+* :func:`read_fleet_table` / :func:`write_table` - CSV built in, pandas and Parquet through the
+  ``tables`` extra; output written atomically;
+* :func:`exponential_trend_rul` - the batched RUL method (onset, exponential trend by the
+  engine, posterior sampling per asset);
+* :func:`synthetic_fleet` - exponential degradation with known failure times, for tests and
+  benchmarks.
+"""
+
+from .run import METHODS, OUTPUT_COLUMNS, FleetResult, fleet_rul, run_shard
+from .synthetic import SyntheticFleet, synthetic_fleet
+from .table import TABLE_SUFFIXES, FleetTable, read_fleet_table, write_table
+from .trend import (
+    RUL_COLUMNS,
+    PaddedBatch,
+    asset_seed,
+    exponential_trend_rul,
+    ksigma_onset_batch,
+    pad_batch,
+)
+
+__all__ = [
+    "FleetResult",
+    "FleetTable",
+    "METHODS",
+    "OUTPUT_COLUMNS",
+    "PaddedBatch",
+    "RUL_COLUMNS",
+    "SyntheticFleet",
+    "TABLE_SUFFIXES",
+    "asset_seed",
+    "exponential_trend_rul",
+    "fleet_rul",
+    "ksigma_onset_batch",
+    "pad_batch",
+    "read_fleet_table",
+    "run_shard",
+    "synthetic_fleet",
+    "write_table",
+]

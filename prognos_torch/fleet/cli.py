@@ -1,0 +1,127 @@
+"""``prognos rul TABLE --group-by ASSET ...``: fleet RUL from a long table (see ``--help``)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+__all__ = ["build_parser", "main"]
+
+_EPILOG = """examples:
+  prognos rul fleet.parquet --group-by asset --column value --time-column t --threshold 20 \\
+      --out results.parquet
+  prognos rul fleet.csv --group-by unit --column rms --time-column hours --threshold 0.9 \\
+      --horizon 48 --backend ray --out results.csv
+
+The table has one row per measurement (asset, time, value); assets may be interleaved, but
+each asset's times must increase. Output: one row per asset with the columns asset, n_rows,
+t_last, onset_time, rul_median, rul_q05, rul_q95, p_fail_within_horizon, censored_mass, flags,
+message. The file is written atomically at the end: an interrupted run leaves no partial file.
+Flags: too_few_rows, no_baseline, no_onset (no degradation detected yet: no RUL number),
+threshold_reached, few_degraded_points, nonpositive_dropped, far_extrapolation, bad_input.
+exit status: 0 success, 2 bad input (one line on stderr, nothing written), 130 interrupted."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="prognos rul",
+        description=(
+            "RUL of every asset of a long table (fleet mode of prognos rul): degradation onset "
+            "by the k-sigma rule, exponential trend y = phi + theta exp(beta t) estimated by "
+            "the filter engine for a shard of assets at once, RUL quantiles from posterior "
+            "samples seeded per asset (the table does not depend on --shard-size or "
+            "--backend)."
+        ),
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("table", type=Path, help=".csv or .parquet long table")
+    p.add_argument("--group-by", required=True, help="asset id column")
+    p.add_argument("--column", default="value", help="value column (default value)")
+    p.add_argument("--time-column", default="t", help="time column (default t)")
+    p.add_argument("--threshold", type=float, required=True, help="failure threshold")
+    p.add_argument("--direction", default="above", help="above (default) or below")
+    p.add_argument(
+        "--horizon",
+        type=float,
+        help="time span of p_fail_within_horizon (default: failure at any time)",
+    )
+    p.add_argument("--phi", type=float, default=0.0, help="offset of the exponential model")
+    p.add_argument("--samples", type=int, default=1000, help="posterior draws per asset")
+    p.add_argument("--min-rows", type=int, default=10, help="fewer rows: flagged, no RUL")
+    p.add_argument("--seed", type=int, default=0, help="fleet seed (default 0)")
+    p.add_argument("--shard-size", type=int, default=1024, help="assets per engine call")
+    p.add_argument("--backend", default="local", help="local (default) or ray")
+    p.add_argument("--ray-address", help="Ray cluster address (default: start a local Ray)")
+    p.add_argument(
+        "--on-error",
+        default="raise",
+        help="raise (default) or flag: an asset with a non-numeric value, a duplicate or "
+        "unsorted time is set aside with its message instead of stopping the run",
+    )
+    p.add_argument("--out", type=Path, required=True, help="output .csv or .parquet")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    import torch
+
+    from .run import fleet_rul
+    from .table import TABLE_SUFFIXES
+
+    torch.set_num_threads(1)
+    try:
+        if args.out.suffix.lower() not in TABLE_SUFFIXES:
+            raise ValueError(f"--out must end in {', '.join(TABLE_SUFFIXES)}, got {args.out}")
+        if not (args.out.parent if str(args.out.parent) else Path(".")).is_dir():
+            raise ValueError(f"--out folder does not exist: {args.out.parent}")
+        ray_init = {"address": args.ray_address} if args.ray_address else None
+        t0 = time.perf_counter()
+        res = fleet_rul(
+            args.table,
+            args.threshold,
+            group_by=args.group_by,
+            column=args.column,
+            time_column=args.time_column,
+            direction=args.direction,
+            horizon=args.horizon,
+            seed=args.seed,
+            shard_size=args.shard_size,
+            backend=args.backend,
+            on_error=args.on_error,
+            progress=not args.no_progress,
+            ray_init=ray_init,
+            samples=args.samples,
+            phi=args.phi,
+            min_rows=args.min_rows,
+        )
+        res.write(args.out)
+    except KeyboardInterrupt:
+        print("interrupted: nothing written", file=sys.stderr)
+        return 130
+    except (ValueError, TypeError, OSError, ImportError) as exc:
+        text = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"error: {text}", file=sys.stderr)
+        return 2
+    n = len(res)
+    with_rul = sum(1 for v in res.columns["rul_median"] if v == v)
+    counts = Counter(f for fl in res.columns["flags"] for f in fl.split(";") if f)
+    unit = f" {res.time_unit}" if res.time_unit else ""
+    print(
+        f"{n} assets, {with_rul} with a RUL, in {time.perf_counter() - t0:.1f} s "
+        f"({args.backend}, shards of {args.shard_size}); written to {args.out}"
+        + (f" (times in{unit} since {res.epoch})" if res.epoch else "")
+    )
+    for flag, c in sorted(counts.items()):
+        print(f"  {flag}: {c} asset(s)")
+    bad = [m for m in res.columns["message"] if m]
+    for m in bad[:5]:
+        print(f"  {m}", file=sys.stderr)
+    if len(bad) > 5:
+        print(f"  ... and {len(bad) - 5} more set-aside assets", file=sys.stderr)
+    return 0

@@ -1,0 +1,254 @@
+"""Fleet RUL: a long table in, one row per asset out; shards of assets, local or on Ray.
+
+The assets of a validated table (:func:`~prognos_torch.fleet.table.read_fleet_table`) are cut
+into shards of ``shard_size`` assets in table order; each shard is padded with NaN
+(:func:`~prognos_torch.fleet.trend.pad_batch`) and goes through ONE call of the RUL method,
+which vectorises over the shard's assets. Every asset's randomness comes from its own seed,
+derived from ``(seed, asset id)``, so the table does not depend on the shard size or on the
+backend:
+
+* ``backend="local"``: the shards one after the other in this process (progress bar over
+  shards with ``progress=True``);
+* ``backend="ray"``: one Ray task per shard (``pip install "prognos_torch[ray]"``). An already
+  initialised Ray (a cluster, or ``ray.init(...)`` by the caller) is used as is; otherwise a
+  local Ray is started with ``ray_init`` options and shut down at the end. The tasks return
+  plain arrays; the table is assembled here in asset order.
+
+A RUL method is a function ``method(batch: PaddedBatch, threshold, **options) -> dict`` that
+returns ``(B,)`` arrays for :data:`~prognos_torch.fleet.trend.RUL_COLUMNS` and a list of flag
+strings (see :func:`~prognos_torch.fleet.trend.exponential_trend_rul`, the default). Assets set
+aside by the table checks (``on_error="flag"``) get a row with NaN results, the flag
+``bad_input`` and their message.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .table import FleetTable, read_fleet_table, write_table
+from .trend import RUL_COLUMNS, exponential_trend_rul, pad_batch
+
+__all__ = ["FleetResult", "fleet_rul", "METHODS", "OUTPUT_COLUMNS", "run_shard"]
+
+METHODS: dict[str, Callable] = {"exponential": exponential_trend_rul}
+
+#: the output table's columns, in order
+OUTPUT_COLUMNS = ("asset",) + RUL_COLUMNS + ("flags", "message")
+
+
+@dataclass(frozen=True, eq=False)
+class FleetResult:
+    """One row per asset (table order).
+
+    Attributes:
+        columns: ``{name: list}`` for :data:`OUTPUT_COLUMNS` (floats, NaN where no number is
+            given; ``flags`` ``;``-separated; ``message`` the input problem of a set-aside asset).
+        threshold, direction, horizon, seed, method, shard_size, backend: the run's settings.
+        time_unit, epoch: the time axis (``"days"`` since ``epoch`` for date-time columns).
+    """
+
+    columns: dict[str, list]
+    threshold: float
+    direction: str
+    horizon: float | None
+    seed: int
+    method: str
+    shard_size: int
+    backend: str
+    time_unit: str | None = None
+    epoch: str | None = None
+    options: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.columns["asset"])
+
+    def row(self, asset: str) -> dict:
+        """The output row of one asset as a dict."""
+        i = self.columns["asset"].index(str(asset))
+        return {k: v[i] for k, v in self.columns.items()}
+
+    def flagged(self, flag: str) -> list[str]:
+        """Assets carrying ``flag``."""
+        return [
+            a for a, f in zip(self.columns["asset"], self.columns["flags"]) if flag in f.split(";")
+        ]
+
+    def to_pandas(self):
+        """The table as a pandas DataFrame (``tables`` extra)."""
+        from .table import _needs
+
+        pd = _needs("pandas")
+        return pd.DataFrame(self.columns)
+
+    def write(self, path) -> Path:
+        """Write ``.csv`` or ``.parquet`` atomically (no partial file on interruption)."""
+        return write_table(path, self.columns)
+
+
+def run_shard(payload: Mapping, method: str, threshold: float, options: Mapping) -> dict:
+    """Pad one shard and run the RUL method on it (also the body of a Ray task)."""
+    import torch
+
+    torch.set_num_threads(1)  # many tiny problems: threads only add overhead
+    batch = pad_batch(payload["assets"], payload["times"], payload["values"], payload["seed"])
+    return METHODS[method](batch, threshold, **options)
+
+
+def _shards(table: FleetTable, shard_size: int, seed: int):
+    keep = [i for i, a in enumerate(table.assets) if a not in table.errors]
+    for start in range(0, len(keep), shard_size):
+        ids = keep[start : start + shard_size]
+        yield (
+            ids,
+            {
+                "assets": [table.assets[i] for i in ids],
+                "times": [table.times[i] for i in ids],
+                "values": [table.values[i] for i in ids],
+                "seed": seed,
+            },
+        )
+
+
+def _progress(total: int, enabled: bool):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, disable=not enabled, desc="shards", unit="shard", leave=False)
+
+
+def _run_local(shards, method, threshold, options, progress):
+    out = []
+    with _progress(len(shards), progress) as bar:
+        for _, payload in shards:
+            out.append(run_shard(payload, method, threshold, options))
+            bar.update(1)
+    return out
+
+
+def _run_ray(shards, method, threshold, options, progress, ray_init):
+    try:
+        import ray
+    except ImportError:
+        raise ImportError('backend="ray" needs Ray: pip install "prognos_torch[ray]"') from None
+    started = False
+    if not ray.is_initialized():
+        ray.init(**({"include_dashboard": False} | dict(ray_init or {})))
+        started = True
+    try:
+        task = ray.remote(run_shard)
+        refs = [task.remote(payload, method, threshold, dict(options)) for _, payload in shards]
+        index = {ref: j for j, ref in enumerate(refs)}
+        out: list = [None] * len(refs)
+        pending = list(refs)
+        with _progress(len(refs), progress) as bar:
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                for ref in done:
+                    out[index[ref]] = ray.get(ref)
+                    bar.update(1)
+        return out
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def fleet_rul(
+    source,
+    threshold: float,
+    *,
+    group_by: str = "asset",
+    column: str = "value",
+    time_column: str = "t",
+    direction: str = "above",
+    horizon: float | None = None,
+    seed: int = 0,
+    method: str = "exponential",
+    shard_size: int = 1024,
+    backend: str = "local",
+    on_error: str = "raise",
+    progress: bool = False,
+    ray_init: Mapping | None = None,
+    **options,
+) -> FleetResult:
+    """RUL for every asset of a long table (module docstring).
+
+    Args:
+        source: a :class:`~prognos_torch.fleet.table.FleetTable`, a ``.csv``/``.parquet``
+            path, a pandas DataFrame or a mapping of columns.
+        threshold: failure threshold on the value column.
+        group_by, column, time_column: column names (asset, value, time).
+        direction: ``"above"`` or ``"below"``.
+        horizon: time span for ``p_fail_within_horizon`` (``None``: ever).
+        seed: fleet seed; asset ``a`` uses ``asset_seed(seed, a)``.
+        method: a key of :data:`METHODS`.
+        shard_size: assets per engine call (results do not depend on it).
+        backend: ``"local"`` or ``"ray"``.
+        on_error: ``"raise"`` or ``"flag"`` for per-asset input problems (see
+            :mod:`prognos_torch.fleet.table`); too few rows are always only flagged.
+        progress: progress bar over shards.
+        ray_init: keyword arguments of ``ray.init`` when Ray is started here.
+        **options: the method's options (e.g. ``samples``, ``phi``, ``min_rows``).
+    Returns:
+        :class:`FleetResult`.
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; choose one of {sorted(METHODS)}")
+    if backend not in ("local", "ray"):
+        raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
+    if isinstance(shard_size, bool) or not isinstance(shard_size, int) or shard_size < 1:
+        raise ValueError(f"shard_size must be a positive int, got {shard_size!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise TypeError(f"seed must be an int, got {seed!r}")
+    thr = float(threshold)
+    if not math.isfinite(thr):
+        raise ValueError(f"threshold must be finite, got {threshold!r}")
+    table = (
+        source
+        if isinstance(source, FleetTable)
+        else read_fleet_table(
+            source, group_by=group_by, column=column, time_column=time_column, on_error=on_error
+        )
+    )
+    opts = dict(options, direction=direction, horizon=horizon)
+    shards = list(_shards(table, shard_size, seed))
+    if backend == "local":
+        parts = _run_local(shards, method, thr, opts, progress)
+    else:
+        parts = _run_ray(shards, method, thr, opts, progress, ray_init)
+
+    n = len(table.assets)
+    cols: dict[str, list] = {"asset": list(table.assets)}
+    numeric = {c: np.full(n, np.nan) for c in RUL_COLUMNS}
+    flags = [""] * n
+    message = [""] * n
+    for (ids, _), part in zip(shards, parts):
+        for c in RUL_COLUMNS:
+            numeric[c][ids] = part[c]
+        for j, i in enumerate(ids):
+            flags[i] = part["flags"][j]
+    for i, a in enumerate(table.assets):
+        if a in table.errors:
+            flags[i] = "bad_input"
+            message[i] = table.errors[a]
+            numeric["n_rows"][i] = len(table.values[i])
+    for c in RUL_COLUMNS:
+        cols[c] = [float(v) for v in numeric[c]]
+    cols["flags"] = flags
+    cols["message"] = message
+    return FleetResult(
+        columns=cols,
+        threshold=thr,
+        direction=direction,
+        horizon=horizon,
+        seed=seed,
+        method=method,
+        shard_size=shard_size,
+        backend=backend,
+        time_unit=table.time_unit,
+        epoch=table.epoch,
+        options=dict(options),
+    )

@@ -1,0 +1,401 @@
+"""Long fleet tables in and out: CSV built in; pandas DataFrames and Parquet through the
+optional ``tables`` extra (pandas, pyarrow), imported only when used.
+
+A long table has one row per measurement: an asset id, a time and a value (column names are
+chosen by the caller). Rules (each violation names the asset and the data row, counted from 1
+after the header; a CSV message also gives the file line):
+
+* the asset, time and value columns must exist (the message lists the columns found);
+* the asset id is text (numbers are read as their text, so ``7`` in a DataFrame and ``"7"`` in a
+  CSV are the same asset); an empty id is an error;
+* time: numbers, or ISO 8601 date-times (then days since the earliest time in the table);
+  missing or non-finite times are errors;
+* value: a number; empty cells and ``nan``/``NA``/``null``/``none``/``-`` are missing (NaN);
+  anything else (text, ``inf``) is a *non-numeric value*;
+* per asset, times must be strictly increasing in table order: an equal time is a *duplicate
+  timestamp*, a smaller one *unsorted time*. Assets may be interleaved in the table.
+
+Per-asset problems (non-numeric value, duplicate or unsorted time) raise ``ValueError`` by
+default; with ``on_error="flag"`` the asset is set aside with its message and the rest of the
+fleet goes on. Output files are written atomically (a temporary file in the same folder, then a
+rename): an interrupted run leaves the old file or none, never a partial one.
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib
+import io
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..io import atomic_write
+
+__all__ = ["FleetTable", "read_fleet_table", "write_table", "TABLE_SUFFIXES"]
+
+TABLE_SUFFIXES = (".csv", ".parquet", ".pq")
+_MISSING = {"", "nan", "na", "n/a", "null", "none", "-"}
+
+
+def _needs(package: str):
+    """Import an optional dependency of the ``tables`` extra, or say how to install it."""
+    try:
+        return importlib.import_module(package)
+    except ImportError:
+        raise ImportError(
+            f"{package} is needed for this table format; install the optional extra: "
+            'pip install "prognos_torch[tables]"'
+        ) from None
+
+
+@dataclass(frozen=True, eq=False)
+class FleetTable:
+    """A validated long table grouped by asset.
+
+    Attributes:
+        assets: asset ids (text) in order of first appearance.
+        times: one float64 array per asset (strictly increasing).
+        values: one float64 array per asset (NaN: missing).
+        rows: one int64 array per asset: the data rows (1-based) the samples came from.
+        errors: ``{asset: message}`` for assets set aside (``on_error="flag"``).
+        source: where the table came from (for messages).
+        time_unit: ``None`` (the time column's own unit) or ``"days"`` (date-times).
+        epoch: the date-time that is day 0, or ``None``.
+        columns: ``(group_by, time_column, column)`` names used.
+    """
+
+    assets: list[str]
+    times: list[np.ndarray]
+    values: list[np.ndarray]
+    rows: list[np.ndarray]
+    errors: dict[str, str] = field(default_factory=dict)
+    source: str = "table"
+    time_unit: str | None = None
+    epoch: str | None = None
+    columns: tuple[str, str, str] = ("asset", "t", "value")
+
+    def __len__(self) -> int:
+        return len(self.assets)
+
+
+# --------------------------------------------------------------------------- reading
+def _missing_column(name: str, what: str, found: Sequence[str], source: str) -> ValueError:
+    shown = ", ".join(repr(c) for c in found[:20]) + (" ..." if len(found) > 20 else "")
+    return ValueError(f"{source}: no {what} column {name!r}; columns found: {shown}")
+
+
+def _csv_columns(path: Path, names: Sequence[str], whats: Sequence[str]):
+    if not path.exists():
+        raise FileNotFoundError(f"table not found: {path}")
+    if not path.is_file():
+        raise ValueError(f"table path is not a file: {path}")
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as handle:
+            sample = handle.read(64 * 1024)
+            handle.seek(0)
+            try:
+                dialect = csv.Sniffer().sniff(sample, delimiters=",;\t")
+            except csv.Error:
+                dialect = csv.excel
+            reader = csv.reader(handle, dialect)
+            header = next(reader, None)
+            if header is None or not any(c.strip() for c in header):
+                raise ValueError(f"{path}: empty file (a header row with column names is needed)")
+            header = [c.strip() for c in header]
+            idx = []
+            for name, what in zip(names, whats):
+                if name not in header:
+                    raise _missing_column(name, what, header, str(path))
+                idx.append(header.index(name))
+            cols: list[list[str]] = [[] for _ in names]
+            width = max(idx) + 1
+            for line_no, row in enumerate(reader, start=2):
+                if len(row) < width:
+                    if not any(c.strip() for c in row):
+                        continue  # blank line
+                    raise ValueError(
+                        f"{path}, line {line_no}: {len(row)} cells, the header has {len(header)}"
+                    )
+                for c, i in zip(cols, idx):
+                    c.append(row[i])
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a UTF-8 text CSV file") from None
+    except csv.Error as exc:
+        raise ValueError(f"{path}: malformed CSV ({exc})") from None
+    return cols
+
+
+def _frame_columns(frame, names: Sequence[str], whats: Sequence[str], source: str):
+    found = [str(c) for c in frame.columns]
+    out = []
+    for name, what in zip(names, whats):
+        if name not in frame.columns:
+            raise _missing_column(name, what, found, source)
+        out.append(frame[name].to_numpy())
+    return out
+
+
+def _mapping_columns(data: Mapping, names: Sequence[str], whats: Sequence[str], source: str):
+    out = []
+    for name, what in zip(names, whats):
+        if name not in data:
+            raise _missing_column(name, what, [str(k) for k in data], source)
+        out.append(np.asarray(data[name]))
+    return out
+
+
+def _asset_text(col) -> np.ndarray:
+    arr = np.asarray(col)
+    if arr.dtype.kind in "iu":
+        return arr.astype(str)
+    if arr.dtype.kind == "f":
+        return np.array([repr(float(v)) if math.isfinite(v) else "" for v in arr], dtype=object)
+    return np.array(["" if v is None else str(v).strip() for v in arr], dtype=object)
+
+
+def _numbers(col, what: str):
+    """float64 array and the positions of cells that are not numbers (text or inf)."""
+    arr = np.asarray(col)
+    if arr.dtype.kind in "iub":
+        if arr.dtype.kind == "b":
+            return np.full(arr.shape, np.nan), np.arange(arr.size)  # booleans are not values
+        return arr.astype(np.float64), np.empty(0, dtype=np.int64)
+    if arr.dtype.kind == "f":
+        out = arr.astype(np.float64)
+        return out, np.flatnonzero(np.isinf(out))
+    out = np.empty(arr.size, dtype=np.float64)
+    bad = []
+    for i, cell in enumerate(arr.tolist()):
+        if cell is None:
+            out[i] = np.nan
+            continue
+        if isinstance(cell, (int, float)) and not isinstance(cell, bool):
+            out[i] = float(cell)
+            if math.isinf(out[i]):
+                bad.append(i)
+            continue
+        text = str(cell).strip()
+        if text.lower() in _MISSING:
+            out[i] = np.nan
+            continue
+        try:
+            out[i] = float(text)
+        except ValueError:
+            out[i] = np.nan
+            bad.append(i)
+            continue
+        if math.isinf(out[i]):
+            bad.append(i)
+    return out, np.asarray(bad, dtype=np.int64)
+
+
+def _times(col, where):
+    """Numeric times, or date-times as days since the earliest; returns (t, unit, epoch)."""
+    arr = np.asarray(col)
+    if arr.dtype.kind == "M":
+        stamps = arr.astype("datetime64[ns]")
+    elif arr.dtype.kind in "iuf":
+        t = arr.astype(np.float64)
+        bad = np.flatnonzero(~np.isfinite(t))
+        if bad.size:
+            raise ValueError(f"{where(bad[0])}: the time is missing or not finite")
+        return t, None, None
+    else:
+        t, bad = _numbers(arr, "time")
+        if bad.size == 0 and not np.isnan(t).any():
+            return t, None, None
+        first_text = bad[0] if bad.size else None
+        try:
+            stamps = np.array([np.datetime64(str(c).strip(), "ns") for c in arr.tolist()])
+        except ValueError:
+            i = first_text if first_text is not None else int(np.flatnonzero(np.isnan(t))[0])
+            raise ValueError(
+                f"{where(i)}: time {arr[i]!r} is neither a number nor an ISO 8601 date-time"
+            ) from None
+    nat = np.flatnonzero(np.isnat(stamps))
+    if nat.size:
+        raise ValueError(f"{where(nat[0])}: the time is missing")
+    epoch = stamps.min()
+    days = (stamps - epoch) / np.timedelta64(1, "D")
+    return days.astype(np.float64), "days", str(epoch.astype("datetime64[s]"))
+
+
+def read_fleet_table(
+    source,
+    *,
+    group_by: str = "asset",
+    column: str = "value",
+    time_column: str = "t",
+    on_error: str = "raise",
+) -> FleetTable:
+    """Read and validate a long table (module docstring) and group it by asset.
+
+    Args:
+        source: a ``.csv`` / ``.parquet`` path, a pandas DataFrame, or a mapping of column
+            name to a 1-D array (all of one length).
+        group_by, column, time_column: the asset, value and time column names.
+        on_error: ``"raise"`` (default) or ``"flag"`` (set the asset aside with its message).
+    Returns:
+        :class:`FleetTable`.
+    """
+    if on_error not in ("raise", "flag"):
+        raise ValueError(f"on_error must be 'raise' or 'flag', got {on_error!r}")
+    names = (group_by, time_column, column)
+    whats = ("asset (--group-by)", "time (--time-column)", "value (--column)")
+    line_offset = None
+    if isinstance(source, (str, Path)):
+        path = Path(source)
+        label = str(path)
+        suffix = path.suffix.lower()
+        if suffix == ".csv":
+            cols = _csv_columns(path, names, whats)
+            line_offset = 1
+        elif suffix in (".parquet", ".pq"):
+            if not path.exists():
+                raise FileNotFoundError(f"table not found: {path}")
+            pq = _needs("pyarrow.parquet")
+            try:
+                tab = pq.read_table(path)
+            except Exception as exc:  # pyarrow raises its own error types
+                raise ValueError(f"{path}: not a readable Parquet file ({exc})") from None
+            found = list(tab.column_names)
+            cols = []
+            for name, what in zip(names, whats):
+                if name not in found:
+                    raise _missing_column(name, what, found, label)
+                cols.append(tab.column(name).to_numpy(zero_copy_only=False))
+        else:
+            raise ValueError(
+                f"{path}: unknown table format {suffix!r}; use one of {', '.join(TABLE_SUFFIXES)}"
+            )
+    elif type(source).__module__.split(".")[0] == "pandas" and hasattr(source, "columns"):
+        label = "DataFrame"
+        cols = _frame_columns(source, names, whats, label)
+    elif isinstance(source, Mapping):
+        label = "table"
+        cols = _mapping_columns(source, names, whats, label)
+    else:
+        raise TypeError(
+            "source must be a .csv/.parquet path, a pandas DataFrame or a mapping of columns, "
+            f"got {type(source).__name__}"
+        )
+    n = len(cols[0])
+    for name, c in zip(names, cols):
+        if np.ndim(c) != 1 or len(c) != n:
+            raise ValueError(f"{label}: column {name!r} must be 1-D with {n} rows")
+    if n == 0:
+        raise ValueError(f"{label}: the table has no data rows")
+
+    def where(i, asset=None):
+        line = f" (line {int(i) + 1 + line_offset})" if line_offset is not None else ""
+        a = f"asset {asset!r}, " if asset is not None else ""
+        return f"{label}: {a}row {int(i) + 1}{line}"
+
+    asset = _asset_text(cols[0])
+    empty = np.flatnonzero(asset == "")
+    if empty.size:
+        raise ValueError(f"{where(empty[0])}: empty asset id in column {group_by!r}")
+    uniq, first, code = np.unique(asset, return_index=True, return_inverse=True)
+    order_assets = np.argsort(first, kind="stable")  # assets in order of first appearance
+    rank = np.empty_like(order_assets)
+    rank[order_assets] = np.arange(order_assets.size)
+    code = rank[code]
+    names_in_order = [str(a) for a in uniq[order_assets]]
+
+    t, unit, epoch = _times(cols[1], lambda i: where(i, asset[i]))
+    v, bad = _numbers(cols[2], "value")
+    errors: dict[str, str] = {}
+
+    def fail(i: int, text: str) -> None:
+        a = names_in_order[code[i]]
+        msg = f"{where(i, a)}: {text}"
+        if on_error == "raise":
+            raise ValueError(msg)
+        errors.setdefault(a, msg)
+
+    for i in bad.tolist():
+        fail(i, f"value {cols[2][i]!r} in column {column!r} is not a number")
+    order = np.argsort(code, kind="stable")
+    co, to = code[order], t[order]
+    same = co[1:] == co[:-1]
+    step = to[1:] - to[:-1]
+    for j in np.flatnonzero(same & (step <= 0)).tolist():
+        i_prev, i = int(order[j]), int(order[j + 1])
+        if step[j] == 0:
+            fail(i, f"duplicate timestamp {float(to[j + 1])!r} (also at row {i_prev + 1})")
+        else:
+            fail(
+                i,
+                f"time {float(to[j + 1])!r} comes after {float(to[j])!r} (row {i_prev + 1}): "
+                "times must "
+                "increase within each asset; sort the table by asset and time",
+            )
+    bounds = np.flatnonzero(np.diff(co)) + 1
+    segs = np.split(order, bounds)
+    return FleetTable(
+        assets=names_in_order,
+        times=[t[s] for s in segs],
+        values=[v[s] for s in segs],
+        rows=[s.astype(np.int64) + 1 for s in segs],
+        errors=errors,
+        source=label,
+        time_unit=unit,
+        epoch=epoch,
+        columns=(group_by, time_column, column),
+    )
+
+
+# --------------------------------------------------------------------------- writing
+def _csv_cell(v) -> str:
+    if isinstance(v, (float, np.floating)):
+        return "" if math.isnan(v) else repr(float(v))
+    if isinstance(v, (int, np.integer)) and not isinstance(v, bool):
+        return str(int(v))
+    return str(v)
+
+
+def write_table(path, columns: Mapping[str, Sequence]) -> Path:
+    """Write columns (name -> equal-length sequence) to ``.csv`` or ``.parquet``, atomically.
+
+    Floats are written in full precision (``repr``: they read back exactly); NaN is an empty
+    CSV cell and a null in Parquet. Parquet needs the ``tables`` extra (pyarrow).
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    names = list(columns)
+    n = {len(columns[c]) for c in names}
+    if len(n) > 1:
+        raise ValueError(f"columns must have one length, got {sorted(n)}")
+    if suffix == ".csv":
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(names)
+        cols = [list(columns[c]) for c in names]
+        for row in zip(*cols):
+            w.writerow([_csv_cell(v) for v in row])
+        atomic_write(path, buf.getvalue().encode("utf-8"))
+    elif suffix in (".parquet", ".pq"):
+        pa = _needs("pyarrow")
+        pq = _needs("pyarrow.parquet")
+        arrays = {}
+        for c in names:
+            col = list(columns[c])
+            if col and all(isinstance(v, (float, np.floating)) for v in col):
+                arr = np.asarray(col, dtype=np.float64)
+                arrays[c] = pa.array(arr, mask=np.isnan(arr))  # NaN -> null
+            elif col and all(isinstance(v, (str, np.str_)) for v in col):
+                arrays[c] = pa.array([str(v) for v in col], type=pa.string())
+            else:
+                arrays[c] = pa.array(col)
+        sink = io.BytesIO()
+        pq.write_table(pa.table(arrays), sink)
+        atomic_write(path, sink.getvalue())
+    else:
+        raise ValueError(
+            f"{path}: unknown table format {suffix!r}; use one of {', '.join(TABLE_SUFFIXES)}"
+        )
+    return path

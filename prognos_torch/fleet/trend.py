@@ -1,0 +1,427 @@
+"""Batched RUL for a shard of assets: degradation onset, exponential trend by the engine, RUL.
+
+The function of this module takes ONE padded batch of series (a shard) and returns per-asset
+RUL quantiles; every step is vectorised over the assets of the shard, and nothing in an asset's
+result depends on the other assets of the shard (shard-size invariance; tested to 1e-12).
+
+1. **Onset** (first prediction time): the k-sigma rule on a trailing moving median against a
+   healthy baseline (the first ``baseline`` fraction of each asset's observed time span; mean
+   and standard deviation ddof = 1; moving median over the observed samples, window ``w``; onset
+   = first of ``c`` consecutive medians beyond ``mean + k std`` in the degradation direction).
+   This is the rule of :func:`prognos_torch.prognosis.onset.ksigma_onset`, batched over assets
+   with NaN padding. Before onset the asset is reported as "no degradation detected yet"
+   (``no_onset``) and no RUL number is given.
+2. **Exponential trend** (Gebraeel et al., 2005): ``y = phi + theta exp(beta tau + eps)``,
+   ``tau = t - t_onset``, i.e. ``z = log(s (y - phi)) = a + beta tau + eps`` with
+   ``s = +1`` ("above") or ``-1`` ("below"): linear-Gaussian in the parameters
+   ``x = [a, beta]``. They are the state of a random walk (``x_k = x_{k-1} + w``, default
+   ``w = 0``: Gebraeel's Bayesian regression), measured by ``z_k = [1, tau_k] x_k + v`` with
+   ``v ~ N(0, sigma^2)`` and ``sigma`` the spread of ``z`` over the asset's healthy baseline.
+   The engine filters all assets of the shard in ONE ``filters.run`` call (EKF: exact Kalman
+   filter for this linear model; NaN = missing, so padding and gaps only predict). The prior is
+   ``a ~ N(baseline mean of z, prior_std[0]^2)``, ``beta ~ N(0, prior_std[1]^2)`` (default
+   ``prior_std[1]``: one log unit per median sampling interval).
+3. **RUL**: ``samples`` draws of ``[a, beta]`` from the posterior at the asset's last row, each
+   from the asset's own generator (seeded by :func:`asset_seed` from the fleet seed and the asset
+   id: results do not depend on sharding). Each sampled trend crosses ``log(s (X - phi))`` at
+   ``tau* = (log(s (X - phi)) - a) / beta`` if ``beta > 0`` (its first passage, in closed form)
+   and never otherwise; ``RUL = max(0, tau* - tau_last)``. Paths that never cross are the
+   censored mass (the model's horizon is unbounded: no cap is put on the crossing time).
+   ``p_fail_within_horizon = P(RUL <= horizon)`` (``horizon=None``: ever). Quantiles are lower
+   empirical quantiles over the samples with censored paths at +inf: NaN where the quantile lies
+   beyond every crossing.
+
+Flags (``;``-separated per asset): ``too_few_rows``, ``no_baseline`` (baseline window with fewer
+than 3 samples, no spread, or non-positive ``s (y - phi)``), ``no_onset``, ``threshold_reached``
+(the last observed value is at or beyond the threshold: RUL 0), ``few_degraded_points`` (fewer
+than 3 usable samples after onset: the interval is wide), ``nonpositive_dropped`` (samples with
+``s (y - phi) <= 0`` after onset were treated as missing), ``far_extrapolation`` (median RUL
+beyond ``extrapolation_limit`` times the observed degradation time: a guard rail).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..core import GaussianBelief, StateSpaceModel
+from ..filters import ekf, run
+from ..filters.gaussian import GaussianFilter
+
+__all__ = [
+    "PaddedBatch",
+    "asset_seed",
+    "pad_batch",
+    "ksigma_onset_batch",
+    "exponential_trend_rul",
+    "RUL_COLUMNS",
+]
+
+#: per-asset numeric outputs of a RUL method, in table order
+RUL_COLUMNS = (
+    "n_rows",
+    "t_last",
+    "onset_time",
+    "rul_median",
+    "rul_q05",
+    "rul_q95",
+    "p_fail_within_horizon",
+    "censored_mass",
+)
+
+
+def asset_seed(seed: int, asset: str) -> int:
+    """A 63-bit seed from the fleet seed and the asset id (BLAKE2b of both; stable everywhere)."""
+    h = hashlib.blake2b(f"{int(seed)}\x1f{asset}".encode(), digest_size=8).digest()
+    return int.from_bytes(h, "little") & (2**63 - 1)
+
+
+@dataclass(frozen=True, eq=False)
+class PaddedBatch:
+    """A shard of ragged series, left-aligned and padded with NaN.
+
+    Attributes:
+        assets: the ``B`` asset ids.
+        values: ``(B, T)`` float64 (NaN: missing or padding).
+        times: ``(B, T)`` float64 (NaN in the padding).
+        lengths: ``(B,)`` int64 number of rows of each asset.
+        seeds: ``(B,)`` per-asset seeds (:func:`asset_seed`).
+    """
+
+    assets: list[str]
+    values: Tensor
+    times: Tensor
+    lengths: Tensor
+    seeds: list[int]
+
+    def __len__(self) -> int:
+        return len(self.assets)
+
+
+def pad_batch(assets, times, values, seed: int = 0) -> PaddedBatch:
+    """Pad per-asset 1-D arrays into a :class:`PaddedBatch` (float64, NaN padding)."""
+    B = len(assets)
+    if not (len(times) == len(values) == B) or B == 0:
+        raise ValueError("assets, times and values must be non-empty and of one length")
+    lengths = [len(v) for v in values]
+    T = max(max(lengths), 1)
+    V = np.full((B, T), np.nan)
+    X = np.full((B, T), np.nan)
+    for i, (t, v) in enumerate(zip(times, values)):
+        if len(t) != len(v):
+            raise ValueError(f"asset {assets[i]!r}: {len(t)} times but {len(v)} values")
+        V[i, : len(v)] = v
+        X[i, : len(t)] = t
+    return PaddedBatch(
+        assets=list(assets),
+        values=torch.from_numpy(V),
+        times=torch.from_numpy(X),
+        lengths=torch.tensor(lengths, dtype=torch.int64),
+        seeds=[asset_seed(seed, a) for a in assets],
+    )
+
+
+# --------------------------------------------------------------------------- onset
+@dataclass(frozen=True)
+class BatchOnset:
+    """Per-asset onset of :func:`ksigma_onset_batch` (``(B,)`` tensors)."""
+
+    index: Tensor  # int64 original row index of the onset, -1 if none
+    time: Tensor  # float64, NaN if none
+    baseline_ok: Tensor  # bool
+    base_mean: Tensor
+    base_std: Tensor
+    in_baseline: Tensor  # (B, T) bool: row belongs to the baseline window
+
+
+def ksigma_onset_batch(
+    values: Tensor,
+    times: Tensor,
+    lengths: Tensor,
+    *,
+    baseline: float = 0.3,
+    k: float = 4.0,
+    window: int = 5,
+    consecutive: int = 5,
+    direction: str = "above",
+) -> BatchOnset:
+    """The k-sigma moving-median onset rule (module docstring), batched over ``(B, T)`` rows."""
+    B, T = values.shape
+    sign = 1.0 if direction == "above" else -1.0
+    cols = torch.arange(T, device=values.device)
+    obs = ~torch.isnan(values) & (cols < lengths[:, None])
+    n_obs = obs.sum(1)
+    # observed samples first, in time order (stable sort on the missing flag)
+    perm = torch.sort((~obs).to(torch.int8), dim=1, stable=True).indices
+    xc = values.gather(1, perm)
+    tc = times.gather(1, perm)
+    valid = cols < n_obs[:, None]
+    xc = torch.where(valid, xc, torch.full_like(xc, math.nan))
+    last = (n_obs - 1).clamp(min=0)
+    t0 = tc[:, 0]
+    t1 = tc.gather(1, last[:, None])[:, 0]
+    limit = t0 + baseline * (t1 - t0) + 1e-12 * torch.clamp(t1.abs(), min=1.0)
+    inside = valid & (tc <= limit[:, None])
+    nb = inside.sum(1)
+    xs = torch.where(inside, xc, torch.zeros_like(xc))
+    mean = xs.sum(1) / nb.clamp(min=1)
+    dev = torch.where(inside, xc - mean[:, None], torch.zeros_like(xc))
+    std = torch.sqrt((dev * dev).sum(1) / (nb - 1).clamp(min=1))
+    ok = (nb >= 3) & (std > 0) & (n_obs >= 1)
+    pad = torch.full((B, window - 1), math.nan, dtype=xc.dtype, device=xc.device)
+    med = torch.cat([pad, xc], 1).unfold(1, window, 1).nanmedian(-1).values  # (B, T)
+    z = sign * (med - mean[:, None]) / torch.where(ok, std, torch.ones_like(std))[:, None]
+    above = (valid & (z > k)).to(torch.int64)
+    if T < consecutive:
+        above = torch.cat([above, above.new_zeros(B, consecutive - T)], 1)
+    runs = above.unfold(1, consecutive, 1).sum(-1) == consecutive  # (B, T - c + 1)
+    found = runs.any(1) & ok
+    first_c = torch.argmax(runs.to(torch.int8), dim=1)
+    first_c = torch.where(found, first_c, torch.zeros_like(first_c))
+    index = torch.where(found, perm.gather(1, first_c[:, None])[:, 0], torch.full_like(n_obs, -1))
+    time = torch.where(found, tc.gather(1, first_c[:, None])[:, 0], torch.full_like(t0, math.nan))
+    in_base = torch.zeros_like(obs)
+    in_base.scatter_(1, perm, inside)
+    return BatchOnset(index, time, ok, mean, std, in_base)
+
+
+# --------------------------------------------------------------------------- trend + RUL
+def _trend_model(chol_Q: Tensor, chol_R: Tensor) -> StateSpaceModel:
+    """``x = [a, beta]`` random walk, ``z = a + beta tau`` with ``tau`` as the control."""
+
+    def h(x, u, k):
+        return x[..., :1] + x[..., 1:2] * u
+
+    def jac_h(x, u, k):
+        one = torch.ones_like(u)
+        return torch.stack([one, u], dim=-1).expand(*x.shape[:-1], 1, 2)
+
+    return StateSpaceModel(
+        f=None,
+        h=h,
+        state_dim=2,
+        obs_dim=1,
+        chol_Q=chol_Q,
+        chol_R=chol_R,
+        control_dim=1,
+        batched=True,
+        jac_h=jac_h,
+    )
+
+
+def _lower_quantile(sorted_rul: Tensor, q: float) -> Tensor:
+    """``sorted[ceil(q N) - 1]`` along the last axis; inf (beyond every crossing) -> NaN."""
+    n = sorted_rul.shape[-1]
+    j = min(n - 1, max(0, math.ceil(q * n - 1e-12) - 1))
+    v = sorted_rul[..., j]
+    return torch.where(torch.isinf(v), torch.full_like(v, math.nan), v)
+
+
+def exponential_trend_rul(
+    batch: PaddedBatch,
+    threshold: float,
+    *,
+    direction: str = "above",
+    phi: float = 0.0,
+    horizon: float | None = None,
+    samples: int = 1000,
+    min_rows: int = 10,
+    baseline: float = 0.3,
+    k: float = 4.0,
+    window: int = 5,
+    consecutive: int = 5,
+    drift_std: tuple[float, float] = (0.0, 0.0),
+    prior_std: tuple[float, float | None] = (1.0, None),
+    extrapolation_limit: float = 10.0,
+    filt: GaussianFilter | None = None,
+    return_posterior: bool = False,
+) -> dict[str, object]:
+    """RUL of every asset of a shard under the exponential trend model (module docstring).
+
+    Args:
+        batch: a :class:`PaddedBatch` (one shard).
+        threshold: failure threshold ``X`` on the value.
+        direction: ``"above"`` (failure when ``y >= X``) or ``"below"``.
+        phi: the model's offset ``phi`` (``s (X - phi)`` must be positive).
+        horizon: time span for ``p_fail_within_horizon`` (``None``: ever).
+        samples: posterior draws per asset.
+        min_rows: fewer observed rows than this are flagged ``too_few_rows`` (no RUL).
+        baseline, k, window, consecutive: the onset rule.
+        drift_std: random-walk std of ``[a, beta]`` per step (default 0: fixed parameters).
+        prior_std: prior std of ``a`` and ``beta`` (``None``: one log unit per median interval).
+        extrapolation_limit: guard rail for ``far_extrapolation``.
+        filt: the engine configuration (default :func:`~prognos_torch.filters.ekf`).
+        return_posterior: also return ``"posterior_mean"`` ``(B, 2)``, ``"posterior_chol"``
+            ``(B, 2, 2)`` (of ``[a, beta]`` at the last row), ``"onset_index"`` ``(B,)`` and
+            ``"log_noise_std"`` ``(B,)`` tensors.
+    Returns:
+        ``{column: (B,) float64 numpy array}`` for :data:`RUL_COLUMNS` and ``"flags"`` (list of
+        ``;``-separated strings).
+    """
+    if direction not in ("above", "below"):
+        raise ValueError(f"direction must be 'above' or 'below', got {direction!r}")
+    s = 1.0 if direction == "above" else -1.0
+    thr = float(threshold)
+    if not math.isfinite(thr) or not math.isfinite(float(phi)):
+        raise ValueError(f"threshold and phi must be finite, got {threshold!r}, {phi!r}")
+    if not s * (thr - phi) > 0:
+        side = "above" if s > 0 else "below"
+        raise ValueError(
+            f"threshold {thr:g} must lie {side} phi = {phi:g} for direction {direction!r} "
+            "(the exponential model y = phi + theta exp(beta t) grows away from phi)"
+        )
+    if horizon is not None and not (isinstance(horizon, (int, float)) and horizon > 0):
+        raise ValueError(f"horizon must be a positive number or None, got {horizon!r}")
+    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
+        raise ValueError(f"samples must be a positive int, got {samples!r}")
+    log_thr = math.log(s * (thr - phi))
+    y, t, lengths = batch.values, batch.times, batch.lengths
+    B, T = y.shape
+    dev, dt = y.device, y.dtype
+    cols = torch.arange(T, device=dev)
+    in_rows = cols < lengths[:, None]
+    obs = ~torch.isnan(y) & in_rows
+    n_obs = obs.sum(1)
+    last_row = (lengths - 1).clamp(min=0)
+    t_last = t.gather(1, last_row[:, None])[:, 0]
+    # last observed value (for "threshold reached")
+    last_obs = torch.where(obs, cols, torch.full_like(cols, -1)).amax(1)
+    y_last = y.gather(1, last_obs.clamp(min=0)[:, None])[:, 0]
+
+    on = ksigma_onset_batch(
+        y,
+        t,
+        lengths,
+        baseline=baseline,
+        k=k,
+        window=window,
+        consecutive=consecutive,
+        direction=direction,
+    )
+    d = s * (y - phi)
+    z = torch.where(obs & (d > 0), torch.log(torch.where(d > 0, d, torch.ones_like(d))), torch.nan)
+    # log-domain baseline: the measurement noise and the prior level of the trend
+    zb_ok = on.in_baseline & ~torch.isnan(z)
+    nzb = zb_ok.sum(1)
+    zb_mean = torch.where(zb_ok, z, 0.0).sum(1) / nzb.clamp(min=1)
+    zb_dev = torch.where(zb_ok, z - zb_mean[:, None], 0.0)
+    zb_std = torch.sqrt((zb_dev * zb_dev).sum(1) / (nzb - 1).clamp(min=1))
+    nonpos_base = (on.in_baseline & obs & (d <= 0)).any(1)
+    base_ok = on.baseline_ok & (nzb >= 3) & (zb_std > 0) & ~nonpos_base
+    enough = n_obs >= min_rows
+    has_onset = (on.index >= 0) & base_ok & enough
+    reached = (s * (y_last - thr) >= 0) & (n_obs > 0)
+
+    # post-onset samples, shifted so that each asset's onset row is step 0
+    i0 = torch.where(has_onset, on.index, lengths)  # no onset: nothing to filter
+    n_fit = (lengths - i0).clamp(min=0)
+    Tf = max(int(n_fit.max()), 1)
+    idx = i0[:, None] + torch.arange(Tf, device=dev)
+    inside = idx < lengths[:, None]
+    idx_c = idx.clamp(max=T - 1)
+    t_on = torch.where(has_onset, on.time, torch.zeros_like(on.time))
+    zs = torch.where(inside, z.gather(1, idx_c), torch.nan)
+    taus = torch.where(inside, t.gather(1, idx_c) - t_on[:, None], 0.0)
+    n_deg = (~torch.isnan(zs)).sum(1)
+    nonpos = (inside & obs.gather(1, idx_c) & (d.gather(1, idx_c) <= 0)).any(1)
+
+    # prior and noise per asset
+    step = torch.diff(t, dim=1)
+    step = torch.where(torch.isnan(step), torch.inf, step)
+    med_dt = torch.where(
+        (lengths > 1),
+        step.sort(1).values.gather(1, ((lengths - 2) // 2).clamp(min=0)[:, None])[:, 0],
+        1.0,
+    )
+    sa = float(prior_std[0])
+    sb = (1.0 / med_dt) if prior_std[1] is None else torch.full_like(med_dt, float(prior_std[1]))
+    m0 = torch.stack([torch.where(base_ok, zb_mean, 0.0), torch.zeros_like(zb_mean)], -1)
+    S0 = torch.zeros(B, 2, 2, dtype=dt, device=dev)
+    S0[:, 0, 0] = sa
+    S0[:, 1, 1] = sb
+    sr = torch.where(base_ok, zb_std, 1.0)
+    model = _trend_model(
+        torch.diag(torch.tensor([float(v) for v in drift_std], dtype=dt, device=dev)),
+        sr[:, None, None],
+    )
+    tr = run(filt or ekf(), model, GaussianBelief(m0, S0), zs.T[..., None], taus.T[..., None])
+    last = (n_fit - 1).clamp(min=0)
+    sel = last[None, :, None].expand(1, B, 2)
+    mean = tr.means.gather(0, sel)[0]  # (B, 2)
+    chol = tr.chols.gather(0, last[None, :, None, None].expand(1, B, 2, 2))[0]
+
+    # RUL from posterior samples, each asset with its own generator
+    eps = torch.stack(
+        [
+            torch.randn(samples, 2, generator=torch.Generator().manual_seed(sd), dtype=dt)
+            for sd in batch.seeds
+        ]
+    ).to(dev)
+    theta = mean[:, None, :] + (chol[:, None, :, :] * eps[:, :, None, :]).sum(-1)
+    a, b = theta[..., 0], theta[..., 1]
+    tau_last = (t_last - t_on)[:, None]
+    cross = torch.where(b > 0, (log_thr - a) / torch.where(b > 0, b, 1.0), torch.inf)
+    rul = torch.clamp(cross - tau_last, min=0.0)
+    rul = torch.where(a + b * tau_last >= log_thr, torch.zeros_like(rul), rul)
+    srt = rul.sort(-1).values
+    censored = torch.isinf(rul).to(dt).mean(-1)
+    if horizon is None:
+        p_fail = 1.0 - censored
+    else:
+        p_fail = (rul <= float(horizon)).to(dt).mean(-1)
+    med = _lower_quantile(srt, 0.5)
+    q05 = _lower_quantile(srt, 0.05)
+    q95 = _lower_quantile(srt, 0.95)
+    far = torch.nan_to_num(med, nan=math.inf) > extrapolation_limit * (t_last - t_on).clamp(
+        min=torch.finfo(dt).tiny
+    )
+
+    nan = torch.full((B,), math.nan, dtype=dt, device=dev)
+    usable = has_onset & ~reached
+    out = {
+        "n_rows": lengths.to(dt),
+        "t_last": t_last,
+        "onset_time": torch.where(has_onset, on.time, nan),
+        "rul_median": torch.where(usable, med, nan),
+        "rul_q05": torch.where(usable, q05, nan),
+        "rul_q95": torch.where(usable, q95, nan),
+        "p_fail_within_horizon": torch.where(usable, p_fail, nan),
+        "censored_mass": torch.where(usable, censored, nan),
+    }
+    zero, one = torch.zeros_like(nan), torch.ones_like(nan)
+    for key, val in (
+        ("rul_median", zero),
+        ("rul_q05", zero),
+        ("rul_q95", zero),
+        ("p_fail_within_horizon", one),
+        ("censored_mass", zero),
+    ):
+        out[key] = torch.where(reached & enough, val, out[key])
+    res: dict[str, object] = {key: v.cpu().numpy() for key, v in out.items()}
+    flags = []
+    checks = [
+        ("too_few_rows", ~enough),
+        ("no_baseline", enough & ~base_ok),
+        ("threshold_reached", reached & enough),
+        ("no_onset", enough & base_ok & (on.index < 0) & ~reached),
+        ("few_degraded_points", has_onset & (n_deg < 3) & ~reached),
+        ("nonpositive_dropped", has_onset & nonpos & ~reached),
+        ("far_extrapolation", usable & far),
+    ]
+    masks = [(name, m.cpu().numpy()) for name, m in checks]
+    for i in range(B):
+        flags.append(";".join(name for name, m in masks if m[i]))
+    res["flags"] = flags
+    if return_posterior:
+        res.update(
+            posterior_mean=mean,
+            posterior_chol=chol,
+            onset_index=torch.where(has_onset, on.index, -1),
+            log_noise_std=sr,
+        )
+    return res

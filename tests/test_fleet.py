@@ -1,0 +1,361 @@
+"""Fleet RUL (prognos_torch.fleet): batched equals per asset, shard-size and backend
+invariance, the trend filter against exact Bayesian regression / Kalman recursions, tables in
+and out, bad input, atomic output, the command line."""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from prognos_torch.cli import main as cli_main
+from prognos_torch.fleet import (
+    METHODS,
+    OUTPUT_COLUMNS,
+    RUL_COLUMNS,
+    exponential_trend_rul,
+    fleet_rul,
+    ksigma_onset_batch,
+    pad_batch,
+    read_fleet_table,
+    synthetic_fleet,
+    write_table,
+)
+
+
+@pytest.fixture(scope="module")
+def fleet():
+    return synthetic_fleet(60, 200, seed=3, ragged=0.5, healthy_fraction=0.1)
+
+
+def _assert_same(a, b, rtol=1e-12):
+    assert a.columns["asset"] == b.columns["asset"]
+    assert a.columns["flags"] == b.columns["flags"]
+    for c in RUL_COLUMNS:
+        np.testing.assert_allclose(
+            np.array(a.columns[c]), np.array(b.columns[c]), rtol=rtol, atol=0, equal_nan=True
+        )
+
+
+def test_fleet_equals_the_per_asset_loop_and_does_not_depend_on_the_shard_size(fleet):
+    tab = read_fleet_table(fleet.table)
+    whole = fleet_rul(tab, fleet.threshold, samples=300, shard_size=len(tab))
+    for size in (1, 7, 25):
+        _assert_same(whole, fleet_rul(tab, fleet.threshold, samples=300, shard_size=size))
+    # an explicit loop: each asset alone in its own table
+    for j in (0, 5, 17, 42):
+        a = fleet.assets[j]
+        rows = fleet.table["asset"] == a
+        alone = {k: v[rows] for k, v in fleet.table.items()}
+        one = fleet_rul(alone, fleet.threshold, samples=300)
+        for c in RUL_COLUMNS:
+            x, y = one.columns[c][0], whole.row(a)[c]
+            assert (math.isnan(x) and math.isnan(y)) or math.isclose(x, y, rel_tol=1e-12), c
+        assert one.columns["flags"][0] == whole.row(a)["flags"]
+    # the table order of the assets does not matter either
+    perm = np.random.default_rng(0).permutation(len(fleet.table["asset"]))
+    shuffled = {k: v[perm] for k, v in fleet.table.items()}
+    with pytest.raises(ValueError, match="times must increase"):
+        fleet_rul(shuffled, fleet.threshold)
+    idx = np.concatenate([np.flatnonzero(fleet.table["asset"] == a) for a in fleet.assets[::-1]])
+    reverse = {k: v[idx] for k, v in fleet.table.items()}  # assets in reverse order
+    by_time = np.argsort(fleet.table["t"], kind="stable")
+    interleaved = {k: v[by_time] for k, v in fleet.table.items()}  # assets interleaved
+    for table, order in ((reverse, fleet.assets[::-1]), (interleaved, None)):
+        res = fleet_rul(table, fleet.threshold, samples=300, shard_size=9)
+        if order is not None:
+            assert res.columns["asset"] == order
+        for a in fleet.assets:
+            r1, r2 = res.row(a), whole.row(a)
+            assert r1["flags"] == r2["flags"]
+            for c in RUL_COLUMNS:
+                assert (math.isnan(r1[c]) and math.isnan(r2[c])) or r1[c] == r2[c]
+
+
+def test_output_columns_and_flags(fleet):
+    res = fleet_rul(fleet.table, fleet.threshold, samples=300, horizon=50.0)
+    assert tuple(res.columns) == OUTPUT_COLUMNS
+    healthy = [a for a, on in zip(fleet.assets, fleet.onset) if not np.isfinite(on)]
+    assert healthy and all("no_onset" in res.row(a)["flags"] for a in healthy)
+    for a in healthy:
+        assert math.isnan(res.row(a)["rul_median"])  # no number before onset
+    ok = [i for i, v in enumerate(res.columns["rul_median"]) if not math.isnan(v)]
+    assert len(ok) > 40
+    for i in ok:
+        q05, med, q95 = (res.columns[c][i] for c in ("rul_q05", "rul_median", "rul_q95"))
+        assert q05 <= med <= q95
+        p = res.columns["p_fail_within_horizon"][i]
+        assert 0.0 <= p <= 1.0 and res.columns["censored_mass"][i] <= 1.0 - p + 1e-12
+    # a larger horizon gives a larger failure probability
+    far = fleet_rul(fleet.table, fleet.threshold, samples=300, horizon=5000.0)
+    assert all(
+        far.columns["p_fail_within_horizon"][i] >= res.columns["p_fail_within_horizon"][i]
+        for i in ok
+    )
+
+
+def test_intervals_cover_the_known_failure_times(fleet):
+    """90 % intervals on degradation simulated from the model: coverage 0.9 within 4 binomial
+    standard deviations, and the median error small relative to the RUL."""
+    sf = synthetic_fleet(400, 300, seed=11, healthy_fraction=0.0)
+    res = fleet_rul(sf.table, sf.threshold, samples=1000)
+    med = np.array(res.columns["rul_median"])
+    lo, hi = np.array(res.columns["rul_q05"]), np.array(res.columns["rul_q95"])
+    ok = np.isfinite(med)
+    assert ok.mean() > 0.9
+    truth = sf.true_rul[ok]
+    cover = (lo[ok] <= truth) & (truth <= np.where(np.isnan(hi[ok]), np.inf, hi[ok]))
+    sd = math.sqrt(0.9 * 0.1 / ok.sum())
+    assert abs(cover.mean() - 0.9) <= 4 * sd, cover.mean()
+    assert np.median(np.abs(med[ok] - truth) / truth) < 0.15
+
+
+def test_trend_posterior_equals_exact_bayesian_regression_and_kalman(fleet):
+    tab = read_fleet_table(fleet.table)
+    batch = pad_batch(tab.assets, tab.times, tab.values, seed=0)
+    for drift in ((0.0, 0.0), (0.02, 1e-3)):
+        out = exponential_trend_rul(
+            batch, fleet.threshold, samples=10, drift_std=drift, return_posterior=True
+        )
+        checked = 0
+        for b in range(len(batch)):
+            i0 = int(out["onset_index"][b])
+            if i0 < 0:
+                continue
+            n = int(batch.lengths[b])
+            t = batch.times[b, :n].numpy()
+            z = np.log(batch.values[b, :n].numpy())
+            base = np.isfinite(z[:n])  # the filter's inputs after onset
+            tau, zz = t[i0:] - t[i0], z[i0:]
+            sigma = float(out["log_noise_std"][b])
+            # prior of the method: a ~ N(mean of z over the baseline, 1), beta ~ N(0, 1/dt^2)
+            m = out["posterior_mean"][b].numpy()
+            S = out["posterior_chol"][b].numpy()
+            dt = np.median(np.diff(t))
+            P0 = np.diag([1.0, 1.0 / dt**2])
+            in_base = t <= t[0] + 0.3 * (t[n - 1] - t[0]) + 1e-12 * max(1.0, abs(t[n - 1]))
+            m0 = np.array([z[in_base & base].mean(), 0.0])
+            mk, Pk = m0, P0
+            Qd = np.diag(np.square(drift))
+            for tk, zk in zip(tau, zz):
+                Pk = Pk + Qd
+                if np.isnan(zk):
+                    continue
+                h = np.array([1.0, tk])
+                s = h @ Pk @ h + sigma**2
+                K = Pk @ h / s
+                mk = mk + K * (zk - h @ mk)
+                Pk = Pk - np.outer(K, K) * s
+            np.testing.assert_allclose(m, mk, rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(S @ S.T, Pk, rtol=1e-7, atol=1e-14)
+            if drift == (0.0, 0.0):  # the closed form of Bayesian linear regression
+                H = np.stack([np.ones_like(tau), tau], 1)[~np.isnan(zz)]
+                A = np.linalg.inv(P0) + H.T @ H / sigma**2
+                mb = np.linalg.solve(A, np.linalg.inv(P0) @ m0 + H.T @ zz[~np.isnan(zz)] / sigma**2)
+                np.testing.assert_allclose(m, mb, rtol=1e-8, atol=1e-12)
+            checked += 1
+        assert checked > 30
+
+
+def test_noiseless_exponential_rul_is_the_closed_form_crossing():
+    # y = theta exp(beta (t - t_on)) after t_on, a tiny noise keeps the baseline spread positive
+    rng = np.random.default_rng(0)
+    t = np.arange(300.0)
+    theta, beta, t_on, X = 1.3, 0.01, 150.0, 20.0
+    y = theta * np.exp(beta * np.maximum(0.0, t - t_on) + 1e-4 * rng.normal(size=t.size))
+    res = fleet_rul({"asset": ["u"] * t.size, "t": t, "value": y}, X, samples=2000)
+    truth = t_on + math.log(X / theta) / beta - t[-1]
+    row = res.row("u")
+    assert row["flags"] == ""
+    assert abs(row["rul_median"] - truth) < 0.005 * truth
+    assert row["rul_q05"] <= truth + 0.01 * truth and truth - 0.01 * truth <= row["rul_q95"]
+
+
+def test_onset_batch_equals_the_per_series_rule():
+    onset = pytest.importorskip("prognos_torch.prognosis.onset")
+    sf = synthetic_fleet(40, 150, seed=5, ragged=0.4)
+    tab = read_fleet_table(sf.table)
+    values = [v.copy() for v in tab.values]
+    values[3][10:14] = np.nan  # gaps are skipped by both
+    batch = pad_batch(tab.assets, tab.times, values)
+    for direction in ("above", "below"):
+        got = ksigma_onset_batch(batch.values, batch.times, batch.lengths, direction=direction)
+        for b in range(len(batch)):
+            ref = onset.ksigma_onset(torch.from_numpy(values[b]), torch.from_numpy(tab.times[b]),
+                                     direction=direction)  # fmt: skip
+            if ref.detected:
+                assert int(got.index[b]) == ref.index
+                assert float(got.time[b]) == ref.time
+            else:
+                assert int(got.index[b]) == -1
+            assert math.isclose(float(got.base_mean[b]), ref.baseline.mean, rel_tol=1e-12)
+
+
+# --------------------------------------------------------------------------- tables
+def test_csv_mapping_dataframe_and_parquet_give_the_same_table(tmp_path, fleet):
+    ref = fleet_rul(fleet.table, fleet.threshold, samples=200)
+    cols = {"asset": list(fleet.table["asset"]), "t": list(fleet.table["t"]),
+            "value": list(fleet.table["value"])}  # fmt: skip
+    write_table(tmp_path / "f.csv", cols)
+    _assert_same(ref, fleet_rul(tmp_path / "f.csv", fleet.threshold, samples=200), rtol=0)
+    pd = pytest.importorskip("pandas")
+    pytest.importorskip("pyarrow")
+    df = pd.DataFrame(fleet.table)
+    _assert_same(ref, fleet_rul(df, fleet.threshold, samples=200), rtol=0)
+    write_table(tmp_path / "f.parquet", cols)
+    _assert_same(ref, fleet_rul(tmp_path / "f.parquet", fleet.threshold, samples=200), rtol=0)
+    # integer asset ids in a DataFrame are the same assets as their text in a CSV
+    df2 = pd.DataFrame({"unit": [7] * 30 + [8] * 30, "t": list(range(30)) * 2, "v": 1.0})
+    t2 = read_fleet_table(df2, group_by="unit", time_column="t", column="v")
+    assert t2.assets == ["7", "8"]
+    # results round-trip through both formats exactly
+    for name in ("r.csv", "r.parquet"):
+        ref.write(tmp_path / name)
+        back = read_back(tmp_path / name)
+        assert back["asset"] == ref.columns["asset"]
+        for c in RUL_COLUMNS:
+            np.testing.assert_array_equal(np.array(back[c], dtype=float), ref.columns[c])
+
+
+def read_back(path):
+    if path.suffix == ".csv":
+        import csv
+
+        with open(path, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        return {k: [r[k] if k in ("asset", "flags", "message") else float(r[k] or "nan")
+                    for r in rows] for k in rows[0]}  # fmt: skip
+    import pyarrow.parquet as pq
+
+    tab = pq.read_table(path).to_pydict()
+    return {k: [math.nan if v is None else v for v in vals] for k, vals in tab.items()}
+
+
+def _small_csv(tmp_path, body: str):
+    p = tmp_path / "bad.csv"
+    p.write_text("asset,t,value\n" + body)
+    return p
+
+
+def test_bad_input_messages_name_the_asset_and_row(tmp_path):
+    good = "".join(f"A,{k},{1 + 0.01 * k}\n" for k in range(12))
+    p = tmp_path / "nocol.csv"
+    p.write_text("unit,t,value\nA,0,1\n")
+    with pytest.raises(ValueError, match=r"no asset \(--group-by\) column 'asset'; columns found"):
+        fleet_rul(p, 2.0)
+    p = _small_csv(tmp_path, good + "B,0,1.0\nB,1,abc\n")
+    with pytest.raises(ValueError, match=r"asset 'B', row 14 \(line 15\): value 'abc'"):
+        fleet_rul(p, 2.0)
+    p = _small_csv(tmp_path, good + "B,0,1.0\nB,0,1.1\n")
+    with pytest.raises(ValueError, match=r"asset 'B', row 14 .*duplicate timestamp 0.0"):
+        fleet_rul(p, 2.0)
+    p = _small_csv(tmp_path, good + "B,5,1.0\nB,3,1.1\n")
+    with pytest.raises(ValueError, match=r"asset 'B', row 14 .*time 3.0 comes after 5.0"):
+        fleet_rul(p, 2.0)
+    p = _small_csv(tmp_path, good + "B,x,1.0\n")
+    with pytest.raises(ValueError, match=r"asset 'B', row 13 .*neither a number nor an ISO"):
+        fleet_rul(p, 2.0)
+    with pytest.raises(ValueError, match="threshold 0.5 must lie above phi = 1"):
+        fleet_rul(_small_csv(tmp_path, good), 0.5, phi=1.0)
+    # with on_error="flag" the bad asset is set aside, the others go on
+    p = _small_csv(tmp_path, good + "B,0,1.0\nB,1,abc\n" + good.replace("A,", "C,"))
+    res = fleet_rul(p, 2.0, on_error="flag")
+    assert res.row("B")["flags"] == "bad_input" and "row 14" in res.row("B")["message"]
+    assert res.row("A")["message"] == "" and res.row("C")["flags"] != "bad_input"
+    # too few rows: reported per asset, not fatal
+    res = fleet_rul(_small_csv(tmp_path, good + "D,0,1.0\nD,1,1.0\n"), 2.0)
+    assert res.row("D")["flags"] == "too_few_rows" and math.isnan(res.row("D")["rul_median"])
+    assert res.row("A")["flags"] != "too_few_rows"
+    # missing values are NaN (skipped), not errors
+    res = fleet_rul(_small_csv(tmp_path, good + "".join(f"E,{k},\n" for k in range(12))), 2.0)
+    assert res.row("E")["n_rows"] == 12.0
+
+
+def test_threshold_already_reached_gives_rul_zero():
+    t = np.arange(100.0)
+    y = np.exp(0.05 * np.maximum(0, t - 40) + 0.01 * np.random.default_rng(1).normal(size=100))
+    res = fleet_rul({"asset": ["a"] * 100, "t": t, "value": y}, 5.0)
+    row = res.row("a")
+    assert "threshold_reached" in row["flags"]
+    assert row["rul_median"] == 0.0 and row["p_fail_within_horizon"] == 1.0
+
+
+# --------------------------------------------------------------------------- atomic output, CLI
+def test_interrupted_run_leaves_no_output_file(tmp_path, fleet, monkeypatch):
+    write_table(tmp_path / "f.csv", {k: list(v) for k, v in fleet.table.items()})
+    calls = {"n": 0}
+    real = METHODS["exponential"]
+
+    def flaky(batch, threshold, **kw):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return real(batch, threshold, **kw)
+
+    monkeypatch.setitem(METHODS, "exponential", flaky)
+    out = tmp_path / "res.parquet"
+    args = ["rul", str(tmp_path / "f.csv"), "--group-by", "asset", "--threshold", "20",
+            "--shard-size", "10", "--no-progress", "--out"]  # fmt: skip
+    assert cli_main(args + [str(out)]) == 130
+    assert calls["n"] == 2 and not out.exists()
+    assert os.listdir(tmp_path) == ["f.csv"]  # no temporary file left behind either
+    # an interruption while the file is being written leaves nothing either
+    monkeypatch.setitem(METHODS, "exponential", real)
+    import prognos_torch.io as pio
+
+    def broken_replace(src, dst):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pio.os, "replace", broken_replace)
+    assert cli_main(args + [str(tmp_path / "res.csv")]) == 130
+    assert os.listdir(tmp_path) == ["f.csv"]
+
+
+def test_cli_writes_csv_and_parquet(tmp_path, fleet, capsys):
+    write_table(tmp_path / "f.csv", {k: list(v) for k, v in fleet.table.items()})
+    for name in ("out.csv", "out.parquet"):
+        if name.endswith("parquet"):
+            pytest.importorskip("pyarrow")
+        code = cli_main(
+            [
+                "rul",
+                str(tmp_path / "f.csv"),
+                "--group-by",
+                "asset",
+                "--column",
+                "value",
+                "--time-column",
+                "t",
+                "--threshold",
+                "20",
+                "--samples",
+                "200",
+                "--out",
+                str(tmp_path / name),
+                "--no-progress",
+            ]  # fmt: skip
+        )
+        assert code == 0
+        back = read_back(tmp_path / name)
+        assert tuple(back) == OUTPUT_COLUMNS and len(back["asset"]) == len(fleet.assets)
+    out = capsys.readouterr().out
+    assert "60 assets" in out and "no_onset" in out
+    assert cli_main(["rul", str(tmp_path / "f.csv"), "--group-by", "unit", "--threshold", "2",
+                     "--out", str(tmp_path / "x.csv")]) == 2  # fmt: skip
+    assert "no asset (--group-by) column 'unit'" in capsys.readouterr().err
+    assert not (tmp_path / "x.csv").exists()
+
+
+# --------------------------------------------------------------------------- Ray
+def test_ray_backend_equals_local(fleet):
+    ray = pytest.importorskip("ray")
+    local = fleet_rul(fleet.table, fleet.threshold, samples=300, shard_size=16)
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        remote = fleet_rul(fleet.table, fleet.threshold, samples=300, shard_size=16, backend="ray")
+    finally:
+        ray.shutdown()
+    _assert_same(local, remote)
