@@ -7,7 +7,8 @@ Usage::
 
 The fleet is :func:`prognos_torch.fleet.synthetic_fleet` (exponential degradation after a
 random onset, random rate, observation ending at 30-90 % of the degradation interval, 5 %
-healthy assets; lengths 300-500 steps, threshold 20). The timed call is
+healthy assets; 500 steps each, or lengths uniform in ``[ragged * 500, 500]`` with
+``--ragged``; threshold 20). The timed call is
 ``fleet_rul(table, 20.0)`` on the in-memory long table (validation, grouping, padding, onset,
 the engine's filter over each shard, posterior sampling), run in a child process so that its
 peak resident memory (``ru_maxrss``) can be stated. Reported against the truth:
@@ -44,7 +45,7 @@ def child(args) -> dict:
     from prognos_torch.fleet import fleet_rul, synthetic_fleet
 
     torch.set_num_threads(1)
-    sf = synthetic_fleet(args.assets, args.steps, seed=args.seed)
+    sf = synthetic_fleet(args.assets, args.steps, seed=args.seed, ragged=args.ragged)
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     t = time.perf_counter()
     res = fleet_rul(
@@ -131,6 +132,9 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=1000)
     ap.add_argument("--shard-size", type=int, default=1024)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--ragged", type=float, default=1.0, help="lengths uniform in [ragged*steps, steps]"
+    )
     ap.add_argument("--ray", action="store_true")
     ap.add_argument("--io", action="store_true")
     ap.add_argument("--json", default=None)

@@ -154,7 +154,9 @@ def _asset_text(col) -> np.ndarray:
         return arr.astype(str)
     if arr.dtype.kind == "f":
         return np.array([repr(float(v)) if math.isfinite(v) else "" for v in arr], dtype=object)
-    return np.array(["" if v is None else str(v).strip() for v in arr], dtype=object)
+    if arr.dtype.kind == "U":
+        return np.char.strip(arr).astype(object)
+    return np.array(["" if v is None else str(v).strip() for v in arr.tolist()], dtype=object)
 
 
 def _numbers(col, what: str):
@@ -167,6 +169,11 @@ def _numbers(col, what: str):
     if arr.dtype.kind == "f":
         out = arr.astype(np.float64)
         return out, np.flatnonzero(np.isinf(out))
+    try:  # fast path: every cell is a number (NumPy parses the text)
+        out = np.asarray(arr, dtype=np.float64)
+        return out, np.flatnonzero(np.isinf(out))
+    except (ValueError, TypeError):
+        pass
     out = np.empty(arr.size, dtype=np.float64)
     bad = []
     for i, cell in enumerate(arr.tolist()):
@@ -299,12 +306,11 @@ def read_fleet_table(
     empty = np.flatnonzero(asset == "")
     if empty.size:
         raise ValueError(f"{where(empty[0])}: empty asset id in column {group_by!r}")
-    uniq, first, code = np.unique(asset, return_index=True, return_inverse=True)
-    order_assets = np.argsort(first, kind="stable")  # assets in order of first appearance
-    rank = np.empty_like(order_assets)
-    rank[order_assets] = np.arange(order_assets.size)
-    code = rank[code]
-    names_in_order = [str(a) for a in uniq[order_assets]]
+    index: dict[str, int] = {}  # assets in order of first appearance
+    code = np.fromiter(
+        (index.setdefault(a, len(index)) for a in asset.tolist()), dtype=np.int64, count=n
+    )
+    names_in_order = list(index)
 
     t, unit, epoch = _times(cols[1], lambda i: where(i, asset[i]))
     v, bad = _numbers(cols[2], "value")

@@ -318,9 +318,9 @@ def piecewise_load(
 
 
 def load_controls(
-    load: Callable[[Tensor], Tensor] | None = None,
     steps: int = 10_000,
     *,
+    load: Callable[[Tensor], Tensor] | None = None,
     dt: float = 1.0,
     t0: float = 0.0,
     dtype=torch.float64,
