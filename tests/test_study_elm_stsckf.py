@@ -10,7 +10,7 @@ import pytest
 import torch
 from _study_helpers import check_outputs, read_rows, run_quick  # noqa: E402
 
-from prognos_torch.prognosis.forecast import MeasurementForecaster
+from prognos_torch.prognosis import MeasurementForecaster
 
 TRAINER = Path(__file__).resolve().parents[1] / "trainers" / "elm_stsckf.py"
 

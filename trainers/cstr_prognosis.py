@@ -53,7 +53,7 @@ from prognos_torch.metrics import mae, rmse
 from prognos_torch.optim import ImSRUKF, ParameterBridge, fit
 from prognos_torch.plotting import plot_fading_factor
 from prognos_torch.plotting_panels import plot_panels
-from prognos_torch.prognosis.forecast import (
+from prognos_torch.prognosis import (
     MeasurementForecaster,
     predict_fault_parameter,
     rolling_fault_prediction,

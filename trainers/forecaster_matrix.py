@@ -79,7 +79,7 @@ from prognos_torch.metrics import (
     rmse,
 )
 from prognos_torch.optim import KalmanOptimizer, ParameterBridge, fit
-from prognos_torch.prognosis.forecast import (
+from prognos_torch.prognosis import (
     gaussian_paths,
     learner_transition_model,
     particle_paths,
