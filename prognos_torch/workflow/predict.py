@@ -43,11 +43,12 @@ from ..core.belief import GaussianBelief
 from ..core.validation import check_count
 from ..filters import make_filter, make_particle_filter
 from ..filters import run as run_filter
+from ..metrics import mae, rmse
 from ..prognosis.learner_model import learner_transition_model
 from ..prognosis.paths import gaussian_paths, particle_paths
 from ..prognosis.rul import RULDistribution, rul_distribution
 from .data import Series
-from .model import FittedModel
+from .fitted import FittedModel
 
 __all__ = [
     "ForecastResult",
@@ -403,8 +404,6 @@ def holdout_metrics(model: FittedModel, series: Series, n_train: int) -> dict[st
     * ``one_step_rmse``: the learner's one-step predictions from the true windows;
     * ``persistence_rmse``: the last training value held constant (a baseline).
     """
-    from ..metrics import mae, rmse
-
     tail = series.values[n_train:]
     H = tail.shape[0]
     fc = forecast(model, series.head(n_train), H)
