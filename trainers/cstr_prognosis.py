@@ -51,8 +51,7 @@ from prognos_torch.filters import sckf, stsckf
 from prognos_torch.learners import ANFIS
 from prognos_torch.metrics import mae, rmse
 from prognos_torch.optim import ImSRUKF, ParameterBridge, fit
-from prognos_torch.plotting import plot_fading_factor
-from prognos_torch.plotting_panels import plot_panels
+from prognos_torch.plots import plot_fading_factor, plot_panels
 from prognos_torch.prognosis.forecast import (
     MeasurementForecaster,
     predict_fault_parameter,

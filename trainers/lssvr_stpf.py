@@ -50,7 +50,7 @@ from prognos_torch.metrics import (
     exponential_accuracy,
     rmse,
 )
-from prognos_torch.plotting import (
+from prognos_torch.plots import (
     plot_alpha_lambda,
     plot_fault_probability,
     plot_fault_probability_box,
