@@ -376,10 +376,3 @@ STUDY = Study(
     run=run,
     default_runs=50,
 )
-
-if __name__ == "__main__":
-    import sys
-
-    from prognos_torch.cli import main
-
-    sys.exit(main(["study", STUDY.name, *sys.argv[1:]]))

@@ -755,10 +755,3 @@ STUDY = Study(
     run=run,
     default_runs=DEFAULT_RUNS,
 )
-
-if __name__ == "__main__":
-    import sys
-
-    from prognos_torch.cli import main
-
-    sys.exit(main(["study", STUDY.name, *sys.argv[1:]]))
