@@ -1,4 +1,5 @@
-"""Filters: the Gaussian engine and its configurations, sequence runners, particle filters."""
+"""Filters: the Gaussian engine and its configurations, the sequence loop (:func:`scan`) and the
+runners built on it, particle filters."""
 
 from .gaussian import (
     FILTERS,
@@ -32,6 +33,7 @@ from .particle import (
 )
 from .resampling import ess, multinomial, residual, stratified, systematic
 from .run import Forecast, Trajectory, forecast, run
+from .sequence import scan
 
 __all__ = [
     "FILTERS",
@@ -55,6 +57,7 @@ __all__ = [
     "Trajectory",
     "forecast",
     "run",
+    "scan",
     "PARTICLE_FILTERS",
     "ParticleFilter",
     "ParticleState",
