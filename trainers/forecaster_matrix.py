@@ -1236,10 +1236,3 @@ STUDY = Study(
     run=run,
     default_runs=10,
 )
-
-if __name__ == "__main__":
-    import sys
-
-    from prognos_torch.cli import main
-
-    sys.exit(main(["study", STUDY.name, *sys.argv[1:]]))
