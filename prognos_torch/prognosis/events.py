@@ -27,7 +27,8 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
-from .rul import RULDistribution, check_weights
+from ..core.validation import check_weights
+from .rul import RULDistribution
 
 __all__ = ["EventPrediction", "sample_belief", "simulate_to_event"]
 

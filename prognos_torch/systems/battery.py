@@ -48,18 +48,15 @@ import torch
 from torch import Tensor
 
 from ..core.model import StateSpaceModel
-from ._common import (
-    SimulationResult,
+from ..core.validation import (
     check_count,
     check_params_finite,
     check_positive,
     check_std,
     diag_chol,
-    draw_run_noise,
-    initial_state,
-    resolve_generator,
-    simulate_model,
 )
+from .noise_streams import draw_run_noise
+from .simulation import SimulationResult, initial_state, resolve_generator, simulate_model
 
 __all__ = [
     "BatteryCircuitParams",
