@@ -231,7 +231,11 @@ def _loop(model, x0, event, us, max_steps, k0, process_noise, generator, chunk):
     step = 0
     while step < max_steps:
         C = min(chunk, max_steps - step)
-        states = torch.empty((C, *x.shape), dtype=x.dtype, device=x.device)
+        # the chunk's states, component-major: (C, n, ..., N), shown to the event as
+        # (C, ..., N, n); component-major rows are contiguous for models that keep their
+        # state that way (the battery's step does)
+        buf = torch.empty((C, x.shape[-1], *lead), dtype=x.dtype, device=x.device)
+        states = buf.movedim(1, -1)
         for c in range(C):
             k = k0 + step + c + 1
             x = model.transition(x, None if us is None else us[step + c], k)
@@ -241,7 +245,7 @@ def _loop(model, x0, event, us, max_steps, k0, process_noise, generator, chunk):
                 x = x + _times(nz.chol_Q, e)
                 if nz.q is not None:
                     x = x + nz.q
-            states[c] = x
+            buf[c] = x.movedim(-1, 0)
         hit = torch.as_tensor(event(states), device=x.device)
         if hit.dtype != torch.bool or tuple(hit.shape) != (C, *lead):
             raise ValueError(

@@ -133,9 +133,9 @@ class BatteryCircuitParams:
 def _parts(x: Tensor, p: BatteryCircuitParams):
     """``tb, Vcs, Vcp, Rcp, v, SOC`` of the state ``x`` ``(..., 4)``; each ``(...)``."""
     tb, qb, qcp, qcs = x.unbind(-1)
-    vcs = qcs / p.Cs
-    vcp = qcp / p.Ccp
-    soc = (qb + (p.CMax - p.qMax)) / p.CMax
+    vcs = qcs * (1.0 / p.Cs)
+    vcp = qcp * (1.0 / p.Ccp)
+    soc = qb.mul(1.0 / p.CMax).add_((p.CMax - p.qMax) / p.CMax)
     cb = ((p.Cbp0 * soc + p.Cbp1) * soc + p.Cbp2) * soc + p.Cbp3
     rcp = torch.exp((1.0 - soc) * p.Rcp2).mul_(p.Rcp1).add_(p.Rcp0)
     v = (qb / cb).sub_(vcp).sub_(vcs)
@@ -182,6 +182,7 @@ def battery_circuit_step(
     (the Monte-Carlo EOD prediction calls it once per step on all samples): scalar factors are
     folded into fused ``add``/``addcmul`` calls and ``qcs`` enters its own update as
     ``qcs (1 - dt / (Cs Rs))``. Equal to ``x + dt * battery_circuit_rhs(x, u)`` up to rounding.
+    The result is a ``(..., 4)`` view of component-major memory (not contiguous).
     """
     p = params or BatteryCircuitParams()
     i = _current(u)
@@ -189,7 +190,7 @@ def battery_circuit_step(
     soc = qb.mul(1.0 / p.CMax).add_((p.CMax - p.qMax) / p.CMax)
     cb = soc.mul(p.Cbp0).add_(p.Cbp1).mul_(soc).add_(p.Cbp2).mul_(soc).add_(p.Cbp3)
     rcp = torch.rsub(soc, p.Rcp2, alpha=p.Rcp2).exp_().mul_(p.Rcp1).add_(p.Rcp0)
-    vcp = qcp / p.Ccp
+    vcp = qcp * (1.0 / p.Ccp)
     g = vcp / rcp  # Vcp / Rcp
     v = torch.add((qb / cb).sub_(vcp), qcs, alpha=-1.0 / p.Cs)  # Vb - Vcp - Vcs
     ib = torch.add(i, v, alpha=1.0 / p.Rp)
@@ -197,6 +198,8 @@ def battery_circuit_step(
     dtb = torch.rsub(tb, p.ha * p.Ta / p.Jt, alpha=p.ha / p.Jt)
     dtb = dtb.addcmul_(qcs, qcs, value=p.hcs / (p.Rs * p.Jt * p.Cs * p.Cs))
     dtb = dtb.addcmul_(g, vcp, value=p.hcp / p.Jt)
+    # stacked component-major and returned as a (..., 4) view: the next step's components
+    # are then contiguous rows (no interleaving copy)
     return torch.stack(
         [
             torch.add(tb, dtb, alpha=dt),
@@ -204,8 +207,8 @@ def battery_circuit_step(
             torch.add(qcp, ib - g, alpha=dt),
             torch.add(qcs * (1.0 - dt / (p.Cs * p.Rs)), ib, alpha=dt),
         ],
-        dim=-1,
-    )
+        dim=0,
+    ).movedim(0, -1)
 
 
 def battery_voltage(x: Tensor, params: BatteryCircuitParams | None = None) -> Tensor:
