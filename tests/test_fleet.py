@@ -269,6 +269,16 @@ def test_bad_input_messages_name_the_asset_and_row(tmp_path):
     res = fleet_rul(_small_csv(tmp_path, good + "D,0,1.0\nD,1,1.0\n"), 2.0)
     assert res.row("D")["flags"] == "too_few_rows" and math.isnan(res.row("D")["rul_median"])
     assert res.row("A")["flags"] != "too_few_rows"
+    # blank lines are skipped; the message gives the data row and the file line
+    p = _small_csv(tmp_path, good + "\nB,0,1.0\nB,1,abc\n")
+    with pytest.raises(ValueError, match=r"asset 'B', row 14 \(line 16\): value 'abc'"):
+        fleet_rul(p, 2.0)
+    # ISO 8601 date-times: days since the earliest time of the table
+    p = _small_csv(tmp_path, "".join(f"A,2026-01-{k + 1:02d}T12:00:00,{1 + 0.01 * k}\n"
+                                     for k in range(12)))  # fmt: skip
+    tab = read_fleet_table(p)
+    assert tab.time_unit == "days" and tab.epoch == "2026-01-01T12:00:00"
+    np.testing.assert_array_equal(tab.times[0], np.arange(12.0))
     # missing values are NaN (skipped), not errors
     res = fleet_rul(_small_csv(tmp_path, good + "".join(f"E,{k},\n" for k in range(12))), 2.0)
     assert res.row("E")["n_rows"] == 12.0

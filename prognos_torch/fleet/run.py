@@ -94,9 +94,13 @@ def run_shard(payload: Mapping, method: str, threshold: float, options: Mapping)
     """Pad one shard and run the RUL method on it (also the body of a Ray task)."""
     import torch
 
+    threads = torch.get_num_threads()
     torch.set_num_threads(1)  # many tiny problems: threads only add overhead
-    batch = pad_batch(payload["assets"], payload["times"], payload["values"], payload["seed"])
-    return METHODS[method](batch, threshold, **options)
+    try:
+        batch = pad_batch(payload["assets"], payload["times"], payload["values"], payload["seed"])
+        return METHODS[method](batch, threshold, **options)
+    finally:
+        torch.set_num_threads(threads)
 
 
 def _shards(table: FleetTable, shard_size: int, seed: int):

@@ -3,7 +3,7 @@ optional ``tables`` extra (pandas, pyarrow), imported only when used.
 
 A long table has one row per measurement: an asset id, a time and a value (column names are
 chosen by the caller). Rules (each violation names the asset and the data row, counted from 1
-after the header; a CSV message also gives the file line):
+after the header; a CSV message also gives the file line, blank lines skipped):
 
 * the asset, time and value columns must exist (the message lists the columns found);
 * the asset id is text (numbers are read as their text, so ``7`` in a DataFrame and ``"7"`` in a
@@ -112,21 +112,24 @@ def _csv_columns(path: Path, names: Sequence[str], whats: Sequence[str]):
                     raise _missing_column(name, what, header, str(path))
                 idx.append(header.index(name))
             cols: list[list[str]] = [[] for _ in names]
+            lines: list[int] = []
             width = max(idx) + 1
-            for line_no, row in enumerate(reader, start=2):
+            for row in reader:
                 if len(row) < width:
                     if not any(c.strip() for c in row):
                         continue  # blank line
                     raise ValueError(
-                        f"{path}, line {line_no}: {len(row)} cells, the header has {len(header)}"
+                        f"{path}, line {reader.line_num}: {len(row)} cells, the header has "
+                        f"{len(header)}"
                     )
+                lines.append(reader.line_num)
                 for c, i in zip(cols, idx):
                     c.append(row[i])
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not a UTF-8 text CSV file") from None
     except csv.Error as exc:
         raise ValueError(f"{path}: malformed CSV ({exc})") from None
-    return cols
+    return cols, lines
 
 
 def _frame_columns(frame, names: Sequence[str], whats: Sequence[str], source: str):
@@ -253,14 +256,13 @@ def read_fleet_table(
         raise ValueError(f"on_error must be 'raise' or 'flag', got {on_error!r}")
     names = (group_by, time_column, column)
     whats = ("asset (--group-by)", "time (--time-column)", "value (--column)")
-    line_offset = None
+    lines = None
     if isinstance(source, (str, Path)):
         path = Path(source)
         label = str(path)
         suffix = path.suffix.lower()
         if suffix == ".csv":
-            cols = _csv_columns(path, names, whats)
-            line_offset = 1
+            cols, lines = _csv_columns(path, names, whats)
         elif suffix in (".parquet", ".pq"):
             if not path.exists():
                 raise FileNotFoundError(f"table not found: {path}")
@@ -298,7 +300,7 @@ def read_fleet_table(
         raise ValueError(f"{label}: the table has no data rows")
 
     def where(i, asset=None):
-        line = f" (line {int(i) + 1 + line_offset})" if line_offset is not None else ""
+        line = f" (line {lines[int(i)]})" if lines is not None else ""
         a = f"asset {asset!r}, " if asset is not None else ""
         return f"{label}: {a}row {int(i) + 1}{line}"
 
