@@ -40,6 +40,7 @@ are algebraically the forms progpy evaluates; the difference is rounding (relati
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -173,6 +174,23 @@ def battery_circuit_rhs(x: Tensor, u: Tensor, params: BatteryCircuitParams | Non
     return _rates(x, u, params or BatteryCircuitParams())
 
 
+@functools.lru_cache(maxsize=64)
+def _step_constants(p: BatteryCircuitParams, dt: float, dtype: torch.dtype, device) -> tuple:
+    """0-dim tensors of the step's additive constants (fused ``add``/``addcmul`` take them)."""
+
+    def c(v: float) -> Tensor:
+        return torch.tensor(v, dtype=dtype, device=device)
+
+    return (
+        c((p.CMax - p.qMax) / p.CMax),  # SOC offset
+        c(p.Cbp1),
+        c(p.Cbp2),
+        c(p.Cbp3),
+        c(p.Rcp0),
+        c(dt * p.ha * p.Ta / p.Jt),  # ambient term of the temperature update
+    )
+
+
 def battery_circuit_step(
     x: Tensor, u: Tensor, dt: float, params: BatteryCircuitParams | None = None
 ) -> Tensor:
@@ -180,31 +198,33 @@ def battery_circuit_step(
 
     The same equations as :func:`battery_circuit_rhs`, arranged for few tensor operations
     (the Monte-Carlo EOD prediction calls it once per step on all samples): scalar factors are
-    folded into fused ``add``/``addcmul`` calls and ``qcs`` enters its own update as
-    ``qcs (1 - dt / (Cs Rs))``. Equal to ``x + dt * battery_circuit_rhs(x, u)`` up to rounding.
-    The result is a ``(..., 4)`` view of component-major memory (not contiguous).
+    folded into fused ``add``/``addcmul`` calls, ``tb`` and ``qcs`` enter their own updates as
+    ``tb (1 - dt ha / Jt)`` and ``qcs (1 - dt / (Cs Rs))``. Equal to
+    ``x + dt * battery_circuit_rhs(x, u)`` up to rounding. The result is a ``(..., 4)`` view of
+    component-major memory (not contiguous).
     """
     p = params or BatteryCircuitParams()
     i = _current(u)
+    soc0, cb1, cb2, cb3, rcp0, amb = _step_constants(p, float(dt), x.dtype, x.device)
     tb, qb, qcp, qcs = x.unbind(-1)
-    soc = qb.mul(1.0 / p.CMax).add_((p.CMax - p.qMax) / p.CMax)
-    cb = soc.mul(p.Cbp0).add_(p.Cbp1).mul_(soc).add_(p.Cbp2).mul_(soc).add_(p.Cbp3)
-    rcp = torch.rsub(soc, p.Rcp2, alpha=p.Rcp2).exp_().mul_(p.Rcp1).add_(p.Rcp0)
+    soc = torch.add(soc0, qb, alpha=1.0 / p.CMax)
+    cb = torch.addcmul(cb3, torch.addcmul(cb2, torch.add(cb1, soc, alpha=p.Cbp0), soc), soc)
+    rcp = torch.add(rcp0, torch.rsub(soc, p.Rcp2, alpha=p.Rcp2).exp_(), alpha=p.Rcp1)
     vcp = qcp * (1.0 / p.Ccp)
     g = vcp / rcp  # Vcp / Rcp
     v = torch.add((qb / cb).sub_(vcp), qcs, alpha=-1.0 / p.Cs)  # Vb - Vcp - Vcs
     ib = torch.add(i, v, alpha=1.0 / p.Rp)
-    # (ha (Ta - tb) + hcs Vcs^2 / Rs + hcp Vcp^2 / Rcp) / Jt
-    dtb = torch.rsub(tb, p.ha * p.Ta / p.Jt, alpha=p.ha / p.Jt)
-    dtb = dtb.addcmul_(qcs, qcs, value=p.hcs / (p.Rs * p.Jt * p.Cs * p.Cs))
-    dtb = dtb.addcmul_(g, vcp, value=p.hcp / p.Jt)
+    # tb + dt (ha (Ta - tb) + hcs Vcs^2 / Rs + hcp Vcp^2 / Rcp) / Jt
+    tb1 = torch.add(amb, tb, alpha=1.0 - dt * p.ha / p.Jt)
+    tb1 = tb1.addcmul_(qcs, qcs, value=dt * p.hcs / (p.Rs * p.Jt * p.Cs * p.Cs))
+    tb1 = tb1.addcmul_(g, vcp, value=dt * p.hcp / p.Jt)
     # stacked component-major and returned as a (..., 4) view: the next step's components
     # are then contiguous rows (no interleaving copy)
     return torch.stack(
         [
-            torch.add(tb, dtb, alpha=dt),
+            tb1,
             torch.add(qb, ib, alpha=-dt),
-            torch.add(qcp, ib - g, alpha=dt),
+            torch.add(qcp, ib, alpha=dt).sub_(g, alpha=dt),
             torch.add(qcs * (1.0 - dt / (p.Cs * p.Rs)), ib, alpha=dt),
         ],
         dim=0,
