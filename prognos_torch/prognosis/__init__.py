@@ -47,3 +47,29 @@ __all__ += [
     "ros_elm_init",
     "ros_elm_update",
 ]
+
+from .onset import (
+    ONSET_METHODS,
+    Baseline,
+    Onset,
+    cusum_arl0,
+    cusum_onset,
+    detect_onset,
+    healthy_baseline,
+    ksigma_false_alarm_rate,
+    ksigma_onset,
+    moving_median,
+)
+
+__all__ += [
+    "ONSET_METHODS",
+    "Baseline",
+    "Onset",
+    "cusum_arl0",
+    "cusum_onset",
+    "detect_onset",
+    "healthy_baseline",
+    "ksigma_false_alarm_rate",
+    "ksigma_onset",
+    "moving_median",
+]
