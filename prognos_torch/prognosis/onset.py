@@ -166,7 +166,9 @@ def _series(values, time, name: str = "values") -> tuple[Tensor, Tensor]:
     else:
         t = as_tensor(time, "time", device=x.device).to(torch.float64)
         if tuple(t.shape) != tuple(x.shape):
-            raise ValueError(f"time must have the shape of {name} {tuple(x.shape)}, got {tuple(t.shape)}")
+            raise ValueError(
+                f"time must have the shape of {name} {tuple(x.shape)}, got {tuple(t.shape)}"
+            )
         if not bool(torch.isfinite(t).all()):
             raise ValueError("time must be finite")
         if t.shape[0] > 1 and not bool((t[1:] > t[:-1]).all()):
@@ -227,8 +229,10 @@ def healthy_baseline(values, time=None, *, fraction: float = 0.3) -> Baseline:
         :class:`Baseline`.
     """
     x, t = _series(values, time)
-    if isinstance(fraction, bool) or not isinstance(fraction, (int, float)) or not (
-        0.0 < fraction <= 1.0
+    if (
+        isinstance(fraction, bool)
+        or not isinstance(fraction, (int, float))
+        or not (0.0 < fraction <= 1.0)
     ):
         raise ValueError(f"baseline fraction must be a number in (0, 1], got {fraction!r}")
     ok = ~torch.isnan(x)
