@@ -27,6 +27,35 @@ from .forecast import (
     ros_elm_init,
     ros_elm_update,
 )
+from .learner_trend import LearnerTrendFit, TimeELM, fit_learner_trend
+from .onset import (
+    ONSET_METHODS,
+    Baseline,
+    Onset,
+    cusum_arl0,
+    cusum_onset,
+    detect_onset,
+    healthy_baseline,
+    ksigma_false_alarm_rate,
+    ksigma_onset,
+    moving_median,
+)
+from .trends import (
+    STRONG_TRACKING_BETA,
+    TREND_SHAPES,
+    Passage,
+    TrendFit,
+    TrendNoise,
+    default_trend_filter,
+    fit_trends,
+    integrated_rw_chol,
+    local_trend_model,
+    noise_grid,
+    path_grid,
+    simulate_first_passage,
+    trend_measurement,
+    trend_transition,
+)
 
 __all__ += [
     "FaultPrediction",
@@ -48,19 +77,6 @@ __all__ += [
     "ros_elm_update",
 ]
 
-from .onset import (
-    ONSET_METHODS,
-    Baseline,
-    Onset,
-    cusum_arl0,
-    cusum_onset,
-    detect_onset,
-    healthy_baseline,
-    ksigma_false_alarm_rate,
-    ksigma_onset,
-    moving_median,
-)
-
 __all__ += [
     "ONSET_METHODS",
     "Baseline",
@@ -72,4 +88,24 @@ __all__ += [
     "ksigma_false_alarm_rate",
     "ksigma_onset",
     "moving_median",
+]
+
+__all__ += [
+    "LearnerTrendFit",
+    "TimeELM",
+    "fit_learner_trend",
+    "STRONG_TRACKING_BETA",
+    "TREND_SHAPES",
+    "Passage",
+    "default_trend_filter",
+    "simulate_first_passage",
+    "trend_transition",
+    "TrendFit",
+    "TrendNoise",
+    "fit_trends",
+    "integrated_rw_chol",
+    "local_trend_model",
+    "noise_grid",
+    "path_grid",
+    "trend_measurement",
 ]

@@ -77,6 +77,9 @@ class Baseline:
         median: its median.
         n: number of samples in the window.
         t_end: time of the last sample of the window.
+        noise: short-term noise std of the window, ``1.4826 MAD(diff x) / sqrt(2)`` (the std
+            of independent noise on a slowly varying level; unlike ``std`` it ignores slow
+            wander), or ``None``.
     """
 
     mean: float
@@ -84,6 +87,7 @@ class Baseline:
     median: float
     n: int
     t_end: float
+    noise: float | None = None
 
 
 @dataclass(frozen=True)
@@ -249,12 +253,15 @@ def healthy_baseline(values, time=None, *, fraction: float = 0.3) -> Baseline:
     std = float(xb.std(correction=1))
     if not std > 0:
         raise ValueError("the baseline window is constant (zero spread); onset is undefined")
+    d = torch.diff(xb)
+    noise = float((d - d.median()).abs().median()) * 1.4826 / math.sqrt(2.0)
     return Baseline(
         mean=float(xb.mean()),
         std=std,
         median=float(xb.median()),
         n=int(xb.shape[0]),
         t_end=float(t[inside][-1]),
+        noise=noise if noise > 0 else std,
     )
 
 
@@ -262,7 +269,7 @@ def _resolve_baseline(x: Tensor, t: Tensor, baseline, sign: float) -> Baseline:
     if isinstance(baseline, Baseline):
         return baseline
     b = healthy_baseline(sign * x, t, fraction=baseline)  # statistics of the oriented series
-    return Baseline(sign * b.mean, b.std, sign * b.median, b.n, b.t_end)
+    return Baseline(sign * b.mean, b.std, sign * b.median, b.n, b.t_end, b.noise)
 
 
 # --------------------------------------------------------------------------- detectors

@@ -31,6 +31,7 @@ from .model import (
 )
 from .plots import plot_forecast, plot_rul
 from .predict import FILTER_NAMES, ForecastResult, RULResult, forecast, holdout_metrics, rul
+from .prognose import PROGNOSE_METHODS, prognose
 from .store import load_model, save_model
 
 __all__ = [
@@ -56,4 +57,6 @@ __all__ = [
     "load_model",
     "plot_forecast",
     "plot_rul",
+    "prognose",
+    "PROGNOSE_METHODS",
 ]
