@@ -72,7 +72,7 @@ __all__ = [
     "Passage",
     "simulate_first_passage",
     "STRONG_TRACKING_BETA",
-    "default_trend_filter",
+    "strong_tracking_filter",
 ]
 
 TREND_SHAPES = ("exponential", "power", "linear")
@@ -533,7 +533,7 @@ def path_grid(t_origin: float, horizon: float, dt: float, rel: float = 0.01) -> 
 STRONG_TRACKING_BETA = 4.0
 
 
-def default_trend_filter() -> GaussianFilter:
+def strong_tracking_filter() -> GaussianFilter:
     """The strong-tracking EKF (SFEKF, paper 000 Eq. 7-12) with ``rho = 0.95`` and the weakening
     factor :data:`STRONG_TRACKING_BETA`."""
     return stekf(rho=0.95, beta=STRONG_TRACKING_BETA)
@@ -572,8 +572,9 @@ def fit_trends(
         phi: healthy level (baseline mean); sigma0: baseline noise std (> 0).
         shapes: subset of :data:`TREND_SHAPES`.
         filter: engine configuration: a name of :func:`~prognos_torch.filters.make_filter`
-            (``"ekf"``, ``"sckf"``: exact Kalman filters here; ``"stekf"``, ``"stsckf"``) or a
-            :class:`GaussianFilter`; default :func:`default_trend_filter`.
+            (``"ekf"``, the default, and ``"sckf"`` are exact Kalman filters on this model;
+            ``"stekf"``, ``"stsckf"``: strong tracking) or a :class:`GaussianFilter`, e.g.
+            :func:`strong_tracking_filter`.
         noise: per shape, a fixed :class:`TrendNoise` (0-dim tensors) instead of the
             maximum-likelihood grid search.
         prior: per shape, the initial belief on ``[L, beta]`` (default: diffuse, data-scaled).
@@ -626,7 +627,7 @@ def fit_trends(
     model = local_trend_model(torch.cat(SQs, 1), torch.cat(rhos, 1), torch.cat(Rs, 1))
     belief = GaussianBelief(torch.cat(m0s).clone(), torch.cat(S0s).clone())
     if filter is None:
-        filt = default_trend_filter()
+        filt = make_filter("ekf")
     elif isinstance(filter, GaussianFilter):
         filt = filter
     else:

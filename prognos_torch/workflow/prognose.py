@@ -250,8 +250,8 @@ def prognose(
     onset: str = "ksigma",
     n_paths: int = 2000,
     horizon_factor: float = 2.0,
-    filter=None,
-    max_points: int = 1000,
+    filter="ekf",
+    max_points: int = 500,
 ) -> RULResult:
     """RUL distribution of a degradation series for a failure ``threshold`` (module docstring).
 
@@ -272,9 +272,10 @@ def prognose(
         horizon_factor: the horizon is this multiple of the observed life (and at least 10
             times the time since onset).
         filter: engine configuration filtering the trend models: a filter name or a
-            :class:`~prognos_torch.filters.GaussianFilter`; default the strong-tracking EKF of
-            :func:`~prognos_torch.prognosis.trends.default_trend_filter` (``"ekf"`` is the exact
-            Kalman filter).
+            :class:`~prognos_torch.filters.GaussianFilter`; default ``"ekf"``, the exact Kalman
+            filter on these linear-Gaussian models (calibrated when the data follow the model);
+            ``"stekf"`` or :func:`~prognos_torch.prognosis.trends.strong_tracking_filter` add
+            strong tracking (paper 000), which widens the posterior after jumps.
         max_points: values since onset above which block means are used.
 
     Returns:
