@@ -6,6 +6,7 @@ prognos study all [--quick] ...
 prognos fit DATA.csv --column COL [--time-column T] [--learner L] [--optimizer O] --out model.pt
 prognos forecast model.pt DATA.csv --horizon 50 [--plot forecast.png]
 prognos rul model.pt DATA.csv --threshold X [--filter stpf|pf|ekpf|sckf] [--plot rul.png]
+prognos rul DATA.csv --column C [--time-column T] --threshold X [--where COL=V] [--until T]
 prognos rul FLEET.parquet --group-by asset --column value --time-column t --threshold X --out R.csv
 
 Run ``prognos COMMAND --help`` for the options and examples of each command.
@@ -226,6 +227,11 @@ def _add_rul(sub) -> None:
             "horizon x dt, and the mean is withheld while any mass is censored."
         ),
         epilog="examples:\n"
+        "  prognos rul data.csv --column rms --time-column timestamp --threshold 0.45\n"
+        "      (no model file: degradation onset, trend models chosen by backtest, RUL paths;\n"
+        "       see prognos_torch.workflow.prognose)\n"
+        "  prognos rul datasets/ims/test1_features.csv --column rms --where channel=5 \\\n"
+        "      --time-column timestamp --threshold 0.45 --until 2003-11-25T00:00:00\n"
         "  prognos rul model.pt data.csv --threshold 0.8 --plot rul.png\n"
         "  prognos rul model.pt data.csv --threshold 0.8 --filter pf --horizon 400\n"
         "  prognos rul fleet.parquet --group-by asset --threshold 20 --out rul.parquet\n"
@@ -233,8 +239,16 @@ def _add_rul(sub) -> None:
         + _DATA_HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("model", type=Path, help="model file from prognos fit")
-    p.add_argument("data", type=Path, help="CSV file")
+    p.add_argument("model", type=Path, help="model file from prognos fit, or the CSV file")
+    p.add_argument("data", type=Path, nargs="?", help="CSV file (with a model file)")
+    p.add_argument(
+        "--method",
+        default="auto",
+        help="without a model file: auto (backtest choice), exponential, power, linear, elm",
+    )
+    p.add_argument(
+        "--paths", type=int, default=2000, help="without a model file: sample paths (2000)"
+    )
     p.add_argument("--threshold", type=float, required=True, help="failure threshold")
     p.add_argument(
         "--direction",
@@ -498,6 +512,14 @@ def _observed_rul(res, truth) -> str | float:
 def _cmd_rul(args) -> int:
     from .workflow import plot_rul, rul
 
+    if args.data is None:  # prognos rul DATA.csv ...: no model file
+        from .cli_prognose import run_prognose
+
+        args.data = args.model
+        _check_out_folder(args.plot, "--plot")
+        series, data_cfg = _series_from_args(args)
+        truth = _series_from_args(args, data_cfg, truth=True)[0] if args.until else None
+        return run_prognose(args, series, data_cfg, truth)
     model, series, data_cfg, truth = _load_for_prediction(args)
     res = rul(
         model,

@@ -27,3 +27,25 @@ def kalman_filter(F, H, Q, R, m0, P0, ys, q=None, r=None):
         means.append(m.copy())
         covs.append(P.copy())
     return np.array(means), np.array(covs), ll
+
+
+def kalman_filter_tv(Fs, H, Qs, Rs, m0, P0, ys):
+    """The same filter with per-step F_k, Q_k, R_k: (T, n, n), (T, n, n), (T, m, m)."""
+    n = m0.shape[0]
+    m, P = m0.copy(), P0.copy()
+    means, covs, ll = [], [], 0.0
+    for F, Q, R, y in zip(Fs, Qs, Rs, ys):
+        m = F @ m
+        P = F @ P @ F.T + Q
+        if not np.isnan(y).any():
+            S = H @ P @ H.T + R
+            e = y - H @ m
+            K = np.linalg.solve(S, H @ P).T
+            m = m + K @ e
+            I_KH = np.eye(n) - K @ H
+            P = I_KH @ P @ I_KH.T + K @ R @ K.T
+            sign, logdet = np.linalg.slogdet(S)
+            ll += -0.5 * (len(y) * math.log(2 * math.pi) + logdet + e @ np.linalg.solve(S, e))
+        means.append(m.copy())
+        covs.append(P.copy())
+    return np.array(means), np.array(covs), ll

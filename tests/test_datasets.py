@@ -311,10 +311,17 @@ def test_shipped_table_bearing_and_feature_selection(test1):
         b3.channel(1)
     with pytest.raises(ValueError, match="test must be one of"):
         load_ims_features(4)
-    with pytest.raises(FileNotFoundError, match="only test 1 is shipped"):
-        load_ims_features(2)
+    with pytest.raises(FileNotFoundError, match="not found"):
+        load_ims_features(2, path=DATA / "nowhere")
     with pytest.raises(FileNotFoundError):
         load_ims_features(1, path=DATA / "missing.csv")
+
+
+def test_shipped_tests_2_and_3():
+    for test, n in ((2, 984), (3, 6324)):
+        f = load_ims_features(test)
+        assert f.values.shape == (n, 4, len(f.feature_names)) and f.channels == (1, 2, 3, 4)
+        assert bool(torch.isfinite(f.feature("rms")).all())
 
 
 def test_first50_from_raw_agrees_with_shipped_table(test1):

@@ -546,7 +546,8 @@ def load_ims_features(test: int = 1, path: str | os.PathLike | None = None) -> I
     """Read a tidy IMS feature table such as the shipped ``datasets/ims/test1_features.csv``.
 
     Args:
-        test: IMS test number (1, 2 or 3); only test 1 is shipped.
+        test: IMS test number (1, 2 or 3); all three are shipped (tests 2 and 3 without the
+            first-50 raw cross-check, see ``datasets/ims/README.md``).
         path: the CSV file, or a folder holding ``test{test}_features.csv``; ``None`` uses
             :func:`default_data_dir`.
 

@@ -10,6 +10,8 @@ fault prediction, and fault probability and remaining-useful-life distributions.
 * :mod:`.fault`: n-step-ahead and rolling fault-parameter prediction (paper 000 Sec. 5).
 * :mod:`.rul`: fault probability and RUL distributions from predicted paths.
 * :mod:`.events`: batched Monte-Carlo simulation of samples to an event (EOD, EOL).
+* :mod:`.onset`: degradation onset against a healthy baseline (k-sigma rule, CUSUM).
+* :mod:`.trends`, :mod:`.learner_trend`: degradation-trend models filtered by the engine.
 """
 
 from ..learners.ros_elm import ROSELMState, ros_elm_forecast, ros_elm_init, ros_elm_update
@@ -22,6 +24,19 @@ from .fault import (
 )
 from .forecaster import MeasurementForecaster
 from .learner_model import learner_transition_model
+from .learner_trend import LearnerTrendFit, TimeELM, fit_learner_trend
+from .onset import (
+    ONSET_METHODS,
+    Baseline,
+    Onset,
+    cusum_arl0,
+    cusum_onset,
+    detect_onset,
+    healthy_baseline,
+    ksigma_false_alarm_rate,
+    ksigma_onset,
+    moving_median,
+)
 from .paths import (
     GaussianPaths,
     RecursivePaths,
@@ -32,6 +47,22 @@ from .paths import (
     recursive_predict,
 )
 from .rul import RULDistribution, fault_probability, fault_probability_gaussian, rul_distribution
+from .trends import (
+    STRONG_TRACKING_BETA,
+    TREND_SHAPES,
+    Passage,
+    TrendFit,
+    TrendNoise,
+    fit_trends,
+    integrated_rw_chol,
+    local_trend_model,
+    noise_grid,
+    path_grid,
+    simulate_first_passage,
+    strong_tracking_filter,
+    trend_measurement,
+    trend_transition,
+)
 
 __all__ = [
     "RULDistribution",
@@ -58,4 +89,31 @@ __all__ = [
     "ros_elm_forecast",
     "ros_elm_init",
     "ros_elm_update",
+    "LearnerTrendFit",
+    "TimeELM",
+    "fit_learner_trend",
+    "ONSET_METHODS",
+    "Baseline",
+    "Onset",
+    "cusum_arl0",
+    "cusum_onset",
+    "detect_onset",
+    "healthy_baseline",
+    "ksigma_false_alarm_rate",
+    "ksigma_onset",
+    "moving_median",
+    "STRONG_TRACKING_BETA",
+    "TREND_SHAPES",
+    "Passage",
+    "TrendFit",
+    "TrendNoise",
+    "fit_trends",
+    "integrated_rw_chol",
+    "local_trend_model",
+    "noise_grid",
+    "path_grid",
+    "simulate_first_passage",
+    "strong_tracking_filter",
+    "trend_measurement",
+    "trend_transition",
 ]

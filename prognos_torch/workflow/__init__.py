@@ -33,6 +33,7 @@ from .model import (
     select_embedding,
 )
 from .predict import FILTER_NAMES, ForecastResult, RULResult, forecast, holdout_metrics, rul
+from .prognose import PROGNOSE_METHODS, prognose
 from .store import load_model, save_model
 
 __all__ = [
@@ -58,4 +59,6 @@ __all__ = [
     "load_model",
     "plot_forecast",
     "plot_rul",
+    "prognose",
+    "PROGNOSE_METHODS",
 ]

@@ -116,6 +116,15 @@ class RULResult:
         paths: ``(N, H)`` predicted state paths (data units); weights: ``(N,)``.
         filter: filter name; n_particles: ``N``.
         history: the series.
+        status: ``"ok"``, or ``"no degradation detected yet"`` (:func:`~.prognose.prognose`
+            before onset: the median and quantiles are withheld and only ``lower_bound`` holds).
+        onset: the :class:`~prognos_torch.prognosis.onset.Onset` found (``prognose``).
+        model: the trend model used (``prognose``), e.g. ``"exponential"``.
+        flags: warnings on the forecast (extrapolation far beyond the data, diverging paths,
+            censored mass, ...), one sentence each.
+        lower_bound: a lower bound on the RUL where no distribution is reported.
+        selection: backtest scores of the candidate models (``prognose(method="auto")``).
+        rul_samples: ``(N,)`` RUL of each path (``inf``: censored), or ``None``.
     """
 
     distribution: RULDistribution
@@ -130,6 +139,13 @@ class RULResult:
     filter: str
     n_particles: int
     history: Series
+    status: str = "ok"
+    onset: object | None = None
+    model: str | None = None
+    flags: tuple[str, ...] = ()
+    lower_bound: float | None = None
+    selection: dict | None = None
+    rul_samples: Tensor | None = None
 
     @property
     def crossing_probability(self) -> float:
@@ -151,9 +167,11 @@ class RULResult:
         """``horizon * dt``: the censored mass has RUL beyond this."""
         return self.horizon * self.dt
 
-    def summary(self) -> dict[str, float | None]:
-        """Mean (Eq. 28, only when nothing is censored), median and the 5/95 % quantiles; a value
-        beyond the horizon is ``None``."""
+    def summary(self) -> dict:
+        """Mean (Eq. 28, only when nothing is censored), median and the 5/95 % quantiles (a
+        value beyond the horizon is ``None``), ``censored_mass``, ``bound`` (the RUL exceeds it
+        for the censored mass; before onset, the lower bound), ``status``, ``model``,
+        ``onset_time`` and ``flags``. Before onset the median and quantiles are ``None``."""
         d = self.distribution
 
         def val(x) -> float | None:
@@ -161,12 +179,24 @@ class RULResult:
             return None if math.isnan(x) else x
 
         q = d.quantile([0.05, 0.5, 0.95])
-        return {
+        out = {
             "mean": val(d.expectation),
             "median": val(q[1]),
             "q05": val(q[0]),
             "q95": val(q[2]),
         }
+        if self.status != "ok":
+            out = dict.fromkeys(out)
+        onset_time = getattr(self.onset, "time", None) if self.onset is not None else None
+        out.update(
+            censored_mass=self.censored_mass,
+            bound=self.lower_bound if self.lower_bound is not None else self.bound,
+            status=self.status,
+            model=self.model,
+            onset_time=onset_time,
+            flags=list(self.flags),
+        )
+        return out
 
 
 # ----------------------------------------------------------------------------- internals

@@ -1,0 +1,88 @@
+"""``prognos rul DATA.csv --column C --threshold X``: RUL straight from a CSV (no model file).
+
+The command line face of :func:`~prognos_torch.workflow.prognose`; ``prognos rul MODEL DATA``
+(a fitted learner) stays in :mod:`prognos_torch.cli`.
+"""
+
+from __future__ import annotations
+
+import math
+
+__all__ = ["run_prognose", "observed_rul"]
+
+
+def _fmt(v, digits: int = 4) -> str:
+    if v is None:
+        return "n/a"
+    if isinstance(v, float):
+        return "inf" if math.isinf(v) else f"{v:.{digits}g}"
+    return str(v)
+
+
+def observed_rul(truth, t_eval: float, threshold: float, direction: str) -> float | None:
+    """Time from ``t_eval`` to the first later time the trailing 5-point median of the
+    observed ``truth`` series reaches ``threshold`` (``None``: not in the data)."""
+    from .prognosis import moving_median
+
+    m = moving_median(truth.values, 5)
+    hit = (m >= threshold) if direction == "above" else (m <= threshold)
+    idx = (hit & (truth.t > t_eval)).nonzero()
+    if idx.numel() == 0:
+        return None
+    return float(truth.t[idx[0, 0]]) - t_eval
+
+
+def run_prognose(args, series, data_cfg: dict, truth=None) -> int:
+    """Run ``prognose`` on the loaded series and print the result; return the exit status."""
+    from .workflow import prognose
+    from .workflow.prognose_plots import plot_prognosis
+
+    res = prognose(
+        series,
+        args.threshold,
+        method=args.method,
+        seed=0 if args.seed is None else args.seed,
+        direction=args.direction,
+        n_paths=args.paths,
+    )
+    unit, s = res.time_unit, res.summary()
+    where = data_cfg.get("where") or {}
+    sel = f" ({', '.join(f'{k}={v}' for k, v in where.items())})" if where else ""
+    print(
+        f"RUL of {series.name!r}{sel} from {series.source} at t = {res.t_last:g} {unit}: "
+        f"threshold {res.threshold:g} ({res.direction})"
+    )
+    on = res.onset
+    onset = f"{on.time:g} {unit} ({on.method}, baseline mean {on.baseline.mean:.4g}, std " \
+        f"{on.baseline.std:.4g})" if on is not None and on.detected else "not detected"  # fmt: skip
+    rows = [("status", res.status), ("degradation onset", onset)]
+    if res.status == "ok":
+        scores = (res.selection or {}).get("scores") or {}
+        chosen = res.model + (
+            " (backtest: " + ", ".join(f"{k} {v:.3g}" for k, v in scores.items()) + ")"
+            if scores
+            else ""
+        )
+        rows += [
+            ("trend model", chosen),
+            (f"median RUL ({unit})", _fmt(s["median"])),
+            (f"90 % interval ({unit})", f"[{_fmt(s['q05'])}, {_fmt(s['q95'])}]"),
+            ("censored mass", f"{s['censored_mass']:.3f} (RUL > {_fmt(s['bound'])} {unit})"),
+        ]
+    else:
+        rows += [(f"lower bound ({unit})", _fmt(s["bound"]))]
+    if truth is not None:
+        obs = observed_rul(truth, res.t_last, res.threshold, res.direction)
+        rows.append(
+            (f"observed RUL ({unit})", "not reached in the data" if obs is None else _fmt(obs))
+        )
+    width = max(len(r[0]) for r in rows)
+    for k, v in rows:
+        print(f"  {k.ljust(width)}  {v}")
+    for f in res.flags:
+        print(f"warning: {f}")
+    if args.plot is not None:
+        tr = None if truth is None else (truth.t, truth.values)
+        plot_prognosis(args.plot, res, truth=tr)
+        print(f"figure written to {args.plot}")
+    return 0

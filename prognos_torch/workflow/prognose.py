@@ -1,0 +1,509 @@
+"""One entry point from a degradation series to a remaining-useful-life distribution.
+
+::
+
+    from prognos_torch.workflow import load_series, prognose
+
+    s = load_series("bearing.csv", column="rms", time_column="timestamp", where={"channel": 5})
+    r = prognose(s, threshold=0.45)
+    print(r.summary())   # median, q05, q95, censored_mass, bound, status, model, onset, flags
+
+Pipeline of :func:`prognose` (every step a library function with its own tests):
+
+1. **Checks.** NaN values are missing (dropped: the trend models are continuous-time, so a
+   missing sample is just a longer step). At least :data:`MIN_POINTS` observed values. The
+   threshold must lie outside the healthy band ``mu_0 +- 4 sigma_0`` of the baseline (the first
+   ``baseline`` fraction of the time span), on the side of ``direction``; ``"auto"`` takes the
+   side the threshold is on. A threshold already reached by the median of the last 5 values is
+   an error (the RUL is 0).
+2. **Onset** (:mod:`prognos_torch.prognosis.onset`; k-sigma rule on the 5-point moving median,
+   5 consecutive exceedances, or a CUSUM). Before onset the answer is *"no degradation detected
+   yet"*: no median or interval is reported, only a lower bound (below).
+3. **Trend models** on the data since onset (:mod:`~prognos_torch.prognosis.trends`:
+   exponential, power law, linear, all filtered at once by the strong-tracking EKF with their
+   noise by maximum likelihood; :mod:`~prognos_torch.prognosis.learner_trend`: an ELM growth
+   rate trained online by the Kalman optimiser). Series with more than ``max_points`` values
+   since onset are averaged over equal-count blocks first (the baseline noise of a block mean
+   is ``sigma_0 / sqrt(count)``).
+4. **Model choice** (``method="auto"``): a backtest on the series' own past. For the levels
+   ``m_0 + f (max m - m_0)``, ``f in {0.4, 0.6, 0.8}``, that the 5-point moving median ``m`` has
+   already crossed since onset, each model predicts the crossing from origins at 50 % and 80 %
+   of the way from onset to it (posterior at the origin: causal; the noise estimates use all
+   data); the score is the mean ``|log(predicted / true time to the crossing)|`` of the median
+   predicted crossing (a prediction beyond 10 x the truth scores ``log 10``). The lowest score
+   wins; with no crossed level yet, the exponential model is used.
+5. **RUL.** ``n_paths`` sample paths from the chosen model's posterior at the last observation,
+   run until every path has crossed or until the horizon ``horizon_factor x`` the observed life
+   (at least 10 x the time since onset), never a short fixed cap; paths that do not cross are
+   the censored mass (RUL > ``bound``). With ``at`` later than the last observation the RUL is
+   counted from ``at``, conditioned on the asset still running then (paths that crossed
+   before ``at`` are dropped; their mass is reported in ``flags``).
+6. **Guard rails** (``flags``): a threshold far beyond the range seen since onset (more than 3
+   times the rise observed so far, in the model's measurement space), diverging paths, censored
+   mass above 5 %, few observations since onset, a last value beyond the threshold while the
+   median is not.
+
+Before onset the lower bound is the 5 % quantile of the first passage under a local *linear*
+trend (drift and Brownian level) fitted to the healthy data, or the horizon when even that is
+censored: a statement about the data seen so far, not a forecast of when degradation will
+start.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from ..core.validation import as_tensor
+from ..prognosis.learner_trend import fit_learner_trend
+from ..prognosis.onset import Baseline, detect_onset, healthy_baseline, moving_median
+from ..prognosis.rul import RULDistribution
+from ..prognosis.trends import TREND_SHAPES, fit_trends, path_grid
+from .data import Series
+from .predict import RULResult
+
+__all__ = ["prognose", "PROGNOSE_METHODS", "MIN_POINTS"]
+
+#: Trend models ``prognose`` accepts (``"auto"`` chooses among all of them).
+PROGNOSE_METHODS = ("auto", *TREND_SHAPES, "elm")
+#: Fewest observed values ``prognose`` accepts.
+MIN_POINTS = 10
+_K = 4.0  # healthy band and onset limit in baseline standard deviations
+_BACKTEST_LEVELS = (0.5, 0.8)
+_BACKTEST_ORIGINS = (0.4, 0.7)
+_BACKTEST_PATHS = 100
+_MAX_BINS = 20_000
+
+
+# ----------------------------------------------------------------------------- inputs
+def _as_series(series, time) -> tuple[Tensor, Tensor, Series | None]:
+    if isinstance(series, Series):
+        if time is not None:
+            raise ValueError("time is taken from the Series; do not pass time= as well")
+        return series.values.to(torch.float64), series.t.to(torch.float64), series
+    x = as_tensor(series, "series").to(torch.float64)
+    if x.dim() != 1:
+        raise ValueError(f"series must be a Series or have shape (T,), got {tuple(x.shape)}")
+    if time is None:
+        t = torch.arange(x.shape[0], dtype=torch.float64, device=x.device)
+    else:
+        t = as_tensor(time, "time", device=x.device).to(torch.float64)
+        if tuple(t.shape) != tuple(x.shape):
+            raise ValueError(f"time must have shape {tuple(x.shape)} (T,), got {tuple(t.shape)}")
+    if bool(torch.isinf(x).any()):
+        raise ValueError("series contains inf (use NaN to mark a missing value)")
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError("time must be finite")
+    if x.shape[0] > 1 and not bool((t[1:] > t[:-1]).all()):
+        raise ValueError("time must be strictly increasing, shape (T,)")
+    return x, t, None
+
+
+def _number(v, name: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+        raise ValueError(f"{name} must be a finite number, got {v!r}")
+    return float(v)
+
+
+def _check_int(v, name: str, lo: int) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+        raise ValueError(f"{name} must be an int >= {lo}, got {v!r}")
+    return v
+
+
+def _blocks(t: Tensor, y: Tensor, sigma0: float, max_points: int):
+    """Equal-count block means when there are more than ``max_points`` values."""
+    n = t.shape[0]
+    if n <= max_points:
+        return t, y, sigma0, 1
+    size = math.ceil(n / max_points)
+    m = n // size
+    tb = t[: m * size].reshape(m, size).mean(1)
+    yb = y[: m * size].reshape(m, size).mean(1)
+    if m * size < n:  # the newest values form the last block
+        tb = torch.cat([tb, t[m * size :].mean().reshape(1)])
+        yb = torch.cat([yb, y[m * size :].mean().reshape(1)])
+    return tb, yb, sigma0 / math.sqrt(size), size
+
+
+# ----------------------------------------------------------------------------- RUL pieces
+def _distribution(rul: Tensor, weights: Tensor, bin_width: float, bins: int) -> RULDistribution:
+    """A :class:`RULDistribution` on ``bin_width * (1..bins)`` from per-path RULs (inf:
+    censored)."""
+    fp = torch.where(
+        torch.isfinite(rul) & (rul <= bins * bin_width),
+        torch.ceil(rul / bin_width).clamp(min=1, max=bins).to(torch.int64),
+        torch.full_like(rul, -1, dtype=torch.int64),
+    )
+    idx = torch.where(fp > 0, fp - 1, torch.full_like(fp, bins))
+    mass = torch.zeros(bins + 1, dtype=torch.float64)
+    mass.scatter_add_(0, idx, weights)
+    pmf, cens = mass[:bins], mass[bins]
+    support = torch.arange(1, bins + 1, dtype=torch.float64) * bin_width
+    crossing = pmf.sum()
+    expectation = (pmf * support).sum() / crossing if crossing > 0 else torch.tensor(math.nan)
+    if cens > 0:
+        expectation = torch.tensor(math.nan, dtype=torch.float64)
+    return RULDistribution(fp, weights, pmf, cens, expectation, float(bin_width), 0.0)
+
+
+def _backtest_pairs(t: Tensor, y: Tensor, sigma0: float) -> list[tuple[float, int, float]]:
+    """``(level, origin index, crossing time)`` of the levels already crossed since onset."""
+    m = moving_median(y, 5)
+    m0, top = float(m[0]), float(m.max())
+    pairs = []
+    if top - m0 > sigma0:
+        for f in _BACKTEST_LEVELS:
+            c = m0 + f * (top - m0)
+            k = int(torch.nonzero(m >= c).flatten()[0])
+            t_on, t_c = float(t[0]), float(t[k])
+            for g in _BACKTEST_ORIGINS:
+                o = t_on + g * (t_c - t_on)
+                i = int(torch.searchsorted(t, torch.tensor(o, dtype=t.dtype), right=True)) - 1
+                if 4 <= i < k and t_c > float(t[i]):
+                    pairs.append((c, i, t_c))
+    return pairs
+
+
+def crps_log_time(times: Tensor, true: float, cap: float) -> Tensor:
+    """CRPS of sampled crossing durations on the log scale, ``(..., N)`` -> ``(...)``.
+
+    ``CRPS = E|X - x| - E|X - X'| / 2`` with ``X = log(min(T, cap))``, ``x = log(true)``
+    (Gneiting & Raftery 2007; the sample form uses the sorted samples). ``inf`` durations
+    (censored) enter as ``cap``.
+    """
+    X = times.clamp(min=1e-300, max=cap).log()
+    x = math.log(true)
+    n = X.shape[-1]
+    Xs = torch.sort(X, -1).values
+    i = torch.arange(1, n + 1, dtype=X.dtype, device=X.device)
+    spread = ((2.0 * i - n - 1.0) * Xs).sum(-1)
+    return (X - x).abs().mean(-1) - spread / (n * n)
+
+
+def _backtest(fits: dict, pairs, t: Tensor, gen: torch.Generator) -> dict[str, Tensor]:
+    """Mean log-time CRPS over the backtest pairs, per shape and noise grid point ``(G,)``."""
+    out = {}
+    for name, fit in fits.items():
+        total = torch.zeros(fit.grid.level.numel(), dtype=torch.float64)
+        for c, i, t_c in pairs:
+            true = t_c - float(t[i])
+            grid = path_grid(float(t[i]), 10.0 * true, true / 20.0, rel=0.05)
+            times = fit.grid_first_passage(i, c, grid, _BACKTEST_PATHS, gen) - float(t[i])
+            total += crps_log_time(times, true, 10.0 * true)
+        out[name] = total / len(pairs)
+    return out
+
+
+def _backtest_one(fit, pairs, t: Tensor, gen: torch.Generator) -> float:
+    """The same score for one model (the learner)."""
+    total = 0.0
+    for c, i, t_c in pairs:
+        true = t_c - float(t[i])
+        grid = path_grid(float(t[i]), 10.0 * true, true / 20.0, rel=0.05)
+        times = fit.first_passage(i, c, grid, _BACKTEST_PATHS, gen).times - float(t[i])
+        total += float(crps_log_time(times, true, 10.0 * true))
+    return total / len(pairs)
+
+
+def _flags(fit, level_thr: float, passage, n_since: int, censored: float) -> list[str]:
+    out = []
+    z = fit.level_fit.z if hasattr(fit, "level_fit") else fit.z
+    zz = z[~torch.isnan(z)]
+    zt = fit.to_z(level_thr)
+    rise = float(zz.max() - zz.min()) if zz.numel() else 0.0
+    now = float(fit.level_fit.means[-1, 0] if hasattr(fit, "level_fit") else fit.means[-1, 0])
+    if rise > 0 and math.isfinite(zt) and (zt - now) > 3.0 * rise:
+        out.append(
+            f"extrapolation: the threshold is {(zt - now) / rise:.1f} times the rise seen since "
+            "onset away (in the model's measurement space); the RUL rests on the model's shape "
+            "far beyond the data"
+        )
+    div = float(passage.diverged.to(torch.float64).mean())
+    if div > 0.01:
+        out.append(f"diverging paths: {100 * div:.1f} % of the paths left every sensible range")
+    if censored > 0.05:
+        out.append(
+            f"censored: {100 * censored:.0f} % of the paths do not reach the threshold within "
+            "the horizon"
+        )
+    if n_since < 20:
+        out.append(
+            f"few data since onset ({n_since} values): the interval rests mostly on the prior"
+        )
+    return out
+
+
+# ----------------------------------------------------------------------------- public
+def prognose(
+    series,
+    threshold: float,
+    *,
+    time=None,
+    method: str = "auto",
+    seed: int = 0,
+    direction: str = "auto",
+    at: float | None = None,
+    baseline: float | Baseline = 0.3,
+    onset: str = "ksigma",
+    n_paths: int = 2000,
+    horizon_factor: float = 2.0,
+    filter="ekf",
+    max_points: int = 500,
+) -> RULResult:
+    """RUL distribution of a degradation series for a failure ``threshold`` (module docstring).
+
+    Args:
+        series: a :class:`~prognos_torch.workflow.Series` or values ``(T,)`` (NaN: missing).
+        threshold: failure threshold in data units.
+        time: ``(T,)`` strictly increasing times for array input (default: the index).
+        method: ``"auto"`` (backtest choice), ``"exponential"``, ``"power"``, ``"linear"`` or
+            ``"elm"`` (:data:`PROGNOSE_METHODS`).
+        seed: seeds the path draws and the ELM's random features.
+        direction: ``"above"``, ``"below"`` or ``"auto"`` (the side of the baseline the
+            threshold is on).
+        at: evaluation time ``>= `` the last observation (default: the last observation).
+        baseline: the healthy window as a fraction of the time span, or a
+            :class:`~prognos_torch.prognosis.onset.Baseline` (data units).
+        onset: ``"ksigma"`` (default) or ``"cusum"``.
+        n_paths: sample paths of the RUL distribution.
+        horizon_factor: the horizon is this multiple of the observed life (and at least 10
+            times the time since onset).
+        filter: engine configuration filtering the trend models: a filter name or a
+            :class:`~prognos_torch.filters.GaussianFilter`; default ``"ekf"``, the exact Kalman
+            filter on these linear-Gaussian models (calibrated when the data follow the model);
+            ``"stekf"`` or :func:`~prognos_torch.prognosis.trends.strong_tracking_filter` add
+            strong tracking (paper 000), which widens the posterior after jumps.
+        max_points: values since onset above which block means are used.
+
+    Returns:
+        :class:`~prognos_torch.workflow.RULResult` with ``status``, ``onset``, ``model``,
+        ``flags``, ``selection`` and ``rul_samples``; ``summary()`` gives median, q05, q95,
+        censored mass and bound.
+
+    Raises:
+        ValueError: bad input (too few values, a threshold inside the healthy band or on the
+            wrong side of it, a threshold already reached, unknown options).
+    """
+    x, t, src = _as_series(series, time)
+    thr = _number(threshold, "threshold")
+    if method not in PROGNOSE_METHODS:
+        raise ValueError(f"method must be one of {', '.join(PROGNOSE_METHODS)}, got {method!r}")
+    if direction not in ("auto", "above", "below"):
+        raise ValueError(f"direction must be 'auto', 'above' or 'below', got {direction!r}")
+    n_paths = _check_int(n_paths, "n_paths", 10)
+    max_points = _check_int(max_points, "max_points", 20)
+    horizon_factor = _number(horizon_factor, "horizon_factor")
+    if horizon_factor <= 0:
+        raise ValueError(f"horizon_factor must be positive, got {horizon_factor}")
+    keep = ~torch.isnan(x)
+    x, t = x[keep], t[keep]
+    if x.shape[0] < MIN_POINTS:
+        raise ValueError(
+            f"series has {x.shape[0]} observed values; prognose needs at least {MIN_POINTS} "
+            "(a healthy baseline and a trend)"
+        )
+    t_last = float(t[-1])
+    t_eval = t_last if at is None else _number(at, "at")
+    if t_eval < t_last:
+        raise ValueError(f"at = {t_eval:g} is before the last observation {t_last:g}")
+    base = baseline if isinstance(baseline, Baseline) else healthy_baseline(x, t, fraction=baseline)
+    lo_band, hi_band = base.mean - _K * base.std, base.mean + _K * base.std
+    if direction == "auto":
+        if lo_band <= thr <= hi_band:
+            raise ValueError(
+                f"threshold {thr:g} lies inside the healthy band [{lo_band:.4g}, {hi_band:.4g}] "
+                f"(baseline mean -+ {_K:g} std): the healthy asset would already count as failed"
+            )
+        direction = "above" if thr > hi_band else "below"
+    elif (direction == "above" and thr <= hi_band) or (direction == "below" and thr >= lo_band):
+        side = "above" if direction == "above" else "below"
+        edge = hi_band if direction == "above" else lo_band
+        raise ValueError(
+            f"threshold {thr:g} is on the wrong side for direction {direction!r}: it must lie "
+            f"{side} the healthy band edge {edge:.4g} (baseline mean {base.mean:.4g}, std "
+            f"{base.std:.4g})"
+        )
+    sign = 1.0 if direction == "above" else -1.0
+    yo, thr_o = sign * x, sign * thr  # oriented: degradation raises yo
+    now = float(moving_median(yo[-5:], 5)[-1])
+    if now >= thr_o:
+        raise ValueError(
+            f"threshold {thr:g} already reached: the median of the last 5 values is "
+            f"{sign * now:.4g} (direction {direction!r}); the RUL is 0"
+        )
+    flags: list[str] = []
+    if float(yo[-1]) >= thr_o:
+        flags.append(
+            "the last value is beyond the threshold while the median of the last 5 is not "
+            "(a spike or the start of failure)"
+        )
+    ons = detect_onset(x, t, method=onset, baseline=base, direction=direction)
+    gen = torch.Generator().manual_seed(int(seed))
+    span_life = t_last - float(t[0])
+    dt_data = float(torch.diff(t).median())
+    phi = sign * base.mean
+    common = dict(
+        threshold=thr, direction=direction, time_unit=_unit(src), history=_history(x, t, src)
+    )
+
+    if not ons.detected:
+        return _no_degradation(
+            t, yo, thr_o, sign, base, ons, gen, t_eval, span_life, dt_data, filter, common
+        )
+
+    i0 = ons.index
+    t_on, y_on = t[i0:], yo[i0:]
+    noise0 = base.noise if base.noise is not None else base.std
+    tb, yb, s0b, block = _blocks(t_on, y_on, noise0, max_points)
+    shapes = (
+        TREND_SHAPES if method == "auto" else ("exponential",) if method == "elm" else (method,)
+    )
+    fits = fit_trends(tb, yb, phi=phi, sigma0=s0b, shapes=shapes, filter=filter)
+    pairs = _backtest_pairs(tb, yb, s0b)
+    scores: dict[str, float] = {}
+    if pairs:  # noise (and model) chosen by multi-step crossing-time skill on the own past
+        grid_scores = _backtest(fits, pairs, tb, gen)
+        for name, sc in grid_scores.items():
+            g = int(torch.argmin(torch.nan_to_num(sc, nan=math.inf)))
+            fits[name] = fits[name].select(g)
+            scores[name] = float(sc[g])
+    models: dict = {k: v for k, v in fits.items() if method in ("auto", k)}
+    if method in ("auto", "elm") and "exponential" in fits:
+        origins = sorted({i for _, i, _ in pairs})
+        models["elm"] = fit_learner_trend(fits["exponential"], seed=seed, snapshots=tuple(origins))
+        if pairs:
+            scores["elm"] = _backtest_one(models["elm"], pairs, tb, gen)
+    if not models:
+        raise ValueError(
+            f"the {method!r} model cannot be fitted: fewer than 3 values since onset exceed the "
+            "healthy level by one baseline standard deviation"
+        )
+    chosen = next(iter(models))
+    if method == "auto":
+        if scores:
+            chosen = min(scores, key=lambda k: (scores[k], list(models).index(k)))
+        elif "exponential" in models:
+            chosen = "exponential"
+    selection = {
+        "criterion": "mean CRPS of the log time to already crossed levels (backtest)"
+        if pairs
+        else "maximum likelihood (no level crossed since onset yet)",
+        "pairs": len(pairs),
+        "scores": scores,
+        "chosen": chosen,
+    }
+    fit = models[chosen]
+    horizon = max(horizon_factor * span_life, 10.0 * (t_last - float(t[i0])), 10 * dt_data)
+    horizon += t_eval - t_last
+    bin_width = max(dt_data, horizon / _MAX_BINS)
+    grid = path_grid(float(tb[-1]), horizon + (t_last - float(tb[-1])), bin_width, rel=0.01)
+    passage = fit.first_passage(-1, thr_o, grid, n_paths, gen, keep=100)
+    rul = passage.times - t_eval
+    alive = passage.times > t_eval
+    p_alive = float(alive.to(torch.float64).mean())
+    if p_alive < 1.0:
+        flags.append(
+            f"{100 * (1 - p_alive):.0f} % of the paths crossed before the evaluation time "
+            f"{t_eval:g}; the RUL is conditioned on the asset still running then"
+        )
+    if p_alive == 0.0:
+        raise ValueError(
+            f"every predicted path crossed the threshold before at = {t_eval:g}: the model says "
+            "the asset has already failed; evaluate at the last observation instead"
+        )
+    w = alive.to(torch.float64) / alive.sum()
+    bins = max(1, math.ceil((horizon - (t_eval - t_last)) / bin_width))
+    dist = _distribution(
+        torch.where(alive, rul, torch.full_like(rul, math.inf)), w, bin_width, bins
+    )
+    censored = float(dist.censored_mass)
+    flags += _flags(fit, thr_o, passage, int(t_on.shape[0]), censored)
+    if block > 1:
+        flags.append(f"{t_on.shape[0]} values since onset were averaged in blocks of {block}")
+    paths = _uniform_paths(passage.paths, grid, t_eval, bin_width, bins, sign)
+    return RULResult(
+        distribution=dist,
+        horizon=bins,
+        dt=bin_width,
+        t_last=t_eval,
+        paths=paths,
+        weights=torch.full((paths.shape[0],), 1.0 / paths.shape[0], dtype=torch.float64),
+        filter=getattr(fit, "filter", "ekf (Kalman optimiser)"),
+        n_particles=n_paths,
+        status="ok",
+        onset=ons,
+        model=chosen,
+        flags=tuple(flags),
+        selection=selection,
+        rul_samples=torch.where(alive, rul, torch.full_like(rul, math.nan)),
+        **common,
+    )
+
+
+# ----------------------------------------------------------------------------- helpers
+def _unit(src: Series | None) -> str:
+    return src.time_unit if src is not None else "steps"
+
+
+def _history(x: Tensor, t: Tensor, src: Series | None) -> Series:
+    if src is not None:
+        return Series(x, t, src.name, src.time_name, src.time_unit, src.start, src.source)
+    return Series(x, t)
+
+
+def _uniform_paths(paths, grid, t_eval, bin_width, bins, sign) -> Tensor:
+    """Kept paths interpolated onto the RUL bins ``t_eval + bin_width (1..bins)`` (data units);
+    at most 4,000 columns are kept for long horizons (the tail is held)."""
+    import numpy as np
+
+    if paths is None or paths.shape[0] == 0:
+        return torch.zeros(1, bins, dtype=torch.float64)
+    tq = t_eval + bin_width * np.arange(1, bins + 1)
+    g = grid.numpy()
+    out = np.stack([np.interp(tq, g, p) for p in paths.numpy()])
+    return sign * torch.as_tensor(out, dtype=torch.float64)
+
+
+def _no_degradation(t, yo, thr_o, sign, base, ons, gen, t_eval, span_life, dt_data, filt, common):
+    """Before onset: a lower bound from a linear trend on the healthy data (module doc)."""
+    n = t.shape[0]
+    first = max(0, n - 1000)
+    noise0 = base.noise if base.noise is not None else base.std
+    fits = fit_trends(t[first:], yo[first:], phi=sign * base.mean, sigma0=noise0,
+                      shapes=("linear",), filter=filt)  # fmt: skip
+    fit = fits["linear"]
+    horizon = max(2.0 * span_life, 10 * dt_data) + (t_eval - float(t[-1]))
+    bin_width = max(dt_data, horizon / _MAX_BINS)
+    grid = path_grid(float(t[-1]), horizon, bin_width, rel=0.01)
+    passage = fit.first_passage(-1, thr_o, grid, 2000, gen)
+    rul = passage.times - t_eval
+    alive = passage.times > t_eval
+    w = alive.to(torch.float64) / alive.sum().clamp(min=1)
+    bins = max(1, math.ceil((horizon - (t_eval - float(t[-1]))) / bin_width))
+    dist = _distribution(
+        torch.where(alive, rul, torch.full_like(rul, math.inf)), w, bin_width, bins
+    )
+    q05 = float(dist.quantile(0.05))
+    bound = bins * bin_width if math.isnan(q05) else q05
+    return RULResult(
+        distribution=dist,
+        horizon=bins,
+        dt=bin_width,
+        t_last=t_eval,
+        paths=torch.zeros(1, bins, dtype=torch.float64),
+        weights=torch.ones(1, dtype=torch.float64),
+        filter=fit.filter,
+        n_particles=2000,
+        status="no degradation detected yet",
+        onset=ons,
+        model=None,
+        flags=(
+            "no degradation detected yet: the RUL is not estimated; the bound is the 5 % "
+            "quantile of the first passage under a linear trend of the healthy data",
+        ),
+        lower_bound=bound,
+        **common,
+    )

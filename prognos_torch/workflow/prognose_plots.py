@@ -1,0 +1,182 @@
+"""Figures of :func:`~prognos_torch.workflow.prognose` results and of RUL trajectories.
+
+* :func:`plot_prognosis`: the data since a little before onset, sample paths with their 5-95 %
+  band and median until the threshold, the threshold, the onset, and the RUL pmf beneath with the
+  censored mass stated;
+* :func:`plot_rul_trajectory`: predicted RUL (median and 90 % interval) against the true RUL
+  line and the alpha cone ``[(1 - alpha) r*, (1 + alpha) r*]`` (Saxena et al. 2010), one panel
+  per series.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+from collections.abc import Sequence
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from ..io import atomic_write
+from .predict import RULResult
+
+__all__ = ["plot_prognosis", "plot_rul_trajectory"]
+
+
+def _np(x) -> np.ndarray:
+    return x.detach().to("cpu").double().numpy()
+
+
+def _write(fig: Figure, path: str | os.PathLike | None) -> Figure:
+    fig.tight_layout()
+    if path is not None:
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=100)
+        atomic_write(path, buf.getvalue())
+    return fig
+
+
+def _label(history) -> str:
+    if history.time_unit == "days":
+        return f"days since {history.start}" if history.start else "days"
+    return "step" if history.time_unit == "steps" else history.time_unit
+
+
+def plot_prognosis(
+    path: str | os.PathLike | None,
+    result: RULResult,
+    *,
+    truth=None,
+    n_paths: int = 30,
+    title: str | None = None,
+    ax=None,
+) -> Figure:
+    """Paths with the threshold (top) and the RUL pmf (bottom) of a ``prognose`` result.
+
+    Args:
+        path: PNG file to write, or ``None``.
+        result: a :class:`RULResult` from :func:`~prognos_torch.workflow.prognose`.
+        truth: optional ``(t, y)`` tensors of what followed (drawn in grey).
+        n_paths: sample paths drawn.
+        title: figure title.
+        ax: draw only the top panel into this matplotlib axis (no file is written).
+    """
+    own = ax is None
+    fig = None
+    if own:
+        fig = Figure(figsize=(7.5, 6.0))
+        FigureCanvasAgg(fig)
+        ax, bx = fig.add_subplot(2, 1, 1), fig.add_subplot(2, 1, 2)
+    h = result.history
+    th, yh = _np(h.t), _np(h.values)
+    t0 = th[0]
+    on = result.onset
+    if on is not None and on.detected:
+        span = result.t_last - on.time
+        t0 = max(th[0], on.time - 0.5 * max(span, 1e-12))
+        ax.axvline(on.time, color="C2", lw=0.8, ls=":", label="onset")
+    keep = th >= t0
+    ax.plot(th[keep], yh[keep], ".", ms=2, color="0.2", label="observed")
+    s = result.summary()
+    t_end = result.t_last + (s["q95"] if s["q95"] is not None else result.bound)
+    t_end = max(t_end, result.t_last + 0.05 * (result.t_last - t0))
+    if truth is not None:
+        tt, yt = _np(truth[0]), _np(truth[1])
+        sel = (tt > result.t_last) & (tt <= t_end)
+        ax.plot(tt[sel], yt[sel], ".", ms=2, color="0.65", label="what followed")
+    if result.status == "ok":
+        tf = result.t_last + result.dt * np.arange(1, result.horizon + 1)
+        m = tf <= t_end
+        P = _np(result.paths)[:, m]
+        if P.shape[1]:
+            lo, med, hi = np.quantile(P, [0.05, 0.5, 0.95], axis=0)
+            ax.fill_between(tf[m], lo, hi, color="C1", alpha=0.2, label="paths 5-95 %")
+            for p in P[:n_paths]:
+                ax.plot(tf[m], p, color="C1", lw=0.3, alpha=0.6)
+            ax.plot(tf[m], med, color="C1", lw=1.3, label="median path")
+    ax.axhline(result.threshold, color="C3", lw=1.0, ls="--", label="threshold")
+    ax.set_xlim(t0, t_end)
+    ylo, yhi = float(np.min(yh[keep])), float(np.max(yh[keep]))
+    lo_t, hi_t = min(ylo, result.threshold), max(yhi, result.threshold)
+    pad = 0.15 * (hi_t - lo_t) if hi_t > lo_t else 1.0
+    ax.set_ylim(lo_t - pad, hi_t + pad)
+    ax.set_xlabel(_label(h))
+    ax.set_ylabel(h.name)
+    ax.legend(loc="upper left", fontsize=7)
+    med = "n/a" if s["median"] is None else f"{s['median']:.3g}"
+    ax.set_title(title or f"RUL at {result.t_last:g}: median {med} ({result.model})", fontsize=9)
+    if not own:
+        return ax.figure
+    d = result.distribution
+    if result.status == "ok":
+        sup, pmf = _np(d.support), _np(d.pmf)
+        upto = (s["q95"] if s["q95"] is not None else result.bound) * 1.5
+        m = sup <= upto
+        width = max(result.dt, upto / 200.0)
+        edges = np.arange(0.0, upto + width, width)
+        hist, _ = np.histogram(sup[m], bins=edges, weights=pmf[m])
+        bx.bar(edges[:-1], hist, width=width, align="edge", color="C0", alpha=0.7)
+        for q, name in ((s["q05"], "q05"), (s["median"], "median"), (s["q95"], "q95")):
+            if q is not None:
+                bx.axvline(q, color="k", lw=0.8, ls="-" if name == "median" else ":")
+        bx.text(0.98, 0.9, f"P(RUL > {result.bound:.3g}) = {result.censored_mass:.2f}",
+                transform=bx.transAxes, ha="right", fontsize=8)  # fmt: skip
+    else:
+        bx.text(0.5, 0.5, f"{result.status}: RUL > {s['bound']:.3g} {result.time_unit}",
+                transform=bx.transAxes, ha="center")  # fmt: skip
+    bx.set_xlabel(f"RUL ({result.time_unit})")
+    bx.set_ylabel("probability")
+    return _write(fig, path)
+
+
+def plot_rul_trajectory(
+    path: str | os.PathLike | None,
+    panels: Sequence[dict],
+    *,
+    alpha: float = 0.3,
+    ncols: int = 2,
+) -> Figure:
+    """Predicted RUL against the truth and the alpha cone, one panel per series.
+
+    Args:
+        path: PNG file, or ``None``.
+        panels: dicts with ``title``, ``times`` ``(P,)``, ``true`` ``(P,)``, ``t_eol``, and
+            ``methods``: ``{name: {"pred": (P,), "lo": (P,) | None, "hi": (P,) | None}}``
+            (``inf``/NaN: no finite prediction, drawn at the top edge).
+        alpha: cone half-width.
+        ncols: panels per row.
+    """
+    n = len(panels)
+    nrows = max(1, math.ceil(n / ncols))
+    fig = Figure(figsize=(5.0 * ncols, 3.6 * nrows))
+    FigureCanvasAgg(fig)
+    for k, pan in enumerate(panels):
+        ax = fig.add_subplot(nrows, ncols, k + 1)
+        tt = np.asarray(pan["times"], dtype=float)
+        tr = np.asarray(pan["true"], dtype=float)
+        t_eol = float(pan["t_eol"])
+        grid = np.linspace(tt.min() - 0.05 * (t_eol - tt.min()), t_eol, 50)
+        r = t_eol - grid
+        ax.fill_between(grid, (1 - alpha) * r, (1 + alpha) * r, color="0.85",
+                        label=f"alpha = {alpha:g} cone")  # fmt: skip
+        ax.plot(grid, r, color="k", lw=1.0, label="true RUL")
+        top = 2.2 * float(tr.max())
+        for j, (name, m) in enumerate(pan["methods"].items()):
+            p = np.asarray(m["pred"], dtype=float)
+            shown = np.where(np.isfinite(p), np.minimum(p, top), top)
+            dx = (j - 0.5 * (len(pan["methods"]) - 1)) * 0.01 * (t_eol - tt.min())
+            ax.plot(tt + dx, shown, "o-" if j == 0 else "s--", ms=4, lw=0.8, color=f"C{j}",
+                    label=name)  # fmt: skip
+            if m.get("lo") is not None:
+                lo = np.minimum(np.nan_to_num(np.asarray(m["lo"], float), nan=top, posinf=top), top)
+                hi = np.minimum(np.nan_to_num(np.asarray(m["hi"], float), nan=top, posinf=top), top)
+                ax.vlines(tt + dx, lo, hi, color=f"C{j}", lw=2.0, alpha=0.35)
+        ax.set_ylim(0, top * 1.02)
+        ax.set_title(pan["title"], fontsize=9)
+        ax.set_xlabel("prediction time")
+        ax.set_ylabel("RUL")
+        if k == 0:
+            ax.legend(fontsize=6, loc="upper right")
+    return _write(fig, path)

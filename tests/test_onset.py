@@ -1,0 +1,177 @@
+"""Degradation onset: k-sigma moving-median rule and one-sided CUSUM (prognosis/onset.py)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from prognos_torch.prognosis import (
+    Baseline,
+    cusum_arl0,
+    cusum_onset,
+    detect_onset,
+    healthy_baseline,
+    ksigma_false_alarm_rate,
+    ksigma_onset,
+    moving_median,
+)
+
+F64 = torch.float64
+
+
+def _gen(seed):
+    return torch.Generator().manual_seed(seed)
+
+
+def test_moving_median_matches_numpy_with_missing_values():
+    g = _gen(0)
+    x = torch.randn(60, generator=g, dtype=F64)
+    x[[3, 17, 18, 40]] = math.nan
+    got = moving_median(x, 5).numpy()
+    xs = x.numpy()
+    for i in range(60):
+        w = xs[max(0, i - 4) : i + 1]
+        w = np.sort(w[~np.isnan(w)])
+        ref = w[(len(w) - 1) // 2]  # lower median for even counts
+        assert got[i] == ref
+
+
+def test_documented_rates():
+    indep, dep = ksigma_false_alarm_rate(4.0, 5)
+    p = 0.5 * math.erfc(4 / math.sqrt(2))
+    assert indep == pytest.approx(10 * p**3, rel=1e-3)
+    assert dep == pytest.approx(5 * p / 3, rel=1e-12)
+    # Siegmund (kappa = 0.5, h = 5): the textbook ARL_0 of about 930
+    assert cusum_arl0(0.5, 5.0) == pytest.approx(930, rel=0.01)
+    assert cusum_arl0(0.5, 12.0) == pytest.approx(1.04e6, rel=0.01)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_ksigma_finds_a_step_within_the_window(seed):
+    g = _gen(seed)
+    tau = 700
+    x = torch.randn(1000, generator=g, dtype=F64)
+    x[tau:] += 6.0  # a 6-sigma step
+    on = ksigma_onset(x)
+    # the moving median (w = 5) exceeds 4 sigma once 3 post-change samples are in its window
+    assert on.detected and tau <= on.index <= tau + 4
+    assert on.alarm_index == on.index + 4
+    assert on.time == float(on.index)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_ksigma_finds_a_ramp_within_the_stated_tolerance(seed):
+    g = _gen(seed)
+    tau, slope = 600, 0.05  # sigma per sample
+    t = torch.arange(1000, dtype=F64) * 0.5  # time in half units, to check the time axis
+    x = 2.0 + 0.1 * torch.randn(1000, generator=g, dtype=F64)
+    x[tau:] += 0.1 * slope * torch.arange(400, dtype=F64)
+    on = ksigma_onset(x, t)
+    # the level reaches mu + 4 sigma at tau + 4 / slope = tau + 80; noise moves the median
+    # crossing by a few samples either way (tolerance +- 25 samples)
+    assert on.detected and abs(on.index - (tau + 80)) <= 25
+    assert on.time == pytest.approx(0.5 * on.index)
+    b = on.baseline
+    assert b.mean == pytest.approx(2.0, abs=0.02) and b.std == pytest.approx(0.1, rel=0.15)
+
+
+def test_ksigma_direction_below_and_missing_values():
+    g = _gen(1)
+    x = torch.randn(800, generator=g, dtype=F64)
+    x[500:] -= 8.0
+    on = ksigma_onset(x, direction="below")
+    assert on.detected and 500 <= on.index <= 504
+    assert not ksigma_onset(x, direction="above").detected
+    # NaN samples are skipped: same onset as the series without them, indices mapped back
+    xm = x.clone()
+    xm[[100, 501, 502]] = math.nan
+    on_m = ksigma_onset(xm, direction="below")
+    keep = ~torch.isnan(xm)
+    on_d = ksigma_onset(x[keep], torch.nonzero(keep).flatten().to(F64), direction="below")
+    assert on_m.index == int(on_d.time)
+    assert math.isnan(float(on_m.statistic[501]))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_cusum_change_point_estimate(seed):
+    g = _gen(seed)
+    tau = 2400
+    x = torch.randn(3000, generator=g, dtype=F64)
+    x[tau:] += 2.0
+    on = cusum_onset(x)  # baseline: 900 samples (the CUSUM is sensitive to a biased mean)
+    # a 2-sigma shift: S grows by 1.5 per sample, alarm about 8 samples after tau; Page's
+    # estimate of the change point lies within a few samples of tau
+    assert on.detected and tau < on.alarm_index <= tau + 20
+    assert abs(on.index - tau) <= 5
+    assert float(on.statistic[on.alarm_index]) > on.limit
+
+
+def test_no_false_alarm_over_stationary_samples_ksigma():
+    # 100 stationary Gaussian series of 10,000 samples, baseline estimated from the first 30 %:
+    # documented probability of a false alarm per series < 3.2e-9 -> none expected
+    g = _gen(7)
+    for _ in range(100):
+        x = 0.3 + 0.02 * torch.randn(10_000, generator=g, dtype=F64)
+        assert not ksigma_onset(x).detected
+
+
+def test_ksigma_dependence_free_bound_holds_for_ar1():
+    # AR(1), rho = 0.95, marginally N(0, 1): samples are strongly dependent; the per-sample
+    # frequency of a moving median above 4 sigma stays below the dependence-free bound w p / j*
+    # (5.3e-5); the independent-sample bound (3.2e-13) does not apply here
+    g = _gen(3)
+    rho, T, R = 0.95, 20_000, 50
+    e = torch.randn(R, T, generator=g, dtype=F64) * math.sqrt(1 - rho**2)
+    x = torch.empty(R, T, dtype=F64)
+    x[:, 0] = torch.randn(R, generator=g, dtype=F64)
+    for i in range(1, T):
+        x[:, i] = rho * x[:, i - 1] + e[:, i]
+    base = Baseline(0.0, 1.0, 0.0, 1000, 0.0)
+    exceed = 0
+    for r in range(R):
+        on = ksigma_onset(x[r], baseline=base, consecutive=1)
+        exceed += int((on.statistic > 4.0).sum())
+    _, bound = ksigma_false_alarm_rate(4.0, 5)
+    freq = exceed / (R * T)
+    assert freq <= bound  # measured about 1e-5 in this set-up
+
+
+def test_cusum_false_alarm_rate_matches_siegmund():
+    g = _gen(11)
+    base = Baseline(0.0, 1.0, 0.0, 1000, 0.0)
+    # documented defaults (h = 12): P(alarm within 10,000 samples) = 1 - exp(-1e4 / ARL_0)
+    R = 400
+    alarms = sum(
+        cusum_onset(torch.randn(10_000, generator=g, dtype=F64), baseline=base).detected
+        for _ in range(R)
+    )
+    p = 1.0 - math.exp(-1e4 / cusum_arl0(0.5, 12.0))
+    assert alarms <= R * p + 4 * math.sqrt(R * p * (1 - p))  # expected 3.8
+    # the approximation itself, where alarms are frequent enough to measure (h = 4: ARL_0 = 336)
+    runs = []
+    for _ in range(300):
+        on = cusum_onset(torch.randn(4000, generator=g, dtype=F64), baseline=base, limit=4.0)
+        runs.append(on.alarm_index + 1 if on.detected else 4000)
+    arl = float(np.mean(runs))
+    assert arl == pytest.approx(cusum_arl0(0.5, 4.0), rel=0.15)
+
+
+def test_bad_input():
+    x = torch.randn(100, dtype=F64)
+    with pytest.raises(ValueError, match="shape"):
+        ksigma_onset(x.reshape(10, 10))
+    with pytest.raises(ValueError, match="strictly increasing"):
+        ksigma_onset(x, torch.zeros(100, dtype=F64))
+    with pytest.raises(ValueError, match="constant"):
+        healthy_baseline(torch.ones(100, dtype=F64))
+    with pytest.raises(ValueError, match="direction"):
+        cusum_onset(x, direction="up")
+    with pytest.raises(ValueError, match="onset method"):
+        detect_onset(x, method="pelt")
+    with pytest.raises(ValueError, match="inf"):
+        ksigma_onset(torch.tensor([1.0, math.inf, 2.0, 3.0]))
+    with pytest.raises(ValueError, match="at least 3"):
+        healthy_baseline(torch.tensor([1.0, 2.0]))

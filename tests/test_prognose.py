@@ -1,0 +1,145 @@
+"""workflow.prognose: the one entry point from a degradation series to a RUL distribution."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from prognos_torch.workflow import RULResult, Series, prognose
+
+F64 = torch.float64
+PHI, A, B, ON = 1.0, 0.05, 0.02, 400  # y = PHI + A exp(B (t - ON)) after ON
+
+
+def _series(n=550, noise_after=0.0, seed=0):
+    """A healthy phase alternating exactly around PHI (mean PHI, std 0.05) and a noiseless (or
+    noisy) exponential rise after ON."""
+    t = torch.arange(n, dtype=F64)
+    y = PHI + 0.05 * (-1.0) ** torch.arange(n, dtype=F64)
+    s = (t - ON).clamp(min=0)
+    rise = A * torch.exp(B * s)
+    if noise_after:
+        g = torch.Generator().manual_seed(seed)
+        rise = rise * torch.exp(noise_after * torch.randn(n, generator=g, dtype=F64))
+    y = torch.where(t >= ON, PHI + rise, y)
+    return t, y
+
+
+def _crossing(threshold):
+    return ON + math.log((threshold - PHI) / A) / B
+
+
+def test_noiseless_exponential_rul_equals_the_closed_form():
+    t, y = _series()
+    thr = 3.0
+    res = prognose(y, thr, time=t, method="exponential")
+    assert isinstance(res, RULResult) and res.status == "ok" and res.model == "exponential"
+    s = res.summary()
+    true = _crossing(thr) - float(t[-1])
+    assert s["median"] == pytest.approx(true, rel=0.02)
+    assert s["q05"] <= s["median"] <= s["q95"]
+    assert s["censored_mass"] == 0.0
+    assert res.onset.detected and ON < res.onset.time < ON + 80
+    assert set(s) >= {"median", "q05", "q95", "censored_mass", "bound", "status", "model"}
+    # the horizon is a multiple of the observed life, not a short fixed cap
+    assert s["bound"] >= 2.0 * float(t[-1] - t[0])
+
+
+def test_auto_chooses_by_backtest_and_reports_the_scores():
+    t, y = _series(noise_after=0.05)
+    res = prognose(y, 3.0, time=t)
+    sel = res.selection
+    assert sel["pairs"] > 0 and set(sel["scores"]) == {"exponential", "power", "linear", "elm"}
+    assert res.model == sel["chosen"] == min(sel["scores"], key=sel["scores"].get)
+    assert res.summary()["median"] is not None
+
+
+def test_direction_below_mirrors_above():
+    t, y = _series(noise_after=0.05)
+    up = prognose(y, 3.0, time=t, method="linear", seed=3)
+    down = prognose(-y, -3.0, time=t, method="linear", seed=3)
+    assert down.direction == "below" and up.direction == "above"
+    assert down.summary()["median"] == up.summary()["median"]
+    torch.testing.assert_close(down.paths, -up.paths)
+
+
+def test_missing_values_are_skipped():
+    t, y = _series(noise_after=0.05)
+    ym = y.clone()
+    gone = torch.tensor([50, 120, 450, 451, 500])
+    ym[gone] = math.nan
+    keep = ~torch.isnan(ym)
+    a = prognose(ym, 3.0, time=t, method="exponential", seed=1)
+    b = prognose(y[keep], 3.0, time=t[keep], method="exponential", seed=1)
+    assert a.summary()["median"] == b.summary()["median"]
+
+
+def test_evaluation_time_after_the_last_observation():
+    t, y = _series()
+    res0 = prognose(y, 3.0, time=t, method="exponential")
+    res = prognose(y, 3.0, time=t, method="exponential", at=float(t[-1]) + 10.0)
+    assert res.t_last == float(t[-1]) + 10.0
+    assert res.summary()["median"] == pytest.approx(res0.summary()["median"] - 10.0, abs=1.5)
+
+
+def test_no_degradation_gives_a_lower_bound_only():
+    g = torch.Generator().manual_seed(0)
+    y = 1.0 + 0.05 * torch.randn(3000, generator=g, dtype=F64)
+    res = prognose(y, 2.0)
+    s = res.summary()
+    assert res.status == "no degradation detected yet"
+    assert s["median"] is None and s["q05"] is None and s["q95"] is None and s["mean"] is None
+    assert s["bound"] > 0 and res.lower_bound == s["bound"]
+    assert not res.onset.detected
+    assert any("no degradation detected yet" in f for f in res.flags)
+
+
+def test_extrapolation_is_flagged():
+    t, y = _series(noise_after=0.05)
+    res = prognose(y, 1e4, time=t, method="linear")
+    assert any(f.startswith("extrapolation") for f in res.flags)
+
+
+def test_series_input():
+    t, y = _series()
+    s = Series(y, t, name="hi", time_name="t", time_unit="t")
+    res = prognose(s, 3.0, method="exponential")
+    assert res.time_unit == "t" and res.history.name == "hi"
+    with pytest.raises(ValueError, match="time is taken from the Series"):
+        prognose(s, 3.0, time=t)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"threshold": 1.25}, "already reached"),
+        ({"threshold": 1.05}, "inside the healthy band"),
+        ({"threshold": 0.5, "direction": "above"}, "wrong side"),
+        ({"threshold": 3.0, "method": "cubic"}, "method must be"),
+        ({"threshold": 3.0, "at": 10.0}, "before the last observation"),
+        ({"threshold": math.nan}, "finite number"),
+        ({"threshold": 3.0, "direction": "up"}, "direction"),
+    ],
+)
+def test_bad_input(kwargs, match):
+    t, y = _series()
+    if kwargs.get("threshold") == 1.25:  # the last 5 values are beyond it
+        y = torch.cat([y[:420], torch.full((5,), 1.3, dtype=F64)])
+        t = torch.arange(y.shape[0], dtype=F64)
+    with pytest.raises(ValueError, match=match):
+        prognose(y, time=t, **kwargs)
+
+
+def test_too_short_and_bad_arrays():
+    with pytest.raises(ValueError, match="at least"):
+        prognose(torch.ones(5, dtype=F64), 2.0)
+    with pytest.raises(ValueError, match="at least"):
+        prognose(torch.tensor([1.0] * 3 + [math.nan] * 20, dtype=F64), 2.0)
+    with pytest.raises(ValueError, match="strictly increasing"):
+        prognose(torch.randn(50, dtype=F64), 9.0, time=torch.zeros(50, dtype=F64))
+    with pytest.raises(ValueError, match="shape"):
+        prognose(torch.randn(5, 5, dtype=F64), 9.0)
+    with pytest.raises(ValueError, match="inf"):
+        prognose(torch.tensor([1.0] * 20 + [math.inf], dtype=F64), 9.0)
