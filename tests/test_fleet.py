@@ -369,3 +369,30 @@ def test_ray_backend_equals_local(fleet):
     finally:
         ray.shutdown()
     _assert_same(local, remote)
+
+
+def test_prognose_method_equals_prognose_per_asset_whatever_the_shards():
+    from prognos_torch.fleet import asset_seed
+    from prognos_torch.workflow import prognose
+
+    sf = synthetic_fleet(4, 200, seed=2, healthy_fraction=0.0)
+    a = fleet_rul(sf.table, sf.threshold, method="prognose", n_paths=200, shard_size=1)
+    b = fleet_rul(sf.table, sf.threshold, method="prognose", n_paths=200, shard_size=4)
+    _assert_same(a, b, rtol=0)
+    assert a.columns["message"] == b.columns["message"]
+    asset = sf.assets[1]
+    rows = sf.table["asset"] == asset
+    r = prognose(
+        torch.from_numpy(sf.table["value"][rows]),
+        sf.threshold,
+        time=torch.from_numpy(sf.table["t"][rows]),
+        seed=asset_seed(0, asset),
+        direction="above",
+        n_paths=200,
+    )
+    s = r.summary()
+    for key, col in (("median", "rul_median"), ("q05", "rul_q05"), ("q95", "rul_q95")):
+        want = math.nan if s[key] is None else s[key]
+        got = a.row(asset)[col]
+        assert (math.isnan(want) and math.isnan(got)) or got == want
+    assert a.row(asset)["censored_mass"] == r.censored_mass

@@ -6,11 +6,13 @@
 * :func:`read_fleet_table` / :func:`write_table` - CSV built in, pandas and Parquet through the
   ``tables`` extra; output written atomically;
 * :func:`exponential_trend_rul` - the batched RUL method (onset, exponential trend by the
-  engine, posterior sampling per asset);
+  engine, posterior sampling per asset); :func:`prognose_rul` - the workflow's ``prognose`` per
+  asset (``method="prognose"``);
 * :func:`synthetic_fleet` - exponential degradation with known failure times, for tests and
   benchmarks.
 """
 
+from .per_asset import prognose_rul
 from .run import METHODS, OUTPUT_COLUMNS, FleetResult, fleet_rul, run_shard
 from .synthetic import SyntheticFleet, synthetic_fleet
 from .table import TABLE_SUFFIXES, FleetTable, read_fleet_table, write_table
@@ -37,6 +39,7 @@ __all__ = [
     "fleet_rul",
     "ksigma_onset_batch",
     "pad_batch",
+    "prognose_rul",
     "read_fleet_table",
     "run_shard",
     "synthetic_fleet",

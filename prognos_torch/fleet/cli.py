@@ -49,8 +49,14 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         help="time span of p_fail_within_horizon (default: failure at any time)",
     )
+    p.add_argument(
+        "--method",
+        default="exponential",
+        help="exponential (default: batched over assets) or prognose (the workflow's prognose "
+        "per asset: trend models chosen by backtest; slower)",
+    )
     p.add_argument("--phi", type=float, default=0.0, help="offset of the exponential model")
-    p.add_argument("--samples", type=int, default=1000, help="posterior draws per asset")
+    p.add_argument("--samples", type=int, default=1000, help="posterior draws / paths per asset")
     p.add_argument("--min-rows", type=int, default=10, help="fewer rows: flagged, no RUL")
     p.add_argument("--seed", type=int, default=0, help="fleet seed (default 0)")
     p.add_argument("--shard-size", type=int, default=1024, help="assets per engine call")
@@ -96,9 +102,13 @@ def main(argv: list[str] | None = None) -> int:
             on_error=args.on_error,
             progress=not args.no_progress,
             ray_init=ray_init,
-            samples=args.samples,
-            phi=args.phi,
+            method=args.method,
             min_rows=args.min_rows,
+            **(
+                {"samples": args.samples, "phi": args.phi}
+                if args.method == "exponential"
+                else {"n_paths": args.samples}
+            ),
         )
         res.write(args.out)
     except KeyboardInterrupt:

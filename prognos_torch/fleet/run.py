@@ -15,8 +15,11 @@ backend:
   plain arrays; the table is assembled here in asset order.
 
 A RUL method is a function ``method(batch: PaddedBatch, threshold, **options) -> dict`` that
-returns ``(B,)`` arrays for :data:`~prognos_torch.fleet.trend.RUL_COLUMNS` and a list of flag
-strings (see :func:`~prognos_torch.fleet.trend.exponential_trend_rul`, the default). Assets set
+returns ``(B,)`` arrays for :data:`~prognos_torch.fleet.trend.RUL_COLUMNS`, a list of flag
+strings and optionally a list of messages: :func:`~prognos_torch.fleet.trend.
+exponential_trend_rul` (``"exponential"``, the default: batched over the shard's assets) or
+:func:`~prognos_torch.fleet.per_asset.prognose_rul` (``"prognose"``: the workflow's
+``prognose`` per asset, its trend models chosen by backtest). Assets set
 aside by the table checks (``on_error="flag"``) get a row with NaN results, the flag
 ``bad_input`` and their message.
 """
@@ -30,12 +33,14 @@ from pathlib import Path
 
 import numpy as np
 
+from .per_asset import prognose_rul
 from .table import FleetTable, read_fleet_table, write_table
 from .trend import RUL_COLUMNS, exponential_trend_rul, pad_batch
 
 __all__ = ["FleetResult", "fleet_rul", "METHODS", "OUTPUT_COLUMNS", "run_shard"]
 
-METHODS: dict[str, Callable] = {"exponential": exponential_trend_rul}
+#: RUL methods by name: the batched exponential trend (default) and the per-asset prognose
+METHODS: dict[str, Callable] = {"exponential": exponential_trend_rul, "prognose": prognose_rul}
 
 #: the output table's columns, in order
 OUTPUT_COLUMNS = ("asset",) + RUL_COLUMNS + ("flags", "message")
@@ -234,6 +239,8 @@ def fleet_rul(
             numeric[c][ids] = part[c]
         for j, i in enumerate(ids):
             flags[i] = part["flags"][j]
+            if "message" in part:
+                message[i] = part["message"][j]
     for i, a in enumerate(table.assets):
         if a in table.errors:
             flags[i] = "bad_input"

@@ -1,0 +1,110 @@
+"""The fleet through :func:`prognos_torch.workflow.prognose`, one asset at a time.
+
+``fleet_rul(..., method="prognose")`` runs the single-series entry point of the RUL workflow
+on every asset of a shard: its onset rule, its trend models (exponential, power law, linear and
+the online ELM, chosen by backtest with ``method="auto"``), its guard rails and its honest
+horizon. ``prognose`` fits one series at a time (its engine run is batched over trend shapes
+and noise grid points, not over assets), so this method loops over the shard's assets; shards
+still run in parallel on the Ray backend. The default fleet method,
+:func:`~prognos_torch.fleet.trend.exponential_trend_rul`, batches the exponential model over
+the assets of a shard instead.
+
+Per asset: the seed is the asset's seed (:func:`~prognos_torch.fleet.trend.asset_seed`), so
+the table does not depend on sharding; an input that ``prognose`` rejects (too few values, a
+threshold already reached or inside the healthy band, ...) is reported in the asset's row
+(flag ``prognose_error`` and the message), never fatal for the fleet. ``prognose``'s own flags
+are sentences; they are summarised as ``prognose_flags`` in ``flags`` and given in full in
+``message``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .trend import PaddedBatch
+
+__all__ = ["prognose_rul"]
+
+
+def prognose_rul(
+    batch: PaddedBatch,
+    threshold: float,
+    *,
+    direction: str = "above",
+    horizon: float | None = None,
+    min_rows: int = 10,
+    **options,
+) -> dict[str, object]:
+    """Per-asset :func:`~prognos_torch.workflow.prognose` on a shard (module docstring).
+
+    Args:
+        batch: the shard.
+        threshold, direction: as for ``prognose`` (``direction`` ``"above"``/``"below"``/
+            ``"auto"``).
+        horizon: time span for ``p_fail_within_horizon`` (``None``: ever, i.e. within the
+            prognosis horizon; the rest is the censored mass).
+        min_rows: fewer observed rows: flagged ``too_few_rows``, ``prognose`` is not called.
+        **options: passed to ``prognose`` (``method``, ``n_paths``, ``filter``, ...).
+    Returns:
+        The columns of :data:`~prognos_torch.fleet.trend.RUL_COLUMNS`, ``flags`` and
+        ``message`` (one entry per asset).
+    """
+    import torch
+
+    from ..workflow import prognose
+
+    B = len(batch)
+    out = {
+        c: np.full(B, np.nan)
+        for c in (
+            "n_rows",
+            "t_last",
+            "onset_time",
+            "rul_median",
+            "rul_q05",
+            "rul_q95",
+            "p_fail_within_horizon",
+            "censored_mass",
+        )
+    }
+    flags, messages = [], []
+    for b in range(B):
+        n = int(batch.lengths[b])
+        y, t = batch.values[b, :n], batch.times[b, :n]
+        out["n_rows"][b] = n
+        out["t_last"][b] = float(t[-1]) if n else math.nan
+        if int((~torch.isnan(y)).sum()) < min_rows:
+            flags.append("too_few_rows")
+            messages.append("")
+            continue
+        try:
+            r = prognose(y, threshold, time=t, seed=batch.seeds[b], direction=direction, **options)
+        except ValueError as exc:
+            flags.append("prognose_error")
+            messages.append(" ".join(str(exc).split()))
+            continue
+        s = r.summary()
+        f = []
+        if r.status != "ok":
+            f.append("no_onset")
+        else:
+            for key, col in (("median", "rul_median"), ("q05", "rul_q05"), ("q95", "rul_q95")):
+                out[col][b] = math.nan if s[key] is None else s[key]
+            out["censored_mass"][b] = r.censored_mass
+            if horizon is None:
+                out["p_fail_within_horizon"][b] = 1.0 - r.censored_mass
+            elif r.rul_samples is not None:
+                rs = r.rul_samples.to(torch.float64)
+                out["p_fail_within_horizon"][b] = float((rs <= float(horizon)).to(rs.dtype).mean())
+        if r.onset is not None and getattr(r.onset, "detected", False):
+            out["onset_time"][b] = r.onset.time
+        if r.flags:
+            f.append("prognose_flags")
+        flags.append(";".join(f))
+        messages.append(" | ".join(r.flags))
+    res: dict[str, object] = dict(out)
+    res["flags"] = flags
+    res["message"] = messages
+    return res
