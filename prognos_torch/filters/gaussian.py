@@ -46,7 +46,7 @@ from torch import Tensor
 from ..adapt.noise import MovingWindow, NoiseEstimatorState, SageHusa, UpdateContext
 from ..adapt.robust import RobustBound
 from ..adapt.strong_tracking import StrongTracking, StrongTrackingState, fading_factor
-from ..core.belief import GaussianBelief
+from ..core.belief import GaussianBelief, check_belief
 from ..core.linalg import (
     cho_solve_right,
     chol_downdate,
@@ -336,7 +336,7 @@ class GaussianFilter:
     # ------------------------------------------------------------------ state
     def init(self, model: StateSpaceModel, belief: GaussianBelief, k: int = 0) -> FilterState:
         """Initial :class:`FilterState` for ``belief`` (validated; ``k``: step of the noise used)."""
-        belief.validate("belief")
+        check_belief(belief, "belief").validate("belief")
         if belief.dim != model.state_dim:
             raise ValueError(
                 f"belief.mean must have shape (..., {model.state_dim}) for this model, "
@@ -549,6 +549,11 @@ class GaussianFilter:
         Returns:
             The new state and a :class:`StepInfo`.
         """
+        if not isinstance(state, FilterState):
+            raise TypeError(
+                f"state must be a FilterState, got {type(state).__name__}; start from "
+                "state = filter.init(model, belief)"
+            )
         belief = state.belief
         y, any_missing = self._check_y(model, y, belief)
         u = self._check_u(model, u, belief)

@@ -58,7 +58,7 @@ from dataclasses import dataclass, fields, is_dataclass, replace
 import torch
 from torch import Tensor
 
-from ..core.belief import GaussianBelief
+from ..core.belief import GaussianBelief, check_belief
 from ..core.model import Noise, StateSpaceModel
 from .gaussian import FilterState, GaussianFilter, Taylor, ekf, stekf, ukf
 from .resampling import Resampler, ess, get_resampler
@@ -393,9 +393,7 @@ class ParticleFilter:
         Returns:
             :class:`ParticleState` with particles ``(..., N, n)``.
         """
-        if not isinstance(belief, GaussianBelief):
-            raise TypeError(f"belief must be a GaussianBelief, got {type(belief).__name__}")
-        belief.validate("belief")
+        check_belief(belief, "belief").validate("belief")
         if belief.dim != model.state_dim:
             raise ValueError(
                 f"belief.mean must have shape (..., {model.state_dim}) for this model, "

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from ..core.belief import GaussianBelief
+from ..core.belief import GaussianBelief, check_belief
 from ..core.model import StateSpaceModel
 from .gaussian import FilterState, GaussianFilter, innovation_stats
 
@@ -57,6 +58,31 @@ class Trajectory:
         return self.chols @ self.chols.mT
 
 
+def check_filter(filt, name: str = "filter") -> GaussianFilter:
+    """``filt`` if it is a :class:`GaussianFilter`, else a ``TypeError`` (a factory such as
+    ``sckf`` passed without calling it is the usual slip)."""
+    if isinstance(filt, GaussianFilter):
+        return filt
+    if inspect.isfunction(filt) or inspect.isclass(filt):
+        what = "class" if inspect.isclass(filt) else "function"
+        fname = getattr(filt, "__name__", "factory")
+        raise TypeError(
+            f"{name} must be a GaussianFilter, got the {what} {fname} itself: call it, e.g. "
+            f"{fname}()"
+        )
+    raise TypeError(
+        f"{name} must be a GaussianFilter (e.g. sckf() or make_filter('sckf')), got "
+        f"{type(filt).__name__}"
+    )
+
+
+def _start(filt, model, init, k: int) -> FilterState:
+    check_filter(filt)
+    if isinstance(init, FilterState):
+        return init
+    return filt.init(model, check_belief(init, "init"), k)
+
+
 def _check_seq(x: Tensor | None, name: str, T: int | None, tail: int, batch) -> None:
     if x is None:
         return
@@ -89,7 +115,7 @@ def run(
     ``(T, p)`` shared by the batch) and measurement ``ys[t]``. ``init`` is the belief on
     ``x_{k0}`` (or a :class:`FilterState` to resume).
     """
-    state = init if isinstance(init, FilterState) else filt.init(model, init, k0 + 1)
+    state = _start(filt, model, init, k0 + 1)
     bs = state.belief.batch_shape
     _check_seq(ys, "ys", None, model.obs_dim, bs)
     T = ys.shape[0]
@@ -171,7 +197,7 @@ def forecast(
     """Multi-step-ahead prediction without measurements (``k = k0 + 1 .. k0 + steps``)."""
     if not isinstance(steps, int) or steps < 1:
         raise ValueError(f"steps must be a positive int, got {steps!r}")
-    state = init if isinstance(init, FilterState) else filt.init(model, init, k0 + 1)
+    state = _start(filt, model, init, k0 + 1)
     if model.control_dim:
         _check_seq(us, "us", steps, model.control_dim, state.belief.batch_shape)
     means, chols, ym, yc = [], [], [], []
