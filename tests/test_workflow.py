@@ -26,6 +26,7 @@ from prognos_torch.workflow import (
     plot_forecast,
     plot_rul,
     rul,
+    save_model,
     select_embedding,
 )
 
@@ -260,7 +261,7 @@ def test_model_file_round_trip_in_a_fresh_process(tmp_path):
     s = load_series(x, time=t)
     model = fit_series(s, "anfis", "ekf", 2, holdout=10, seed=4)
     path = tmp_path / "model.pt"
-    model.save(path)
+    save_model(model, path)
     again = load_model(path)
     assert again.config == model.config
     for k, v in model.learner.state_dict().items():
