@@ -291,5 +291,3 @@ def test_model_file_round_trip_in_a_fresh_process(tmp_path):
     for k in ("mean", "lower", "upper"):
         assert torch.equal(torch.tensor(got[k], dtype=torch.float64), getattr(fc, k))
     assert torch.equal(torch.tensor(got["pmf"], dtype=torch.float64), r.distribution.pmf)
-
-
