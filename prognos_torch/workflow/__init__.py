@@ -32,6 +32,7 @@ from .model import (
     fit_series,
     select_embedding,
 )
+from .extrapolation import ExtrapolationWarning
 from .predict import FILTER_NAMES, ForecastResult, RULResult, forecast, holdout_metrics, rul
 from .store import load_model, save_model
 
@@ -58,4 +59,5 @@ __all__ = [
     "load_model",
     "plot_forecast",
     "plot_rul",
+    "ExtrapolationWarning",
 ]
