@@ -22,6 +22,7 @@ Modules, each importing only those before it: :mod:`.data` (:func:`load_series`)
 
 from ..plots import plot_forecast, plot_rul
 from .data import FILL_METHODS, Series, load_series, parse_where
+from .extrapolation import ExtrapolationWarning
 from .fitted import FittedModel
 from .model import (
     DEFAULT_OPTIMIZER,
@@ -32,7 +33,6 @@ from .model import (
     fit_series,
     select_embedding,
 )
-from .extrapolation import ExtrapolationWarning
 from .predict import FILTER_NAMES, ForecastResult, RULResult, forecast, holdout_metrics, rul
 from .store import load_model, save_model
 
