@@ -9,7 +9,7 @@ from torch import Tensor
 
 from .validation import check_chol, check_finite
 
-__all__ = ["GaussianBelief", "check_belief"]
+__all__ = ["GaussianBelief"]
 
 
 @dataclass(frozen=True)
@@ -105,19 +105,3 @@ class GaussianBelief:
         check_finite(self.mean, f"{name}.mean")
         check_chol(self.chol, f"{name}.chol", n)
         return self
-
-
-def check_belief(obj, name: str = "belief") -> GaussianBelief:
-    """``obj`` if it is a :class:`GaussianBelief`, else a ``TypeError`` that says how to build one
-    (a ``(mean, chol)`` pair is the usual slip)."""
-    if isinstance(obj, GaussianBelief):
-        return obj
-    if isinstance(obj, (tuple, list)) and len(obj) == 2:
-        raise TypeError(
-            f"{name} must be a GaussianBelief, got a {type(obj).__name__} of two items; wrap "
-            "it: GaussianBelief(mean, chol) (or GaussianBelief.from_cov(mean, cov))"
-        )
-    raise TypeError(
-        f"{name} must be a GaussianBelief(mean (..., n), chol (..., n, n)), got "
-        f"{type(obj).__name__}"
-    )

@@ -47,7 +47,7 @@ from torch import Tensor
 from ..adapt.noise import MovingWindow, NoiseEstimatorState, SageHusa, UpdateContext
 from ..adapt.robust import RobustBound
 from ..adapt.strong_tracking import StrongTracking, StrongTrackingState, fading_factor
-from ..core.belief import GaussianBelief, check_belief
+from ..core.belief import GaussianBelief
 from ..core.linalg import (
     cho_solve_right,
     chol_downdate,
@@ -57,7 +57,7 @@ from ..core.linalg import (
     tria,
 )
 from ..core.model import Noise, StateSpaceModel
-from ..core.validation import check_control, check_measurement
+from ..core.validation import check_belief, check_control, check_measurement
 from ..quadrature import SigmaPoints
 
 __all__ = [
@@ -326,12 +326,7 @@ class GaussianFilter:
     # ------------------------------------------------------------------ state
     def init(self, model: StateSpaceModel, belief: GaussianBelief, k: int = 0) -> FilterState:
         """Initial :class:`FilterState` for ``belief`` (validated; ``k``: step of the noise used)."""
-        check_belief(belief, "belief").validate("belief")
-        if belief.dim != model.state_dim:
-            raise ValueError(
-                f"belief.mean must have shape (..., {model.state_dim}) for this model, "
-                f"got {tuple(belief.mean.shape)}"
-            )
+        check_belief(belief, model.state_dim)
         bs, like = belief.batch_shape, belief.mean
         fstate = None
         if isinstance(self.fading, StrongTracking):

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.belief import GaussianBelief, check_belief
+from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
-from ..core.validation import check_pos_int, check_sequence
+from ..core.validation import check_belief, check_pos_int, check_sequence
 from .gaussian import FilterState, GaussianFilter, StepInfo, innovation_stats
 from .sequence import scan
 
@@ -83,7 +83,7 @@ def _start(filt, model, init, k: int) -> FilterState:
     check_filter(filt)
     if isinstance(init, FilterState):
         return init
-    return filt.init(model, check_belief(init, "init"), k)
+    return filt.init(model, check_belief(init, model.state_dim, "init"), k)
 
 
 def _record(state: FilterState, info: StepInfo) -> dict[str, Tensor | None]:
