@@ -64,6 +64,7 @@ __all__ = [
     "GaussianFilter",
     "FilterState",
     "StepInfo",
+    "Spread",
     "ekf",
     "ukf",
     "srukf",
@@ -148,6 +149,7 @@ class StepInfo:
         gain: ``(..., n, m)`` Kalman gain.
         observed: ``(..., m)`` bool, the observed components, or ``None`` when every component
             of every batch element was observed or missing as a whole.
+        spread: the time update's deviation columns (:class:`Spread`; what a smoother needs).
 
     ``log_likelihood`` (``log N(y_k; z_{k|k-1}, S_zz S_zz^T)``, 0 where missing) and ``nis``
     (normalised innovation squared, NaN where missing) are computed on first access, so the
@@ -163,6 +165,7 @@ class StepInfo:
     missing: Tensor
     gain: Tensor
     observed: Tensor | None = None
+    spread: Spread | None = None
 
     @cached_property
     def _stats(self):
@@ -185,6 +188,31 @@ class _Propagation:
     pos: Tensor  # (..., n, Lp) spread factor (positive weights)
     neg: Tensor | None  # (..., n, Ln) negative-weight part
     points: Tensor | None  # (..., L, n) propagated sigma points incl. q (for redraw=False)
+    dx_pos: Tensor | None = None  # (..., n, Lp) the same columns of the points before f
+    dx_neg: Tensor | None = None  # (..., n, Ln)
+
+
+@dataclass(frozen=True)
+class Spread:
+    """Deviation columns of a time update, paired column by column (batch dims ``...``).
+
+    ``dx`` are the weighted deviations of the points at ``k-1`` from the posterior mean,
+    ``df`` those of their images under ``f`` from the predicted mean (before fading), with
+    ``sqrt|W_i|`` folded in and negative-weight columns apart:
+    ``P_{k-1|k-1} = dx_pos dx_pos^T - dx_neg dx_neg^T``, the cross-covariance
+    ``C_k = Cov(x_{k-1}, x_k | y_{1:k-1}) = dx_pos df_pos^T - dx_neg df_neg^T`` and
+    ``P_{k|k-1} = lambda_k (df_pos df_pos^T - df_neg df_neg^T) + Q_k``. EKF: ``dx = S``,
+    ``df = F S``; random walk: ``dx = df = S``. The smoothers read them.
+
+    Attributes:
+        dx_pos, df_pos: ``(..., n, Lp)``.
+        dx_neg, df_neg: ``(..., n, Ln)`` or ``None`` (no negative weight).
+    """
+
+    dx_pos: Tensor
+    dx_neg: Tensor | None
+    df_pos: Tensor
+    df_neg: Tensor | None
 
 
 @dataclass(frozen=True)
@@ -367,21 +395,23 @@ class GaussianFilter:
         m, S = belief.mean, belief.chol
         if model.f is None:  # random walk: exact for every rule
             mean = m if q is None else m + q
-            return _Propagation(mean, m, S, None, None)
+            return _Propagation(mean, m, S, None, None, S)
         if isinstance(self.rule, Taylor):
             fx = model.transition(m, u, k)
             F = model.transition_jacobian(m, u, k)
             mean = fx if q is None else fx + q
-            return _Propagation(mean, fx, F @ S, None, None)
+            return _Propagation(mean, fx, F @ S, None, None, S)
         sig = _sigma_points(self.rule, model.state_dim, m)
-        X = m.unsqueeze(-2) + sig.xi @ S.mT  # (..., L, n), paper 000 Eq. 21
+        D = sig.xi @ S.mT
+        X = m.unsqueeze(-2) + D  # (..., L, n), paper 000 Eq. 21
         uu = None if u is None else u.unsqueeze(-2)
         Y = model.transition(X, uu, k)  # Eq. 23 / paper 003 Eq. 14
         f_mean = sig.wm @ Y  # Eq. 24
         mean = f_mean if q is None else f_mean + q
         pos, neg = sig.columns(Y - f_mean.unsqueeze(-2))  # Eq. 26
         pts = Y if q is None else Y + q.unsqueeze(-2)
-        return _Propagation(mean, f_mean, pos, neg, pts)
+        dx_pos, dx_neg = sig.columns(D)
+        return _Propagation(mean, f_mean, pos, neg, pts, dx_pos, dx_neg)
 
     def _prior(
         self, prop: _Propagation, chol_Q: Tensor, lam: Tensor | None, update: bool = False
@@ -649,6 +679,7 @@ class GaussianFilter:
             missing=missing,
             gain=K,
             observed=observed,
+            spread=Spread(prop.dx_pos, prop.dx_neg, prop.pos, prop.neg),
         )
         return FilterState(GaussianBelief(mean, chol), fstate, nstate), info
 

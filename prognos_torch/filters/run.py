@@ -9,7 +9,7 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
-from .gaussian import FilterState, GaussianFilter, innovation_stats
+from .gaussian import FilterState, GaussianFilter, StepInfo, innovation_stats
 
 __all__ = ["Trajectory", "Forecast", "run", "forecast"]
 
@@ -30,6 +30,8 @@ class Trajectory:
             (only with a noise estimator, else ``None``); q, r likewise.
         noise_fallback: ``(T, ...)`` bool.
         final: the :class:`FilterState` after the last step (resume from it).
+        steps: the :class:`StepInfo` of every step with ``run(..., keep_steps=True)``, else
+            ``None`` (the smoothers read them).
     """
 
     means: Tensor
@@ -47,6 +49,7 @@ class Trajectory:
     q: Tensor | None
     r: Tensor | None
     final: FilterState
+    steps: tuple[StepInfo, ...] | None = None
 
     @property
     def log_likelihood(self) -> Tensor:
@@ -81,13 +84,15 @@ def run(
     us: Tensor | None = None,
     *,
     k0: int = 0,
+    keep_steps: bool = False,
 ) -> Trajectory:
     """Filter the measurements ``ys`` ``(T, ..., m)`` (NaN: missing; a row that is NaN
     throughout only predicts, a partially NaN row updates with its observed components).
 
     Step ``t`` (0-based) uses ``k = k0 + t + 1``, the control ``us[t]`` (``(T, ..., p)`` or
     ``(T, p)`` shared by the batch) and measurement ``ys[t]``. ``init`` is the belief on
-    ``x_{k0}`` (or a :class:`FilterState` to resume).
+    ``x_{k0}`` (or a :class:`FilterState` to resume). ``keep_steps=True`` keeps every
+    step's :class:`StepInfo` in ``Trajectory.steps``.
     """
     state = init if isinstance(init, FilterState) else filt.init(model, init, k0 + 1)
     bs = state.belief.batch_shape
@@ -115,8 +120,11 @@ def run(
         "missing",
     )
     out = {k: [] for k in keys}
+    infos = []
     for t in range(T):
         state, info = filt.step(model, state, ys[t], None if us is None else us[t], k=k0 + t + 1)
+        if keep_steps:
+            infos.append(info)
         out["means"].append(state.belief.mean)
         out["chols"].append(state.belief.chol)
         out["pred_means"].append(info.prior.mean)
@@ -141,7 +149,7 @@ def run(
         stacked.pop("missing"),
         (~torch.isnan(ys)).sum(-1),  # partially observed vectors count their observed part
     )
-    return Trajectory(**stacked, final=state)
+    return Trajectory(**stacked, final=state, steps=tuple(infos) if keep_steps else None)
 
 
 @dataclass(frozen=True)
