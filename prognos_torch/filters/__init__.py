@@ -1,9 +1,11 @@
-"""Filters: the Gaussian engine and its configurations, sequence runners, particle filters."""
+"""Filters: the Gaussian engine and its configurations, sequence runners, RTS smoothers,
+particle filters."""
 
 from .gaussian import (
     FILTERS,
     FilterState,
     GaussianFilter,
+    Spread,
     StepInfo,
     Taylor,
     arukf,
@@ -32,11 +34,13 @@ from .particle import (
 )
 from .resampling import ess, multinomial, residual, stratified, systematic
 from .run import Forecast, Trajectory, forecast, run
+from .smooth import Smoothed, smooth, smooth_trajectory
 
 __all__ = [
     "FILTERS",
     "FilterState",
     "GaussianFilter",
+    "Spread",
     "StepInfo",
     "Taylor",
     "arukf",
@@ -55,6 +59,9 @@ __all__ = [
     "Trajectory",
     "forecast",
     "run",
+    "Smoothed",
+    "smooth",
+    "smooth_trajectory",
     "PARTICLE_FILTERS",
     "ParticleFilter",
     "ParticleState",
