@@ -62,6 +62,9 @@ class Smoothed:
         cross_covs: ``(T, ..., n, n)`` ``Cov(x_k, x_{k-1} | y_{1:e})`` (row 0 pairs ``x_{k0+1}``
             with the initial state).
         gains: ``(T, ..., n, n)`` smoother gains ``G_{k-1}`` (``x_{k-1}`` on ``x_k``).
+        cond_chols: ``(T, ..., n, n)`` square roots ``S^c_{k-1}`` of
+            ``Cov(x_{k-1} | x_k, y_{1:k-1}) = P_{k-1|k-1} - G_{k-1} C_k^T`` (square-root
+            algebra only, else ``None``): ``x_{k-1} = b + G_{k-1} x_k + e``, ``e ~ N(0, S^c S^c^T)``.
         initial: smoothed belief on the initial state ``x_{k0}``.
         filtered: the forward :class:`Trajectory` (filtered moments, log-likelihood).
         lag: the fixed lag, or ``None`` for the RTS smoother.
@@ -71,6 +74,7 @@ class Smoothed:
     chols: Tensor
     cross_covs: Tensor
     gains: Tensor
+    cond_chols: Tensor | None
     initial: GaussianBelief
     filtered: Trajectory
     lag: int | None = None
@@ -206,6 +210,7 @@ def smooth_trajectory(
         chols=chols[1:],
         cross_covs=cross,
         gains=G,
+        cond_chols=Sc if sqrt else None,
         initial=GaussianBelief(m_s[0], chols[0]),
         filtered=tr,
         lag=lag,
