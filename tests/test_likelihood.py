@@ -86,6 +86,34 @@ def test_log_likelihood_gradient_matches_central_differences(filt):
         assert float(g.abs().max()) > 1e-3  # the gradient is not trivially zero
 
 
+def test_gradient_finite_where_the_posterior_downdate_fails():
+    # a very informative measurement next to an ordinary one: the downdate fails for the first
+    # batch element, whose posterior comes from the Joseph QR; no NaN reaches the gradient
+    F = torch.tensor([[1.0, 0.1], [0.0, 1.0]], dtype=dt)
+    ys = torch.randn(8, 2, 1, dtype=dt, generator=torch.Generator().manual_seed(0))
+    b0 = GaussianBelief(torch.zeros(2, 2, dtype=dt), 100 * torch.eye(2, dtype=dt).expand(2, 2, 2))
+
+    def ll(lr):
+        model = StateSpaceModel(
+            f=lambda x, u, k: F @ x,
+            h=lambda x, u, k: x[:1],
+            state_dim=2,
+            obs_dim=1,
+            chol_Q=0.3 * torch.eye(2, dtype=dt),
+            chol_R=lr.exp().reshape(2, 1, 1),
+        )
+        return run(ekf(), model, b0, ys).log_likelihood.sum()
+
+    lr = torch.tensor([math.log(1e-7), 0.0], dtype=dt, requires_grad=True)
+    (g,) = torch.autograd.grad(ll(lr), [lr])
+    assert bool(torch.isfinite(g).all())
+    h = 1e-6
+    with torch.no_grad():
+        e = torch.tensor([0.0, h], dtype=dt)
+        fd = (ll(lr + e) - ll(lr - e)) / (2 * h)
+    assert abs(float(g[1] - fd)) < 1e-6 * max(1.0, abs(float(fd)))
+
+
 def test_tria_gradient_matches_finite_differences():
     A = torch.randn(2, 3, 5, dtype=dt, generator=torch.Generator().manual_seed(0))
     assert torch.autograd.gradcheck(tria, (A.requires_grad_(True),))

@@ -21,8 +21,9 @@ Step ``k`` (model convention of :mod:`prognos_torch.core.model`):
    closed-form rank-one downdates, O(n^2 m), on large factors, ``S chol(I - W W^T)`` on small
    ones). When the sigma points are redrawn from the prior (or for the EKF) this equals the
    Joseph form ``Tria([chi - K Z, K S_R])`` of paper 000 Eq. 46, which is used instead where the
-   downdate would lose precision (a very informative measurement) and with the robust bound of
-   paper 004.
+   downdate would lose precision (a very informative measurement), under autograd (tensors
+   that require grad: a failed downdate's NaN would leak into the gradient) and with the robust
+   bound of paper 004.
 
 Missing data: NaN marks a missing measurement component. A vector that is NaN throughout is
 *missing*: the step only predicts (the posterior equals the prior, the log-likelihood
@@ -490,7 +491,10 @@ class GaussianFilter:
         self, prior: _Prior, mom: _Moments, K: Tensor, Szz: Tensor, chol_R
     ) -> Tensor:
         rob = self.robust
-        if self.sqrt and mom.joseph and rob is None:
+        # under autograd the Joseph QR throughout: a failed downdate's NaN would reach the
+        # gradient through the masked branch of torch.where
+        grad = torch.is_grad_enabled() and (prior.chol.requires_grad or K.requires_grad)
+        if self.sqrt and mom.joseph and rob is None and not grad:
             # The sigma points (or F S) reproduce the prior, so Eq. 46's Joseph form equals
             # P_pred - K S_zz S_zz^T K^T: the cholupdate of paper 003 Eq. 28-29, O(n^2 m)
             # instead of a QR of (n, L + m). Where the downdate loses precision (determinant
