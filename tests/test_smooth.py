@@ -12,6 +12,7 @@ from prognos_torch.core import GaussianBelief, StateSpaceModel, linear_gaussian_
 from prognos_torch.filters import (
     ckf,
     ekf,
+    imsrukf,
     rukf,
     run,
     sckf,
@@ -337,3 +338,18 @@ def test_run_keeps_steps_only_when_asked():
     assert run(ekf(), model, b0, ys).steps is None
     tr = run(ekf(), model, b0, ys, keep_steps=True)
     assert len(tr.steps) == 4 and tr.steps[0].spread is not None
+
+
+def test_noise_estimator_steps_smooth_with_the_q_they_used():
+    # ImSRUKF estimates Q and R on the way; the backward pass uses each step's Q_k, so the
+    # square-root and full algebras agree on the same forward run
+    model, b0, ys = pendulum_data()
+    tr = run(imsrukf(), model, b0, ys, keep_steps=True)
+    Q1 = tr.steps[1].noise.chol_Q
+    assert not torch.allclose(Q1, tr.steps[-1].noise.chol_Q)  # Q really varies
+    a = smooth_trajectory(tr, b0, sqrt=True)
+    b = smooth_trajectory(tr, b0, sqrt=False)
+    torch.testing.assert_close(a.means, b.means, atol=1e-9, rtol=0)
+    torch.testing.assert_close(a.covs, b.covs, atol=1e-9, rtol=0)
+    with pytest.raises(ValueError, match="keep_steps"):
+        smooth_trajectory(run(imsrukf(), model, b0, ys), b0)
