@@ -38,7 +38,7 @@ not fully observed; the robust bound of paper 004 treats a partially observed ve
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import torch
@@ -189,8 +189,8 @@ class _Propagation:
     pos: Tensor  # (..., n, Lp) spread factor (positive weights)
     neg: Tensor | None  # (..., n, Ln) negative-weight part
     points: Tensor | None  # (..., L, n) propagated sigma points incl. q (for redraw=False)
-    dx_pos: Tensor | None = None  # (..., n, Lp) the same columns of the points before f
-    dx_neg: Tensor | None = None  # (..., n, Ln)
+    dev: Tensor | None = None  # (..., L, n) sigma-point deviations before f, or S (Taylor)
+    sigma: _Sigma | None = None  # the rule's points (None: dev is the factor S itself)
 
 
 @dataclass(frozen=True)
@@ -206,14 +206,26 @@ class Spread:
     ``df = F S``; random walk: ``dx = df = S``. The smoothers read them.
 
     Attributes:
-        dx_pos, df_pos: ``(..., n, Lp)``.
-        dx_neg, df_neg: ``(..., n, Ln)`` or ``None`` (no negative weight).
+        df_pos: ``(..., n, Lp)``; df_neg: ``(..., n, Ln)`` or ``None`` (no negative weight).
+        dx_pos, dx_neg: the same for ``dx`` (computed on first access, off the hot loop).
     """
 
-    dx_pos: Tensor
-    dx_neg: Tensor | None
     df_pos: Tensor
     df_neg: Tensor | None
+    dev: Tensor = field(repr=False)  # (..., L, n) point deviations, or the factor S
+    sigma: _Sigma | None = field(default=None, repr=False)
+
+    @cached_property
+    def _dx(self) -> tuple[Tensor, Tensor | None]:
+        return (self.dev, None) if self.sigma is None else self.sigma.columns(self.dev)
+
+    @property
+    def dx_pos(self) -> Tensor:
+        return self._dx[0]
+
+    @property
+    def dx_neg(self) -> Tensor | None:
+        return self._dx[1]
 
 
 @dataclass(frozen=True)
@@ -411,8 +423,7 @@ class GaussianFilter:
         mean = f_mean if q is None else f_mean + q
         pos, neg = sig.columns(Y - f_mean.unsqueeze(-2))  # Eq. 26
         pts = Y if q is None else Y + q.unsqueeze(-2)
-        dx_pos, dx_neg = sig.columns(D)
-        return _Propagation(mean, f_mean, pos, neg, pts, dx_pos, dx_neg)
+        return _Propagation(mean, f_mean, pos, neg, pts, D, sig)
 
     def _prior(
         self, prop: _Propagation, chol_Q: Tensor, lam: Tensor | None, update: bool = False
@@ -683,7 +694,7 @@ class GaussianFilter:
             missing=missing,
             gain=K,
             observed=observed,
-            spread=Spread(prop.dx_pos, prop.dx_neg, prop.pos, prop.neg),
+            spread=Spread(prop.pos, prop.neg, prop.dev, prop.sigma),
         )
         return FilterState(GaussianBelief(mean, chol), fstate, nstate), info
 
