@@ -34,8 +34,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from .core.validation import as_tensor
-from .prognosis.rul import check_weights
+from .core.validation import as_tensor, check_weights
 
 __all__ = [
     "mae",

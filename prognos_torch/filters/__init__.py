@@ -1,5 +1,5 @@
-"""Filters: the Gaussian engine and its configurations, sequence runners, RTS smoothers,
-particle filters."""
+"""Filters: the Gaussian engine and its configurations, the sequence loop (:func:`scan`) and the
+runners built on it, RTS smoothers, particle filters."""
 
 from .gaussian import (
     FILTERS,
@@ -34,6 +34,7 @@ from .particle import (
 )
 from .resampling import ess, multinomial, residual, stratified, systematic
 from .run import Forecast, Trajectory, forecast, run
+from .sequence import scan
 from .smooth import Smoothed, smooth, smooth_trajectory
 
 __all__ = [
@@ -59,6 +60,7 @@ __all__ = [
     "Trajectory",
     "forecast",
     "run",
+    "scan",
     "Smoothed",
     "smooth",
     "smooth_trajectory",

@@ -57,7 +57,7 @@ from ..core.linalg import (
     tria,
 )
 from ..core.model import Noise, StateSpaceModel
-from ..core.validation import all_finite
+from ..core.validation import check_control, check_measurement
 from ..quadrature import SigmaPoints, cubature, julier, unscented
 
 __all__ = [
@@ -389,19 +389,15 @@ class GaussianFilter:
             fstate = self.fading.init(bs, model.obs_dim, like.dtype, like.device)
         nstate = None
         if self.noise is not None:
-            noise = self._checked_noise(model, k, belief)
+            noise = model.checked_noise(k, belief.batch_shape, belief.mean)
             nstate = self.noise.init(noise, bs, model.state_dim, model.obs_dim, like)
         return FilterState(belief, fstate, nstate)
 
     # ------------------------------------------------------------------ noise
-    @staticmethod
-    def _checked_noise(model: StateSpaceModel, k: int, belief: GaussianBelief) -> Noise:
-        return model.checked_noise(k, belief.batch_shape, belief.mean)
-
     def _noise(self, model, state: FilterState, k: int) -> Noise:
         if state.noise is not None:
             return state.noise.noise()
-        return self._checked_noise(model, k, state.belief)
+        return model.checked_noise(k, state.belief.batch_shape, state.belief.mean)
 
     # ------------------------------------------------------------------ stages
     def _propagate(self, model, belief: GaussianBelief, u, k: int, q) -> _Propagation:
@@ -550,7 +546,7 @@ class GaussianFilter:
         self, model, state: FilterState, u: Tensor | None = None, k: int = 1
     ) -> FilterState:
         """Time update only (multi-step-ahead prediction; ``lambda = 1``, noise estimates held)."""
-        u = self._check_u(model, u, state.belief)
+        u = check_control(u, model.control_dim, state.belief.batch_shape, state.belief.mean)
         noise = self._noise(model, state, k)
         prop = self._propagate(model, state.belief, u, k, noise.q)
         lam = None
@@ -568,8 +564,8 @@ class GaussianFilter:
         self, model, belief: GaussianBelief, u: Tensor | None = None, k: int = 1
     ) -> GaussianBelief:
         """Predictive distribution of ``y_k`` given a belief on ``x_k``: ``N(z, S_zz S_zz^T)``."""
-        u = self._check_u(model, u, belief)
-        noise = self._checked_noise(model, k, belief)
+        u = check_control(u, model.control_dim, belief.batch_shape, belief.mean)
+        noise = model.checked_noise(k, belief.batch_shape, belief.mean)
         prior = _Prior(belief.mean, belief.chol, belief.cov if not self.sqrt else None)
         dummy = _Propagation(belief.mean, belief.mean, belief.chol, None, None)
         mom = self._moments(model, prior, dummy, u, k, noise.r)
@@ -595,8 +591,8 @@ class GaussianFilter:
             The new state and a :class:`StepInfo`.
         """
         belief = state.belief
-        y, any_missing = self._check_y(model, y, belief)
-        u = self._check_u(model, u, belief)
+        y, any_missing = check_measurement(y, model.obs_dim, belief.batch_shape, belief.mean)
+        u = check_control(u, model.control_dim, belief.batch_shape, belief.mean)
         noise = self._noise(model, state, k)
         observed = nan = None
         if any_missing:
@@ -697,45 +693,6 @@ class GaussianFilter:
             spread=Spread(prop.pos, prop.neg, prop.dev, prop.sigma),
         )
         return FilterState(GaussianBelief(mean, chol), fstate, nstate), info
-
-    # ------------------------------------------------------------------ checks
-    @staticmethod
-    def _check_y(model, y, belief: GaussianBelief) -> tuple[Tensor, bool]:
-        """``y`` in the belief's dtype and whether any entry is missing (NaN)."""
-        if not isinstance(y, Tensor):
-            raise TypeError(f"y must be a torch.Tensor of shape (..., {model.obs_dim})")
-        want = tuple(belief.batch_shape) + (model.obs_dim,)
-        if tuple(y.shape) != want:
-            raise ValueError(f"y must have shape {want} (batch shape + (m,)), got {tuple(y.shape)}")
-        if y.device != belief.mean.device:
-            raise ValueError(f"y is on {y.device}, the belief on {belief.mean.device}")
-        if all_finite(y):  # one reduction in the usual case: no NaN, no inf
-            return y.to(belief.mean.dtype), False
-        if torch.isinf(y).any():
-            raise ValueError("y contains inf (use NaN to mark a missing measurement)")
-        return y.to(belief.mean.dtype), bool(torch.isnan(y).any())
-
-    @staticmethod
-    def _check_u(model, u, belief: GaussianBelief) -> Tensor | None:
-        if model.control_dim == 0:
-            if u is not None:
-                raise ValueError("u was given but the model has control_dim=0")
-            return None
-        if u is None:
-            raise ValueError(
-                f"u is required: shape (..., {model.control_dim}) or ({model.control_dim},)"
-            )
-        if not isinstance(u, Tensor):
-            raise TypeError("u must be a torch.Tensor")
-        p = model.control_dim
-        if tuple(u.shape) not in ((p,), tuple(belief.batch_shape) + (p,)):
-            raise ValueError(
-                f"u must have shape ({p},) or {tuple(belief.batch_shape) + (p,)}, got "
-                f"{tuple(u.shape)}"
-            )
-        if not bool(torch.isfinite(u).all()):
-            raise ValueError("u contains non-finite values")
-        return u.to(belief.mean.dtype)
 
 
 # ---------------------------------------------------------------------- configurations

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.validation import as_tensor
+from ..core.validation import as_tensor, check_weights
 
 __all__ = [
     "RULDistribution",
@@ -87,39 +87,6 @@ def _check_samples(samples) -> Tensor:
     if bool(torch.isnan(samples).any()):
         raise ValueError("samples contains NaN; shape (..., N, H)")
     return samples
-
-
-def check_weights(weights, batch_shape: Sequence[int], n: int, device, name: str = "weights"):
-    """Normalised importance weights ``(*batch_shape, n)`` as float64; ``None`` gives ``1/n``.
-
-    Raises ``ValueError`` (naming ``name``) for a wrong shape, NaN/inf, negative entries, rows that
-    are all zero, or rows that do not sum to one within ``1e-6 + 4 n eps(dtype)``. Weights are
-    never renormalised silently.
-    """
-    shape = (*tuple(batch_shape), n)
-    if weights is None:
-        return torch.full(shape, 1.0 / n, dtype=torch.float64, device=device)
-    w = as_tensor(weights, name, device=device)
-    if not w.is_floating_point():
-        raise TypeError(f"{name} must be a floating tensor of shape {shape}, got {w.dtype}")
-    if tuple(w.shape) != shape:
-        raise ValueError(f"{name} must have shape {shape} (..., N), got {tuple(w.shape)}")
-    if bool(torch.isnan(w).all(-1).any()):
-        raise ValueError(f"{name} are all NaN for some batch element; shape {shape}")
-    if not bool(torch.isfinite(w).all()):
-        raise ValueError(f"{name} contain NaN or inf; shape {shape}")
-    if bool((w < 0).any()):
-        raise ValueError(f"{name} must be non-negative")
-    if bool((w == 0).all(-1).any()):
-        raise ValueError(f"{name} are all zero for some batch element; shape {shape}")
-    tol = 1e-6 + 4.0 * n * torch.finfo(w.dtype).eps
-    w64 = w.to(torch.float64)
-    dev = (w64.sum(-1) - 1.0).abs()
-    if bool((dev > tol).any()):
-        raise ValueError(
-            f"{name} must sum to one along the last axis (max |sum - 1| = {dev.max().item():.3g})"
-        )
-    return w64
 
 
 def _crossed(samples: Tensor, threshold: float, direction: str) -> Tensor:

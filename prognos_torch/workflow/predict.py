@@ -1,7 +1,7 @@
 """Forecasts with an uncertainty band and RUL distributions from a fitted one-step learner.
 
 The learner becomes the m-order state-space model of paper 002 (Eq. 15-19,
-:func:`~prognos_torch.prognosis.forecast.learner_transition_model`) on the scaled series::
+:func:`~prognos_torch.prognosis.learner_model.learner_transition_model`) on the scaled series::
 
     P_{s+1} = [x_{s-m+2}, ..., x_s, f(P_s)] + w_s,    y_s = x_s + v_s
 
@@ -18,11 +18,11 @@ observations (the belief starts at the observed window with std ``r`` per elemen
 ``horizon`` steps from the filtered belief:
 
 * Gaussian filters (``sckf`` default, ``stsckf``, ``ukf``, ``ekf``, ...): the band is the
-  engine's predict-only propagation (:func:`~prognos_torch.prognosis.forecast.gaussian_paths`),
+  engine's predict-only propagation (:func:`~prognos_torch.prognosis.paths.gaussian_paths`),
   ``mean -+ z std`` of the next *measurements*; for the RUL, particles are drawn from the
   filtered Gaussian;
 * particle filters (``pf`` = bootstrap SIR, ``ekpf``, ``stpf`` = paper 002's strong-tracking PF,
-  ``upf``): weighted sample paths (:func:`~prognos_torch.prognosis.forecast.particle_paths`),
+  ``upf``): weighted sample paths (:func:`~prognos_torch.prognosis.paths.particle_paths`),
   band from weighted quantiles.
 
 RUL (paper 002, Eq. 28 and Fig. 11): the first passage of each sample path of the *state*
@@ -40,12 +40,15 @@ import torch
 from torch import Tensor
 
 from ..core.belief import GaussianBelief
+from ..core.validation import check_count
 from ..filters import make_filter, make_particle_filter
 from ..filters import run as run_filter
-from ..prognosis.forecast import gaussian_paths, learner_transition_model, particle_paths
+from ..metrics import mae, rmse
+from ..prognosis.learner_model import learner_transition_model
+from ..prognosis.paths import gaussian_paths, particle_paths
 from ..prognosis.rul import RULDistribution, rul_distribution
 from .data import Series
-from .model import FittedModel
+from .fitted import FittedModel
 
 __all__ = [
     "ForecastResult",
@@ -167,12 +170,6 @@ class RULResult:
 
 
 # ----------------------------------------------------------------------------- internals
-def _check_int(v, name: str, lo: int = 1) -> int:
-    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-        raise ValueError(f"{name} must be an int >= {lo}, got {v!r}")
-    return v
-
-
 def _check_filter(name) -> str:
     if not isinstance(name, str) or name.lower() not in FILTER_NAMES:
         raise ValueError(f"unknown filter {name!r}; choose one of {', '.join(FILTER_NAMES)}")
@@ -267,9 +264,9 @@ def forecast(
     Returns:
         :class:`ForecastResult` in data units.
     """
-    horizon = _check_int(horizon, "horizon")
-    filter_steps = _check_int(filter_steps, "filter_steps", 0)
-    n_particles = _check_int(n_particles, "n_particles")
+    horizon = check_count(horizon, "horizon", error=ValueError)
+    filter_steps = check_count(filter_steps, "filter_steps", 0, error=ValueError)
+    n_particles = check_count(n_particles, "n_particles", error=ValueError)
     name = _check_filter(filter)
     if isinstance(level, bool) or not isinstance(level, (int, float)) or not 0 < level < 1:
         raise ValueError(f"level must be a number in (0, 1), got {level!r}")
@@ -341,9 +338,9 @@ def rul(
     Raises:
         ValueError: bad arguments, or a last observed value that already reaches the threshold.
     """
-    horizon = _check_int(horizon, "horizon")
-    filter_steps = _check_int(filter_steps, "filter_steps", 0)
-    n_particles = _check_int(n_particles, "n_particles")
+    horizon = check_count(horizon, "horizon", error=ValueError)
+    filter_steps = check_count(filter_steps, "filter_steps", 0, error=ValueError)
+    n_particles = check_count(n_particles, "n_particles", error=ValueError)
     name = _check_filter(filter)
     if isinstance(threshold, bool) or not isinstance(threshold, (int, float)):
         raise ValueError(f"threshold must be a number, got {threshold!r}")
@@ -407,8 +404,6 @@ def holdout_metrics(model: FittedModel, series: Series, n_train: int) -> dict[st
     * ``one_step_rmse``: the learner's one-step predictions from the true windows;
     * ``persistence_rmse``: the last training value held constant (a baseline).
     """
-    from ..metrics import mae, rmse
-
     tail = series.values[n_train:]
     H = tail.shape[0]
     fc = forecast(model, series.head(n_train), H)
