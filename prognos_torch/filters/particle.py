@@ -8,7 +8,8 @@ Particles have shape ``(..., N, n)``: the leading dims ``...`` are independent r
 runs, assets), ``N`` the particle count. Log-weights ``(..., N)`` are kept normalised
 (``logsumexp = 0``). All randomness comes from an explicit ``torch.Generator``.
 
-Variants (one :class:`ParticleFilter` configuration each, one step function):
+Variants (one :class:`ParticleFilter` configuration each, one step function; the factories
+:func:`sir`, :func:`ekpf`, :func:`upf`, :func:`stpf` are in :mod:`prognos_torch.filters.variants`):
 
 - **SIR / bootstrap** (``proposal=None``): ``x_k^i ~ p(x_k | x_{k-1}^i)``,
   ``w_k^i ∝ w_{k-1}^i p(y_k | x_k^i)``.
@@ -52,7 +53,6 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Callable
 from dataclasses import dataclass, fields, is_dataclass, replace
 
 import torch
@@ -66,7 +66,7 @@ from ..core.validation import (
     check_measurement,
     check_sequence,
 )
-from .gaussian import FilterState, GaussianFilter, Taylor, ekf, stekf, ukf
+from .gaussian import FilterState, GaussianFilter, Taylor
 from .resampling import Resampler, ess, get_resampler
 from .sequence import scan
 
@@ -79,12 +79,6 @@ __all__ = [
     "ProposalFallbackWarning",
     "gather_particles",
     "where_particles",
-    "sir",
-    "ekpf",
-    "upf",
-    "stpf",
-    "PARTICLE_FILTERS",
-    "make_particle_filter",
 ]
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -711,64 +705,3 @@ class ParticleFilter:
 
         state, stacked = scan(step, state, ys, us, record=record, k0=k0)
         return ParticleTrajectory(**stacked, final=state)
-
-
-# ---------------------------------------------------------------------- configurations
-def sir(num_particles: int = 1000, **kw) -> ParticleFilter:
-    """Bootstrap (SIR) particle filter: transition prior as proposal."""
-    return ParticleFilter(num_particles, None, name=kw.pop("name", "PF"), **kw)
-
-
-def ekpf(
-    num_particles: int = 1000, *, proposal: GaussianFilter | None = None, **kw
-) -> ParticleFilter:
-    """Extended Kalman particle filter: a per-particle EKF step as proposal."""
-    return ParticleFilter(num_particles, proposal or ekf(), name=kw.pop("name", "EKPF"), **kw)
-
-
-def upf(
-    num_particles: int = 1000, *, proposal: GaussianFilter | None = None, **kw
-) -> ParticleFilter:
-    """Unscented particle filter (Van der Merwe et al. 2000): a per-particle UKF step as proposal
-    (scaled rule ``alpha=1, beta=2, kappa=0``, square-root algebra, by default)."""
-    prop = proposal or ukf(1.0, 2.0, 0.0, sqrt=True)
-    return ParticleFilter(num_particles, prop, name=kw.pop("name", "UPF"), **kw)
-
-
-def stpf(
-    num_particles: int = 1000,
-    rho: float = 0.95,
-    beta: float = 1.0,
-    *,
-    resample_threshold: float = 1.0 / 3.0,
-    **kw,
-) -> ParticleFilter:
-    """Strong-tracking particle filter of paper 002 (Eq. 27, steps 1-7): a per-particle SFEKF
-    (strong-tracking EKF, paper 000 Eq. 7-12, forgetting ``rho``, weakening ``beta``) step as
-    proposal; resampling when ``N_eff < N/3`` (step 6)."""
-    return ParticleFilter(
-        num_particles,
-        stekf(rho, beta),
-        resample_threshold=resample_threshold,
-        name=kw.pop("name", "STPF"),
-        **kw,
-    )
-
-
-PARTICLE_FILTERS: dict[str, Callable[..., ParticleFilter]] = {
-    "sir": sir,
-    "pf": sir,
-    "ekpf": ekpf,
-    "upf": upf,
-    "stpf": stpf,
-}
-
-
-def make_particle_filter(name: str, **kw) -> ParticleFilter:
-    """Build a particle filter by name (``sir``/``pf``, ``ekpf``, ``upf``, ``stpf``)."""
-    key = name.lower()
-    if key not in PARTICLE_FILTERS:
-        raise ValueError(
-            f"unknown particle filter {name!r}; choose one of {sorted(PARTICLE_FILTERS)}"
-        )
-    return PARTICLE_FILTERS[key](**kw)

@@ -18,7 +18,7 @@ from torch import Tensor
 __all__ = ["scan"]
 
 S = TypeVar("S")
-I = TypeVar("I")  # noqa: E741
+I = TypeVar("I")
 
 
 def scan(

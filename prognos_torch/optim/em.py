@@ -38,8 +38,8 @@ from torch import Tensor
 from ..core.belief import GaussianBelief
 from ..core.linalg import cho_solve_right, tria
 from ..core.model import StateSpaceModel
-from ..filters.gaussian import ekf
 from ..filters.smooth import smooth
+from ..filters.variants import ekf
 
 __all__ = ["EMFit", "em_linear_gaussian", "linear_model"]
 

@@ -47,7 +47,8 @@ from ..core.belief import GaussianBelief
 from ..core.linalg import tria
 from ..core.model import StateSpaceModel
 from ..core.validation import check_matches
-from ..filters.gaussian import FilterState, GaussianFilter, StepInfo, Taylor, make_filter
+from ..filters.gaussian import FilterState, GaussianFilter, StepInfo, Taylor
+from ..filters.variants import make_filter
 from .params import ParameterBridge
 
 __all__ = [
@@ -241,7 +242,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         params: the module to train (its parameters with ``requires_grad=True`` form ``theta``),
             or an iterable of some of its parameters (then ``module`` is required).
         module: the module, when ``params`` is an iterable of parameters.
-        filter: a filter name of :func:`~prognos_torch.filters.gaussian.make_filter` (``"ekf"``,
+        filter: a filter name of :func:`~prognos_torch.filters.variants.make_filter` (``"ekf"``,
             ``"srukf"``, ``"imsrukf"``, ``"ukf"``, ``"ckf"``, ``"sckf"``, ``"stekf"``, ``"stukf"``,
             ``"stsckf"``) or a configured :class:`GaussianFilter`.
         P0: prior covariance of ``theta_0``: scalar variance, ``(n,)`` variances, ``(n, n)``, or

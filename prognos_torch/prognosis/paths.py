@@ -31,8 +31,9 @@ from ..core.validation import (
     check_window,
 )
 from ..datasets.windows import shift_append
-from ..filters.gaussian import FilterState, GaussianFilter, sckf
+from ..filters.gaussian import FilterState, GaussianFilter
 from ..filters.run import forecast as _engine_forecast
+from ..filters.variants import sckf
 from ..learners.introspect import learner_dims
 from .learner_model import learner_transition_model
 
