@@ -58,7 +58,7 @@ from ..core.linalg import (
     tria,
 )
 from ..core.model import Noise, StateSpaceModel
-from ..core.validation import check_control, check_measurement
+from ..core.validation import check_belief, check_control, check_measurement
 from ..quadrature import SigmaPoints
 
 __all__ = [
@@ -367,12 +367,7 @@ class GaussianFilter:
     # ------------------------------------------------------------------ state
     def init(self, model: StateSpaceModel, belief: GaussianBelief, k: int = 0) -> FilterState:
         """Initial :class:`FilterState` for ``belief`` (validated; ``k``: step of the noise used)."""
-        belief.validate("belief")
-        if belief.dim != model.state_dim:
-            raise ValueError(
-                f"belief.mean must have shape (..., {model.state_dim}) for this model, "
-                f"got {tuple(belief.mean.shape)}"
-            )
+        check_belief(belief, model.state_dim)
         bs, like = belief.batch_shape, belief.mean
         fstate = None
         if isinstance(self.fading, StrongTracking):
