@@ -34,6 +34,8 @@ class Trajectory:
             (only with a noise estimator, else ``None``); q, r likewise.
         noise_fallback: ``(T, ...)`` bool.
         final: the :class:`FilterState` after the last step (resume from it).
+        steps: the :class:`StepInfo` of every step with ``run(..., keep_steps=True)``, else
+            ``None`` (the smoothers read them).
     """
 
     means: Tensor
@@ -51,6 +53,7 @@ class Trajectory:
     q: Tensor | None
     r: Tensor | None
     final: FilterState
+    steps: tuple[StepInfo, ...] | None = None
 
     @property
     def log_likelihood(self) -> Tensor:
@@ -114,13 +117,15 @@ def run(
     us: Tensor | None = None,
     *,
     k0: int = 0,
+    keep_steps: bool = False,
 ) -> Trajectory:
     """Filter the measurements ``ys`` ``(T, ..., m)`` (NaN: missing; a row that is NaN
     throughout only predicts, a partially NaN row updates with its observed components).
 
     Step ``t`` (0-based) uses ``k = k0 + t + 1``, the control ``us[t]`` (``(T, ..., p)`` or
     ``(T, p)`` shared by the batch) and measurement ``ys[t]``. ``init`` is the belief on
-    ``x_{k0}`` (or a :class:`FilterState` to resume).
+    ``x_{k0}`` (or a :class:`FilterState` to resume). ``keep_steps=True`` keeps every
+    step's :class:`StepInfo` in ``Trajectory.steps``.
     """
     state = _start(filt, model, init, k0 + 1)
     bs = state.belief.batch_shape
@@ -133,8 +138,13 @@ def run(
     elif us is not None:
         raise ValueError("us was given but the model has control_dim=0")
 
+    infos: list[StepInfo] = []
+
     def step(s: FilterState, y: Tensor, u: Tensor | None, k: int):
-        return filt.step(model, s, y, u, k=k)
+        s, info = filt.step(model, s, y, u, k=k)
+        if keep_steps:
+            infos.append(info)
+        return s, info
 
     state, stacked = scan(step, state, ys, us, record=_record, k0=k0)
     # one vectorised pass over the whole trajectory instead of one per step
@@ -144,7 +154,7 @@ def run(
         stacked.pop("missing"),
         (~torch.isnan(ys)).sum(-1),  # partially observed vectors count their observed part
     )
-    return Trajectory(**stacked, final=state)
+    return Trajectory(**stacked, final=state, steps=tuple(infos) if keep_steps else None)
 
 
 @dataclass(frozen=True)
