@@ -34,6 +34,8 @@ __all__ = [
     "check_index",
     "check_count",
     "check_nonneg",
+    "check_scalar",
+    "check_belief",
     "check_dtype_arg",
     "check_forward_input",
     "check_matches",
@@ -73,7 +75,7 @@ def all_finite(x: Tensor) -> bool:
         return True
     if not x.is_floating_point():
         return True
-    if math.isfinite(float(x.sum())):
+    if math.isfinite(float(x.detach().sum())):  # no graph node, no warning under autograd
         return True
     return bool(torch.isfinite(x).all())
 
@@ -241,6 +243,26 @@ def check_index(index, n: int, name: str = "param_index") -> Tensor:
     return torch.tensor([i % n for i in idx], dtype=torch.long)
 
 
+def check_scalar(x, name: str) -> float:
+    """A finite real scalar (a number, or a tensor with one element and at most one dim) as a
+    float; ``bool`` is rejected."""
+    if isinstance(x, bool):
+        raise TypeError(f"{name} must be a real number, got bool")
+    if isinstance(x, Tensor):
+        if x.numel() != 1 or x.dim() > 1:
+            raise ValueError(
+                f"{name} must be a scalar (0-dim tensor or number), got shape {tuple(x.shape)}"
+            )
+        x = x.item()
+    try:
+        value = float(x)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{name} must be a real number, got {type(x)}") from exc
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value}")
+    return value
+
+
 # ------------------------------------------------------------------------------ learner data
 def check_dtype_arg(dtype: torch.dtype) -> torch.dtype:
     """A module ``dtype`` argument: a floating-point ``torch.dtype``."""
@@ -326,6 +348,31 @@ def as_targets(y, name: str, *, device: torch.device, n_rows: int, n_out: int) -
 
 
 # ------------------------------------------------------------------------------ filter inputs
+def check_belief(belief, state_dim: int, name: str = "belief"):
+    """A valid :class:`~prognos_torch.core.belief.GaussianBelief` (finite mean, lower triangular
+    factor with a positive diagonal) on a state of dimension ``state_dim``; anything else is a
+    ``TypeError`` that says how to build one (a ``(mean, chol)`` pair is the usual slip)."""
+    from .belief import GaussianBelief  # belief imports this module
+
+    if not isinstance(belief, GaussianBelief):
+        if isinstance(belief, (tuple, list)) and len(belief) == 2:
+            raise TypeError(
+                f"{name} must be a GaussianBelief, got a {type(belief).__name__} of two items; "
+                "wrap it: GaussianBelief(mean, chol) (or GaussianBelief.from_cov(mean, cov))"
+            )
+        raise TypeError(
+            f"{name} must be a GaussianBelief(mean (..., n), chol (..., n, n)), got "
+            f"{type(belief).__name__}"
+        )
+    belief.validate(name)
+    if belief.dim != state_dim:
+        raise ValueError(
+            f"{name}.mean must have shape (..., {state_dim}) for this model, "
+            f"got {tuple(belief.mean.shape)}"
+        )
+    return belief
+
+
 def check_generator(generator, like: Tensor, what: str = "particles") -> torch.Generator:
     """A ``torch.Generator`` on the device type of ``like`` (the ``what`` it draws for)."""
     if not isinstance(generator, torch.Generator):

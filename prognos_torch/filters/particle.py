@@ -61,6 +61,7 @@ from torch import Tensor
 from ..core.belief import GaussianBelief
 from ..core.model import Noise, StateSpaceModel
 from ..core.validation import (
+    check_belief,
     check_control,
     check_generator,
     check_measurement,
@@ -387,14 +388,7 @@ class ParticleFilter:
         Returns:
             :class:`ParticleState` with particles ``(..., N, n)``.
         """
-        if not isinstance(belief, GaussianBelief):
-            raise TypeError(f"belief must be a GaussianBelief, got {type(belief).__name__}")
-        belief.validate("belief")
-        if belief.dim != model.state_dim:
-            raise ValueError(
-                f"belief.mean must have shape (..., {model.state_dim}) for this model, "
-                f"got {tuple(belief.mean.shape)}"
-            )
+        check_belief(belief, model.state_dim)
         mean, chol = belief.mean, belief.chol
         check_generator(generator, mean)
         bs, n, N = belief.batch_shape, model.state_dim, self.num_particles

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.validation import as_tensor, check_weights
+from ..core.validation import as_tensor, check_scalar, check_weights
 
 __all__ = [
     "RULDistribution",
@@ -50,25 +50,6 @@ def _check_direction(direction: str) -> str:
     if direction not in _DIRECTIONS:
         raise ValueError(f"direction must be 'above' or 'below', got {direction!r}")
     return direction
-
-
-def _check_threshold(threshold) -> float:
-    if isinstance(threshold, bool):
-        raise TypeError("threshold must be a real number, got bool")
-    if isinstance(threshold, Tensor):
-        if threshold.numel() != 1 or threshold.dim() > 1:
-            raise ValueError(
-                f"threshold must be a scalar (0-dim tensor or number), got shape "
-                f"{tuple(threshold.shape)}"
-            )
-        threshold = threshold.item()
-    try:
-        value = float(threshold)
-    except (TypeError, ValueError) as exc:
-        raise TypeError(f"threshold must be a real number, got {type(threshold)}") from exc
-    if not math.isfinite(value):
-        raise ValueError(f"threshold must be finite, got {value}")
-    return value
 
 
 def _check_samples(samples) -> Tensor:
@@ -119,7 +100,7 @@ def fault_probability(
     """
     direction = _check_direction(direction)
     samples = _check_samples(samples)
-    thr = _check_threshold(threshold)
+    thr = check_scalar(threshold, "threshold")
     w = check_weights(weights, samples.shape[:-2], samples.shape[-2], samples.device)
     hit = _crossed(samples, thr, direction).to(torch.float64)
     return (w.unsqueeze(-1) * hit).sum(-2)
@@ -147,7 +128,7 @@ def fault_probability_gaussian(
         ``(..., H)`` float64 probabilities on the device of ``mean``.
     """
     direction = _check_direction(direction)
-    thr = _check_threshold(threshold)
+    thr = check_scalar(threshold, "threshold")
     mean = as_tensor(mean, "mean")
     std = as_tensor(std, "std", device=mean.device)
     if mean.dim() < 1:
@@ -305,7 +286,7 @@ def rul_distribution(
     """
     direction = _check_direction(direction)
     samples = _check_samples(samples)
-    thr = _check_threshold(threshold)
+    thr = check_scalar(threshold, "threshold")
     if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not math.isfinite(dt) or dt <= 0:
         raise ValueError(f"dt must be a finite positive number, got {dt!r}")
     if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not 0.0 <= tol < 1.0:
