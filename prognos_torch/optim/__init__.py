@@ -6,6 +6,8 @@
   ``torch.optim.Optimizer`` whose ``step`` is one step of the library's Gaussian filter on the
   random-walk model of Eq. 45-46.
 * :func:`fit`: one training loop for Kalman and gradient optimisers.
+* :class:`StackedLearner`, :class:`StackedForecaster`: ``R`` Monte Carlo runs of one learner
+  (or forecaster) as one predictor, batched through a run axis.
 """
 
 from .fit import History, fit
@@ -19,6 +21,7 @@ from .kalman import (
     noise_factor,
 )
 from .params import ParameterBridge, Selector
+from .stacked import StackedForecaster, StackedLearner, run_sum_mse
 
 __all__ = [
     "ParameterBridge",
@@ -32,4 +35,7 @@ __all__ = [
     "OPTIMIZER_NOISE",
     "fit",
     "History",
+    "StackedLearner",
+    "StackedForecaster",
+    "run_sum_mse",
 ]
