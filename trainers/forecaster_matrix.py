@@ -22,18 +22,18 @@ ImSRUKF (:class:`~prognos_torch.optim.KalmanOptimizer`, one pass) and Adam
 Each trained forecaster is then used
 
 * alone ("none"): one-step predictions from the measured windows and recursive multi-step
-  prediction (:func:`~prognos_torch.prognosis.forecast.recursive_predict`);
+  prediction (:func:`~prognos_torch.prognosis.recursive_predict`);
 * as the transition model of a prognostic filter
-  (:func:`~prognos_torch.prognosis.forecast.learner_transition_model`): particle filters SIR
+  (:func:`~prognos_torch.prognosis.learner_transition_model`): particle filters SIR
   ("PF"), EKPF and STPF, Gaussian SCKF and STSCKF, run over the test measurements; the one-step
   prediction is the filter's predictive mean of the next measurement, the multi-step one
-  :func:`~prognos_torch.prognosis.forecast.gaussian_paths` /
-  :func:`~prognos_torch.prognosis.forecast.particle_paths` from the posterior.
+  :func:`~prognos_torch.prognosis.gaussian_paths` /
+  :func:`~prognos_torch.prognosis.particle_paths` from the posterior.
 
 Metrics per run: one-step RMSE/MAE on the test part, RMSE/MAE of the ``H = 10``-step-ahead
 prediction (origins every ``STRIDE`` steps), and on the bearing the RUL at a few prediction
 times: sample paths (particles, draws from the Gaussian belief, or the deterministic recursion)
-until they cross the failure threshold (:func:`~prognos_torch.prognosis.rul.rul_distribution`),
+until they cross the failure threshold (:func:`~prognos_torch.prognosis.rul_distribution`),
 against the observed first crossing of the test indicator; alpha-lambda (alpha = 0.3,
 lambda = 0.5, mass criterion beta = 0.5, :func:`~prognos_torch.metrics.alpha_lambda`).
 A persistence forecaster ``x_{k+1} = x_k`` is the reference row.

@@ -8,17 +8,33 @@ and method), ``run.json`` (configuration, versions, machine) and the figures the
 notes filled from a template).
 """
 
+from .evaluate import (
+    crossing_scores,
+    crossing_table,
+    fault_prediction_errors,
+    rolling_forecast_rmse,
+)
 from .runner import (
     Study,
     StudyConfig,
     StudyResult,
     discover_studies,
     load_trainer,
+    run_jobs,
     run_study,
+    timed,
     trainers_dir,
     write_outputs,
 )
-from .tables import Stat, fill_template, fmt_value, format_table, markdown_table, summarize
+from .tables import (
+    Stat,
+    fill_template,
+    fmt_value,
+    format_table,
+    markdown_table,
+    summarize,
+    sweep_table,
+)
 
 __all__ = [
     "Study",
@@ -27,12 +43,19 @@ __all__ = [
     "discover_studies",
     "format_table",
     "load_trainer",
+    "run_jobs",
     "run_study",
+    "timed",
     "trainers_dir",
     "write_outputs",
     "Stat",
     "summarize",
     "markdown_table",
+    "sweep_table",
     "fmt_value",
     "fill_template",
+    "fault_prediction_errors",
+    "rolling_forecast_rmse",
+    "crossing_scores",
+    "crossing_table",
 ]
