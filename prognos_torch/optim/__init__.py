@@ -21,7 +21,13 @@ from .kalman import (
     noise_factor,
 )
 from .params import ParameterBridge, Selector
-from .stacked import StackedForecaster, StackedLearner, run_sum_mse
+from .stacked import (
+    StackedForecaster,
+    StackedLearner,
+    fit_kalman_runs,
+    fit_together,
+    run_sum_mse,
+)
 
 __all__ = [
     "ParameterBridge",
@@ -38,4 +44,6 @@ __all__ = [
     "StackedLearner",
     "StackedForecaster",
     "run_sum_mse",
+    "fit_together",
+    "fit_kalman_runs",
 ]

@@ -5,7 +5,9 @@ library pieces and returns a :class:`StudyResult`; this module turns it into ``t
 (mean ± std over runs, with the paper's numbers beside ours), ``results.csv`` (one row per run
 and method), ``run.json`` (configuration, versions, machine) and the figures the study saved.
 :mod:`.tables` holds the table helpers every study uses (summaries over runs, markdown tables,
-notes filled from a template).
+notes filled from a template); :mod:`.evaluate` and :mod:`.forecasters` the evaluation
+protocols the studies share (fault prediction, one-step forecasters alone and inside prognostic
+filters); :mod:`.matrix` a learner x trainer x filter matrix over test problems.
 """
 
 from .evaluate import (
@@ -14,6 +16,19 @@ from .evaluate import (
     fault_prediction_errors,
     rolling_forecast_rmse,
 )
+from .forecasters import (
+    ForecastProblem,
+    ForecastProtocol,
+    evaluate_alone,
+    evaluate_filtered,
+    evaluate_gaussian,
+    evaluate_particle,
+    healthy_runs,
+    point_errors,
+    residual_noise,
+    rul_scores,
+)
+from .matrix import Cell, Footnotes, MatrixResult, capture, run_forecaster_matrix
 from .runner import (
     Study,
     StudyConfig,
@@ -58,4 +73,19 @@ __all__ = [
     "rolling_forecast_rmse",
     "crossing_scores",
     "crossing_table",
+    "ForecastProblem",
+    "ForecastProtocol",
+    "point_errors",
+    "rul_scores",
+    "residual_noise",
+    "healthy_runs",
+    "evaluate_alone",
+    "evaluate_gaussian",
+    "evaluate_particle",
+    "evaluate_filtered",
+    "Cell",
+    "Footnotes",
+    "MatrixResult",
+    "capture",
+    "run_forecaster_matrix",
 ]
