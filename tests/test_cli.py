@@ -55,7 +55,6 @@ def test_bad_study_options(capsys):
     assert main(["study", "--list"]) == 0
 
 
-
 def test_python_m_prognos_torch_lists_the_studies():
     import subprocess
     import sys

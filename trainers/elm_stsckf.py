@@ -26,33 +26,15 @@ hidden layers inside one batched pass, the ``R`` runs x 3 channels are packed in
 from __future__ import annotations
 
 import math
-import time
+from functools import partial
 from pathlib import Path
 
 import torch
-from tqdm import tqdm
 
-from prognos_torch.core.belief import GaussianBelief
-from prognos_torch.filters import run as filter_run
-from prognos_torch.filters import sckf, stsckf, stukf
-from prognos_torch.metrics import rmse
+from prognos_torch import filters, plots, prognosis, studies
+from prognos_torch.core import GaussianBelief
 from prognos_torch.optim import StackedForecaster
-from prognos_torch.plots import plot_fading_factor, plot_prediction, plot_prediction_errors
-from prognos_torch.prognosis import (
-    MeasurementForecaster,
-    origin_fading_factors,
-    rolling_fault_prediction,
-    rolling_forecasts,
-)
-from prognos_torch.studies import (
-    Study,
-    StudyConfig,
-    StudyResult,
-    fault_prediction_errors,
-    fill_template,
-    markdown_table,
-    sweep_table,
-)
+from prognos_torch.studies import Study, StudyConfig, StudyResult
 from prognos_torch.systems.three_tank import simulate_three_tank, three_tank_joint_model
 
 # Paper 000 Table 1 (50 Monte Carlo runs). The column printed "RMSE" is below the MAE for every
@@ -77,13 +59,10 @@ X0 = (1.0, 0.95, 0.9, 0.6)
 S0 = (1e-3, 1e-3, 1e-3, 1e-2)
 SENS_D = (1e-5, 1e-4, 1e-3, 3e-3, 1e-2, 3e-2)
 SENS = ("SCKF", "STSCKF")  # the methods of the sensitivity table
+FILTERS = {"SCKF": filters.sckf, "STUKF": filters.stukf, "STSCKF": filters.stsckf}
 
 
 NOTES = Path(__file__).parent / "notes" / "elm_stsckf.md"
-
-
-def _filters():
-    return {"SCKF": sckf(), "STUKF": stukf(), "STSCKF": stsckf()}
 
 
 def _simulate(cfg: StudyConfig, runs: int, T: int):
@@ -92,8 +71,8 @@ def _simulate(cfg: StudyConfig, runs: int, T: int):
     for i in range(runs):
         g = cfg.generator(i)
         sims.append(simulate_three_tank(T + N_AHEAD, runs=1, generator=g))
-        fc = MeasurementForecaster.ros_elm(3, EMBED, HIDDEN, LAM, generator=g)
-        fcs.append(MeasurementForecaster([e.to(cfg.device) for e in fc.learners], EMBED, lam=LAM))
+        fc = prognosis.MeasurementForecaster.ros_elm(3, EMBED, HIDDEN, LAM, generator=g)
+        fcs.append(type(fc)([e.to(cfg.device) for e in fc.learners], EMBED, lam=LAM))
     x, y, theta = (
         torch.cat([getattr(s, k) for s in sims], 1).to(cfg.device) for k in ("x", "y", "theta")
     )
@@ -106,17 +85,18 @@ def _init_belief(runs: int, device) -> GaussianBelief:
     return GaussianBelief(m.clone(), S.clone())
 
 
-def _predict(filt, ys, fc, chol_D, device):
+def _predict(name, ys, fc, chol_D, device):
     """Rolling 5-step-ahead az2 prediction over ``ys`` ``(T, R, 3)``; returns result, seconds."""
-    model = three_tank_joint_model(chol_D=chol_D, device=device)
-    b0 = _init_belief(ys.shape[1], device)
-    t0 = time.perf_counter()
-    res = rolling_fault_prediction(filt, model, ys, fc, N_AHEAD, N0, init=b0, param_index=3)
-    return res, time.perf_counter() - t0
+    model, b0 = (
+        three_tank_joint_model(chol_D=chol_D, device=device),
+        _init_belief(ys.shape[1], device),
+    )
+    args = (FILTERS[name](), model, ys, fc, N_AHEAD, N0)
+    return studies.timed(prognosis.rolling_fault_prediction, *args, init=b0, param_index=3)
 
 
 def _errors(res, theta) -> dict:
-    e = fault_prediction_errors(res, theta)
+    e = studies.fault_prediction_errors(res, theta)
     return {"MAE": e["MAE"], "RMSE": e["RMSE"], "MSE": e["RMSE"].square(), **e}
 
 
@@ -129,24 +109,23 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     x, y, theta, fc = _simulate(cfg, runs, T)
     ys = y[:T]  # the filters and ROS-ELMs see z_1..z_T; the extra n steps are truth only
 
-    jobs = [("main", name, CHOL_D) for name in _filters()]
-    jobs += [("single", name, CHOL_D) for name in _filters()]
-    jobs += [("sens", name, d) for d in sens_d for name in SENS]
-    bar = tqdm(jobs, desc="elm-stsckf", disable=not cfg.progress)
-    main, single, sens = {}, {}, {}
     fc1, fcs = fc.select(slice(0, 1)), fc.select(slice(0, sens_runs))
-    for kind, name, d in bar:
-        bar.set_postfix_str(f"{kind} {name} chol_D={d:g}")
-        filt = _filters()[name]
-        if kind == "main":
-            main[name] = _predict(filt, ys, fc, d, dev)
-        elif kind == "single":  # run 0 alone: unbatched time per run, comparable to the paper
-            single[name] = _predict(filt, ys[:, :1], fc1, d, dev)[1]
-        else:
-            res, _ = _predict(filt, ys[:, :sens_runs], fcs, d, dev)
-            sens[(name, d)] = {
-                k: v.mean().item() for k, v in _errors(res, theta[:, :sens_runs]).items()
-            }
+    jobs = {("main", n): partial(_predict, n, ys, fc, CHOL_D, dev) for n in FILTERS}
+    # run 0 alone: unbatched time per run, comparable to the paper
+    jobs |= {("single", n): partial(_predict, n, ys[:, :1], fc1, CHOL_D, dev) for n in FILTERS}
+    sub = ys[:, :sens_runs]
+    jobs |= {("sens", n, d): partial(_predict, n, sub, fcs, d, dev) for d in sens_d for n in SENS}
+    out = studies.run_jobs(jobs, desc="elm-stsckf", progress=cfg.progress)
+    main = {n: out[("main", n)] for n in FILTERS}
+    single = {n: out[("single", n)][1] for n in FILTERS}
+    sens = {
+        (n, d): {
+            k: v.mean().item()
+            for k, v in _errors(out[("sens", n, d)][0], theta[:, :sens_runs]).items()
+        }
+        for d in sens_d
+        for n in SENS
+    }
 
     errs = {name: _errors(res, theta) for name, (res, _) in main.items()}
     rows = [
@@ -158,11 +137,11 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
 
     # ---------------------------------------------------------------- figures (run 0)
     figs = [f"fig1_z{c + 1}_forecast.png" for c in range(3)]
-    zf = rolling_forecasts(fc, ys, N_AHEAD, N0)  # (K, n, R, 3)
+    zf = prognosis.rolling_forecasts(fc, ys, N_AHEAD, N0)  # (K, n, R, 3)
     t_target = torch.arange(N0 + N_AHEAD, T + N_AHEAD + 1)
     truth = theta[N0 + N_AHEAD : T + N_AHEAD + 1, :, 0]  # az2 at the prediction targets
     for c, name in enumerate(figs):
-        plot_prediction(
+        plots.plot_prediction(
             out_dir / name,
             t_target,
             x[N0 + N_AHEAD : T + N_AHEAD + 1, 0, c],
@@ -170,7 +149,7 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
             title=f"ROS-ELM 5-step-ahead forecast of $z_{c + 1}$ vs true level (run 0)",
             ylabel=f"$h_{c + 1}$ (m)",
         )
-    plot_prediction_errors(
+    plots.plot_prediction_errors(
         out_dir / "fig2_az2_prediction.png",
         t_target,
         truth[:, 0],
@@ -181,31 +160,30 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         truth_label="true $az_2$",
         alternate=True,  # wide pale lines under narrow ones: coinciding methods stay visible
     )
-    traj = filter_run(
-        stsckf(), three_tank_joint_model(chol_D=CHOL_D, device=dev), _init_belief(runs, dev), ys
-    )
-    plot_fading_factor(
+    model = three_tank_joint_model(chol_D=CHOL_D, device=dev)
+    traj = filters.run(filters.stsckf(), model, _init_belief(runs, dev), ys)
+    lam = prognosis.origin_fading_factors(main["STSCKF"][0])[:, 0].cpu()
+    plots.plot_fading_factor(
         out_dir / "fig3_fading_factor.png",
         torch.arange(1, T + 1),
         {
             "real-time filter on z_k (run 0)": traj.fading_factors[:, 0].cpu(),
-            "5th forecast step of the prediction made at k (run 0)": origin_fading_factors(
-                main["STSCKF"][0]
-            )[:, 0].cpu(),
+            "5th forecast step of the prediction made at k (run 0)": lam,
         },
         title="STSCKF fading factor $\\lambda_k$",
     )
     figs += ["fig2_az2_prediction.png", "fig3_fading_factor.png"]
 
     # ---------------------------------------------------------------- extra tables and notes
-    zt = torch.stack([x[N0 + j : T + j + 1] for j in range(1, N_AHEAD + 1)], 1)  # (K, n, R, 3)
-    z_rmse = rmse(zf, zt, dim=(0, 2))  # (n, 3)
-    tab_z = markdown_table(
+    z_rmse = studies.rolling_forecast_rmse(zf, x, N0)  # (n, 3)
+    tab_z = studies.markdown_table(
         ["horizon j"] + [f"RMSE z{c + 1} (m)" for c in range(3)],
         ([j + 1] + [f"{v:.2e}" for v in z_rmse[j].tolist()] for j in range(N_AHEAD)),
     )
-    tab_s = sweep_table("chol_D", sens_d, sens, SENS, ("MAE", "RMSE"), ratio=("RMSE", *SENS, 1))
-    tab_m = markdown_table(
+    tab_s = studies.sweep_table(
+        "chol_D", sens_d, sens, SENS, ("MAE", "RMSE"), ratio=("RMSE", *SENS, 1)
+    )
+    tab_m = studies.markdown_table(
         ["method", "MSE (ours)", "paper 'RMSE'", "sqrt(paper 'RMSE')", "RMSE (ours)"],
         (
             [n, f"{errs[n]['MSE'].mean().item():.4g}", f"{PAPER[n]['RMSE']:.4g}"]
@@ -213,7 +191,7 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
             for n in main
         ),
     )
-    tab_t = markdown_table(
+    tab_t = studies.markdown_table(
         ["method", "batched, per run (s)", "one run alone (s)", "paper (s)"],
         (
             [n, f"{secs / runs:.4f}", f"{single[n]:.3f}", f"{PAPER[n]['time_s']:.4f}"]
@@ -221,9 +199,9 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         ),
     )
     res_st, lam_rt = main["STSCKF"][0], traj.fading_factors[N0:]
-    values = dict(N0=N0, T=T, N_AHEAD=N_AHEAD, CHOL_D=CHOL_D, X0=list(X0), S0=list(S0))
+    values = {k: v for k, v in globals().items() if k.isupper()}  # the settings, and:
+    values |= dict(T=T, X0=list(X0), S0=list(S0), seed=cfg.seed)
     values.update(
-        seed=cfg.seed,
         d_uc=(main["STUKF"][0].predicted - res_st.predicted).abs().max().item(),
         bias_p=(res_st.predicted[..., 0] - truth).mean().item(),  # signed: the lag, all runs
         bias_f=(res_st.filtered[N0 - 1 :, :, 0] - theta[N0 : T + 1, :, 0]).mean().item(),
@@ -242,7 +220,7 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         | {"strong_tracking": {"rho": 0.95, "beta": 1.0}, "sensitivity_chol_D": list(sens_d)}
         | {"sensitivity_runs": sens_runs}
         | {"time_s": "batched wall time of the method divided by the runs"},
-        notes=fill_template(NOTES, values),
+        notes=studies.fill_template(NOTES, values),
         extra_tables=[
             "Paper's 'RMSE' column read as an MSE:\n\n" + tab_m,
             f"Time: {runs} runs in one batched pass (divided by the runs) and run 0 alone, "

@@ -54,7 +54,6 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -312,29 +311,18 @@ def _notes(res: studies.MatrixResult, problems, pr: _Protocol) -> str:
         return b[0], f"{b[1].split(' | ')[1]} + {b[2]}"
 
     def ratios(p):  # median over the combinations of RMSE_1 with the filter / alone
-        view, out = res.view(p), []
-        for f in FILTERS[1:]:
-            r = [
-                view[f"{c} {f}"] / view[f"{c} none"]
-                for c in (f"{ln}-{tn}" for _, ln, tn in res.combos(p))
-            ]
-            r = [x for x in r if math.isfinite(x)]
-            out.append(f"{f} {float(np.median(r)) if r else math.nan:.2f}")
-        return ", ".join(out)
+        return ", ".join(f"{f} {res.median_ratio(p, f):.2f}" for f in FILTERS[1:])
 
     v = {p.name: res.view(p.name) for p in problems}
-    (alone, alone_name), (best10, best10_name) = (
-        best("HI", "RMSE_1", ("none",)),
-        best("HI", "RMSE_10"),
-    )
+    alone, alone_name = best("HI", "RMSE_1", ("none",))
+    best10, best10_name = best("HI", "RMSE_10")
     elm_vs_best = v["HI"]["ELM-closed none"] / alone - 1
     hits = [
         (round(st["alpha_lambda"].mean * st["alpha_lambda"].n), st["alpha_lambda"].n)
         for meth, st in res.summary.items()
         if meth.startswith("HI") and "alpha_lambda" in st and "persistence" not in meth
     ]
-    bias = [res.mean(c, f, "RUL_bias_d") for c, _, _ in res.combos("HI") for f in FILTERS]
-    bias = [b for b in bias if math.isfinite(b)] or [math.nan]
+    bias = res.means("HI", "RUL_bias_d") or [math.nan]
     true_rul = [hi.t_eol - float(hi.days[i]) for i in hi.rul_idx]
     gaps = [
         abs(v[s][f"ELM-{tn} {f}"] - v[s][f"ELM-closed {f}"])

@@ -174,6 +174,22 @@ class MatrixResult:
         tied = [x for x in cand if abs(x[0] - top) <= tie * abs(top)]
         return min(tied, key=lambda x: self.cost(x[1], x[2]))
 
+    def means(self, problem: str, metric: str, filters: Sequence[str] | None = None) -> list[float]:
+        """The finite means of ``metric`` over a problem's combinations and ``filters``."""
+        filters = self.filters if filters is None else filters
+        out = [self.mean(c, f, metric) for c, _, _ in self.combos(problem) for f in filters]
+        return [v for v in out if math.isfinite(v)]
+
+    def median_ratio(self, problem: str, fname: str, metric: str = "RMSE_1") -> float:
+        """Median over a problem's combinations of ``metric`` with filter ``fname`` divided by
+        the forecaster alone (``"none"``); NaN when no combination has both."""
+        r = [
+            self.mean(c, fname, metric) / self.mean(c, "none", metric)
+            for c, _, _ in self.combos(problem)
+        ]
+        r = [x for x in r if math.isfinite(x)]
+        return float(np.median(r)) if r else math.nan
+
     def value_label(self, combo: str, fname: str, text: str) -> str:
         """``text``, with the count of runs behind it when some runs diverged."""
         n_ok = (self.stat(combo, fname, "RMSE_1") or Stat(0, 0, 0)).n
