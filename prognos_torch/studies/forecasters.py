@@ -177,6 +177,7 @@ def rul_scores(
         return out
     w = None if weights is None else weights[good]
     dist = rul_distribution(samples[good], problem.threshold, w, dt=problem.dt)
+    good = good.cpu()  # the scores are assembled on the CPU
     times = problem.days[list(problem.rul_idx)].to(torch.float64)
     true_rul = problem.t_eol - times
     med = dist.median.cpu()  # (R', P), NaN where more than half the mass is censored
