@@ -121,7 +121,11 @@ def origin_fading_factors(result: RollingFaultPrediction, step: int = -1) -> Ten
 
 
 def first_alarm(
-    result: RollingFaultPrediction, threshold: float, *, component: int = 0, direction="above"
+    result: RollingFaultPrediction,
+    threshold: float,
+    *,
+    component: int = 0,
+    direction: str = "above",
 ) -> Tensor:
     """Paper 000 step 8: the first origin ``k`` whose prediction ``theta^_{k+n|k+n}`` reaches
     ``threshold``; the crossing is then predicted at ``k + n``.
