@@ -59,12 +59,11 @@ import torch
 from torch import Tensor
 
 from prognos_torch import filters, plots, studies
-from prognos_torch.datasets import MinMaxScaler, embed, health_indicator
+from prognos_torch.datasets import MinMaxScaler, embed, health_indicator, minmax_normalize
 from prognos_torch.learners import ANFIS, ELM, LSSVR, LSSVRGram
 from prognos_torch.optim import KalmanOptimizer, StackedLearner, fit, fit_kalman_runs, fit_together
 from prognos_torch.plots import HeatmapPanel
 from prognos_torch.studies import ForecastProblem, Study, StudyConfig, StudyResult
-from prognos_torch.systems import minmax_normalize
 from prognos_torch.systems.cstr import simulate_cstr
 
 # ----------------------------------------------------------------------------------- settings

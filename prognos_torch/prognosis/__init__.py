@@ -1,5 +1,45 @@
-"""Prognosis: fault probability and remaining-useful-life distributions from predictions."""
+"""Prognosis: learners as transition models, multi-step prediction, forecasted measurements,
+fault prediction, and fault probability and remaining-useful-life distributions.
 
+* :mod:`.learner_model`: a trained one-step predictor as an m-order state-space model
+  (paper 002 Eq. 15-26).
+* :mod:`.paths`: recursive multi-step prediction, deterministic, Gaussian or as weighted sample
+  paths (paper 002 Eq. 11-14).
+* :mod:`.forecaster`: forecasted measurements, one learner (ROS-ELM) per channel (paper 000
+  Sec. 5); the ROS-ELM core is :mod:`prognos_torch.learners.ros_elm`.
+* :mod:`.fault`: n-step-ahead and rolling fault-parameter prediction (paper 000 Sec. 5).
+* :mod:`.assess`: scoring forecast-fed fault prediction (rolling forecasts, alarms, predicted
+  threshold crossings).
+* :mod:`.rul`: fault probability and RUL distributions from predicted paths.
+"""
+
+from ..learners.ros_elm import ROSELMState, ros_elm_forecast, ros_elm_init, ros_elm_update
+from .assess import (
+    ThresholdCrossings,
+    aligned_forecasts,
+    first_alarm,
+    origin_fading_factors,
+    persistence_forecasts,
+    predict_threshold_crossings,
+    rolling_forecasts,
+)
+from .fault import (
+    FaultPrediction,
+    RollingFaultPrediction,
+    predict_fault_parameter,
+    rolling_fault_prediction,
+)
+from .forecaster import MeasurementForecaster
+from .learner_model import learner_transition_model
+from .paths import (
+    GaussianPaths,
+    RecursivePaths,
+    SamplePaths,
+    gaussian_paths,
+    particle_paths,
+    predict_paths,
+    recursive_predict,
+)
 from .rul import RULDistribution, fault_probability, fault_probability_gaussian, rul_distribution
 
 __all__ = [
@@ -7,28 +47,6 @@ __all__ = [
     "fault_probability",
     "fault_probability_gaussian",
     "rul_distribution",
-]
-from .forecast import (
-    FaultPrediction,
-    GaussianPaths,
-    MeasurementForecaster,
-    RecursivePaths,
-    RollingFaultPrediction,
-    ROSELMState,
-    SamplePaths,
-    gaussian_paths,
-    learner_transition_model,
-    particle_paths,
-    predict_fault_parameter,
-    predict_paths,
-    recursive_predict,
-    rolling_fault_prediction,
-    ros_elm_forecast,
-    ros_elm_init,
-    ros_elm_update,
-)
-
-__all__ += [
     "FaultPrediction",
     "GaussianPaths",
     "MeasurementForecaster",
@@ -46,21 +64,8 @@ __all__ += [
     "ros_elm_forecast",
     "ros_elm_init",
     "ros_elm_update",
-]
-
-from .assess import (  # noqa: E402  (after the names it uses)
-    ThresholdCrossings,
-    aligned_forecasts,
-    first_alarm,
-    origin_fading_factors,
-    persistence_forecasts,
-    predict_threshold_crossings,
-    rolling_forecasts,
-)
-
-__all__ += [
-    "aligned_forecasts",
     "ThresholdCrossings",
+    "aligned_forecasts",
     "first_alarm",
     "origin_fading_factors",
     "persistence_forecasts",

@@ -32,10 +32,11 @@ from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
 from ..filters import GaussianFilter
 from ..filters import run as filter_run
+from .fault import predict_fault_parameter
 from .rul import rul_distribution
 
 if TYPE_CHECKING:
-    from . import RollingFaultPrediction
+    from .fault import RollingFaultPrediction
 
 __all__ = [
     "rolling_forecasts",
@@ -195,8 +196,6 @@ def predict_threshold_crossings(
         param_index: the state component of the fault parameter.
         direction: ``"above"`` or ``"below"`` (see :func:`rul_distribution`).
     """
-    from . import predict_fault_parameter  # the package namespace, once it is initialised
-
     horizon = _pos_int(horizon, "horizon")
     times = [int(k) for k in times]
     if not times or any(b <= a for a, b in zip(times, times[1:])) or times[0] < 1:
