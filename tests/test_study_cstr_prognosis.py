@@ -3,13 +3,8 @@
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
-import torch
 from _study_helpers import check_outputs, quick_fixture, read_rows, trainer_fixture
-
-from prognos_torch.learners import ANFIS
-from prognos_torch.optim import ParameterBridge
 
 METHODS = ("SCKF", "STSCKF")
 
@@ -60,39 +55,3 @@ def test_crossing_step_matches_the_recursion_of_eq51(trainer):
         if k > 50:
             caf += 1e-5 * (k - 50)
     assert mod._crossing_step(mod.THRESHOLD, mod.CSTRParams()) == k == 223
-
-
-def test_alarm_is_first_origin_whose_prediction_crosses_plus_horizon(trainer):
-    mod = trainer
-    K = 30
-    pred = torch.full((K, 3, 1), 1.0, dtype=torch.float64)
-    pred[7:, 0] = 1.2  # run 0: origin index 7 -> k = N0 + 7
-    pred[0:, 1] = 1.2  # run 1: crosses at the first origin
-    # run 2 never crosses
-    got = mod._alarm(SimpleNamespace(predicted=pred), 1.15)
-    n, N0 = mod.N_AHEAD, mod.N0
-    assert got[0].item() == N0 + 7 + n
-    assert got[1].item() == N0 + n
-    assert math.isnan(got[2].item())
-
-
-def test_run_anfis_equals_one_module_per_run(trainer):
-    mod = trainer
-    R, p = 4, mod.EMBED
-    g = torch.Generator().manual_seed(3)
-    modules = [ANFIS(p, mod.N_MFS, generator=torch.Generator().manual_seed(r)) for r in range(R)]
-    for m in modules:  # distinct premises per run
-        m.init_premises(torch.rand(20, p, generator=g, dtype=torch.float64))
-    bridge = ParameterBridge(modules[0])
-    theta = bridge.stack(modules)
-    lo = 400.0 + torch.rand(R, generator=g, dtype=torch.float64)
-    hi = lo + 1.0 + torch.rand(R, generator=g, dtype=torch.float64)
-    w = lo[:, None] + (hi - lo)[:, None] * torch.rand(R, p, generator=g, dtype=torch.float64)
-    got = mod._RunANFIS(ANFIS(p, mod.N_MFS), theta, lo, hi)(w)
-    assert got.shape == (R, 1)
-    for r in range(R):
-        u = (w[r] - lo[r]) / (hi[r] - lo[r])
-        ref = modules[r](u[None])[0] * (hi[r] - lo[r]) + lo[r]
-        torch.testing.assert_close(got[r], ref.detach(), rtol=1e-12, atol=1e-12)
-    sub = mod._RunANFIS(ANFIS(p, mod.N_MFS), theta, lo, hi).runs(slice(1, 3))(w[1:3])
-    torch.testing.assert_close(sub, got[1:3], rtol=1e-12, atol=1e-12)

@@ -6,6 +6,8 @@
   ``torch.optim.Optimizer`` whose ``step`` is one step of the library's Gaussian filter on the
   random-walk model of Eq. 45-46.
 * :func:`fit`: one training loop for Kalman and gradient optimisers.
+* :class:`StackedLearner`, :class:`StackedForecaster`: ``R`` Monte Carlo runs of one learner
+  (or forecaster) as one predictor, batched through a run axis.
 * :func:`fit_likelihood`: model parameters (noise, ``f``, ``h``) by maximising the filter's
   log-likelihood with any ``torch.optim`` optimiser; :func:`em_linear_gaussian`: EM for
   linear-Gaussian models on the square-root RTS smoother.
@@ -24,6 +26,13 @@ from .kalman import (
 )
 from .likelihood import LikelihoodFit, fit_likelihood, from_log_cholesky, log_cholesky
 from .params import ParameterBridge, Selector
+from .stacked import (
+    StackedForecaster,
+    StackedLearner,
+    fit_kalman_runs,
+    fit_together,
+    run_sum_mse,
+)
 
 __all__ = [
     "ParameterBridge",
@@ -37,6 +46,11 @@ __all__ = [
     "OPTIMIZER_NOISE",
     "fit",
     "History",
+    "StackedLearner",
+    "StackedForecaster",
+    "run_sum_mse",
+    "fit_together",
+    "fit_kalman_runs",
     "fit_likelihood",
     "LikelihoodFit",
     "from_log_cholesky",

@@ -8,6 +8,8 @@ fault prediction, and fault probability and remaining-useful-life distributions.
 * :mod:`.forecaster`: forecasted measurements, one learner (ROS-ELM) per channel (paper 000
   Sec. 5); the ROS-ELM core is :mod:`prognos_torch.learners.ros_elm`.
 * :mod:`.fault`: n-step-ahead and rolling fault-parameter prediction (paper 000 Sec. 5).
+* :mod:`.assess`: scoring forecast-fed fault prediction (rolling forecasts, alarms, predicted
+  threshold crossings).
 * :mod:`.rul`: fault probability and RUL distributions from predicted paths.
 * :mod:`.events`: batched Monte-Carlo simulation of samples to an event (EOD, EOL).
 * :mod:`.onset`: degradation onset against a healthy baseline (k-sigma rule, CUSUM).
@@ -16,6 +18,15 @@ fault prediction, and fault probability and remaining-useful-life distributions.
 
 from ..learners.ros_elm import ROSELMState, ros_elm_forecast, ros_elm_init, ros_elm_update
 from .events import EventPrediction, sample_belief, simulate_to_event
+from .assess import (
+    ThresholdCrossings,
+    aligned_forecasts,
+    first_alarm,
+    origin_fading_factors,
+    persistence_forecasts,
+    predict_threshold_crossings,
+    rolling_forecasts,
+)
 from .fault import (
     FaultPrediction,
     RollingFaultPrediction,
@@ -116,4 +127,11 @@ __all__ = [
     "strong_tracking_filter",
     "trend_measurement",
     "trend_transition",
+    "ThresholdCrossings",
+    "aligned_forecasts",
+    "first_alarm",
+    "origin_fading_factors",
+    "persistence_forecasts",
+    "predict_threshold_crossings",
+    "rolling_forecasts",
 ]

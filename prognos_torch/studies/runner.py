@@ -5,18 +5,20 @@ from __future__ import annotations
 import csv
 import importlib.util
 import json
-import math
 import os
 import platform
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Hashable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 import torch
+from tqdm import tqdm
+
+from .tables import format_table
 
 __all__ = [
     "Study",
@@ -25,7 +27,9 @@ __all__ = [
     "discover_studies",
     "format_table",
     "load_trainer",
+    "run_jobs",
     "run_study",
+    "timed",
     "trainers_dir",
     "write_outputs",
 ]
@@ -98,43 +102,26 @@ class Study:
     default_runs: int = 50
 
 
-def _fmt(v: float) -> str:
-    if v is None or (isinstance(v, float) and math.isnan(v)):
-        return "—"
-    a = abs(v)
-    if a != 0 and (a < 1e-3 or a >= 1e4):
-        return f"{v:.3e}"
-    return f"{v:.4f}"
+def run_jobs(
+    jobs: Mapping[Hashable, Callable[[], object]], *, desc: str, progress: bool = True
+) -> dict:
+    """Run the study's jobs in order with one progress bar; ``{key: job()}``.
+
+    Each key is shown beside the bar while its job runs (e.g. ``("sens", "SCKF", 1e-3)``).
+    """
+    bar = tqdm(jobs.items(), desc=desc, disable=not progress)
+    out = {}
+    for key, job in bar:
+        bar.set_postfix_str(" ".join(map(str, key)) if isinstance(key, tuple) else str(key))
+        out[key] = job()
+    return out
 
 
-def format_table(result: StudyResult) -> str:
-    """Markdown table: one row per method, ``mean ± std`` over runs, paper value beside."""
-    methods: list[str] = []
-    for r in result.rows:
-        if r["method"] not in methods:
-            methods.append(r["method"])
-    head = ["method", "runs"]
-    for m in result.metrics:
-        head.append(f"{m} (ours)")
-        if any(m in result.paper.get(meth, {}) for meth in methods):
-            head.append(f"{m} (paper)")
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for meth in methods:
-        rows = [r for r in result.rows if r["method"] == meth]
-        cells = [meth, str(len(rows))]
-        for m in result.metrics:
-            vals = np.array([float(r[m]) for r in rows if m in r and r[m] is not None], dtype=float)
-            vals = vals[np.isfinite(vals)]
-            if vals.size:
-                cells.append(
-                    f"{_fmt(vals.mean())} ± {_fmt(vals.std(ddof=1) if vals.size > 1 else 0.0)}"
-                )
-            else:
-                cells.append("—")
-            if any(m in result.paper.get(x, {}) for x in methods):
-                cells.append(_fmt(result.paper.get(meth, {}).get(m)))
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+def timed(fn: Callable, *args, **kwargs) -> tuple[object, float]:
+    """``(fn(*args, **kwargs), wall seconds)``."""
+    t0 = time.perf_counter()
+    out = fn(*args, **kwargs)
+    return out, time.perf_counter() - t0
 
 
 def _versions() -> dict:
