@@ -44,7 +44,12 @@ from tqdm import tqdm
 from prognos_torch.datasets.windows import MinMaxScaler, chronological_split, embed
 from prognos_torch.learners import ANFIS
 from prognos_torch.metrics import mae, rmse
-from prognos_torch.optim import KalmanOptimizer, ParameterBridge, fit
+from prognos_torch.optim import (
+    KalmanOptimizer,
+    ParameterBridge,
+    predict_then_update,
+    train_in_blocks,
+)
 from prognos_torch.plotting_panels import plot_panels
 from prognos_torch.studies import Study, StudyConfig, StudyResult
 from prognos_torch.systems.cstr import simulate_cstr
@@ -135,52 +140,6 @@ def _inits(cfg: StudyConfig, runs: int, data: Data) -> list[ANFIS]:
 
 
 # ---------------------------------------------------------------------- training
-def train_in_blocks(module, optimizer, X: Tensor, Y: Tensor, block: int, passes: int = PASSES):
-    """Train with :func:`fit` (one sample per step, time order) in blocks of ``block`` steps.
-
-    The optimiser keeps its state between the calls, so this is the same sequence of steps as
-    one ``fit`` call over ``passes`` epochs; it also records the mean loss of each block.
-
-    Returns:
-        ``(steps, losses, seconds)``: steps taken at the end of each block, ``(n_blocks, ...)``
-        block losses (``(R,)`` per block for batched runs), optimiser seconds in total.
-    """
-    steps, losses, secs, done = [], [], 0.0, 0
-    N = X.shape[0]
-    for _ in range(passes):
-        for a in range(0, N, block):
-            h = fit(
-                module,
-                optimizer,
-                (X[a : a + block], Y[a : a + block]),
-                epochs=1,
-                batch_size=1,
-                progress=False,
-                metrics=("mse",),
-            )
-            done += h.steps
-            steps.append(done)
-            losses.append(h.loss[0])
-            secs += h.train_time
-    return steps, torch.stack(losses), secs
-
-
-def predict_then_update(module, optimizer, X: Tensor, Y: Tensor, predict):
-    """Online one-step prediction: predict each sample, then take one :func:`fit` step on it.
-
-    Returns ``(predictions (..., N), seconds)`` (prediction and optimiser time only).
-    """
-    preds, secs = [], 0.0
-    for k in range(X.shape[0]):
-        t0 = time.perf_counter()
-        with torch.no_grad():
-            preds.append(predict(X[k : k + 1])[..., 0, 0])
-        secs += time.perf_counter() - t0
-        h = fit(module, optimizer, (X[k : k + 1], Y[k : k + 1]), progress=False, metrics=("mse",))
-        secs += h.train_time
-    return torch.stack(preds, -1), secs
-
-
 def _kalman_optimizer(module, filt: str, runs=None, theta0=None) -> KalmanOptimizer:
     return KalmanOptimizer(module, filter=filt, P0=P0, Q=Q_RW, R=R_MEAS, runs=runs, theta0=theta0)
 
@@ -197,12 +156,12 @@ def _run_kalman(filt: str, inits: list[ANFIS], data: Data, online: bool) -> Outc
     R = len(inits)
     module = copy.deepcopy(inits[0])
     opt = _kalman_optimizer(module, filt, R, ParameterBridge(module).stack(inits))
-    steps, curve, t_train = train_in_blocks(module, opt, data.Xtr, data.Ytr, data.block)
+    steps, curve, t_train = train_in_blocks(module, opt, data.Xtr, data.Ytr, data.block, PASSES)
     pred, t_test = _timed(opt.predict, data.Xte)
     online_pred, online_time = None, math.nan
     if online:
-        online_pred, secs = predict_then_update(module, opt, data.Xte, data.Yte, opt.predict)
-        online_time = secs / R
+        online_pred, secs = predict_then_update(module, opt, data.Xte, data.Yte)
+        online_pred, online_time = online_pred[..., 0], secs / R
     return Outcome(
         pred=pred[..., 0],
         pred_train=opt.predict(data.Xtr)[..., 0],
@@ -219,7 +178,7 @@ def _run_kalman_alone(filt: str, init: ANFIS, data: Data) -> tuple[Tensor, float
     """Run 0 trained by itself (no batch): test predictions and seconds (train + test)."""
     module = copy.deepcopy(init)
     opt = _kalman_optimizer(module, filt)
-    _, _, t_train = train_in_blocks(module, opt, data.Xtr, data.Ytr, data.Xtr.shape[0])
+    _, _, t_train = train_in_blocks(module, opt, data.Xtr, data.Ytr, data.Xtr.shape[0], PASSES)
     pred, t_test = _timed(module, data.Xte)
     return pred[:, 0], t_train + t_test
 
@@ -232,7 +191,7 @@ def _run_adam(inits: list[ANFIS], data: Data, online: bool) -> Outcome:
     for init in inits:
         module = copy.deepcopy(init)
         opt = torch.optim.Adam(module.parameters(), lr=ADAM_LR)
-        steps, curve, secs = train_in_blocks(module, opt, data.Xtr, data.Ytr, data.block)
+        steps, curve, secs = train_in_blocks(module, opt, data.Xtr, data.Ytr, data.block, PASSES)
         t_train += secs
         curves.append(curve)
         pred, secs = _timed(module, data.Xte)
@@ -241,8 +200,8 @@ def _run_adam(inits: list[ANFIS], data: Data, online: bool) -> Outcome:
         with torch.no_grad():
             preds_tr.append(module(data.Xtr)[:, 0])
         if online:
-            p, secs = predict_then_update(module, opt, data.Xte, data.Yte, module)
-            online_preds.append(p)
+            p, secs = predict_then_update(module, opt, data.Xte, data.Yte)
+            online_preds.append(p[..., 0])
             t_online += secs
     R = len(inits)
     return Outcome(

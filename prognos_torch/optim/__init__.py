@@ -5,7 +5,9 @@
 * :class:`KalmanOptimizer` (and :class:`EKF`, :class:`SRUKF`, :class:`ImSRUKF`): a
   ``torch.optim.Optimizer`` whose ``step`` is one step of the library's Gaussian filter on the
   random-walk model of Eq. 45-46.
-* :func:`fit`: one training loop for Kalman and gradient optimisers.
+* :func:`fit`: one training loop for Kalman and gradient optimisers;
+  :func:`train_in_blocks` (training curves) and :func:`predict_then_update` (online one-step
+  prediction) around it.
 """
 
 from .fit import History, fit
@@ -18,6 +20,7 @@ from .kalman import (
     KalmanStep,
     noise_factor,
 )
+from .online import BlockCurve, predict_then_update, train_in_blocks
 from .params import ParameterBridge, Selector
 
 __all__ = [
@@ -32,4 +35,7 @@ __all__ = [
     "OPTIMIZER_NOISE",
     "fit",
     "History",
+    "BlockCurve",
+    "train_in_blocks",
+    "predict_then_update",
 ]

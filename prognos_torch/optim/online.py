@@ -1,0 +1,145 @@
+"""Sample-by-sample training around :func:`~prognos_torch.optim.fit`: blocks and online use.
+
+* :func:`train_in_blocks`: one sample per step in time order, cut into blocks of ``block``
+  steps; the same optimiser steps as one ``fit`` call, plus a training curve (mean loss per
+  block).
+* :func:`predict_then_update`: online one-step prediction on a stream (paper 003 Sec. V-B
+  reading "online"): each sample is predicted first, then used for one optimiser step.
+
+Both work with a :class:`~prognos_torch.optim.KalmanOptimizer` (one run or ``runs=R`` batched
+runs) and with gradient optimisers (``torch.optim.Adam``, ...); the optimiser keeps its state
+between the calls to ``fit``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from .fit import fit
+from .kalman import KalmanOptimizer
+
+__all__ = ["BlockCurve", "train_in_blocks", "predict_then_update"]
+
+
+class BlockCurve(NamedTuple):
+    """Training curve of :func:`train_in_blocks`.
+
+    Attributes:
+        steps: optimiser steps taken at the end of each block (cumulative, over all passes).
+        losses: ``(n_blocks,)`` mean loss of the steps of each block, ``(n_blocks, R)`` for a
+            :class:`KalmanOptimizer` with ``runs=R`` (Kalman: squared innovation before each
+            update; gradient optimisers: the loss before each step).
+        seconds: time spent in the optimiser steps (evaluation excluded).
+    """
+
+    steps: list[int]
+    losses: Tensor
+    seconds: float
+
+
+def _pos_int(v, name: str) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        raise ValueError(f"{name} must be a positive int, got {v!r}")
+    return v
+
+
+def _pair(X, Y) -> tuple[Tensor, Tensor]:
+    if not isinstance(X, Tensor) or not isinstance(Y, Tensor):
+        raise TypeError(f"X and Y must be tensors (N, ...), got {type(X)} and {type(Y)}")
+    if X.dim() < 1 or Y.dim() < 1 or X.shape[0] != Y.shape[0] or X.shape[0] == 0:
+        raise ValueError(
+            f"X and Y must have the same non-zero number of rows (N, ...), got "
+            f"{tuple(X.shape)} and {tuple(Y.shape)}"
+        )
+    return X, Y
+
+
+def train_in_blocks(
+    module: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    X: Tensor,
+    Y: Tensor,
+    block: int,
+    passes: int = 1,
+) -> BlockCurve:
+    """Train with :func:`fit` (one sample per step, time order) in blocks of ``block`` steps.
+
+    The optimiser keeps its state between the blocks, so this takes the same sequence of steps
+    as ``fit(module, optimizer, (X, Y), epochs=passes, batch_size=1)`` (the Kalman parameters
+    and gradient-trained weights agree exactly); it also records the mean loss of each block.
+    The last block of a pass may be shorter than ``block``.
+
+    Args:
+        module: the learner (the optimiser was built on it).
+        optimizer: a :class:`KalmanOptimizer` or a ``torch.optim.Optimizer``.
+        X: ``(N, ...)`` inputs; Y: ``(N, ...)`` targets (``module(X).shape``).
+        block: optimiser steps per point of the curve.
+        passes: sweeps over the samples.
+    Returns:
+        :class:`BlockCurve`.
+    """
+    X, Y = _pair(X, Y)
+    block, passes = _pos_int(block, "block"), _pos_int(passes, "passes")
+    steps, losses, secs, done = [], [], 0.0, 0
+    N = X.shape[0]
+    for _ in range(passes):
+        for a in range(0, N, block):
+            h = fit(
+                module,
+                optimizer,
+                (X[a : a + block], Y[a : a + block]),
+                epochs=1,
+                batch_size=1,
+                progress=False,
+                metrics=("mse",),
+            )
+            done += h.steps
+            steps.append(done)
+            losses.append(h.loss[0])
+            secs += h.train_time
+    return BlockCurve(steps, torch.stack(losses), secs)
+
+
+def predict_then_update(
+    module: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    X: Tensor,
+    Y: Tensor,
+    predict: Callable[[Tensor], Tensor] | None = None,
+) -> tuple[Tensor, float]:
+    """Online one-step prediction: predict each sample, then take one :func:`fit` step on it.
+
+    Sample ``k`` is predicted by the parameters trained on the samples before it
+    (``predict(X[k:k+1])`` without gradients), then the optimiser takes one step on
+    ``(X[k:k+1], Y[k:k+1])``.
+
+    Args:
+        module, optimizer: as for :func:`fit`.
+        X: ``(N, ...)`` inputs; Y: ``(N, ...)`` targets, in stream order.
+        predict: ``(1, ...) -> (..., 1, *out)`` (default: ``optimizer.predict`` for a
+            :class:`KalmanOptimizer`, whose ``runs=R`` give ``(R, 1, *out)``, else ``module``).
+    Returns:
+        ``(predictions, seconds)``: predictions ``(..., N, *out)`` (the runs, if any, lead) and
+        the seconds spent predicting and stepping.
+    """
+    X, Y = _pair(X, Y)
+    if predict is None:
+        predict = optimizer.predict if isinstance(optimizer, KalmanOptimizer) else module
+    if not callable(predict):
+        raise TypeError(f"predict must be callable (1, ...) -> (..., 1, *out), got {predict!r}")
+    preds, secs = [], 0.0
+    for k in range(X.shape[0]):
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            out = predict(X[k : k + 1])
+        secs += time.perf_counter() - t0
+        lead = out.dim() - Y.dim()  # the run dims before the sample dim
+        preds.append(out.select(lead, 0))
+        h = fit(module, optimizer, (X[k : k + 1], Y[k : k + 1]), progress=False, metrics=("mse",))
+        secs += h.train_time
+    return torch.stack(preds, -Y.dim()), secs
