@@ -42,14 +42,8 @@ from tqdm import tqdm
 from prognos_torch.core.belief import GaussianBelief
 from prognos_torch.datasets import MinMaxScaler, embed, health_indicator
 from prognos_torch.filters import ekpf, sir, stpf
-from prognos_torch.learners import LSSVR
-from prognos_torch.learners.lssvr_gram import LSSVRGram
-from prognos_torch.metrics import (
-    alpha_lambda,
-    cumulative_relative_accuracy,
-    exponential_accuracy,
-    rmse,
-)
+from prognos_torch.learners import LSSVR, LSSVRGram, blocked_cv_rmse
+from prognos_torch.metrics import first_crossing_time, rmse, rul_scores
 from prognos_torch.plotting import (
     plot_alpha_lambda,
     plot_fault_probability,
@@ -57,10 +51,10 @@ from prognos_torch.plotting import (
     plot_rul_pdf,
 )
 from prognos_torch.prognosis import (
-    fault_probability,
     learner_transition_model,
     particle_paths,
     recursive_predict,
+    rolling_particle_prediction,
     rul_distribution,
 )
 from prognos_torch.studies import Study, StudyConfig, StudyResult
@@ -162,93 +156,60 @@ def _fit(X, y, sigma: float, C: float, dev) -> LSSVR:
     return LSSVR(kernel="rbf", sigma=sigma, C=C).to(dev).fit(X, y)
 
 
-def _blocked_cv(X, y, sigma: float, C: float, dev) -> float:
-    """Out-of-fold one-step RMSE with contiguous folds (no shuffling of the time series)."""
-    n = X.shape[0]
-    folds = torch.arange(n, device=X.device) * CV_FOLDS // n
-    sq = 0.0
-    for f in range(CV_FOLDS):
-        hold = folds == f
-        model = LSSVRGram(_fit(X[~hold], y[~hold], sigma, C, dev))
-        with torch.no_grad():
-            sq += float(((model(X[hold])[:, 0] - y[hold]) ** 2).sum())
-    return math.sqrt(sq / n)
+def _fitter(sigma: float, C: float, dev):
+    """``fit(X, y) -> predict`` for the blocked cross-validation (evaluated by LSSVRGram)."""
+
+    def fit(X, y):
+        g = LSSVRGram(_fit(X, y, sigma, C, dev))
+        return lambda Xh: g(Xh)[:, 0]
+
+    return fit
 
 
-def _first_crossing(t, z, thr):
-    """Time of the first sample with ``z >= thr`` (NaN if none)."""
-    idx = torch.nonzero(z >= thr).flatten()
-    return float(t[idx[0]]) if idx.numel() else math.nan
+_RUL_KEYS = ("Accuracy", "RUL_RMSE", "alpha_lambda", "CRA")
+
+
+def _rul_metrics(times, true_rul, pred, t_eol, d0) -> dict:
+    """Table 2 metrics of one run's RUL predictions ``pred`` ``(P,)``."""
+    scores = rul_scores(
+        times, true_rul, pred, t_eol=t_eol, d0=d0, alpha=ALPHA, lam=LAMBDA, cra_lambdas=CRA_LAMBDAS
+    )
+    return dict(zip(_RUL_KEYS, scores))
 
 
 # --------------------------------------------------------------------------- filtering
-def _filter_pass(pf, model, z_test, t, k0, runs, gen, rul_idx, desc, progress):
-    """Run one particle filter over ``z_test[k0:]`` in ``runs`` batched runs.
-
-    Before each update with ``y_{k+1}`` the one-step prediction (predictive mean) and the fault
-    probability ``fault(1, k)`` are taken from ``particle_paths`` over one step (process noise
-    included, weights frozen). Returns per-step arrays ``(T, R)`` and the particle sets at the
-    RUL prediction indices.
-    """
-    m = M_ORDER
-    ys = z_test[k0:]
-    T = ys.shape[0]
+def _filter_pass(pf, model, z_test, k0, runs, gen, keep):
+    """One particle filter over ``z_test[k0:]`` in ``runs`` batched runs, predicting each
+    sample one step ahead before it is assimilated (the library's rolling prediction)."""
+    m, ys = M_ORDER, z_test[k0:]
     r = float(model.noise(1).chol_R[0, 0])
-    dev, dt = z_test.device, z_test.dtype
-    b0 = GaussianBelief(
-        z_test[k0 - m : k0].expand(runs, m).clone(),
-        (r * torch.eye(m, dtype=dt, device=dev)).expand(runs, m, m).clone(),
-    )
-    st = pf.init(model, b0, generator=gen, k=k0 - 1)
-    pred, fault, filt, ess, lam, fallback, collapsed = [], [], [], [], [], 0, 0
-    keep = {}
+    eye = torch.eye(m, dtype=z_test.dtype, device=z_test.device)
+    b0 = GaussianBelief(z_test[k0 - m : k0].expand(runs, m).clone(), (r * eye).expand(runs, m, m))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        for j in tqdm(range(T), desc=desc, disable=not progress, leave=False):
-            i = k0 + j  # sample assimilated in this step; the state holds samples up to i - 1
-            pp = particle_paths(model, st.particles, 1, generator=gen, weights=st.weights)
-            pred.append(pp.mean[..., 0])
-            fault.append(fault_probability(pp.samples, THRESHOLD, pp.weights)[..., 0])
-            st, info = pf.step(model, st, ys[j].expand(runs, 1), k=i, generator=gen)
-            filt.append(info.mean[..., -1])
-            ess.append(info.ess)
-            lam.append(info.fading_factor)
-            fallback += int(info.prior_fallback.sum())
-            collapsed += int(info.collapsed.sum())
-            if i in rul_idx:
-                keep[i] = (st.particles, st.weights)
+        rp = rolling_particle_prediction(
+            pf,
+            model,
+            b0,
+            ys[:, None, None].expand(-1, runs, 1),
+            generator=gen,
+            threshold=THRESHOLD,
+            k0=k0 - 1,
+            keep=keep,
+        )
+    tr = rp.trajectory
     out = {
-        "pred": torch.stack(pred),
-        "fault": torch.stack(fault),
-        "filt": torch.stack(filt),
-        "ess": torch.stack(ess),
-        "lam": torch.stack(lam),
-        "fallback": fallback,
-        "collapsed": collapsed,
+        "pred": rp.mean[..., 0],
+        "fault": rp.fault_probability[..., 0],
+        "filt": tr.means[..., -1],
+        "ess": tr.ess,
+        "lam": tr.fading_factors,
+        "fallback": int(tr.prior_fallback.sum()),
+        "collapsed": int(tr.collapsed.sum()),
     }
-    parts = torch.stack([keep[i][0] for i in rul_idx])  # (P, R, N, m)
-    weights = torch.stack([keep[i][1] for i in rul_idx])  # (P, R, N)
+    parts = torch.stack([rp.states[i].particles for i in keep])  # (P, R, N, m)
+    weights = torch.stack([rp.states[i].weights for i in keep])  # (P, R, N)
     return out, parts, weights
-
-
-def _rul_point(d) -> torch.Tensor:
-    """Eq. 28 with the censored paths (no crossing within the horizon) counted at the horizon:
-    the expectation when nothing is censored, a lower bound of it otherwise."""
-    return (d.pmf * d.support).sum(-1) + d.censored_mass * d.rul_lower_bound
-
-
-def _rul_metrics(times, true_rul, pred, t_eol, d0):
-    """Table 2 metrics of one run's RUL predictions ``pred`` ``(P,)``."""
-    return {
-        "Accuracy": exponential_accuracy(true_rul, pred, d0=d0),
-        "RUL_RMSE": float(rmse(pred, true_rul)),
-        "alpha_lambda": float(
-            alpha_lambda(times, true_rul, pred, alpha=ALPHA, lam=LAMBDA, t_eol=t_eol)
-        ),
-        "CRA": cumulative_relative_accuracy(
-            times, true_rul, pred, lambdas=CRA_LAMBDAS, t_eol=t_eol
-        ),
-    }
 
 
 # --------------------------------------------------------------------------- figures
@@ -341,12 +302,12 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     # ------------------------------------------------------------ indicator and threshold
     hi, scale, z_train, z_test, t = _indicator(dev)
     n_snap = z_train.shape[0]
-    t_eol = _first_crossing(t, z_test, THRESHOLD)  # end of life: test indicator reaches 0.1
+    t_eol = first_crossing_time(t, z_test, THRESHOLD)  # end of life: test indicator reaches 0.1
     dt_step = float(torch.diff(t).median())  # nominal sampling interval (10 min), days
     horizon = int(round(HORIZON_DAYS / dt_step))
     mm = MinMaxScaler().fit(z_train)
     thr_minmax = float(mm.inverse_transform(torch.tensor(THRESHOLD, dtype=z_train.dtype)))
-    t_minmax = _first_crossing(t, z_test, thr_minmax)
+    t_minmax = first_crossing_time(t, z_test, thr_minmax)
 
     # ------------------------------------------------------------ LS-SVR: selection and fit
     X, y = embed(z_train, m)
@@ -356,7 +317,7 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     cv = {}
     for s in sig_grid:
         for C in c_grid:
-            cv[(s, C)] = _blocked_cv(X, y, s * sd, C, dev)
+            cv[(s, C)] = blocked_cv_rmse(_fitter(s * sd, C, dev), X, y, CV_FOLDS)
     s_best, c_best = min(cv, key=cv.get)
     s_cv = cv[(s_best, c_best)]
     sigma = s_best * sd
@@ -397,7 +358,7 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
             learner, torch.stack([z_test[i - m + 1 : i + 1] for i in rul_idx]), horizon
         )
     ls_dist = rul_distribution(ls_paths.unsqueeze(-2), THRESHOLD, dt=dt_step)
-    ls_rul = _rul_point(ls_dist)  # (P,)
+    ls_rul = ls_dist.restricted_mean  # (P,) Eq. 28, censored mass at the horizon
     ls_time = time.perf_counter() - t0
 
     # ------------------------------------------------------------ particle filters
@@ -407,12 +368,12 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         "LS-SVR STPF": stpf(n_part, resample_threshold=RESAMPLE),
     }
     res, dists, secs = {}, {}, {}
-    for offset, (name, pf) in enumerate(filters.items()):
+    for offset, (name, pf) in enumerate(
+        tqdm(filters.items(), desc="lssvr-stpf", disable=not cfg.progress)
+    ):
         gen = torch.Generator(device=dev).manual_seed(cfg.seed + 1000 * offset)
         t0 = time.perf_counter()
-        out, parts, weights = _filter_pass(
-            pf, model, z_test, t, k0, runs, gen, rul_idx, name, cfg.progress
-        )
+        out, parts, weights = _filter_pass(pf, model, z_test, k0, runs, gen, rul_idx)
         paths = particle_paths(model, parts, horizon, generator=gen, weights=weights)
         dists[name] = rul_distribution(paths.samples, THRESHOLD, paths.weights, dt=dt_step)
         secs[name] = time.perf_counter() - t0
@@ -437,7 +398,7 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         f_t = rmse(out["filt"][tail], tt[tail], dim=0)
         pf10 = out["fault"][day == 10].mean(0)
         pf11 = out["fault"][day >= 11].mean(0)
-        pred = _rul_point(dists[name])  # (P, R)
+        pred = dists[name].restricted_mean  # (P, R)
         rul_pred[name] = pred
         for i in range(runs):
             row = {"run": i, "method": name}
@@ -461,18 +422,8 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         )
         steps = 200
         gen = torch.Generator(device=dev).manual_seed(cfg.seed)
-        out_j, _, _ = _filter_pass(
-            ekpf(n_part, resample_threshold=RESAMPLE),
-            model_j,
-            z_test[: m + steps],
-            t,
-            m,
-            1,
-            gen,
-            [m + steps - 1],
-            "diagnostic",
-            cfg.progress,
-        )
+        pf_j = ekpf(n_part, resample_threshold=RESAMPLE)
+        out_j, _, _ = _filter_pass(pf_j, model_j, z_test[: m + steps], m, 1, gen, [m + steps - 1])
         ess_uni = float(res["LS-SVR EKPF"]["ess"][:steps].mean())
         diag = (float(out_j["ess"].mean()), ess_uni, steps)
 

@@ -702,13 +702,16 @@ class ParticleFilter:
         generator: torch.Generator,
         k0: int = 0,
         keep_particles: bool = False,
+        before_step: Callable[[int, ParticleState], None] | None = None,
     ) -> ParticleTrajectory:
         """Filter the measurements ``ys`` ``(T, ..., m)`` (NaN rows: missing).
 
         Step ``t`` (0-based) uses ``k = k0 + t + 1``, ``us[t]`` (``(T, ..., p)`` or ``(T, p)``)
         and ``ys[t]``. ``init`` is the belief on ``x_{k0}`` (particles are drawn from it) or a
         :class:`ParticleState` to resume. With ``keep_particles`` the weighted particle sets
-        (before resampling) are returned as well.
+        (before resampling) are returned as well. ``before_step(k, state)``, if given, is
+        called before step ``k`` with the state at ``k - 1`` (e.g. to predict ``y_k`` before it
+        is seen); if it draws from ``generator``, its draws interleave with the filter's.
         """
         if isinstance(init, ParticleState):
             state = init
@@ -747,8 +750,12 @@ class ParticleFilter:
         )
         out = {key: [] for key in keys}
         parts, lws = [], []
+        if before_step is not None and not callable(before_step):
+            raise TypeError(f"before_step must be callable (k, state) -> None, got {before_step!r}")
         for t in range(T):
             u = None if us is None else us[t]
+            if before_step is not None:
+                before_step(k0 + t + 1, state)
             state, info = self.step(model, state, ys[t], u, k0 + t + 1, generator=generator)
             if keep_particles:
                 parts.append(info.particles)

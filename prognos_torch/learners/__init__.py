@@ -3,6 +3,7 @@
 * :class:`ELM`: extreme learning machine, ridge and ROS-ELM online learning (paper 000).
 * :class:`LSSVR`: least-squares support vector regression with input Jacobian (paper 002).
 * :class:`ANFIS`: first-order Sugeno ANFIS with grid rules, Eq. 44 parameter order (paper 003).
+* :func:`blocked_cv_rmse`: blocked (time-ordered) cross-validation of any fit/predict pair.
 
 Every ``forward`` maps ``(..., n_in) -> (..., n_out)`` with pure tensor code, so it can be used
 with ``torch.func.functional_call``, ``vmap``, ``jacrev`` and ``jacfwd``.
@@ -12,5 +13,6 @@ from .anfis import ANFIS
 from .elm import ELM
 from .lssvr import LSSVR
 from .lssvr_gram import LSSVRGram
+from .selection import blocked_cv_rmse, blocked_folds
 
-__all__ = ["ELM", "LSSVR", "LSSVRGram", "ANFIS"]
+__all__ = ["ELM", "LSSVR", "LSSVRGram", "ANFIS", "blocked_cv_rmse", "blocked_folds"]

@@ -1,8 +1,11 @@
 """Prognosis: fault probability and remaining-useful-life distributions from predictions."""
 
+from .particle_prediction import RollingParticlePrediction, rolling_particle_prediction
 from .rul import RULDistribution, fault_probability, fault_probability_gaussian, rul_distribution
 
 __all__ = [
+    "RollingParticlePrediction",
+    "rolling_particle_prediction",
     "RULDistribution",
     "fault_probability",
     "fault_probability_gaussian",

@@ -1,0 +1,146 @@
+"""Rolling prediction with a particle filter: predict ahead before each measurement is seen.
+
+Paper 002 (Fig. 8-10): at every step the filter's weighted particles at ``k - 1`` are
+propagated ``H`` steps with process noise (:func:`~prognos_torch.prognosis.particle_paths`,
+weights frozen) to give the predictive mean of the indicator and the fault probability
+``fault(j, k-1) = sum_i w^i I(x^i_{k-1+j} in Omega_0)``; then the filter assimilates ``y_k``.
+The filter loop is :meth:`~prognos_torch.filters.ParticleFilter.run` with its ``before_step``
+hook; the prediction draws from the same generator as the filter, between the filter's steps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..core.belief import GaussianBelief
+from ..core.model import StateSpaceModel
+from ..filters.particle import ParticleFilter, ParticleState, ParticleTrajectory
+from .forecast import particle_paths
+from .rul import fault_probability
+
+__all__ = ["RollingParticlePrediction", "rolling_particle_prediction"]
+
+
+@dataclass(frozen=True)
+class RollingParticlePrediction:
+    """Output of :func:`rolling_particle_prediction` over ``T`` steps (time leading).
+
+    Attributes:
+        mean: ``(T, ..., H)`` weighted predictive mean of ``h(x)[channel]`` at
+            ``k, ..., k + H - 1``, made from the state at ``k - 1`` before ``y_k`` is seen.
+        std: ``(T, ..., H)`` weighted predictive std.
+        fault_probability: ``(T, ..., H)`` ``fault(j, k - 1)``, ``j = 1..H`` (``None`` without
+            a threshold).
+        trajectory: the filter's :class:`~prognos_torch.filters.ParticleTrajectory`.
+        states: ``{k: ParticleState}`` the filter state after step ``k`` for each requested
+            ``k`` (after resampling; ``k0`` is the initial state).
+    """
+
+    mean: Tensor
+    std: Tensor
+    fault_probability: Tensor | None
+    trajectory: ParticleTrajectory
+    states: dict[int, ParticleState]
+
+
+def rolling_particle_prediction(
+    pf: ParticleFilter,
+    model: StateSpaceModel,
+    init: GaussianBelief | ParticleState,
+    ys: Tensor,
+    horizon: int = 1,
+    *,
+    generator: torch.Generator,
+    threshold: float | None = None,
+    direction: str = "above",
+    us: Tensor | None = None,
+    k0: int = 0,
+    channel: int = 0,
+    keep: Iterable[int] = (),
+) -> RollingParticlePrediction:
+    """Filter ``ys`` with ``pf`` and predict ``horizon`` steps ahead before every update.
+
+    Time convention of :meth:`ParticleFilter.run`: ``ys[t]`` is the measurement at
+    ``k = k0 + t + 1``; ``init`` is the belief on ``x_{k0}`` (or a state to resume). Before step
+    ``k`` the particles at ``k - 1`` are propagated by :func:`particle_paths` (``k0 = k - 1``)
+    and summarised; with ``threshold`` the per-step fault probability of those paths is kept.
+
+    Args:
+        pf: the particle filter.
+        model: the state-space model.
+        init: belief on ``x_{k0}`` (batch dims = runs) or a :class:`ParticleState`.
+        ys: ``(T, ..., m)`` measurements (NaN: missing).
+        horizon: prediction steps ``H >= 1``.
+        generator: ``torch.Generator`` on the particles' device (filter and predictions).
+        threshold, direction: failure region of :func:`fault_probability` (optional).
+        us: ``(T + H - 1, ..., p)`` controls for models with inputs (the filter uses the first
+            ``T`` rows, the prediction from ``k - 1`` the rows ``t .. t + H - 1``).
+        k0: time index of ``init``.
+        channel: measurement channel predicted.
+        keep: step indices ``k`` in ``k0 .. k0 + T`` whose filter states are returned.
+    Returns:
+        :class:`RollingParticlePrediction`.
+    """
+    if not isinstance(ys, Tensor) or ys.dim() < 2:
+        raise ValueError(f"ys must be a tensor of shape (T, ..., {model.obs_dim})")
+    T = ys.shape[0]
+    if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
+        raise ValueError(f"horizon must be a positive int, got {horizon!r}")
+    keep = sorted(set(keep))
+    if any(isinstance(k, bool) or not isinstance(k, int) for k in keep):
+        raise TypeError(f"keep must hold int step indices, got {keep!r}")
+    if keep and not (k0 <= keep[0] and keep[-1] <= k0 + T):
+        raise ValueError(f"keep must lie in [k0, k0 + T] = [{k0}, {k0 + T}], got {keep}")
+    if model.control_dim:
+        if not isinstance(us, Tensor) or us.dim() < 2 or us.shape[0] != T + horizon - 1:
+            raise ValueError(
+                f"us must have shape (T + H - 1, ..., {model.control_dim}) = "
+                f"({T + horizon - 1}, ..., {model.control_dim})"
+            )
+    elif us is not None:
+        raise ValueError("us was given but the model has control_dim=0")
+    means, stds, faults, states = [], [], [], {}
+    wanted = set(keep)
+
+    def before_step(k: int, state: ParticleState) -> None:
+        t = k - k0 - 1
+        u = None if us is None else us[t : t + horizon]
+        paths = particle_paths(
+            model,
+            state.particles,
+            horizon,
+            generator=generator,
+            weights=state.weights,
+            us=u,
+            k0=k - 1,
+            channel=channel,
+        )
+        means.append(paths.mean)
+        stds.append(paths.std)
+        if threshold is not None:
+            faults.append(fault_probability(paths.samples, threshold, paths.weights, direction))
+        if k - 1 in wanted:
+            states[k - 1] = state
+
+    traj = pf.run(
+        model,
+        init,
+        ys,
+        None if us is None else us[:T],
+        generator=generator,
+        k0=k0,
+        before_step=before_step,
+    )
+    if k0 + T in wanted:
+        states[k0 + T] = traj.final
+    return RollingParticlePrediction(
+        mean=torch.stack(means),
+        std=torch.stack(stds),
+        fault_probability=torch.stack(faults) if threshold is not None else None,
+        trajectory=traj,
+        states=states,
+    )
