@@ -35,16 +35,15 @@ from tqdm import tqdm
 
 from prognos_torch.adapt import MovingWindow
 from prognos_torch.core.belief import GaussianBelief
-from prognos_torch.filters import GaussianFilter, arukf, rukf, ukf
-from prognos_torch.filters import run as run_filter
-from prognos_torch.metrics import rmse
+from prognos_torch.filters import GaussianFilter, arukf, rukf, run_in_segments, ukf
 from prognos_torch.plotting_panels import plot_panels
 from prognos_torch.quadrature import unscented
 from prognos_torch.studies import Study, StudyConfig, StudyResult, format_table
 from prognos_torch.systems.high_speed_train import (
     HSTParams,
+    hst_estimation_errors,
     hst_fault_model,
-    hst_measurement_variance,
+    hst_noise_variances,
     hst_process_variance,
     simulate_hst,
 )
@@ -123,66 +122,18 @@ def _filters(p: HSTParams, window: int, gamma: float | None = None) -> dict:
     }
 
 
-def _diag_sq(L: torch.Tensor) -> torch.Tensor:
-    return L.square().sum(-1)  # diag(L L^T)
-
-
 def _filter(filt, model, belief0, ys, segment: int) -> dict:
     """Run ``filt`` over ``ys`` ``(T, B, m)`` in segments; means and the noise used per step."""
-    T = ys.shape[0]
-    state, means, q_used, r_used = belief0, [], [], []
     t0 = time.perf_counter()
-    for a in range(0, T, segment):
-        b = min(a + segment, T)
-        tr = run_filter(filt, model, state, ys[a:b], k0=a)
-        means.append(tr.means)
-        if tr.chol_Q is not None:  # estimate after step k is the one used at step k + 1
-            if a == 0:
-                n0 = model.noise(1)
-                B = ys.shape[1]
-                q_used.append(_diag_sq(n0.chol_Q).expand(1, B, -1))
-                r_used.append(_diag_sq(n0.chol_R).expand(1, B, -1))
-            q_used.append(_diag_sq(tr.chol_Q))
-            r_used.append(_diag_sq(tr.chol_R))
-        state = tr.final
-    wall = time.perf_counter() - t0
-    out = {"means": torch.cat(means), "time": wall}
-    if q_used:
-        out["Q"] = torch.cat(q_used)[:T]
-        out["R"] = torch.cat(r_used)[:T]
-    else:  # fixed statistics: the model's
-        out["Q"] = torch.stack([_diag_sq(model.noise(k).chol_Q) for k in range(1, T + 1)])
-        out["R"] = torch.stack([_diag_sq(model.noise(k).chol_R) for k in range(1, T + 1)])
-        out["Q"] = out["Q"].unsqueeze(1).expand(T, ys.shape[1], -1)
-        out["R"] = out["R"].unsqueeze(1).expand(T, ys.shape[1], -1)
-    return out
-
-
-def _true_noise(T: int, like: torch.Tensor):
-    """Eq. 67-68 diagonals used at library steps ``k = 1..T`` (step ``k`` uses ``Q_{k-1}``)."""
-    q = [hst_process_variance(k - 1) for k in range(1, T + 1)]
-    r = [hst_measurement_variance(k) for k in range(1, T + 1)]
-    return like.new_tensor(q), like.new_tensor(r)
+    tr = run_in_segments(filt, model, belief0, ys, segment=segment)
+    return {"means": tr.means, "Q": tr.var_Q, "R": tr.var_R, "time": time.perf_counter() - t0}
 
 
 def _scores(out: dict, truth: torch.Tensor, q_scale: float, window: int) -> dict[str, torch.Tensor]:
-    """Per-run RMSEs over time: states (B, 9), faults (B, 3), Q and R diagonals (B, 9).
-
-    ``Q_late``/``R_late``: the same over the steps ``k > window`` (after the window filled).
-    """
-    T = out["means"].shape[0]
-    est, ref = out["means"], truth[1 : T + 1]
-    qt, rt = _true_noise(T, est)
-    Q = out["Q"][..., : len(STATE_NAMES)] / q_scale  # in the units of Eq. 67
-    R = out["R"]
-    return {
-        "state": rmse(est[..., :9], ref[..., :9], dim=0),
-        "fault": rmse(est[..., 9:], ref[..., 9:], dim=0),
-        "Q": rmse(Q, qt[:, None, None].expand_as(Q), dim=0),
-        "R": rmse(R, rt[:, None, None].expand_as(R), dim=0),
-        "Q_late": rmse(Q[window:], qt[window:, None, None].expand_as(Q[window:]), dim=0),
-        "R_late": rmse(R[window:], rt[window:, None, None].expand_as(R[window:]), dim=0),
-    }
+    """Per-run RMSEs over time (states, faults, Q and R diagonals); ``*_late``: steps k > N."""
+    return hst_estimation_errors(
+        out["means"], out["Q"], out["R"], truth, q_scale=q_scale, skip=window
+    )
 
 
 def _rows(method: str, sc: dict, time_per_run: float, detail: bool = True) -> list[dict]:
@@ -374,7 +325,7 @@ def _figures(out_dir: Path, t, truth0, outs: dict, q_scale: float) -> list[str]:
         xlabel="t (s)",
     )
     figs.append(f3)
-    qt, rt = _true_noise(t.shape[0], truth0)
+    qt, rt = hst_noise_variances(t.shape[0], dtype=truth0.dtype, device=truth0.device)
     noise_shown = ["RUKF", "ARUKF", "AUKF", "ARUKF" + MISSPEC, "AUKF" + MISSPEC]
     for fname, key, ref, scale, clip, what in (
         ("fig4_Q.png", "Q", qt, q_scale, 2.0, "Process-noise variances Q_ii (units of Eq. 67)"),

@@ -32,6 +32,7 @@ from .particle import (
 )
 from .resampling import ess, multinomial, residual, stratified, systematic
 from .run import Forecast, Trajectory, forecast, run
+from .segments import SegmentedTrajectory, run_in_segments
 
 __all__ = [
     "FILTERS",
@@ -55,6 +56,8 @@ __all__ = [
     "Trajectory",
     "forecast",
     "run",
+    "SegmentedTrajectory",
+    "run_in_segments",
     "PARTICLE_FILTERS",
     "ParticleFilter",
     "ParticleState",
