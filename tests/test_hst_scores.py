@@ -35,12 +35,16 @@ def test_estimation_errors_against_direct_rmse():
     means = truth[1:] + 0.1 * torch.randn(T, B, 12, generator=g, dtype=torch.float64)
     q, r = hst_noise_variances(T)
     qs = 1e-4
-    var_Q = torch.cat([qs * q[:, None, None].expand(T, B, 9), torch.ones(T, B, 3, dtype=torch.float64)], -1)
+    var_Q = torch.cat(
+        [qs * q[:, None, None].expand(T, B, 9), torch.ones(T, B, 3, dtype=torch.float64)], -1
+    )
     var_R = r[:, None, None].expand(T, B, 9) + 0.2  # R off by 0.2 everywhere
     e = hst_estimation_errors(means, var_Q, var_R, truth, q_scale=qs, skip=10)
     torch.testing.assert_close(e["state"], rmse(means[..., :9], truth[1:, :, :9], dim=0))
     torch.testing.assert_close(e["fault"], rmse(means[..., 9:], truth[1:, :, 9:], dim=0))
-    torch.testing.assert_close(e["Q"], torch.zeros(B, 9, dtype=torch.float64), atol=1e-12, rtol=0)  # oracle Q
+    torch.testing.assert_close(
+        e["Q"], torch.zeros(B, 9, dtype=torch.float64), atol=1e-12, rtol=0
+    )  # oracle Q
     torch.testing.assert_close(e["R"], torch.full((B, 9), 0.2, dtype=torch.float64))
     torch.testing.assert_close(e["R_late"], torch.full((B, 9), 0.2, dtype=torch.float64))
     # the late window: only the steps after skip
