@@ -50,7 +50,7 @@ from prognos_torch.optim import (
     predict_then_update,
     train_in_blocks,
 )
-from prognos_torch.plotting_panels import plot_panels
+from prognos_torch.plots import plot_panels
 from prognos_torch.studies import Study, StudyConfig, StudyResult
 from prognos_torch.systems.cstr import simulate_cstr
 from prognos_torch.systems.lorenz import lorenz_series
@@ -616,10 +616,3 @@ STUDY = Study(
     run=run,
     default_runs=50,
 )
-
-if __name__ == "__main__":
-    import sys
-
-    from prognos_torch.cli import main
-
-    sys.exit(main(["study", STUDY.name, *sys.argv[1:]]))

@@ -51,9 +51,8 @@ from prognos_torch.filters import sckf, stsckf
 from prognos_torch.learners import ANFIS
 from prognos_torch.metrics import mae, rmse
 from prognos_torch.optim import ImSRUKF, ParameterBridge, fit
-from prognos_torch.plotting import plot_fading_factor
-from prognos_torch.plotting_panels import plot_panels
-from prognos_torch.prognosis.forecast import (
+from prognos_torch.plots import plot_fading_factor, plot_panels
+from prognos_torch.prognosis import (
     MeasurementForecaster,
     predict_fault_parameter,
     rolling_fault_prediction,
@@ -612,10 +611,3 @@ STUDY = Study(
     run=run,
     default_runs=50,
 )
-
-if __name__ == "__main__":
-    import sys
-
-    from prognos_torch.cli import main
-
-    sys.exit(main(["study", STUDY.name, *sys.argv[1:]]))

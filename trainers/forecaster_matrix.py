@@ -79,7 +79,7 @@ from prognos_torch.metrics import (
     rmse,
 )
 from prognos_torch.optim import KalmanOptimizer, ParameterBridge, fit
-from prognos_torch.prognosis.forecast import (
+from prognos_torch.prognosis import (
     gaussian_paths,
     learner_transition_model,
     particle_paths,
@@ -1237,10 +1237,3 @@ STUDY = Study(
     run=run,
     default_runs=10,
 )
-
-if __name__ == "__main__":
-    import sys
-
-    from prognos_torch.cli import main
-
-    sys.exit(main(["study", STUDY.name, *sys.argv[1:]]))

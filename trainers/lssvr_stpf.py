@@ -44,7 +44,7 @@ from prognos_torch.datasets import MinMaxScaler, embed, health_indicator
 from prognos_torch.filters import ekpf, sir, stpf
 from prognos_torch.learners import LSSVR, LSSVRGram, blocked_cv_rmse
 from prognos_torch.metrics import first_crossing_time, rmse, rul_scores
-from prognos_torch.plotting import (
+from prognos_torch.plots import (
     plot_alpha_lambda,
     plot_fault_probability,
     plot_fault_probability_box,
@@ -706,10 +706,3 @@ STUDY = Study(
     run=run,
     default_runs=DEFAULT_RUNS,
 )
-
-if __name__ == "__main__":
-    import sys
-
-    from prognos_torch.cli import main
-
-    sys.exit(main(["study", STUDY.name, *sys.argv[1:]]))

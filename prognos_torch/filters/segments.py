@@ -18,6 +18,7 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
+from ..core.validation import check_pos_int
 from .gaussian import FilterState, GaussianFilter
 from .run import run
 
@@ -69,8 +70,7 @@ def run_in_segments(
     Returns:
         :class:`SegmentedTrajectory`.
     """
-    if isinstance(segment, bool) or not isinstance(segment, int) or segment < 1:
-        raise ValueError(f"segment must be a positive int, got {segment!r}")
+    segment = check_pos_int(segment, "segment")
     if not isinstance(ys, Tensor) or ys.dim() < 2 or ys.shape[0] < 1:
         raise ValueError(f"ys must be a tensor of shape (T, ..., {model.obs_dim}) with T >= 1")
     state = init if isinstance(init, FilterState) else filt.init(model, init, k0 + 1)

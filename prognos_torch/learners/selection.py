@@ -15,7 +15,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from .elm import check_pos_int
+from ..core.validation import check_pos_int
 
 __all__ = ["blocked_folds", "blocked_cv_rmse"]
 

@@ -20,6 +20,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from ..core.validation import check_pos_int
 from .fit import fit
 from .kalman import KalmanOptimizer
 
@@ -40,12 +41,6 @@ class BlockCurve(NamedTuple):
     steps: list[int]
     losses: Tensor
     seconds: float
-
-
-def _pos_int(v, name: str) -> int:
-    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-        raise ValueError(f"{name} must be a positive int, got {v!r}")
-    return v
 
 
 def _pair(X, Y) -> tuple[Tensor, Tensor]:
@@ -84,7 +79,7 @@ def train_in_blocks(
         :class:`BlockCurve`.
     """
     X, Y = _pair(X, Y)
-    block, passes = _pos_int(block, "block"), _pos_int(passes, "passes")
+    block, passes = check_pos_int(block, "block"), check_pos_int(passes, "passes")
     steps, losses, secs, done = [], [], 0.0, 0
     N = X.shape[0]
     for _ in range(passes):

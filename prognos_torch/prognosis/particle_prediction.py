@@ -18,8 +18,9 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
+from ..core.validation import check_pos_int
 from ..filters.particle import ParticleFilter, ParticleState, ParticleTrajectory
-from .forecast import particle_paths
+from .paths import particle_paths
 from .rul import fault_probability
 
 __all__ = ["RollingParticlePrediction", "rolling_particle_prediction"]
@@ -88,8 +89,7 @@ def rolling_particle_prediction(
     if not isinstance(ys, Tensor) or ys.dim() < 2:
         raise ValueError(f"ys must be a tensor of shape (T, ..., {model.obs_dim})")
     T = ys.shape[0]
-    if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
-        raise ValueError(f"horizon must be a positive int, got {horizon!r}")
+    horizon = check_pos_int(horizon, "horizon")
     keep = sorted(set(keep))
     if any(isinstance(k, bool) or not isinstance(k, int) for k in keep):
         raise TypeError(f"keep must hold int step indices, got {keep!r}")

@@ -14,10 +14,12 @@
 
 Modules: :mod:`.data` (:func:`load_series`), :mod:`.model` (:func:`fit_series`, learners and
 optimisers by name), :mod:`.predict` (:func:`forecast`, :func:`rul`), :mod:`.store`
-(:func:`save_model`, :func:`load_model` on :mod:`prognos_torch.io`), :mod:`.plots`. The
+(:func:`save_model`, :func:`load_model` on :mod:`prognos_torch.io`); the figures
+(:func:`plot_forecast`, :func:`plot_rul`) live in :mod:`prognos_torch.plots`. The
 ``prognos fit | forecast | rul`` commands are thin wrappers around these functions.
 """
 
+from ..plots import plot_forecast, plot_rul
 from .data import FILL_METHODS, Series, load_series, parse_where
 from .model import (
     DEFAULT_OPTIMIZER,
@@ -29,7 +31,6 @@ from .model import (
     fit_series,
     select_embedding,
 )
-from .plots import plot_forecast, plot_rul
 from .predict import FILTER_NAMES, ForecastResult, RULResult, forecast, holdout_metrics, rul
 from .store import load_model, save_model
 

@@ -1,7 +1,7 @@
 """Forecasts with an uncertainty band and RUL distributions from a fitted one-step learner.
 
 The learner becomes the m-order state-space model of paper 002 (Eq. 15-19,
-:func:`~prognos_torch.prognosis.forecast.learner_transition_model`) on the scaled series::
+:func:`~prognos_torch.prognosis.learner_model.learner_transition_model`) on the scaled series::
 
     P_{s+1} = [x_{s-m+2}, ..., x_s, f(P_s)] + w_s,    y_s = x_s + v_s
 
@@ -18,11 +18,11 @@ observations (the belief starts at the observed window with std ``r`` per elemen
 ``horizon`` steps from the filtered belief:
 
 * Gaussian filters (``sckf`` default, ``stsckf``, ``ukf``, ``ekf``, ...): the band is the
-  engine's predict-only propagation (:func:`~prognos_torch.prognosis.forecast.gaussian_paths`),
+  engine's predict-only propagation (:func:`~prognos_torch.prognosis.paths.gaussian_paths`),
   ``mean -+ z std`` of the next *measurements*; for the RUL, particles are drawn from the
   filtered Gaussian;
 * particle filters (``pf`` = bootstrap SIR, ``ekpf``, ``stpf`` = paper 002's strong-tracking PF,
-  ``upf``): weighted sample paths (:func:`~prognos_torch.prognosis.forecast.particle_paths`),
+  ``upf``): weighted sample paths (:func:`~prognos_torch.prognosis.paths.particle_paths`),
   band from weighted quantiles.
 
 RUL (paper 002, Eq. 28 and Fig. 11): the first passage of each sample path of the *state*
@@ -42,7 +42,8 @@ from torch import Tensor
 from ..core.belief import GaussianBelief
 from ..filters import make_filter, make_particle_filter
 from ..filters import run as run_filter
-from ..prognosis.forecast import gaussian_paths, learner_transition_model, particle_paths
+from ..prognosis.learner_model import learner_transition_model
+from ..prognosis.paths import gaussian_paths, particle_paths
 from ..prognosis.rul import RULDistribution, rul_distribution
 from .data import Series
 from .model import FittedModel
