@@ -1,5 +1,6 @@
 """Every plot writes a non-empty PNG and returns its Figure; bad lengths raise ValueError."""
 
+import numpy as np
 import pytest
 import torch
 from matplotlib.figure import Figure
@@ -98,3 +99,72 @@ def test_plot_training_curves(tmp_path):
     curves = {"Adam": [1.0, 0.5, 0.2, 0.1], "EKF": torch.tensor([1.0, 0.1, 0.05, 0.04])}
     fig = plot_training_curves(tmp_path / "train.png", curves)
     _check_png(fig, tmp_path / "train.png")
+
+
+# ----------------------------------------------------------------- shared study figure helpers
+def test_line_panels_and_prediction_errors(tmp_path):
+    from prognos_torch.plots import LinePanel, plot_line_panels, plot_prediction_errors
+
+    t = torch.arange(30.0, dtype=torch.float64)
+    truth = torch.sin(t / 5)
+    preds = {"A": truth + 0.1, "B": truth - 0.01 * t}
+    fig = plot_prediction_errors(
+        tmp_path / "pe.png", t, truth, preds, title="x", ylabel="y", threshold=0.5, alternate=True
+    )
+    _check_png(fig, tmp_path / "pe.png")
+    a, b = fig.axes
+    # (b) draws |prediction - truth| of each method, in order
+    for line, p in zip(b.get_lines(), preds.values()):
+        np.testing.assert_allclose(line.get_ydata(), (p - truth).abs().numpy(), rtol=0, atol=0)
+    assert b.get_yscale() == "log" and a.get_lines()[1].get_ydata()[0] == 0.5  # threshold
+    panels = [LinePanel({"u": t}, title="p1", logy=True), LinePanel({"v": -t}, style=".-")]
+    fig = plot_line_panels(tmp_path / "lp.png", t, panels, ncols=2, sharey=False, title="T")
+    _check_png(fig, tmp_path / "lp.png")
+    with pytest.raises(ValueError, match="lines\\['v'\\]"):
+        plot_line_panels(tmp_path / "bad.png", t, [LinePanel({"v": t[:3]})])
+
+
+def test_heatmaps(tmp_path):
+    from prognos_torch.plots import HeatmapPanel, plot_heatmaps
+
+    v = np.array([[0.1, np.nan], [0.3, 0.4]])
+    p = HeatmapPanel(v, ["r1", "r2"], ["c1", "c2"], title="h", colorbar="RMSE", clim=(0, 1))
+    fig = plot_heatmaps(tmp_path / "h.png", [p, HeatmapPanel(v, ["a", "b"], ["x", "y"])])
+    _check_png(fig, tmp_path / "h.png")
+    texts = [t.get_text() for t in fig.axes[0].texts]
+    assert texts == ["0.1", "", "0.3", "0.4"]  # default labels; NaN cell grey, no text
+    with pytest.raises(ValueError, match="shape \\(3, 2\\)"):
+        plot_heatmaps(tmp_path / "bad.png", [HeatmapPanel(v, ["a", "b", "c"], ["x", "y"])])
+
+
+def test_rul_band_paths_and_weighted_quantiles(tmp_path):
+    from prognos_torch.plots import plot_paths, plot_rul_band, weighted_quantiles
+
+    g = torch.Generator().manual_seed(1)
+    times = torch.arange(5.0)
+    true = 10.0 - times
+    pred = true[:, None] + torch.randn(5, 7, generator=g, dtype=torch.float64)
+    pred[0] = float("nan")  # every run censored at the first time
+    fig = plot_rul_band(tmp_path / "r.png", times, true, {"STSCKF": pred}, alpha=0.3)
+    _check_png(fig, tmp_path / "r.png")
+    med = fig.axes[0].get_lines()[1].get_ydata()
+    assert np.isnan(med[0])
+    np.testing.assert_allclose(med[1:], pred[1:].median(1).values.numpy(), rtol=0, atol=0)
+    paths = torch.randn(40, 12, generator=g, dtype=torch.float64).cumsum(-1)
+    _check_png(
+        plot_paths(
+            tmp_path / "p.png",
+            torch.arange(12.0),
+            paths,
+            threshold=2.0,
+            history=(t := torch.arange(-5.0, 0.0), t),
+        ),
+        tmp_path / "p.png",
+    )
+    # equal weights: the weighted quantile is the order statistic at ceil(q N)
+    x = np.random.default_rng(0).normal(size=(40, 3))
+    q = weighted_quantiles(x, np.full(40, 1 / 40), (0.05, 0.5, 0.95))
+    s = np.sort(x, axis=0)
+    np.testing.assert_array_equal(q, s[[1, 19, 37]])
+    with pytest.raises(ValueError, match="predictions\\['A'\\]"):
+        plot_rul_band(tmp_path / "bad.png", times, true, {"A": pred[:3]})

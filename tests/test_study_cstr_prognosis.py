@@ -8,9 +8,6 @@ from types import SimpleNamespace
 import torch
 from _study_helpers import check_outputs, quick_fixture, read_rows, trainer_fixture
 
-from prognos_torch.learners import ANFIS
-from prognos_torch.optim import ParameterBridge
-
 METHODS = ("SCKF", "STSCKF")
 
 
@@ -74,25 +71,3 @@ def test_alarm_is_first_origin_whose_prediction_crosses_plus_horizon(trainer):
     assert got[0].item() == N0 + 7 + n
     assert got[1].item() == N0 + n
     assert math.isnan(got[2].item())
-
-
-def test_run_anfis_equals_one_module_per_run(trainer):
-    mod = trainer
-    R, p = 4, mod.EMBED
-    g = torch.Generator().manual_seed(3)
-    modules = [ANFIS(p, mod.N_MFS, generator=torch.Generator().manual_seed(r)) for r in range(R)]
-    for m in modules:  # distinct premises per run
-        m.init_premises(torch.rand(20, p, generator=g, dtype=torch.float64))
-    bridge = ParameterBridge(modules[0])
-    theta = bridge.stack(modules)
-    lo = 400.0 + torch.rand(R, generator=g, dtype=torch.float64)
-    hi = lo + 1.0 + torch.rand(R, generator=g, dtype=torch.float64)
-    w = lo[:, None] + (hi - lo)[:, None] * torch.rand(R, p, generator=g, dtype=torch.float64)
-    got = mod._RunANFIS(ANFIS(p, mod.N_MFS), theta, lo, hi)(w)
-    assert got.shape == (R, 1)
-    for r in range(R):
-        u = (w[r] - lo[r]) / (hi[r] - lo[r])
-        ref = modules[r](u[None])[0] * (hi[r] - lo[r]) + lo[r]
-        torch.testing.assert_close(got[r], ref.detach(), rtol=1e-12, atol=1e-12)
-    sub = mod._RunANFIS(ANFIS(p, mod.N_MFS), theta, lo, hi).runs(slice(1, 3))(w[1:3])
-    torch.testing.assert_close(sub, got[1:3], rtol=1e-12, atol=1e-12)

@@ -5,10 +5,7 @@ from __future__ import annotations
 import math
 
 import pytest
-import torch
 from _study_helpers import check_outputs, quick_fixture, read_rows, trainer_fixture
-
-from prognos_torch.prognosis import MeasurementForecaster
 
 quick_out = quick_fixture("elm-stsckf", runs=3)
 trainer = trainer_fixture("elm_stsckf")
@@ -35,29 +32,3 @@ def test_quick_strong_tracking_follows_the_ramp_better_than_sckf(quick_out):
     by = {(int(r["run"]), r["method"]): float(r["RMSE"]) for r in rows}
     for i in range(3):
         assert by[(i, "STSCKF")] < 0.5 * by[(i, "SCKF")]
-
-
-def test_run_channels_view_equals_one_forecaster_per_run(trainer):
-    mod = trainer
-    R, C, N0, n = 3, 3, 20, 4
-    g = torch.Generator().manual_seed(5)
-    z = 1.0 + 0.1 * torch.randn(N0 + 3, R, C, generator=g, dtype=torch.float64).cumsum(0)
-    per_run = [
-        MeasurementForecaster.ros_elm(
-            C, p=3, n_hidden=8, generator=torch.Generator().manual_seed(r)
-        )
-        for r in range(R)
-    ]
-    learners = [elm for f in per_run for elm in f.learners]
-    view = mod._RunChannels(MeasurementForecaster(learners, 3, lam=1e-8), R, C)
-    view.initialize(z[:N0])
-    for r, f in enumerate(per_run):
-        f.initialize(z[:N0, r])
-    for t in range(N0, N0 + 3):
-        got = view.copy().forecast(n)
-        want = torch.stack([f.forecast(n) for f in per_run], dim=1)
-        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
-        view.update(z[t])
-        for r, f in enumerate(per_run):
-            f.update(z[t, r])
-    assert view.initialized and got.shape == (n, R, C)

@@ -28,7 +28,7 @@ Monte Carlo runs are batched through the filters' batch dimension. The ANFIS of 
 trained on run ``i``'s own measurements; :class:`~prognos_torch.optim.KalmanOptimizer`'s
 ``runs=`` trains several parameter vectors on *shared* data, so the ``2 R`` trainings are a loop
 (documented in the notes); the trained parameter vectors are then evaluated for all runs at once
-(:class:`_RunANFIS`, glue: scaling and a ``vmap`` over the runs' parameters).
+(:class:`~prognos_torch.optim.StackedLearner` with per-run scaling).
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ from prognos_torch.filters import run as filter_run
 from prognos_torch.filters import sckf, stsckf
 from prognos_torch.learners import ANFIS
 from prognos_torch.metrics import mae, rmse
-from prognos_torch.optim import ImSRUKF, ParameterBridge, fit
+from prognos_torch.optim import ImSRUKF, ParameterBridge, StackedLearner, fit
 from prognos_torch.plots import plot_fading_factor, plot_panels
 from prognos_torch.prognosis import (
     MeasurementForecaster,
@@ -102,37 +102,10 @@ def _crossing_step(threshold: float, params: CSTRParams) -> int:
     return k
 
 
-class _RunANFIS:
-    """One channel's trained ANFIS of every run as one static learner (glue, no algorithm).
-
-    ``(R, p)`` raw windows -> min-max scaled with each run's training extremes -> the run's own
-    ANFIS parameters -> unscaled ``(R, 1)``. Implements what :class:`MeasurementForecaster`
-    needs of a static learner. :meth:`ANFIS.forward_with` evaluates every run's parameters on
-    every run's window in one broadcast pass ``(R, R, 1)``; the diagonal pairs run ``r``'s
-    parameters with run ``r``'s window (for the small ``R`` here this is faster than a ``vmap``).
-    """
-
-    n_in, n_out = EMBED, 1
-
-    def __init__(self, template: ANFIS, theta, lo, hi):
-        self.template, self.theta, self.lo, self.scale = template, theta, lo, hi - lo
-        self.params = ParameterBridge(template).unflatten(theta)  # {name: (R, ...)}
-
-    def __call__(self, w: torch.Tensor) -> torch.Tensor:
-        u = (w - self.lo[:, None]) / self.scale[:, None]
-        with torch.no_grad():
-            out = self.template.forward_with(self.params, u).diagonal(0, 0, 1).mT  # (R, 1)
-        return out * self.scale[:, None] + self.lo[:, None]
-
-    def runs(self, idx: slice) -> _RunANFIS:
-        lo = self.lo[idx]
-        return _RunANFIS(self.template, self.theta[idx], lo, lo + self.scale[idx])
-
-
 def _train_anfis(ys: torch.Tensor, device, progress: bool):
     """ImSRUKF-trained ANFIS per run and channel on ``ys[:N0]`` ``(T, R, 2)``.
 
-    Returns the two channel learners (:class:`_RunANFIS`) and the training seconds per run.
+    Returns the two channel learners (:class:`StackedLearner`) and the training seconds per run.
     """
     R = ys.shape[1]
     template = ANFIS(EMBED, N_MFS).to(device)
@@ -153,7 +126,11 @@ def _train_anfis(ys: torch.Tensor, device, progress: bool):
         fit(m, opt, (U, Tg.unsqueeze(-1)), epochs=PASSES, progress=False)
         theta[c, r], lo[c, r], hi[c, r] = opt.theta, ns.lo, ns.hi
     secs = (time.perf_counter() - t0) / R
-    return [_RunANFIS(template, theta[c], lo[c], hi[c]) for c in range(2)], secs
+    stacks = [
+        StackedLearner.from_theta(template, theta[c], evaluate="broadcast", lo=lo[c], hi=hi[c])
+        for c in range(2)
+    ]
+    return stacks, secs
 
 
 def _init_belief(runs: int, device) -> GaussianBelief:
@@ -325,9 +302,9 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     jobs += [("sens", name, d) for d in sens_d if d != CHOL_D for name in _filters()]
     bar = tqdm(jobs, desc="cstr-prognosis", disable=not cfg.progress)
     main, single, rul, sens = {}, {}, {}, {}
-    fc1 = MeasurementForecaster([lr.runs(slice(0, 1)) for lr in learners], EMBED, online=False)
+    fc1 = MeasurementForecaster([lr.select(slice(0, 1)) for lr in learners], EMBED, online=False)
     fcs = MeasurementForecaster(
-        [lr.runs(slice(0, sens_runs)) for lr in learners], EMBED, online=False
+        [lr.select(slice(0, sens_runs)) for lr in learners], EMBED, online=False
     )
     for kind, name, d in bar:
         bar.set_postfix_str(f"{kind} {name} chol_D={d:g}")

@@ -19,7 +19,7 @@ Protocol (paper 000 Sec. 5-6, Table 1, Fig. 1-3):
 Monte Carlo runs are batched through the filters' batch dimension. Run ``i`` draws its noise and
 the hidden layers of its three ROS-ELMs from ``cfg.generator(i)``; to give every run its own
 hidden layers inside one batched pass, the ``R`` runs x 3 channels are packed into one
-:class:`MeasurementForecaster` with ``3 R`` channels (:class:`_RunChannels`, a reshaping view).
+:class:`MeasurementForecaster` with ``3 R`` channels (:class:`~prognos_torch.optim.StackedForecaster`).
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ from prognos_torch.core.belief import GaussianBelief
 from prognos_torch.filters import run as filter_run
 from prognos_torch.filters import sckf, stsckf, stukf
 from prognos_torch.metrics import mae, rmse
+from prognos_torch.optim import StackedForecaster
 from prognos_torch.plots import plot_fading_factor, plot_prediction
 from prognos_torch.prognosis import MeasurementForecaster, rolling_fault_prediction
 from prognos_torch.studies import Study, StudyConfig, StudyResult
@@ -70,50 +71,20 @@ def _filters():
     return {"SCKF": sckf(), "STUKF": stukf(), "STSCKF": stsckf()}
 
 
-class _RunChannels:
-    """``R`` runs x ``C`` channels as one forecaster with ``R C`` channels (a reshaping view).
-
-    :class:`MeasurementForecaster` shares its ELMs' hidden layers across batch dims; packing the
-    runs into channels gives each run its own hidden layers while the filters stay batched.
-    Implements the forecaster protocol of :func:`rolling_fault_prediction`.
-    """
-
-    def __init__(self, inner: MeasurementForecaster, runs: int, channels: int):
-        self.inner, self.runs, self.channels = inner, runs, channels
-
-    @property
-    def initialized(self) -> bool:
-        return self.inner.initialized
-
-    def copy(self) -> _RunChannels:
-        return _RunChannels(self.inner.copy(), self.runs, self.channels)
-
-    def initialize(self, z0: torch.Tensor) -> _RunChannels:  # (N0, R, C)
-        self.inner.initialize(z0.reshape(z0.shape[0], self.runs * self.channels))
-        return self
-
-    def forecast(self, n: int) -> torch.Tensor:  # (n, R, C)
-        return self.inner.forecast(n).reshape(n, self.runs, self.channels)
-
-    def update(self, z: torch.Tensor) -> _RunChannels:  # (R, C)
-        self.inner.update(z.reshape(self.runs * self.channels))
-        return self
-
-
 def _simulate(cfg: StudyConfig, runs: int, T: int):
     """Run ``i``: noise and ROS-ELM hidden layers from ``cfg.generator(i)``."""
-    sims, learners = [], []
+    sims, fcs = [], []
     for i in range(runs):
         g = cfg.generator(i)
         sims.append(simulate_three_tank(T + N_AHEAD, runs=1, generator=g))
         fc = MeasurementForecaster.ros_elm(3, EMBED, HIDDEN, LAM, generator=g)
-        learners += [elm.to(cfg.device) for elm in fc.learners]
+        learners = [elm.to(cfg.device) for elm in fc.learners]
+        fcs.append(MeasurementForecaster(learners, EMBED, lam=LAM, online=True))
     dev = cfg.device
     x = torch.cat([s.x for s in sims], 1).to(dev)  # (T+n+1, R, 3)
     y = torch.cat([s.y for s in sims], 1).to(dev)  # (T+n, R, 3)
     theta = torch.cat([s.theta for s in sims], 1).to(dev)  # (T+n+1, R, 1)
-    fc = _RunChannels(MeasurementForecaster(learners, EMBED, lam=LAM, online=True), runs, 3)
-    return x, y, theta, fc
+    return x, y, theta, StackedForecaster.from_forecasters(fcs)
 
 
 def _init_belief(runs: int, device) -> GaussianBelief:
@@ -146,7 +117,7 @@ def _errors(res, theta, T):
     }
 
 
-def _measurement_forecasts(fc: _RunChannels, ys, T):
+def _measurement_forecasts(fc: StackedForecaster, ys, T):
     """ROS-ELM forecasts ``z_{k+1..k+n}`` made at ``k = N0..T``: ``(K, n, R, 3)``."""
     f = fc.copy().initialize(ys[:N0])
     out = []
@@ -193,12 +164,7 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     jobs += [("sens", name, d) for d in sens_d for name in ("SCKF", "STSCKF")]
     bar = tqdm(jobs, desc="elm-stsckf", disable=not cfg.progress)
     main, single, sens = {}, {}, {}
-    fc1 = _RunChannels(MeasurementForecaster(fc.inner.learners[:3], EMBED, lam=LAM), 1, 3)
-    fcs = _RunChannels(
-        MeasurementForecaster(fc.inner.learners[: 3 * sens_runs], EMBED, lam=LAM),
-        sens_runs,
-        3,
-    )
+    fc1, fcs = fc.select(slice(0, 1)), fc.select(slice(0, sens_runs))
     for kind, name, d in bar:
         bar.set_postfix_str(f"{kind} {name} chol_D={d:g}")
         filt = _filters()[name]

@@ -49,7 +49,6 @@ with one trainer per learner.
 
 from __future__ import annotations
 
-import copy
 import math
 import time
 import warnings
@@ -61,7 +60,6 @@ import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from torch import Tensor, nn
-from torch.func import functional_call, vmap
 from tqdm import tqdm
 
 from prognos_torch.core.belief import GaussianBelief
@@ -78,7 +76,7 @@ from prognos_torch.metrics import (
     probability_in_bounds,
     rmse,
 )
-from prognos_torch.optim import KalmanOptimizer, ParameterBridge, fit
+from prognos_torch.optim import KalmanOptimizer, ParameterBridge, StackedLearner, fit, run_sum_mse
 from prognos_torch.prognosis import (
     gaussian_paths,
     learner_transition_model,
@@ -257,43 +255,6 @@ def _cstr_series(cfg: StudyConfig) -> _Series:
 
 
 # ----------------------------------------------------------------------------------- learners
-class _RunLearner:
-    """``R`` trained copies of one learner as one one-step predictor on run-leading inputs.
-
-    ``__call__``: ``x (R, ..., m) -> (R, ..., 1)``, run ``r`` evaluated with its own parameters
-    (``vmap`` of ``functional_call``); ``input_gradient``: ``(R B, m) -> (R B, 1, m)`` for
-    :func:`learner_transition_model` (``jacobian="input_gradient"``), which flattens the
-    run-leading batch row-major. Every filter in this study keeps the runs as the leading batch
-    dimension, so the flattened rows of run ``r`` are contiguous.
-    """
-
-    def __init__(self, base: nn.Module, params: dict[str, Tensor], m: int):
-        self.base = base
-        self.params = {k: v.detach() for k, v in params.items()}
-        self.runs = next(iter(self.params.values())).shape[0]
-        self.n_in, self.n_out, self.m = m, 1, m
-
-    def __call__(self, x: Tensor) -> Tensor:
-        R, m = self.runs, self.m
-        if x.dim() < 2 or x.shape[0] != R or x.shape[-1] != m:
-            raise ValueError(f"x must have shape ({R}, ..., {m}) (runs leading), got {x.shape}")
-        xf = x.reshape(R, -1, m)
-        out = vmap(lambda p, xi: functional_call(self.base, p, (xi,)))(self.params, xf)
-        return out.reshape(*x.shape[:-1], out.shape[-1])
-
-    def select(self, mask: Tensor) -> _RunLearner:
-        """The runs where ``mask`` ``(R,)`` is true."""
-        return _RunLearner(self.base, {k: v[mask] for k, v in self.params.items()}, self.m)
-
-    def input_gradient(self, x: Tensor) -> Tensor:
-        # the outputs of different windows are independent: the gradient of their sum gives
-        # every window's gradient in one backward pass
-        with torch.enable_grad():
-            xr = x.detach().reshape(self.runs, -1, self.m).requires_grad_(True)
-            (g,) = torch.autograd.grad(self(xr)[..., 0].sum(), xr)
-        return g.reshape(-1, 1, self.m)
-
-
 class _SharedLearner:
     """One deterministic learner used by every run (LS-SVR): any leading dims."""
 
@@ -305,47 +266,6 @@ class _SharedLearner:
 
     def input_gradient(self, x: Tensor) -> Tensor:
         return self.learner.input_gradient(x)
-
-
-def _stack_params(modules: list[nn.Module]) -> dict[str, Tensor]:
-    names = [n for n, _ in modules[0].named_parameters()]
-    return {
-        n: torch.stack([dict(mod.named_parameters())[n].detach() for mod in modules]) for n in names
-    }
-
-
-class _AdamStack(nn.Module):
-    """``R`` learners trained together by one gradient optimiser.
-
-    Parameters of run ``r`` only enter run ``r``'s output, and the loss is the sum of the runs'
-    mean squared errors, so its gradient for run ``r`` is that run's own gradient and Adam's
-    element-wise update equals ``R`` independent Adam runs on the same mini-batches.
-    Input ``(B, R, m)`` -> ``(B, R, 1)``.
-    """
-
-    def __init__(self, modules: list[nn.Module]):
-        super().__init__()
-        self._base = [copy.deepcopy(modules[0])]  # kept out of .parameters()
-        params = _stack_params(modules)
-        trainable = {n for n, p in modules[0].named_parameters() if p.requires_grad}
-        for n, v in params.items():
-            if n in trainable:
-                self.register_parameter(n, nn.Parameter(v.clone()))
-            else:
-                self.register_buffer(n, v.clone())
-        self._names = list(params)
-
-    def stacked(self) -> dict[str, Tensor]:
-        return {n: getattr(self, n) for n in self._names}
-
-    def forward(self, x: Tensor) -> Tensor:
-        base = self._base[0]
-        out = vmap(lambda p, xi: functional_call(base, p, (xi,)))(self.stacked(), x.movedim(1, 0))
-        return out.movedim(0, 1)
-
-
-def _sum_mse(pred: Tensor, target: Tensor) -> Tensor:
-    return (pred - target).square().mean(0).sum()
 
 
 def _new_learners(name: str, s: _Series, runs: int, cfg: StudyConfig) -> list[nn.Module]:
@@ -378,7 +298,7 @@ def _train(learner: str, trainer: str, s: _Series, pr: _Protocol, cfg: StudyConf
         if learner == "ELM":
             for mod in mods:
                 mod.fit_ridge(X, Y, ELM_LAM)  # paper 000 Eq. 52-54
-            return _RunLearner(mods[0], _stack_params(mods), s.m)
+            return StackedLearner.from_modules(mods)
         return _SharedLearner(LSSVRGram(mods[0]), s.m)  # KKT solution, paper 002 Eq. 4
     if trainer == "Adam":
         epochs, bs = pr.adam[s.name]
@@ -387,7 +307,7 @@ def _train(learner: str, trainer: str, s: _Series, pr: _Protocol, cfg: StudyConf
             opt = torch.optim.Adam([p for p in mod.parameters() if p.requires_grad], lr=ADAM_LR)
             fit(mod, opt, (X, Y), epochs=epochs, batch_size=bs, progress=False)
             return _SharedLearner(LSSVRGram(mod), s.m)
-        stack = _AdamStack(mods)
+        stack = StackedLearner.from_modules(mods, run_dim=1, trainable=True)
         opt = torch.optim.Adam(stack.parameters(), lr=ADAM_LR)
         Xr, Yr = X.unsqueeze(1).expand(-1, runs, -1), Y.unsqueeze(1).expand(-1, runs, -1)
         fit(
@@ -399,9 +319,9 @@ def _train(learner: str, trainer: str, s: _Series, pr: _Protocol, cfg: StudyConf
             shuffle=True,
             generator=cfg.generator(2 * 10**6),
             progress=False,
-            loss_fn=_sum_mse,
+            loss_fn=run_sum_mse,
         )
-        return _RunLearner(stack._base[0], stack.stacked(), s.m)
+        return StackedLearner(stack.base, stack.parameter_sets())
     # Kalman optimisers (paper 003 Sec. IV): one pass
     kw = dict(filter=trainer.lower(), P0=P0[learner], Q=KF_Q[learner], R=KF_R)
     # the ImSRUKF noise estimator needs equal mini-batches: it drops an incomplete last one
@@ -410,7 +330,7 @@ def _train(learner: str, trainer: str, s: _Series, pr: _Protocol, cfg: StudyConf
     if learner == "ELM":  # every run has its own hidden layer: one optimiser per run
         for mod in mods:
             fit(mod, KalmanOptimizer(mod, **kw), (X, Y), **fkw)
-        return _RunLearner(mods[0], _stack_params(mods), s.m)
+        return StackedLearner.from_modules(mods)
     if learner == "LSSVR":  # state (alpha, b), prior mean = the KKT solution
         mod = mods[0]
         fit(mod, KalmanOptimizer(mod, **kw), (X, Y), **fkw)
@@ -418,7 +338,7 @@ def _train(learner: str, trainer: str, s: _Series, pr: _Protocol, cfg: StudyConf
     base = mods[0]  # ANFIS: one structure, the runs batched in one optimiser
     opt = KalmanOptimizer(base, runs=runs, theta0=ParameterBridge(base).stack(mods), **kw)
     fit(base, opt, (X, Y), **fkw)
-    return _RunLearner(base, opt.bridge.unflatten(opt.theta), s.m)
+    return StackedLearner.from_theta(base, opt.theta)
 
 
 def _healthy_runs(learner, s: _Series, runs: int) -> Tensor:
@@ -681,7 +601,7 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         ok = _healthy_runs(learner, s, runs)
         n_ok = int(ok.sum())
         info[combo] = {"train_s": train_s, "diverged_runs": runs - n_ok}
-        if n_ok < runs and isinstance(learner, _RunLearner):
+        if n_ok < runs and isinstance(learner, StackedLearner):
             learner = learner.select(ok)
         SQ, SR, sres = _noise(learner, s, n_ok) if n_ok else (None, None, math.nan)
         info[combo]["train_rms"] = sres

@@ -8,6 +8,8 @@
 * :func:`fit`: one training loop for Kalman and gradient optimisers;
   :func:`train_in_blocks` (training curves) and :func:`predict_then_update` (online one-step
   prediction) around it.
+* :class:`StackedLearner`, :class:`StackedForecaster`: ``R`` Monte Carlo runs of one learner
+  (or forecaster) as one predictor, batched through a run axis.
 """
 
 from .fit import History, fit
@@ -22,6 +24,7 @@ from .kalman import (
 )
 from .online import BlockCurve, predict_then_update, train_in_blocks
 from .params import ParameterBridge, Selector
+from .stacked import StackedForecaster, StackedLearner, run_sum_mse
 
 __all__ = [
     "ParameterBridge",
@@ -38,4 +41,7 @@ __all__ = [
     "BlockCurve",
     "train_in_blocks",
     "predict_then_update",
+    "StackedLearner",
+    "StackedForecaster",
+    "run_sum_mse",
 ]

@@ -7,6 +7,11 @@ or array-likes.
 * :mod:`.figures`: predictions, fading factors, fault probabilities, RUL distributions,
   alpha-lambda charts, training curves;
 * :mod:`.panels`: a grid of small panels, estimated multivariate series against the truth;
+* :mod:`.lines`: panels of labelled lines (:func:`plot_line_panels`), predictions with their
+  errors (:func:`plot_prediction_errors`);
+* :mod:`.heatmap`: annotated heatmaps of a results matrix (:func:`plot_heatmaps`);
+* :mod:`.rul`: predicted RUL over prediction time with the alpha cone (:func:`plot_rul_band`),
+  predicted paths against a threshold (:func:`plot_paths`);
 * :mod:`.workflow`: a forecast with its band and an RUL distribution with its paths (the
   figures of :mod:`prognos_torch.workflow`, written atomically).
 """
@@ -20,7 +25,10 @@ from .figures import (
     plot_rul_pdf,
     plot_training_curves,
 )
+from .heatmap import HeatmapPanel, draw_heatmap, plot_heatmaps
+from .lines import LinePanel, plot_line_panels, plot_prediction_errors
 from .panels import plot_panels
+from .rul import draw_paths, plot_paths, plot_rul_band, weighted_quantiles
 from .workflow import plot_forecast, plot_rul, time_label
 
 __all__ = [
@@ -32,6 +40,16 @@ __all__ = [
     "plot_fault_probability_box",
     "plot_training_curves",
     "plot_panels",
+    "LinePanel",
+    "plot_line_panels",
+    "plot_prediction_errors",
+    "HeatmapPanel",
+    "draw_heatmap",
+    "plot_heatmaps",
+    "plot_rul_band",
+    "draw_paths",
+    "plot_paths",
+    "weighted_quantiles",
     "plot_forecast",
     "plot_rul",
     "time_label",

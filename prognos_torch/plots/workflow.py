@@ -17,6 +17,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from ..io import atomic_write
+from .rul import draw_paths
 
 if TYPE_CHECKING:  # annotations only: the workflow imports this module, not the reverse
     from ..workflow.data import Series
@@ -94,17 +95,6 @@ def plot_forecast(
     return _write(fig, path)
 
 
-def _weighted_quantiles(samples: np.ndarray, w: np.ndarray, qs) -> np.ndarray:
-    order = np.argsort(samples, axis=0)
-    s = np.take_along_axis(samples, order, axis=0)
-    cw = np.cumsum(w[order], axis=0)
-    out = []
-    for q in qs:
-        idx = np.minimum((cw < q - 1e-12).sum(0), samples.shape[0] - 1)
-        out.append(s[idx, np.arange(samples.shape[1])])
-    return np.stack(out)
-
-
 def plot_rul(
     path: str | os.PathLike,
     result: RULResult,
@@ -119,16 +109,9 @@ def plot_rul(
     FigureCanvasAgg(fig)
     ax, bx = fig.add_subplot(2, 1, 1), fig.add_subplot(2, 1, 2)
     th, xh = _history_tail(result.history, result.horizon, history)
-    paths, w = _np(result.paths), _np(result.weights)
     tf = result.t_last + result.dt * np.arange(1, result.horizon + 1)
-    lo, med, hi = _weighted_quantiles(paths, w, (0.05, 0.5, 0.95))
     ax.plot(th, xh, color="0.25", lw=1.0, label="observed")
-    ax.fill_between(tf, lo, hi, color="C1", alpha=0.25, label="paths 5-95 %")
-    top = np.argsort(-w, kind="stable")[:n_paths]
-    for i in top:
-        ax.plot(tf, paths[i], color="C1", lw=0.4, alpha=0.5)
-    ax.plot(tf, med, color="C1", lw=1.5, label="median path")
-    ax.axhline(result.threshold, color="C3", lw=1.0, ls="--", label="threshold")
+    draw_paths(ax, tf, result.paths, result.weights, threshold=result.threshold, n_show=n_paths)
     ax.set_xlabel(time_label(result.history))
     ax.set_ylabel(result.history.name)
     ax.legend(loc="best", fontsize=8)

@@ -4,6 +4,8 @@ A study (one per paper, in the repository's ``trainers/`` folder) is a thin scri
 library pieces and returns a :class:`StudyResult`; this module turns it into ``table.md``
 (mean ± std over runs, with the paper's numbers beside ours), ``results.csv`` (one row per run
 and method), ``run.json`` (configuration, versions, machine) and the figures the study saved.
+:mod:`.tables` holds the table helpers every study uses (summaries over runs, markdown tables,
+notes filled from a template).
 """
 
 from .runner import (
@@ -11,12 +13,12 @@ from .runner import (
     StudyConfig,
     StudyResult,
     discover_studies,
-    format_table,
     load_trainer,
     run_study,
     trainers_dir,
     write_outputs,
 )
+from .tables import Stat, fill_template, fmt_value, format_table, markdown_table, summarize
 
 __all__ = [
     "Study",
@@ -28,4 +30,9 @@ __all__ = [
     "run_study",
     "trainers_dir",
     "write_outputs",
+    "Stat",
+    "summarize",
+    "markdown_table",
+    "fmt_value",
+    "fill_template",
 ]

@@ -5,7 +5,6 @@ from __future__ import annotations
 import csv
 import importlib.util
 import json
-import math
 import os
 import platform
 import sys
@@ -17,6 +16,8 @@ from types import ModuleType
 
 import numpy as np
 import torch
+
+from .tables import format_table
 
 __all__ = [
     "Study",
@@ -96,45 +97,6 @@ class Study:
     title: str
     run: Callable[[StudyConfig, Path], StudyResult]
     default_runs: int = 50
-
-
-def _fmt(v: float) -> str:
-    if v is None or (isinstance(v, float) and math.isnan(v)):
-        return "—"
-    a = abs(v)
-    if a != 0 and (a < 1e-3 or a >= 1e4):
-        return f"{v:.3e}"
-    return f"{v:.4f}"
-
-
-def format_table(result: StudyResult) -> str:
-    """Markdown table: one row per method, ``mean ± std`` over runs, paper value beside."""
-    methods: list[str] = []
-    for r in result.rows:
-        if r["method"] not in methods:
-            methods.append(r["method"])
-    head = ["method", "runs"]
-    for m in result.metrics:
-        head.append(f"{m} (ours)")
-        if any(m in result.paper.get(meth, {}) for meth in methods):
-            head.append(f"{m} (paper)")
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for meth in methods:
-        rows = [r for r in result.rows if r["method"] == meth]
-        cells = [meth, str(len(rows))]
-        for m in result.metrics:
-            vals = np.array([float(r[m]) for r in rows if m in r and r[m] is not None], dtype=float)
-            vals = vals[np.isfinite(vals)]
-            if vals.size:
-                cells.append(
-                    f"{_fmt(vals.mean())} ± {_fmt(vals.std(ddof=1) if vals.size > 1 else 0.0)}"
-                )
-            else:
-                cells.append("—")
-            if any(m in result.paper.get(x, {}) for x in methods):
-                cells.append(_fmt(result.paper.get(meth, {}).get(m)))
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
 
 
 def _versions() -> dict:

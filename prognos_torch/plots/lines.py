@@ -1,0 +1,157 @@
+"""Line panels: several labelled series per axes, one axes per panel (predictions, errors).
+
+Like the rest of :mod:`prognos_torch.plots`: a fresh Agg figure, a PNG written to ``path``,
+the figure returned; values may be tensors (any device) or array-likes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from .figures import PathLike, _np, _same_len, _save
+
+__all__ = ["LinePanel", "plot_line_panels", "plot_prediction_errors"]
+
+
+@dataclass(frozen=True)
+class LinePanel:
+    """One axes of :func:`plot_line_panels`.
+
+    Attributes:
+        lines: ``label -> (T,)`` series, drawn in order with colours ``C0, C1, ...``.
+        title, ylabel: axes title and y label.
+        logy: logarithmic y axis.
+        truth: optional ``(T,)`` reference drawn in black under the series.
+        truth_label: its legend label.
+        hline: optional constant (e.g. a failure threshold) drawn as a dotted red line.
+        hline_label: its legend label (default ``"threshold <value>"``).
+        style: matplotlib line style of the series (``"-"``, ``"--"``, ``".-"``).
+        legend: legend location (``None``: no legend).
+    """
+
+    lines: Mapping[str, object]
+    title: str = ""
+    ylabel: str = ""
+    logy: bool = False
+    truth: object | None = None
+    truth_label: str = "truth"
+    hline: float | None = None
+    hline_label: str | None = None
+    style: str = "-"
+    legend: str | None = "best"
+
+
+def plot_line_panels(
+    path: PathLike,
+    x,
+    panels: Sequence[LinePanel],
+    *,
+    ncols: int = 1,
+    sharey: bool = False,
+    xlabel: str = "time",
+    title: str | None = None,
+    alternate: bool = False,
+    lw: float = 1.1,
+    figsize: tuple[float, float] | None = None,
+) -> Figure:
+    """Panels of labelled lines over a common ``x`` ``(T,)``.
+
+    Args:
+        panels: the :class:`LinePanel` of each axes, row by row.
+        ncols: axes per row; sharey: one y scale for all axes.
+        xlabel: x label of every axes; title: figure title (suptitle).
+        alternate: draw every second series wide and pale under the others, so that series
+            that coincide stay visible.
+        lw: line width of the series.
+    """
+    xs = _np(x, "x")
+    if not panels:
+        raise ValueError("panels must hold at least one LinePanel")
+    if not isinstance(ncols, int) or ncols < 1:
+        raise ValueError(f"ncols must be a positive int, got {ncols!r}")
+    ncols = min(ncols, len(panels))
+    nrows = -(-len(panels) // ncols)
+    if figsize is None:
+        figsize = (7.0 if ncols == 1 else 5.5 * ncols, 3.0 * nrows + (0.6 if title else 0.0))
+    fig = Figure(figsize=figsize)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(nrows, ncols, squeeze=False, sharey=sharey).ravel()
+    for ax in axes[len(panels) :]:
+        ax.set_visible(False)
+    for ax, panel in zip(axes, panels):
+        if not isinstance(panel, LinePanel):
+            raise TypeError(f"panels must be LinePanel objects, got {type(panel)}")
+        if panel.truth is not None:
+            tr = _np(panel.truth, "truth")
+            _same_len(xs, tr, "x", "truth")
+            ax.plot(xs, tr, "k-", lw=1.6, label=panel.truth_label)
+        if panel.hline is not None:
+            label = panel.hline_label or f"threshold {panel.hline:g}"
+            ax.axhline(panel.hline, color="C3", lw=0.9, ls=":", label=label)
+        for i, (label, y) in enumerate(panel.lines.items()):
+            y = _np(y, f"lines[{label!r}]")
+            _same_len(xs, y, "x", f"lines[{label!r}]")
+            w, a = (3.5, 0.45) if alternate and i % 2 else (lw, 1.0)
+            ax.plot(xs, y, panel.style, color=f"C{i}", lw=w, alpha=a, ms=3.5, label=label)
+        if panel.logy:
+            ax.set_yscale("log")
+        ax.set_xlabel(xlabel)
+        if panel.ylabel:
+            ax.set_ylabel(panel.ylabel)
+        if panel.title:
+            ax.set_title(panel.title, fontsize=10)
+        if panel.legend:
+            ax.legend(loc=panel.legend, fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return _save(fig, path)
+
+
+def plot_prediction_errors(
+    path: PathLike,
+    t,
+    truth,
+    predictions: Mapping[str, object],
+    *,
+    title: str,
+    ylabel: str,
+    xlabel: str = "time",
+    truth_label: str = "truth",
+    threshold: float | None = None,
+    error_ylabel: str = "absolute error",
+    alternate: bool = False,
+) -> Figure:
+    """(a) predictions of several methods against the truth, (b) their absolute errors (log).
+
+    Args:
+        t, truth: ``(T,)``; predictions: ``label -> (T,)``.
+        threshold: optional failure threshold drawn in (a).
+        alternate: see :func:`plot_line_panels`.
+    """
+    tr = _np(truth, "truth")
+    errors = {k: np.abs(_np(v, f"predictions[{k!r}]") - tr) for k, v in predictions.items()}
+    panels = [
+        LinePanel(
+            predictions,
+            title=f"(a) {title}",
+            ylabel=ylabel,
+            truth=tr,
+            truth_label=truth_label,
+            hline=threshold,
+            style="--",
+            legend="upper left",
+        ),
+        LinePanel(
+            errors,
+            title="(b) prediction error",
+            ylabel=error_ylabel,
+            logy=True,
+            legend="lower right",
+        ),
+    ]
+    return plot_line_panels(path, t, panels, xlabel=xlabel, alternate=alternate, figsize=(7.0, 6.0))

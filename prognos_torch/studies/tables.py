@@ -1,0 +1,145 @@
+"""Tables of study results: summaries over runs, markdown tables, notes filled from a template.
+
+A study returns one row per (run, method) (:class:`~prognos_torch.studies.StudyResult`); these
+helpers turn the rows into the numbers a reader compares:
+
+* :func:`summarize`: mean, standard deviation (``ddof = 1``) and count of the finite values of
+  each metric, per method;
+* :func:`format_table`: the main ``table.md`` block, ``mean ± std`` per method and metric with
+  the paper's number beside ours;
+* :func:`markdown_table`: any other block (a header and rows of cells);
+* :func:`fmt_value`: the number format of those tables;
+* :func:`fill_template`: a study's readings written as a markdown template beside the script,
+  filled with the numbers of the run (``str.format`` fields such as ``{bias:+.4f}``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import string
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+
+if TYPE_CHECKING:  # annotations only (the runner imports this module)
+    from .runner import StudyResult
+
+__all__ = [
+    "Stat",
+    "summarize",
+    "format_table",
+    "markdown_table",
+    "fmt_value",
+    "fill_template",
+]
+
+
+class Stat(NamedTuple):
+    """Mean, standard deviation (``ddof = 1``; 0 for a single value) and count of values."""
+
+    mean: float
+    std: float
+    n: int
+
+
+def fmt_value(v: float | None) -> str:
+    """``—`` for a missing value; 4 decimals, or 3 significant digits in e-notation when the
+    magnitude is below 1e-3 or at least 1e4."""
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "—"
+    a = abs(v)
+    if a != 0 and (a < 1e-3 or a >= 1e4):
+        return f"{v:.3e}"
+    return f"{v:.4f}"
+
+
+def _methods(rows: Iterable[Mapping], key: str) -> list[str]:
+    out: list[str] = []
+    for r in rows:
+        if r[key] not in out:
+            out.append(r[key])
+    return out
+
+
+def summarize(
+    rows: Sequence[Mapping], metrics: Sequence[str], *, key: str = "method"
+) -> dict[str, dict[str, Stat]]:
+    """``{method: {metric: Stat}}`` over the finite values of each metric, methods in order of
+    first appearance. A metric without a finite value is left out of its method's dict.
+
+    Args:
+        rows: one mapping per (run, method), e.g. ``{"run": 0, "method": "A", "MAE": 0.1}``.
+        metrics: the metric names to summarise.
+        key: the field naming the method.
+    """
+    out: dict[str, dict[str, Stat]] = {}
+    for meth in _methods(rows, key):
+        rs = [r for r in rows if r[key] == meth]
+        stats = {}
+        for m in metrics:
+            v = np.array([float(r[m]) for r in rs if m in r and r[m] is not None], dtype=float)
+            v = v[np.isfinite(v)]
+            if v.size:
+                stats[m] = Stat(
+                    float(v.mean()), float(v.std(ddof=1)) if v.size > 1 else 0.0, v.size
+                )
+        out[meth] = stats
+    return out
+
+
+def markdown_table(header: Sequence[str], rows: Iterable[Sequence[object]]) -> str:
+    """A markdown table: ``| a | b |`` lines with the ``|---|`` rule after the header.
+
+    Cells are written with ``str``; format numbers before (e.g. with :func:`fmt_value`).
+    """
+    header = [str(h) for h in header]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for row in rows:
+        cells = [str(c) for c in row]
+        if len(cells) != len(header):
+            raise ValueError(f"a row has {len(cells)} cells, the header {len(header)}: {cells}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def format_table(result: StudyResult) -> str:
+    """Markdown table: one row per method, ``mean ± std`` over runs, paper value beside."""
+    summary = summarize(result.rows, result.metrics)
+    methods = list(summary)
+    counts = {m: sum(1 for r in result.rows if r["method"] == m) for m in methods}
+    has_paper = {
+        m: any(m in result.paper.get(meth, {}) for meth in methods) for m in result.metrics
+    }
+    head = ["method", "runs"]
+    for m in result.metrics:
+        head.append(f"{m} (ours)")
+        if has_paper[m]:
+            head.append(f"{m} (paper)")
+    body = []
+    for meth in methods:
+        cells = [meth, str(counts[meth])]
+        for m in result.metrics:
+            st = summary[meth].get(m)
+            cells.append("—" if st is None else f"{fmt_value(st.mean)} ± {fmt_value(st.std)}")
+            if has_paper[m]:
+                cells.append(fmt_value(result.paper.get(meth, {}).get(m)))
+        body.append(cells)
+    return markdown_table(head, body)
+
+
+def fill_template(path: str | os.PathLike, values: Mapping[str, object]) -> str:
+    """The text of the template at ``path`` with its ``str.format`` fields filled from
+    ``values``.
+
+    Raises:
+        KeyError: naming every field of the template that ``values`` lacks.
+    """
+    text = Path(path).read_text()
+    fields = {f.split(".")[0].split("[")[0] for _, f, _, _ in string.Formatter().parse(text) if f}
+    missing = sorted(fields - set(values))
+    if missing:
+        raise KeyError(f"{path}: no value for the template fields {missing}")
+    return text.format(**values)

@@ -1,0 +1,71 @@
+"""Study table helpers: summaries over runs, markdown tables, number format, note templates."""
+
+import math
+
+import numpy as np
+import pytest
+
+from prognos_torch.studies import (
+    Stat,
+    StudyResult,
+    fill_template,
+    fmt_value,
+    format_table,
+    markdown_table,
+    summarize,
+)
+
+
+def test_summarize_matches_numpy_and_skips_non_finite():
+    rows = [
+        {"run": 0, "method": "B", "MAE": 1.0, "RMSE": math.nan},
+        {"run": 0, "method": "A", "MAE": 2.0, "RMSE": 3.0},
+        {"run": 1, "method": "A", "MAE": 5.0, "RMSE": math.inf},
+        {"run": 2, "method": "A", "MAE": 11.0},
+    ]
+    s = summarize(rows, ["MAE", "RMSE"])
+    assert list(s) == ["B", "A"]  # order of first appearance
+    v = np.array([2.0, 5.0, 11.0])
+    assert s["A"]["MAE"] == Stat(v.mean(), v.std(ddof=1), 3)
+    assert s["A"]["RMSE"] == Stat(3.0, 0.0, 1)
+    assert s["B"]["MAE"] == Stat(1.0, 0.0, 1) and "RMSE" not in s["B"]
+
+
+def test_markdown_table_and_format():
+    t = markdown_table(["a", "b"], [[1, "x"], ["—", 2.5]])
+    assert t.splitlines() == ["| a | b |", "|---|---|", "| 1 | x |", "| — | 2.5 |"]
+    with pytest.raises(ValueError, match="3 cells, the header 2"):
+        markdown_table(["a", "b"], [[1, 2, 3]])
+    assert [fmt_value(v) for v in (None, math.nan, 0.0, 0.12345, 1e-4, -2e4, 9999.0)] == [
+        "—",
+        "—",
+        "0.0000",
+        "0.1235",
+        "1.000e-04",
+        "-2.000e+04",
+        "9999.0000",
+    ]
+
+
+def test_format_table_paper_column_only_where_the_paper_has_the_metric():
+    res = StudyResult(
+        rows=[
+            {"run": 0, "method": "A", "MAE": 1.0, "x": 1.0},
+            {"run": 1, "method": "A", "MAE": 2.0, "x": math.nan},
+        ],
+        metrics=["MAE", "x"],
+        paper={"A": {"MAE": 0.5}, "C": {"x": 1.0}},  # C is not among our methods
+    )
+    lines = format_table(res).splitlines()
+    assert lines[0] == "| method | runs | MAE (ours) | MAE (paper) | x (ours) |"
+    assert lines[2] == "| A | 2 | 1.5000 ± 0.7071 | 0.5000 | 1.0000 ± 0.0000 |"
+
+
+def test_fill_template(tmp_path):
+    p = tmp_path / "notes.md"
+    p.write_text("bias {bias:+.3f} over {runs} runs; {{literal}}; {cfg[seed]}\n")
+    assert fill_template(p, {"bias": -0.01234, "runs": 3, "cfg": {"seed": 7}}) == (
+        "bias -0.012 over 3 runs; {literal}; 7\n"
+    )
+    with pytest.raises(KeyError, match=r"\['cfg', 'runs'\]"):
+        fill_template(p, {"bias": 1.0})
