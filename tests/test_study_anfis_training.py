@@ -4,9 +4,10 @@ tests/test_optim_online.py)."""
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
-from _study_helpers import check_outputs, read_rows, run_quick  # noqa: E402
+from _study_helpers import check_outputs, quick_fixture, read_rows
 
 RUNS = 2
 TRAINERS = ("ANFIS-EKF", "ANFIS-SRUKF", "ANFIS-ImSRUKF", "ANFIS-Adam")
@@ -20,9 +21,7 @@ METHODS = (
 METRICS = ("MAE", "RMSE", "MSE", "train_MAE", "train_time_s", "test_time_s", "time_s")
 
 
-@pytest.fixture(scope="module")
-def quick_out(tmp_path_factory):
-    return run_quick(tmp_path_factory, "anfis-training", runs=RUNS)
+quick_out = quick_fixture("anfis-training", runs=RUNS)
 
 
 def test_quick_outputs_complete_and_finite(quick_out):
@@ -37,6 +36,8 @@ def test_quick_outputs_complete_and_finite(quick_out):
     table = (quick_out / "table.md").read_text()
     for text in ("Lorenz: ANFIS-ImSRUKF", "0.0386", "0.2228", "CSTR online", "0.0117", "16.1"):
         assert text in table
+    # the report template is filled completely (no str.format field left)
+    assert "Readings and choices:" in table and not re.search(r"\{[a-z_A-Z0-9]+(:[^}]*)?\}", table)
 
 
 def test_quick_kalman_trainers_beat_the_untrained_anfis(quick_out):

@@ -5,7 +5,7 @@ library pieces and returns a :class:`StudyResult`; this module turns it into ``t
 (mean ± std over runs, with the paper's numbers beside ours), ``results.csv`` (one row per run
 and method), ``run.json`` (configuration, versions, machine) and the figures the study saved.
 :mod:`.tables` holds the table helpers every study uses (summaries over runs, markdown tables,
-notes filled from a template).
+notes filled from a template); :mod:`.rows` builds the per-run result rows.
 """
 
 from .runner import (
@@ -18,6 +18,7 @@ from .runner import (
     trainers_dir,
     write_outputs,
 )
+from .rows import run_rows
 from .tables import Stat, fill_template, fmt_value, format_table, markdown_table, summarize
 
 __all__ = [
@@ -35,4 +36,5 @@ __all__ = [
     "markdown_table",
     "fmt_value",
     "fill_template",
+    "run_rows",
 ]
