@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import csv
+
 import pytest
 import torch
 
-from prognos_torch.studies import run_rows
+from prognos_torch.studies import run_rows, write_rows_csv
 
 
 def test_run_rows_spreads_per_run_values_and_shares_scalars():
@@ -30,3 +32,17 @@ def test_run_rows_rejects_mismatched_lengths():
         run_rows("A", {"a": [1, 2], "b": [1, 2, 3]})
     with pytest.raises(ValueError, match="runs is required"):
         run_rows("A", {"a": 1.0})
+
+
+def test_write_rows_csv_unions_the_keys_and_leaves_missing_cells_empty(tmp_path):
+    path = tmp_path / "t.csv"
+    write_rows_csv(path, [{"run": 0, "a": 1.5}, {"run": 1, "b": "x"}])
+    assert path.read_bytes() == b"run,a,b\r\n0,1.5,\r\n1,,x\r\n"  # the csv module's dialect
+    with open(path, newline="") as fh:
+        assert list(csv.DictReader(fh)) == [
+            {"run": "0", "a": "1.5", "b": ""},
+            {"run": "1", "a": "", "b": "x"},
+        ]
+    assert not [p for p in tmp_path.iterdir() if p.name != "t.csv"]  # no temporary file left
+    with pytest.raises(FileNotFoundError, match="output folder"):
+        write_rows_csv(tmp_path / "missing" / "t.csv", [{"a": 1}])

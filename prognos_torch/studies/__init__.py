@@ -8,6 +8,7 @@ and method), ``run.json`` (configuration, versions, machine) and the figures the
 notes filled from a template); :mod:`.rows` builds the per-run result rows.
 """
 
+from .rows import run_rows, write_rows_csv
 from .runner import (
     Study,
     StudyConfig,
@@ -18,7 +19,6 @@ from .runner import (
     trainers_dir,
     write_outputs,
 )
-from .rows import run_rows
 from .tables import Stat, fill_template, fmt_value, format_table, markdown_table, summarize
 
 __all__ = [
@@ -37,4 +37,5 @@ __all__ = [
     "fmt_value",
     "fill_template",
     "run_rows",
+    "write_rows_csv",
 ]

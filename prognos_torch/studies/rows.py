@@ -1,12 +1,18 @@
-"""Result rows of a study: one dict per (run, method), built from per-run values."""
+"""Result rows of a study: one dict per (run, method), built from per-run values and written
+as CSV (``results.csv`` and any further table of rows)."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import csv
+import io
+import os
+from collections.abc import Mapping, Sequence
 
 import torch
 
-__all__ = ["run_rows"]
+from ..io import atomic_write
+
+__all__ = ["run_rows", "write_rows_csv"]
 
 
 def run_rows(method: str, values: Mapping[str, object], runs: int | None = None) -> list[dict]:
@@ -43,3 +49,17 @@ def run_rows(method: str, values: Mapping[str, object], runs: int | None = None)
         }
         for i in range(runs)
     ]
+
+
+def write_rows_csv(path: str | os.PathLike, rows: Sequence[Mapping]) -> None:
+    """Write ``rows`` as CSV, atomically: the columns are every key of the rows in order of first
+    appearance, a row without a key leaves its cell empty."""
+    keys: list[str] = []
+    for r in rows:
+        keys += [k for k in r if k not in keys]
+    buf = io.StringIO(newline="")
+    w = csv.DictWriter(buf, fieldnames=keys)
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: r.get(k, "") for k in keys})
+    atomic_write(path, buf.getvalue().encode())
