@@ -104,6 +104,35 @@ def test_predict_then_update_with_a_gradient_optimizer_equals_a_manual_loop():
         torch.testing.assert_close(p1, p2, rtol=0, atol=0)
 
 
+def test_per_run_data_blocks_and_online_steps_along_the_sample_dim():
+    # per_run_data: every run has its own series (R, N, ...); blocks and online steps cut dim 1
+    X, Y = _data(9, seed=11)
+    Xr = torch.stack([X, X.flip(0)])
+    Yr = torch.stack([Y, Y.flip(0) ** 0.5])
+    inits = _inits(X, (5, 6))
+
+    def make():
+        m = copy.deepcopy(inits[0])
+        theta0 = ParameterBridge(m).stack(inits)
+        kw = dict(P0=0.5, Q=1e-6, R=1e-3, runs=2, theta0=theta0, per_run_data=True)
+        return m, KalmanOptimizer(m, filter="srukf", **kw)
+
+    m1, o1 = make()
+    fit(m1, o1, (Xr, Yr), progress=False)
+    m2, o2 = make()
+    steps, losses, _ = train_in_blocks(m2, o2, Xr, Yr, block=4)
+    assert steps == [4, 8, 9] and losses.shape == (3, 2)
+    torch.testing.assert_close(o2.theta, o1.theta, rtol=0, atol=0)
+    pred, _ = predict_then_update(m2, o2, Xr, Yr)
+    want = []
+    for k in range(9):
+        want.append(o1.predict(Xr[:, k : k + 1])[:, 0])
+        o1.step(Xr[:, k : k + 1], Yr[:, k : k + 1])
+    assert pred.shape == (2, 9, 1)
+    torch.testing.assert_close(pred, torch.stack(want, 1), rtol=0, atol=0)
+    torch.testing.assert_close(o2.theta, o1.theta, rtol=0, atol=0)
+
+
 def test_online_helpers_reject_bad_input():
     X, Y = _data(6)
     m = _inits(X, (0,))[0]
@@ -114,7 +143,7 @@ def test_online_helpers_reject_bad_input():
         train_in_blocks(m, opt, X, Y, block=2, passes=True)
     with pytest.raises(ValueError, match="same non-zero number of rows"):
         train_in_blocks(m, opt, X, Y[:4], block=2)
-    with pytest.raises(TypeError, match="X and Y"):
+    with pytest.raises(TypeError, match="pair"):
         predict_then_update(m, opt, X.numpy(), Y)
     with pytest.raises(TypeError, match="predict"):
         predict_then_update(m, opt, X, Y, predict=3)

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from ..core.validation import check_pos_int
-from .fit import fit
+from .fit import _check_data, fit
 from .kalman import KalmanOptimizer
 
 __all__ = ["BlockCurve", "train_in_blocks", "predict_then_update"]
@@ -43,15 +43,9 @@ class BlockCurve(NamedTuple):
     seconds: float
 
 
-def _pair(X, Y) -> tuple[Tensor, Tensor]:
-    if not isinstance(X, Tensor) or not isinstance(Y, Tensor):
-        raise TypeError(f"X and Y must be tensors (N, ...), got {type(X)} and {type(Y)}")
-    if X.dim() < 1 or Y.dim() < 1 or X.shape[0] != Y.shape[0] or X.shape[0] == 0:
-        raise ValueError(
-            f"X and Y must have the same non-zero number of rows (N, ...), got "
-            f"{tuple(X.shape)} and {tuple(Y.shape)}"
-        )
-    return X, Y
+def _rows(optimizer) -> int:
+    """The sample dim: 1 for a Kalman optimiser with per-run data ``(R, N, ...)``, else 0."""
+    return int(isinstance(optimizer, KalmanOptimizer) and optimizer.per_run_data)
 
 
 def train_in_blocks(
@@ -72,22 +66,24 @@ def train_in_blocks(
     Args:
         module: the learner (the optimiser was built on it).
         optimizer: a :class:`KalmanOptimizer` or a ``torch.optim.Optimizer``.
-        X: ``(N, ...)`` inputs; Y: ``(N, ...)`` targets (``module(X).shape``).
+        X: ``(N, ...)`` inputs; Y: ``(N, ...)`` targets (``module(X).shape``); ``(R, N, ...)``
+            for a :class:`KalmanOptimizer` with ``per_run_data``.
         block: optimiser steps per point of the curve.
         passes: sweeps over the samples.
     Returns:
         :class:`BlockCurve`.
     """
-    X, Y = _pair(X, Y)
+    d = _rows(optimizer)
+    X, Y = _check_data((X, Y), "(X, Y)", optimizer.runs if d else None)
     block, passes = check_pos_int(block, "block"), check_pos_int(passes, "passes")
     steps, losses, secs, done = [], [], 0.0, 0
-    N = X.shape[0]
+    N = X.shape[d]
     for _ in range(passes):
         for a in range(0, N, block):
             h = fit(
                 module,
                 optimizer,
-                (X[a : a + block], Y[a : a + block]),
+                (X.narrow(d, a, min(block, N - a)), Y.narrow(d, a, min(block, N - a))),
                 epochs=1,
                 batch_size=1,
                 progress=False,
@@ -115,26 +111,28 @@ def predict_then_update(
 
     Args:
         module, optimizer: as for :func:`fit`.
-        X: ``(N, ...)`` inputs; Y: ``(N, ...)`` targets, in stream order.
+        X: ``(N, ...)`` inputs; Y: ``(N, ...)`` targets, in stream order (``(R, N, ...)`` for
+            a :class:`KalmanOptimizer` with ``per_run_data``).
         predict: ``(1, ...) -> (..., 1, *out)`` (default: ``optimizer.predict`` for a
             :class:`KalmanOptimizer`, whose ``runs=R`` give ``(R, 1, *out)``, else ``module``).
     Returns:
         ``(predictions, seconds)``: predictions ``(..., N, *out)`` (the runs, if any, lead) and
         the seconds spent predicting and stepping.
     """
-    X, Y = _pair(X, Y)
+    d = _rows(optimizer)
+    X, Y = _check_data((X, Y), "(X, Y)", optimizer.runs if d else None)
     if predict is None:
         predict = optimizer.predict if isinstance(optimizer, KalmanOptimizer) else module
     if not callable(predict):
         raise TypeError(f"predict must be callable (1, ...) -> (..., 1, *out), got {predict!r}")
-    preds, secs = [], 0.0
-    for k in range(X.shape[0]):
+    preds, secs, tail = [], 0.0, Y.dim() - d  # tail: the sample dim and the output dims
+    for k in range(X.shape[d]):
+        xk, yk = X.narrow(d, k, 1), Y.narrow(d, k, 1)
         t0 = time.perf_counter()
         with torch.no_grad():
-            out = predict(X[k : k + 1])
+            out = predict(xk)
         secs += time.perf_counter() - t0
-        lead = out.dim() - Y.dim()  # the run dims before the sample dim
-        preds.append(out.select(lead, 0))
-        h = fit(module, optimizer, (X[k : k + 1], Y[k : k + 1]), progress=False, metrics=("mse",))
+        preds.append(out.select(out.dim() - tail, 0))  # the run dims lead the sample dim
+        h = fit(module, optimizer, (xk, yk), progress=False, metrics=("mse",))
         secs += h.train_time
-    return torch.stack(preds, -Y.dim()), secs
+    return torch.stack(preds, -tail), secs
