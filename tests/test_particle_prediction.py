@@ -1,8 +1,9 @@
-"""ParticleFilter.run's before_step hook and rolling_particle_prediction against manual loops.
+"""rolling_particle_prediction against the plain step loop.
 
-The references are the plain step loop with the same generator: the hook and the rolling
-prediction must reproduce it draw for draw (exact equality), and the predictive summaries must
-equal particle_paths / fault_probability applied to the states the manual loop produced.
+The reference is the plain loop with the same generator (predict from the state at k - 1, then
+step): the rolling prediction must reproduce it draw for draw (exact equality), its predictive
+summaries must equal particle_paths / fault_probability on the states the loop produced, and its
+filter output must equal ParticleFilter.run where no prediction draws in between.
 """
 
 from __future__ import annotations
@@ -41,44 +42,20 @@ def _belief(runs, n=2):
     return GaussianBelief(torch.zeros(runs, n, dtype=torch.float64), eye.expand(runs, n, n))
 
 
-def test_before_step_sees_the_previous_state_and_interleaves_draws():
-    model, pf = _linear(), sir(50)
-    ys, k0 = _ys(8, 3), 4
-    seen = []
-
-    def hook(k, state):
-        seen.append((k, state.particles.clone()))
-        torch.randn(3, generator=g1, dtype=torch.float64)  # a draw between the filter's steps
-
-    g1 = torch.Generator().manual_seed(7)
-    traj = pf.run(model, _belief(3), ys, generator=g1, k0=k0, before_step=hook)
-
-    g2 = torch.Generator().manual_seed(7)
-    st = pf.init(model, _belief(3), generator=g2, k=k0)
-    for j in range(ys.shape[0]):
-        k = k0 + j + 1
-        assert seen[j][0] == k
-        torch.testing.assert_close(seen[j][1], st.particles, rtol=0, atol=0)
-        torch.randn(3, generator=g2, dtype=torch.float64)
-        st, info = pf.step(model, st, ys[j], k=k, generator=g2)
-        torch.testing.assert_close(traj.means[j], info.mean, rtol=0, atol=0)
-    torch.testing.assert_close(traj.final.particles, st.particles, rtol=0, atol=0)
-    with pytest.raises(TypeError, match="before_step"):
-        pf.run(model, _belief(3), ys, generator=g1, before_step=3)
-
-
 def _manual(pf, model, b0, ys, k0, H, threshold, seed):
     """The plain loop: predict H steps from the state at k - 1, then assimilate y_k."""
     g = torch.Generator().manual_seed(seed)
     st = pf.init(model, b0, generator=g, k=k0)
-    mean, fault, states = [], [], {k0: st}
+    mean, fault, states, infos = [], [], {k0: st}, []
     for j in range(ys.shape[0]):
         k = k0 + j + 1
         pp = particle_paths(model, st.particles, H, generator=g, weights=st.weights, k0=k - 1)
         mean.append(pp.mean)
         fault.append(fault_probability(pp.samples, threshold, pp.weights))
-        st, _ = pf.step(model, st, ys[j], k=k, generator=g)
+        st, info = pf.step(model, st, ys[j], k=k, generator=g)
         states[k] = st
+        infos.append(info)
+    states["infos"] = infos
     return torch.stack(mean), torch.stack(fault), states
 
 
@@ -99,7 +76,11 @@ def test_rolling_particle_prediction_equals_the_manual_loop(factory, H):
     for k in (3, 6, 13):
         torch.testing.assert_close(rp.states[k].particles, states[k].particles, rtol=0, atol=0)
         torch.testing.assert_close(rp.states[k].log_weights, states[k].log_weights, rtol=0, atol=0)
-    assert rp.trajectory.means.shape == (10, 2, 2)
+    assert rp.filtered.shape == (10, 2, 2) and rp.ess.shape == (10, 2)
+    infos = states["infos"]
+    torch.testing.assert_close(rp.filtered, torch.stack([i.mean for i in infos]), rtol=0, atol=0)
+    torch.testing.assert_close(rp.ess, torch.stack([i.ess for i in infos]), rtol=0, atol=0)
+    torch.testing.assert_close(rp.final.particles, states[13].particles, rtol=0, atol=0)
 
 
 def test_rolling_particle_prediction_on_a_learner_window_model_with_stpf():

@@ -161,15 +161,14 @@ def _filter_pass(pf, model, z_test, k0, runs, gen, keep):
             k0=k0 - 1,
             keep=keep,
         )
-    tr = rp.trajectory
     out = {
         "pred": rp.mean[..., 0],
         "fault": rp.fault_probability[..., 0],
-        "filt": tr.means[..., -1],
-        "ess": tr.ess,
-        "lam": tr.fading_factors,
-        "fallback": int(tr.prior_fallback.sum()),
-        "collapsed": int(tr.collapsed.sum()),
+        "filt": rp.filtered[..., -1],
+        "ess": rp.ess,
+        "lam": rp.fading_factors,
+        "fallback": int(rp.prior_fallback.sum()),
+        "collapsed": int(rp.collapsed.sum()),
     }
     parts = torch.stack([rp.states[i].particles for i in keep])  # (P, R, N, m)
     weights = torch.stack([rp.states[i].weights for i in keep])  # (P, R, N)

@@ -1,43 +1,41 @@
-"""Filters: the Gaussian engine and its configurations, sequence runners, particle filters."""
+"""Filters: the Gaussian engine, the particle filters, their configurations by name
+(:mod:`.variants`), the sequence loop (:func:`scan`) and the runners built on it, the RTS
+smoothers (:func:`smooth`)."""
 
-from .gaussian import (
-    FILTERS,
-    FilterState,
-    GaussianFilter,
-    StepInfo,
-    Taylor,
-    arukf,
-    ckf,
-    ekf,
-    imsrukf,
-    make_filter,
-    rukf,
-    sckf,
-    srukf,
-    stekf,
-    stsckf,
-    stukf,
-    ukf,
-)
-from .particle import (
-    PARTICLE_FILTERS,
-    ParticleFilter,
-    ParticleState,
-    ParticleTrajectory,
-    ekpf,
-    make_particle_filter,
-    sir,
-    stpf,
-    upf,
-)
+from .gaussian import FilterState, GaussianFilter, Spread, StepInfo, Taylor
+from .particle import ParticleFilter, ParticleState, ParticleTrajectory
 from .resampling import ess, multinomial, residual, stratified, systematic
 from .run import Forecast, Trajectory, forecast, run
 from .segments import SegmentedTrajectory, run_in_segments
+from .sequence import scan
+from .smooth import Smoothed, smooth, smooth_trajectory
+from .variants import (
+    FILTERS,
+    PARTICLE_FILTERS,
+    arukf,
+    ckf,
+    ekf,
+    ekpf,
+    imsrukf,
+    make_filter,
+    make_particle_filter,
+    rukf,
+    sckf,
+    sir,
+    srukf,
+    stekf,
+    stpf,
+    stsckf,
+    stukf,
+    ukf,
+    upf,
+)
 
 __all__ = [
     "FILTERS",
     "FilterState",
     "GaussianFilter",
+    "Spread",
     "StepInfo",
     "Taylor",
     "arukf",
@@ -56,6 +54,10 @@ __all__ = [
     "Trajectory",
     "forecast",
     "run",
+    "scan",
+    "Smoothed",
+    "smooth",
+    "smooth_trajectory",
     "SegmentedTrajectory",
     "run_in_segments",
     "PARTICLE_FILTERS",

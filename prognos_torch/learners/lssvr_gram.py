@@ -33,7 +33,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .elm import check_forward_input
+from ..core.validation import check_forward_input
 from .lssvr import LSSVR
 
 __all__ = ["LSSVRGram"]

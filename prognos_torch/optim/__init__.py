@@ -10,8 +10,12 @@
   prediction) around it.
 * :class:`StackedLearner`, :class:`StackedForecaster`: ``R`` Monte Carlo runs of one learner
   (or forecaster) as one predictor, batched through a run axis.
+* :func:`fit_likelihood`: model parameters (noise, ``f``, ``h``) by maximising the filter's
+  log-likelihood with any ``torch.optim`` optimiser; :func:`em_linear_gaussian`: EM for
+  linear-Gaussian models on the square-root RTS smoother.
 """
 
+from .em import EMFit, em_linear_gaussian, linear_model
 from .fit import History, fit
 from .kalman import (
     EKF,
@@ -22,6 +26,7 @@ from .kalman import (
     KalmanStep,
     noise_factor,
 )
+from .likelihood import LikelihoodFit, fit_likelihood, from_log_cholesky, log_cholesky
 from .online import BlockCurve, predict_then_update, train_in_blocks
 from .params import ParameterBridge, Selector
 from .stacked import StackedForecaster, StackedLearner, run_sum_mse
@@ -44,4 +49,11 @@ __all__ = [
     "StackedLearner",
     "StackedForecaster",
     "run_sum_mse",
+    "fit_likelihood",
+    "LikelihoodFit",
+    "from_log_cholesky",
+    "log_cholesky",
+    "em_linear_gaussian",
+    "EMFit",
+    "linear_model",
 ]

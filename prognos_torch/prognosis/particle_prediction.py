@@ -4,8 +4,9 @@ Paper 002 (Fig. 8-10): at every step the filter's weighted particles at ``k - 1`
 propagated ``H`` steps with process noise (:func:`~prognos_torch.prognosis.particle_paths`,
 weights frozen) to give the predictive mean of the indicator and the fault probability
 ``fault(j, k-1) = sum_i w^i I(x^i_{k-1+j} in Omega_0)``; then the filter assimilates ``y_k``.
-The filter loop is :meth:`~prognos_torch.filters.ParticleFilter.run` with its ``before_step``
-hook; the prediction draws from the same generator as the filter, between the filter's steps.
+The loop is the library's one sequence loop (:func:`~prognos_torch.filters.scan`) over the
+particle filter's step wrapped with the prediction; the prediction draws from the same
+generator as the filter, between the filter's steps.
 """
 
 from __future__ import annotations
@@ -18,8 +19,8 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
-from ..core.validation import check_pos_int
-from ..filters.particle import ParticleFilter, ParticleState, ParticleTrajectory
+from ..core.validation import check_pos_int, check_sequence
+from ..filters import ParticleFilter, ParticleState, scan
 from .paths import particle_paths
 from .rul import fault_probability
 
@@ -36,16 +37,26 @@ class RollingParticlePrediction:
         std: ``(T, ..., H)`` weighted predictive std.
         fault_probability: ``(T, ..., H)`` ``fault(j, k - 1)``, ``j = 1..H`` (``None`` without
             a threshold).
-        trajectory: the filter's :class:`~prognos_torch.filters.ParticleTrajectory`.
+        filtered: ``(T, ..., n)`` the filter's weighted posterior mean after each update.
+        ess: ``(T, ...)`` effective sample size before resampling.
+        fading_factors: ``(T, ...)`` weighted mean fading factor (1 without strong tracking).
+        prior_fallback: ``(T, ...)`` particles drawn from the prior (invalid proposals).
+        collapsed: ``(T, ...)`` bool, weight collapse.
         states: ``{k: ParticleState}`` the filter state after step ``k`` for each requested
             ``k`` (after resampling; ``k0`` is the initial state).
+        final: the state after the last step.
     """
 
     mean: Tensor
     std: Tensor
     fault_probability: Tensor | None
-    trajectory: ParticleTrajectory
+    filtered: Tensor
+    ess: Tensor
+    fading_factors: Tensor
+    prior_fallback: Tensor
+    collapsed: Tensor
     states: dict[int, ParticleState]
+    final: ParticleState
 
 
 def rolling_particle_prediction(
@@ -86,61 +97,59 @@ def rolling_particle_prediction(
     Returns:
         :class:`RollingParticlePrediction`.
     """
-    if not isinstance(ys, Tensor) or ys.dim() < 2:
-        raise ValueError(f"ys must be a tensor of shape (T, ..., {model.obs_dim})")
-    T = ys.shape[0]
     horizon = check_pos_int(horizon, "horizon")
+    state = (
+        init if isinstance(init, ParticleState) else pf.init(model, init, generator=generator, k=k0)
+    )
+    check_sequence(ys, "ys", model.obs_dim, state.batch_shape, nonempty=True)
+    T = ys.shape[0]
     keep = sorted(set(keep))
     if any(isinstance(k, bool) or not isinstance(k, int) for k in keep):
         raise TypeError(f"keep must hold int step indices, got {keep!r}")
     if keep and not (k0 <= keep[0] and keep[-1] <= k0 + T):
         raise ValueError(f"keep must lie in [k0, k0 + T] = [{k0}, {k0 + T}], got {keep}")
     if model.control_dim:
-        if not isinstance(us, Tensor) or us.dim() < 2 or us.shape[0] != T + horizon - 1:
-            raise ValueError(
-                f"us must have shape (T + H - 1, ..., {model.control_dim}) = "
-                f"({T + horizon - 1}, ..., {model.control_dim})"
-            )
+        check_sequence(
+            us, "us", model.control_dim, state.batch_shape, steps=T + horizon - 1, shared=True
+        )
     elif us is not None:
         raise ValueError("us was given but the model has control_dim=0")
-    means, stds, faults, states = [], [], [], {}
-    wanted = set(keep)
+    states, wanted = {}, set(keep)
 
-    def before_step(k: int, state: ParticleState) -> None:
+    def step(st: ParticleState, y: Tensor, u, k: int):
         t = k - k0 - 1
-        u = None if us is None else us[t : t + horizon]
         paths = particle_paths(
             model,
-            state.particles,
+            st.particles,
             horizon,
             generator=generator,
-            weights=state.weights,
-            us=u,
+            weights=st.weights,
+            us=None if us is None else us[t : t + horizon],
             k0=k - 1,
             channel=channel,
         )
-        means.append(paths.mean)
-        stds.append(paths.std)
-        if threshold is not None:
-            faults.append(fault_probability(paths.samples, threshold, paths.weights, direction))
         if k - 1 in wanted:
-            states[k - 1] = state
+            states[k - 1] = st
+        st, info = pf.step(model, st, y, u, k, generator=generator)
+        return st, (paths, info)
 
-    traj = pf.run(
-        model,
-        init,
-        ys,
-        None if us is None else us[:T],
-        generator=generator,
-        k0=k0,
-        before_step=before_step,
-    )
+    def record(st: ParticleState, out) -> dict[str, Tensor | None]:
+        paths, info = out
+        fault = None
+        if threshold is not None:
+            fault = fault_probability(paths.samples, threshold, paths.weights, direction)
+        return {
+            "mean": paths.mean,
+            "std": paths.std,
+            "fault_probability": fault,
+            "filtered": info.mean,
+            "ess": info.ess,
+            "fading_factors": info.fading_factor,
+            "prior_fallback": info.prior_fallback,
+            "collapsed": info.collapsed,
+        }
+
+    final, stacked = scan(step, state, ys, None if us is None else us[:T], record=record, k0=k0)
     if k0 + T in wanted:
-        states[k0 + T] = traj.final
-    return RollingParticlePrediction(
-        mean=torch.stack(means),
-        std=torch.stack(stds),
-        fault_probability=torch.stack(faults) if threshold is not None else None,
-        trajectory=traj,
-        states=states,
-    )
+        states[k0 + T] = final
+    return RollingParticlePrediction(**stacked, states=states, final=final)
