@@ -52,8 +52,8 @@ __all__ = [
     "convergence",
     "exponential_accuracy",
     "first_crossing_time",
-    "RULScores",
-    "rul_scores",
+    "PointRULScores",
+    "point_rul_scores",
 ]
 
 
@@ -562,7 +562,7 @@ def first_crossing_time(times, values, threshold: float, direction: str = "above
     return float(times[idx[0]]) if idx.numel() else math.nan
 
 
-class RULScores(NamedTuple):
+class PointRULScores(NamedTuple):
     """Point-RUL scores of one run (paper 002 Table 2): :func:`exponential_accuracy`, RMSE,
     :func:`alpha_lambda` (1.0 when met) and paper 002's :func:`cumulative_relative_accuracy`."""
 
@@ -572,7 +572,7 @@ class RULScores(NamedTuple):
     cra: float
 
 
-def rul_scores(
+def point_rul_scores(
     times: Tensor,
     true_rul: Tensor,
     pred_rul: Tensor,
@@ -582,7 +582,7 @@ def rul_scores(
     alpha: float | tuple[float, float] = 0.3,
     lam: float = 0.5,
     cra_lambdas: Sequence[float] = (0.0, 0.25, 0.5, 0.75),
-) -> RULScores:
+) -> PointRULScores:
     """The four RUL scores of paper 002 Table 2 for one run of point predictions.
 
     Args:
@@ -592,9 +592,9 @@ def rul_scores(
         alpha, lam: the alpha-lambda cone and time (paper 002: 0.3, 0.5).
         cra_lambdas: the lambda points averaged by the CRA (paper 002: 0, 0.25, 0.5, 0.75).
     Returns:
-        :class:`RULScores`.
+        :class:`PointRULScores`.
     """
-    return RULScores(
+    return PointRULScores(
         accuracy=exponential_accuracy(true_rul, pred_rul, d0=d0),
         rmse=float(rmse(pred_rul, true_rul)),
         alpha_lambda=float(

@@ -55,7 +55,6 @@ def test_bad_study_options(capsys):
     assert main(["study", "--list"]) == 0
 
 
-
 def test_python_m_prognos_torch_lists_the_studies():
     import subprocess
     import sys
@@ -87,3 +86,21 @@ def test_no_trainer_imports_the_cli():
             else:
                 continue
             assert not any(n.startswith("prognos_torch.cli") for n in names), path.name
+
+
+def test_run_jobs_timed_and_load_trainer(tmp_path):
+    from prognos_torch.studies import load_trainer, run_jobs, timed
+
+    order = []
+    jobs = {("a", 1): lambda: order.append("a") or 1, "b": lambda: order.append("b") or 2}
+    assert run_jobs(jobs, desc="t", progress=False) == {("a", 1): 1, "b": 2}
+    assert order == ["a", "b"]
+    out, secs = timed(sum, [1, 2, 3])
+    assert out == 6 and secs >= 0.0
+    script = tmp_path / "toy_study.py"
+    script.write_text(
+        "from prognos_torch.studies import Study\nSTUDY = Study('toy', '000', 'T', run=None)\n"
+    )
+    assert load_trainer(script).STUDY.name == "toy"
+    with pytest.raises(FileNotFoundError, match="no study script"):
+        load_trainer(tmp_path / "missing.py")

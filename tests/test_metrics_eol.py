@@ -8,13 +8,13 @@ import pytest
 import torch
 
 from prognos_torch.metrics import (
-    RULScores,
+    PointRULScores,
     alpha_lambda,
     cumulative_relative_accuracy,
     exponential_accuracy,
     first_crossing_time,
+    point_rul_scores,
     rmse,
-    rul_scores,
 )
 from prognos_torch.prognosis import rul_distribution
 
@@ -59,8 +59,8 @@ def test_rul_scores_bundle_the_table_2_metrics():
     times = t([9.0, 9.5, 10.0, 10.5])
     true = 11.0 - times
     pred = t([1.7, 1.6, 1.2, 0.4])
-    s = rul_scores(times, true, pred, t_eol=11.0, d0=2.0)
-    assert isinstance(s, RULScores)
+    s = point_rul_scores(times, true, pred, t_eol=11.0, d0=2.0)
+    assert isinstance(s, PointRULScores)
     assert s.accuracy == exponential_accuracy(true, pred, d0=2.0)
     assert s.rmse == float(rmse(pred, true))
     assert s.alpha_lambda == float(alpha_lambda(times, true, pred, alpha=0.3, lam=0.5, t_eol=11.0))
@@ -72,5 +72,5 @@ def test_rul_scores_bundle_the_table_2_metrics():
     assert s.rmse == pytest.approx(math.sqrt((0.3**2 + 0.1**2 + 0.2**2 + 0.1**2) / 4), rel=1e-12)
     ra = [1 - 0.3 / 2.0, 1 - 0.1 / 1.5, 1 - 0.2 / 1.0, 1 - 0.1 / 0.5]
     assert s.cra == pytest.approx(sum(ra) / 4, rel=1e-12)
-    s2 = rul_scores(times, true, pred, t_eol=11.0, d0=2.0, alpha=0.1, cra_lambdas=(0.0,))
+    s2 = point_rul_scores(times, true, pred, t_eol=11.0, d0=2.0, alpha=0.1, cra_lambdas=(0.0,))
     assert s2.alpha_lambda == 0.0 and s2.cra == pytest.approx(ra[0], rel=1e-12)

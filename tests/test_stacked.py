@@ -13,6 +13,8 @@ from prognos_torch.optim import (
     StackedForecaster,
     StackedLearner,
     fit,
+    fit_kalman_runs,
+    fit_together,
     run_sum_mse,
 )
 from prognos_torch.prognosis import MeasurementForecaster, learner_transition_model
@@ -121,6 +123,18 @@ def test_adam_stack_equals_independent_runs():
     opt = torch.optim.Adam(st.parameters(), lr=1e-2)
     Xr, Yr = X.unsqueeze(1).expand(-1, 2, -1), Y.unsqueeze(1).expand(-1, 2, -1)
     fit(st, opt, (Xr, Yr), epochs=3, batch_size=8, progress=False, loss_fn=run_sum_mse)
+    together = fit_together(
+        mods,
+        lambda ps: torch.optim.Adam(ps, lr=1e-2),
+        (X, Y),
+        epochs=3,
+        batch_size=8,
+        progress=False,
+    )
+    assert together.run_dim == 0 and not list(together.parameters())
+    torch.testing.assert_close(
+        together.parameter_sets()["beta"], st.parameter_sets()["beta"], rtol=0, atol=0
+    )
     for r, mod in enumerate(mods):
         o = torch.optim.Adam([mod.beta], lr=1e-2)
         fit(mod, o, (X, Y), epochs=3, batch_size=8, progress=False)
@@ -132,18 +146,24 @@ def test_adam_stack_equals_independent_runs():
 def test_kalman_runs_as_stack_equal_separate_trainings():
     X = _x(30, 3, seed=5)
     Y = X.prod(-1, keepdim=True).cos()
-    mods = _anfis(2)
     kw = dict(filter="ekf", P0={"alpha": 1.0, "b": 1e-2, "beta": 1e-4}, Q=1e-6, R=1e-3)
-    base = mods[0]
-    opt = KalmanOptimizer(base, runs=2, theta0=ParameterBridge(base).stack(mods), **kw)
-    fit(base, opt, (X, Y), epochs=1, batch_size=5, progress=False)
-    st = StackedLearner.from_theta(base, opt.theta)
+    fkw = dict(epochs=1, batch_size=5, progress=False)
+    st = fit_kalman_runs(_anfis(2), (X, Y), fit_options=fkw, **kw)  # one optimiser, runs=2
+    loop = fit_kalman_runs(_anfis(2), (X, Y), batched=False, fit_options=fkw, **kw)
     x = _x(2, 9, 3)
     out = st(x)
-    for r, mod in enumerate(mods):
-        single = KalmanOptimizer(mod, **kw)
-        fit(mod, single, (X, Y), epochs=1, batch_size=5, progress=False)
+    for r, mod in enumerate(_anfis(2)):
+        fit(mod, KalmanOptimizer(mod, **kw), (X, Y), **fkw)
         torch.testing.assert_close(out[r], mod(x[r]).detach(), rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(loop(x)[r], mod(x[r]).detach(), rtol=0, atol=0)
+    # ELMs with their own hidden layers cannot share one optimiser: one per run
+    elms = [ELM(3, 5, generator=torch.Generator().manual_seed(r)) for r in range(2)]
+    ekw = dict(filter="ekf", P0={"beta": 10.0}, Q=0.0, R=1e-3)
+    st = fit_kalman_runs(elms, (X, Y), fit_options=fkw, **ekw)
+    for r in range(2):
+        ref = ELM(3, 5, generator=torch.Generator().manual_seed(r))
+        fit(ref, KalmanOptimizer(ref, **ekw), (X, Y), **fkw)
+        torch.testing.assert_close(st(x)[r], ref(x[r]).detach(), **TOL)
 
 
 def test_stacked_forecaster_equals_one_forecaster_per_run():

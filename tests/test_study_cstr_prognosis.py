@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
-import torch
 from _study_helpers import check_outputs, quick_fixture, read_rows, trainer_fixture
 
 METHODS = ("SCKF", "STSCKF")
@@ -57,17 +55,3 @@ def test_crossing_step_matches_the_recursion_of_eq51(trainer):
         if k > 50:
             caf += 1e-5 * (k - 50)
     assert mod._crossing_step(mod.THRESHOLD, mod.CSTRParams()) == k == 223
-
-
-def test_alarm_is_first_origin_whose_prediction_crosses_plus_horizon(trainer):
-    mod = trainer
-    K = 30
-    pred = torch.full((K, 3, 1), 1.0, dtype=torch.float64)
-    pred[7:, 0] = 1.2  # run 0: origin index 7 -> k = N0 + 7
-    pred[0:, 1] = 1.2  # run 1: crosses at the first origin
-    # run 2 never crosses
-    got = mod._alarm(SimpleNamespace(predicted=pred), 1.15)
-    n, N0 = mod.N_AHEAD, mod.N0
-    assert got[0].item() == N0 + 7 + n
-    assert got[1].item() == N0 + n
-    assert math.isnan(got[2].item())

@@ -94,7 +94,7 @@ def test_elm_kalman_equals_ridge(fm):
     g = torch.Generator().manual_seed(3)
     z = torch.rand(120, generator=g, dtype=torch.float64).cumsum(0) / 60.0
     X, Y = fm.embed(z[:84], 4)  # 80 pairs: ten mini-batches of 8 on the bearing setting
-    s = fm._Series("HI", 4, X, Y[:, None], z, 84)
+    s = fm.ForecastProblem("HI", 4, X, Y[:, None], z, 84, stride=10)
     pr = fm._Protocol(StudyConfig(runs=2))
     cfg = StudyConfig(runs=2)
     ridge = fm._train("ELM", "closed", s, pr, cfg)

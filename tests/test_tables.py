@@ -69,3 +69,17 @@ def test_fill_template(tmp_path):
     )
     with pytest.raises(KeyError, match=r"\['cfg', 'runs'\]"):
         fill_template(p, {"bias": 1.0})
+
+
+def test_sweep_table():
+    from prognos_torch.studies import sweep_table
+
+    res = {("A", 0.1): {"RMSE": 0.2}, ("B", 0.1): {"RMSE": 0.05}, ("A", 1.0): {"RMSE": 0.3}}
+    res[("B", 1.0)] = {"RMSE": 0.3}
+    t = sweep_table("d", (0.1, 1.0), res, ("A", "B"), ("RMSE",), ratio=("RMSE", "A", "B", 1))
+    assert t.splitlines() == [
+        "| d | A RMSE | B RMSE | RMSE ratio A/B |",
+        "|---|---|---|---|",
+        "| 0.1 | 0.2000 | 0.0500 | 4.0 |",
+        "| 1 | 0.3000 | 0.3000 | 1.0 |",
+    ]

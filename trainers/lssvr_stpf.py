@@ -2,7 +2,7 @@
 
 Protocol (paper 002, Sec. "Experiments and results", Table 1, Table 2, Fig. 8-13), as far as the
 data allow (every reading is listed in ``table.md``; its captions and readings are the
-template ``lssvr_stpf.md``):
+template ``notes/lssvr_stpf.md``):
 
 * health indicator (:func:`~prognos_torch.datasets.health_indicator`): bearing 3 of IMS test 1,
   six time-domain features (the shipped table has no median), LLE with 12 neighbours, last 12
@@ -45,7 +45,7 @@ from prognos_torch.core.belief import GaussianBelief
 from prognos_torch.datasets import MinMaxScaler, embed, health_indicator
 from prognos_torch.filters import ekpf, sir, stpf
 from prognos_torch.learners import LSSVR, LSSVRGram, blocked_cv_rmse
-from prognos_torch.metrics import first_crossing_time, rmse, rul_scores
+from prognos_torch.metrics import first_crossing_time, point_rul_scores, rmse
 from prognos_torch.plots import (
     LinePanel,
     plot_alpha_lambda,
@@ -109,7 +109,7 @@ QUICK_START = 8.9  # quick mode filters from this day on
 JITTER_DIAG = 0.1  # shifted-element noise of the proposal-structure diagnostic (x q)
 PMF_BIN = 12  # RUL pmf figure: bins of 12 steps (2 h)
 GAP_DAYS = 30.0 / 1440.0  # figures break their lines at recording gaps longer than 30 min
-REPORT = Path(__file__).with_name("lssvr_stpf.md")  # captions and readings of table.md
+REPORT = Path(__file__).parent / "notes" / "lssvr_stpf.md"  # table.md captions, readings
 SHORT = {"LS-SVR": "lssvr", "LS-SVR PF": "pf", "LS-SVR EKPF": "ekpf", "LS-SVR STPF": "stpf"}
 
 
@@ -138,7 +138,7 @@ def _fitter(sigma: float, C: float, dev):
     return fit
 
 
-RUL_KEYS = ("Accuracy", "RUL_RMSE", "alpha_lambda", "CRA")  # metrics.RULScores, Table 2
+RUL_KEYS = ("Accuracy", "RUL_RMSE", "alpha_lambda", "CRA")  # metrics.PointRULScores, Table 2
 
 
 # --------------------------------------------------------------------------- filtering
@@ -392,7 +392,9 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     rul_kw = dict(t_eol=t_eol, d0=d0, alpha=ALPHA, lam=LAMBDA, cra_lambdas=CRA_LAMBDAS)
 
     def rul_rows(pred):  # Table 2 metrics of each run's point RULs (P, R)
-        scores = [rul_scores(times, true_rul, pred[:, i], **rul_kw) for i in range(pred.shape[1])]
+        scores = [
+            point_rul_scores(times, true_rul, pred[:, i], **rul_kw) for i in range(pred.shape[1])
+        ]
         return {k: [sc[j] for sc in scores] for j, k in enumerate(RUL_KEYS)}
 
     rul_pred = {"LS-SVR": ls_rul.unsqueeze(-1)}  # (P, R)

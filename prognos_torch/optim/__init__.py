@@ -29,7 +29,13 @@ from .kalman import (
 from .likelihood import LikelihoodFit, fit_likelihood, from_log_cholesky, log_cholesky
 from .online import BlockCurve, predict_then_update, train_in_blocks
 from .params import ParameterBridge, Selector
-from .stacked import StackedForecaster, StackedLearner, run_sum_mse
+from .stacked import (
+    StackedForecaster,
+    StackedLearner,
+    fit_kalman_runs,
+    fit_together,
+    run_sum_mse,
+)
 
 __all__ = [
     "ParameterBridge",
@@ -56,4 +62,6 @@ __all__ = [
     "em_linear_gaussian",
     "EMFit",
     "linear_model",
+    "fit_together",
+    "fit_kalman_runs",
 ]

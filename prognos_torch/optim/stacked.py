@@ -14,6 +14,10 @@ parameters, the run axis at a fixed position of the input:
 * ``trainable=True`` registers the stacked parameters as ``nn.Parameter``: one gradient
   optimiser trains the ``R`` runs at once with :func:`run_sum_mse` (Adam is element-wise and the
   loss separates over runs, so this equals ``R`` independent runs on the same mini-batches);
+* :func:`fit_together` (one gradient optimiser over the stack) and :func:`fit_kalman_runs`
+  (one :class:`~prognos_torch.optim.KalmanOptimizer` with ``runs=R`` where the runs share every
+  tensor outside the Kalman state, one optimiser per run otherwise) train ``R`` modules on the
+  same data and return their stack;
 * :meth:`~StackedLearner.input_gradient` for
   :func:`~prognos_torch.prognosis.learner_transition_model` (``jacobian="input_gradient"``),
   :meth:`~StackedLearner.select` for a subset of runs (e.g. the runs that did not diverge).
@@ -33,9 +37,17 @@ import torch
 from torch import Tensor, nn
 from torch.func import functional_call, vmap
 
+from .fit import fit
+from .kalman import KalmanOptimizer
 from .params import ParameterBridge
 
-__all__ = ["StackedLearner", "StackedForecaster", "run_sum_mse"]
+__all__ = [
+    "StackedLearner",
+    "StackedForecaster",
+    "run_sum_mse",
+    "fit_together",
+    "fit_kalman_runs",
+]
 
 EVALUATE = ("vmap", "broadcast")
 
@@ -270,6 +282,87 @@ class StackedLearner(nn.Module):
             f"runs={self.runs}, base={type(self.base).__name__}, run_dim={self.run_dim}, "
             f"evaluate={self.evaluate!r}, scaled={self.lo is not None}"
         )
+
+
+def fit_together(
+    modules: Sequence[nn.Module], make_optimizer, train: tuple[Tensor, Tensor], **fit_options
+) -> StackedLearner:
+    """Train ``R`` modules at once on the same data with one gradient optimiser.
+
+    The modules are stacked with ``run_dim=1`` and ``trainable=True``, the data ``(X, Y)``
+    repeated over the run axis, and :func:`~prognos_torch.optim.fit` minimises
+    :func:`run_sum_mse`: for an element-wise optimiser (Adam, SGD) this is ``R`` independent
+    trainings on the same mini-batches.
+
+    Args:
+        modules: ``R`` structurally identical modules (their initialisations).
+        make_optimizer: ``parameters -> torch.optim.Optimizer``, e.g.
+            ``lambda ps: torch.optim.Adam(ps, lr=1e-2)``.
+        train: ``(X, Y)``, samples along dim 0.
+        fit_options: passed to :func:`~prognos_torch.optim.fit` (epochs, batch_size, ...).
+    Returns:
+        The trained runs as a runs-leading :class:`StackedLearner`.
+    """
+    stack = StackedLearner.from_modules(modules, run_dim=1, trainable=True)
+    X, Y = train
+    R = stack.runs
+    Xr, Yr = X.unsqueeze(1).expand(-1, R, *X.shape[1:]), Y.unsqueeze(1).expand(-1, R, *Y.shape[1:])
+    fit(stack, make_optimizer(stack.parameters()), (Xr, Yr), loss_fn=run_sum_mse, **fit_options)
+    return StackedLearner(stack.base, stack.parameter_sets())
+
+
+def _share_the_rest(modules: Sequence[nn.Module], bridge: ParameterBridge) -> bool:
+    """True if the modules differ only in the tensors the bridge puts into the state."""
+    ref = modules[0]
+    skip = set(bridge.names)
+    fixed = [(n, t) for n, t in ref.named_parameters() if n not in skip]
+    fixed += list(ref.named_buffers())
+    for mod in modules[1:]:
+        own = dict(mod.named_parameters())
+        own.update(dict(mod.named_buffers()))
+        if any(n not in own or not torch.equal(own[n], t) for n, t in fixed):
+            return False
+    return True
+
+
+def fit_kalman_runs(
+    modules: Sequence[nn.Module],
+    train: tuple[Tensor, Tensor],
+    *,
+    batched: bool | None = None,
+    fit_options: Mapping | None = None,
+    **kalman_options,
+) -> StackedLearner:
+    """Train ``R`` modules on the same data with Kalman optimisers and stack them.
+
+    With ``batched`` (default: whenever the modules share every tensor outside the Kalman
+    state, e.g. ANFIS initialisations; not ELMs with their own random hidden layers) one
+    :class:`~prognos_torch.optim.KalmanOptimizer` with ``runs=R`` starts from the ``R``
+    parameter vectors (one engine call per step); otherwise each module gets its own.
+
+    Args:
+        modules: ``R`` structurally identical modules; the non-batched path trains them in
+            place.
+        train: ``(X, Y)``.
+        fit_options: passed to :func:`~prognos_torch.optim.fit` (epochs, batch_size, ...).
+        kalman_options: passed to :class:`~prognos_torch.optim.KalmanOptimizer` (filter, P0,
+            Q, R, ...).
+    """
+    modules = list(modules)
+    fit_options = dict(fit_options or {})
+    base = modules[0]
+    bridge = ParameterBridge(base)
+    if batched is None:
+        batched = _share_the_rest(modules, bridge)
+    if batched:
+        opt = KalmanOptimizer(
+            base, runs=len(modules), theta0=bridge.stack(modules), **kalman_options
+        )
+        fit(base, opt, train, **fit_options)
+        return StackedLearner.from_theta(base, opt.theta)
+    for mod in modules:
+        fit(mod, KalmanOptimizer(mod, **kalman_options), train, **fit_options)
+    return StackedLearner.from_modules(modules)
 
 
 class StackedForecaster:

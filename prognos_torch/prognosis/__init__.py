@@ -59,3 +59,23 @@ __all__ = [
     "ros_elm_init",
     "ros_elm_update",
 ]
+
+from .assess import (  # noqa: E402  (after the names it uses)
+    ThresholdCrossings,
+    aligned_forecasts,
+    first_alarm,
+    origin_fading_factors,
+    persistence_forecasts,
+    predict_threshold_crossings,
+    rolling_forecasts,
+)
+
+__all__ += [
+    "aligned_forecasts",
+    "ThresholdCrossings",
+    "first_alarm",
+    "origin_fading_factors",
+    "persistence_forecasts",
+    "predict_threshold_crossings",
+    "rolling_forecasts",
+]

@@ -5,9 +5,31 @@ library pieces and returns a :class:`StudyResult`; this module turns it into ``t
 (mean ± std over runs, with the paper's numbers beside ours), ``results.csv`` (one row per run
 and method), ``run.json`` (configuration, versions, machine) and the figures the study saved.
 :mod:`.tables` holds the table helpers every study uses (summaries over runs, markdown tables,
-notes filled from a template); :mod:`.rows` builds the per-run result rows.
+notes filled from a template); :mod:`.evaluate` and :mod:`.forecasters` the evaluation
+protocols the studies share (fault prediction, one-step forecasters alone and inside prognostic
+filters); :mod:`.matrix` a learner x trainer x filter matrix over test problems; :mod:`.rows`
+builds the per-run result rows and writes them as CSV.
 """
 
+from .evaluate import (
+    crossing_scores,
+    crossing_table,
+    fault_prediction_errors,
+    rolling_forecast_rmse,
+)
+from .forecasters import (
+    ForecastProblem,
+    ForecastProtocol,
+    evaluate_alone,
+    evaluate_filtered,
+    evaluate_gaussian,
+    evaluate_particle,
+    healthy_runs,
+    point_errors,
+    residual_noise,
+    rul_scores,
+)
+from .matrix import Cell, Footnotes, MatrixResult, capture, run_forecaster_matrix
 from .rows import run_rows, write_rows_csv
 from .runner import (
     Study,
@@ -15,11 +37,21 @@ from .runner import (
     StudyResult,
     discover_studies,
     load_trainer,
+    run_jobs,
     run_study,
+    timed,
     trainers_dir,
     write_outputs,
 )
-from .tables import Stat, fill_template, fmt_value, format_table, markdown_table, summarize
+from .tables import (
+    Stat,
+    fill_template,
+    fmt_value,
+    format_table,
+    markdown_table,
+    summarize,
+    sweep_table,
+)
 
 __all__ = [
     "Study",
@@ -28,14 +60,36 @@ __all__ = [
     "discover_studies",
     "format_table",
     "load_trainer",
+    "run_jobs",
     "run_study",
+    "timed",
     "trainers_dir",
     "write_outputs",
     "Stat",
     "summarize",
     "markdown_table",
+    "sweep_table",
     "fmt_value",
     "fill_template",
     "run_rows",
     "write_rows_csv",
+    "fault_prediction_errors",
+    "rolling_forecast_rmse",
+    "crossing_scores",
+    "crossing_table",
+    "ForecastProblem",
+    "ForecastProtocol",
+    "point_errors",
+    "rul_scores",
+    "residual_noise",
+    "healthy_runs",
+    "evaluate_alone",
+    "evaluate_gaussian",
+    "evaluate_particle",
+    "evaluate_filtered",
+    "Cell",
+    "Footnotes",
+    "MatrixResult",
+    "capture",
+    "run_forecaster_matrix",
 ]

@@ -8,13 +8,14 @@ import os
 import platform
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Hashable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from .rows import write_rows_csv
 from .tables import format_table
@@ -26,7 +27,9 @@ __all__ = [
     "discover_studies",
     "format_table",
     "load_trainer",
+    "run_jobs",
     "run_study",
+    "timed",
     "trainers_dir",
     "write_outputs",
 ]
@@ -97,6 +100,28 @@ class Study:
     title: str
     run: Callable[[StudyConfig, Path], StudyResult]
     default_runs: int = 50
+
+
+def run_jobs(
+    jobs: Mapping[Hashable, Callable[[], object]], *, desc: str, progress: bool = True
+) -> dict:
+    """Run the study's jobs in order with one progress bar; ``{key: job()}``.
+
+    Each key is shown beside the bar while its job runs (e.g. ``("sens", "SCKF", 1e-3)``).
+    """
+    bar = tqdm(jobs.items(), desc=desc, disable=not progress)
+    out = {}
+    for key, job in bar:
+        bar.set_postfix_str(" ".join(map(str, key)) if isinstance(key, tuple) else str(key))
+        out[key] = job()
+    return out
+
+
+def timed(fn: Callable, *args, **kwargs) -> tuple[object, float]:
+    """``(fn(*args, **kwargs), wall seconds)``."""
+    t0 = time.perf_counter()
+    out = fn(*args, **kwargs)
+    return out, time.perf_counter() - t0
 
 
 def _versions() -> dict:

@@ -7,7 +7,8 @@ helpers turn the rows into the numbers a reader compares:
   each metric, per method;
 * :func:`format_table`: the main ``table.md`` block, ``mean ± std`` per method and metric with
   the paper's number beside ours;
-* :func:`markdown_table`: any other block (a header and rows of cells);
+* :func:`markdown_table`: any other block (a header and rows of cells); :func:`sweep_table`:
+  a sensitivity table over the settings of one parameter;
 * :func:`fmt_value`: the number format of those tables;
 * :func:`fill_template`: a study's readings written as a markdown template beside the script,
   filled with the numbers of the run (``str.format`` fields such as ``{bias:+.4f}``).
@@ -32,6 +33,7 @@ __all__ = [
     "summarize",
     "format_table",
     "markdown_table",
+    "sweep_table",
     "fmt_value",
     "fill_template",
 ]
@@ -103,6 +105,37 @@ def markdown_table(header: Sequence[str], rows: Iterable[Sequence[object]]) -> s
             raise ValueError(f"a row has {len(cells)} cells, the header {len(header)}: {cells}")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def sweep_table(
+    name: str,
+    values: Sequence[float],
+    results: Mapping[tuple[str, float], Mapping[str, float]],
+    methods: Sequence[str],
+    metrics: Sequence[str],
+    *,
+    ratio: tuple[str, str, str, int] | None = None,
+    digits: int = 4,
+) -> str:
+    """A sensitivity table: one row per setting ``v`` of ``name``, the ``metrics`` of every
+    method, optionally the ratio of one metric between two methods.
+
+    Args:
+        results: ``{(method, v): {metric: value}}``.
+        ratio: ``(metric, a, b, digits)``: a last column ``metric(a) / metric(b)``.
+        digits: decimals of the metric cells.
+    """
+    head = [name] + [f"{m} {k}" for m in methods for k in metrics]
+    if ratio is not None:
+        head.append(f"{ratio[0]} ratio {ratio[1]}/{ratio[2]}")
+    rows = []
+    for v in values:
+        cells = [f"{v:g}"] + [f"{results[(m, v)][k]:.{digits}f}" for m in methods for k in metrics]
+        if ratio is not None:
+            metric, a, b, d = ratio
+            cells.append(f"{results[(a, v)][metric] / results[(b, v)][metric]:.{d}f}")
+        rows.append(cells)
+    return markdown_table(head, rows)
 
 
 def format_table(result: StudyResult) -> str:
