@@ -23,7 +23,7 @@ Protocol (paper 003 Sec. V, Tables I and III, Fig. 3-5 and 7-8):
 
 Outputs: MAE, RMSE (Eq. 48-49), MSE, training MAE, training/test time per run (batch time /
 runs) and the time of run 0 trained alone; figures in the style of Fig. 3-5 and 7-8; the
-captions and readings of ``table.md`` in the template ``notes/anfis_training.md``.
+captions and readings of ``table.md`` in the template ``anfis_training.md``.
 """
 
 from __future__ import annotations
@@ -90,7 +90,7 @@ Q_RW, R_MEAS = 1e-6, 1e-3
 ADAM_LR = 1e-3  # best of {1e-4, ..., 1e-1} on Lorenz after one pass (tests/test_optim.py)
 PASSES = 1  # Sec. IV step (3): one sweep over the training samples
 CSTR_SEED_OFFSET = 1_000_000  # the CSTR noise draws from seed + this (ANFIS runs use seed + i)
-REPORT = Path(__file__).parent / "notes" / "anfis_training.md"  # table.md captions, readings
+REPORT = Path(__file__).with_name("anfis_training.md")  # table.md captions, readings
 HEAD_MSE = "method|MSE (ours)|paper 'RMSE'|sqrt(paper 'RMSE')|paper MAE|RMSE (ours)"
 HEAD_TIME = (
     "data|trainer|train per run, batched (s)|test per run, batched (s)|run 0 alone, train + test "

@@ -1,6 +1,6 @@
 """Paper 004: robust (RUKF) and adaptive robust (ARUKF) UKF fault estimation on the 5-car train.
 
-Protocol (paper 004 Sec. 4; the readings in the template ``notes/arukf_hst.md`` and
+Protocol (paper 004 Sec. 4; the readings in the template ``arukf_hst.md`` and
 ``docs/systems.md``):
 
 * Truth: :func:`~prognos_torch.systems.high_speed_train.simulate_hst` with the actuator, coupler
@@ -83,7 +83,7 @@ R_MISSPEC = 10.0  # second scenario: nominal R ten times too large
 MISSPEC = f" [R x{R_MISSPEC:g}]"  # method-name suffix of that scenario
 CHOL_D = (1e-2, 1e-2, 1e-4)  # fault random-walk stds (library default; not in the paper)
 P0_STD = (0.1,) * 9 + CHOL_D  # initial std: psi known to be near equilibrium, faults near 0
-REPORT = Path(__file__).parent / "notes" / "arukf_hst.md"  # table.md captions, readings
+REPORT = Path(__file__).with_name("arukf_hst.md")  # table.md captions, readings
 # Means quoted in the readings: template field -> (method, metric).
 QUOTED = {
     "rukf_x2": ("RUKF", "RMSE x2"),

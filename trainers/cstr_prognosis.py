@@ -28,7 +28,7 @@ trained on run ``i``'s own measurements; :class:`~prognos_torch.optim.KalmanOpti
 ``runs=`` trains several parameter vectors on *shared* data, so the ``2 R`` trainings are a loop
 (documented in the notes); the trained parameter vectors are then evaluated for all runs at once
 (:class:`~prognos_torch.optim.StackedLearner` with per-run scaling). The readings in ``table.md``
-are the template ``notes/cstr_prognosis.md`` filled with the run's numbers.
+are the template ``cstr_prognosis.md`` filled with the run's numbers.
 """
 
 from __future__ import annotations
@@ -75,7 +75,7 @@ CHOL_D = 1e-4
 S0 = (1e-4, 0.1, 1e-2)  # initial std of [C_A, T, C_AF] (mean: the nominal steady state)
 SENS_D = (1e-5, 1e-4, 1e-3, 3e-3)
 FILTERS = {"SCKF": filters.sckf, "STSCKF": filters.stsckf}  # reference, strong tracking
-NOTES = Path(__file__).parent / "notes" / "cstr_prognosis.md"
+NOTES = Path(__file__).with_name("cstr_prognosis.md")  # the readings of table.md
 
 
 def _crossing_step(threshold: float, params: CSTRParams) -> int:

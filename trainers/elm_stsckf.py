@@ -19,8 +19,8 @@ Protocol (paper 000 Sec. 5-6, Table 1, Fig. 1-3):
 Monte Carlo runs are batched through the filters' batch dimension. Run ``i`` draws its noise and
 the hidden layers of its three ROS-ELMs from ``cfg.generator(i)``; to give every run its own
 hidden layers inside one batched pass, the ``R`` runs x 3 channels are packed into one
-:class:`~prognos_torch.optim.StackedForecaster`. The readings in ``table.md`` are the template
-``notes/elm_stsckf.md`` filled with the run's numbers.
+:class:`~prognos_torch.optim.StackedForecaster`. The readings in ``table.md`` are the
+template ``elm_stsckf.md`` filled with the run's numbers.
 """
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ SENS = ("SCKF", "STSCKF")  # the methods of the sensitivity table
 FILTERS = {"SCKF": filters.sckf, "STUKF": filters.stukf, "STSCKF": filters.stsckf}
 
 
-NOTES = Path(__file__).parent / "notes" / "elm_stsckf.md"
+NOTES = Path(__file__).with_name("elm_stsckf.md")  # the readings of table.md
 
 
 def _simulate(cfg: StudyConfig, runs: int, T: int):

@@ -44,9 +44,10 @@ runs, all Adam runs) and filtered as one batch (runs leading, particles after th
 generator per (series, filter) shared by all combinations (common random numbers). LS-SVR and
 its trainers are deterministic: it is evaluated on ``SHARED_RUNS`` runs that differ only in the
 particle draws. Quick mode runs a reduced matrix: every (learner, trainer) alone, every filter
-with one trainer per learner. The matrix is run by :func:`~prognos_torch.studies.run_forecaster_matrix`
-(evaluation: :mod:`prognos_torch.studies.forecasters`); the readings in ``table.md`` are the
-template ``notes/forecaster_matrix.md`` filled with the run's numbers.
+with one trainer per learner. The matrix is run by
+:func:`~prognos_torch.studies.run_forecaster_matrix` (evaluation:
+:mod:`prognos_torch.studies.forecasters`); the readings in ``table.md`` are the template
+``forecaster_matrix.md`` filled with the run's numbers.
 """
 
 from __future__ import annotations
@@ -170,7 +171,7 @@ class _Protocol:
         self.rul_days = (9.9, 10.5) if q else RUL_DAYS
 
 
-NOTES = Path(__file__).parent / "notes" / "forecaster_matrix.md"
+NOTES = Path(__file__).with_name("forecaster_matrix.md")  # the readings of table.md
 
 
 # ----------------------------------------------------------------------------------- data

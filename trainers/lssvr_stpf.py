@@ -2,7 +2,7 @@
 
 Protocol (paper 002, Sec. "Experiments and results", Table 1, Table 2, Fig. 8-13), as far as the
 data allow (every reading is listed in ``table.md``; its captions and readings are the
-template ``notes/lssvr_stpf.md``):
+template ``lssvr_stpf.md``):
 
 * health indicator (:func:`~prognos_torch.datasets.health_indicator`): bearing 3 of IMS test 1,
   six time-domain features (the shipped table has no median), LLE with 12 neighbours, last 12
@@ -109,7 +109,7 @@ QUICK_START = 8.9  # quick mode filters from this day on
 JITTER_DIAG = 0.1  # shifted-element noise of the proposal-structure diagnostic (x q)
 PMF_BIN = 12  # RUL pmf figure: bins of 12 steps (2 h)
 GAP_DAYS = 30.0 / 1440.0  # figures break their lines at recording gaps longer than 30 min
-REPORT = Path(__file__).parent / "notes" / "lssvr_stpf.md"  # table.md captions, readings
+REPORT = Path(__file__).with_name("lssvr_stpf.md")  # table.md captions, readings
 SHORT = {"LS-SVR": "lssvr", "LS-SVR PF": "pf", "LS-SVR EKPF": "ekpf", "LS-SVR STPF": "stpf"}
 
 

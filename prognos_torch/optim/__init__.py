@@ -55,6 +55,8 @@ __all__ = [
     "StackedLearner",
     "StackedForecaster",
     "run_sum_mse",
+    "fit_together",
+    "fit_kalman_runs",
     "fit_likelihood",
     "LikelihoodFit",
     "from_log_cholesky",
@@ -62,6 +64,4 @@ __all__ = [
     "em_linear_gaussian",
     "EMFit",
     "linear_model",
-    "fit_together",
-    "fit_kalman_runs",
 ]

@@ -10,10 +10,21 @@ fault prediction, and fault probability and remaining-useful-life distributions.
 * :mod:`.fault`: n-step-ahead and rolling fault-parameter prediction (paper 000 Sec. 5).
 * :mod:`.particle_prediction`: rolling prediction with a particle filter, ahead of each
   measurement (paper 002 Fig. 8-10).
+* :mod:`.assess`: scoring forecast-fed fault prediction (rolling forecasts, alarms, predicted
+  threshold crossings).
 * :mod:`.rul`: fault probability and RUL distributions from predicted paths.
 """
 
 from ..learners.ros_elm import ROSELMState, ros_elm_forecast, ros_elm_init, ros_elm_update
+from .assess import (
+    ThresholdCrossings,
+    aligned_forecasts,
+    first_alarm,
+    origin_fading_factors,
+    persistence_forecasts,
+    predict_threshold_crossings,
+    rolling_forecasts,
+)
 from .fault import (
     FaultPrediction,
     RollingFaultPrediction,
@@ -58,21 +69,8 @@ __all__ = [
     "ros_elm_forecast",
     "ros_elm_init",
     "ros_elm_update",
-]
-
-from .assess import (  # noqa: E402  (after the names it uses)
-    ThresholdCrossings,
-    aligned_forecasts,
-    first_alarm,
-    origin_fading_factors,
-    persistence_forecasts,
-    predict_threshold_crossings,
-    rolling_forecasts,
-)
-
-__all__ += [
-    "aligned_forecasts",
     "ThresholdCrossings",
+    "aligned_forecasts",
     "first_alarm",
     "origin_fading_factors",
     "persistence_forecasts",

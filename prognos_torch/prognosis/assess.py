@@ -30,12 +30,14 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
+from ..core.validation import check_pos_int
 from ..filters import GaussianFilter
 from ..filters import run as filter_run
+from .fault import predict_fault_parameter
 from .rul import rul_distribution
 
 if TYPE_CHECKING:
-    from . import RollingFaultPrediction
+    from .fault import RollingFaultPrediction
 
 __all__ = [
     "rolling_forecasts",
@@ -46,12 +48,6 @@ __all__ = [
     "ThresholdCrossings",
     "predict_threshold_crossings",
 ]
-
-
-def _pos_int(v, name: str) -> int:
-    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-        raise ValueError(f"{name} must be a positive int, got {v!r}")
-    return v
 
 
 def rolling_forecasts(forecaster, ys: Tensor, n: int, start: int) -> Tensor:
@@ -68,7 +64,7 @@ def rolling_forecasts(forecaster, ys: Tensor, n: int, start: int) -> Tensor:
     Returns:
         ``(T - start + 1, n, ..., m)``: row ``k - start`` holds the forecasts made at ``k``.
     """
-    n, start = _pos_int(n, "n"), _pos_int(start, "start")
+    n, start = check_pos_int(n, "n"), check_pos_int(start, "start")
     if not isinstance(ys, Tensor) or ys.dim() < 2 or not start <= ys.shape[0]:
         raise ValueError(f"ys must have shape (T, ..., m) with T >= start={start}")
     T = ys.shape[0]
@@ -104,7 +100,7 @@ def aligned_forecasts(forecasts: Tensor, j: int) -> Tensor:
 def persistence_forecasts(ys: Tensor, n: int, start: int) -> Tensor:
     """The persistence forecast ``z^_{k+j} = z_k`` in the layout of :func:`rolling_forecasts`:
     ``(T - start + 1, n, ..., m)`` (a reference any forecaster should beat)."""
-    n, start = _pos_int(n, "n"), _pos_int(start, "start")
+    n, start = check_pos_int(n, "n"), check_pos_int(start, "start")
     zk = ys[start - 1 :]  # z_k, k = start..T
     return zk[:, None].expand(zk.shape[0], n, *zk.shape[1:])
 
@@ -121,7 +117,11 @@ def origin_fading_factors(result: RollingFaultPrediction, step: int = -1) -> Ten
 
 
 def first_alarm(
-    result: RollingFaultPrediction, threshold: float, *, component: int = 0, direction="above"
+    result: RollingFaultPrediction,
+    threshold: float,
+    *,
+    component: int = 0,
+    direction: str = "above",
 ) -> Tensor:
     """Paper 000 step 8: the first origin ``k`` whose prediction ``theta^_{k+n|k+n}`` reaches
     ``threshold``; the crossing is then predicted at ``k + n``.
@@ -191,9 +191,7 @@ def predict_threshold_crossings(
         param_index: the state component of the fault parameter.
         direction: ``"above"`` or ``"below"`` (see :func:`rul_distribution`).
     """
-    from . import predict_fault_parameter  # the package namespace, once it is initialised
-
-    horizon = _pos_int(horizon, "horizon")
+    horizon = check_pos_int(horizon, "horizon")
     times = [int(k) for k in times]
     if not times or any(b <= a for a, b in zip(times, times[1:])) or times[0] < 1:
         raise ValueError(f"times must be increasing prediction times >= 1, got {times}")

@@ -11,7 +11,8 @@ A trained one-step forecaster ``x_{k+1} = f(x_{k-m+1..k})`` (one per Monte Carlo
   002 Eq. 15-26): Gaussian filters (:func:`evaluate_gaussian`: the one-step prediction is the
   predictive mean of the next measurement, multi-step paths from the posterior by
   :func:`~prognos_torch.prognosis.gaussian_paths`) and particle filters
-  (:func:`evaluate_particle`: weighted particle sets, :func:`~prognos_torch.prognosis.particle_paths`).
+  (:func:`evaluate_particle`: weighted particle sets,
+  :func:`~prognos_torch.prognosis.particle_paths`).
 
 Scores per run (:func:`point_errors`): one-step RMSE/MAE over the test targets and RMSE/MAE of
 the ``H``-step-ahead prediction from origins every ``stride`` steps; where the problem has a

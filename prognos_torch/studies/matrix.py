@@ -239,11 +239,12 @@ class MatrixResult:
                     t, tr = self.stat(combo, fname, "time_s"), self.stat(combo, fname, "train_s")
                     secs = (t.mean if t else 0.0) + (tr.mean if tr else 0.0)
                     flag = f" {notes.mark(cell.note)}" if cell.note else ""
+                    rmse_h = g(f"RMSE_{horizon}", True)
                     lines.append(
                         lead
-                        + f" {g('RMSE_1', True)}{flag} | {g('MAE_1')} | {g(f'RMSE_{horizon}', True)} |"
-                        + f" {g('RUL_MAE_d', d=2)} | {g('RUL_censored', d=2)} | {g('AL_mass', d=2)} |"
-                        + f" {hits_s} | {n_ok} | {secs:.3f} |"
+                        + f" {g('RMSE_1', True)}{flag} | {g('MAE_1')} | {rmse_h} |"
+                        + f" {g('RUL_MAE_d', d=2)} | {g('RUL_censored', d=2)} |"
+                        + f" {g('AL_mass', d=2)} | {hits_s} | {n_ok} | {secs:.3f} |"
                     )
         return "\n".join(lines + [""] + notes.lines())
 
