@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -50,6 +51,9 @@ __all__ = [
     "cumulative_relative_accuracy",
     "convergence",
     "exponential_accuracy",
+    "first_crossing_time",
+    "PointRULScores",
+    "point_rul_scores",
 ]
 
 
@@ -174,7 +178,9 @@ def mape(pred: Tensor, target: Tensor, dim: int | tuple[int, ...] | None = None)
 # --------------------------------------------------------------------------- time points
 def lambda_time(t_p: float, t_eol: float, lam: float) -> float:
     """``t_lambda = t_P + lambda (t_EoL - t_P)`` ([S10], alpha-lambda accuracy)."""
-    return check_scalar(t_p, "t_p") + _lam(lam) * (check_scalar(t_eol, "t_eol") - check_scalar(t_p, "t_p"))
+    return check_scalar(t_p, "t_p") + _lam(lam) * (
+        check_scalar(t_eol, "t_eol") - check_scalar(t_p, "t_p")
+    )
 
 
 def lambda_index(times: Tensor, lam: float, *, t_eol: float, t_p: float | None = None) -> int:
@@ -529,3 +535,72 @@ def exponential_accuracy(true_rul: Tensor, pred_rul: Tensor, *, d0: float) -> fl
     if d0 <= 0:
         raise ValueError(f"d0 must be positive, got {d0}")
     return float(torch.exp(-(pred_rul - true_rul).abs() / d0).mean().item())
+
+
+# --------------------------------------------------------------------------- end of life, bundles
+def first_crossing_time(times, values, threshold: float, direction: str = "above") -> float:
+    """Time of the first sample that reaches the threshold: ``times[i*]`` with ``i*`` the first
+    ``i`` where ``values[i] >= threshold`` (``direction="above"``) or ``<=`` (``"below"``).
+
+    The end of life ``t_EoL`` of a measured run-to-failure indicator. Returns NaN when no sample
+    reaches the threshold. NaN values are missing samples (they never cross).
+
+    Args:
+        times: ``(n,)`` sample times; values: ``(n,)`` indicator values.
+        threshold: finite scalar failure threshold.
+        direction: ``"above"`` or ``"below"``.
+    """
+    times = _vec(times, "times")
+    values = as_tensor(values, "values", device=times.device)
+    if tuple(values.shape) != tuple(times.shape):
+        raise ValueError(f"values must have shape {tuple(times.shape)}, got {tuple(values.shape)}")
+    thr = check_scalar(threshold, "threshold")
+    if direction not in ("above", "below"):
+        raise ValueError(f"direction must be 'above' or 'below', got {direction!r}")
+    hit = values >= thr if direction == "above" else values <= thr
+    idx = torch.nonzero(hit).flatten()
+    return float(times[idx[0]]) if idx.numel() else math.nan
+
+
+class PointRULScores(NamedTuple):
+    """Point-RUL scores of one run (paper 002 Table 2): :func:`exponential_accuracy`, RMSE,
+    :func:`alpha_lambda` (1.0 when met) and paper 002's :func:`cumulative_relative_accuracy`."""
+
+    accuracy: float
+    rmse: float
+    alpha_lambda: float
+    cra: float
+
+
+def point_rul_scores(
+    times: Tensor,
+    true_rul: Tensor,
+    pred_rul: Tensor,
+    *,
+    t_eol: float,
+    d0: float,
+    alpha: float | tuple[float, float] = 0.3,
+    lam: float = 0.5,
+    cra_lambdas: Sequence[float] = (0.0, 0.25, 0.5, 0.75),
+) -> PointRULScores:
+    """The four RUL scores of paper 002 Table 2 for one run of point predictions.
+
+    Args:
+        times: ``(n,)`` prediction times; true_rul, pred_rul: ``(n,)``.
+        t_eol: end of life.
+        d0: normaliser of the exponential accuracy (time units of the RUL).
+        alpha, lam: the alpha-lambda cone and time (paper 002: 0.3, 0.5).
+        cra_lambdas: the lambda points averaged by the CRA (paper 002: 0, 0.25, 0.5, 0.75).
+    Returns:
+        :class:`PointRULScores`.
+    """
+    return PointRULScores(
+        accuracy=exponential_accuracy(true_rul, pred_rul, d0=d0),
+        rmse=float(rmse(pred_rul, true_rul)),
+        alpha_lambda=float(
+            alpha_lambda(times, true_rul, pred_rul, alpha=alpha, lam=lam, t_eol=t_eol)
+        ),
+        cra=cumulative_relative_accuracy(
+            times, true_rul, pred_rul, lambdas=cra_lambdas, t_eol=t_eol
+        ),
+    )

@@ -6,6 +6,7 @@ from .gaussian import FilterState, GaussianFilter, Spread, StepInfo, Taylor
 from .particle import ParticleFilter, ParticleState, ParticleTrajectory
 from .resampling import ess, multinomial, residual, stratified, systematic
 from .run import Forecast, Trajectory, forecast, run
+from .segments import SegmentedTrajectory, run_in_segments
 from .sequence import scan
 from .smooth import Smoothed, smooth, smooth_trajectory
 from .variants import (
@@ -57,6 +58,8 @@ __all__ = [
     "Smoothed",
     "smooth",
     "smooth_trajectory",
+    "SegmentedTrajectory",
+    "run_in_segments",
     "PARTICLE_FILTERS",
     "ParticleFilter",
     "ParticleState",

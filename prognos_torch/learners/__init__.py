@@ -5,6 +5,7 @@
   :func:`ros_elm_init`, :func:`ros_elm_update`, :func:`ros_elm_forecast`; paper 000 Eq. 54-56).
 * :class:`LSSVR`: least-squares support vector regression with input Jacobian (paper 002).
 * :class:`ANFIS`: first-order Sugeno ANFIS with grid rules, Eq. 44 parameter order (paper 003).
+* :func:`blocked_cv_rmse`: blocked (time-ordered) cross-validation of any fit/predict pair.
 
 Every ``forward`` maps ``(..., n_in) -> (..., n_out)`` with pure tensor code, so it can be used
 with ``torch.func.functional_call``, ``vmap``, ``jacrev`` and ``jacfwd``.
@@ -16,6 +17,7 @@ from .introspect import learner_dims, learner_dtype_device
 from .lssvr import LSSVR
 from .lssvr_gram import LSSVRGram
 from .ros_elm import ROSELMState, ros_elm_forecast, ros_elm_init, ros_elm_update
+from .selection import blocked_cv_rmse, blocked_folds
 
 __all__ = [
     "ELM",
@@ -28,4 +30,6 @@ __all__ = [
     "ros_elm_forecast",
     "learner_dims",
     "learner_dtype_device",
+    "blocked_cv_rmse",
+    "blocked_folds",
 ]

@@ -5,7 +5,9 @@
 * :class:`KalmanOptimizer` (and :class:`EKF`, :class:`SRUKF`, :class:`ImSRUKF`): a
   ``torch.optim.Optimizer`` whose ``step`` is one step of the library's Gaussian filter on the
   random-walk model of Eq. 45-46.
-* :func:`fit`: one training loop for Kalman and gradient optimisers.
+* :func:`fit`: one training loop for Kalman and gradient optimisers;
+  :func:`train_in_blocks` (training curves) and :func:`predict_then_update` (online one-step
+  prediction) around it.
 * :class:`StackedLearner`, :class:`StackedForecaster`: ``R`` Monte Carlo runs of one learner
   (or forecaster) as one predictor, batched through a run axis.
 * :func:`fit_likelihood`: model parameters (noise, ``f``, ``h``) by maximising the filter's
@@ -25,6 +27,7 @@ from .kalman import (
     noise_factor,
 )
 from .likelihood import LikelihoodFit, fit_likelihood, from_log_cholesky, log_cholesky
+from .online import BlockCurve, predict_then_update, train_in_blocks
 from .params import ParameterBridge, Selector
 from .stacked import (
     StackedForecaster,
@@ -46,6 +49,9 @@ __all__ = [
     "OPTIMIZER_NOISE",
     "fit",
     "History",
+    "BlockCurve",
+    "train_in_blocks",
+    "predict_then_update",
     "StackedLearner",
     "StackedForecaster",
     "run_sum_mse",

@@ -26,7 +26,7 @@ from .figures import (
     plot_training_curves,
 )
 from .heatmap import HeatmapPanel, draw_heatmap, plot_heatmaps
-from .lines import LinePanel, plot_line_panels, plot_prediction_errors
+from .lines import LinePanel, break_at_gaps, plot_line_panels, plot_prediction_errors
 from .panels import plot_panels
 from .rul import draw_paths, plot_paths, plot_rul_band, weighted_quantiles
 from .workflow import plot_forecast, plot_rul, time_label
@@ -42,6 +42,7 @@ __all__ = [
     "plot_panels",
     "LinePanel",
     "plot_line_panels",
+    "break_at_gaps",
     "plot_prediction_errors",
     "HeatmapPanel",
     "draw_heatmap",

@@ -15,7 +15,7 @@ from matplotlib.figure import Figure
 
 from .figures import PathLike, _np, _same_len, _save
 
-__all__ = ["LinePanel", "plot_line_panels", "plot_prediction_errors"]
+__all__ = ["LinePanel", "plot_line_panels", "plot_prediction_errors", "break_at_gaps"]
 
 
 @dataclass(frozen=True)
@@ -32,6 +32,12 @@ class LinePanel:
         hline_label: its legend label (default ``"threshold <value>"``).
         style: matplotlib line style of the series (``"-"``, ``"--"``, ``".-"``).
         legend: legend location (``None``: no legend).
+        x: this panel's own ``(T',)`` x values (default: the figure's common ``x``), e.g. a
+            zoom on a part of the series.
+        gap: break the lines where consecutive x values are more than ``gap`` apart (a record
+            with pauses); ``None``: connect every point.
+        vline: optional x position (e.g. an end of life) drawn as a dotted grey line.
+        vline_label: its legend label.
     """
 
     lines: Mapping[str, object]
@@ -44,6 +50,23 @@ class LinePanel:
     hline_label: str | None = None
     style: str = "-"
     legend: str | None = "best"
+    x: object | None = None
+    gap: float | None = None
+    vline: float | None = None
+    vline_label: str | None = None
+
+
+def break_at_gaps(x, *ys, gap: float) -> list[np.ndarray]:
+    """``[x, *ys]`` with a NaN inserted wherever ``x`` jumps by more than ``gap``, so that a
+    plotted line breaks there instead of bridging the pause. ``x`` and each ``y``: ``(T,)``."""
+    xs = _np(x, "x")
+    cut = np.nonzero(np.diff(xs) > gap)[0] + 1
+    out = [np.insert(xs, cut, np.nan)]
+    for i, y in enumerate(ys):
+        y = _np(y, f"ys[{i}]")
+        _same_len(xs, y, "x", f"ys[{i}]")
+        out.append(np.insert(y, cut, np.nan))
+    return out
 
 
 def plot_line_panels(
@@ -86,18 +109,31 @@ def plot_line_panels(
     for ax, panel in zip(axes, panels):
         if not isinstance(panel, LinePanel):
             raise TypeError(f"panels must be LinePanel objects, got {type(panel)}")
+        px = xs if panel.x is None else _np(panel.x, "panel.x")
+
+        def xy(y, name, px=px, gap=panel.gap):
+            y = _np(y, name)
+            _same_len(px, y, "x", name)
+            return (px, y) if gap is None else tuple(break_at_gaps(px, y, gap=gap))
+
         if panel.truth is not None:
-            tr = _np(panel.truth, "truth")
-            _same_len(xs, tr, "x", "truth")
-            ax.plot(xs, tr, "k-", lw=1.6, label=panel.truth_label)
+            ax.plot(*xy(panel.truth, "truth"), "k-", lw=1.6, label=panel.truth_label)
         if panel.hline is not None:
             label = panel.hline_label or f"threshold {panel.hline:g}"
             ax.axhline(panel.hline, color="C3", lw=0.9, ls=":", label=label)
+        if panel.vline is not None:
+            ax.axvline(panel.vline, color="0.4", lw=0.9, ls=":", label=panel.vline_label)
         for i, (label, y) in enumerate(panel.lines.items()):
-            y = _np(y, f"lines[{label!r}]")
-            _same_len(xs, y, "x", f"lines[{label!r}]")
             w, a = (3.5, 0.45) if alternate and i % 2 else (lw, 1.0)
-            ax.plot(xs, y, panel.style, color=f"C{i}", lw=w, alpha=a, ms=3.5, label=label)
+            ax.plot(
+                *xy(y, f"lines[{label!r}]"),
+                panel.style,
+                color=f"C{i}",
+                lw=w,
+                alpha=a,
+                ms=3.5,
+                label=label,
+            )
         if panel.logy:
             ax.set_yscale("log")
         ax.set_xlabel(xlabel)

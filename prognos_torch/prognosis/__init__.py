@@ -8,6 +8,8 @@ fault prediction, and fault probability and remaining-useful-life distributions.
 * :mod:`.forecaster`: forecasted measurements, one learner (ROS-ELM) per channel (paper 000
   Sec. 5); the ROS-ELM core is :mod:`prognos_torch.learners.ros_elm`.
 * :mod:`.fault`: n-step-ahead and rolling fault-parameter prediction (paper 000 Sec. 5).
+* :mod:`.particle_prediction`: rolling prediction with a particle filter, ahead of each
+  measurement (paper 002 Fig. 8-10).
 * :mod:`.assess`: scoring forecast-fed fault prediction (rolling forecasts, alarms, predicted
   threshold crossings).
 * :mod:`.rul`: fault probability and RUL distributions from predicted paths.
@@ -48,6 +50,7 @@ from .onset import (
     ksigma_onset,
     moving_median,
 )
+from .particle_prediction import RollingParticlePrediction, rolling_particle_prediction
 from .paths import (
     GaussianPaths,
     RecursivePaths,
@@ -76,6 +79,8 @@ from .trends import (
 )
 
 __all__ = [
+    "RollingParticlePrediction",
+    "rolling_particle_prediction",
     "RULDistribution",
     "fault_probability",
     "fault_probability_gaussian",

@@ -204,6 +204,13 @@ class RULDistribution:
         return self.horizon * self.dt
 
     @property
+    def restricted_mean(self) -> Tensor:
+        """``(...)`` ``E[min(RUL, H dt)]``: Eq. 28 with the censored mass counted at the horizon,
+        ``sum_j j dt pmf_j + censored_mass * H dt``. Equals ``expectation`` when nothing is
+        censored and is a lower bound of the unconditional mean otherwise; always finite."""
+        return (self.pmf * self.support).sum(-1) + self.censored_mass * self.rul_lower_bound
+
+    @property
     def path_censored(self) -> Tensor:
         """``(..., N)`` bool: the path never crosses within the horizon."""
         return self.first_passage < 0

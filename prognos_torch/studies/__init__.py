@@ -7,7 +7,8 @@ and method), ``run.json`` (configuration, versions, machine) and the figures the
 :mod:`.tables` holds the table helpers every study uses (summaries over runs, markdown tables,
 notes filled from a template); :mod:`.evaluate` and :mod:`.forecasters` the evaluation
 protocols the studies share (fault prediction, one-step forecasters alone and inside prognostic
-filters); :mod:`.matrix` a learner x trainer x filter matrix over test problems.
+filters); :mod:`.matrix` a learner x trainer x filter matrix over test problems; :mod:`.rows`
+builds the per-run result rows and writes them as CSV.
 """
 
 from .evaluate import (
@@ -29,6 +30,7 @@ from .forecasters import (
     rul_scores,
 )
 from .matrix import Cell, Footnotes, MatrixResult, capture, run_forecaster_matrix
+from .rows import run_rows, write_rows_csv
 from .runner import (
     Study,
     StudyConfig,
@@ -69,6 +71,8 @@ __all__ = [
     "sweep_table",
     "fmt_value",
     "fill_template",
+    "run_rows",
+    "write_rows_csv",
     "fault_prediction_errors",
     "rolling_forecast_rmse",
     "crossing_scores",

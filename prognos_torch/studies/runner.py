@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import importlib.util
 import json
 import os
@@ -18,6 +17,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from .rows import write_rows_csv
 from .tables import format_table
 
 __all__ = [
@@ -175,16 +175,7 @@ def write_outputs(
         text += ["", result.notes.strip()]
     text_s = "\n".join(text) + "\n"
     (out_dir / "table.md").write_text(text_s)
-    keys: list[str] = []
-    for r in result.rows:
-        for k in r:
-            if k not in keys:
-                keys.append(k)
-    with open(out_dir / "results.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=keys)
-        w.writeheader()
-        for r in result.rows:
-            w.writerow({k: r.get(k, "") for k in keys})
+    write_rows_csv(out_dir / "results.csv", result.rows)
     cfg_d = asdict(cfg)
     cfg_d["out"] = str(cfg.out)
     meta = {

@@ -94,6 +94,8 @@ __all__ = [
     "hst_sensor_fault",
     "hst_process_variance",
     "hst_measurement_variance",
+    "hst_noise_variances",
+    "hst_estimation_errors",
     "hst_model",
     "hst_fault_model",
     "simulate_hst",
@@ -263,6 +265,76 @@ def hst_process_variance(k: int) -> float:
 def hst_measurement_variance(k: int) -> float:
     """Diagonal of ``R_k`` of Eq. 68: ``1.1 + 0.08 cos(0.0002 k)``."""
     return 1.1 + 0.08 * math.cos(0.0002 * k)
+
+
+def hst_noise_variances(n_steps: int, *, dtype=torch.float64, device=None) -> tuple[Tensor, Tensor]:
+    """Diagonals of ``Q`` and ``R`` (Eq. 67-68, before ``q_scale``/``r_scale``) at the library
+    steps ``k = 1..T``: step ``k`` uses ``Q_{k-1}`` and ``R_k`` (module docstring).
+
+    Returns:
+        ``(q, r)``, each ``(T,)``.
+    """
+    check_count(n_steps, "n_steps")
+    q = [hst_process_variance(k - 1) for k in range(1, n_steps + 1)]
+    r = [hst_measurement_variance(k) for k in range(1, n_steps + 1)]
+    return torch.tensor(q, dtype=dtype, device=device), torch.tensor(r, dtype=dtype, device=device)
+
+
+def _rmse_t(est: Tensor, ref: Tensor) -> Tensor:
+    return (est - ref).square().mean(dim=0).sqrt()  # over time; NaN where an estimate diverged
+
+
+def hst_estimation_errors(
+    means: Tensor,
+    var_Q: Tensor,
+    var_R: Tensor,
+    truth: Tensor,
+    *,
+    q_scale: float = 1.0,
+    skip: int = 0,
+) -> dict[str, Tensor]:
+    """Per-run RMSEs over time of a fault-estimation run (paper 004 Tables 2-5).
+
+    Args:
+        means: ``(T, ..., 2n-1+3)`` estimates of :func:`hst_fault_model`'s state at steps 1..T.
+        var_Q: ``(T, ..., >= 2n-1)`` process-noise variances used per step (the first ``2n-1``
+            are compared, divided by ``q_scale``: in the units of Eq. 67).
+        var_R: ``(T, ..., 2n-1)`` measurement-noise variances used per step.
+        truth: ``(T', ..., 2n-1+3)`` with ``T' > T``: ``cat([x, theta], -1)`` of
+            :func:`simulate_hst` from ``k = 0`` (row ``k`` is step ``k``).
+        q_scale: the ``q_scale`` of the model (Eq. 67 reading).
+        skip: the ``*_late`` entries use only the steps ``k > skip`` (e.g. after a noise
+            estimator's window has filled).
+    Returns:
+        ``state`` ``(..., 2n-1)``, ``fault`` ``(..., 3)``, ``Q``, ``R``, ``Q_late``, ``R_late``
+        ``(..., 2n-1)``: RMSE over the steps of each component (truth of ``Q``, ``R``:
+        :func:`hst_noise_variances`).
+    """
+    T = means.shape[0]
+    s = var_R.shape[-1]
+    if truth.shape[0] <= T or means.shape[-1] != s + 3 or truth.shape[1:] != means.shape[1:]:
+        raise ValueError(
+            f"means (T, ..., {s + 3}) and truth (T + 1, ..., {s + 3}) do not match: "
+            f"{tuple(means.shape)}, {tuple(truth.shape)}"
+        )
+    if var_Q.shape[0] != T or var_R.shape[0] != T or var_Q.shape[-1] < s:
+        raise ValueError(
+            f"var_Q (T, ..., >= {s}) and var_R (T, ..., {s}) must have T = {T} rows, got "
+            f"{tuple(var_Q.shape)}, {tuple(var_R.shape)}"
+        )
+    ref = truth[1 : T + 1]
+    qt, rt = hst_noise_variances(T, dtype=means.dtype, device=means.device)
+    shape = (T,) + (1,) * (var_R.dim() - 1)
+    Q, R = var_Q[..., :s] / q_scale, var_R  # Q in the units of Eq. 67
+    Qt, Rt = qt.reshape(shape).expand_as(Q), rt.reshape(shape).expand_as(R)
+    return {
+        "state": _rmse_t(means[..., :s], ref[..., :s]),
+        "fault": _rmse_t(means[..., s:], ref[..., s:]),
+        "Q": _rmse_t(Q, Qt),
+        "R": _rmse_t(R, Rt),
+        "Q_late": _rmse_t(Q[skip:], Qt[skip:]),
+        "R_late": _rmse_t(R[skip:], Rt[skip:]),
+    }
 
 
 def _noise_chols(params: HSTParams, q_scale, r_scale, dtype, device):
