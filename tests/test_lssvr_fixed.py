@@ -265,3 +265,13 @@ def test_fixed_size_on_cuda_matches_cpu():
     torch.testing.assert_close(
         dev.input_gradient(X[:20].cuda()).cpu(), cpu.input_gradient(X[:20]), rtol=1e-8, atol=1e-9
     )
+
+
+def test_gram_evaluator_blocks_agree(monkeypatch):
+    X, Y = _data(N=300, n=3, n_out=2)
+    fast = LSSVRGram(LSSVR(sigma=0.5, C=50.0, n_out=2).fit(X, Y))
+    x = torch.rand(4, 60, 3, generator=torch.Generator().manual_seed(8), dtype=torch.float64)
+    f0, j0 = fast(x), fast.input_gradient(x.reshape(-1, 3))
+    monkeypatch.setattr(lssvr_mod, "KERNEL_BLOCK_BYTES", 3000)  # one row of phi per block
+    torch.testing.assert_close(fast(x), f0, rtol=0, atol=1e-12)
+    torch.testing.assert_close(fast.input_gradient(x.reshape(-1, 3)), j0, rtol=0, atol=1e-11)

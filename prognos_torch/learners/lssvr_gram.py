@@ -34,7 +34,7 @@ import torch
 from torch import Tensor, nn
 
 from .elm import check_forward_input
-from .lssvr import LSSVR
+from .lssvr import LSSVR, _blocked
 
 __all__ = ["LSSVRGram"]
 
@@ -97,9 +97,14 @@ class LSSVRGram(nn.Module):
         return phi.reshape(*x.shape[:-1], phi.shape[-1])
 
     def forward(self, x: Tensor) -> Tensor:
-        """Prediction ``f(x)`` (Eq. 8): ``x (..., n_in) -> (..., n_out)``."""
+        """Prediction ``f(x)`` (Eq. 8): ``x (..., n_in) -> (..., n_out)``; the ``(B, M)`` kernel
+        values in row blocks above :data:`~prognos_torch.learners.lssvr.KERNEL_BLOCK_BYTES`."""
         check_forward_input(x, self.n_in, self.alpha)
-        return self._phi(x) @ self.alpha + self.b
+
+        def block(xb: Tensor) -> Tensor:
+            return self._phi(xb) @ self.alpha + self.b
+
+        return _blocked(block, x, x.element_size() * self.support_vectors.shape[0])
 
     def input_gradient(self, x: Tensor) -> Tensor:
         """Closed-form Jacobian ``df/dx`` (Eq. 25): ``x (B, n_in) -> (B, n_out, n_in)``."""
@@ -108,7 +113,11 @@ class LSSVRGram(nn.Module):
             raise ValueError(
                 f"x must have shape (B, n_in) with n_in={self.n_in}, got {tuple(x.shape)}"
             )
-        phi = self._phi(x)  # (B, M)
-        s = phi @ self.alpha  # (B, n_out): sum_i alpha_i phi_i
-        wp = (phi @ self.alpha_sv).reshape(-1, self.n_out, self.n_in)  # sum_i alpha_i phi_i P_i
-        return -2.0 * self.inv_two_sigma2 * (s.unsqueeze(-1) * x.unsqueeze(-2) - wp)
+
+        def block(xb: Tensor) -> Tensor:
+            phi = self._phi(xb)  # (B, M)
+            s = phi @ self.alpha  # (B, n_out): sum_i alpha_i phi_i
+            wp = (phi @ self.alpha_sv).reshape(-1, self.n_out, self.n_in)  # sum alpha phi P_i
+            return -2.0 * self.inv_two_sigma2 * (s.unsqueeze(-1) * xb.unsqueeze(-2) - wp)
+
+        return _blocked(block, x, x.element_size() * self.support_vectors.shape[0])
