@@ -275,3 +275,14 @@ def test_gram_evaluator_blocks_agree(monkeypatch):
     monkeypatch.setattr(lssvr_mod, "KERNEL_BLOCK_BYTES", 3000)  # one row of phi per block
     torch.testing.assert_close(fast(x), f0, rtol=0, atol=1e-12)
     torch.testing.assert_close(fast.input_gradient(x.reshape(-1, 3)), j0, rtol=0, atol=1e-11)
+
+
+def test_exact_lssvr_jacobian_in_row_chunks(monkeypatch):
+    # the particle filters' Jacobian of the exact LS-SVR: vmap(jacrev) in chunks of rows
+    X, Y = _data(N=200, n=3)
+    net = LSSVR(sigma=0.5, C=50.0).fit(X, Y)
+    x = torch.rand(90, 3, generator=torch.Generator().manual_seed(9), dtype=torch.float64)
+    J0 = net.input_gradient(x)
+    monkeypatch.setattr(lssvr_mod, "KERNEL_BLOCK_BYTES", 6 * 8 * 200 * 3 * 7)  # 7 rows a chunk
+    assert lssvr_mod._row_chunks(x, 6 * 8 * 200 * 3) == 7
+    torch.testing.assert_close(net.input_gradient(x), J0, rtol=0, atol=1e-13)

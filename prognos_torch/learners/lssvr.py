@@ -280,7 +280,9 @@ class LSSVR(nn.Module):
         """Jacobian of Eq. 8 with respect to the input, ``df/dx`` (generalises Eq. 20-26).
 
         Computed with ``torch.func.jacrev`` per sample (works for every kernel, inside and
-        outside ``torch.no_grad``). For an embedding ``P_s = [x_{s-m+1}, ..., x_s]`` the
+        outside ``torch.no_grad``), vectorised by ``vmap`` in chunks of rows whose
+        intermediates (``~6 M n`` numbers per row for the RBF kernel) stay within
+        :data:`KERNEL_BLOCK_BYTES`. For an embedding ``P_s = [x_{s-m+1}, ..., x_s]`` the
         derivative with respect to the newest value ``x_s`` (Eq. 23/26) is ``[..., -1]``.
 
         Args:
@@ -295,7 +297,9 @@ class LSSVR(nn.Module):
         check_forward_input(x, n_in, self.alpha)
         if x.dim() != 2:
             raise ValueError(f"x must have shape (B, n_in) with n_in={n_in}, got {tuple(x.shape)}")
-        return torch.func.vmap(torch.func.jacrev(self.forward))(x)
+        per_row = 6 * x.element_size() * sv.shape[0] * (n_in if self.kernel == "rbf" else 1)
+        chunk = _row_chunks(x, per_row)  # None: one vmap over all rows, as before
+        return torch.func.vmap(torch.func.jacrev(self.forward), chunk_size=chunk)(x)
 
     # ---------------------------------------------------------------- training (stateful)
     @torch.no_grad()

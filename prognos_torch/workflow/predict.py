@@ -42,7 +42,7 @@ from torch import Tensor
 from ..core.belief import GaussianBelief
 from ..filters import make_filter, make_particle_filter
 from ..filters import run as run_filter
-from ..learners.lssvr_fixed import FixedSizeLSSVR
+from ..learners import LSSVR
 from ..prognosis.learner_model import learner_transition_model
 from ..prognosis.paths import gaussian_paths, particle_paths
 from ..prognosis.rul import RULDistribution, rul_distribution
@@ -199,8 +199,10 @@ def _transition(model: FittedModel, name: str):
     # Eq. 19 puts the noise on the newest element only; Gaussian-proposal particle filters
     # weight by the transition density and need a little on the shifted ones too
     shift = JITTER * q if name in _GAUSSIAN_PROPOSAL else 0.0
-    # the fixed-size LS-SVR's Jacobian is the closed form of Eq. 25 (O(M) per particle)
-    jac = "input_gradient" if isinstance(model.learner, FixedSizeLSSVR) else "autograd"
+    # LS-SVR: its own input_gradient, the closed form of Eq. 25 for the fixed-size LS-SVR
+    # (O(M) per particle) and autograd in row chunks for the exact one (the same numbers as
+    # the "autograd" route, without a particles x N x m tensor beyond the block budget)
+    jac = "input_gradient" if isinstance(model.learner, LSSVR) else "autograd"
     return learner_transition_model(model.learner, m, q, r, shift_std=shift, jacobian=jac), r
 
 
