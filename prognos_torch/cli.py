@@ -447,7 +447,7 @@ def _cmd_forecast(args) -> int:
     import torch
 
     from .io import atomic_write
-    from .workflow import forecast, plot_forecast
+    from .workflow import forecast
 
     model, series, data_cfg, truth = _load_for_prediction(args)
     fc = forecast(
@@ -503,6 +503,8 @@ def _cmd_forecast(args) -> int:
         atomic_write(args.csv, ("\n".join(lines) + "\n").encode())
         print(f"forecast written to {args.csv}")
     if args.plot is not None:
+        from .workflow import plot_forecast
+
         plot_forecast(args.plot, fc, truth=truth)
         print(f"figure written to {args.plot}")
     return 0
@@ -520,7 +522,7 @@ def _observed_rul(res, truth) -> str | float:
 
 
 def _cmd_rul(args) -> int:
-    from .workflow import plot_rul, rul
+    from .workflow import rul
 
     model, series, data_cfg, truth = _load_for_prediction(args)
     res = rul(
@@ -566,6 +568,8 @@ def _cmd_rul(args) -> int:
         )
     )
     if args.plot is not None:
+        from .workflow import plot_rul
+
         plot_rul(args.plot, res)
         print(f"figure written to {args.plot}")
     if res.fully_censored:

@@ -19,7 +19,6 @@ optimisers by name), :mod:`.predict` (:func:`forecast`, :func:`rul`), :mod:`.sto
 ``prognos fit | forecast | rul`` commands are thin wrappers around these functions.
 """
 
-from ..plots import plot_forecast, plot_rul
 from .data import FILL_METHODS, Series, load_series, parse_where
 from .model import (
     DEFAULT_OPTIMIZER,
@@ -58,3 +57,12 @@ __all__ = [
     "plot_forecast",
     "plot_rul",
 ]
+
+
+def __getattr__(name: str):
+    # the figures load matplotlib (about a second): only when asked for
+    if name in ("plot_forecast", "plot_rul"):
+        from .. import plots
+
+        return getattr(plots, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
