@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import prognos_torch.learners.lssvr as lssvr_mod
-import prognos_torch.learners.lssvr_fixed as fixed_mod
+import prognos_torch.learners.lssvr_gram as gram_mod
 from prognos_torch.learners import LSSVR, FixedSizeLSSVR, LSSVRGram
 from prognos_torch.learners.lssvr import kernel_matrix, rbf_kernel
 from prognos_torch.learners.lssvr_fixed import nystrom_ridge, renyi_support
@@ -205,14 +205,14 @@ def test_transition_model_jacobians_and_particle_paths():
     p1 = particle_paths(closed, x, 30, generator=g1)
     with torch.no_grad():
         f1 = fs(x)
-    saved = fixed_mod.WORK_BLOCK_BYTES
+    saved = lssvr_mod.KERNEL_BLOCK_BYTES
     try:  # particle batches evaluated one row at a time
-        fixed_mod.WORK_BLOCK_BYTES = 8
+        lssvr_mod.KERNEL_BLOCK_BYTES = 8
         with torch.no_grad():
             f2 = fs(x)
         p2 = particle_paths(closed, x, 30, generator=g2)
     finally:
-        fixed_mod.WORK_BLOCK_BYTES = saved
+        lssvr_mod.KERNEL_BLOCK_BYTES = saved
     torch.testing.assert_close(f1, f2, rtol=0, atol=1e-12)  # one step: rounding only
     # 30 recursive steps amplify the rounding of |beta| ~ 1e3 weighted sums
     torch.testing.assert_close(p1.samples, p2.samples, rtol=0, atol=1e-7)
@@ -272,7 +272,7 @@ def test_gram_evaluator_blocks_agree(monkeypatch):
     fast = LSSVRGram(LSSVR(sigma=0.5, C=50.0, n_out=2).fit(X, Y))
     x = torch.rand(4, 60, 3, generator=torch.Generator().manual_seed(8), dtype=torch.float64)
     f0, j0 = fast(x), fast.input_gradient(x.reshape(-1, 3))
-    monkeypatch.setattr(lssvr_mod, "KERNEL_BLOCK_BYTES", 3000)  # one row of phi per block
+    monkeypatch.setattr(gram_mod, "GRAM_BLOCK_BYTES", 3000)  # one row of phi per block
     torch.testing.assert_close(fast(x), f0, rtol=0, atol=1e-12)
     torch.testing.assert_close(fast.input_gradient(x.reshape(-1, 3)), j0, rtol=0, atol=1e-11)
 

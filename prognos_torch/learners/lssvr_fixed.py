@@ -40,15 +40,13 @@ import torch
 from torch import Tensor, nn
 
 from ..core.linalg import tria
+from . import lssvr as _lssvr
 from .elm import as_data, as_targets, check_forward_input, check_pos_int
-from .lssvr import KERNEL_BLOCK_BYTES, LSSVR, _blocked, kernel_matrix
+from .lssvr import LSSVR, _blocked, kernel_matrix
 
 __all__ = ["FixedSizeLSSVR", "SELECTIONS", "renyi_support", "nystrom_ridge"]
 
 SELECTIONS = ("renyi", "random")
-#: Working block of kernel rows (bytes): well below :data:`KERNEL_BLOCK_BYTES`, because fresh
-#: allocations of tens of MB are page-faulted on every call and cost more than the arithmetic.
-WORK_BLOCK_BYTES = 4 * 2**20
 
 
 def _rbf_cross(X: Tensor, Z: Tensor, sigma: Tensor) -> Tensor:
@@ -143,7 +141,8 @@ def nystrom_ridge(
         Z: ``(M, n)`` support points.
         C: regularisation ``C > 0`` (paper 002, Eq. 1).
         kernel_fn: ``(A (B, n), Z (M, n)) -> (B, M)`` kernel values.
-        block_bytes: bytes per block of kernel rows (default :data:`WORK_BLOCK_BYTES`).
+        block_bytes: bytes per block of kernel rows (default
+            :data:`~prognos_torch.learners.lssvr.KERNEL_BLOCK_BYTES`).
     Returns:
         ``(beta, b, rank)``: ``(M, n_out)`` dual weights on ``Z``, ``(n_out,)`` bias, and the
         number of Nystrom features kept.
@@ -161,7 +160,7 @@ def nystrom_ridge(
     # square root of the normal equations, started with the ridge rows [C^{-1/2} I_r, 0, 0]
     S = torch.zeros(width, width, dtype=X.dtype, device=X.device)
     S[:r, :r] = torch.eye(r, dtype=X.dtype, device=X.device) / torch.as_tensor(C).sqrt()
-    budget = WORK_BLOCK_BYTES if block_bytes is None else min(int(block_bytes), KERNEL_BLOCK_BYTES)
+    budget = _lssvr.KERNEL_BLOCK_BYTES if block_bytes is None else int(block_bytes)
     rows = max(256, budget // (8 * (Z.shape[0] + 2 * width)))
     for s in range(0, X.shape[0], rows):
         F = kernel_fn(X[s : s + rows], Z) @ W
@@ -250,7 +249,7 @@ class FixedSizeLSSVR(LSSVR):
         def block(xb: Tensor) -> Tensor:
             return _rbf_cross(xb, sv, sigma) @ self.alpha + self.b
 
-        return _blocked(block, x, x.element_size() * sv.shape[0], WORK_BLOCK_BYTES)
+        return _blocked(block, x, x.element_size() * sv.shape[0])
 
     def input_gradient(self, x: Tensor) -> Tensor:
         """Jacobian ``df/dx`` (Eq. 25 in closed form for the RBF kernel, autograd otherwise).
@@ -277,7 +276,7 @@ class FixedSizeLSSVR(LSSVR):
             return -(s.unsqueeze(-1) * xb.unsqueeze(-2) - wz) / (sigma * sigma)
 
         per_row = x.element_size() * sv.shape[0] * (1 + self.n_out)
-        return _blocked(block, x, per_row, WORK_BLOCK_BYTES)
+        return _blocked(block, x, per_row)
 
     @torch.no_grad()
     def fit(self, X, y) -> FixedSizeLSSVR:

@@ -36,6 +36,10 @@ from torch import Tensor, nn
 from .elm import check_forward_input
 from .lssvr import LSSVR, _blocked
 
+#: Row-block budget of the ``(B, M)`` kernel values (bytes; no ``(B, M, n)`` difference tensor
+#: is formed here, so the budget is larger than the LS-SVR's ``KERNEL_BLOCK_BYTES``).
+GRAM_BLOCK_BYTES = 64 * 2**20
+
 __all__ = ["LSSVRGram"]
 
 
@@ -98,13 +102,14 @@ class LSSVRGram(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         """Prediction ``f(x)`` (Eq. 8): ``x (..., n_in) -> (..., n_out)``; the ``(B, M)`` kernel
-        values in row blocks above :data:`~prognos_torch.learners.lssvr.KERNEL_BLOCK_BYTES`."""
+        values in row blocks above :data:`GRAM_BLOCK_BYTES`."""
         check_forward_input(x, self.n_in, self.alpha)
 
         def block(xb: Tensor) -> Tensor:
             return self._phi(xb) @ self.alpha + self.b
 
-        return _blocked(block, x, x.element_size() * self.support_vectors.shape[0])
+        per_row = x.element_size() * self.support_vectors.shape[0]
+        return _blocked(block, x, per_row, GRAM_BLOCK_BYTES)
 
     def input_gradient(self, x: Tensor) -> Tensor:
         """Closed-form Jacobian ``df/dx`` (Eq. 25): ``x (B, n_in) -> (B, n_out, n_in)``."""
@@ -120,4 +125,5 @@ class LSSVRGram(nn.Module):
             wp = (phi @ self.alpha_sv).reshape(-1, self.n_out, self.n_in)  # sum alpha phi P_i
             return -2.0 * self.inv_two_sigma2 * (s.unsqueeze(-1) * xb.unsqueeze(-2) - wp)
 
-        return _blocked(block, x, x.element_size() * self.support_vectors.shape[0])
+        per_row = x.element_size() * self.support_vectors.shape[0]
+        return _blocked(block, x, per_row, GRAM_BLOCK_BYTES)

@@ -25,7 +25,6 @@ import os
 import re
 
 from ..learners.lssvr import KERNEL_BLOCK_BYTES
-from ..learners.lssvr_fixed import WORK_BLOCK_BYTES
 
 __all__ = [
     "MemoryBudgetError",
@@ -112,7 +111,7 @@ def fit_bytes(learner: str, optimizer: str, n_rows: int, m: int, options: dict) 
                 f"the exact LS-SVR's {n_rows:,} x {n_rows:,} kernel matrix"
             )
         # K_MM, its eigenvectors, W and the triangular factor; blocks of kernel rows
-        return base + 6 * _F64 * M * M + 4 * WORK_BLOCK_BYTES, (
+        return base + 6 * _F64 * M * M + 4 * KERNEL_BLOCK_BYTES, (
             f"the fixed-size LS-SVR's {M:,} x {M:,} support-point matrices"
         )
     if learner == "elm":  # hidden-layer matrix H (Eq. 51) and its products

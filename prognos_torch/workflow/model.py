@@ -238,9 +238,9 @@ def select_embedding(
     best = min(scores, key=lambda k: (scores[k], k))
     if not math.isfinite(scores[best]):
         reasons = sorted(set(errors.values()))
-        detail = reasons[0] if len(reasons) == 1 else "; ".join(
-            f"m={k}: {v}" for k, v in errors.items()
-        )
+        detail = reasons[0]
+        if len(reasons) > 1:
+            detail = "; ".join(f"m={k}: {v}" for k, v in errors.items())
         raise ValueError(
             f"no embedding dimension gave a finite validation error: {learner.upper()} failed "
             f"for every m in {usable} ({detail})"
