@@ -167,7 +167,7 @@ def _add_fit(sub) -> None:
         type=int,
         metavar="M",
         help="LS-SVR: exact KKT solve up to M training values, a fixed-size LS-SVR on M "
-        "support points above (default: exact up to 2000 values, else 100 points)",
+        "support points above (default: exact up to 2000 values, else 50 points)",
     )
     g.add_argument(
         "--learner-option", action="append", metavar="KEY=VALUE", help="e.g. n_hidden=40"

@@ -238,3 +238,11 @@ def test_cli_max_support_and_last(tmp_path, capsys):
     model = load_model(out)
     assert isinstance(model.learner, FixedSizeLSSVR)
     assert model.learner.support_vectors.shape == (40, 2)
+
+
+def test_cli_help_states_the_policy(capsys):
+    with pytest.raises(SystemExit):
+        main(["fit", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert f"exact up to {FULL_LSSVR_MAX_ROWS} values, else {DEFAULT_SUPPORT} points" in text
+    assert "PROGNOS_MEMORY_BUDGET" in text
