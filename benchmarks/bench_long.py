@@ -64,12 +64,19 @@ def make_series(T: int, path: Path, seed: int = 0) -> tuple[float, float]:
     return float(x[-1]), float(x.max() - x.min())
 
 
-def timed(cmd: list[str], env: dict, timeout: float) -> dict:
-    """Run ``cmd`` under ``/usr/bin/time -v``; wall seconds, peak RSS (MiB), exit status."""
+def timed(cmd: list[str], env: dict, timeout: float, cwd: str) -> dict:
+    """Run ``cmd`` under ``/usr/bin/time -v`` in ``cwd``; wall seconds, peak RSS (MiB), exit
+    status. (``python -m`` puts the working directory first on ``sys.path``: run it outside any
+    checkout so that ``PYTHONPATH`` decides which tree is measured.)"""
     t0 = time.perf_counter()
     try:
         p = subprocess.run(
-            ["/usr/bin/time", "-v", *cmd], env=env, capture_output=True, text=True, timeout=timeout
+            ["/usr/bin/time", "-v", *cmd],
+            env=env,
+            cwd=cwd,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
         )
     except subprocess.TimeoutExpired:
         return {"seconds": time.perf_counter() - t0, "peak_mib": None, "rc": "timeout"}
@@ -127,17 +134,17 @@ def main() -> None:
             if support is not None:
                 fit += ["--max-support", str(support)]
             row = {"rows": n, "learner": learner + (" (exact)" if support else ""), "fit": None}
-            row["fit"] = timed(fit, env, args.timeout)
+            row["fit"] = timed(fit, env, args.timeout, tmp)
             out = row["fit"].pop("stdout", "")
             sup = re.search(r"support points\s+(\d+)", out)
             row["support"] = int(sup.group(1)) if sup else None
             if model.exists():
                 fc = [*py, "forecast", str(model), str(data), "--horizon", "50"]
-                row["forecast"] = timed(fc, env, args.timeout)
+                row["forecast"] = timed(fc, env, args.timeout, tmp)
                 row["forecast"].pop("stdout", None)
                 thr = f"{last + 0.05 * span:.6f}"
                 ru = [*py, "rul", str(model), str(data), "--threshold", thr]
-                row["rul"] = timed(ru, env, args.timeout)
+                row["rul"] = timed(ru, env, args.timeout, tmp)
                 row["rul"].pop("stdout", None)
             results.append(row)
             print(
