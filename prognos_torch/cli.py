@@ -345,7 +345,7 @@ def _describe(series, data_cfg: dict) -> str:
 
 
 def _cmd_fit(args) -> int:
-    from .workflow import fit_series
+    from .workflow import fit_series, save_model
 
     _check_out_folder(args.out, "--out")
     series, data_cfg = _series_from_args(args)
@@ -426,7 +426,7 @@ def _cmd_fit(args) -> int:
                 ("metric", "value"),
             )
         )
-    model.save(args.out)
+    save_model(model, args.out)
     print(f"\nmodel written to {args.out}")
     return 0
 

@@ -17,7 +17,7 @@ from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from prognos_torch.adapt.noise import SageHusa
 from prognos_torch.datasets.windows import MinMaxScaler, chronological_split, embed
-from prognos_torch.filters.gaussian import sckf
+from prognos_torch.filters import sckf
 from prognos_torch.learners import ANFIS, ELM
 from prognos_torch.optim import (
     EKF,
@@ -187,7 +187,7 @@ def test_sigma_point_optimisers_equal_ekf_on_linear_models(filt):
     if filt == "imsrukf_frozen":  # noise estimator off: exactly the SRUKF
         o = ImSRUKF(m, noise=SageHusa(frozen=True), **kw)
     elif filt == "ekf_full":
-        from prognos_torch.filters.gaussian import ekf
+        from prognos_torch.filters import ekf
 
         o = KalmanOptimizer(m, filter=ekf(sqrt=False), **kw)
     elif filt == "srukf":

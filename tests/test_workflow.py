@@ -38,6 +38,7 @@ from prognos_torch.workflow import (
     plot_forecast,
     plot_rul,
     rul,
+    save_model,
     select_embedding,
 )
 
@@ -299,7 +300,7 @@ def test_model_file_round_trip_in_a_fresh_process(tmp_path):
     s = load_series(x, time=t)
     model = fit_series(s, "anfis", "ekf", 2, holdout=10, seed=4)
     path = tmp_path / "model.pt"
-    model.save(path)
+    save_model(model, path)
     again = load_model(path)
     assert again.config == model.config
     for k, v in model.learner.state_dict().items():
@@ -335,7 +336,7 @@ def test_model_file_rejects_tampering_truncation_versions_and_pickles(tmp_path):
     s = load_series(_series_values(40)[1])
     model = fit_series(s, "elm", None, 2, holdout=0)
     good = tmp_path / "good.pt"
-    model.save(good)
+    save_model(model, good)
     raw = good.read_bytes()
     assert raw.startswith(MAGIC)
 

@@ -17,7 +17,7 @@ import torch
 import prognos_torch.workflow.model as model_mod
 from prognos_torch.cli import main
 from prognos_torch.learners import LSSVR, FixedSizeLSSVR
-from prognos_torch.workflow import fit_series, forecast, load_model, load_series, rul
+from prognos_torch.workflow import fit_series, forecast, load_model, load_series, rul, save_model
 from prognos_torch.workflow.memory import (
     DEFAULT_SUPPORT,
     FULL_LSSVR_MAX_ROWS,
@@ -132,7 +132,7 @@ def test_fit_chooses_fixed_size_above_the_threshold_and_round_trips(tmp_path):
     assert torch.equal(again.learner.alpha, net.alpha)
     # the model file rebuilds the same class; forecasts and RUL are bit-identical
     path = tmp_path / "fs.pt"
-    model.save(path)
+    save_model(model, path)
     loaded = load_model(path)
     assert type(loaded.learner) is FixedSizeLSSVR
     a = forecast(model, s, 20, filter="stpf", n_particles=50)

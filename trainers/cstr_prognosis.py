@@ -45,7 +45,7 @@ from matplotlib.figure import Figure
 from tqdm import tqdm
 
 from prognos_torch.core.belief import GaussianBelief
-from prognos_torch.datasets.windows import embed
+from prognos_torch.datasets.windows import embed, minmax_normalize
 from prognos_torch.filters import run as filter_run
 from prognos_torch.filters import sckf, stsckf
 from prognos_torch.learners import ANFIS
@@ -59,7 +59,6 @@ from prognos_torch.prognosis import (
 )
 from prognos_torch.prognosis.rul import rul_distribution
 from prognos_torch.studies import Study, StudyConfig, StudyResult
-from prognos_torch.systems import minmax_normalize
 from prognos_torch.systems.cstr import (
     CSTRParams,
     cstr_feed_drift,

@@ -65,7 +65,7 @@ from torch.func import functional_call, vmap
 from tqdm import tqdm
 
 from prognos_torch.core.belief import GaussianBelief
-from prognos_torch.datasets import MinMaxScaler, embed, health_indicator
+from prognos_torch.datasets import MinMaxScaler, embed, health_indicator, minmax_normalize
 from prognos_torch.filters import ekpf, multinomial, sckf, sir, stpf, stsckf
 from prognos_torch.filters import run as filter_run
 from prognos_torch.learners import ANFIS, ELM, LSSVR
@@ -88,7 +88,6 @@ from prognos_torch.prognosis import (
 )
 from prognos_torch.prognosis.rul import rul_distribution
 from prognos_torch.studies import Study, StudyConfig, StudyResult
-from prognos_torch.systems import minmax_normalize
 from prognos_torch.systems.cstr import simulate_cstr
 
 # ----------------------------------------------------------------------------------- settings

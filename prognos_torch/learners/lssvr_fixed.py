@@ -40,8 +40,8 @@ import torch
 from torch import Tensor, nn
 
 from ..core.linalg import tria
+from ..core.validation import as_data, as_targets, check_forward_input, check_pos_int
 from . import lssvr as _lssvr
-from .elm import as_data, as_targets, check_forward_input, check_pos_int
 from .lssvr import LSSVR, _blocked, kernel_matrix
 
 __all__ = ["FixedSizeLSSVR", "SELECTIONS", "renyi_support", "nystrom_ridge"]

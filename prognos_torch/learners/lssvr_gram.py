@@ -33,7 +33,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .elm import check_forward_input
+from ..core.validation import check_forward_input
 from .lssvr import LSSVR, _blocked
 
 #: Row-block budget of the ``(B, M)`` kernel values (bytes; no ``(B, M, n)`` difference tensor

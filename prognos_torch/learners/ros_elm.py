@@ -9,14 +9,13 @@ is :class:`~prognos_torch.prognosis.MeasurementForecaster`.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 
-from ..core.validation import check_finite, check_float_tensor, check_pos_int
+from ..core.validation import check_finite, check_float_tensor, check_nonneg, check_pos_int
 from ..datasets.windows import shift_append
 from .introspect import learner_dtype_device
 
@@ -84,8 +83,7 @@ def ros_elm_init(elms: Sequence[nn.Module], z0: Tensor, p: int, lam: float) -> R
             f"z0 must hold N0 >= p + 1 = {p + 1} samples to form a training pair, got N0={z0.shape[0]}"
         )
     check_finite(z0, "z0", "(N0, ..., C)")
-    if not (isinstance(lam, (int, float)) and not isinstance(lam, bool) and 0 <= lam < math.inf):
-        raise ValueError(f"lam must be a finite number >= 0, got {lam!r}")
+    check_nonneg(lam, "lam", numbers_only=True)
     z64 = z0.to(torch.float64).movedim(0, -1)  # (..., C, N0)
     betas, Ks = [], []
     for c, elm in enumerate(elms):

@@ -46,8 +46,9 @@ from ..adapt.strong_tracking import StrongTracking, StrongTrackingState
 from ..core.belief import GaussianBelief
 from ..core.linalg import tria
 from ..core.model import StateSpaceModel
-from ..core.validation import all_finite
-from ..filters.gaussian import FilterState, GaussianFilter, StepInfo, Taylor, make_filter
+from ..core.validation import check_matches
+from ..filters.gaussian import FilterState, GaussianFilter, StepInfo, Taylor
+from ..filters.variants import make_filter
 from .params import ParameterBridge
 
 __all__ = [
@@ -241,7 +242,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         params: the module to train (its parameters with ``requires_grad=True`` form ``theta``),
             or an iterable of some of its parameters (then ``module`` is required).
         module: the module, when ``params`` is an iterable of parameters.
-        filter: a filter name of :func:`~prognos_torch.filters.gaussian.make_filter` (``"ekf"``,
+        filter: a filter name of :func:`~prognos_torch.filters.variants.make_filter` (``"ekf"``,
             ``"srukf"``, ``"imsrukf"``, ``"ukf"``, ``"ckf"``, ``"sckf"``, ``"stekf"``, ``"stukf"``,
             ``"stsckf"``) or a configured :class:`GaussianFilter`.
         P0: prior covariance of ``theta_0``: scalar variance, ``(n,)`` variances, ``(n, n)``, or
@@ -462,14 +463,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         b = self.bridge
         if not isinstance(inputs, Tensor):
             raise TypeError(f"inputs must be a torch.Tensor, got {type(inputs)}")
-        if inputs.dtype != b.dtype:
-            raise TypeError(
-                f"inputs has dtype {inputs.dtype} but the module parameters have dtype {b.dtype}"
-            )
-        if inputs.device != b.device:
-            raise ValueError(f"inputs is on {inputs.device} but the module is on {b.device}")
-        if not all_finite(inputs):
-            raise ValueError("inputs contains non-finite values (NaN or inf)")
+        check_matches(inputs, "inputs", b.dtype, b.device)
         if self.per_run_data and (inputs.dim() < 1 or inputs.shape[0] != self.runs):
             raise ValueError(
                 f"inputs must have shape (runs={self.runs}, ...) with per_run_data=True, got "
@@ -495,14 +489,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 f"targets must have shape {want} (the model output for inputs of "
                 f"shape {tuple(x.shape)}), got {tuple(targets.shape)}"
             )
-        if targets.dtype != b.dtype:
-            raise TypeError(
-                f"targets has dtype {targets.dtype} but the module parameters have dtype {b.dtype}"
-            )
-        if targets.device != b.device:
-            raise ValueError(f"targets is on {targets.device} but the module is on {b.device}")
-        if not all_finite(targets):
-            raise ValueError("targets contains non-finite values (NaN or inf)")
+        check_matches(targets, "targets", b.dtype, b.device)
         return x, targets, out_shape
 
     def _chol_R(self, out_shape: torch.Size) -> Tensor:

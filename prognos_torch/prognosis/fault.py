@@ -27,6 +27,7 @@ from ..core.validation import (
 )
 from ..filters.gaussian import FilterState, GaussianFilter
 from ..filters.run import run as _engine_run
+from ..filters.sequence import scan
 
 __all__ = [
     "FaultPrediction",
@@ -227,36 +228,43 @@ def rolling_fault_prediction(
     traj = _engine_run(filt, model, state, ys[:start], None if us is None else us[:start], k0=0)
     state = traj.final
     sel = sel.to(state.belief.mean.device)
-    filtered = [m_.index_select(-1, sel) for m_ in traj.means.unbind(0)]
+    index = sel.tolist()
 
-    preds, stds, lams = [], [], []
-    for k in range(start, T + 1):
-        pred = predict_fault_parameter(
-            filt,
-            model,
-            state,
-            fc,
-            n,
-            k,
-            us=None if us is None else us[k : k + n],
-            param_index=sel.tolist(),
-        )
-        preds.append(pred.theta)
-        stds.append(pred.theta_std)
-        lams.append(pred.fading_factors)
-        if k < T:
-            u = None if us is None else us[k]
-            state, _ = filt.step(model, state, ys[k], u, k=k + 1)
-            fc.update(ys[k])
-            filtered.append(state.belief.mean.index_select(-1, sel))
+    def predict(s: FilterState, k: int) -> FaultPrediction:  # steps 3-8 from the state at k
+        u_future = None if us is None else us[k : k + n]
+        return predict_fault_parameter(filt, model, s, fc, n, k, us=u_future, param_index=index)
+
+    def step(s: FilterState, y: Tensor, u: Tensor | None, k: int):  # step 9
+        s, _ = filt.step(model, s, y, u, k=k)
+        fc.update(y)
+        return s, k
+
+    def record(s: FilterState, k: int) -> dict[str, Tensor]:
+        pred = predict(s, k)
+        return {
+            "filtered": s.belief.mean.index_select(-1, sel),
+            "predicted": pred.theta,
+            "predicted_std": pred.theta_std,
+            "fading_factors": pred.fading_factors,
+        }
+
+    first = record(state, start)
+    rows = {key: [v.unsqueeze(0)] for key, v in first.items()}
+    rows["filtered"] = [traj.means.index_select(-1, sel)]
+    if start < T:
+        u_rest = None if us is None else us[start:T]
+        state, more = scan(step, state, ys[start:], u_rest, record=record, k0=start)
+        for key, v in more.items():
+            rows[key].append(v)
+    out = {key: torch.cat(parts) for key, parts in rows.items()}
     origin = torch.arange(start, T + 1, device=ys.device)
     return RollingFaultPrediction(
         origin=origin,
         target=origin + n,
-        predicted=torch.stack(preds),
-        predicted_std=torch.stack(stds),
-        fading_factors=torch.stack(lams),
-        filtered=torch.stack(filtered),
+        predicted=out["predicted"],
+        predicted_std=out["predicted_std"],
+        fading_factors=out["fading_factors"],
+        filtered=out["filtered"],
         final=state,
         forecaster=fc,
         n=n,

@@ -9,13 +9,12 @@ Carlo runs), or over any static learners. Its forecasts are the pseudo-measureme
 from __future__ import annotations
 
 import copy
-import math
 from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor, nn
 
-from ..core.validation import check_finite, check_float_tensor, check_pos_int
+from ..core.validation import check_finite, check_float_tensor, check_nonneg, check_pos_int
 from ..learners.elm import ELM
 from ..learners.introspect import learner_dims
 from ..learners.ros_elm import ROSELMState, ros_elm_forecast, ros_elm_init, ros_elm_update
@@ -67,12 +66,8 @@ class MeasurementForecaster:
                 raise ValueError(f"learners[{c}] has input dimension {n_in}, expected p={p}")
             if self.online and n_out != 1:
                 raise ValueError(f"learners[{c}] must have n_out=1 for ROS-ELM, got {n_out}")
-        if not (
-            isinstance(lam, (int, float)) and not isinstance(lam, bool) and 0 <= lam < math.inf
-        ):
-            raise ValueError(f"lam must be a finite number >= 0, got {lam!r}")
         self.learners = learners
-        self.lam = float(lam)
+        self.lam = check_nonneg(lam, "lam", numbers_only=True)
         self.state: ROSELMState | None = None
 
     @classmethod

@@ -24,16 +24,18 @@ from ..core.validation import (
     check_controls,
     check_finite,
     check_float_tensor,
+    check_generator,
     check_level,
     check_pos_int,
+    check_weights,
     check_window,
 )
 from ..datasets.windows import shift_append
-from ..filters.gaussian import FilterState, GaussianFilter, sckf
+from ..filters.gaussian import FilterState, GaussianFilter
 from ..filters.run import forecast as _engine_forecast
+from ..filters.variants import sckf
 from ..learners.introspect import learner_dims
 from .learner_model import learner_transition_model
-from .rul import check_weights
 
 __all__ = [
     "RecursivePaths",
@@ -301,8 +303,7 @@ def particle_paths(
     if x.dim() < 2 or x.shape[-1] != n:
         raise ValueError(f"particles must have shape (..., N, n) with n={n}, got {tuple(x.shape)}")
     check_finite(x, "particles", f"(..., N, {n})")
-    if not isinstance(generator, torch.Generator):
-        raise TypeError(f"generator must be a torch.Generator, got {type(generator)}")
+    check_generator(generator, x)
     batch, N = x.shape[:-2], x.shape[-2]
     w = check_weights(weights, batch, N, x.device).to(x.dtype)
     us = check_controls(model, us, horizon)

@@ -40,15 +40,17 @@ import torch
 from torch import Tensor
 
 from ..core.belief import GaussianBelief
+from ..core.validation import check_count
 from ..filters import make_filter, make_particle_filter
 from ..filters import run as run_filter
 from ..learners import LSSVR
+from ..metrics import mae, rmse
 from ..prognosis.learner_model import learner_transition_model
 from ..prognosis.paths import gaussian_paths, particle_paths
 from ..prognosis.rul import RULDistribution, rul_distribution
 from .data import Series
+from .fitted import FittedModel
 from .memory import check_paths_memory
-from .model import FittedModel
 
 __all__ = [
     "ForecastResult",
@@ -174,12 +176,6 @@ class RULResult:
 
 
 # ----------------------------------------------------------------------------- internals
-def _check_int(v, name: str, lo: int = 1) -> int:
-    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-        raise ValueError(f"{name} must be an int >= {lo}, got {v!r}")
-    return v
-
-
 def _check_filter(name) -> str:
     if not isinstance(name, str) or name.lower() not in FILTER_NAMES:
         raise ValueError(f"unknown filter {name!r}; choose one of {', '.join(FILTER_NAMES)}")
@@ -278,9 +274,9 @@ def forecast(
     Returns:
         :class:`ForecastResult` in data units.
     """
-    horizon = _check_int(horizon, "horizon")
-    filter_steps = _check_int(filter_steps, "filter_steps", 0)
-    n_particles = _check_int(n_particles, "n_particles")
+    horizon = check_count(horizon, "horizon", error=ValueError)
+    filter_steps = check_count(filter_steps, "filter_steps", 0, error=ValueError)
+    n_particles = check_count(n_particles, "n_particles", error=ValueError)
     name = _check_filter(filter)
     if isinstance(level, bool) or not isinstance(level, (int, float)) or not 0 < level < 1:
         raise ValueError(f"level must be a number in (0, 1), got {level!r}")
@@ -354,9 +350,9 @@ def rul(
     Raises:
         ValueError: bad arguments, or a last observed value that already reaches the threshold.
     """
-    horizon = _check_int(horizon, "horizon")
-    filter_steps = _check_int(filter_steps, "filter_steps", 0)
-    n_particles = _check_int(n_particles, "n_particles")
+    horizon = check_count(horizon, "horizon", error=ValueError)
+    filter_steps = check_count(filter_steps, "filter_steps", 0, error=ValueError)
+    n_particles = check_count(n_particles, "n_particles", error=ValueError)
     name = _check_filter(filter)
     if isinstance(threshold, bool) or not isinstance(threshold, (int, float)):
         raise ValueError(f"threshold must be a number, got {threshold!r}")
@@ -424,8 +420,6 @@ def holdout_metrics(model: FittedModel, series: Series, n_train: int) -> dict[st
     * ``persistence_rmse``: the last training value held constant over ``horizon`` steps (a
       baseline).
     """
-    from ..metrics import mae, rmse
-
     full_tail = series.values[n_train:]
     n_tail = full_tail.shape[0]
     H = min(n_tail, HOLDOUT_FORECAST_STEPS)

@@ -15,7 +15,8 @@ import torch
 
 from ..datasets.windows import MinMaxScaler
 from ..io import ModelFileError, load_model_file, save_model_file
-from .model import LEARNERS, FittedModel, build_learner
+from .fitted import FittedModel
+from .model import LEARNERS, build_learner
 
 __all__ = ["save_model", "load_model", "MODEL_KIND"]
 
