@@ -21,6 +21,7 @@ Modules, each importing only those before it: :mod:`.data` (:func:`load_series`)
 """
 
 from .data import FILL_METHODS, Series, load_series, parse_where
+from .extrapolation import ExtrapolationWarning
 from .fitted import FittedModel
 from .model import (
     DEFAULT_OPTIMIZER,
@@ -57,6 +58,7 @@ __all__ = [
     "load_model",
     "plot_forecast",
     "plot_rul",
+    "ExtrapolationWarning",
 ]
 
 
