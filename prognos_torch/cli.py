@@ -88,6 +88,8 @@ _DATA_HELP = """data options (fit; forecast and rul reuse the model's unless giv
   may hold numbers or ISO 8601 date-times (then time is in days since the first row).
   --where COL=VALUE keeps matching rows: how a long table (one row per snapshot and channel,
   like datasets/ims/test1_features.csv) becomes one series.
+memory: a request whose estimated memory exceeds the budget (environment variable
+  PROGNOS_MEMORY_BUDGET, e.g. 2G; default half the physical memory) is refused with exit 2.
 exit status: 0 success; 2 bad input (one 'error:' line on stderr, nothing written); 3 censored
   RUL (rul: part or all of the distribution lies beyond the horizon, so its mean is withheld;
   the report and any --plot are written, and one 'censored RUL:' line on stderr says how much).
@@ -166,6 +168,13 @@ def _add_fit(sub) -> None:
         help="final values kept for evaluation: a fraction (0.2) or a count (50); 0 for none",
     )
     g.add_argument("--seed", type=int, default=0, help="seed of initialisation and sampling")
+    g.add_argument(
+        "--max-support",
+        type=int,
+        metavar="M",
+        help="LS-SVR: exact KKT solve up to M training values, a fixed-size LS-SVR on M "
+        "support points above (default: exact up to 2000 values, else 50 points)",
+    )
     g.add_argument(
         "--learner-option", action="append", metavar="KEY=VALUE", help="e.g. n_hidden=40"
     )
@@ -364,6 +373,11 @@ def _cmd_fit(args) -> int:
     oopts = _options(args.optimizer_option, "--optimizer-option")
     if args.epochs is not None:
         oopts["epochs"] = args.epochs
+    lopts = _options(args.learner_option, "--learner-option")
+    if args.max_support is not None:
+        if str(args.learner).lower() != "lssvr":
+            raise ValueError(f"--max-support applies to --learner lssvr, not {args.learner!r}")
+        lopts["max_support"] = args.max_support
     model = fit_series(
         series,
         args.learner,
@@ -371,7 +385,7 @@ def _cmd_fit(args) -> int:
         args.embedding,
         holdout=_holdout(args.holdout),
         seed=args.seed,
-        learner_options=_options(args.learner_option, "--learner-option"),
+        learner_options=lopts,
         optimizer_options=oopts,
         data=data_cfg,
     )
@@ -401,13 +415,26 @@ def _cmd_fit(args) -> int:
             f"{_fmt(cfg['residual_rmse'] * span)}",
         ),
     ]
+    sup = tr.get("support")
+    if sup is not None:
+        rows.append(
+            (
+                "support points",
+                f"{sup['n_support']} (fixed-size LS-SVR, {sup['selection']} selection; "
+                "--max-support to change)",
+            )
+        )
     print(f"fit {_describe(series, data_cfg)}")
     print(_table(rows, ("item", "value")))
     if scores:
         print(scores)
     mt = model.metrics
     if mt:
-        print(f"\nheld-out tail: {mt['horizon']} steps forecast from the end of the training part")
+        part = "" if mt.get("tail", mt["horizon"]) == mt["horizon"] else f" (of {mt['tail']})"
+        print(
+            f"\nheld-out tail: {mt['horizon']} steps{part} forecast from the end of the training "
+            "part"
+        )
         print(
             _table(
                 [
@@ -441,7 +468,7 @@ def _cmd_forecast(args) -> int:
     import torch
 
     from .io import atomic_write
-    from .workflow import forecast, plot_forecast
+    from .workflow import forecast
 
     model, series, data_cfg, truth = _load_for_prediction(args)
     fc = forecast(
@@ -497,6 +524,8 @@ def _cmd_forecast(args) -> int:
         atomic_write(args.csv, ("\n".join(lines) + "\n").encode())
         print(f"forecast written to {args.csv}")
     if args.plot is not None:
+        from .workflow import plot_forecast
+
         plot_forecast(args.plot, fc, truth=truth)
         print(f"figure written to {args.plot}")
     return 0
@@ -514,7 +543,7 @@ def _observed_rul(res, truth) -> str | float:
 
 
 def _cmd_rul(args) -> int:
-    from .workflow import plot_rul, rul
+    from .workflow import rul
 
     if args.data is None:  # prognos rul DATA.csv ...: no model file
         from .cli_prognose import run_prognose
@@ -568,6 +597,8 @@ def _cmd_rul(args) -> int:
         )
     )
     if args.plot is not None:
+        from .workflow import plot_rul
+
         plot_rul(args.plot, res)
         print(f"figure written to {args.plot}")
     if res.fully_censored:
@@ -595,6 +626,7 @@ def _workflow(cmd):
 
         from .io import ModelFileError
         from .workflow.extrapolation import ExtrapolationWarning
+        from .workflow.memory import allocation_failure
 
         torch.set_num_threads(1)  # tiny matrices: threads only add overhead (see tests/conftest)
         try:
@@ -615,6 +647,12 @@ def _workflow(cmd):
             return 3
         except (ValueError, TypeError, OSError, ModelFileError) as exc:
             text = " ".join(str(exc).split()) or type(exc).__name__
+            print(f"error: {text}", file=sys.stderr)
+            return 2
+        except (MemoryError, RuntimeError) as exc:
+            text = allocation_failure(exc, str(getattr(args, "learner", "") or "").lower())
+            if text is None:
+                raise
             print(f"error: {text}", file=sys.stderr)
             return 2
 

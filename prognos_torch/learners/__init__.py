@@ -3,7 +3,8 @@
 * :class:`ELM`: extreme learning machine, ridge and ROS-ELM online learning (paper 000).
 * :mod:`.ros_elm`: ROS-ELM as a functional core batched over runs (:class:`ROSELMState`,
   :func:`ros_elm_init`, :func:`ros_elm_update`, :func:`ros_elm_forecast`; paper 000 Eq. 54-56).
-* :class:`LSSVR`: least-squares support vector regression with input Jacobian (paper 002).
+* :class:`LSSVR`: least-squares support vector regression with input Jacobian (paper 002);
+  :class:`FixedSizeLSSVR`: the same model on ``M`` support points (Nystrom, for long series).
 * :class:`ANFIS`: first-order Sugeno ANFIS with grid rules, Eq. 44 parameter order (paper 003).
 * :func:`blocked_cv_rmse`: blocked (time-ordered) cross-validation of any fit/predict pair.
 
@@ -15,6 +16,7 @@ from .anfis import ANFIS
 from .elm import ELM
 from .introspect import learner_dims, learner_dtype_device
 from .lssvr import LSSVR
+from .lssvr_fixed import FixedSizeLSSVR
 from .lssvr_gram import LSSVRGram
 from .ros_elm import ROSELMState, ros_elm_forecast, ros_elm_init, ros_elm_update
 from .selection import blocked_cv_rmse, blocked_folds
@@ -23,6 +25,7 @@ __all__ = [
     "ELM",
     "LSSVR",
     "LSSVRGram",
+    "FixedSizeLSSVR",
     "ANFIS",
     "ROSELMState",
     "ros_elm_init",

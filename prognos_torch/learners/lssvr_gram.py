@@ -34,7 +34,11 @@ import torch
 from torch import Tensor, nn
 
 from ..core.validation import check_forward_input
-from .lssvr import LSSVR
+from .lssvr import LSSVR, _blocked
+
+#: Row-block budget of the ``(B, M)`` kernel values (bytes; no ``(B, M, n)`` difference tensor
+#: is formed here, so the budget is larger than the LS-SVR's ``KERNEL_BLOCK_BYTES``).
+GRAM_BLOCK_BYTES = 64 * 2**20
 
 __all__ = ["LSSVRGram"]
 
@@ -97,9 +101,15 @@ class LSSVRGram(nn.Module):
         return phi.reshape(*x.shape[:-1], phi.shape[-1])
 
     def forward(self, x: Tensor) -> Tensor:
-        """Prediction ``f(x)`` (Eq. 8): ``x (..., n_in) -> (..., n_out)``."""
+        """Prediction ``f(x)`` (Eq. 8): ``x (..., n_in) -> (..., n_out)``; the ``(B, M)`` kernel
+        values in row blocks above :data:`GRAM_BLOCK_BYTES`."""
         check_forward_input(x, self.n_in, self.alpha)
-        return self._phi(x) @ self.alpha + self.b
+
+        def block(xb: Tensor) -> Tensor:
+            return self._phi(xb) @ self.alpha + self.b
+
+        per_row = x.element_size() * self.support_vectors.shape[0]
+        return _blocked(block, x, per_row, GRAM_BLOCK_BYTES)
 
     def input_gradient(self, x: Tensor) -> Tensor:
         """Closed-form Jacobian ``df/dx`` (Eq. 25): ``x (B, n_in) -> (B, n_out, n_in)``."""
@@ -108,7 +118,12 @@ class LSSVRGram(nn.Module):
             raise ValueError(
                 f"x must have shape (B, n_in) with n_in={self.n_in}, got {tuple(x.shape)}"
             )
-        phi = self._phi(x)  # (B, M)
-        s = phi @ self.alpha  # (B, n_out): sum_i alpha_i phi_i
-        wp = (phi @ self.alpha_sv).reshape(-1, self.n_out, self.n_in)  # sum_i alpha_i phi_i P_i
-        return -2.0 * self.inv_two_sigma2 * (s.unsqueeze(-1) * x.unsqueeze(-2) - wp)
+
+        def block(xb: Tensor) -> Tensor:
+            phi = self._phi(xb)  # (B, M)
+            s = phi @ self.alpha  # (B, n_out): sum_i alpha_i phi_i
+            wp = (phi @ self.alpha_sv).reshape(-1, self.n_out, self.n_in)  # sum alpha phi P_i
+            return -2.0 * self.inv_two_sigma2 * (s.unsqueeze(-1) * xb.unsqueeze(-2) - wp)
+
+        per_row = x.element_size() * self.support_vectors.shape[0]
+        return _blocked(block, x, per_row, GRAM_BLOCK_BYTES)

@@ -20,7 +20,6 @@ Modules, each importing only those before it: :mod:`.data` (:func:`load_series`)
 ``prognos fit | forecast | rul`` commands are thin wrappers around these functions.
 """
 
-from ..plots import plot_forecast, plot_rul
 from .data import FILL_METHODS, Series, load_series, parse_where
 from .extrapolation import ExtrapolationWarning
 from .fitted import FittedModel
@@ -64,3 +63,12 @@ __all__ = [
     "PROGNOSE_METHODS",
     "ExtrapolationWarning",
 ]
+
+
+def __getattr__(name: str):
+    # the figures load matplotlib (about a second): only when asked for
+    if name in ("plot_forecast", "plot_rul"):
+        from .. import plots
+
+        return getattr(plots, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -20,7 +20,10 @@ Pipeline of :func:`fit_series` (all float64):
    spread over the data and least-squares consequents, the first half of Jang's hybrid rule) or
    an iterative optimiser through :func:`prognos_torch.optim.fit`: ``"ekf"``, ``"srukf"``,
    ``"imsrukf"`` (:class:`~prognos_torch.optim.KalmanOptimizer`, paper 003 Eq. 44-46),
-   ``"adam"``, ``"lbfgs"``;
+   ``"adam"``, ``"lbfgs"``. Long series: above 2,000 training values (or the learner option
+   ``max_support``) the LS-SVR is the fixed-size LS-SVR on ``M`` support points
+   (:class:`~prognos_torch.learners.FixedSizeLSSVR`, :mod:`prognos_torch.workflow.memory`),
+   and every fit first checks its memory estimate against the budget;
 6. the one-step residual RMSE on the training pairs (scaled units) sets the noise of the
    forecasting model (:mod:`prognos_torch.workflow.predict`);
 7. held-out metrics: the forecast from the end of the training part over the held-out tail
@@ -52,11 +55,13 @@ from ..adapt.noise import SageHusa
 from ..core.validation import all_finite
 from ..datasets.windows import MinMaxScaler, embed
 from ..learners import ANFIS, ELM, LSSVR
+from ..learners.lssvr_fixed import FixedSizeLSSVR
 from ..metrics import rmse
 from ..optim import KalmanOptimizer
 from ..optim import fit as optim_fit
 from .data import Series
 from .fitted import FittedModel
+from .memory import MemoryBudgetError, allocation_failure, check_fit_memory, lssvr_support
 from .predict import holdout_metrics
 
 __all__ = [
@@ -80,7 +85,7 @@ _ALIASES = {"closed_form": "closed-form", "closedform": "closed-form", "ridge": 
 #: Learner options and their defaults (scaled data in [0, 1]).
 LEARNER_DEFAULTS: dict[str, dict] = {
     "elm": {"n_hidden": 20, "activation": "sigmoid", "lam": 1e-6},
-    "lssvr": {"kernel": "rbf", "sigma": 0.5, "C": 100.0},
+    "lssvr": {"kernel": "rbf", "sigma": 0.5, "C": 100.0, "max_support": None},
     "anfis": {"n_mfs": 2, "mf": "sigmoid", "lam": 1e-8},
 }
 #: Optimiser options and their defaults. ``P0`` of ANFIS is per parameter (paper 003).
@@ -125,15 +130,32 @@ def _merge(defaults: dict, given: dict | None, what: str) -> dict:
 
 
 def build_learner(
-    name: str, m: int, options: dict, *, seed: int, dtype=torch.float64, device=None
+    name: str,
+    m: int,
+    options: dict,
+    *,
+    seed: int,
+    dtype=torch.float64,
+    device=None,
+    n_rows: int | None = None,
 ) -> nn.Module:
-    """An untrained learner with input dimension ``m`` (ELM features and ANFIS consequents from
-    a CPU generator seeded with ``seed``)."""
+    """An untrained learner with input dimension ``m`` (ELM features, ANFIS consequents and the
+    fixed-size LS-SVR's support selection from a CPU generator seeded with ``seed``).
+
+    ``n_rows`` (training values) chooses between the exact and the fixed-size LS-SVR
+    (:func:`~prognos_torch.workflow.memory.lssvr_support`; a model file passes its
+    ``series.n_train``); ``None`` builds the exact :class:`~prognos_torch.learners.LSSVR`.
+    """
     gen = torch.Generator().manual_seed(seed)
     if name == "elm":
         net = ELM(m, int(options["n_hidden"]), 1, options["activation"], gen, dtype)
     elif name == "lssvr":
-        net = LSSVR(options["kernel"], float(options["sigma"]), float(options["C"]), dtype=dtype)
+        kernel, sigma, C = options["kernel"], float(options["sigma"]), float(options["C"])
+        M = None if n_rows is None else lssvr_support(n_rows, options.get("max_support"))
+        if M is None:
+            net = LSSVR(kernel, sigma, C, dtype=dtype)
+        else:
+            net = FixedSizeLSSVR(kernel, sigma, C, n_support=M, generator=gen, dtype=dtype)
     elif name == "anfis":
         net = ANFIS(m, int(options["n_mfs"]), options["mf"], 1, gen, dtype)
     else:  # pragma: no cover - names are checked before
@@ -192,20 +214,37 @@ def select_embedding(
             f"among {list(candidates)} (give m explicitly or use more data)"
         )
     scores: dict[int, float] = {}
+    errors: dict[int, str] = {}
     m_max = max(usable)
     for m in usable:
         # the same validation targets z[split:] for every m; training targets from m_max on
         Xt, Yt = _pairs(z, m, m_max, split)
         Xv, Yv = _pairs(z, m, split, T)
-        net = build_learner(learner, m, learner_options, seed=seed, device=z.device)
+        net = build_learner(learner, m, learner_options, seed=seed, device=z.device, n_rows=T)
         try:
             _closed_form(learner, net, Xt, Yt, learner_options)
             scores[m] = float(rmse(_predict(net, Xv), Yv))
-        except (RuntimeError, ValueError, torch.linalg.LinAlgError):  # incl. non-finite output
+        except MemoryBudgetError:
+            raise
+        except (RuntimeError, ValueError, torch.linalg.LinAlgError, MemoryError) as exc:
+            scores[m] = math.inf  # incl. non-finite output (rmse raises)
+            oom = allocation_failure(exc, learner)
+            if oom is not None:
+                raise MemoryBudgetError(f"fitting {learner.upper()} with m={m}: {oom}") from None
+            errors[m] = " ".join(str(exc).split()) or type(exc).__name__
+        if not math.isfinite(scores[m]):
             scores[m] = math.inf
+            errors.setdefault(m, "non-finite validation predictions")
     best = min(scores, key=lambda k: (scores[k], k))
     if not math.isfinite(scores[best]):
-        raise ValueError("no embedding dimension gave a finite validation error")
+        reasons = sorted(set(errors.values()))
+        detail = reasons[0]
+        if len(reasons) > 1:
+            detail = "; ".join(f"m={k}: {v}" for k, v in errors.items())
+        raise ValueError(
+            f"no embedding dimension gave a finite validation error: {learner.upper()} failed "
+            f"for every m in {usable} ({detail})"
+        )
     return best, scores
 
 
@@ -356,6 +395,7 @@ def fit_series(
             "there is nothing to learn"
         ) from None
     z = scaler.transform(train)
+    check_fit_memory(learner, optimizer, n_train, m or max(M_CANDIDATES[learner]), lopts)
 
     selection = None
     if m is None:
@@ -366,7 +406,7 @@ def fit_series(
             "criterion": "one-step validation RMSE on the last 20% of the training part",
         }
     X, Y = embed(z, m)
-    net = build_learner(learner, m, lopts, seed=seed, device=z.device)
+    net = build_learner(learner, m, lopts, seed=seed, device=z.device, n_rows=n_train)
     t0 = time.perf_counter()
     record = _train(learner, optimizer, net, X, Y, lopts, oopts, seed)
     seconds = time.perf_counter() - t0
@@ -406,6 +446,13 @@ def fit_series(
         "holdout": {"n": n_hold, "metrics": {}},
         "train": {"epochs": record["epochs"], "seconds": seconds, "train_rmse_scaled": residual},
     }
+    if isinstance(net, FixedSizeLSSVR):
+        config["train"]["support"] = {
+            "kind": "fixed-size",
+            "n_support": int(net.support_vectors.shape[0]),
+            "selection": net.selection,
+            "rank": net.rank,
+        }
     model = FittedModel(net, scaler, config)
     if n_hold > 0:
         config["holdout"]["metrics"] = holdout_metrics(model, series, n_train)

@@ -64,7 +64,8 @@ def load_model(path: str | os.PathLike, *, map_location: str | torch.device = "c
     sc = _need(cfg, "scaler", dict, path)
     state = {k[len(_PREFIX) :]: v for k, v in mf.tensors.items() if k.startswith(_PREFIX)}
     try:
-        net = build_learner(learner, m, lopts, seed=seed, device=map_location)
+        n_train = (cfg.get("series") or {}).get("n_train")  # the LS-SVR's size policy
+        net = build_learner(learner, m, lopts, seed=seed, device=map_location, n_rows=n_train)
         net.load_state_dict(state, strict=True)
         scaler = MinMaxScaler()
         scaler.load_state_dict(
