@@ -117,3 +117,16 @@ def test_sync_free_selection_gives_the_same_numbers(monkeypatch, prior):
 def test_prior_option_is_checked():
     with pytest.raises(ValueError, match="prior"):
         GaussianFilter(Taylor(), prior="svd")
+
+
+def test_traced_step_rejects_non_finite_measurements(monkeypatch):
+    model, b0, ys = random_walk_problem()
+    filt = GaussianFilter(julier(1.0), prior="cholesky")
+    st = filt.init(model, b0)
+    monkeypatch.setattr(gaussian, "_no_sync", lambda: True)
+    y = ys[0].clone()
+    y[0] = float("nan")
+    with pytest.raises(RuntimeError, match="finite"):
+        filt.step(model, st, y, None, 1)
+    with pytest.raises(ValueError, match="shape"):
+        filt.step(model, st, ys[0, :1], None, 1)

@@ -291,6 +291,21 @@ def _no_sync() -> bool:
     return torch.compiler.is_compiling()
 
 
+def _check_measurement_traced(y, obs_dim: int, belief: GaussianBelief) -> tuple[Tensor, bool]:
+    """:func:`check_measurement` for a step traced by ``torch.compile``: the same type, shape
+    and device checks (static), and finiteness by ``torch._assert_async`` (no host sync; a
+    ``RuntimeError``). A traced step takes fully observed measurements only: NaN (missing)
+    is rejected there, and eager steps handle it."""
+    if isinstance(y, Tensor) and tuple(y.shape) == tuple(belief.batch_shape) + (obs_dim,):
+        if y.device == belief.mean.device:
+            torch._assert_async(
+                torch.isfinite(y).all(),
+                "y must be finite in a compiled step (NaN-marked missing data: run eager)",
+            )
+            return y.to(belief.mean.dtype), False
+    return check_measurement(y, obs_dim, belief.batch_shape, belief.mean)  # raises
+
+
 def _chol_prior(pos: Tensor, chol_Q: Tensor) -> Tensor:
     """``chol(pos pos^T + S_Q S_Q^T)`` ``(..., n, n)``, with ``Tria([pos, S_Q])`` (paper 000
     Eq. 25) where the Cholesky fails. ``chol_Q``: ``(n, n)`` or batched like ``pos``."""
@@ -565,7 +580,10 @@ class GaussianFilter:
             The new state and a :class:`StepInfo`.
         """
         belief = state.belief
-        y, any_missing = check_measurement(y, model.obs_dim, belief.batch_shape, belief.mean)
+        if _no_sync():
+            y, any_missing = _check_measurement_traced(y, model.obs_dim, belief)
+        else:
+            y, any_missing = check_measurement(y, model.obs_dim, belief.batch_shape, belief.mean)
         u = check_control(u, model.control_dim, belief.batch_shape, belief.mean)
         noise = self._noise(model, state, k)
         observed = nan = None
