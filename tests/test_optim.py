@@ -390,7 +390,7 @@ def test_constructor_rejects_bad_options():
         EKF(m, runs=2, theta0=torch.zeros(4, dtype=torch.float64))
     with pytest.raises(ValueError, match="module"):
         KalmanOptimizer(m.parameters())
-    with pytest.raises(ValueError, match="single parameter group"):
+    with pytest.raises(ValueError, match="parameters of module only"):
         EKF(m).add_param_group({"params": [torch.zeros(1, requires_grad=True)]})
     with pytest.raises(ValueError, match="unknown filter"):
         KalmanOptimizer(m, filter="kalmanish")

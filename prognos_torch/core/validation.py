@@ -75,7 +75,7 @@ def all_finite(x: Tensor) -> bool:
         return True
     if not x.is_floating_point():
         return True
-    if math.isfinite(float(x.sum())):
+    if math.isfinite(float(x.detach().sum())):  # no graph node, no warning under autograd
         return True
     return bool(torch.isfinite(x).all())
 
@@ -350,7 +350,20 @@ def as_targets(y, name: str, *, device: torch.device, n_rows: int, n_out: int) -
 # ------------------------------------------------------------------------------ filter inputs
 def check_belief(belief, state_dim: int, name: str = "belief"):
     """A valid :class:`~prognos_torch.core.belief.GaussianBelief` (finite mean, lower triangular
-    factor with a positive diagonal) on a state of dimension ``state_dim``."""
+    factor with a positive diagonal) on a state of dimension ``state_dim``; anything else is a
+    ``TypeError`` that says how to build one (a ``(mean, chol)`` pair is the usual slip)."""
+    from .belief import GaussianBelief  # belief imports this module
+
+    if not isinstance(belief, GaussianBelief):
+        if isinstance(belief, (tuple, list)) and len(belief) == 2:
+            raise TypeError(
+                f"{name} must be a GaussianBelief, got a {type(belief).__name__} of two items; "
+                "wrap it: GaussianBelief(mean, chol) (or GaussianBelief.from_cov(mean, cov))"
+            )
+        raise TypeError(
+            f"{name} must be a GaussianBelief(mean (..., n), chol (..., n, n)), got "
+            f"{type(belief).__name__}"
+        )
     belief.validate(name)
     if belief.dim != state_dim:
         raise ValueError(

@@ -1,11 +1,13 @@
 """Filters: the Gaussian engine, the particle filters, their configurations by name
-(:mod:`.variants`), the sequence loop (:func:`scan`) and the runners built on it."""
+(:mod:`.variants`), the sequence loop (:func:`scan`) and the runners built on it, the RTS
+smoothers (:func:`smooth`)."""
 
-from .gaussian import FilterState, GaussianFilter, StepInfo, Taylor
+from .gaussian import FilterState, GaussianFilter, Spread, StepInfo, Taylor
 from .particle import ParticleFilter, ParticleState, ParticleTrajectory
 from .resampling import ess, multinomial, residual, stratified, systematic
 from .run import Forecast, Trajectory, forecast, run
 from .sequence import scan
+from .smooth import Smoothed, smooth, smooth_trajectory
 from .variants import (
     FILTERS,
     PARTICLE_FILTERS,
@@ -32,6 +34,7 @@ __all__ = [
     "FILTERS",
     "FilterState",
     "GaussianFilter",
+    "Spread",
     "StepInfo",
     "Taylor",
     "arukf",
@@ -51,6 +54,9 @@ __all__ = [
     "forecast",
     "run",
     "scan",
+    "Smoothed",
+    "smooth",
+    "smooth_trajectory",
     "PARTICLE_FILTERS",
     "ParticleFilter",
     "ParticleState",

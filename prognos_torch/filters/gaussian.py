@@ -22,8 +22,9 @@ Step ``k`` (model convention of :mod:`prognos_torch.core.model`):
    closed-form rank-one downdates, O(n^2 m), on large factors, ``S chol(I - W W^T)`` on small
    ones). When the sigma points are redrawn from the prior (or for the EKF) this equals the
    Joseph form ``Tria([chi - K Z, K S_R])`` of paper 000 Eq. 46, which is used instead where the
-   downdate would lose precision (a very informative measurement) and with the robust bound of
-   paper 004.
+   downdate would lose precision (a very informative measurement), under autograd (tensors
+   that require grad: a failed downdate's NaN would leak into the gradient) and with the robust
+   bound of paper 004.
 
 Missing data: NaN marks a missing measurement component. A vector that is NaN throughout is
 *missing*: the step only predicts (the posterior equals the prior, the log-likelihood
@@ -38,7 +39,7 @@ not fully observed; the robust bound of paper 004 treats a partially observed ve
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import torch
@@ -65,6 +66,7 @@ __all__ = [
     "GaussianFilter",
     "FilterState",
     "StepInfo",
+    "Spread",
 ]
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -137,6 +139,7 @@ class StepInfo:
         gain: ``(..., n, m)`` Kalman gain.
         observed: ``(..., m)`` bool, the observed components, or ``None`` when every component
             of every batch element was observed or missing as a whole.
+        spread: the time update's deviation columns (:class:`Spread`; what a smoother needs).
 
     ``log_likelihood`` (``log N(y_k; z_{k|k-1}, S_zz S_zz^T)``, 0 where missing) and ``nis``
     (normalised innovation squared, NaN where missing) are computed on first access, so the
@@ -152,6 +155,7 @@ class StepInfo:
     missing: Tensor
     gain: Tensor
     observed: Tensor | None = None
+    spread: Spread | None = None
 
     @cached_property
     def _stats(self):
@@ -174,6 +178,43 @@ class _Propagation:
     pos: Tensor  # (..., n, Lp) spread factor (positive weights)
     neg: Tensor | None  # (..., n, Ln) negative-weight part
     points: Tensor | None  # (..., L, n) propagated sigma points incl. q (for redraw=False)
+    dev: Tensor | None = None  # (..., L, n) sigma-point deviations before f, or S (Taylor)
+    sigma: _Sigma | None = None  # the rule's points (None: dev is the factor S itself)
+
+
+@dataclass(frozen=True)
+class Spread:
+    """Deviation columns of a time update, paired column by column (batch dims ``...``).
+
+    ``dx`` are the weighted deviations of the points at ``k-1`` from the posterior mean,
+    ``df`` those of their images under ``f`` from the predicted mean (before fading), with
+    ``sqrt|W_i|`` folded in and negative-weight columns apart:
+    ``P_{k-1|k-1} = dx_pos dx_pos^T - dx_neg dx_neg^T``, the cross-covariance
+    ``C_k = Cov(x_{k-1}, x_k | y_{1:k-1}) = dx_pos df_pos^T - dx_neg df_neg^T`` and
+    ``P_{k|k-1} = lambda_k (df_pos df_pos^T - df_neg df_neg^T) + Q_k``. EKF: ``dx = S``,
+    ``df = F S``; random walk: ``dx = df = S``. The smoothers read them.
+
+    Attributes:
+        df_pos: ``(..., n, Lp)``; df_neg: ``(..., n, Ln)`` or ``None`` (no negative weight).
+        dx_pos, dx_neg: the same for ``dx`` (computed on first access, off the hot loop).
+    """
+
+    df_pos: Tensor
+    df_neg: Tensor | None
+    dev: Tensor = field(repr=False)  # (..., L, n) point deviations, or the factor S
+    sigma: _Sigma | None = field(default=None, repr=False)
+
+    @cached_property
+    def _dx(self) -> tuple[Tensor, Tensor | None]:
+        return (self.dev, None) if self.sigma is None else self.sigma.columns(self.dev)
+
+    @property
+    def dx_pos(self) -> Tensor:
+        return self._dx[0]
+
+    @property
+    def dx_neg(self) -> Tensor | None:
+        return self._dx[1]
 
 
 @dataclass(frozen=True)
@@ -392,21 +433,22 @@ class GaussianFilter:
         m, S = belief.mean, belief.chol
         if model.f is None:  # random walk: exact for every rule
             mean = m if q is None else m + q
-            return _Propagation(mean, m, S, None, None)
+            return _Propagation(mean, m, S, None, None, S)
         if isinstance(self.rule, Taylor):
             fx = model.transition(m, u, k)
             F = model.transition_jacobian(m, u, k)
             mean = fx if q is None else fx + q
-            return _Propagation(mean, fx, F @ S, None, None)
+            return _Propagation(mean, fx, F @ S, None, None, S)
         sig = _sigma_points(self.rule, model.state_dim, m)
-        X = m.unsqueeze(-2) + sig.xi @ S.mT  # (..., L, n), paper 000 Eq. 21
+        D = sig.xi @ S.mT
+        X = m.unsqueeze(-2) + D  # (..., L, n), paper 000 Eq. 21
         uu = None if u is None else u.unsqueeze(-2)
         Y = model.transition(X, uu, k)  # Eq. 23 / paper 003 Eq. 14
         f_mean = sig.wm @ Y  # Eq. 24
         mean = f_mean if q is None else f_mean + q
         pos, neg = sig.columns(Y - f_mean.unsqueeze(-2))  # Eq. 26
         pts = Y if q is None else Y + q.unsqueeze(-2)
-        return _Propagation(mean, f_mean, pos, neg, pts)
+        return _Propagation(mean, f_mean, pos, neg, pts, D, sig)
 
     def _prior(
         self, prop: _Propagation, chol_Q: Tensor, lam: Tensor | None, update: bool = False
@@ -490,7 +532,10 @@ class GaussianFilter:
         self, prior: _Prior, mom: _Moments, K: Tensor, Szz: Tensor, chol_R
     ) -> Tensor:
         rob = self.robust
-        if self.sqrt and mom.joseph and rob is None:
+        # under autograd the Joseph QR throughout: a failed downdate's NaN would reach the
+        # gradient through the masked branch of torch.where
+        grad = torch.is_grad_enabled() and (prior.chol.requires_grad or K.requires_grad)
+        if self.sqrt and mom.joseph and rob is None and not grad:
             # The sigma points (or F S) reproduce the prior, so Eq. 46's Joseph form equals
             # P_pred - K S_zz S_zz^T K^T: the cholupdate of paper 003 Eq. 28-29 (m rank-one
             # steps on large factors, the dense S chol(I - W W^T) on small ones) instead of a
@@ -579,6 +624,11 @@ class GaussianFilter:
         Returns:
             The new state and a :class:`StepInfo`.
         """
+        if not isinstance(state, FilterState):
+            raise TypeError(
+                f"state must be a FilterState, got {type(state).__name__}; start from "
+                "state = filter.init(model, belief)"
+            )
         belief = state.belief
         if _no_sync():
             y, any_missing = _check_measurement_traced(y, model.obs_dim, belief)
@@ -682,5 +732,6 @@ class GaussianFilter:
             missing=missing,
             gain=K,
             observed=observed,
+            spread=Spread(prop.pos, prop.neg, prop.dev, prop.sigma),
         )
         return FilterState(GaussianBelief(mean, chol), fstate, nstate), info

@@ -388,8 +388,6 @@ class ParticleFilter:
         Returns:
             :class:`ParticleState` with particles ``(..., N, n)``.
         """
-        if not isinstance(belief, GaussianBelief):
-            raise TypeError(f"belief must be a GaussianBelief, got {type(belief).__name__}")
         check_belief(belief, model.state_dim)
         mean, chol = belief.mean, belief.chol
         check_generator(generator, mean)

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass
 
 import torch
@@ -10,7 +11,7 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
-from ..core.validation import check_pos_int, check_sequence
+from ..core.validation import check_belief, check_pos_int, check_sequence
 from .gaussian import FilterState, GaussianFilter, StepInfo, innovation_stats
 from .sequence import scan
 
@@ -33,6 +34,8 @@ class Trajectory:
             (only with a noise estimator, else ``None``); q, r likewise.
         noise_fallback: ``(T, ...)`` bool.
         final: the :class:`FilterState` after the last step (resume from it).
+        steps: the :class:`StepInfo` of every step with ``run(..., keep_steps=True)``, else
+            ``None`` (the smoothers read them).
     """
 
     means: Tensor
@@ -50,6 +53,7 @@ class Trajectory:
     q: Tensor | None
     r: Tensor | None
     final: FilterState
+    steps: tuple[StepInfo, ...] | None = None
 
     @property
     def log_likelihood(self) -> Tensor:
@@ -58,6 +62,31 @@ class Trajectory:
     @property
     def covs(self) -> Tensor:
         return self.chols @ self.chols.mT
+
+
+def check_filter(filt, name: str = "filter") -> GaussianFilter:
+    """``filt`` if it is a :class:`GaussianFilter`, else a ``TypeError`` (a factory such as
+    ``sckf`` passed without calling it is the usual slip)."""
+    if isinstance(filt, GaussianFilter):
+        return filt
+    if inspect.isfunction(filt) or inspect.isclass(filt):
+        what = "class" if inspect.isclass(filt) else "function"
+        fname = getattr(filt, "__name__", "factory")
+        raise TypeError(
+            f"{name} must be a GaussianFilter, got the {what} {fname} itself: call it, e.g. "
+            f"{fname}()"
+        )
+    raise TypeError(
+        f"{name} must be a GaussianFilter (e.g. sckf() or make_filter('sckf')), got "
+        f"{type(filt).__name__}"
+    )
+
+
+def _start(filt, model, init, k: int) -> FilterState:
+    check_filter(filt)
+    if isinstance(init, FilterState):
+        return init
+    return filt.init(model, check_belief(init, model.state_dim, "init"), k)
 
 
 def _record(state: FilterState, info: StepInfo) -> dict[str, Tensor | None]:
@@ -88,15 +117,17 @@ def run(
     us: Tensor | None = None,
     *,
     k0: int = 0,
+    keep_steps: bool = False,
 ) -> Trajectory:
     """Filter the measurements ``ys`` ``(T, ..., m)`` (NaN: missing; a row that is NaN
     throughout only predicts, a partially NaN row updates with its observed components).
 
     Step ``t`` (0-based) uses ``k = k0 + t + 1``, the control ``us[t]`` (``(T, ..., p)`` or
     ``(T, p)`` shared by the batch) and measurement ``ys[t]``. ``init`` is the belief on
-    ``x_{k0}`` (or a :class:`FilterState` to resume).
+    ``x_{k0}`` (or a :class:`FilterState` to resume). ``keep_steps=True`` keeps every
+    step's :class:`StepInfo` in ``Trajectory.steps``.
     """
-    state = init if isinstance(init, FilterState) else filt.init(model, init, k0 + 1)
+    state = _start(filt, model, init, k0 + 1)
     bs = state.belief.batch_shape
     check_sequence(ys, "ys", model.obs_dim, bs)
     T = ys.shape[0]
@@ -107,8 +138,13 @@ def run(
     elif us is not None:
         raise ValueError("us was given but the model has control_dim=0")
 
+    infos: list[StepInfo] = []
+
     def step(s: FilterState, y: Tensor, u: Tensor | None, k: int):
-        return filt.step(model, s, y, u, k=k)
+        s, info = filt.step(model, s, y, u, k=k)
+        if keep_steps:
+            infos.append(info)
+        return s, info
 
     state, stacked = scan(step, state, ys, us, record=_record, k0=k0)
     # one vectorised pass over the whole trajectory instead of one per step
@@ -118,7 +154,7 @@ def run(
         stacked.pop("missing"),
         (~torch.isnan(ys)).sum(-1),  # partially observed vectors count their observed part
     )
-    return Trajectory(**stacked, final=state)
+    return Trajectory(**stacked, final=state, steps=tuple(infos) if keep_steps else None)
 
 
 @dataclass(frozen=True)
@@ -147,7 +183,7 @@ def forecast(
 ) -> Forecast:
     """Multi-step-ahead prediction without measurements (``k = k0 + 1 .. k0 + steps``)."""
     steps = check_pos_int(steps, "steps")
-    state = init if isinstance(init, FilterState) else filt.init(model, init, k0 + 1)
+    state = _start(filt, model, init, k0 + 1)
     if model.control_dim:
         bs = state.belief.batch_shape
         check_sequence(us, "us", model.control_dim, bs, steps=steps, shared=True)

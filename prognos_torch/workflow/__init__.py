@@ -22,6 +22,7 @@ Modules, each importing only those before it: :mod:`.data` (:func:`load_series`)
 
 from ..plots import plot_forecast, plot_rul
 from .data import FILL_METHODS, Series, load_series, parse_where
+from .extrapolation import ExtrapolationWarning
 from .fitted import FittedModel
 from .model import (
     DEFAULT_OPTIMIZER,
@@ -58,4 +59,5 @@ __all__ = [
     "load_model",
     "plot_forecast",
     "plot_rul",
+    "ExtrapolationWarning",
 ]

@@ -34,6 +34,8 @@ horizon apart as censored mass (their RUL only exceeds ``horizon * dt``).
 from __future__ import annotations
 
 import math
+import os
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -47,6 +49,7 @@ from ..metrics import mae, rmse
 from ..prognosis.learner_model import learner_transition_model
 from ..prognosis.paths import gaussian_paths, particle_paths
 from ..prognosis.rul import RULDistribution, rul_distribution
+from . import extrapolation as _extra
 from .data import Series
 from .fitted import FittedModel
 
@@ -85,6 +88,9 @@ class ForecastResult:
         history: the series the forecast starts from.
         samples: ``(N, H)`` sample paths (particle filters), else ``None``.
         weights: ``(N,)`` their weights, else ``None``.
+        extrapolation: ``(H,)`` how far each step's inputs lie outside the training range
+            (data units; the band and std include it, see
+            :mod:`~prognos_torch.workflow.extrapolation`), or ``None``.
     """
 
     time: Tensor
@@ -97,6 +103,7 @@ class ForecastResult:
     history: Series
     samples: Tensor | None = None
     weights: Tensor | None = None
+    extrapolation: Tensor | None = None
 
     @property
     def horizon(self) -> int:
@@ -174,6 +181,18 @@ def _check_filter(name) -> str:
     if not isinstance(name, str) or name.lower() not in FILTER_NAMES:
         raise ValueError(f"unknown filter {name!r}; choose one of {', '.join(FILTER_NAMES)}")
     return name.lower()
+
+
+def _check_model(model) -> FittedModel:
+    if isinstance(model, FittedModel):
+        return model
+    hint = ""
+    if isinstance(model, (str, os.PathLike)):
+        hint = f"; load the file first: load_model({str(model)!r})"
+    raise TypeError(
+        f"model must be a FittedModel (from fit_series or load_model), got "
+        f"{type(model).__name__}{hint}"
+    )
 
 
 def _noise(model: FittedModel) -> tuple[float, float]:
@@ -264,6 +283,7 @@ def forecast(
     Returns:
         :class:`ForecastResult` in data units.
     """
+    model = _check_model(model)
     horizon = check_count(horizon, "horizon", error=ValueError)
     filter_steps = check_count(filter_steps, "filter_steps", 0, error=ValueError)
     n_particles = check_count(n_particles, "n_particles", error=ValueError)
@@ -293,6 +313,11 @@ def forecast(
         )
         mean, lower, upper = inv(sp.mean), inv(sp.lower), inv(sp.upper)
         std, samples, weights = sp.std * span, inv(sp.samples), sp.weights
+    lo, hi = float(model.scaler.data_min), float(model.scaler.data_max)
+    dist = _extra.extrapolation_distance(series.values, mean, model.m, lo, hi)
+    if bool((dist > 0).any()):  # outside the training range: the learner extrapolates
+        lower, upper, std = _extra.widen(mean, lower, upper, std, dist, float(level))
+        _extra.warn("the forecast", float(dist.max()), lo, hi)
     return ForecastResult(
         time=_future_time(series, horizon),
         mean=mean,
@@ -304,6 +329,7 @@ def forecast(
         history=series,
         samples=samples,
         weights=weights,
+        extrapolation=dist,
     )
 
 
@@ -338,6 +364,7 @@ def rul(
     Raises:
         ValueError: bad arguments, or a last observed value that already reaches the threshold.
     """
+    model = _check_model(model)
     horizon = check_count(horizon, "horizon", error=ValueError)
     filter_steps = check_count(filter_steps, "filter_steps", 0, error=ValueError)
     n_particles = check_count(n_particles, "n_particles", error=ValueError)
@@ -365,6 +392,13 @@ def rul(
         )
     seed = int(model.config.get("seed", 0)) if seed is None else seed
     z = _scaled(model, series)
+    lo, hi = float(model.scaler.data_min), float(model.scaler.data_max)
+    _extra.warn(
+        "the series the RUL starts from",
+        _extra.origin_distance(series.values, model.m, lo, hi),
+        lo,
+        hi,
+    )
     kind, res, ssm = _filtered(model, z, name, filter_steps, n_particles, seed)
     if kind == "gaussian":
         _, state = res
@@ -400,13 +434,16 @@ def holdout_metrics(model: FittedModel, series: Series, n_train: int) -> dict[st
 
     * ``rmse``, ``mae``: the :func:`forecast` (SCKF, 95 % band) made at the end of the training
       part over the whole tail, against the tail;
-    * ``coverage``: fraction of tail values inside that band;
+    * ``coverage``: fraction of tail values inside that band (widened where the forecast
+      leaves the training range, :mod:`~prognos_torch.workflow.extrapolation`; no warning);
     * ``one_step_rmse``: the learner's one-step predictions from the true windows;
     * ``persistence_rmse``: the last training value held constant (a baseline).
     """
     tail = series.values[n_train:]
     H = tail.shape[0]
-    fc = forecast(model, series.head(n_train), H)
+    with warnings.catch_warnings():  # a tail beyond the training range is what it measures
+        warnings.simplefilter("ignore", _extra.ExtrapolationWarning)
+        fc = forecast(model, series.head(n_train), H)
     z = model.scaler.transform(series.values)
     m = model.m
     windows = z.unfold(0, m, 1)[n_train - m : -1]  # windows ending just before each tail value
