@@ -324,6 +324,41 @@ def _observed_part(mom: _Moments, chol_R: Tensor, observed: Tensor) -> tuple[_Mo
     return masked, SR
 
 
+def _no_sync() -> bool:
+    """Whether the step avoids host synchronisations: while ``torch.compile`` traces it (a
+    sync would break the graph). Fallbacks are then computed everywhere and selected with
+    ``torch.where``; eager steps test a flag once and compute a fallback only where needed.
+    Both select the same values."""
+    return torch.compiler.is_compiling()
+
+
+def _check_measurement_traced(y, obs_dim: int, belief: GaussianBelief) -> tuple[Tensor, bool]:
+    """:func:`check_measurement` for a step traced by ``torch.compile``: the same type, shape
+    and device checks (static), and finiteness by ``torch._assert_async`` (no host sync; a
+    ``RuntimeError``). A traced step takes fully observed measurements only: NaN (missing)
+    is rejected there, and eager steps handle it."""
+    if isinstance(y, Tensor) and tuple(y.shape) == tuple(belief.batch_shape) + (obs_dim,):
+        if y.device == belief.mean.device:
+            torch._assert_async(
+                torch.isfinite(y).all(),
+                "y must be finite in a compiled step (NaN-marked missing data: run eager)",
+            )
+            return y.to(belief.mean.dtype), False
+    return check_measurement(y, obs_dim, belief.batch_shape, belief.mean)  # raises
+
+
+def _chol_prior(pos: Tensor, chol_Q: Tensor) -> Tensor:
+    """``chol(pos pos^T + S_Q S_Q^T)`` ``(..., n, n)``, with ``Tria([pos, S_Q])`` (paper 000
+    Eq. 25) where the Cholesky fails. ``chol_Q``: ``(n, n)`` or batched like ``pos``."""
+    L, info = torch.linalg.cholesky_ex(pos @ pos.mT + chol_Q @ chol_Q.mT)
+    bad = info > 0
+    if not _no_sync() and not bool(bad.any()):
+        return L
+    SQ = _bcast(chol_Q, pos.shape[:-2], chol_Q.shape[-2:])
+    S = tria(torch.cat([pos, SQ], dim=-1))
+    return torch.where(bad[..., None, None], S, L)
+
+
 def _bcast(x: Tensor, batch_shape: torch.Size, tail: tuple[int, ...]) -> Tensor:
     return x.expand(*batch_shape, *tail)
 
@@ -342,6 +377,12 @@ class GaussianFilter:
         fading: ``None``, a constant fading factor ``>= 1``, or :class:`StrongTracking`.
         noise: ``None``, :class:`SageHusa` or :class:`MovingWindow`.
         robust: ``None`` or :class:`RobustBound` (paper 004 Theorem 1).
+        prior: how the square-root algebra forms the prior factor when no sigma-point weight is
+            negative: ``"qr"`` (``Tria([sqrt(lambda) A, S_Q])``, paper 000 Eq. 25) or
+            ``"cholesky"`` (``chol(lambda A A^T + S_Q S_Q^T)``: one product and one Cholesky
+            instead of a QR of ``(n, L + n)``, 1.3-1.4 times faster at n = 44; the QR is the
+            fallback wherever the Cholesky fails). The optimiser face (random walk, where
+            ``A = S``) uses ``"cholesky"``; both give the same factor up to rounding.
         name: label for tables.
     """
 
@@ -351,6 +392,7 @@ class GaussianFilter:
     fading: StrongTracking | float | None = None
     noise: SageHusa | MovingWindow | None = None
     robust: RobustBound | None = None
+    prior: str = "qr"
     name: str = ""
 
     def __post_init__(self):
@@ -363,6 +405,8 @@ class GaussianFilter:
             raise TypeError("fading must be None, a float >= 1 or StrongTracking")
         if self.robust is not None and not self.redraw:
             raise ValueError("the robust update needs redraw=True (Joseph-form posterior)")
+        if self.prior not in ("qr", "cholesky"):
+            raise ValueError(f"prior must be 'qr' or 'cholesky', got {self.prior!r}")
 
     # ------------------------------------------------------------------ state
     def init(self, model: StateSpaceModel, belief: GaussianBelief, k: int = 0) -> FilterState:
@@ -418,6 +462,11 @@ class GaussianFilter:
             sl = lam.sqrt()[..., None, None]
             pos = sl * pos
             neg = None if neg is None else sl * neg
+        if self.sqrt and self.prior == "cholesky" and neg is None:
+            S = _chol_prior(pos, chol_Q)
+            if update and self.robust is not None:
+                S = self.robust.inflate(S)
+            return _Prior(prop.mean, S, None)
         SQ = _bcast(chol_Q, bs, (n, n))
         if self.sqrt:
             S = tria(torch.cat([pos, SQ], dim=-1))  # paper 000 Eq. 25/36; paper 003 Eq. 16
@@ -494,7 +543,7 @@ class GaussianFilter:
             # _downdate_min_ratio: a very informative measurement) the Joseph QR is used.
             S, ratio = chol_downdate_ex(prior.chol, K @ Szz)
             ok = ratio > _downdate_min_ratio(ratio.dtype)
-            if bool(ok.all()):
+            if not _no_sync() and bool(ok.all()):
                 return S
         else:
             ok = None
@@ -581,7 +630,10 @@ class GaussianFilter:
                 "state = filter.init(model, belief)"
             )
         belief = state.belief
-        y, any_missing = check_measurement(y, model.obs_dim, belief.batch_shape, belief.mean)
+        if _no_sync():
+            y, any_missing = _check_measurement_traced(y, model.obs_dim, belief)
+        else:
+            y, any_missing = check_measurement(y, model.obs_dim, belief.batch_shape, belief.mean)
         u = check_control(u, model.control_dim, belief.batch_shape, belief.mean)
         noise = self._noise(model, state, k)
         observed = nan = None

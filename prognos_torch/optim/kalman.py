@@ -158,7 +158,8 @@ OPTIMIZER_NOISE = SageHusa(estimate=("Q", "R"), diagonal=True)
 
 def _resolve_filter(filt, fading, noise) -> GaussianFilter:
     if isinstance(filt, str):
-        base = make_filter(filt)
+        # the optimiser face's fast path: random walk, prior factor by a Cholesky of S S^T + Q
+        base = replace(make_filter(filt), prior="cholesky")
         if filt.lower() == "imsrukf":
             base = replace(base, noise=OPTIMIZER_NOISE)
     elif isinstance(filt, GaussianFilter):

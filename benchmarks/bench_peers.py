@@ -1,0 +1,236 @@
+"""The library beside its peers on paper 003's ANFIS (44 parameters), one pass, one thread.
+
+Rows (the same 497 Lorenz(x) training pairs, initial parameters, P0, Q and R on every side):
+
+* SRUKF (Julier, kappa = 1) vs dynamax's UKF (alpha = 1, beta = 0, kappa = 1: the same weights),
+  1 run and ``--runs`` runs (the library's ``runs=R`` optimiser; ``jax.vmap`` over the runs);
+* EKF vs dynamax's EKF, 1 run and ``--runs`` runs;
+* filterpy's UKF (Julier points, kappa = 1) with a NumPy ANFIS, 1 run (same process).
+
+dynamax runs in a virtual environment made on first use under ``--cache``
+(``python -m venv`` + ``pip install jax jaxlib dynamax``; never a dependency of the library
+or its tests), in a worker process (``_dynamax_worker.py``) that gets the data as an ``.npz``
+file and is asked for one pass at a time, so that the passes interleave (library, dynamax,
+library, dynamax, ...) and both sides see the same machine load. dynamax's functions are
+jitted and compiled before the first timed pass (compile time reported separately); its time
+is the compiled call with the result blocked on. The library's time is the optimiser steps of
+the pass (``History.time`` of :func:`prognos_torch.optim.fit`). Both sides run one thread
+(``torch.set_num_threads(1)``; XLA's CPU client with one intra-op thread). The test MAE of
+every run must agree to 5 decimals between the library and each peer.
+
+    python benchmarks/bench_peers.py [--repeats 3] [--runs 50] [--cache DIR] [--no-dynamax]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+import venv
+from pathlib import Path
+
+import numpy as np
+import torch
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from bench_optim import P0, Q, R, lorenz_data, make  # noqa: E402
+
+from prognos_torch.optim import fit  # noqa: E402
+
+MAE_DECIMALS = 5
+
+
+# --------------------------------------------------------------------------- dynamax side
+def dynamax_python(cache: Path) -> Path:
+    """Python of the benchmark's JAX environment, created on first use."""
+    env = cache / "jaxenv"
+    py = env / ("Scripts/python.exe" if os.name == "nt" else "bin/python")
+    ok = env / ".installed"
+    if not ok.exists():
+        print(f"creating {env} (jax, jaxlib, dynamax from the package index) ...", flush=True)
+        venv.create(env, with_pip=True)
+        subprocess.run(
+            [str(py), "-m", "pip", "install", "-q", "jax", "jaxlib", "dynamax"], check=True
+        )
+        ok.write_text("ok\n")
+    return py
+
+
+class DynamaxWorker:
+    """The worker process: one JSON request per pass, one JSON answer."""
+
+    def __init__(self, py: Path, npz: Path):
+        env = dict(os.environ)
+        env.update(
+            OMP_NUM_THREADS="1",
+            XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
+            JAX_PLATFORMS="cpu",
+        )
+        self.proc = subprocess.Popen(
+            [str(py), str(HERE / "_dynamax_worker.py"), str(npz)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
+
+    def run(self, filt: str, runs: int) -> dict:
+        self.proc.stdin.write(json.dumps({"filter": filt, "runs": runs}) + "\n")
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError("the dynamax worker stopped (see its error output above)")
+        return json.loads(line)
+
+    def close(self):
+        self.proc.stdin.close()
+        self.proc.wait(timeout=60)
+
+
+# --------------------------------------------------------------------------- filterpy side
+def numpy_anfis(theta, u):
+    """Paper 003 Eq. 1-5 in NumPy, theta in the order of Eq. 44 (3 inputs, 2 MFs)."""
+    alpha = theta[:32].reshape(4, 8)  # (n_in + 1, R), rule index fastest
+    b = theta[32:38].reshape(3, 2)
+    beta = theta[38:44].reshape(3, 2)
+    mu = 1.0 / (1.0 + np.exp(-b * (u[:, None] - beta)))  # Eq. 2
+    w = (mu[0][:, None, None] * mu[1][None, :, None] * mu[2][None, None, :]).reshape(8)
+    w = w / w.sum()  # Eq. 3-4
+    return np.array([w @ (alpha[:3].T @ u + alpha[3])])  # Eq. 5
+
+
+def filterpy_pass(data, theta0, P0m, Qm, Rm):
+    from filterpy.kalman import JulierSigmaPoints, UnscentedKalmanFilter
+
+    Xtr, Ytr, Xte, Yte = data
+    n = theta0.shape[-1]
+    f = UnscentedKalmanFilter(
+        dim_x=n,
+        dim_z=1,
+        dt=1.0,
+        fx=lambda x, dt: x,
+        hx=numpy_anfis,
+        points=JulierSigmaPoints(n, kappa=1.0),
+    )
+    f.x, f.P, f.Q, f.R = theta0.copy(), P0m.copy(), Qm.copy(), Rm.copy()
+    t0 = time.perf_counter()
+    for k in range(Xtr.shape[0]):
+        f.predict()
+        f.update(Ytr[k], u=Xtr[k])
+    dt = time.perf_counter() - t0
+    pred = np.array([numpy_anfis(f.x, u)[0] for u in Xte])
+    return dt, np.abs(pred - Yte.reshape(-1)).mean()
+
+
+# --------------------------------------------------------------------------- library side
+def library_pass(filt, runs, data):
+    Xtr, Ytr, Xte, Yte = data
+    model, opt = make(filt, runs, Xtr)
+    hist = fit(model, opt, (Xtr, Ytr), epochs=1, val=(Xte, Yte), progress=False)
+    return hist.time[0], np.atleast_1d(hist.val["mae"][-1].numpy())
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--repeats", type=int, default=3, help="interleaved passes per row (best)")
+    ap.add_argument("--runs", type=int, default=50, help="Monte Carlo runs of the batched rows")
+    ap.add_argument("--cache", default=os.path.expanduser("~/.cache/prognos_torch_bench"))
+    ap.add_argument("--no-dynamax", action="store_true", help="library and filterpy only")
+    ap.add_argument("--no-filterpy", action="store_true")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    data = lorenz_data()
+    Xtr, Ytr, Xte, Yte = data
+    model, opt = make("srukf", args.runs, Xtr)
+    theta0 = opt.theta.numpy()  # (runs, 44): the runs' initial parameters
+    S0, SQ = opt._chol_P0.numpy(), opt._chol_Q.numpy()
+    P0m, Qm = S0 @ S0.T, SQ @ SQ.T
+    Rm = np.array([[R]])
+    print(
+        f"ANFIS (44 parameters), one pass over {Xtr.shape[0]} Lorenz pairs; P0={P0}, Q={Q}, "
+        f"R={R}; torch {torch.__version__}, 1 thread; load average "
+        + " ".join(f"{x:.2f}" for x in os.getloadavg())
+    )
+
+    worker = None
+    if not args.no_dynamax:
+        cache = Path(args.cache)
+        cache.mkdir(parents=True, exist_ok=True)
+        py = dynamax_python(cache)
+        npz = cache / "problem.npz"
+        np.savez(
+            npz,
+            Xtr=Xtr.numpy(),
+            Ytr=Ytr.numpy().reshape(-1),
+            Xte=Xte.numpy(),
+            Yte=Yte.numpy().reshape(-1),
+            theta0=theta0,
+            P0=P0m,
+            Q=Qm,
+            R=Rm,
+        )
+        worker = DynamaxWorker(py, npz)
+
+    rows = [
+        ("SRUKF vs dynamax UKF, 1 run", "srukf", "ukf", None),
+        ("EKF vs dynamax EKF, 1 run", "ekf", "ekf", None),
+        (f"SRUKF vs dynamax UKF, {args.runs} runs", "srukf", "ukf", args.runs),
+        (f"EKF vs dynamax EKF, {args.runs} runs", "ekf", "ekf", args.runs),
+    ]
+    print(
+        f"\n{'row':34s} {'library [s]':>11s} {'dynamax [s]':>11s} {'dyn/lib':>8s} "
+        f"{'compile [s]':>11s} {'max |dMAE|':>10s} {'test MAE (lib)':>15s}"
+    )
+    results = []
+    for label, lib_name, dyn_name, runs in rows:
+        lib_t, dyn_t, comp = [], [], None
+        lib_mae = dyn_mae = None
+        for _ in range(args.repeats):  # interleaved: A B A B ...
+            t, lib_mae = library_pass(lib_name, runs, data)
+            lib_t.append(t)
+            if worker is not None:
+                ans = worker.run(dyn_name, runs or 1)
+                dyn_t.append(ans["time"])
+                comp = ans["compile"] if ans["compile"] is not None else comp
+                dyn_mae = np.asarray(ans["mae"])
+        lt = min(lib_t)
+        mae_s = f"{lib_mae.mean():.6f}"
+        if worker is None:
+            print(f"{label:34s} {lt:11.3f}{'':>55s} {mae_s:>15s}")
+            continue
+        dt = min(dyn_t)
+        dmae = float(np.abs(dyn_mae - lib_mae).max())
+        agree = bool(np.all(np.round(dyn_mae, MAE_DECIMALS) == np.round(lib_mae, MAE_DECIMALS)))
+        flag = "" if agree else "  (MAE differs at 5 decimals)"
+        print(
+            f"{label:34s} {lt:11.3f} {dt:11.4f} {dt / lt:8.2f} {comp:11.2f} {dmae:10.1e} "
+            f"{mae_s:>15s}{flag}"
+        )
+        results.append((label, lt, dt))
+    if worker is not None:
+        worker.close()
+
+    if not args.no_filterpy:
+        fp_t, lib_t = [], []
+        for _ in range(args.repeats):
+            t, mae_fp = filterpy_pass(tuple(a.numpy() for a in data), theta0[0], P0m, Qm, Rm)
+            fp_t.append(t)
+            t, lib_mae = library_pass("srukf", None, data)
+            lib_t.append(t)
+        ft, lt = min(fp_t), min(lib_t)
+        same = round(mae_fp, MAE_DECIMALS) == round(float(lib_mae[0]), MAE_DECIMALS)
+        print(
+            f"\nfilterpy UKF (Julier, kappa=1) + NumPy ANFIS, 1 run: {ft:.3f} s; library SRUKF "
+            f"{lt:.3f} s in the same run: library {ft / lt:.1f}x faster; test MAE filterpy "
+            f"{mae_fp:.6f}, library {float(lib_mae[0]):.6f}"
+            + ("" if same else " (differs at 5 decimals)")
+        )
+    print("load average at the end: " + " ".join(f"{x:.2f}" for x in os.getloadavg()))
+
+
+if __name__ == "__main__":
+    main()
