@@ -471,7 +471,7 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         figures=figs,
         config={
             "anfis": {"n_inputs": EMBED, "n_mfs": N_MFS, "mf": "sigmoid", "n_parameters": 44},
-            "kalman": {"P0": P0, "Q": Q_RW, "R": R_MEAS, "imsrukf_noise": "Q, R (diagonal Q)"},
+            "kalman": {"P0": P0, "Q": Q_RW, "R": R_MEAS, "imsrukf_noise": "Q (diagonal, Eq. 41), R post-fit, k0 = 300"},
             "adam_lr": ADAM_LR,
             "passes": PASSES,
             "batch_size": 1,

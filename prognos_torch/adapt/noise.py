@@ -47,6 +47,9 @@ class UpdateContext:
         h_mean: ``(..., m)`` ``sum_i W_i h(xi_{i,k|k-1})`` without ``r`` (Eq. 39).
         dz_pos, dz_neg: ``(..., m, L)`` factors of ``sum_i W_i (eta_i - z)(eta_i - z)^T`` (Eq. 38).
         missing: ``(...)`` bool.
+        chol_innovation: ``(..., m, m)`` square root of the innovation covariance
+            ``P_zz = sum W (eta - z)(eta - z)^T + R`` used by the gain (the post-fit form of
+            :class:`SageHusa` needs it), or ``None``.
         any_missing: ``bool(missing.any())`` when the caller knows it (saves a device sync),
             else ``None``.
     """
@@ -64,6 +67,7 @@ class UpdateContext:
     dz_neg: Tensor | None
     missing: Tensor
     any_missing: bool | None = None
+    chol_innovation: Tensor | None = None
 
     @property
     def has_missing(self) -> bool:
@@ -173,12 +177,34 @@ class SageHusa:
         r_k = (1 - d_k) r_{k-1} + d_k (y_k - sum W h(xi_{k|k-1}))                       (Eq. 42)
         R_k = (1 - d_k) R_{k-1} + d_k (e e^T - sum W (eta - z)(eta - z)^T)             (Eq. 43)
 
+    Prior weight. The counter ``k`` starts at ``k0``: the first step uses ``d = 1 / k0`` (with
+    forgetting ``(1 - b) / (1 - b^k0)``), so the prior ``Q_0``, ``R_0`` count as ``k0 - 1``
+    earlier steps. With ``k0 = 1`` (the paper) ``d_1 = 1`` and the prior is discarded at the
+    first step: ``Q_1``, ``R_1`` are one step's rank-one terms.
+
+    Post-fit form of the ``R`` estimate (``r_form="post-fit"``). Eq. 43 subtracts the predicted
+    spread ``H P_{k|k-1} H^T`` from ``e e^T``; while ``P`` is being learned the difference is
+    mostly negative, and ``R`` sits on the floor of the projection. Paper 003's own
+    maximum-a-posteriori estimator (appendix, Eq. 55) takes the residual at the smoothed state
+    ``x_{k|N}``; the recursion replaces it by the prediction (Eq. 59). Taking the filtered
+    state instead gives the post-fit residual ``rho = y - h(x_k)`` with
+    ``E[rho rho^T] = R - H P_k H^T``, so (Akhlaghi et al., 2017)
+
+        R_k = (1 - d_k) R_{k-1} + d_k (rho rho^T + H P_k H^T),
+
+    positive semi-definite by construction. Under statistical linearisation (``H P_{k|k-1} H^T
+    = sum W (eta - z)(eta - z)^T``, exact for a linear ``h``) ``rho = R P_zz^-1 e`` and
+    ``H P_k H^T = R - R P_zz^-1 R``, both from the innovation factor the gain used (two
+    triangular solves; no further evaluation of ``h``).
+
     Attributes:
         estimate: which statistics to adapt, a subset of ``("q", "Q", "r", "R")``.
         forgetting: ``None`` for ``1/k`` averaging, else ``b`` in ``(0, 1)``.
         diagonal: estimate only variances.
         floor_rel: eigenvalue floor of the positive-definite projection (module docstring).
         frozen: keep the initial statistics (adaptation off; the filter is then exactly SRUKF).
+        k0: the counter's start, ``>= 1`` (prior weight, above).
+        r_form: ``"innovation"`` (Eq. 43 as printed) or ``"post-fit"`` (above).
     """
 
     estimate: tuple[str, ...] = ("q", "Q", "r", "R")
@@ -186,6 +212,8 @@ class SageHusa:
     diagonal: bool = False
     floor_rel: float = 1e-6
     frozen: bool = False
+    k0: float = 1.0
+    r_form: str = "innovation"
 
     def __post_init__(self):
         bad = set(self.estimate) - {"q", "Q", "r", "R"}
@@ -193,6 +221,14 @@ class SageHusa:
             raise ValueError(f"estimate must be a subset of ('q', 'Q', 'r', 'R'), got {bad}")
         if self.forgetting is not None and not 0.0 < self.forgetting < 1.0:
             raise ValueError(f"forgetting must be in (0, 1) or None, got {self.forgetting}")
+        if (
+            isinstance(self.k0, bool)
+            or not isinstance(self.k0, (int, float))
+            or not (self.k0 >= 1.0 and self.k0 < float("inf"))
+        ):
+            raise ValueError(f"k0 must be a finite number >= 1, got {self.k0!r}")
+        if self.r_form not in ("innovation", "post-fit"):
+            raise ValueError(f"r_form must be 'innovation' or 'post-fit', got {self.r_form!r}")
 
     def init(self, noise: Noise, batch_shape, n: int, m: int, like: Tensor) -> NoiseEstimatorState:
         cQ = _expand(noise.chol_Q, batch_shape, (n, n), like)
@@ -208,7 +244,9 @@ class SageHusa:
             r=_expand(noise.r, batch_shape, (m,), like),
             R=R,
             chol_R=cR,
-            count=torch.zeros(batch_shape, dtype=like.dtype, device=like.device),
+            count=torch.full(
+                batch_shape, float(self.k0) - 1.0, dtype=like.dtype, device=like.device
+            ),
             fallback=torch.zeros(batch_shape, dtype=torch.bool, device=like.device),
             floor_Q=floor(Q),
             floor_R=floor(R),
@@ -256,11 +294,20 @@ class SageHusa:
             r = hold(r, torch.lerp(r, c.y - c.h_mean, d1), 1)
         if "R" in self.estimate:  # Eq. 43
             e = c.innovation
-            if self.diagonal:
+            if self.r_form == "post-fit":
+                rho, W = self._post_fit(s.R, c)
+                if self.diagonal:
+                    term = rho * rho + torch.diagonal(s.R, dim1=-2, dim2=-1) - W.pow(2).sum(-2)
+                else:
+                    term = _outer(rho) + s.R - W.mT @ W
+            elif self.diagonal:
                 term = e * e - c.diag("pzz_noR")
+            else:
+                term = _outer(e) - c.pzz_noR
+            if self.diagonal:
                 R, cR, f2 = self._diagonal_step(R, cR, term, d1, s.floor_R, hold)
             else:
-                new = torch.lerp(R, _outer(e) - c.pzz_noR, d1[..., None])
+                new = torch.lerp(R, term, d1[..., None])
                 new, cnew, f2 = _project_pd(new, s.floor_R, False)
                 R, cR = hold(R, new, 2), hold(cR, cnew, 2)
             fb = merge(fb, f2)
@@ -270,6 +317,18 @@ class SageHusa:
         return NoiseEstimatorState(
             q, Q, cQ, r, R, cR, count, fb, s.floor_Q, s.floor_R, s.buf_Q, s.buf_R, s.buf_valid
         )
+
+    @staticmethod
+    def _post_fit(R: Tensor, c: UpdateContext) -> tuple[Tensor, Tensor]:
+        """``(rho, W)``: post-fit residual ``R P_zz^-1 e`` and ``W = S_zz^-1 R`` (``W^T W =
+        R P_zz^-1 R``), from the innovation factor ``S_zz`` (class docstring)."""
+        Szz = c.chol_innovation
+        if Szz is None:
+            raise ValueError("SageHusa(r_form='post-fit') needs UpdateContext.chol_innovation")
+        a = torch.cholesky_solve(c.innovation.unsqueeze(-1), Szz)
+        rho = (R @ a).squeeze(-1)
+        W = torch.linalg.solve_triangular(Szz, R, upper=False)
+        return rho, W
 
     @staticmethod
     def _diagonal_step(C, chol_C, term, d1, floor, hold):

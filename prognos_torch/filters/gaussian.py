@@ -717,6 +717,7 @@ class GaussianFilter:
                 dz_neg=mom.dz_neg,
                 missing=incomplete,
                 any_missing=any_missing,
+                chol_innovation=Szz,
             )
             nstate = self.noise.update(nstate, ctx)
             fallback = nstate.fallback
