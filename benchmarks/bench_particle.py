@@ -38,7 +38,7 @@ import warnings
 import torch
 
 from prognos_torch.core import GaussianBelief, StateSpaceModel
-from prognos_torch.filters.particle import sir, stpf
+from prognos_torch.filters import sir, stpf
 
 SQ, SR = 0.05, 0.3
 

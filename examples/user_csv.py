@@ -37,6 +37,7 @@ from prognos_torch.workflow import (
     plot_forecast,
     plot_rul,
     rul,
+    save_model,
 )
 
 
@@ -65,7 +66,7 @@ def main(out: Path, data: Path) -> None:
         f"{mt['persistence_rmse']:.3f}, 95 % band coverage {mt['coverage']:.2f}"
     )
 
-    model.save(data.with_suffix(".pt"))  # a safe file: JSON + raw tensors, no pickle
+    save_model(model, data.with_suffix(".pt"))  # a safe file: JSON + raw tensors, no pickle
     model = load_model(data.with_suffix(".pt"))
 
     fc = forecast(model, series, 48)

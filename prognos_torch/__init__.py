@@ -4,7 +4,7 @@ Subpackages: ``core`` (state-space models, beliefs, square-root algebra), ``quad
 (sigma-point rules), ``filters`` (one Gaussian engine, particle filters), ``adapt`` (strong
 tracking, noise estimation, robust update), ``optim`` (Kalman optimisers, training loop),
 ``learners`` (ELM, LS-SVR, ANFIS), ``prognosis`` (forecasting, RUL), ``metrics``, ``systems``
-(simulators), ``datasets`` (IMS bearings, windows), ``plotting``, ``studies``.
+(simulators), ``datasets`` (IMS bearings, windows), ``plots`` (figures), ``studies``.
 """
 
 __version__ = "0.1.0"

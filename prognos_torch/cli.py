@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 
 __all__ = ["main", "build_parser"]
@@ -86,7 +87,10 @@ _DATA_HELP = """data options (fit; forecast and rul reuse the model's unless giv
   may hold numbers or ISO 8601 date-times (then time is in days since the first row).
   --where COL=VALUE keeps matching rows: how a long table (one row per snapshot and channel,
   like datasets/ims/test1_features.csv) becomes one series.
-exit status: 0 success, 2 bad input (one line on stderr, nothing written), 3 censored RUL."""
+exit status: 0 success; 2 bad input (one 'error:' line on stderr, nothing written); 3 censored
+  RUL (rul: part or all of the distribution lies beyond the horizon, so its mean is withheld;
+  the report and any --plot are written, and one 'censored RUL:' line on stderr says how much).
+  A 'warning:' line on stderr (exit 0) flags a forecast that leaves the training range."""
 
 
 def _wrap(text: str) -> str:
@@ -350,7 +354,7 @@ def _describe(series, data_cfg: dict) -> str:
 
 
 def _cmd_fit(args) -> int:
-    from .workflow import fit_series
+    from .workflow import fit_series, save_model
 
     _check_out_folder(args.out, "--out")
     series, data_cfg = _series_from_args(args)
@@ -413,7 +417,7 @@ def _cmd_fit(args) -> int:
                 ("metric", "value"),
             )
         )
-    model.save(args.out)
+    save_model(model, args.out)
     print(f"\nmodel written to {args.out}")
     return 0
 
@@ -516,7 +520,10 @@ def _cmd_rul(args) -> int:
         _check_out_folder(args.plot, "--plot")
         series, data_cfg = _series_from_args(args)
         truth = _series_from_args(args, data_cfg, truth=True)[0] if args.until else None
-        return run_prognose(args, series, data_cfg, truth)
+        censored = run_prognose(args, series, data_cfg, truth)
+        if censored:
+            raise _CensoredRUL(censored)
+        return 0
     model, series, data_cfg, truth = _load_for_prediction(args)
     res = rul(
         model,
@@ -565,26 +572,46 @@ def _cmd_rul(args) -> int:
         print(f"figure written to {args.plot}")
     if res.fully_censored:
         raise _CensoredRUL(
-            f"censored RUL: no predicted path reaches the threshold {res.threshold:g} within the "
-            f"horizon of {res.horizon} steps ({res.bound:g} {unit}); the RUL exceeds "
-            f"{res.bound:g} {unit} (raise --horizon to look further, or check --threshold)"
+            f"no predicted path reaches the threshold {res.threshold:g} within the horizon of "
+            f"{res.horizon} steps ({res.bound:g} {unit}); the RUL exceeds {res.bound:g} {unit} "
+            "(raise --horizon to look further, or check --threshold)"
+        )
+    if cm > 0:
+        raise _CensoredRUL(
+            f"{100 * cm:.3g} % of the predicted paths do not reach the threshold "
+            f"{res.threshold:g} within the horizon of {res.horizon} steps ({res.bound:g} "
+            f"{unit}); their RUL exceeds {res.bound:g} {unit} and the mean is withheld (raise "
+            "--horizon to look further)"
         )
     return 0
 
 
 def _workflow(cmd):
-    """Run a workflow command: one-line errors on stderr, exit 2 (bad input) or 3 (censored)."""
+    """Run a workflow command: one-line errors on stderr, exit 2 (bad input) or 3 (censored);
+    extrapolation warnings as one ``warning:`` line each."""
 
     def wrapped(args) -> int:
         import torch
 
         from .io import ModelFileError
+        from .workflow.extrapolation import ExtrapolationWarning
 
         torch.set_num_threads(1)  # tiny matrices: threads only add overhead (see tests/conftest)
         try:
-            return cmd(args)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", ExtrapolationWarning)
+                try:
+                    return cmd(args)
+                finally:
+                    for w in caught:
+                        if issubclass(w.category, ExtrapolationWarning):
+                            print(f"warning: {w.message}", file=sys.stderr)
+                        else:
+                            warnings.showwarning(
+                                w.message, w.category, w.filename, w.lineno, w.file, w.line
+                            )
         except _CensoredRUL as exc:
-            print(f"error: {exc}", file=sys.stderr)
+            print(f"censored RUL: {exc}", file=sys.stderr)
             return 3
         except (ValueError, TypeError, OSError, ModelFileError) as exc:
             text = " ".join(str(exc).split()) or type(exc).__name__

@@ -1,32 +1,46 @@
-"""Safe model files: JSON configuration and raw tensors behind a SHA-256 checksum; no pickle.
+"""Safe model files: safetensors tensors, JSON configuration and a SHA-256 checksum; no pickle.
 
 A model file from someone else must not be able to run code on the reader's machine, so this
-format never uses :mod:`pickle` (which ``torch.load`` without ``weights_only=True`` relies on):
-the configuration is JSON and every tensor is stored as raw little-endian bytes described by the
-JSON header (dtype from a fixed allow-list, shape, offset). A tampered or truncated file is
-rejected *before anything is deserialised*: the whole body (header and tensor bytes) is covered
-by a SHA-256 digest stored in the fixed-size preamble, and the length is checked first.
-
-Layout (all integers little-endian)::
+format never uses :mod:`pickle` (which ``torch.load`` without ``weights_only=True`` relies on).
+Files are in the `safetensors <https://huggingface.co/docs/safetensors>`_ format (format
+version 2), so any safetensors reader (``safetensors.safe_open``) opens the tensors::
 
     offset  size  field
-    0       12    magic  b"\\x89PROGNOS\\r\\n\\x1a\\n"
-    12      4     format version (uint32), currently 1
-    16      8     body length in bytes (uint64)
-    24      32    SHA-256 of the body
-    56      ...   body: header length (uint64), header (UTF-8 JSON), tensor bytes
+    0       8     N: header length in bytes (uint64, little-endian)
+    8       N     header: UTF-8 JSON, padded with spaces to a multiple of 8 bytes
+    8 + N   ...   tensor bytes: raw little-endian values, row-major, one tensor after another
 
-The header is ``{"library": "prognos_torch", "library_version": "0.1.0", "kind": ...,
-"config": {...}, "tensors": [{"name", "dtype", "shape", "offset", "nbytes"}, ...]}`` with
-offsets relative to the start of the tensor bytes.
+The header maps every tensor name to ``{"dtype": "F64" | "F32" | "I64" | "I32" | "BOOL",
+"shape": [...], "data_offsets": [begin, end]}`` (offsets relative to the tensor bytes, which
+they tile exactly) and holds ``"__metadata__"``, string to string::
+
+    "format": "pt"
+    "prognos.library": "prognos_torch"
+    "prognos.format_version": "2"
+    "prognos.library_version": "0.1.0"
+    "prognos.kind": e.g. "prognos-workflow"
+    "prognos.config": the configuration as JSON text
+    "prognos.sha256": SHA-256 (hex) of the whole file with these 64 hex digits set to "0"
+
+Order of checks on reading: file size and the header length (truncation of the header), the
+header as JSON (plain JSON: parsing it cannot run code; duplicate keys refused), the prognos
+metadata and format version, the extent of the tensor bytes (truncation, trailing bytes), the
+SHA-256 of the whole file, then library-version compatibility, ``kind``, the configuration
+and each tensor (allowed dtype, shape, bounds, exact tiling). No tensor byte and no
+configuration value is used before the checksum has been verified.
 
 The digest detects corruption and accidental edits; it is not a signature (anyone can write a
 file with a valid digest). Safety does not rest on it: the reader only ever parses JSON and
 copies bytes into tensors of allowed dtypes, so even a hostile file with a valid digest can at
 worst carry wrong numbers, never code.
 
-Compatibility: files are readable by the same major.minor release that wrote them (for 0.x:
-the same 0.minor); :func:`load_model_file` raises :class:`ModelFileError` naming both versions
+The format is written here directly (it is a few lines: length, JSON, bytes), so the
+``safetensors`` package is not a dependency; the tests use it as an independent reader.
+
+Format version 1 (``MAGIC``, a fixed preamble with the digest, then header and tensor bytes;
+written by prognos_torch 0.1.0 before the move to safetensors) is still read. Compatibility:
+files are readable by the same major.minor release that wrote them (for 0.x: the same
+0.minor); :func:`load_model_file` raises :class:`ModelFileError` naming both versions
 otherwise, and for any other format version.
 """
 
@@ -61,14 +75,19 @@ __all__ = [
     "versions_compatible",
 ]
 
+#: Signature of format-1 files (read, no longer written).
 MAGIC = b"\x89PROGNOS\r\n\x1a\n"
-FORMAT_VERSION = 1
-_PREAMBLE = struct.Struct("<12sIQ32s")  # magic, format version, body length, sha256
+#: The format version written: 2 (safetensors).
+FORMAT_VERSION = 2
+_PREAMBLE = struct.Struct("<12sIQ32s")  # format 1: magic, format version, body length, sha256
 _U64 = struct.Struct("<Q")
 #: Header size limit: a model file's JSON header is a few kB; refuse absurd values early.
 _MAX_HEADER = 64 * 1024 * 1024
+_META = "__metadata__"
+_DIGEST_KEY = "prognos.sha256"
+_DIGEST_PLACEHOLDER = "0" * 64
 
-#: dtype name in the header -> (torch dtype, little-endian numpy dtype).
+#: dtype name in a format-1 header -> (torch dtype, little-endian numpy dtype).
 _DTYPES: dict[str, tuple[torch.dtype, np.dtype]] = {
     "float64": (torch.float64, np.dtype("<f8")),
     "float32": (torch.float32, np.dtype("<f4")),
@@ -77,6 +96,9 @@ _DTYPES: dict[str, tuple[torch.dtype, np.dtype]] = {
     "bool": (torch.bool, np.dtype("?")),
 }
 _BY_TORCH = {v[0]: k for k, v in _DTYPES.items()}
+#: safetensors dtype codes of the allowed dtypes.
+_ST_CODES = {"float64": "F64", "float32": "F32", "int64": "I64", "int32": "I32", "bool": "BOOL"}
+_FROM_ST = {v: k for k, v in _ST_CODES.items()}
 
 
 class ModelFileError(ValueError):
@@ -92,7 +114,7 @@ class ModelFile:
         config: the JSON configuration (plain dicts, lists, strings, numbers, bools, None).
         tensors: name -> tensor (fresh CPU tensors, or on ``map_location``).
         library_version: version of prognos_torch that wrote the file.
-        format_version: container format version.
+        format_version: container format version (2: safetensors; 1: the earlier format).
     """
 
     kind: str
@@ -127,8 +149,15 @@ def _umask() -> int:
 
 def atomic_write(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` through a temporary file in the same folder and an atomic
-    rename: readers see the old file or the complete new one, never a partial write."""
+    rename: readers see the old file or the complete new one, never a partial write.
+
+    Raises:
+        IsADirectoryError: ``path`` is a folder (give a file name inside it).
+        FileNotFoundError: the folder of ``path`` does not exist.
+    """
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{path} is a folder; give a file name, e.g. {path / 'model.pt'}")
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise FileNotFoundError(f"output folder does not exist: {folder}")
@@ -169,6 +198,23 @@ def _check_json(value, where: str) -> None:
     raise TypeError(f"config{where} must be a JSON value, got {type(value).__name__}")
 
 
+def _dumps(obj) -> str:
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False)
+
+
+def _digest_field(digest: str) -> bytes:
+    """The bytes of the digest entry as written in the header."""
+    return f"{json.dumps(_DIGEST_KEY)}:{json.dumps(digest)}".encode()
+
+
+def _file_digest(head: bytes, data: bytes | memoryview) -> str:
+    """SHA-256 (hex) of length + header + tensor bytes, the header's digest set to zeros."""
+    h = hashlib.sha256(_U64.pack(len(head)))
+    h.update(head)
+    h.update(data)
+    return h.hexdigest()
+
+
 def save_model_file(
     path: str | os.PathLike,
     config: Mapping,
@@ -176,14 +222,14 @@ def save_model_file(
     *,
     kind: str = "prognos-model",
 ) -> None:
-    """Write a model file (atomically: temporary file, then rename).
+    """Write a model file in the safetensors format (atomically: temporary file, then rename).
 
     Args:
-        path: destination (its folder must exist).
+        path: destination (its folder must exist; not a folder itself).
         config: JSON-serialisable configuration (dicts, lists, str, int, finite float, bool,
             None).
         tensors: name -> tensor of a dtype in ``float64, float32, int64, int32, bool`` (any
-            device; stored from CPU copies).
+            device; stored from CPU copies). Names must not be ``"__metadata__"``.
         kind: a short label checked by readers that expect a particular kind of file.
     """
     if not isinstance(kind, str) or not kind:
@@ -191,39 +237,48 @@ def save_model_file(
     if not isinstance(config, Mapping):
         raise TypeError(f"config must be a mapping, got {type(config).__name__}")
     _check_json(config, "")
-    entries, chunks, offset = [], [], 0
+    items = []
     for name, t in tensors.items():
-        if not isinstance(name, str):
-            raise TypeError(f"tensor names must be strings, got {name!r}")
+        if not isinstance(name, str) or name == _META:
+            raise TypeError(f"tensor names must be strings other than {_META!r}, got {name!r}")
         if not isinstance(t, Tensor):
             raise TypeError(f"tensors[{name!r}] must be a torch.Tensor, got {type(t).__name__}")
         if t.dtype not in _BY_TORCH:
             raise TypeError(f"tensors[{name!r}] has dtype {t.dtype}; allowed: {sorted(_DTYPES)}")
+        items.append((name, t))
+    # widest dtypes first: every tensor then starts at a multiple of its item size
+    items.sort(key=lambda it: -it[1].element_size())
+    header: dict = {
+        _META: {
+            "format": "pt",
+            "prognos.library": "prognos_torch",
+            "prognos.format_version": str(FORMAT_VERSION),
+            "prognos.library_version": __version__,
+            "prognos.kind": kind,
+            "prognos.config": _dumps(config),
+            _DIGEST_KEY: _DIGEST_PLACEHOLDER,
+        }
+    }
+    chunks, offset = [], 0
+    for name, t in items:
         dname = _BY_TORCH[t.dtype]
         arr = t.detach().to("cpu").contiguous().numpy().astype(_DTYPES[dname][1], copy=False)
         raw = arr.tobytes()
-        entries.append(
-            {
-                "name": name,
-                "dtype": dname,
-                "shape": list(t.shape),
-                "offset": offset,
-                "nbytes": len(raw),
-            }
-        )
+        header[name] = {
+            "dtype": _ST_CODES[dname],
+            "shape": list(t.shape),
+            "data_offsets": [offset, offset + len(raw)],
+        }
         chunks.append(raw)
         offset += len(raw)
-    header = {
-        "library": "prognos_torch",
-        "library_version": __version__,
-        "kind": kind,
-        "config": config,
-        "tensors": entries,
-    }
-    head = json.dumps(header, sort_keys=True, separators=(",", ":"), allow_nan=False).encode()
-    body = _U64.pack(len(head)) + head + b"".join(chunks)
-    digest = hashlib.sha256(body).digest()
-    atomic_write(path, _PREAMBLE.pack(MAGIC, FORMAT_VERSION, len(body), digest) + body)
+    head = json.dumps(header, separators=(",", ":"), allow_nan=False).encode()
+    head += b" " * (-(len(head) + _U64.size) % 8)  # tensor bytes start 8-byte aligned
+    data = b"".join(chunks)
+    field = _digest_field(_DIGEST_PLACEHOLDER)
+    assert head.count(field) == 1
+    digest = _file_digest(head, data)
+    head = head.replace(field, _digest_field(digest))
+    atomic_write(path, _U64.pack(len(head)) + head + data)
 
 
 def _sniff(prefix: bytes) -> str:
@@ -237,7 +292,15 @@ def _sniff(prefix: bytes) -> str:
             "it looks like a Python pickle; pickles are never loaded here, because unpickling "
             "can run arbitrary code"
         )
-    return "it does not start with the prognos model-file signature"
+    return "it is neither a safetensors file nor a prognos model file of format 1"
+
+
+def _format_version_error(path, fmt) -> ModelFileError:
+    return ModelFileError(
+        f"{path} uses model-file format version {fmt}; prognos_torch {__version__} reads "
+        f"versions 1 and {FORMAT_VERSION} (re-save the model with this version, or use the "
+        "prognos_torch release that wrote it)"
+    )
 
 
 def load_model_file(
@@ -246,72 +309,174 @@ def load_model_file(
     kind: str | None = None,
     map_location: str | torch.device = "cpu",
 ) -> ModelFile:
-    """Read a model file written by :func:`save_model_file`, checking it before parsing.
-
-    Order of checks: size and signature, format version, body length (truncation), SHA-256 of
-    the body, then the JSON header, library-version compatibility, ``kind``, and each tensor
-    entry (allowed dtype, shape, bounds). Nothing is unpickled, ever.
+    """Read a model file written by :func:`save_model_file` (format 2) or an earlier release
+    (format 1), checking it before using anything in it (order in the module notes). Nothing
+    is unpickled, ever.
 
     Args:
         path: the file.
         kind: when given, the file's kind must equal it.
-        map_location: device of the returned tensors.
+        map_location: device of the returned tensors (a device this torch build has).
 
     Raises:
         FileNotFoundError: no such file.
+        IsADirectoryError: ``path`` is a folder.
+        ValueError: ``map_location`` is not a device this torch build can use.
         ModelFileError: not a model file, truncated, checksum mismatch, malformed header,
             incompatible version or kind (each message names the problem).
     """
     path = Path(path)
+    device = _device(map_location)
+    if path.is_dir():
+        raise IsADirectoryError(f"{path} is a folder, not a model file")
     if not path.is_file():
         raise FileNotFoundError(f"model file not found: {path}")
     size = path.stat().st_size
     with open(path, "rb") as handle:
-        pre = handle.read(_PREAMBLE.size)
-        if len(pre) < len(MAGIC) or pre[: len(MAGIC)] != MAGIC:
-            raise ModelFileError(f"{path} is not a prognos model file: {_sniff(pre)}")
-        if len(pre) < _PREAMBLE.size:
+        prefix = handle.read(_PREAMBLE.size)
+        if prefix.startswith(MAGIC):
+            handle.seek(0)
+            return _load_v1(path, handle, size, kind, device)
+        if len(prefix) < _U64.size + 1:
             raise ModelFileError(
-                f"{path} is truncated: {size} bytes, shorter than the {_PREAMBLE.size}-byte "
-                "preamble"
+                f"{path} is not a prognos model file ({size} bytes): {_sniff(prefix)}"
             )
-        _, fmt, body_len, digest = _PREAMBLE.unpack(pre)
-        if fmt != FORMAT_VERSION:
+        (head_len,) = _U64.unpack_from(prefix, 0)
+        if head_len > _MAX_HEADER or prefix[_U64.size : _U64.size + 1] != b"{":
+            raise ModelFileError(f"{path} is not a prognos model file: {_sniff(prefix)}")
+        if size < _U64.size + head_len:
             raise ModelFileError(
-                f"{path} uses model-file format version {fmt}; prognos_torch {__version__} "
-                f"reads version {FORMAT_VERSION} (re-save the model with this version, or use "
-                "the prognos_torch release that wrote it)"
+                f"{path} is truncated: {size} bytes, shorter than its "
+                f"{_U64.size + head_len}-byte header"
             )
-        if size - _PREAMBLE.size < body_len:
-            raise ModelFileError(
-                f"{path} is truncated: {size - _PREAMBLE.size} of {body_len} body bytes present"
-            )
-        if size - _PREAMBLE.size > body_len:
-            raise ModelFileError(
-                f"{path} has {size - _PREAMBLE.size - body_len} unexpected bytes after the body "
-                "(corrupted or modified)"
-            )
-        body = handle.read(body_len)
-    if len(body) != body_len:  # the file changed while being read
-        raise ModelFileError(f"{path} is truncated: read {len(body)} of {body_len} body bytes")
-    if not hmac.compare_digest(hashlib.sha256(body).digest(), digest):
+        handle.seek(_U64.size)
+        head = handle.read(head_len)
+        data = handle.read()
+    if len(head) != head_len:  # the file changed while being read
+        raise ModelFileError(f"{path} is truncated: read {len(head)} of {head_len} header bytes")
+    header = _parse_header(path, head)
+    meta = header.get(_META)
+    if not isinstance(meta, dict) or meta.get("prognos.library") != "prognos_torch":
+        raise ModelFileError(
+            f"{path} is a safetensors file but not a prognos model file (no prognos_torch metadata)"
+        )
+    if not all(isinstance(v, str) for v in meta.values()):
+        raise ModelFileError(f"{path}: header metadata values must be strings")
+    fmt = meta.get("prognos.format_version")
+    if fmt != str(FORMAT_VERSION):
+        raise _format_version_error(path, fmt)
+    digest = meta.get(_DIGEST_KEY)
+    if not isinstance(digest, str) or not re.fullmatch(r"[0-9a-f]{64}", digest):
+        raise ModelFileError(f"{path}: header has no valid {_DIGEST_KEY!r} checksum")
+    entries = []
+    for name, e in header.items():
+        if name == _META:
+            continue
+        if not isinstance(e, dict) or not isinstance(e.get("data_offsets"), list):
+            raise ModelFileError(f"{path}: tensor {name!r} has a malformed header entry")
+        offs = e["data_offsets"]
+        if len(offs) != 2 or not all(_nonneg_int(v) for v in offs) or offs[1] < offs[0]:
+            raise ModelFileError(f"{path}: tensor {name!r} has malformed data_offsets {offs}")
+        entries.append(
+            {
+                "name": name,
+                "dtype": e.get("dtype"),
+                "shape": e.get("shape"),
+                "offset": offs[0],
+                "nbytes": offs[1] - offs[0],
+            }
+        )
+    extent = max((e["offset"] + e["nbytes"] for e in entries), default=0)
+    if len(data) < extent:
+        raise ModelFileError(f"{path} is truncated: {len(data)} of {extent} tensor bytes present")
+    if len(data) > extent:
+        raise ModelFileError(
+            f"{path} has {len(data) - extent} unexpected bytes after the tensor data "
+            "(corrupted or modified)"
+        )
+    field = _digest_field(digest)
+    if head.count(field) != 1 or not hmac.compare_digest(
+        _file_digest(head.replace(field, _digest_field(_DIGEST_PLACEHOLDER)), data), digest
+    ):
         raise ModelFileError(
             f"{path} failed its SHA-256 check: the file is corrupted or was modified"
         )
 
     # ---- from here on the bytes are exactly what the writer produced; parse defensively anyway
-    if body_len < _U64.size:
-        raise ModelFileError(f"{path}: body too short for its header length field")
-    (head_len,) = _U64.unpack_from(body, 0)
-    if head_len > min(_MAX_HEADER, body_len - _U64.size):
-        raise ModelFileError(f"{path}: header length {head_len} exceeds the body")
+    written = meta.get("prognos.library_version")
+    _check_library_version(path, written)
+    file_kind = meta.get("prognos.kind")
+    _check_kind(path, file_kind, kind)
     try:
-        header = json.loads(body[_U64.size : _U64.size + head_len].decode("utf-8"))
+        config = json.loads(meta.get("prognos.config", ""))
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise ModelFileError(f"{path}: malformed JSON configuration ({exc})") from None
+    if not isinstance(config, dict):
+        raise ModelFileError(f"{path}: header lacks a configuration object")
+    for e in entries:
+        if e["dtype"] not in _FROM_ST:
+            raise ModelFileError(
+                f"{path}: tensor {e['name']!r} has dtype {e['dtype']!r}; allowed: "
+                f"{sorted(_FROM_ST)}"
+            )
+        e["dtype"] = _FROM_ST[e["dtype"]]
+    tensors = _decode_tensors(path, entries, memoryview(data), device)
+    return ModelFile(
+        kind=file_kind,
+        config=config,
+        tensors=tensors,
+        library_version=written,
+        format_version=FORMAT_VERSION,
+    )
+
+
+def _device(map_location) -> torch.device:
+    """``map_location`` as a ``torch.device`` that this torch build can allocate on.
+
+    Raises:
+        ValueError: not a device name or ``torch.device``, or a device type this torch build
+            or machine does not have (e.g. ``"cuda"`` with a CPU-only build).
+    """
+    if isinstance(map_location, bool) or not isinstance(map_location, (str, torch.device)):
+        raise TypeError(f"map_location must be a device name or torch.device, got {map_location!r}")
+    try:
+        device = torch.device(map_location)
+    except (RuntimeError, ValueError) as exc:
+        raise ValueError(
+            f"map_location={map_location!r} is not a device name (e.g. 'cpu', 'cuda:0')"
+        ) from exc
+    try:
+        torch.empty(0, device=device)
+    except (RuntimeError, AssertionError, ValueError) as exc:
+        why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ValueError(
+            f"map_location={map_location!r}: this torch build or machine cannot use that "
+            f"device ({why}); load on 'cpu' instead"
+        ) from None
+    return device
+
+
+def _nonneg_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+
+
+def _parse_header(path, head: bytes) -> dict:
+    def no_duplicates(pairs):
+        keys = [k for k, _ in pairs]
+        if len(set(keys)) != len(keys):
+            raise ModelFileError(f"{path}: header repeats a key")
+        return dict(pairs)
+
+    try:
+        header = json.loads(head.decode("utf-8"), object_pairs_hook=no_duplicates)
     except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise ModelFileError(f"{path}: malformed JSON header ({exc})") from None
-    if not isinstance(header, dict) or header.get("library") != "prognos_torch":
-        raise ModelFileError(f"{path}: header does not describe a prognos_torch model")
-    written = header.get("library_version")
+    if not isinstance(header, dict):
+        raise ModelFileError(f"{path}: header is not a JSON object")
+    return header
+
+
+def _check_library_version(path, written) -> None:
     if not isinstance(written, str) or _version_tuple(written) is None:
         raise ModelFileError(f"{path}: header has no valid library_version ({written!r})")
     if not versions_compatible(written):
@@ -321,17 +486,18 @@ def load_model_file(
             f"{_version_tuple(written)[0]}.{_version_tuple(written)[1]}.x); refit the model or "
             f"install prognos_torch {written}"
         )
-    file_kind = header.get("kind")
+
+
+def _check_kind(path, file_kind, kind) -> None:
     if not isinstance(file_kind, str):
         raise ModelFileError(f"{path}: header has no kind")
     if kind is not None and file_kind != kind:
         raise ModelFileError(f"{path} holds a {file_kind!r}, expected a {kind!r}")
-    config = header.get("config")
-    entries = header.get("tensors")
-    if not isinstance(config, dict) or not isinstance(entries, list):
-        raise ModelFileError(f"{path}: header lacks config or tensors")
 
-    data = memoryview(body)[_U64.size + head_len :]
+
+def _decode_tensors(path, entries: list, data: memoryview, device) -> dict[str, Tensor]:
+    """Tensors from checked header entries ``{name, dtype, shape, offset, nbytes}``; the
+    entries must tile ``data`` exactly (no overlap, no unreferenced bytes)."""
     tensors: dict[str, Tensor] = {}
     for i, e in enumerate(entries):
         if not isinstance(e, dict):
@@ -345,7 +511,7 @@ def load_model_file(
                 f"{path}: tensor {name!r} has dtype {dname!r}; allowed: {sorted(_DTYPES)}"
             )
         ints = (offset, nbytes, *(shape if isinstance(shape, list) else [None]))
-        if not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in ints):
+        if not all(_nonneg_int(v) for v in ints):
             raise ModelFileError(f"{path}: tensor {name!r} has a malformed shape or extent")
         tdtype, ndtype = _DTYPES[dname]
         count = math.prod(shape)
@@ -356,8 +522,7 @@ def load_model_file(
             )
         arr = np.frombuffer(data[offset : offset + nbytes], dtype=ndtype, count=count)
         t = torch.from_numpy(arr.astype(ndtype.newbyteorder("="), copy=True)).reshape(shape)
-        tensors[name] = t.to(map_location)
-    # the entries must tile the tensor bytes exactly: no overlap, no unreferenced bytes
+        tensors[name] = t.to(device)
     spans = sorted((e["offset"], e["nbytes"]) for e in entries)
     pos = 0
     for off, nb in spans:
@@ -368,10 +533,54 @@ def load_model_file(
         raise ModelFileError(
             f"{path}: tensor data has {len(data) - pos} unreferenced bytes (corrupted or modified)"
         )
+    return tensors
+
+
+def _load_v1(path, handle, size: int, kind, device) -> ModelFile:
+    """Format 1: magic, version, body length, SHA-256 of the body, then the body (header
+    length, JSON header with ``config`` and ``tensors`` entries, tensor bytes)."""
+    pre = handle.read(_PREAMBLE.size)
+    if len(pre) < _PREAMBLE.size:
+        raise ModelFileError(
+            f"{path} is truncated: {size} bytes, shorter than the {_PREAMBLE.size}-byte preamble"
+        )
+    _, fmt, body_len, digest = _PREAMBLE.unpack(pre)
+    if fmt != 1:
+        raise _format_version_error(path, fmt)
+    if size - _PREAMBLE.size < body_len:
+        raise ModelFileError(
+            f"{path} is truncated: {size - _PREAMBLE.size} of {body_len} body bytes present"
+        )
+    if size - _PREAMBLE.size > body_len:
+        raise ModelFileError(
+            f"{path} has {size - _PREAMBLE.size - body_len} unexpected bytes after the body "
+            "(corrupted or modified)"
+        )
+    body = handle.read(body_len)
+    if len(body) != body_len:  # the file changed while being read
+        raise ModelFileError(f"{path} is truncated: read {len(body)} of {body_len} body bytes")
+    if not hmac.compare_digest(hashlib.sha256(body).digest(), digest):
+        raise ModelFileError(
+            f"{path} failed its SHA-256 check: the file is corrupted or was modified"
+        )
+    # ---- from here on the bytes are exactly what the writer produced; parse defensively anyway
+    if body_len < _U64.size:
+        raise ModelFileError(f"{path}: body too short for its header length field")
+    (head_len,) = _U64.unpack_from(body, 0)
+    if head_len > min(_MAX_HEADER, body_len - _U64.size):
+        raise ModelFileError(f"{path}: header length {head_len} exceeds the body")
+    header = _parse_header(path, body[_U64.size : _U64.size + head_len])
+    if header.get("library") != "prognos_torch":
+        raise ModelFileError(f"{path}: header does not describe a prognos_torch model")
+    written = header.get("library_version")
+    _check_library_version(path, written)
+    file_kind = header.get("kind")
+    _check_kind(path, file_kind, kind)
+    config = header.get("config")
+    entries = header.get("tensors")
+    if not isinstance(config, dict) or not isinstance(entries, list):
+        raise ModelFileError(f"{path}: header lacks config or tensors")
+    tensors = _decode_tensors(path, entries, memoryview(body)[_U64.size + head_len :], device)
     return ModelFile(
-        kind=file_kind,
-        config=config,
-        tensors=tensors,
-        library_version=written,
-        format_version=fmt,
+        kind=file_kind, config=config, tensors=tensors, library_version=written, format_version=1
     )

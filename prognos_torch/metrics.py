@@ -34,8 +34,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from .core.validation import as_tensor
-from .prognosis.rul import check_weights
+from .core.validation import as_tensor, check_scalar, check_weights
 
 __all__ = [
     "mae",
@@ -110,47 +109,31 @@ def _trajectory(times, true_rul, pred_rul, t_eol, *, need_pred: bool = True):
             )
         t_eol = eol.mean().item()
     else:
-        t_eol = _scalar(t_eol, "t_eol")
+        t_eol = check_scalar(t_eol, "t_eol")
     return times, true_rul, pred_rul, t_eol
-
-
-def _scalar(x, name: str) -> float:
-    if isinstance(x, bool):
-        raise TypeError(f"{name} must be a real number, got bool")
-    if isinstance(x, Tensor):
-        if x.numel() != 1:
-            raise ValueError(f"{name} must be a scalar, got shape {tuple(x.shape)}")
-        x = x.item()
-    try:
-        value = float(x)
-    except (TypeError, ValueError) as exc:
-        raise TypeError(f"{name} must be a real number, got {type(x)}") from exc
-    if not math.isfinite(value):
-        raise ValueError(f"{name} must be finite, got {value}")
-    return value
 
 
 def _alpha(alpha) -> tuple[float, float]:
     if isinstance(alpha, (tuple, list)):
         if len(alpha) != 2:
             raise ValueError("alpha must be a number or a pair (alpha_minus, alpha_plus)")
-        a_minus, a_plus = _scalar(alpha[0], "alpha"), _scalar(alpha[1], "alpha")
+        a_minus, a_plus = check_scalar(alpha[0], "alpha"), check_scalar(alpha[1], "alpha")
     else:
-        a_minus = a_plus = _scalar(alpha, "alpha")
+        a_minus = a_plus = check_scalar(alpha, "alpha")
     if a_minus < 0 or a_plus < 0:
         raise ValueError(f"alpha must be >= 0, got {alpha}")
     return a_minus, a_plus
 
 
 def _beta(beta) -> float:
-    beta = _scalar(beta, "beta")
+    beta = check_scalar(beta, "beta")
     if not 0.0 < beta <= 1.0:
         raise ValueError(f"beta must lie in (0, 1], got {beta}")
     return beta
 
 
 def _lam(lam) -> float:
-    lam = _scalar(lam, "lam")
+    lam = check_scalar(lam, "lam")
     if not 0.0 <= lam <= 1.0:
         raise ValueError(f"lam must lie in [0, 1], got {lam}")
     return lam
@@ -191,7 +174,7 @@ def mape(pred: Tensor, target: Tensor, dim: int | tuple[int, ...] | None = None)
 # --------------------------------------------------------------------------- time points
 def lambda_time(t_p: float, t_eol: float, lam: float) -> float:
     """``t_lambda = t_P + lambda (t_EoL - t_P)`` ([S10], alpha-lambda accuracy)."""
-    return _scalar(t_p, "t_p") + _lam(lam) * (_scalar(t_eol, "t_eol") - _scalar(t_p, "t_p"))
+    return check_scalar(t_p, "t_p") + _lam(lam) * (check_scalar(t_eol, "t_eol") - check_scalar(t_p, "t_p"))
 
 
 def lambda_index(times: Tensor, lam: float, *, t_eol: float, t_p: float | None = None) -> int:
@@ -203,7 +186,7 @@ def lambda_index(times: Tensor, lam: float, *, t_eol: float, t_p: float | None =
     Raises ``ValueError`` if no prediction is made at or after ``t_lambda``.
     """
     times = _vec(times, "times")
-    t_p = times[0].item() if t_p is None else _scalar(t_p, "t_p")
+    t_p = times[0].item() if t_p is None else check_scalar(t_p, "t_p")
     t_lam = lambda_time(t_p, t_eol, lam)
     slack = 1e-9 * max(1.0, abs(t_lam))
     idx = torch.nonzero(times >= t_lam - slack).flatten()
@@ -450,7 +433,7 @@ def cumulative_relative_accuracy(
         if idx.numel() == 0:
             raise ValueError("lambdas is empty")
     else:
-        t_p_val = times[0].item() if t_p is None else _scalar(t_p, "t_p")
+        t_p_val = times[0].item() if t_p is None else check_scalar(t_p, "t_p")
         t_lam = lambda_time(t_p_val, t_eol, lam)
         slack = 1e-9 * max(1.0, abs(t_lam))
         mask = (times >= t_p_val - slack) & (times <= t_lam + slack)
@@ -505,7 +488,7 @@ def convergence(
         if bool((m < 0).any()):
             raise ValueError("metric must be non-negative, shape (n,)")
     if t_end is not None:
-        t_end = _scalar(t_end, "t_end")
+        t_end = check_scalar(t_end, "t_end")
         if t_end <= times[-1].item():
             raise ValueError("t_end must be later than the last prediction time")
         edges = torch.cat([times, times.new_tensor([t_end])])
@@ -520,7 +503,7 @@ def convergence(
         return math.nan
     x_c = ((t1.square() - t0.square()) * m).sum() / (2.0 * area)
     y_c = ((t1 - t0) * m.square()).sum() / (2.0 * area)
-    t_p_val = times[0].item() if t_p is None else _scalar(t_p, "t_p")
+    t_p_val = times[0].item() if t_p is None else check_scalar(t_p, "t_p")
     return float(torch.sqrt((x_c - t_p_val) ** 2 + y_c**2).item())
 
 
@@ -542,7 +525,7 @@ def exponential_accuracy(true_rul: Tensor, pred_rul: Tensor, *, d0: float) -> fl
     lower-is-better, unlike Table 2's values in (0, 1) where higher is better.
     """
     true_rul, pred_rul = _pair(true_rul, pred_rul, "true_rul", "pred_rul")
-    d0 = _scalar(d0, "d0")
+    d0 = check_scalar(d0, "d0")
     if d0 <= 0:
         raise ValueError(f"d0 must be positive, got {d0}")
     return float(torch.exp(-(pred_rul - true_rul).abs() / d0).mean().item())

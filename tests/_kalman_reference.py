@@ -49,3 +49,57 @@ def kalman_filter_tv(Fs, H, Qs, Rs, m0, P0, ys):
         means.append(m.copy())
         covs.append(P.copy())
     return np.array(means), np.array(covs), ll
+
+
+def rts_reference(F, H, Q, R, m0, P0, ys, fading=1.0):
+    """Kalman filter (observed components of partially NaN rows) + RTS smoother + the lag-one
+    covariance smoother of Shumway and Stoffer (Property 6.3), all with plain dense algebra.
+
+    ``fading``: constant factor on ``F P F^T`` in the prediction. Returns a dict with the
+    smoothed ``means`` (T+1, n) and ``covs`` (T+1, n, n) for x_0..x_T, ``cross`` (T, n, n)
+    ``Cov(x_t, x_{t-1} | y_{1:T})`` for t = 1..T, the filtered ``fmeans``/``fcovs`` (T+1) and
+    the log-likelihood ``ll``.
+    """
+    n = F.shape[0]
+    T = len(ys)
+    mf, Pf, mp, Pp = [m0.copy()], [P0.copy()], [None], [None]
+    KH_last = np.zeros((n, n))
+    ll = 0.0
+    for y in ys:
+        m = F @ mf[-1]
+        P = fading * F @ Pf[-1] @ F.T + Q
+        mp.append(m)
+        Pp.append(P)
+        o = ~np.isnan(y)
+        KH = np.zeros((n, n))
+        if o.any():
+            Ho, Ro = H[o], R[np.ix_(o, o)]
+            S = Ho @ P @ Ho.T + Ro
+            e = y[o] - Ho @ m
+            K = np.linalg.solve(S, Ho @ P).T
+            m = m + K @ e
+            KH = K @ Ho
+            P = (np.eye(n) - KH) @ P @ (np.eye(n) - KH).T + K @ Ro @ K.T
+            ll += -0.5 * (o.sum() * math.log(2 * math.pi) + np.linalg.slogdet(S)[1])
+            ll += -0.5 * e @ np.linalg.solve(S, e)
+        KH_last = KH
+        mf.append(m)
+        Pf.append(P)
+    J = [np.linalg.solve(Pp[t + 1], F @ Pf[t]).T for t in range(T)]  # Pf F^T Pp^-1
+    ms, Ps = [None] * (T + 1), [None] * (T + 1)
+    ms[T], Ps[T] = mf[T], Pf[T]
+    for t in range(T - 1, -1, -1):
+        ms[t] = mf[t] + J[t] @ (ms[t + 1] - mp[t + 1])
+        Ps[t] = Pf[t] + J[t] @ (Ps[t + 1] - Pp[t + 1]) @ J[t].T
+    L = [None] * (T + 1)  # L[t] = Cov(x_t, x_{t-1} | y_{1:T})
+    L[T] = (np.eye(n) - KH_last) @ F @ Pf[T - 1]
+    for t in range(T, 1, -1):
+        L[t - 1] = Pf[t - 1] @ J[t - 2].T + J[t - 1] @ (L[t] - F @ Pf[t - 1]) @ J[t - 2].T
+    return {
+        "means": np.array(ms),
+        "covs": np.array(Ps),
+        "cross": np.array(L[1:]),
+        "fmeans": np.array(mf),
+        "fcovs": np.array(Pf),
+        "ll": ll,
+    }

@@ -1,12 +1,31 @@
-"""Shared checks of the studies' quick mode (not a test module)."""
+"""Shared set-up and checks of the study tests (not a test module).
+
+A study test module starts with::
+
+    from _study_helpers import check_outputs, quick_fixture, read_rows, trainer_fixture
+
+    quick_out = quick_fixture("elm-stsckf", runs=3)   # module fixture: the study's folder
+    trainer = trainer_fixture("elm_stsckf")           # module fixture: trainers/elm_stsckf.py
+"""
 
 from __future__ import annotations
 
 import csv
 import json
 from pathlib import Path
+from types import ModuleType
+
+import pytest
 
 from prognos_torch.cli import main
+from prognos_torch.studies import load_trainer as _load
+
+TRAINERS = Path(__file__).resolve().parents[1] / "trainers"
+
+
+def load_trainer(stem: str) -> ModuleType:
+    """The study script ``trainers/<stem>.py`` as a module (the runner's own loader)."""
+    return _load(TRAINERS / f"{stem}.py")
 
 
 def run_quick(tmp_path_factory, name: str, runs: int | None = None) -> Path:
@@ -17,6 +36,26 @@ def run_quick(tmp_path_factory, name: str, runs: int | None = None) -> Path:
         args += ["--runs", str(runs)]
     assert main(args) == 0
     return out / name
+
+
+def quick_fixture(name: str, runs: int | None = None):
+    """A module-scoped fixture running study ``name`` once in quick mode (see :func:`run_quick`)."""
+
+    @pytest.fixture(scope="module")
+    def quick_out(tmp_path_factory) -> Path:
+        return run_quick(tmp_path_factory, name, runs)
+
+    return quick_out
+
+
+def trainer_fixture(stem: str):
+    """A module-scoped fixture with the study script ``trainers/<stem>.py`` loaded."""
+
+    @pytest.fixture(scope="module")
+    def trainer() -> ModuleType:
+        return load_trainer(stem)
+
+    return trainer
 
 
 def read_rows(d: Path) -> list[dict]:

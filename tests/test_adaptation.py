@@ -159,8 +159,10 @@ def test_bad_input_errors_name_the_argument():
         f.step(model, st, torch.zeros(2, 1, dtype=dt))
     with pytest.raises(ValueError, match="ys must have shape"):
         run(f, model, b0, torch.zeros(5, 4, 1, dtype=dt))
-    with pytest.raises(ValueError, match="belief.chol must have shape"):
+    with pytest.raises(ValueError, match="disagree on n"):
         f.init(model, GaussianBelief(torch.zeros(2, dtype=dt), torch.eye(3, dtype=dt)))
+    with pytest.raises(ValueError, match="belief.chol must have shape"):
+        f.init(model, GaussianBelief(torch.zeros(3, 2, dtype=dt), torch.eye(2, dtype=dt)))
     with pytest.raises(ValueError, match="belief.mean contains non-finite"):
         f.init(
             model,

@@ -53,3 +53,37 @@ def test_bad_study_options(capsys):
     assert main(["study", "no-such-study", "--runs", "0"]) == 2
     assert "runs must be a positive int" in capsys.readouterr().err
     assert main(["study", "--list"]) == 0
+
+
+
+def test_python_m_prognos_torch_lists_the_studies():
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-m", "prognos_torch", "study", "--list"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    assert "elm-stsckf" in out and "forecaster-matrix" in out
+
+
+def test_no_trainer_imports_the_cli():
+    # the command line drives the studies (cli -> studies -> trainers); an import of the cli in
+    # a trainer, even a lazy one under ``if __name__ == "__main__"``, would close a loop
+    import ast
+
+    from prognos_torch.studies import trainers_dir
+
+    scripts = sorted(trainers_dir().glob("*.py"))
+    assert len(scripts) >= 6
+    for path in scripts:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                names = [node.module or ""] + [f"{node.module}.{a.name}" for a in node.names]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            assert not any(n.startswith("prognos_torch.cli") for n in names), path.name

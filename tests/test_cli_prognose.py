@@ -22,8 +22,10 @@ def test_rul_from_the_ims_table_with_until(capsys, tmp_path):
     args = ["rul", str(IMS), "--column", "rms", "--where", "channel=5", "--time-column",
             "timestamp", "--threshold", "0.45", "--until", "2003-11-25T13:00:00",
             "--plot", str(tmp_path / "rul.png")]  # fmt: skip
-    assert main(args) == 0
-    out = capsys.readouterr().out
+    assert main(args) == 3  # partly censored: exit 3 with one 'censored RUL:' line
+    cap = capsys.readouterr()
+    out = cap.out
+    assert cap.err.startswith("censored RUL: ") and cap.err.count("\n") == 1
     assert "degradation onset" in out and "33.959" in out
     assert "trend model" in out and "90 % interval" in out and "censored mass" in out
     assert re.search(r"observed RUL \(days\)\s+0\.4392", out)

@@ -17,7 +17,7 @@ from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from prognos_torch.adapt.noise import SageHusa
 from prognos_torch.datasets.windows import MinMaxScaler, chronological_split, embed
-from prognos_torch.filters.gaussian import sckf
+from prognos_torch.filters import sckf
 from prognos_torch.learners import ANFIS, ELM
 from prognos_torch.optim import (
     EKF,
@@ -187,7 +187,7 @@ def test_sigma_point_optimisers_equal_ekf_on_linear_models(filt):
     if filt == "imsrukf_frozen":  # noise estimator off: exactly the SRUKF
         o = ImSRUKF(m, noise=SageHusa(frozen=True), **kw)
     elif filt == "ekf_full":
-        from prognos_torch.filters.gaussian import ekf
+        from prognos_torch.filters import ekf
 
         o = KalmanOptimizer(m, filter=ekf(sqrt=False), **kw)
     elif filt == "srukf":
@@ -390,7 +390,7 @@ def test_constructor_rejects_bad_options():
         EKF(m, runs=2, theta0=torch.zeros(4, dtype=torch.float64))
     with pytest.raises(ValueError, match="module"):
         KalmanOptimizer(m.parameters())
-    with pytest.raises(ValueError, match="single parameter group"):
+    with pytest.raises(ValueError, match="parameters of module only"):
         EKF(m).add_param_group({"params": [torch.zeros(1, requires_grad=True)]})
     with pytest.raises(ValueError, match="unknown filter"):
         KalmanOptimizer(m, filter="kalmanish")

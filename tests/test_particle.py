@@ -19,17 +19,20 @@ import torch
 
 from prognos_torch.adapt.strong_tracking import StrongTrackingState
 from prognos_torch.core import GaussianBelief, StateSpaceModel, linear_gaussian_model
-from prognos_torch.filters.gaussian import FilterState, ekf
-from prognos_torch.filters.particle import (
+from prognos_torch.filters import (
+    FilterState,
     ParticleFilter,
-    ProposalFallbackWarning,
-    WeightCollapseWarning,
+    ekf,
     ekpf,
-    gather_particles,
     make_particle_filter,
     sir,
     stpf,
     upf,
+)
+from prognos_torch.filters.particle import (
+    ProposalFallbackWarning,
+    WeightCollapseWarning,
+    gather_particles,
     where_particles,
 )
 from prognos_torch.filters.resampling import (

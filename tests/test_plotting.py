@@ -4,7 +4,7 @@ import pytest
 import torch
 from matplotlib.figure import Figure
 
-from prognos_torch.plotting import (
+from prognos_torch.plots import (
     plot_alpha_lambda,
     plot_fading_factor,
     plot_fault_probability,

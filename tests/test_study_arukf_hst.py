@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from prognos_torch.cli import main
-from prognos_torch.plotting_panels import plot_panels
+from prognos_torch.plots import plot_panels
 
 METHODS = ["UKF (true Q,R)"] + [
     m + s for s in ("", " [R x10]") for m in ("UKF", "RUKF", "ARUKF", "AUKF")

@@ -2,32 +2,20 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
-from pathlib import Path
 from types import SimpleNamespace
 
-import pytest
 import torch
-from _study_helpers import check_outputs, read_rows, run_quick  # noqa: E402
+from _study_helpers import check_outputs, quick_fixture, read_rows, trainer_fixture
 
 from prognos_torch.learners import ANFIS
 from prognos_torch.optim import ParameterBridge
 
-TRAINER = Path(__file__).resolve().parents[1] / "trainers" / "cstr_prognosis.py"
 METHODS = ("SCKF", "STSCKF")
 
 
-def _trainer():
-    spec = importlib.util.spec_from_file_location("cstr_prognosis_under_test", TRAINER)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-@pytest.fixture(scope="module")
-def quick_out(tmp_path_factory):
-    return run_quick(tmp_path_factory, "cstr-prognosis", runs=3)
+quick_out = quick_fixture("cstr-prognosis", runs=3)
+trainer = trainer_fixture("cstr_prognosis")
 
 
 def test_quick_outputs_complete_and_finite(quick_out):
@@ -64,8 +52,8 @@ def test_quick_strong_tracking_predicts_the_ramp_better_than_sckf(quick_out):
         assert float(st["filt_RMSE"]) < 0.5 * float(sc["filt_RMSE"])
 
 
-def test_crossing_step_matches_the_recursion_of_eq51():
-    mod = _trainer()
+def test_crossing_step_matches_the_recursion_of_eq51(trainer):
+    mod = trainer
     caf, k = 1.0, 0
     while caf < mod.THRESHOLD:  # Eq. 51 as printed: C_AF,k = C_AF,k-1 + 1e-5 (k - 50), k > 50
         k += 1
@@ -74,8 +62,8 @@ def test_crossing_step_matches_the_recursion_of_eq51():
     assert mod._crossing_step(mod.THRESHOLD, mod.CSTRParams()) == k == 223
 
 
-def test_alarm_is_first_origin_whose_prediction_crosses_plus_horizon():
-    mod = _trainer()
+def test_alarm_is_first_origin_whose_prediction_crosses_plus_horizon(trainer):
+    mod = trainer
     K = 30
     pred = torch.full((K, 3, 1), 1.0, dtype=torch.float64)
     pred[7:, 0] = 1.2  # run 0: origin index 7 -> k = N0 + 7
@@ -88,8 +76,8 @@ def test_alarm_is_first_origin_whose_prediction_crosses_plus_horizon():
     assert math.isnan(got[2].item())
 
 
-def test_run_anfis_equals_one_module_per_run():
-    mod = _trainer()
+def test_run_anfis_equals_one_module_per_run(trainer):
+    mod = trainer
     R, p = 4, mod.EMBED
     g = torch.Generator().manual_seed(3)
     modules = [ANFIS(p, mod.N_MFS, generator=torch.Generator().manual_seed(r)) for r in range(R)]

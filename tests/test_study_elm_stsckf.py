@@ -2,29 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
-from pathlib import Path
 
 import pytest
 import torch
-from _study_helpers import check_outputs, read_rows, run_quick  # noqa: E402
+from _study_helpers import check_outputs, quick_fixture, read_rows, trainer_fixture
 
-from prognos_torch.prognosis.forecast import MeasurementForecaster
+from prognos_torch.prognosis import MeasurementForecaster
 
-TRAINER = Path(__file__).resolve().parents[1] / "trainers" / "elm_stsckf.py"
-
-
-def _trainer():
-    spec = importlib.util.spec_from_file_location("elm_stsckf_under_test", TRAINER)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-@pytest.fixture(scope="module")
-def quick_out(tmp_path_factory):
-    return run_quick(tmp_path_factory, "elm-stsckf", runs=3)
+quick_out = quick_fixture("elm-stsckf", runs=3)
+trainer = trainer_fixture("elm_stsckf")
 
 
 def test_quick_outputs_complete_and_finite(quick_out):
@@ -50,8 +37,8 @@ def test_quick_strong_tracking_follows_the_ramp_better_than_sckf(quick_out):
         assert by[(i, "STSCKF")] < 0.5 * by[(i, "SCKF")]
 
 
-def test_run_channels_view_equals_one_forecaster_per_run():
-    mod = _trainer()
+def test_run_channels_view_equals_one_forecaster_per_run(trainer):
+    mod = trainer
     R, C, N0, n = 3, 3, 20, 4
     g = torch.Generator().manual_seed(5)
     z = 1.0 + 0.1 * torch.randn(N0 + 3, R, C, generator=g, dtype=torch.float64).cumsum(0)

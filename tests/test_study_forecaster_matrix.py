@@ -2,49 +2,23 @@
 
 from __future__ import annotations
 
-import csv
-import importlib.util
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from _study_helpers import quick_fixture, read_rows, trainer_fixture
 from torch.func import jacrev
 
-from prognos_torch.cli import main
 from prognos_torch.learners import ANFIS, ELM
 from prognos_torch.optim import fit
 from prognos_torch.studies import StudyConfig
 
-TRAINER = Path(__file__).resolve().parents[1] / "trainers" / "forecaster_matrix.py"
 RUNS = 2
-
-
-def _trainer():
-    spec = importlib.util.spec_from_file_location("forecaster_matrix_under_test", TRAINER)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-@pytest.fixture(scope="module")
-def fm():
-    return _trainer()
-
-
-@pytest.fixture(scope="module")
-def quick_out(tmp_path_factory):
-    out = tmp_path_factory.mktemp("forecaster_matrix")
-    argv = ["study", "forecaster-matrix", "--quick", "--runs", str(RUNS), "--out", str(out)]
-    assert main([*argv, "--no-progress"]) == 0
-    return out / "forecaster-matrix"
-
-
-def _rows(d: Path) -> list[dict]:
-    with open(d / "results.csv") as fh:
-        return list(csv.DictReader(fh))
+quick_out = quick_fixture("forecaster-matrix", runs=RUNS)
+fm = trainer_fixture("forecaster_matrix")
+_rows = read_rows
 
 
 def _f(v: str) -> float:

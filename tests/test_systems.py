@@ -16,6 +16,7 @@ from scipy.integrate import solve_ivp
 from scipy.optimize import fsolve
 from torch.func import vmap
 
+from prognos_torch.datasets import minmax_denormalize, minmax_normalize
 from prognos_torch.systems import (
     CSTRParams,
     HSTParams,
@@ -38,8 +39,6 @@ from prognos_torch.systems import (
     lorenz_model,
     lorenz_series,
     lorenz_step,
-    minmax_denormalize,
-    minmax_normalize,
     rk4_step,
     simulate_cstr,
     simulate_hst,

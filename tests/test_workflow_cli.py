@@ -1,7 +1,7 @@
 """``prognos fit | forecast | rul``: end to end, the shipped IMS table, and bad input.
 
-Bad input must give exit status 2 (3 for a censored RUL), exactly one ``error:`` line on stderr,
-and leave the output folder as it was.
+Bad input must give exit status 2, exactly one ``error:`` line on stderr, and leave the output
+folder as it was; a censored RUL gives 3 and one ``censored RUL:`` line, its report written.
 """
 
 from __future__ import annotations
@@ -89,10 +89,15 @@ def test_cli_end_to_end_and_identical_forecast_in_a_fresh_process(tmp_path, caps
     rul = ["rul", str(model), str(data), "--threshold", "1.6", "--horizon", "60"]
     rul += ["--filter", "pf", "--particles", "100", "--filter-steps", "20", "--plot", str(rul_png)]
     code = main(rul)
-    out = capsys.readouterr().out
-    assert code == 0
+    captured = capsys.readouterr()
+    out = captured.out
     assert "threshold 1.6 (above), PF with 100 particles, horizon 60 steps = 30 hours" in out
     assert "P(threshold reached within horizon)" in out and rul_png.exists()
+    # exit 3 exactly when part of the distribution is censored (then the mean is withheld)
+    censored = any(ln.startswith("mean RUL") and "n/a" in ln for ln in out.splitlines())
+    assert code == (3 if censored else 0)
+    if censored:
+        assert captured.err.startswith("censored RUL: ") and "the mean is withheld" in captured.err
 
 
 def test_cli_on_the_shipped_ims_table(tmp_path, capsys):
@@ -202,7 +207,7 @@ def test_cli_fill_censored_rul_and_help(tmp_path, capsys):
     assert "n/a (100 % of paths do not reach the threshold in the horizon)" in captured.out
     err = captured.err.strip()
     assert err.splitlines() == [err] and err.startswith(
-        "error: censored RUL: no predicted path reaches the threshold 1e+06 within the horizon "
+        "censored RUL: no predicted path reaches the threshold 1e+06 within the horizon "
         "of 30 steps (15 hours); the RUL exceeds 15 hours"
     )
     assert png.exists()  # the (complete) figure shows the paths that stay below

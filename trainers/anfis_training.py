@@ -45,7 +45,7 @@ from prognos_torch.datasets.windows import MinMaxScaler, chronological_split, em
 from prognos_torch.learners import ANFIS
 from prognos_torch.metrics import mae, rmse
 from prognos_torch.optim import KalmanOptimizer, ParameterBridge, fit
-from prognos_torch.plotting_panels import plot_panels
+from prognos_torch.plots import plot_panels
 from prognos_torch.studies import Study, StudyConfig, StudyResult
 from prognos_torch.systems.cstr import simulate_cstr
 from prognos_torch.systems.lorenz import lorenz_series
@@ -657,10 +657,3 @@ STUDY = Study(
     run=run,
     default_runs=50,
 )
-
-if __name__ == "__main__":
-    import sys
-
-    from prognos_torch.cli import main
-
-    sys.exit(main(["study", STUDY.name, *sys.argv[1:]]))

@@ -38,7 +38,7 @@ from prognos_torch.core.belief import GaussianBelief
 from prognos_torch.filters import GaussianFilter, arukf, rukf, ukf
 from prognos_torch.filters import run as run_filter
 from prognos_torch.metrics import rmse
-from prognos_torch.plotting_panels import plot_panels
+from prognos_torch.plots import plot_panels
 from prognos_torch.quadrature import unscented
 from prognos_torch.studies import Study, StudyConfig, StudyResult, format_table
 from prognos_torch.systems.high_speed_train import (
@@ -474,10 +474,3 @@ STUDY = Study(
     run=run,
     default_runs=50,
 )
-
-if __name__ == "__main__":
-    import sys
-
-    from prognos_torch.cli import main
-
-    sys.exit(main(["study", STUDY.name, *sys.argv[1:]]))

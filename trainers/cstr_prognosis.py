@@ -45,22 +45,20 @@ from matplotlib.figure import Figure
 from tqdm import tqdm
 
 from prognos_torch.core.belief import GaussianBelief
-from prognos_torch.datasets.windows import embed
+from prognos_torch.datasets.windows import embed, minmax_normalize
 from prognos_torch.filters import run as filter_run
 from prognos_torch.filters import sckf, stsckf
 from prognos_torch.learners import ANFIS
 from prognos_torch.metrics import mae, rmse
 from prognos_torch.optim import ImSRUKF, ParameterBridge, fit
-from prognos_torch.plotting import plot_fading_factor
-from prognos_torch.plotting_panels import plot_panels
-from prognos_torch.prognosis.forecast import (
+from prognos_torch.plots import plot_fading_factor, plot_panels
+from prognos_torch.prognosis import (
     MeasurementForecaster,
     predict_fault_parameter,
     rolling_fault_prediction,
 )
 from prognos_torch.prognosis.rul import rul_distribution
 from prognos_torch.studies import Study, StudyConfig, StudyResult
-from prognos_torch.systems import minmax_normalize
 from prognos_torch.systems.cstr import (
     CSTRParams,
     cstr_feed_drift,
@@ -612,10 +610,3 @@ STUDY = Study(
     run=run,
     default_runs=50,
 )
-
-if __name__ == "__main__":
-    import sys
-
-    from prognos_torch.cli import main
-
-    sys.exit(main(["study", STUDY.name, *sys.argv[1:]]))

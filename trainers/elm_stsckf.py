@@ -38,8 +38,8 @@ from prognos_torch.core.belief import GaussianBelief
 from prognos_torch.filters import run as filter_run
 from prognos_torch.filters import sckf, stsckf, stukf
 from prognos_torch.metrics import mae, rmse
-from prognos_torch.plotting import plot_fading_factor, plot_prediction
-from prognos_torch.prognosis.forecast import MeasurementForecaster, rolling_fault_prediction
+from prognos_torch.plots import plot_fading_factor, plot_prediction
+from prognos_torch.prognosis import MeasurementForecaster, rolling_fault_prediction
 from prognos_torch.studies import Study, StudyConfig, StudyResult
 from prognos_torch.systems.three_tank import simulate_three_tank, three_tank_joint_model
 
@@ -376,10 +376,3 @@ STUDY = Study(
     run=run,
     default_runs=50,
 )
-
-if __name__ == "__main__":
-    import sys
-
-    from prognos_torch.cli import main
-
-    sys.exit(main(["study", STUDY.name, *sys.argv[1:]]))

@@ -65,7 +65,7 @@ from torch.func import functional_call, vmap
 from tqdm import tqdm
 
 from prognos_torch.core.belief import GaussianBelief
-from prognos_torch.datasets import MinMaxScaler, embed, health_indicator
+from prognos_torch.datasets import MinMaxScaler, embed, health_indicator, minmax_normalize
 from prognos_torch.filters import ekpf, multinomial, sckf, sir, stpf, stsckf
 from prognos_torch.filters import run as filter_run
 from prognos_torch.learners import ANFIS, ELM, LSSVR
@@ -79,7 +79,7 @@ from prognos_torch.metrics import (
     rmse,
 )
 from prognos_torch.optim import KalmanOptimizer, ParameterBridge, fit
-from prognos_torch.prognosis.forecast import (
+from prognos_torch.prognosis import (
     gaussian_paths,
     learner_transition_model,
     particle_paths,
@@ -88,7 +88,6 @@ from prognos_torch.prognosis.forecast import (
 )
 from prognos_torch.prognosis.rul import rul_distribution
 from prognos_torch.studies import Study, StudyConfig, StudyResult
-from prognos_torch.systems import minmax_normalize
 from prognos_torch.systems.cstr import simulate_cstr
 
 # ----------------------------------------------------------------------------------- settings
@@ -1237,10 +1236,3 @@ STUDY = Study(
     run=run,
     default_runs=10,
 )
-
-if __name__ == "__main__":
-    import sys
-
-    from prognos_torch.cli import main
-
-    sys.exit(main(["study", STUDY.name, *sys.argv[1:]]))

@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 
 from prognos_torch.datasets import health_indicator, load_ims_features
+from prognos_torch.plots import plot_prognosis, plot_rul_trajectory
 from prognos_torch.prognosis.protocol import (
     exponential_lsq_rul,
     known_threshold_protocol,
@@ -30,7 +31,6 @@ from prognos_torch.prognosis.protocol import (
 )
 from prognos_torch.studies import Study, StudyConfig, StudyResult
 from prognos_torch.workflow import Series, fit_series, prognose
-from prognos_torch.workflow.prognose_plots import plot_prognosis, plot_rul_trajectory
 
 MAIN = "prognose (auto)"
 METHODS = (MAIN, "prognose (exponential)", "prognose (power)", "prognose (linear)",

@@ -50,7 +50,7 @@ from prognos_torch.metrics import (
     exponential_accuracy,
     rmse,
 )
-from prognos_torch.plotting import (
+from prognos_torch.plots import (
     plot_alpha_lambda,
     plot_fault_probability,
     plot_fault_probability_box,
@@ -755,10 +755,3 @@ STUDY = Study(
     run=run,
     default_runs=DEFAULT_RUNS,
 )
-
-if __name__ == "__main__":
-    import sys
-
-    from prognos_torch.cli import main
-
-    sys.exit(main(["study", STUDY.name, *sys.argv[1:]]))

@@ -19,10 +19,37 @@ class GaussianBelief:
     Attributes:
         mean: ``(..., n)``.
         chol: ``(..., n, n)`` lower-triangular square root of the covariance.
+
+    Construction checks the types and that ``mean`` and ``chol`` agree on ``n`` (``TypeError``,
+    ``ValueError``); :meth:`validate` checks the rest (batch shapes, finiteness, diagonal).
     """
 
     mean: Tensor
     chol: Tensor
+
+    def __post_init__(self) -> None:
+        mean, chol = self.mean, self.chol
+        if not isinstance(mean, Tensor) or not isinstance(chol, Tensor):
+            raise TypeError(
+                "GaussianBelief(mean, chol) needs torch.Tensor mean (..., n) and chol "
+                f"(..., n, n), got {type(mean).__name__} and {type(chol).__name__}"
+            )
+        if mean.dim() < 1:
+            raise ValueError(
+                f"GaussianBelief: mean must have shape (..., n), got {tuple(mean.shape)}"
+            )
+        n = mean.shape[-1]
+        if chol.dim() < 2 or chol.shape[-2:] != (n, n):
+            if chol.dim() >= 2 and chol.shape[-1] == chol.shape[-2]:
+                raise ValueError(
+                    f"GaussianBelief: mean {tuple(mean.shape)} and chol {tuple(chol.shape)} "
+                    f"disagree on n ({n} vs {chol.shape[-1]}); mean must be (..., n) and chol "
+                    "(..., n, n)"
+                )
+            raise ValueError(
+                f"GaussianBelief: chol must be square (..., n, n) with n = {n} (the length of "
+                f"mean), got {tuple(chol.shape)}"
+            )
 
     @classmethod
     def from_cov(cls, mean: Tensor, cov: Tensor) -> GaussianBelief:
@@ -73,7 +100,7 @@ class GaussianBelief:
         if self.chol.shape != self.mean.shape + (n,):
             raise ValueError(
                 f"{name}.chol must have shape {tuple(self.mean.shape) + (n,)} "
-                f"(..., n, n) to match mean, got {tuple(self.chol.shape)}"
+                f"(the batch shape of {name}.mean, then n x n), got {tuple(self.chol.shape)}"
             )
         check_finite(self.mean, f"{name}.mean")
         check_chol(self.chol, f"{name}.chol", n)

@@ -27,7 +27,9 @@ def tria(A: Tensor) -> Tensor:
     ``A^T = Q R`` (QR by Householder reflections, LAPACK ``geqrf``; ``Q`` is never formed),
     ``A A^T = R^T R`` and ``S = R^T`` is lower triangular. The sign of each column is fixed so
     that ``diag(S) >= 0``, which makes the factor unique and equal to ``cholesky(A A^T)``.
-    A single row (``n = 1``, e.g. a scalar innovation) is its Euclidean norm.
+    A single row (``n = 1``, e.g. a scalar innovation) is its Euclidean norm. Under autograd
+    (``A.requires_grad``) the reduced ``torch.linalg.qr`` is used instead, which has a
+    derivative where ``A`` has full row rank.
 
     Args:
         A: ``(..., n, L)``.
@@ -39,9 +41,13 @@ def tria(A: Tensor) -> Tensor:
         return torch.linalg.vector_norm(A, dim=-1, keepdim=True)
     if L < n:  # pad with zero columns so that R is square
         A = torch.cat([A, A.new_zeros(*A.shape[:-1], n - L)], dim=-1)
-    # geqrf leaves R in the upper triangle of its first output; A^T of a row-major A is the
-    # column-major layout LAPACK wants, and unlike linalg.qr nothing else is computed or copied
-    R = torch.geqrf(A.mT)[0][..., :n, :].triu()
+    if A.requires_grad and torch.is_grad_enabled():
+        # geqrf has no derivative; the reduced QR has one (it needs a full-rank A)
+        R = torch.linalg.qr(A.mT, mode="reduced")[1]
+    else:
+        # geqrf leaves R in the upper triangle of its first output; A^T of a row-major A is
+        # the column-major layout LAPACK wants, and unlike linalg.qr nothing else is computed
+        R = torch.geqrf(A.mT)[0][..., :n, :].triu()
     d = torch.diagonal(R, dim1=-2, dim2=-1)
     # row j of R times sign(R_jj) (copysign keeps rows with R_jj = 0 unchanged up to sign)
     return (R * torch.ones_like(d).copysign(d).unsqueeze(-1)).mT

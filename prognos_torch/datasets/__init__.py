@@ -33,7 +33,15 @@ from prognos_torch.datasets.lle import (
     locally_linear_embedding,
     reconstruction_weights,
 )
-from prognos_torch.datasets.windows import MinMaxScaler, chronological_split, embed, shift_append
+from prognos_torch.datasets.windows import (
+    MinMaxScaler,
+    NormalizedSeries,
+    chronological_split,
+    embed,
+    minmax_denormalize,
+    minmax_normalize,
+    shift_append,
+)
 
 __all__ = [
     "FEATURE_NAMES",
@@ -60,6 +68,9 @@ __all__ = [
     "locally_linear_embedding",
     "reconstruction_weights",
     "MinMaxScaler",
+    "NormalizedSeries",
+    "minmax_normalize",
+    "minmax_denormalize",
     "chronological_split",
     "embed",
     "shift_append",

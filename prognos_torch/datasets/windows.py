@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -21,7 +22,15 @@ from torch import Tensor
 
 from prognos_torch.core.validation import as_tensor
 
-__all__ = ["embed", "shift_append", "MinMaxScaler", "chronological_split"]
+__all__ = [
+    "embed",
+    "shift_append",
+    "MinMaxScaler",
+    "NormalizedSeries",
+    "minmax_normalize",
+    "minmax_denormalize",
+    "chronological_split",
+]
 
 
 def _check_m(m, T: int) -> int:
@@ -213,6 +222,46 @@ class MinMaxScaler:
             raise ValueError("state['data_max'] must exceed state['data_min'] elementwise")
         self.feature_range = self._check_range(state["feature_range"])
         self.data_min, self.data_max = data_min.clone(), data_max.clone()
+
+
+class NormalizedSeries(NamedTuple):
+    """``values = (series - lo) / (hi - lo)``; ``lo``/``hi`` are kept to undo the scaling."""
+
+    values: Tensor
+    lo: Tensor
+    hi: Tensor
+
+
+def minmax_normalize(series: Tensor, lo=None, hi=None) -> NormalizedSeries:
+    """Affine min-max scaling to ``[0, 1]`` (paper 003 Sec. V: "normalized into 0 to 1").
+
+    The functional form of :class:`MinMaxScaler` with ``feature_range=(0, 1)``, for series of
+    any trailing shape and for extremes taken from elsewhere: ``(x - lo) / (hi - lo)``, where
+    the scaler multiplies by the reciprocal range, so the two agree to rounding. Both forms are
+    kept because published results were computed with each.
+
+    By default ``lo``/``hi`` are the minimum and maximum over the whole ``series`` (paper 003
+    scales all 1000 Lorenz / all CSTR points at once, test part included). Pass ``lo``/``hi``
+    (e.g. from the training part only) to avoid that look-ahead; values outside ``[lo, hi]`` then
+    map outside ``[0, 1]`` and are not clipped.
+
+    Args:
+        series: ``(N, ...)``; the extremes are taken over dim 0 (per column).
+    """
+    if not isinstance(series, Tensor) or series.dim() < 1 or series.shape[0] < 1:
+        raise ValueError("series must be a tensor of shape (N, ...) with N >= 1")
+    if not bool(torch.isfinite(series).all()):
+        raise ValueError("series contains non-finite values")
+    lo = series.amin(0) if lo is None else torch.as_tensor(lo, dtype=series.dtype).to(series)
+    hi = series.amax(0) if hi is None else torch.as_tensor(hi, dtype=series.dtype).to(series)
+    if not bool((hi > lo).all()):
+        raise ValueError("minmax_normalize needs hi > lo (a constant series cannot be scaled)")
+    return NormalizedSeries((series - lo) / (hi - lo), lo, hi)
+
+
+def minmax_denormalize(values: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+    """Inverse of :func:`minmax_normalize`: ``values * (hi - lo) + lo``."""
+    return values * (hi - lo) + lo
 
 
 def chronological_split(

@@ -4,7 +4,8 @@ EKF, UKF, SRUKF, CKF, SCKF, their strong-tracking versions (STEKF, STUKF, STSCKF
 noise-adaptive ImSRUKF and the robust/adaptive RUKF/ARUKF are *configurations* of
 :class:`GaussianFilter`: a moment rule (Taylor linearisation or a sigma-point rule), a covariance
 algebra (square-root or full), and optional adaptation pieces (fading factor, noise estimator,
-robust bound). There is one step function; nothing is copied per variant.
+robust bound). There is one step function; nothing is copied per variant. The configurations by
+name live in :mod:`prognos_torch.filters.variants`.
 
 Step ``k`` (model convention of :mod:`prognos_torch.core.model`):
 
@@ -21,8 +22,9 @@ Step ``k`` (model convention of :mod:`prognos_torch.core.model`):
    closed-form rank-one downdates, O(n^2 m), on large factors, ``S chol(I - W W^T)`` on small
    ones). When the sigma points are redrawn from the prior (or for the EKF) this equals the
    Joseph form ``Tria([chi - K Z, K S_R])`` of paper 000 Eq. 46, which is used instead where the
-   downdate would lose precision (a very informative measurement) and with the robust bound of
-   paper 004.
+   downdate would lose precision (a very informative measurement), under autograd (tensors
+   that require grad: a failed downdate's NaN would leak into the gradient) and with the robust
+   bound of paper 004.
 
 Missing data: NaN marks a missing measurement component. A vector that is NaN throughout is
 *missing*: the step only predicts (the posterior equals the prior, the log-likelihood
@@ -37,7 +39,7 @@ not fully observed; the robust bound of paper 004 treats a partially observed ve
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import torch
@@ -56,33 +58,22 @@ from ..core.linalg import (
     tria,
 )
 from ..core.model import Noise, StateSpaceModel
-from ..core.validation import all_finite
-from ..quadrature import SigmaPoints, cubature, julier, unscented
+from ..core.validation import check_belief, check_control, check_measurement
+from ..quadrature import SigmaPoints
 
 __all__ = [
     "Taylor",
     "GaussianFilter",
     "FilterState",
     "StepInfo",
-    "ekf",
-    "ukf",
-    "srukf",
-    "ckf",
-    "sckf",
-    "stekf",
-    "stukf",
-    "stsckf",
-    "imsrukf",
-    "rukf",
-    "arukf",
-    "make_filter",
-    "FILTERS",
+    "Spread",
 ]
 
 _LOG_2PI = math.log(2.0 * math.pi)
-#: Smallest ``det(P_post) / det(P_pred)`` for which the posterior is taken from the O(n^2)
-#: Cholesky downdate, as a power of the dtype's epsilon (float64: 1.3e-6, float32: 2.5e-3);
-#: below it the Joseph-form QR (the downdate's rounding error grows like ``eps / ratio``).
+#: Smallest ``det(P_post) / det(P_pred)`` for which the posterior is taken from the Cholesky
+#: downdate (``chol_downdate_ex``: rank-one steps on large factors, ``S chol(I - W W^T)`` on
+#: small ones), as a power of the dtype's epsilon (float64: 1.3e-6, float32: 2.5e-3); below it
+#: the Joseph-form QR (the downdate's rounding error grows like ``eps / ratio``).
 _DOWNDATE_MIN_RATIO_EXP = 0.375
 
 
@@ -148,6 +139,7 @@ class StepInfo:
         gain: ``(..., n, m)`` Kalman gain.
         observed: ``(..., m)`` bool, the observed components, or ``None`` when every component
             of every batch element was observed or missing as a whole.
+        spread: the time update's deviation columns (:class:`Spread`; what a smoother needs).
 
     ``log_likelihood`` (``log N(y_k; z_{k|k-1}, S_zz S_zz^T)``, 0 where missing) and ``nis``
     (normalised innovation squared, NaN where missing) are computed on first access, so the
@@ -163,6 +155,7 @@ class StepInfo:
     missing: Tensor
     gain: Tensor
     observed: Tensor | None = None
+    spread: Spread | None = None
 
     @cached_property
     def _stats(self):
@@ -185,6 +178,43 @@ class _Propagation:
     pos: Tensor  # (..., n, Lp) spread factor (positive weights)
     neg: Tensor | None  # (..., n, Ln) negative-weight part
     points: Tensor | None  # (..., L, n) propagated sigma points incl. q (for redraw=False)
+    dev: Tensor | None = None  # (..., L, n) sigma-point deviations before f, or S (Taylor)
+    sigma: _Sigma | None = None  # the rule's points (None: dev is the factor S itself)
+
+
+@dataclass(frozen=True)
+class Spread:
+    """Deviation columns of a time update, paired column by column (batch dims ``...``).
+
+    ``dx`` are the weighted deviations of the points at ``k-1`` from the posterior mean,
+    ``df`` those of their images under ``f`` from the predicted mean (before fading), with
+    ``sqrt|W_i|`` folded in and negative-weight columns apart:
+    ``P_{k-1|k-1} = dx_pos dx_pos^T - dx_neg dx_neg^T``, the cross-covariance
+    ``C_k = Cov(x_{k-1}, x_k | y_{1:k-1}) = dx_pos df_pos^T - dx_neg df_neg^T`` and
+    ``P_{k|k-1} = lambda_k (df_pos df_pos^T - df_neg df_neg^T) + Q_k``. EKF: ``dx = S``,
+    ``df = F S``; random walk: ``dx = df = S``. The smoothers read them.
+
+    Attributes:
+        df_pos: ``(..., n, Lp)``; df_neg: ``(..., n, Ln)`` or ``None`` (no negative weight).
+        dx_pos, dx_neg: the same for ``dx`` (computed on first access, off the hot loop).
+    """
+
+    df_pos: Tensor
+    df_neg: Tensor | None
+    dev: Tensor = field(repr=False)  # (..., L, n) point deviations, or the factor S
+    sigma: _Sigma | None = field(default=None, repr=False)
+
+    @cached_property
+    def _dx(self) -> tuple[Tensor, Tensor | None]:
+        return (self.dev, None) if self.sigma is None else self.sigma.columns(self.dev)
+
+    @property
+    def dx_pos(self) -> Tensor:
+        return self._dx[0]
+
+    @property
+    def dx_neg(self) -> Tensor | None:
+        return self._dx[1]
 
 
 @dataclass(frozen=True)
@@ -306,8 +336,9 @@ class GaussianFilter:
         rule: :class:`Taylor` (EKF) or a :class:`~prognos_torch.quadrature.SigmaPoints` rule.
         sqrt: square-root algebra (QR/Cholesky updates) if true, else full covariances.
         redraw: redraw sigma points from the prior before the measurement update (SRUKF of
-            paper 003 and SCKF of paper 000 do); ``False`` reuses the propagated points
-            (filterpy's UKF does, which ignores ``Q`` in ``P_xz`` and ``P_zz``).
+            paper 003 and SCKF of paper 000 do, and so does filterpy's UKF: its ``predict()``
+            ends by drawing new sigma points from the predicted ``(x, P)``); ``False`` reuses
+            the propagated points ``f(chi)``, so ``Q`` does not enter ``P_xz`` and ``P_zz``.
         fading: ``None``, a constant fading factor ``>= 1``, or :class:`StrongTracking`.
         noise: ``None``, :class:`SageHusa` or :class:`MovingWindow`.
         robust: ``None`` or :class:`RobustBound` (paper 004 Theorem 1).
@@ -336,52 +367,44 @@ class GaussianFilter:
     # ------------------------------------------------------------------ state
     def init(self, model: StateSpaceModel, belief: GaussianBelief, k: int = 0) -> FilterState:
         """Initial :class:`FilterState` for ``belief`` (validated; ``k``: step of the noise used)."""
-        belief.validate("belief")
-        if belief.dim != model.state_dim:
-            raise ValueError(
-                f"belief.mean must have shape (..., {model.state_dim}) for this model, "
-                f"got {tuple(belief.mean.shape)}"
-            )
+        check_belief(belief, model.state_dim)
         bs, like = belief.batch_shape, belief.mean
         fstate = None
         if isinstance(self.fading, StrongTracking):
             fstate = self.fading.init(bs, model.obs_dim, like.dtype, like.device)
         nstate = None
         if self.noise is not None:
-            noise = self._checked_noise(model, k, belief)
+            noise = model.checked_noise(k, belief.batch_shape, belief.mean)
             nstate = self.noise.init(noise, bs, model.state_dim, model.obs_dim, like)
         return FilterState(belief, fstate, nstate)
 
     # ------------------------------------------------------------------ noise
-    @staticmethod
-    def _checked_noise(model: StateSpaceModel, k: int, belief: GaussianBelief) -> Noise:
-        return model.checked_noise(k, belief.batch_shape, belief.mean)
-
     def _noise(self, model, state: FilterState, k: int) -> Noise:
         if state.noise is not None:
             return state.noise.noise()
-        return self._checked_noise(model, k, state.belief)
+        return model.checked_noise(k, state.belief.batch_shape, state.belief.mean)
 
     # ------------------------------------------------------------------ stages
     def _propagate(self, model, belief: GaussianBelief, u, k: int, q) -> _Propagation:
         m, S = belief.mean, belief.chol
         if model.f is None:  # random walk: exact for every rule
             mean = m if q is None else m + q
-            return _Propagation(mean, m, S, None, None)
+            return _Propagation(mean, m, S, None, None, S)
         if isinstance(self.rule, Taylor):
             fx = model.transition(m, u, k)
             F = model.transition_jacobian(m, u, k)
             mean = fx if q is None else fx + q
-            return _Propagation(mean, fx, F @ S, None, None)
+            return _Propagation(mean, fx, F @ S, None, None, S)
         sig = _sigma_points(self.rule, model.state_dim, m)
-        X = m.unsqueeze(-2) + sig.xi @ S.mT  # (..., L, n), paper 000 Eq. 21
+        D = sig.xi @ S.mT
+        X = m.unsqueeze(-2) + D  # (..., L, n), paper 000 Eq. 21
         uu = None if u is None else u.unsqueeze(-2)
         Y = model.transition(X, uu, k)  # Eq. 23 / paper 003 Eq. 14
         f_mean = sig.wm @ Y  # Eq. 24
         mean = f_mean if q is None else f_mean + q
         pos, neg = sig.columns(Y - f_mean.unsqueeze(-2))  # Eq. 26
         pts = Y if q is None else Y + q.unsqueeze(-2)
-        return _Propagation(mean, f_mean, pos, neg, pts)
+        return _Propagation(mean, f_mean, pos, neg, pts, D, sig)
 
     def _prior(
         self, prop: _Propagation, chol_Q: Tensor, lam: Tensor | None, update: bool = False
@@ -425,7 +448,7 @@ class GaussianFilter:
             X = x.unsqueeze(-2) + D  # paper 000 Eq. 37
             joseph = True
         else:
-            X = prop.points  # reuse propagated points (filterpy)
+            X = prop.points  # reuse the propagated points: Q is not in P_xz, P_zz
             D = X - x.unsqueeze(-2)
             joseph = False
         uu = None if u is None else u.unsqueeze(-2)
@@ -460,12 +483,15 @@ class GaussianFilter:
         self, prior: _Prior, mom: _Moments, K: Tensor, Szz: Tensor, chol_R
     ) -> Tensor:
         rob = self.robust
-        if self.sqrt and mom.joseph and rob is None:
+        # under autograd the Joseph QR throughout: a failed downdate's NaN would reach the
+        # gradient through the masked branch of torch.where
+        grad = torch.is_grad_enabled() and (prior.chol.requires_grad or K.requires_grad)
+        if self.sqrt and mom.joseph and rob is None and not grad:
             # The sigma points (or F S) reproduce the prior, so Eq. 46's Joseph form equals
-            # P_pred - K S_zz S_zz^T K^T: the cholupdate of paper 003 Eq. 28-29, O(n^2 m)
-            # instead of a QR of (n, L + m). Where the downdate loses precision (determinant
-            # ratio below _downdate_min_ratio: a very informative measurement) the Joseph QR
-            # is used instead.
+            # P_pred - K S_zz S_zz^T K^T: the cholupdate of paper 003 Eq. 28-29 (m rank-one
+            # steps on large factors, the dense S chol(I - W W^T) on small ones) instead of a
+            # QR of (n, L + m). Where the downdate loses precision (determinant ratio below
+            # _downdate_min_ratio: a very informative measurement) the Joseph QR is used.
             S, ratio = chol_downdate_ex(prior.chol, K @ Szz)
             ok = ratio > _downdate_min_ratio(ratio.dtype)
             if bool(ok.all()):
@@ -505,7 +531,7 @@ class GaussianFilter:
         self, model, state: FilterState, u: Tensor | None = None, k: int = 1
     ) -> FilterState:
         """Time update only (multi-step-ahead prediction; ``lambda = 1``, noise estimates held)."""
-        u = self._check_u(model, u, state.belief)
+        u = check_control(u, model.control_dim, state.belief.batch_shape, state.belief.mean)
         noise = self._noise(model, state, k)
         prop = self._propagate(model, state.belief, u, k, noise.q)
         lam = None
@@ -523,8 +549,8 @@ class GaussianFilter:
         self, model, belief: GaussianBelief, u: Tensor | None = None, k: int = 1
     ) -> GaussianBelief:
         """Predictive distribution of ``y_k`` given a belief on ``x_k``: ``N(z, S_zz S_zz^T)``."""
-        u = self._check_u(model, u, belief)
-        noise = self._checked_noise(model, k, belief)
+        u = check_control(u, model.control_dim, belief.batch_shape, belief.mean)
+        noise = model.checked_noise(k, belief.batch_shape, belief.mean)
         prior = _Prior(belief.mean, belief.chol, belief.cov if not self.sqrt else None)
         dummy = _Propagation(belief.mean, belief.mean, belief.chol, None, None)
         mom = self._moments(model, prior, dummy, u, k, noise.r)
@@ -549,9 +575,14 @@ class GaussianFilter:
         Returns:
             The new state and a :class:`StepInfo`.
         """
+        if not isinstance(state, FilterState):
+            raise TypeError(
+                f"state must be a FilterState, got {type(state).__name__}; start from "
+                "state = filter.init(model, belief)"
+            )
         belief = state.belief
-        y, any_missing = self._check_y(model, y, belief)
-        u = self._check_u(model, u, belief)
+        y, any_missing = check_measurement(y, model.obs_dim, belief.batch_shape, belief.mean)
+        u = check_control(u, model.control_dim, belief.batch_shape, belief.mean)
         noise = self._noise(model, state, k)
         observed = nan = None
         if any_missing:
@@ -649,164 +680,6 @@ class GaussianFilter:
             missing=missing,
             gain=K,
             observed=observed,
+            spread=Spread(prop.pos, prop.neg, prop.dev, prop.sigma),
         )
         return FilterState(GaussianBelief(mean, chol), fstate, nstate), info
-
-    # ------------------------------------------------------------------ checks
-    @staticmethod
-    def _check_y(model, y, belief: GaussianBelief) -> tuple[Tensor, bool]:
-        """``y`` in the belief's dtype and whether any entry is missing (NaN)."""
-        if not isinstance(y, Tensor):
-            raise TypeError(f"y must be a torch.Tensor of shape (..., {model.obs_dim})")
-        want = tuple(belief.batch_shape) + (model.obs_dim,)
-        if tuple(y.shape) != want:
-            raise ValueError(f"y must have shape {want} (batch shape + (m,)), got {tuple(y.shape)}")
-        if y.device != belief.mean.device:
-            raise ValueError(f"y is on {y.device}, the belief on {belief.mean.device}")
-        if all_finite(y):  # one reduction in the usual case: no NaN, no inf
-            return y.to(belief.mean.dtype), False
-        if torch.isinf(y).any():
-            raise ValueError("y contains inf (use NaN to mark a missing measurement)")
-        return y.to(belief.mean.dtype), bool(torch.isnan(y).any())
-
-    @staticmethod
-    def _check_u(model, u, belief: GaussianBelief) -> Tensor | None:
-        if model.control_dim == 0:
-            if u is not None:
-                raise ValueError("u was given but the model has control_dim=0")
-            return None
-        if u is None:
-            raise ValueError(
-                f"u is required: shape (..., {model.control_dim}) or ({model.control_dim},)"
-            )
-        if not isinstance(u, Tensor):
-            raise TypeError("u must be a torch.Tensor")
-        p = model.control_dim
-        if tuple(u.shape) not in ((p,), tuple(belief.batch_shape) + (p,)):
-            raise ValueError(
-                f"u must have shape ({p},) or {tuple(belief.batch_shape) + (p,)}, got "
-                f"{tuple(u.shape)}"
-            )
-        if not bool(torch.isfinite(u).all()):
-            raise ValueError("u contains non-finite values")
-        return u.to(belief.mean.dtype)
-
-
-# ---------------------------------------------------------------------- configurations
-def ekf(*, sqrt: bool = True, **kw) -> GaussianFilter:
-    """Extended Kalman filter (Jacobians by ``torch.func``)."""
-    return GaussianFilter(Taylor(), sqrt=sqrt, name=kw.pop("name", "EKF"), **kw)
-
-
-def ukf(
-    alpha: float = 1.0, beta: float = 2.0, kappa: float | None = 0.0, *, sqrt: bool = False, **kw
-) -> GaussianFilter:
-    """Unscented KF with the scaled rule (full covariance algebra by default)."""
-    return GaussianFilter(
-        unscented(alpha, beta, kappa), sqrt=sqrt, name=kw.pop("name", "UKF"), **kw
-    )
-
-
-def srukf(kappa: float | None = 1.0, *, rule: SigmaPoints | None = None, **kw) -> GaussianFilter:
-    """Square-root UKF of paper 003 (Eq. 10-30), Julier's rule with ``kappa = 1`` by default."""
-    return GaussianFilter(rule or julier(kappa), sqrt=True, name=kw.pop("name", "SRUKF"), **kw)
-
-
-def ckf(**kw) -> GaussianFilter:
-    """Cubature KF (full covariance algebra)."""
-    return GaussianFilter(cubature(), sqrt=False, name=kw.pop("name", "CKF"), **kw)
-
-
-def sckf(**kw) -> GaussianFilter:
-    """Square-root cubature KF (paper 000 Eq. 21-46 without fading)."""
-    return GaussianFilter(cubature(), sqrt=True, name=kw.pop("name", "SCKF"), **kw)
-
-
-def stekf(rho: float = 0.95, beta: float = 1.0, **kw) -> GaussianFilter:
-    """Strong-tracking EKF / SFEKF (paper 000 Eq. 7-12)."""
-    return ekf(fading=StrongTracking(rho, beta), name=kw.pop("name", "STEKF"), **kw)
-
-
-def stukf(rho: float = 0.95, beta: float = 1.0, kappa: float | None = 1.0, **kw) -> GaussianFilter:
-    """Strong-tracking UKF (derivative-free fading factor on the SRUKF engine)."""
-    return srukf(kappa, fading=StrongTracking(rho, beta), name=kw.pop("name", "STUKF"), **kw)
-
-
-def stsckf(rho: float = 0.95, beta: float = 1.0, **kw) -> GaussianFilter:
-    """Strong-tracking square-root cubature KF (paper 000 Sec. 3.3, Eq. 21-46)."""
-    return sckf(fading=StrongTracking(rho, beta), name=kw.pop("name", "STSCKF"), **kw)
-
-
-def imsrukf(kappa: float | None = 1.0, *, noise: SageHusa | None = None, **kw) -> GaussianFilter:
-    """ImSRUKF: SRUKF with the Sage-Husa noise-statistics estimator (paper 003 Sec. III-B)."""
-    return srukf(kappa, noise=noise or SageHusa(), name=kw.pop("name", "ImSRUKF"), **kw)
-
-
-def rukf(
-    gamma: float,
-    M: Tensor,
-    N: float | Tensor = 1.0,
-    *,
-    alpha: float = 1.0,
-    kappa: float = 1.0,
-    form: str = "scalar",
-    **kw,
-) -> GaussianFilter:
-    """Robust UKF of paper 004 (Theorem 1, steps 1-5): sigma points of Eq. 36, gain Eq. 29.
-
-    Paper 004 Eq. 36 uses ``xi = x +- a sqrt((n + 1) P)``, i.e. the scaled rule with
-    ``alpha = a`` and ``kappa = 1``. ``form``: the reading of the bound (see
-    :class:`~prognos_torch.adapt.robust.RobustBound`; ``"scalar"`` is Eq. 28-29 as printed).
-    """
-    return GaussianFilter(
-        unscented(alpha, 0.0, kappa),
-        sqrt=kw.pop("sqrt", True),
-        robust=RobustBound(gamma, M, N, form=form),
-        name=kw.pop("name", "RUKF"),
-        **kw,
-    )
-
-
-def arukf(
-    gamma: float,
-    M: Tensor,
-    N: float | Tensor = 1.0,
-    *,
-    window: int = 50,
-    diagonal: bool = True,
-    form: str = "scalar",
-    **kw,
-) -> GaussianFilter:
-    """Adaptive robust UKF of paper 004 (Sec. 3): RUKF + moving-window Q/R estimator (Eq. 47-49).
-
-    With ``form="lemma"`` the innovation covariance is matched against ``C P~ C^T + gamma^2 M M^T``
-    (``P~`` already holds the ``N`` bound); with ``"scalar"`` against Eq. 48 as printed
-    (``(1 - N^2 / mu) C P C^T + mu M M^T``, ``mu = gamma^2``).
-    """
-    if form == "lemma":
-        est = MovingWindow(window=window, M=M, N=0.0, mu=gamma**2, diagonal=diagonal)
-    else:
-        est = MovingWindow(window=window, M=M, N=float(N), mu=gamma**2, diagonal=diagonal)
-    return rukf(gamma, M, N, form=form, noise=est, name=kw.pop("name", "ARUKF"), **kw)
-
-
-FILTERS = {
-    "ekf": ekf,
-    "ukf": ukf,
-    "srukf": srukf,
-    "ckf": ckf,
-    "sckf": sckf,
-    "stekf": stekf,
-    "stukf": stukf,
-    "stsckf": stsckf,
-    "imsrukf": imsrukf,
-}
-
-
-def make_filter(name: str, **kw) -> GaussianFilter:
-    """Build a configured filter by name (``ekf``, ``ukf``, ``srukf``, ``ckf``, ``sckf``,
-    ``stekf``, ``stukf``, ``stsckf``, ``imsrukf``)."""
-    key = name.lower()
-    if key not in FILTERS:
-        raise ValueError(f"unknown filter {name!r}; choose one of {sorted(FILTERS)}")
-    return FILTERS[key](**kw)

@@ -8,7 +8,8 @@ Particles have shape ``(..., N, n)``: the leading dims ``...`` are independent r
 runs, assets), ``N`` the particle count. Log-weights ``(..., N)`` are kept normalised
 (``logsumexp = 0``). All randomness comes from an explicit ``torch.Generator``.
 
-Variants (one :class:`ParticleFilter` configuration each, one step function):
+Variants (one :class:`ParticleFilter` configuration each, one step function; the factories
+:func:`sir`, :func:`ekpf`, :func:`upf`, :func:`stpf` are in :mod:`prognos_torch.filters.variants`):
 
 - **SIR / bootstrap** (``proposal=None``): ``x_k^i ~ p(x_k | x_{k-1}^i)``,
   ``w_k^i ∝ w_{k-1}^i p(y_k | x_k^i)``.
@@ -52,7 +53,6 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Callable
 from dataclasses import dataclass, fields, is_dataclass, replace
 
 import torch
@@ -60,8 +60,16 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import Noise, StateSpaceModel
-from .gaussian import FilterState, GaussianFilter, Taylor, ekf, stekf, ukf
+from ..core.validation import (
+    check_belief,
+    check_control,
+    check_generator,
+    check_measurement,
+    check_sequence,
+)
+from .gaussian import FilterState, GaussianFilter, Taylor
 from .resampling import Resampler, ess, get_resampler
+from .sequence import scan
 
 __all__ = [
     "ParticleFilter",
@@ -72,12 +80,6 @@ __all__ = [
     "ProposalFallbackWarning",
     "gather_particles",
     "where_particles",
-    "sir",
-    "ekpf",
-    "upf",
-    "stpf",
-    "PARTICLE_FILTERS",
-    "make_particle_filter",
 ]
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -275,14 +277,7 @@ class ParticleTrajectory:
         return self.log_likelihoods.sum(0)
 
 
-# ---------------------------------------------------------------------- checks and noise
-def _check_generator(generator, like: Tensor) -> None:
-    if not isinstance(generator, torch.Generator):
-        raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
-    if generator.device.type != like.device.type:
-        raise ValueError(f"generator is on {generator.device}, the particles on {like.device}")
-
-
+# ---------------------------------------------------------------------- noise
 def _noise(model: StateSpaceModel, k: int, bs: torch.Size, like: Tensor) -> Noise:
     """Model noise at step ``k``, converted and checked: each tensor ``tail`` or ``bs + tail``."""
     noise = model.checked_noise(k, bs, like, owner="particles")
@@ -393,16 +388,9 @@ class ParticleFilter:
         Returns:
             :class:`ParticleState` with particles ``(..., N, n)``.
         """
-        if not isinstance(belief, GaussianBelief):
-            raise TypeError(f"belief must be a GaussianBelief, got {type(belief).__name__}")
-        belief.validate("belief")
-        if belief.dim != model.state_dim:
-            raise ValueError(
-                f"belief.mean must have shape (..., {model.state_dim}) for this model, "
-                f"got {tuple(belief.mean.shape)}"
-            )
+        check_belief(belief, model.state_dim)
         mean, chol = belief.mean, belief.chol
-        _check_generator(generator, mean)
+        check_generator(generator, mean)
         bs, n, N = belief.batch_shape, model.state_dim, self.num_particles
         eps = torch.randn(*bs, N, n, generator=generator, dtype=mean.dtype, device=mean.device)
         x0 = mean.unsqueeze(-2) + eps @ chol.mT
@@ -429,38 +417,6 @@ class ParticleFilter:
                 "state.proposal must be a FilterState for a Gaussian-proposal filter and None "
                 "for the bootstrap filter (build the state with this filter's init)"
             )
-
-    @staticmethod
-    def _check_y(model, y, bs, like) -> Tensor:
-        if not isinstance(y, Tensor):
-            raise TypeError(f"y must be a torch.Tensor of shape (..., {model.obs_dim})")
-        want = tuple(bs) + (model.obs_dim,)
-        if tuple(y.shape) != want:
-            raise ValueError(f"y must have shape {want} (batch shape + (m,)), got {tuple(y.shape)}")
-        if y.device != like.device:
-            raise ValueError(f"y is on {y.device}, the particles on {like.device}")
-        if torch.isinf(y).any():
-            raise ValueError("y contains inf (use NaN to mark a missing measurement)")
-        return y.to(like.dtype)
-
-    @staticmethod
-    def _check_u(model, u, bs, like) -> Tensor | None:
-        if model.control_dim == 0:
-            if u is not None:
-                raise ValueError("u was given but the model has control_dim=0")
-            return None
-        p = model.control_dim
-        if u is None:
-            raise ValueError(f"u is required: shape ({p},) or {tuple(bs) + (p,)}")
-        if not isinstance(u, Tensor):
-            raise TypeError("u must be a torch.Tensor")
-        if tuple(u.shape) not in ((p,), tuple(bs) + (p,)):
-            raise ValueError(
-                f"u must have shape ({p},) or {tuple(bs) + (p,)}, got {tuple(u.shape)}"
-            )
-        if not bool(torch.isfinite(u).all()):
-            raise ValueError("u contains non-finite values")
-        return u.to(like.dtype)
 
     # ------------------------------------------------------------------ stages
     def _transition_sample(self, model, x_prev, u_p, k, noise, eps):
@@ -492,9 +448,9 @@ class ParticleFilter:
         prediction, paper 002 "LS-SVR STPF method for failure prognosis", step 2)."""
         self._check_state(model, state)
         x_prev = state.particles
-        _check_generator(generator, x_prev)
+        check_generator(generator, x_prev)
         bs = state.batch_shape
-        u = self._check_u(model, u, bs, x_prev)
+        u = check_control(u, model.control_dim, bs, x_prev)
         u_p = None if u is None or u.dim() == 1 else u.unsqueeze(-2)
         noise = _noise(model, k, bs, x_prev)
         eps = torch.randn(
@@ -600,11 +556,11 @@ class ParticleFilter:
         """
         self._check_state(model, state)
         x_prev, lw_prev = state.particles, state.log_weights
-        _check_generator(generator, x_prev)
+        check_generator(generator, x_prev)
         bs, N = state.batch_shape, state.num_particles
         dt, dev = x_prev.dtype, x_prev.device
-        y = self._check_y(model, y, bs, x_prev)
-        u = self._check_u(model, u, bs, x_prev)
+        y, _ = check_measurement(y, model.obs_dim, bs, x_prev, owner="particles")
+        u = check_control(u, model.control_dim, bs, x_prev)
         u_p = None if u is None or u.dim() == 1 else u.unsqueeze(-2)
         missing = torch.isnan(y).any(-1)  # (...)
         any_missing = bool(missing.any())
@@ -716,117 +672,30 @@ class ParticleFilter:
         else:
             state = self.init(model, init, generator=generator, k=k0)
         bs = state.batch_shape
-        m = model.obs_dim
-        if not isinstance(ys, Tensor):
-            raise TypeError(f"ys must be a torch.Tensor of shape (T, ..., {m})")
-        want = f"(T, {', '.join(map(str, bs)) + ', ' if len(bs) else ''}{m})"
-        if ys.dim() < 2 or tuple(ys.shape[1:]) != tuple(bs) + (m,) or ys.shape[0] < 1:
-            raise ValueError(f"ys must have shape {want} with T >= 1, got {tuple(ys.shape)}")
+        check_sequence(ys, "ys", model.obs_dim, bs, nonempty=True)
         T = ys.shape[0]
         if model.control_dim:
-            p = model.control_dim
-            if (
-                not isinstance(us, Tensor)
-                or us.dim() < 2
-                or us.shape[0] != T
-                or tuple(us.shape[1:]) not in ((p,), tuple(bs) + (p,))
-            ):
-                raise ValueError(f"us must have shape (T, {p}) or (T, ..., {p}) with T = {T}")
+            check_sequence(us, "us", model.control_dim, bs, steps=T, shared=True)
         elif us is not None:
             raise ValueError("us was given but the model has control_dim=0")
-        keys = (
-            "means",
-            "covs",
-            "ess",
-            "resampled",
-            "log_likelihoods",
-            "collapsed",
-            "prior_fallback",
-            "fading_factors",
-            "missing",
-        )
-        out = {key: [] for key in keys}
-        parts, lws = [], []
-        for t in range(T):
-            u = None if us is None else us[t]
-            state, info = self.step(model, state, ys[t], u, k0 + t + 1, generator=generator)
-            if keep_particles:
-                parts.append(info.particles)
-                lws.append(info.log_weights)
-            out["means"].append(info.mean)
-            out["covs"].append(info.cov)
-            out["ess"].append(info.ess)
-            out["resampled"].append(info.resampled)
-            out["log_likelihoods"].append(info.log_likelihood)
-            out["collapsed"].append(info.collapsed)
-            out["prior_fallback"].append(info.prior_fallback)
-            out["fading_factors"].append(info.fading_factor)
-            out["missing"].append(info.missing)
-        stacked = {key: torch.stack(v) for key, v in out.items()}
-        return ParticleTrajectory(
-            **stacked,
-            particles=torch.stack(parts) if parts else None,
-            log_weights=torch.stack(lws) if lws else None,
-            final=state,
-        )
 
+        def step(s: ParticleState, y: Tensor, u: Tensor | None, k: int):
+            return self.step(model, s, y, u, k, generator=generator)
 
-# ---------------------------------------------------------------------- configurations
-def sir(num_particles: int = 1000, **kw) -> ParticleFilter:
-    """Bootstrap (SIR) particle filter: transition prior as proposal."""
-    return ParticleFilter(num_particles, None, name=kw.pop("name", "PF"), **kw)
+        def record(s: ParticleState, info: ParticleStepInfo) -> dict[str, Tensor | None]:
+            return {
+                "means": info.mean,
+                "covs": info.cov,
+                "ess": info.ess,
+                "resampled": info.resampled,
+                "log_likelihoods": info.log_likelihood,
+                "collapsed": info.collapsed,
+                "prior_fallback": info.prior_fallback,
+                "fading_factors": info.fading_factor,
+                "missing": info.missing,
+                "particles": info.particles if keep_particles else None,
+                "log_weights": info.log_weights if keep_particles else None,
+            }
 
-
-def ekpf(
-    num_particles: int = 1000, *, proposal: GaussianFilter | None = None, **kw
-) -> ParticleFilter:
-    """Extended Kalman particle filter: a per-particle EKF step as proposal."""
-    return ParticleFilter(num_particles, proposal or ekf(), name=kw.pop("name", "EKPF"), **kw)
-
-
-def upf(
-    num_particles: int = 1000, *, proposal: GaussianFilter | None = None, **kw
-) -> ParticleFilter:
-    """Unscented particle filter (Van der Merwe et al. 2000): a per-particle UKF step as proposal
-    (scaled rule ``alpha=1, beta=2, kappa=0``, square-root algebra, by default)."""
-    prop = proposal or ukf(1.0, 2.0, 0.0, sqrt=True)
-    return ParticleFilter(num_particles, prop, name=kw.pop("name", "UPF"), **kw)
-
-
-def stpf(
-    num_particles: int = 1000,
-    rho: float = 0.95,
-    beta: float = 1.0,
-    *,
-    resample_threshold: float = 1.0 / 3.0,
-    **kw,
-) -> ParticleFilter:
-    """Strong-tracking particle filter of paper 002 (Eq. 27, steps 1-7): a per-particle SFEKF
-    (strong-tracking EKF, paper 000 Eq. 7-12, forgetting ``rho``, weakening ``beta``) step as
-    proposal; resampling when ``N_eff < N/3`` (step 6)."""
-    return ParticleFilter(
-        num_particles,
-        stekf(rho, beta),
-        resample_threshold=resample_threshold,
-        name=kw.pop("name", "STPF"),
-        **kw,
-    )
-
-
-PARTICLE_FILTERS: dict[str, Callable[..., ParticleFilter]] = {
-    "sir": sir,
-    "pf": sir,
-    "ekpf": ekpf,
-    "upf": upf,
-    "stpf": stpf,
-}
-
-
-def make_particle_filter(name: str, **kw) -> ParticleFilter:
-    """Build a particle filter by name (``sir``/``pf``, ``ekpf``, ``upf``, ``stpf``)."""
-    key = name.lower()
-    if key not in PARTICLE_FILTERS:
-        raise ValueError(
-            f"unknown particle filter {name!r}; choose one of {sorted(PARTICLE_FILTERS)}"
-        )
-    return PARTICLE_FILTERS[key](**kw)
+        state, stacked = scan(step, state, ys, us, record=record, k0=k0)
+        return ParticleTrajectory(**stacked, final=state)

@@ -26,6 +26,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from ..core.validation import check_generator
+
 __all__ = [
     "multinomial",
     "systematic",
@@ -38,16 +40,6 @@ __all__ = [
 ]
 
 Resampler = Callable[..., Tensor]
-
-
-def _check_generator(generator, like: Tensor) -> None:
-    if not isinstance(generator, torch.Generator):
-        raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
-    if generator.device.type != like.device.type:
-        raise ValueError(
-            f"generator is on {generator.device}, the weights on {like.device}: "
-            "create the generator on the weights' device"
-        )
 
 
 def _normalized(weights: Tensor, log: bool) -> Tensor:
@@ -94,14 +86,14 @@ def _uniform(shape, generator, like: Tensor) -> Tensor:
 def multinomial(weights: Tensor, generator: torch.Generator, *, log: bool = True) -> Tensor:
     """Multinomial resampling: ``N`` i.i.d. ancestors from ``Cat(w)``; returns ``(..., N)``."""
     w = _normalized(weights, log)
-    _check_generator(generator, w)
+    check_generator(generator, w, "weights")
     return _lookup(_cdf(w), _uniform(w.shape, generator, w))
 
 
 def stratified(weights: Tensor, generator: torch.Generator, *, log: bool = True) -> Tensor:
     """Stratified resampling: ``u_j = (j + U_j) / N`` with independent ``U_j ~ U[0, 1)``."""
     w = _normalized(weights, log)
-    _check_generator(generator, w)
+    check_generator(generator, w, "weights")
     N = w.shape[-1]
     j = torch.arange(N, dtype=w.dtype, device=w.device)
     u = (j + _uniform(w.shape, generator, w)) / N
@@ -111,7 +103,7 @@ def stratified(weights: Tensor, generator: torch.Generator, *, log: bool = True)
 def systematic(weights: Tensor, generator: torch.Generator, *, log: bool = True) -> Tensor:
     """Systematic resampling: ``u_j = (j + U) / N`` with one ``U ~ U[0, 1)`` per batch element."""
     w = _normalized(weights, log)
-    _check_generator(generator, w)
+    check_generator(generator, w, "weights")
     N = w.shape[-1]
     j = torch.arange(N, dtype=w.dtype, device=w.device)
     u = (j + _uniform(w.shape[:-1] + (1,), generator, w)) / N
@@ -126,7 +118,7 @@ def residual(weights: Tensor, generator: torch.Generator, *, log: bool = True) -
     inverse-CDF draws from the residual weights.
     """
     w = _normalized(weights, log)
-    _check_generator(generator, w)
+    check_generator(generator, w, "weights")
     N = w.shape[-1]
     Nw = N * w
     det = torch.floor(Nw)

@@ -1,7 +1,9 @@
-"""Running a Gaussian filter over a sequence, and predict-only forecasting."""
+"""Running a Gaussian filter over a sequence (:func:`run`, on the loop
+:func:`~prognos_torch.filters.sequence.scan`), and predict-only forecasting (:func:`forecast`)."""
 
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass
 
 import torch
@@ -9,7 +11,9 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
-from .gaussian import FilterState, GaussianFilter, innovation_stats
+from ..core.validation import check_belief, check_pos_int, check_sequence
+from .gaussian import FilterState, GaussianFilter, StepInfo, innovation_stats
+from .sequence import scan
 
 __all__ = ["Trajectory", "Forecast", "run", "forecast"]
 
@@ -30,6 +34,8 @@ class Trajectory:
             (only with a noise estimator, else ``None``); q, r likewise.
         noise_fallback: ``(T, ...)`` bool.
         final: the :class:`FilterState` after the last step (resume from it).
+        steps: the :class:`StepInfo` of every step with ``run(..., keep_steps=True)``, else
+            ``None`` (the smoothers read them).
     """
 
     means: Tensor
@@ -47,6 +53,7 @@ class Trajectory:
     q: Tensor | None
     r: Tensor | None
     final: FilterState
+    steps: tuple[StepInfo, ...] | None = None
 
     @property
     def log_likelihood(self) -> Tensor:
@@ -57,20 +64,49 @@ class Trajectory:
         return self.chols @ self.chols.mT
 
 
-def _check_seq(x: Tensor | None, name: str, T: int | None, tail: int, batch) -> None:
-    if x is None:
-        return
-    if not isinstance(x, Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor")
-    ok = x.dim() >= 2 and x.shape[-1] == tail and (T is None or x.shape[0] == T)
-    ok = (
-        ok and tuple(x.shape[1:-1]) in ((), tuple(batch))
-        if name == "us"
-        else ok and tuple(x.shape[1:-1]) == tuple(batch)
+def check_filter(filt, name: str = "filter") -> GaussianFilter:
+    """``filt`` if it is a :class:`GaussianFilter`, else a ``TypeError`` (a factory such as
+    ``sckf`` passed without calling it is the usual slip)."""
+    if isinstance(filt, GaussianFilter):
+        return filt
+    if inspect.isfunction(filt) or inspect.isclass(filt):
+        what = "class" if inspect.isclass(filt) else "function"
+        fname = getattr(filt, "__name__", "factory")
+        raise TypeError(
+            f"{name} must be a GaussianFilter, got the {what} {fname} itself: call it, e.g. "
+            f"{fname}()"
+        )
+    raise TypeError(
+        f"{name} must be a GaussianFilter (e.g. sckf() or make_filter('sckf')), got "
+        f"{type(filt).__name__}"
     )
-    if not ok:
-        want = f"(T, {', '.join(map(str, batch)) + ', ' if len(batch) else ''}{tail})"
-        raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
+
+
+def _start(filt, model, init, k: int) -> FilterState:
+    check_filter(filt)
+    if isinstance(init, FilterState):
+        return init
+    return filt.init(model, check_belief(init, model.state_dim, "init"), k)
+
+
+def _record(state: FilterState, info: StepInfo) -> dict[str, Tensor | None]:
+    """What :func:`run` keeps of each step (the noise in use only with a noise estimator)."""
+    nz = state.noise
+    return {
+        "means": state.belief.mean,
+        "chols": state.belief.chol,
+        "pred_means": info.prior.mean,
+        "pred_chols": info.prior.chol,
+        "innovations": info.innovation,
+        "chol_innovations": info.chol_innovation,
+        "missing": info.missing,
+        "fading_factors": info.fading_factor,
+        "noise_fallback": info.noise_fallback,
+        "chol_Q": None if nz is None else nz.chol_Q,
+        "chol_R": None if nz is None else nz.chol_R,
+        "q": None if nz is None else nz.q,
+        "r": None if nz is None else nz.r,
+    }
 
 
 def run(
@@ -81,59 +117,36 @@ def run(
     us: Tensor | None = None,
     *,
     k0: int = 0,
+    keep_steps: bool = False,
 ) -> Trajectory:
     """Filter the measurements ``ys`` ``(T, ..., m)`` (NaN: missing; a row that is NaN
     throughout only predicts, a partially NaN row updates with its observed components).
 
     Step ``t`` (0-based) uses ``k = k0 + t + 1``, the control ``us[t]`` (``(T, ..., p)`` or
     ``(T, p)`` shared by the batch) and measurement ``ys[t]``. ``init`` is the belief on
-    ``x_{k0}`` (or a :class:`FilterState` to resume).
+    ``x_{k0}`` (or a :class:`FilterState` to resume). ``keep_steps=True`` keeps every
+    step's :class:`StepInfo` in ``Trajectory.steps``.
     """
-    state = init if isinstance(init, FilterState) else filt.init(model, init, k0 + 1)
+    state = _start(filt, model, init, k0 + 1)
     bs = state.belief.batch_shape
-    _check_seq(ys, "ys", None, model.obs_dim, bs)
+    check_sequence(ys, "ys", model.obs_dim, bs)
     T = ys.shape[0]
-    if model.control_dim:
-        if us is None:
-            raise ValueError(f"us is required: shape (T, ..., {model.control_dim})")
-        _check_seq(us, "us", T, model.control_dim, bs)
-    elif us is not None:
-        raise ValueError("us was given but the model has control_dim=0")
-    keys = (
-        "means",
-        "chols",
-        "pred_means",
-        "pred_chols",
-        "innovations",
-        "chol_innovations",
-        "fading_factors",
-        "noise_fallback",
-        "chol_Q",
-        "chol_R",
-        "q",
-        "r",
-        "missing",
-    )
-    out = {k: [] for k in keys}
-    for t in range(T):
-        state, info = filt.step(model, state, ys[t], None if us is None else us[t], k=k0 + t + 1)
-        out["means"].append(state.belief.mean)
-        out["chols"].append(state.belief.chol)
-        out["pred_means"].append(info.prior.mean)
-        out["pred_chols"].append(info.prior.chol)
-        out["innovations"].append(info.innovation)
-        out["chol_innovations"].append(info.chol_innovation)
-        out["missing"].append(info.missing)
-        out["fading_factors"].append(info.fading_factor)
-        out["noise_fallback"].append(info.noise_fallback)
-        if state.noise is not None:
-            out["chol_Q"].append(state.noise.chol_Q)
-            out["chol_R"].append(state.noise.chol_R)
-            out["q"].append(state.noise.q)
-            out["r"].append(state.noise.r)
     if T == 0:
         raise ValueError("ys must hold at least one step, shape (T, ..., m) with T >= 1")
-    stacked = {k: (torch.stack(v) if v else None) for k, v in out.items()}
+    if model.control_dim:
+        check_sequence(us, "us", model.control_dim, bs, steps=T, shared=True)
+    elif us is not None:
+        raise ValueError("us was given but the model has control_dim=0")
+
+    infos: list[StepInfo] = []
+
+    def step(s: FilterState, y: Tensor, u: Tensor | None, k: int):
+        s, info = filt.step(model, s, y, u, k=k)
+        if keep_steps:
+            infos.append(info)
+        return s, info
+
+    state, stacked = scan(step, state, ys, us, record=_record, k0=k0)
     # one vectorised pass over the whole trajectory instead of one per step
     stacked["nis"], stacked["log_likelihoods"] = innovation_stats(
         stacked["innovations"],
@@ -141,7 +154,7 @@ def run(
         stacked.pop("missing"),
         (~torch.isnan(ys)).sum(-1),  # partially observed vectors count their observed part
     )
-    return Trajectory(**stacked, final=state)
+    return Trajectory(**stacked, final=state, steps=tuple(infos) if keep_steps else None)
 
 
 @dataclass(frozen=True)
@@ -169,11 +182,11 @@ def forecast(
     k0: int = 0,
 ) -> Forecast:
     """Multi-step-ahead prediction without measurements (``k = k0 + 1 .. k0 + steps``)."""
-    if not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"steps must be a positive int, got {steps!r}")
-    state = init if isinstance(init, FilterState) else filt.init(model, init, k0 + 1)
+    steps = check_pos_int(steps, "steps")
+    state = _start(filt, model, init, k0 + 1)
     if model.control_dim:
-        _check_seq(us, "us", steps, model.control_dim, state.belief.batch_shape)
+        bs = state.belief.batch_shape
+        check_sequence(us, "us", model.control_dim, bs, steps=steps, shared=True)
     means, chols, ym, yc = [], [], [], []
     for j in range(steps):
         u = None if us is None else us[j]

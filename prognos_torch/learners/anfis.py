@@ -43,15 +43,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .elm import (
+from ..core.validation import (
     as_data,
     as_targets,
-    broadcast_jacobian,
     check_dtype_arg,
     check_forward_input,
     check_nonneg,
     check_pos_int,
 )
+from .elm import broadcast_jacobian
 
 __all__ = ["ANFIS", "MEMBERSHIPS", "log_membership"]
 

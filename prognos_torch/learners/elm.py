@@ -21,7 +21,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from prognos_torch.core.validation import check_finite
+from prognos_torch.core.validation import (
+    as_data,
+    as_targets,
+    check_dtype_arg,
+    check_forward_input,
+    check_nonneg,
+    check_pos_int,
+    to_float64,
+)
 
 __all__ = ["ELM", "ACTIVATIONS"]
 
@@ -47,15 +55,8 @@ ACTIVATIONS: dict[str, Callable[[Tensor], Tensor]] = {
 }
 
 
-# --------------------------------------------------------------------------- shared checks
-# (used by all learners in this package)
-
-
-def check_dtype_arg(dtype: torch.dtype) -> torch.dtype:
-    """The module ``dtype`` argument must be a floating-point ``torch.dtype``."""
-    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
-        raise TypeError(f"dtype must be a floating-point torch.dtype, got {dtype!r}")
-    return dtype
+# --------------------------------------------------------------------------- shared pieces
+# (used by all learners in this package; their argument checks live in core.validation)
 
 
 def broadcast_jacobian(module: nn.Module, jac: dict[str, Tensor], lead) -> dict[str, Tensor]:
@@ -69,89 +70,6 @@ def broadcast_jacobian(module: nn.Module, jac: dict[str, Tensor], lead) -> dict[
         tail = 2 + getattr(module, name).dim()
         out[name] = J.expand(*lead, *J.shape[J.dim() - tail :])
     return out
-
-
-def check_forward_input(x: Tensor, n_in: int, ref: Tensor) -> None:
-    """Check the input of a ``forward``: a tensor ``(..., n_in)`` with ``ref``'s dtype and device.
-
-    Only metadata (type, shape, dtype, device) is inspected, never values, so the check is
-    compatible with ``torch.func`` transforms. Non-finite values propagate to the output.
-    """
-    if not isinstance(x, Tensor):
-        raise TypeError(f"x must be a torch.Tensor of shape (..., {n_in}), got {type(x)}")
-    if x.dim() < 1 or x.shape[-1] != n_in:
-        raise ValueError(f"x must have shape (..., n_in) with n_in={n_in}, got {tuple(x.shape)}")
-    if x.dtype != ref.dtype:
-        raise TypeError(
-            f"x has dtype {x.dtype} but the module has dtype {ref.dtype}; "
-            f"convert x (x.to({ref.dtype})) or the module (module.to(dtype))"
-        )
-    if x.device != ref.device:
-        raise ValueError(
-            f"x is on device {x.device} but the module is on {ref.device}; move one of them"
-        )
-
-
-def to_float64(v, name: str, *, device: torch.device) -> Tensor:
-    """A tensor or array-like of real numbers as a float64 tensor on ``device``.
-
-    A tensor must already be on ``device`` (nothing is moved silently between devices).
-    """
-    if isinstance(v, Tensor):
-        if v.dtype.is_complex or v.dtype == torch.bool:
-            raise TypeError(f"{name} must be a real-valued tensor, got dtype {v.dtype}")
-        if v.device != device:
-            raise ValueError(f"{name} is on device {v.device} but the module is on {device}")
-        return v.detach().to(torch.float64)
-    try:
-        return torch.as_tensor(v, dtype=torch.float64, device=device)
-    except (TypeError, ValueError, RuntimeError) as exc:
-        raise TypeError(f"{name} must be a tensor or array-like of numbers, got {type(v)}") from exc
-
-
-def as_data(x, name: str, *, device: torch.device, n_cols: int | None = None) -> Tensor:
-    """Training inputs as a finite float64 tensor of shape ``(N, n_cols)`` on ``device``.
-
-    ``n_cols=None`` accepts any number of columns.
-    """
-    t = to_float64(x, name, device=device)
-    want = f"(N, {n_cols})" if n_cols is not None else "(N, n)"
-    if t.dim() != 2 or (n_cols is not None and t.shape[1] != n_cols):
-        raise ValueError(f"{name} must have shape {want}, got {tuple(t.shape)}")
-    if t.shape[0] == 0:
-        raise ValueError(f"{name} must have at least one row, shape {want}")
-    return check_finite(t, name)
-
-
-def as_targets(y, name: str, *, device: torch.device, n_rows: int, n_out: int) -> Tensor:
-    """Targets as a finite float64 ``(n_rows, n_out)`` tensor; ``(n_rows,)`` is accepted if
-    ``n_out == 1`` (it is the single output column; nothing is broadcast)."""
-    t = to_float64(y, name, device=device)
-    if t.dim() == 1 and n_out == 1 and t.shape[0] == n_rows:
-        t = t.unsqueeze(-1)
-    if t.dim() != 2 or tuple(t.shape) != (n_rows, n_out):
-        raise ValueError(
-            f"{name} must have shape (N, n_out) = ({n_rows}, {n_out}) matching the inputs"
-            + (f" (or ({n_rows},) since n_out=1)" if n_out == 1 else "")
-            + f", got {tuple(t.shape)}"
-        )
-    return check_finite(t, name)
-
-
-def check_nonneg(value: float, name: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError) as exc:
-        raise TypeError(f"{name} must be a real number, got {type(value)}") from exc
-    if not (v >= 0.0 and v < float("inf")):
-        raise ValueError(f"{name} must be a finite number >= 0, got {value}")
-    return v
-
-
-def check_pos_int(value: int, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name} must be a positive int, got {value!r}")
-    return value
 
 
 def _chol_spd(A: Tensor, what: str) -> Tensor:

@@ -29,7 +29,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from .elm import (
+from ..core.validation import (
     as_data,
     as_targets,
     check_dtype_arg,

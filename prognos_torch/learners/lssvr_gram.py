@@ -23,7 +23,7 @@ The squared-distance expansion loses absolute accuracy ``~ eps (|x|^2 + |P_i|^2)
 kernel width (the tests compare with :class:`LSSVR` to 1e-12).
 
 It exposes ``n_in``, ``n_out``, ``forward`` and ``input_gradient`` like :class:`LSSVR`, so it
-plugs into :func:`~prognos_torch.prognosis.forecast.learner_transition_model` (e.g. with
+plugs into :func:`~prognos_torch.prognosis.learner_model.learner_transition_model` (e.g. with
 ``jacobian="input_gradient"``) unchanged. It has buffers only (no parameters): it is an
 evaluator, not a trainable model; re-create it after re-fitting the LS-SVR.
 """
@@ -33,7 +33,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .elm import check_forward_input
+from ..core.validation import check_forward_input
 from .lssvr import LSSVR
 
 __all__ = ["LSSVRGram"]

@@ -6,8 +6,12 @@
   ``torch.optim.Optimizer`` whose ``step`` is one step of the library's Gaussian filter on the
   random-walk model of Eq. 45-46.
 * :func:`fit`: one training loop for Kalman and gradient optimisers.
+* :func:`fit_likelihood`: model parameters (noise, ``f``, ``h``) by maximising the filter's
+  log-likelihood with any ``torch.optim`` optimiser; :func:`em_linear_gaussian`: EM for
+  linear-Gaussian models on the square-root RTS smoother.
 """
 
+from .em import EMFit, em_linear_gaussian, linear_model
 from .fit import History, fit
 from .kalman import (
     EKF,
@@ -18,6 +22,7 @@ from .kalman import (
     KalmanStep,
     noise_factor,
 )
+from .likelihood import LikelihoodFit, fit_likelihood, from_log_cholesky, log_cholesky
 from .params import ParameterBridge, Selector
 
 __all__ = [
@@ -32,4 +37,11 @@ __all__ = [
     "OPTIMIZER_NOISE",
     "fit",
     "History",
+    "fit_likelihood",
+    "LikelihoodFit",
+    "from_log_cholesky",
+    "log_cholesky",
+    "em_linear_gaussian",
+    "EMFit",
+    "linear_model",
 ]

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from itertools import chain
 
 import torch
@@ -46,8 +46,10 @@ from ..adapt.strong_tracking import StrongTracking, StrongTrackingState
 from ..core.belief import GaussianBelief
 from ..core.linalg import tria
 from ..core.model import StateSpaceModel
-from ..core.validation import all_finite
-from ..filters.gaussian import FilterState, GaussianFilter, StepInfo, Taylor, make_filter
+from ..core.validation import check_matches
+from ..filters.gaussian import FilterState, GaussianFilter, StepInfo, Taylor
+from ..filters.variants import make_filter
+from ._buffers import batch_statistics_only, explain_transform_error, tracking_batch_norms
 from .params import ParameterBridge
 
 __all__ = [
@@ -71,14 +73,18 @@ class KalmanStep:
         loss: mean squared innovation ``mean_j (t_j - z_j)^2`` over the measurement vector, under
             the prior (before the update). For the EKF ``z = g(theta_{k-1}, u_k)``, so this is the
             pre-update mean squared error; sigma-point filters use their predicted measurement.
-        info: the engine's full :class:`~prognos_torch.filters.gaussian.StepInfo`.
+        info: the engine's full :class:`~prognos_torch.filters.gaussian.StepInfo` (of the
+            first parameter group).
+        infos: the :class:`StepInfo` of every parameter group (``infos[0] is info``).
 
-    ``nis`` (normalised innovation squared), ``fading_factor`` (``lambda_k``, 1 without strong
+    With several parameter groups ``loss`` is that of the first group's update, i.e. before
+    any group of this step was updated. ``nis`` (normalised innovation squared), ``fading_factor`` (``lambda_k``, 1 without strong
     tracking) and ``log_likelihood`` are read from ``info`` (computed on first access).
     """
 
     loss: Tensor
     info: StepInfo
+    infos: tuple[StepInfo, ...] = ()
 
     @property
     def nis(self) -> Tensor:
@@ -181,34 +187,59 @@ def _resolve_filter(filt, fading, noise) -> GaussianFilter:
     return replace(base, **changes) if changes else base
 
 
-def _resolve_module(params, module) -> tuple[nn.Module, list[str] | None]:
-    """``(module, names)`` from the ``params``/``module`` arguments (names None: default)."""
+def _resolve_groups(params, module) -> tuple[nn.Module, list[dict]]:
+    """``(module, parameter groups)`` from the ``params``/``module`` arguments."""
     if isinstance(params, nn.Module):
         if module is not None and module is not params:
             raise ValueError("module must be omitted or be the module passed as params")
-        return params, None
+        return params, [{"params": ParameterBridge(params).parameters()}]
     if module is None:
         raise ValueError(
-            "module is required when params is an iterable of parameters "
-            "(KalmanOptimizer(module.parameters(), module=module))"
+            "module is required when params is an iterable of parameters or of parameter "
+            "groups (KalmanOptimizer(module.parameters(), module=module))"
         )
     if not isinstance(module, nn.Module):
         raise TypeError(f"module must be a torch.nn.Module, got {type(module)}")
-    if isinstance(params, Tensor) or not isinstance(params, Iterable):
-        raise TypeError("params must be a module or an iterable of its parameters")
-    by_id = {id(p): n for n, p in module.named_parameters()}
-    names = []
-    for p in params:
-        if isinstance(p, tuple) and len(p) == 2:  # named_parameters()
-            p = p[1]
-        if isinstance(p, dict):
-            raise ValueError("KalmanOptimizer supports a single parameter group (like LBFGS)")
-        if not isinstance(p, Tensor) or id(p) not in by_id:
-            raise ValueError("params must contain parameters of module only")
-        names.append(by_id[id(p)])
-    if not names:
+    if isinstance(params, (Tensor, dict)) or not isinstance(params, Iterable):
+        raise TypeError(
+            "params must be a module, an iterable of its parameters, or an iterable of "
+            "parameter groups (dicts with a 'params' entry)"
+        )
+    items = list(params)
+    if not items:
         raise ValueError("params is empty: no parameters to train")
-    return module, names
+    groups = [isinstance(p, dict) for p in items]
+    if all(groups):
+        return module, [dict(g) for g in items]
+    if any(groups):
+        raise TypeError("params mixes parameters and parameter groups (dicts): give one kind")
+    return module, [{"params": items}]
+
+
+def _check_lr(lr, filt: GaussianFilter, where: str) -> float:
+    """``lr`` as a float; it scales the measurement noise of its group (``R / lr``)."""
+    if isinstance(lr, Tensor) and lr.numel() == 1:
+        lr = float(lr)
+    if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not math.isfinite(lr) or lr <= 0:
+        raise ValueError(
+            f"{where} must be a positive finite number (the learning rate divides the "
+            f"measurement noise: R / lr), got {lr!r}"
+        )
+    lr = float(lr)
+    noise = filt.noise
+    if lr != 1.0 and noise is not None and "R" in getattr(noise, "estimate", ()):
+        raise ValueError(
+            f"{where} = {lr:g}, but the group's filter estimates R itself "
+            f"({type(noise).__name__}, e.g. filter='imsrukf'), so a learning rate R / lr "
+            "has no meaning: keep lr = 1.0 (no learning-rate scheduler), or estimate Q only "
+            "(noise=SageHusa(estimate=('Q',), diagonal=True)), or use a filter with a fixed R"
+        )
+    return lr
+
+
+def _state_key(i: int) -> str:
+    """Key of parameter group ``i``'s filter state in ``optimizer.state``."""
+    return _STATE_KEY if i == 0 else f"{_STATE_KEY}.{i}"
 
 
 def _clone_state(obj):
@@ -227,11 +258,25 @@ def _dataclass_dict(obj) -> dict | None:
     return {f.name: getattr(obj, f.name) for f in fields(obj)}
 
 
+@dataclass
+class _Group:
+    """What one parameter group's options resolve to (rebuilt after ``load_state_dict``)."""
+
+    bridge: ParameterBridge
+    filter: GaussianFilter
+    chol_P0: Tensor
+    chol_Q: Tensor
+    chol_R1: Tensor
+    R_scalar: bool
+    chol_R: dict = field(default_factory=dict)  # M -> (lr, factor of R / lr, (M, M))
+    models: dict = field(default_factory=dict)  # (input shape, output shape) -> model
+
+
 # ---------------------------------------------------------------------- the optimiser
 class KalmanOptimizer(torch.optim.Optimizer):
     """Train a module by Gaussian filtering of its parameters (paper 003 Eq. 44-46).
 
-    One parameter group (like ``LBFGS``); its options are ``param_groups[0]``. Usage::
+    Usage::
 
         opt = KalmanOptimizer(model, filter="imsrukf", P0=1.0, Q=1e-6, R=1e-3)
         for x, t in loader:
@@ -239,9 +284,11 @@ class KalmanOptimizer(torch.optim.Optimizer):
 
     Args:
         params: the module to train (its parameters with ``requires_grad=True`` form ``theta``),
-            or an iterable of some of its parameters (then ``module`` is required).
-        module: the module, when ``params`` is an iterable of parameters.
-        filter: a filter name of :func:`~prognos_torch.filters.gaussian.make_filter` (``"ekf"``,
+            an iterable of some of its parameters, or an iterable of parameter groups (dicts with
+            ``"params"`` and any of the options below, as in ``torch.optim``); with an iterable,
+            ``module`` is required.
+        module: the module, when ``params`` is an iterable.
+        filter: a filter name of :func:`~prognos_torch.filters.variants.make_filter` (``"ekf"``,
             ``"srukf"``, ``"imsrukf"``, ``"ukf"``, ``"ckf"``, ``"sckf"``, ``"stekf"``, ``"stukf"``,
             ``"stsckf"``) or a configured :class:`GaussianFilter`.
         P0: prior covariance of ``theta_0``: scalar variance, ``(n,)`` variances, ``(n, n)``, or
@@ -250,22 +297,67 @@ class KalmanOptimizer(torch.optim.Optimizer):
         R: measurement-noise covariance of ONE output vector (scalar, ``(n_out,)`` or
             ``(n_out, n_out)`` with ``n_out`` the last dimension of the model output); a mini-batch
             uses it block-diagonally.
+        lr: learning rate, ``> 0`` (default 1): the filter uses the measurement noise ``R / lr``
+            (see *Learning rate* below), so learning-rate schedulers work.
         fading: ``None`` (the filter's own setting), ``False`` (off), ``True``
             (``StrongTracking()``), a constant factor ``>= 1`` or a ``StrongTracking``.
         noise: ``None`` (the filter's own; for ``filter="imsrukf"`` :data:`OPTIMIZER_NOISE`),
             ``False`` (off), ``True`` (``SageHusa()``, all of paper 003 Eq. 40-43) or a
             ``SageHusa``/``MovingWindow``. A noise estimator or strong tracking needs a constant
             measurement size (same mini-batch size at every step).
-        runs: ``None`` for one run, or ``R`` for ``R`` independent runs in one batch.
+        runs: ``None`` for one run, or ``R`` for ``R`` independent runs in one batch (one
+            parameter group only).
         per_run_data: with ``runs=R``, every run gets its own data: ``step`` and ``predict``
             take inputs ``(R, *x)`` and targets ``(R, *out)`` (e.g. ``R`` noise realisations);
             default ``False``: all runs see the same inputs and targets.
-        theta0: initial mean ``(n,)`` (or ``(R, n)`` with ``runs``); default: the module's
-            current parameters (repeated over runs).
+        theta0: initial mean ``(n,)`` (or ``(R, n)`` with ``runs``; with several groups the
+            groups' parameters one group after another); default: the module's current
+            parameters (repeated over runs).
         jacobian: ``"auto"``, ``"rev"``, ``"fwd"`` or ``"autograd"``: how the EKF differentiates
             ``g`` (see :meth:`ParameterBridge.jacobian`; ``"auto"`` uses the learner's closed-form
             derivatives when it has them, as ELM and ANFIS do).
         chunk_size: vectorise at most this many parameter vectors / Jacobian products at once.
+
+    ``filter``, ``P0``, ``Q``, ``R``, ``lr``, ``fading``, ``noise``, ``jacobian`` and
+    ``chunk_size`` are per-group options (the arguments are the defaults); ``runs`` and
+    ``per_run_data`` apply to the whole optimiser.
+
+    Parameter groups. Every group has its own belief ``N(theta_g, P_g)``, its own filter and
+    filter state: the joint belief is block-diagonal, the groups a priori independent. A step
+    updates the groups one after another on the same mini-batch, each by one engine step of its
+    own filter in which the other groups are held at their current means (those earlier in
+    ``param_groups`` already updated in this step): block-coordinate filtering in Gauss-Seidel
+    order. The cross-covariances between groups are not kept, as in decoupled EKF training
+    (Puskorius and Feldkamp, 1991), but each group has its own innovation covariance (its own
+    ``R``). So an optimiser with groups ``A`` and ``B`` is exactly two single-group optimisers
+    on ``A`` and on ``B`` stepped in that order (``tests/test_optim_groups.py``); the cost is one
+    ``n_g``-dimensional filter step per group instead of one ``n``-dimensional one.
+    :meth:`add_param_group` adds a group whose belief starts at the module's current values
+    with its ``P0``. :attr:`theta`, :attr:`belief`, :meth:`parameter_covariance` and
+    :meth:`parameter_std` list the groups one after another (block-diagonal); per group:
+    :attr:`beliefs`, :attr:`filters`, :attr:`filter_states`.
+
+    Learning rate. ``lr`` is the learning rate ``eta`` of EKF training (Puskorius and Feldkamp:
+    the measurement noise ``R = eta^-1 I``): the filter uses ``R / lr``. With a small gain
+    (``H P H^T << R``) the update ``K e = lr P H^T R^-1 e`` is proportional to ``lr``, like a
+    gradient step; a larger ``lr`` trusts the targets more. ``torch.optim.lr_scheduler``
+    schedulers (``StepLR``, ``ExponentialLR``, ``LambdaLR``, ...) therefore anneal the
+    measurement noise; they read and write ``param_groups[i]["lr"]`` and the next step uses it.
+    A group whose filter estimates ``R`` itself (``"imsrukf"``, a ``SageHusa`` or
+    ``MovingWindow`` with ``"R"`` in ``estimate``) refuses ``lr != 1`` with a ``ValueError``.
+
+    Buffers. A BatchNorm layer in training mode normalises by the batch statistics in every
+    evaluation of the filter, and its running statistics are updated once per step, by one
+    forward pass of the mini-batch at the parameters before the step, as in a ``torch.optim``
+    training loop (:mod:`prognos_torch.optim._buffers`; not with ``runs``: the runs would share
+    one set of statistics). In ``eval()`` mode it uses its running statistics. Other layers that
+    change buffers in ``forward``, or draw random numbers (Dropout in training mode), are
+    refused with a ``ValueError`` saying so.
+
+    Closures. ``step(closure)`` accepts a closure returning ``(inputs, targets)``. A closure
+    returning a loss, as ``LBFGS`` takes, is refused with a ``TypeError``: a Kalman filter
+    updates ``theta`` from the model outputs and the targets (Eq. 46), which one loss value
+    does not carry.
 
     ImSRUKF in the optimiser face. Paper 003 estimates all four noise statistics (Eq. 40-43).
     With the random walk of Eq. 45, Eq. 40 makes ``q`` the running mean of the parameter
@@ -294,6 +386,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         P0=1.0,
         Q=0.0,
         R=1.0,
+        lr: float = 1.0,
         fading=None,
         noise=None,
         runs: int | None = None,
@@ -302,16 +395,9 @@ class KalmanOptimizer(torch.optim.Optimizer):
         jacobian: str = "auto",
         chunk_size: int | None = None,
     ) -> None:
-        module, names = _resolve_module(params, module)
-        bridge = ParameterBridge(module, names)
+        module, groups = _resolve_groups(params, module)
         if runs is not None and (isinstance(runs, bool) or not isinstance(runs, int) or runs < 1):
             raise ValueError(f"runs must be None or a positive int, got {runs!r}")
-        if jacobian not in ("auto", "rev", "fwd", "autograd"):
-            raise ValueError(
-                f"jacobian must be 'auto', 'rev', 'fwd' or 'autograd', got {jacobian!r}"
-            )
-        if chunk_size is not None and (not isinstance(chunk_size, int) or chunk_size < 1):
-            raise ValueError(f"chunk_size must be None or a positive int, got {chunk_size!r}")
         if not isinstance(per_run_data, bool):
             raise TypeError(f"per_run_data must be a bool, got {type(per_run_data)}")
         if per_run_data and runs is None:
@@ -321,6 +407,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
             P0=P0,
             Q=Q,
             R=R,
+            lr=lr,
             fading=fading,
             noise=noise,
             runs=runs,
@@ -328,125 +415,285 @@ class KalmanOptimizer(torch.optim.Optimizer):
             jacobian=jacobian,
             chunk_size=chunk_size,
         )
-        self.bridge = bridge
         self.module = module
-        super().__init__(bridge.parameters(), defaults)
+        self._cfg: list[_Group] | None = []
+        self._building = True
+        super().__init__(groups, defaults)
+        self._building = False
         self._setup()
-        self.state[_STATE_KEY] = self._initial_state(theta0)
+        parts = self._split_theta0(theta0)
+        for i in range(len(self.param_groups)):
+            self.state[_state_key(i)] = self._initial_state(i, parts[i])
 
     def __getstate__(self) -> dict:
         # torch.optim keeps only defaults, state and param_groups; copy.deepcopy and pickle of
-        # a Kalman optimiser also need its bridge, module and configured filter. The per-shape
-        # step models close over this optimiser's bridge: rebuilt by the copy.
+        # a Kalman optimiser also need its module and bridges. The per-group configuration
+        # (filters, noise factors, per-shape step models that close over this optimiser) is
+        # rebuilt by the copy from its own param_groups.
         state = self.__dict__.copy()
-        state["_models"], state["_inputs"] = {}, [None]
+        state["_cfg"], state["_inputs"], state["_out_shapes"] = None, [None], {}
         return state
 
+    def __setstate__(self, state: dict) -> None:
+        super().__setstate__(state)
+        if self.__dict__.get("_cfg") is None and "module" in self.__dict__:
+            self._setup()
+
     def add_param_group(self, param_group: dict) -> None:
-        if getattr(self, "param_groups", None):
-            raise ValueError("KalmanOptimizer supports a single parameter group (like LBFGS)")
-        super().add_param_group(param_group)
+        """Add a parameter group (a dict with ``"params"``, parameters of :attr:`module`, and
+        any per-group option); its belief starts at the parameters' current values with its
+        ``P0`` (repeated over runs)."""
+        if not isinstance(param_group, dict):
+            raise TypeError(f"param_group must be a dict, got {type(param_group)}")
+        if "params" not in param_group:
+            raise ValueError("param_group must have a 'params' entry (parameters of the module)")
+        group = dict(param_group)
+        for key in ("runs", "per_run_data"):
+            if key in group and group[key] != self.defaults[key]:
+                raise ValueError(
+                    f"{key} applies to the whole optimiser ({self.defaults[key]!r}), not to one "
+                    f"parameter group (got {group[key]!r})"
+                )
+        if self.param_groups and self.defaults["runs"] is not None:
+            raise ValueError(
+                "several parameter groups need runs=None: with runs=R the module does not hold "
+                "the runs' parameters that the other groups would be evaluated at; use one group "
+                "with per-parameter P0 and Q ({name: variance} dicts)"
+            )
+        group["params"] = self._group_bridge(group["params"]).parameters()
+        cfg = self._configure({**self.defaults, **group}, f"param_groups[{len(self.param_groups)}]")
+        super().add_param_group(group)
+        if not self._building:
+            i = len(self.param_groups) - 1
+            self._cfg.append(cfg)
+            self._union()
+            self.state[_state_key(i)] = self._initial_state(i, None)
 
     # ------------------------------------------------------------------ configuration
-    def _setup(self) -> None:
-        """Derive the filter and noise factors from ``param_groups[0]`` (also after a load)."""
-        g = self.param_groups[0]
-        n, dev = self.bridge.numel, self.bridge.device
-        self._filter = _resolve_filter(g["filter"], g["fading"], g["noise"])
+    def _group_bridge(self, params) -> ParameterBridge:
+        """The bridge of a group's parameters (which must be parameters of :attr:`module`)."""
+        if isinstance(params, Tensor):
+            params = [params]
+        elif isinstance(params, nn.Module):
+            raise TypeError(
+                "a parameter group's 'params' must be parameters (e.g. "
+                "module.layer.parameters()), got a module"
+            )
+        elif isinstance(params, (set, dict, str)) or not isinstance(params, Iterable):
+            raise TypeError(
+                f"a parameter group's 'params' must be an ordered iterable of parameters, got "
+                f"{type(params)}"
+            )
+        by_id = {id(p): n for n, p in self.module.named_parameters()}
+        names = []
+        for p in params:
+            if isinstance(p, tuple) and len(p) == 2:  # named_parameters()
+                p = p[1]
+            if isinstance(p, dict):
+                raise TypeError("a parameter group's 'params' must not contain dicts")
+            if not isinstance(p, Tensor) or id(p) not in by_id:
+                raise ValueError("params must contain parameters of module only")
+            names.append(by_id[id(p)])
+        if not names:
+            raise ValueError("params is empty: no parameters to train")
+        return ParameterBridge(self.module, names)
+
+    def _configure(self, g: dict, where: str) -> _Group:
+        """Resolve one group's options (validated; nothing is changed)."""
+        bridge = self._group_bridge(g["params"])
+        n, dev = bridge.numel, bridge.device
+        if g["jacobian"] not in ("auto", "rev", "fwd", "autograd"):
+            raise ValueError(
+                f"jacobian must be 'auto', 'rev', 'fwd' or 'autograd', got {g['jacobian']!r}"
+            )
+        chunk = g["chunk_size"]
+        if chunk is not None and (
+            isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1
+        ):
+            raise ValueError(f"chunk_size must be None or a positive int, got {chunk!r}")
+        filt = _resolve_filter(g["filter"], g["fading"], g["noise"])
+        _check_lr(g["lr"], filt, f"{where}['lr']")
         P0, Q = g["P0"], g["Q"]
-        P0 = self.bridge.expand(P0, "P0") if isinstance(P0, dict) else P0
-        Q = self.bridge.expand(Q, "Q") if isinstance(Q, dict) else Q
-        self._chol_P0 = noise_factor(P0, n, "P0", allow_singular=False, device=dev)
-        self._chol_Q = noise_factor(Q, n, "Q", allow_singular=True, device=dev)
-        R = torch.as_tensor(g["R"], dtype=torch.float64, device=dev)
+        P0 = bridge.expand(P0, "P0") if isinstance(P0, dict) else P0
+        Q = bridge.expand(Q, "Q") if isinstance(Q, dict) else Q
+        chol_P0 = noise_factor(P0, n, "P0", allow_singular=False, device=dev)
+        chol_Q = noise_factor(Q, n, "Q", allow_singular=True, device=dev)
+        try:
+            R = torch.as_tensor(g["R"], dtype=torch.float64, device=dev)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise TypeError(
+                f"R must be a number, a vector or a matrix, got {type(g['R'])}"
+            ) from exc
         n_out = 1 if R.dim() == 0 else R.shape[0]
-        self._chol_R1 = noise_factor(R, n_out, "R", allow_singular=False, device=dev)
-        self._R_scalar = R.dim() == 0
-        self._chol_R_cache: dict[int, Tensor] = {}
+        chol_R1 = noise_factor(R, n_out, "R", allow_singular=False, device=dev)
+        return _Group(bridge, filt, chol_P0, chol_Q, chol_R1, R.dim() == 0)
+
+    def _setup(self) -> None:
+        """Derive every group's filter and noise factors from ``param_groups`` (also after a
+        load or a copy)."""
+        self._cfg = [
+            self._configure(g, f"param_groups[{i}]") for i, g in enumerate(self.param_groups)
+        ]
+        self._union()
         self._out_shapes: dict[tuple, torch.Size] = {}
-        self._models: dict[tuple, StateSpaceModel] = {}
         self._inputs: list = [None]
 
-    def _initial_state(self, theta0) -> dict:
-        runs, n = self.runs, self.bridge.numel
+    def _union(self) -> None:
+        """The bridge over all groups' parameters and the map from group order to its order."""
+        names = [n for c in self._cfg for n in c.bridge.names]
+        self.bridge = (
+            self._cfg[0].bridge if len(self._cfg) == 1 else ParameterBridge(self.module, names)
+        )
+        if len(self._cfg) == 1:
+            self._order = None
+            return
+        start, where = 0, {}
+        for c in self._cfg:
+            for name, k in zip(c.bridge.names, c.bridge.numels):
+                where[name] = (start, start + k)
+                start += k
+        self._order = torch.cat(
+            [torch.arange(*where[name], device=self.bridge.device) for name in self.bridge.names]
+        )
+
+    def _split_theta0(self, theta0) -> list[Tensor | None]:
         if theta0 is None:
-            mean = self.bridge.flatten()
+            return [None] * len(self._cfg)
+        if not isinstance(theta0, Tensor):
+            raise TypeError("theta0 must be a torch.Tensor")
+        runs, n = self.runs, sum(c.bridge.numel for c in self._cfg)
+        want = (n,) if runs is None else (runs, n)
+        if tuple(theta0.shape) != want:
+            raise ValueError(f"theta0 must have shape {want}, got {tuple(theta0.shape)}")
+        if theta0.device != self.bridge.device:
+            raise ValueError(f"theta0 is on {theta0.device}, the module on {self.bridge.device}")
+        if not bool(torch.isfinite(theta0).all()):
+            raise ValueError("theta0 contains non-finite values")
+        theta0 = theta0.detach().to(torch.float64)
+        return list(theta0.split([c.bridge.numel for c in self._cfg], dim=-1))
+
+    def _initial_state(self, i: int, theta0: Tensor | None) -> dict:
+        cfg, runs = self._cfg[i], self.runs
+        n = cfg.bridge.numel
+        if theta0 is None:
+            mean = cfg.bridge.flatten()
             if runs is not None:
                 mean = mean.expand(runs, n).clone()
         else:
-            if not isinstance(theta0, Tensor):
-                raise TypeError("theta0 must be a torch.Tensor")
-            want = (n,) if runs is None else (runs, n)
-            if tuple(theta0.shape) != want:
-                raise ValueError(f"theta0 must have shape {want}, got {tuple(theta0.shape)}")
-            if theta0.device != self.bridge.device:
-                raise ValueError(
-                    f"theta0 is on {theta0.device}, the module on {self.bridge.device}"
-                )
-            if not bool(torch.isfinite(theta0).all()):
-                raise ValueError("theta0 contains non-finite values")
-            mean = theta0.detach().to(torch.float64).clone()
-        chol = self._chol_P0.expand(*mean.shape[:-1], n, n).clone()
+            mean = theta0.clone()
+        chol = cfg.chol_P0.expand(*mean.shape[:-1], n, n).clone()
         if runs is None:
-            self.bridge.assign(mean)
+            cfg.bridge.assign(mean)
         return {"mean": mean, "chol": chol, "fading": None, "noise": None, "step": 0}
 
     @property
     def runs(self) -> int | None:
         return self.param_groups[0]["runs"]
 
+    def _single(self, what: str, plural: str) -> None:
+        if len(self._cfg) != 1:
+            raise ValueError(
+                f"{what} is ambiguous with {len(self._cfg)} parameter groups: use {plural} "
+                "(one per group)"
+            )
+
     @property
     def filter(self) -> GaussianFilter:
-        """The configured engine filter."""
-        return self._filter
+        """The configured engine filter (one parameter group; else see :attr:`filters`)."""
+        self._single("filter", "filters")
+        return self._cfg[0].filter
+
+    @property
+    def filters(self) -> tuple[GaussianFilter, ...]:
+        """The configured engine filter of every parameter group."""
+        return tuple(c.filter for c in self._cfg)
 
     # ------------------------------------------------------------------ belief access
+    def _means(self) -> list[Tensor]:
+        return [self.state[_state_key(i)]["mean"] for i in range(len(self._cfg))]
+
+    def _chols(self) -> list[Tensor]:
+        return [self.state[_state_key(i)]["chol"] for i in range(len(self._cfg))]
+
+    def _union_mean(self) -> Tensor:
+        """The posterior mean in :attr:`bridge` order (the module's order of parameters)."""
+        means = self._means()
+        if self._order is None:
+            return means[0]
+        return torch.cat(means, -1)[..., self._order]
+
     @property
     def theta(self) -> Tensor:
-        """Posterior mean of ``theta``: ``(n,)`` or ``(R, n)``, float64 (a copy)."""
-        return self.state[_STATE_KEY]["mean"].clone()
+        """Posterior mean of ``theta``: ``(n,)`` or ``(R, n)``, float64 (a copy; several
+        groups one after another)."""
+        return torch.cat(self._means(), -1).clone()
 
     @property
     def belief(self) -> GaussianBelief:
-        """The current float64 belief ``N(theta, P)`` over the parameters (a copy)."""
-        s = self.state[_STATE_KEY]
-        return GaussianBelief(s["mean"].clone(), s["chol"].clone())
+        """The current float64 belief ``N(theta, P)`` over the parameters (a copy; with several
+        groups block-diagonal, groups one after another)."""
+        means, chols = self._means(), self._chols()
+        if len(chols) == 1:
+            return GaussianBelief(means[0].clone(), chols[0].clone())
+        return GaussianBelief(torch.cat(means, -1), torch.block_diag(*chols))
+
+    @property
+    def beliefs(self) -> tuple[GaussianBelief, ...]:
+        """The belief of every parameter group (copies)."""
+        return tuple(
+            GaussianBelief(m.clone(), S.clone()) for m, S in zip(self._means(), self._chols())
+        )
 
     @property
     def filter_state(self) -> FilterState:
-        """The engine's :class:`FilterState` (belief, fading and noise-estimator states; a copy)."""
-        fs = self._filter_state()
-        return FilterState(
-            GaussianBelief(fs.belief.mean.clone(), fs.belief.chol.clone()),
-            _clone_state(fs.fading),
-            _clone_state(fs.noise),
-        )
+        """The engine's :class:`FilterState` (belief, fading and noise-estimator states; a
+        copy; one parameter group, else see :attr:`filter_states`)."""
+        self._single("filter_state", "filter_states")
+        return self.filter_states[0]
 
-    def _filter_state(self) -> FilterState:
-        s = self.state[_STATE_KEY]
+    @property
+    def filter_states(self) -> tuple[FilterState, ...]:
+        """The engine's :class:`FilterState` of every parameter group (copies)."""
+        out = []
+        for i in range(len(self._cfg)):
+            fs = self._filter_state(i)
+            out.append(
+                FilterState(
+                    GaussianBelief(fs.belief.mean.clone(), fs.belief.chol.clone()),
+                    _clone_state(fs.fading),
+                    _clone_state(fs.noise),
+                )
+            )
+        return tuple(out)
+
+    def _filter_state(self, i: int) -> FilterState:
+        s = self.state[_state_key(i)]
         fst = None if s["fading"] is None else StrongTrackingState(**s["fading"])
         nst = None if s["noise"] is None else NoiseEstimatorState(**s["noise"])
         return FilterState(GaussianBelief(s["mean"], s["chol"]), fst, nst)
 
     def parameter_covariance(self) -> Tensor:
-        """Posterior covariance of ``theta``: ``(n, n)`` or ``(R, n, n)`` float64."""
-        S = self.state[_STATE_KEY]["chol"]
-        return S @ S.mT
+        """Posterior covariance of ``theta``: ``(n, n)`` or ``(R, n, n)`` float64
+        (block-diagonal with several groups)."""
+        covs = [S @ S.mT for S in self._chols()]
+        return covs[0] if len(covs) == 1 else torch.block_diag(*covs)
 
     def parameter_std(self) -> Tensor:
         """Posterior standard deviations of ``theta``: ``(n,)`` or ``(R, n)`` float64."""
-        S = self.state[_STATE_KEY]["chol"]
-        return S.square().sum(-1).sqrt()
+        return torch.cat([S.square().sum(-1).sqrt() for S in self._chols()], -1)
 
     @torch.no_grad()
     def predict(self, inputs: Tensor) -> Tensor:
         """Model outputs at the posterior mean: ``module(inputs)`` for one run, ``(R, *out)``
-        with ``runs=R`` (module dtype). With ``per_run_data``, ``inputs`` is ``(R, *x)``."""
+        with ``runs=R`` (module dtype). With ``per_run_data``, ``inputs`` is ``(R, *x)``.
+        BatchNorm layers in training mode use the batch statistics and keep their running
+        statistics (``predict`` changes nothing)."""
         x = self._check_inputs(inputs)
-        mean, b, chunk = self.state[_STATE_KEY]["mean"], self.bridge, self._chunk
-        if self.per_run_data:
-            return vmap(lambda th, xr: b.batched(th, xr, chunk_size=chunk))(mean, x)
-        return b.batched(mean, x, chunk_size=chunk)
+        mean, b, chunk = self._union_mean(), self.bridge, self._chunk
+        with batch_statistics_only(tracking_batch_norms(self.module)):
+            if self.per_run_data:
+                return vmap(lambda th, xr: b.batched(th, xr, chunk_size=chunk))(mean, x)
+            return b.batched(mean, x, chunk_size=chunk)
 
     @property
     def per_run_data(self) -> bool:
@@ -462,14 +709,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         b = self.bridge
         if not isinstance(inputs, Tensor):
             raise TypeError(f"inputs must be a torch.Tensor, got {type(inputs)}")
-        if inputs.dtype != b.dtype:
-            raise TypeError(
-                f"inputs has dtype {inputs.dtype} but the module parameters have dtype {b.dtype}"
-            )
-        if inputs.device != b.device:
-            raise ValueError(f"inputs is on {inputs.device} but the module is on {b.device}")
-        if not all_finite(inputs):
-            raise ValueError("inputs contains non-finite values (NaN or inf)")
+        check_matches(inputs, "inputs", b.dtype, b.device)
         if self.per_run_data and (inputs.dim() < 1 or inputs.shape[0] != self.runs):
             raise ValueError(
                 f"inputs must have shape (runs={self.runs}, ...) with per_run_data=True, got "
@@ -484,7 +724,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         key = tuple(x.shape)
         out_shape = self._out_shapes.get(key)
         if out_shape is None:  # the output of one run (per-run data: for its own inputs)
-            theta = self.state[_STATE_KEY]["mean"].reshape(-1, b.numel)[0]
+            theta = self._union_mean().reshape(-1, b.numel)[0]
             out_shape = b.functional(theta, x[0] if per_run else x).shape
             self._out_shapes[key] = out_shape
         want = ((self.runs,) if per_run else ()) + tuple(out_shape)
@@ -495,57 +735,61 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 f"targets must have shape {want} (the model output for inputs of "
                 f"shape {tuple(x.shape)}), got {tuple(targets.shape)}"
             )
-        if targets.dtype != b.dtype:
-            raise TypeError(
-                f"targets has dtype {targets.dtype} but the module parameters have dtype {b.dtype}"
-            )
-        if targets.device != b.device:
-            raise ValueError(f"targets is on {targets.device} but the module is on {b.device}")
-        if not all_finite(targets):
-            raise ValueError("targets contains non-finite values (NaN or inf)")
+        check_matches(targets, "targets", b.dtype, b.device)
         return x, targets, out_shape
 
-    def _chol_R(self, out_shape: torch.Size) -> Tensor:
+    def _chol_R(self, i: int, out_shape: torch.Size) -> Tensor:
+        """Square root of group ``i``'s measurement noise ``R / lr`` of a mini-batch."""
+        cfg = self._cfg[i]
+        lr = _check_lr(self.param_groups[i]["lr"], cfg.filter, f"param_groups[{i}]['lr']")
         M = math.prod(out_shape)
-        S = self._chol_R_cache.get(M)
-        if S is not None:
-            return S
-        if self._R_scalar:
-            S = self._chol_R1[0, 0] * torch.eye(M, dtype=torch.float64, device=self.bridge.device)
+        hit = cfg.chol_R.get(M)
+        if hit is not None and hit[0] == lr:
+            return hit[1]
+        dev = cfg.bridge.device
+        if cfg.R_scalar:
+            S = cfg.chol_R1[0, 0] * torch.eye(M, dtype=torch.float64, device=dev)
         else:
-            n_out = self._chol_R1.shape[0]
+            n_out = cfg.chol_R1.shape[0]
             if len(out_shape) == 0 or out_shape[-1] != n_out:
                 raise ValueError(
                     f"R is ({n_out}, {n_out}) per output vector, but the model output has shape "
                     f"{tuple(out_shape)} (its last dimension must be {n_out})"
                 )
-            eye = torch.eye(M // n_out, dtype=torch.float64, device=self.bridge.device)
-            S = torch.kron(eye, self._chol_R1.contiguous())  # block diagonal: one R per sample
-        self._chol_R_cache[M] = S
+            eye = torch.eye(M // n_out, dtype=torch.float64, device=dev)
+            S = torch.kron(eye, cfg.chol_R1.contiguous())  # block diagonal: one R per sample
+        if lr != 1.0:
+            S = S / math.sqrt(lr)
+        cfg.chol_R[M] = (lr, S)
         return S
 
-    def _model(self, x: Tensor, out_shape: torch.Size) -> StateSpaceModel:
-        """Paper 003 Eq. 45-46 for this mini-batch: random walk, ``h(theta) = g(theta, x)``.
+    def _model(self, i: int, x: Tensor, out_shape: torch.Size) -> StateSpaceModel:
+        """Paper 003 Eq. 45-46 for group ``i`` and this mini-batch: random walk,
+        ``h(theta) = g(theta, x)`` (the other groups at their values in the module).
 
-        The model is built once per mini-batch shape; its ``h`` reads the current inputs from
-        ``self._inputs``, set here at every step.
+        The model is built once per mini-batch shape (and rebuilt with a new ``R / lr`` when
+        ``lr`` changes); its ``h`` reads the current inputs from ``self._inputs``.
         """
-        b, chunk = self.bridge, self._chunk
+        cfg = self._cfg[i]
+        b, chunk = cfg.bridge, self.param_groups[i]["chunk_size"]
         key = (tuple(x.shape), tuple(out_shape))
         self._inputs[0] = x
-        model = self._models.get(key)
+        chol_R = self._chol_R(i, out_shape)
+        model = cfg.models.get(key)
         if model is not None:
+            if model.chol_R is not chol_R:
+                model = cfg.models[key] = replace(model, chol_R=chol_R)
             return model
         M = math.prod(out_shape)
-        mode = self.param_groups[0]["jacobian"]
-        if mode == "auto" and not self._closed_form_applies(x):
+        mode = self.param_groups[i]["jacobian"]
+        if mode == "auto" and not self._closed_form_applies(b, x, chunk):
             mode = "fwd" if b.numel <= M else "autograd"
         inputs = self._inputs
         if self.per_run_data:  # run r evaluates g(theta_r, x_r): vmap over the runs
             if mode == "autograd":  # reverse mode through autograd does not vmap
                 mode = "rev"
-            return self._store_model(key, self._per_run_model(b, M, out_shape, mode, chunk))
-        if isinstance(self._filter.rule, Taylor) and mode in ("auto", "autograd"):
+            model = self._per_run_model(b, M, chol_R, mode, chunk)
+        elif isinstance(cfg.filter.rule, Taylor) and mode in ("auto", "autograd"):
             # the EKF asks for h and then for its Jacobian at the same point: one pass (the
             # learner's closed form, or forward + reverse) gives both, the Jacobian is handed
             # over by identity of the evaluation point
@@ -562,6 +806,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
                     return J
                 return b.jacobian(th, inputs[0], mode=mode, chunk_size=chunk)
 
+            model = _random_walk_model(b, h, jac_h, M, cfg.chol_Q, chol_R)
         else:
 
             def h(th, u, k):
@@ -570,25 +815,11 @@ class KalmanOptimizer(torch.optim.Optimizer):
             def jac_h(th, u, k):
                 return b.jacobian(th, inputs[0], mode=mode, chunk_size=chunk)
 
-        return self._store_model(key, self._random_walk_model(h, jac_h, M, out_shape))
-
-    def _random_walk_model(self, h, jac_h, M: int, out_shape) -> StateSpaceModel:
-        return StateSpaceModel(
-            f=None,  # Eq. 45: theta_k = theta_{k-1} + w_k (exact in the engine)
-            h=h,  # Eq. 46: t_k = g(theta_k, u_k) + v_k
-            state_dim=self.bridge.numel,
-            obs_dim=M,
-            chol_Q=self._chol_Q,
-            chol_R=self._chol_R(out_shape),
-            batched=True,
-            jac_h=jac_h,
-        )
-
-    def _store_model(self, key, model: StateSpaceModel) -> StateSpaceModel:
-        self._models[key] = model
+            model = _random_walk_model(b, h, jac_h, M, cfg.chol_Q, chol_R)
+        cfg.models[key] = model
         return model
 
-    def _per_run_model(self, b, M: int, out_shape, mode: str, chunk) -> StateSpaceModel:
+    def _per_run_model(self, b, M: int, chol_R, mode: str, chunk) -> StateSpaceModel:
         """Eq. 45-46 with per-run data: ``theta`` ``(R, ..., n)``, inputs ``(R, *x)``."""
         inputs = self._inputs
 
@@ -598,16 +829,16 @@ class KalmanOptimizer(torch.optim.Optimizer):
         def jac_h(th, u, k):
             return vmap(lambda t, xr: b.jacobian(t, xr, mode=mode, chunk_size=chunk))(th, inputs[0])
 
-        return self._random_walk_model(h, jac_h, M, out_shape)
+        return _random_walk_model(b, h, jac_h, M, self._cfg[0].chol_Q, chol_R)
 
-    def _engine_state(self, model: StateSpaceModel) -> FilterState:
-        s = self.state[_STATE_KEY]
-        filt = self._filter
+    def _engine_state(self, i: int, model: StateSpaceModel) -> FilterState:
+        s = self.state[_state_key(i)]
+        filt = self._cfg[i].filter
         if (filt.noise is not None and s["noise"] is None) or (
             isinstance(filt.fading, StrongTracking) and s["fading"] is None
         ):  # first step (or adaptation switched on later): fresh fading / noise states
             return filt.init(model, GaussianBelief(s["mean"], s["chol"]), k=s["step"] + 1)
-        fs = self._filter_state()
+        fs = self._filter_state(i)
         m = model.obs_dim
         for name, st, tensor in (
             ("strong tracking", fs.fading, None if fs.fading is None else fs.fading.V),
@@ -621,16 +852,19 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 )
         return fs
 
-    def step(self, inputs=None, targets: Tensor | None = None) -> KalmanStep:
+    def step(self, inputs=None, targets: Tensor | None = None, *, closure=None) -> KalmanStep:
         """One filter step on a sample or a mini-batch (paper 003 Sec. IV, steps (2)-(3)).
 
         Args:
             inputs: module input (a sample or a mini-batch, module dtype and device), or a
                 closure returning ``(inputs, targets)``.
             targets: ``module(inputs).shape``, module dtype and device, finite.
+            closure: a closure returning ``(inputs, targets)`` (the keyword form of passing it
+                as ``inputs``). A closure returning a loss is refused (see the class notes).
         Returns:
-            :class:`KalmanStep` (loss, NIS, ``lambda_k``, log-likelihood, the engine's info).
-            With one run, the posterior mean is written into the module's parameters.
+            :class:`KalmanStep` (loss, NIS, ``lambda_k``, log-likelihood, the engine's info of
+            every group). With one run, the posterior means are written into the module's
+            parameters.
 
         The step pre- and post-hooks of ``torch.optim`` (global and per optimiser) run as for
         any optimiser. Unlike ``torch.optim``'s own wrapper, the step is not wrapped in a
@@ -643,7 +877,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         :attr:`theta`, :attr:`belief`, :attr:`filter_state` and :meth:`parameter_covariance`
         return ordinary tensors.
         """
-        args, kwargs = (self, inputs, targets), {}
+        args, kwargs = (self, inputs, targets), ({} if closure is None else {"closure": closure})
         for hook in chain(
             _global_optimizer_pre_hooks.values(), self._optimizer_step_pre_hooks.values()
         ):
@@ -657,11 +891,13 @@ class KalmanOptimizer(torch.optim.Optimizer):
         rest = list(args[1:3]) + [None] * max(0, 3 - len(args))
         inputs = kwargs.get("inputs", rest[0])
         targets = kwargs.get("targets", rest[1])
+        closure = kwargs.get("closure")
+        if closure is not None:
+            if inputs is not None or targets is not None:
+                raise TypeError("step takes inputs and targets, or a closure, not both")
+            inputs = closure
         if callable(inputs) and targets is None:
-            pair = inputs()
-            if not (isinstance(pair, tuple) and len(pair) == 2):
-                raise TypeError("closure must return a pair (inputs, targets)")
-            inputs, targets = pair
+            inputs, targets = _call_closure(inputs)
         if inputs is None:
             raise TypeError("step needs inputs and targets, or a closure returning them")
         with torch.inference_mode() if self._inference_ok(inputs) else torch.no_grad():
@@ -680,57 +916,88 @@ class KalmanOptimizer(torch.optim.Optimizer):
         """The step needs no autograd (sigma points, or the learner's closed-form Jacobian), so
         it runs under ``torch.inference_mode``: no version counters or view tracking, about
         50 us (15 %) less per 44-parameter step than ``no_grad``."""
-        if not isinstance(self._filter.rule, Taylor):
-            return True
-        return self.param_groups[0]["jacobian"] == "auto" and self._closed_form_applies(inputs)
+        for cfg, g in zip(self._cfg, self.param_groups):
+            if isinstance(cfg.filter.rule, Taylor) and not (
+                g["jacobian"] == "auto"
+                and self._closed_form_applies(cfg.bridge, inputs, g["chunk_size"])
+            ):
+                return False
+        return True
 
-    def _closed_form_applies(self, inputs) -> bool:
+    def _closed_form_applies(self, bridge: ParameterBridge, inputs, chunk) -> bool:
         """The learner's closed-form Jacobian applies to these inputs (of one run, with
         per-run data)."""
         if self.per_run_data and isinstance(inputs, Tensor) and inputs.dim() > 0:
             inputs = inputs[0]
-        return self.bridge.has_closed_form_jacobian(inputs, self._chunk)
+        return bridge.has_closed_form_jacobian(inputs, chunk)
 
     def _step(self, inputs: Tensor, targets: Tensor) -> KalmanStep:
-        x, t, out_shape = self._check_batch(inputs, targets)
-        model = self._model(x, out_shape)
-        fstate = self._engine_state(model)
+        norms = tracking_batch_norms(self.module)
+        with batch_statistics_only(norms):
+            x, t, out_shape = self._check_batch(inputs, targets)
+        if norms:
+            if self.runs is not None:
+                raise ValueError(
+                    "the module has BatchNorm layers in training mode, whose running statistics "
+                    "the runs would share: call module.eval() (fixed statistics) or use runs=None"
+                )
+            self.module(x)  # running statistics: once, at the parameters before the step
         if self.per_run_data:
             y = t.reshape(self.runs, -1).to(torch.float64)
         else:
             y = t.reshape(-1).to(torch.float64)
             if self.runs is not None:
                 y = y.expand(self.runs, y.shape[0])
-        s = self.state[_STATE_KEY]
-        k = s["step"] + 1
-        new, info = self._filter.step(model, fstate, y, None, k)
-        self.state[_STATE_KEY] = {
-            "mean": new.belief.mean,
-            "chol": new.belief.chol,
-            "fading": _dataclass_dict(new.fading),
-            "noise": _dataclass_dict(new.noise),
-            "step": k,
-        }
-        if self.runs is None:
-            self.bridge.assign(new.belief.mean)
-        loss = info.innovation.square().mean(-1)
-        return KalmanStep(loss, info)
+        infos = []
+        with batch_statistics_only(norms):
+            for i, cfg in enumerate(self._cfg):
+                model = self._model(i, x, out_shape)
+                fstate = self._engine_state(i, model)
+                key = _state_key(i)
+                k = self.state[key]["step"] + 1
+                try:
+                    new, info = cfg.filter.step(model, fstate, y, None, k)
+                except RuntimeError as exc:
+                    clear = explain_transform_error(exc)
+                    if clear is None:
+                        raise
+                    raise clear from exc
+                self.state[key] = {
+                    "mean": new.belief.mean,
+                    "chol": new.belief.chol,
+                    "fading": _dataclass_dict(new.fading),
+                    "noise": _dataclass_dict(new.noise),
+                    "step": k,
+                }
+                if self.runs is None:
+                    cfg.bridge.assign(new.belief.mean)
+                infos.append(info)
+        loss = infos[0].innovation.square().mean(-1)
+        return KalmanStep(loss, infos[0], tuple(infos))
 
     # ------------------------------------------------------------------ persistence
     def load_state_dict(self, state_dict: dict) -> None:
-        """Load a :meth:`state_dict`; the belief stays float64 (bit-identical resume).
+        """Load a :meth:`state_dict`; the beliefs stay float64 (bit-identical resume).
 
-        ``torch.optim`` casts per-parameter state to the parameter dtype; the belief is kept
-        under the non-parameter key ``"kalman"``, copied here (never aliased), moved to the
-        module's device, and rejected if any of its floating tensors is not float64 (a cast
-        would have lost precision).
+        ``torch.optim`` casts per-parameter state to the parameter dtype; the belief of group
+        ``i`` is kept under the non-parameter key ``"kalman"`` (``"kalman.i"`` for ``i > 0``),
+        copied here (never aliased), moved to the module's device, and rejected if any of its
+        floating tensors is not float64 (a cast would have lost precision). A state dict
+        without ``lr`` (written before the option existed) loads with ``lr = 1``.
         """
+        if not isinstance(state_dict, dict) or "param_groups" not in state_dict:
+            raise TypeError("state_dict must be a dict from KalmanOptimizer.state_dict()")
         sd = dict(state_dict)
         st = dict(sd.get("state", {}))
-        if _STATE_KEY not in st:
+        saved = [dict(g) for g in sd["param_groups"]]
+        if len(saved) != len(self.param_groups):
             raise ValueError(
-                f"state_dict['state'] has no {_STATE_KEY!r} entry (not a KalmanOptimizer state)"
+                f"state_dict has {len(saved)} parameter groups, this optimiser "
+                f"{len(self.param_groups)}"
             )
+        for g in saved:
+            g.setdefault("lr", 1.0)
+        sd["param_groups"] = saved
         dev = self.bridge.device
 
         def conv(v, where):
@@ -745,22 +1012,61 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 return {kk: conv(vv, f"{where}[{kk!r}]") for kk, vv in v.items()}
             return v
 
-        kal = conv(st[_STATE_KEY], f"['state'][{_STATE_KEY!r}]")
-        groups = sd.get("param_groups", [{}])
-        runs = groups[0].get("runs") if groups else None
-        n = self.bridge.numel
-        want = (n,) if runs is None else (runs, n)
-        if tuple(kal["mean"].shape) != want or tuple(kal["chol"].shape) != want + (n,):
-            raise ValueError(
-                f"state_dict belief has mean {tuple(kal['mean'].shape)}, chol "
-                f"{tuple(kal['chol'].shape)}; this optimiser needs {want} and {want + (n,)}"
-            )
-        st[_STATE_KEY] = kal
+        cfgs = []
+        for i, (g, cur) in enumerate(zip(saved, self.param_groups)):
+            key = _state_key(i)
+            if key not in st:
+                raise ValueError(
+                    f"state_dict['state'] has no {key!r} entry (not a KalmanOptimizer state"
+                    f"{'' if i == 0 else f' with {i + 1} parameter groups'})"
+                )
+            kal = conv(st[key], f"['state'][{key!r}]")
+            cfg = self._configure({**g, "params": cur["params"]}, f"state_dict param_groups[{i}]")
+            runs, n = g.get("runs"), cfg.bridge.numel
+            want = (n,) if runs is None else (runs, n)
+            if tuple(kal["mean"].shape) != want or tuple(kal["chol"].shape) != want + (n,):
+                raise ValueError(
+                    f"state_dict belief {key!r} has mean {tuple(kal['mean'].shape)}, chol "
+                    f"{tuple(kal['chol'].shape)}; this optimiser needs {want} and {want + (n,)}"
+                )
+            st[key] = kal
+            cfgs.append(cfg)
         sd["state"] = st
         super().load_state_dict(sd)
         self._setup()
         if self.runs is None:
-            self.bridge.assign(self.state[_STATE_KEY]["mean"])
+            for i, cfg in enumerate(self._cfg):
+                cfg.bridge.assign(self.state[_state_key(i)]["mean"])
+
+
+def _random_walk_model(b: ParameterBridge, h, jac_h, M: int, chol_Q, chol_R) -> StateSpaceModel:
+    return StateSpaceModel(
+        f=None,  # Eq. 45: theta_k = theta_{k-1} + w_k (exact in the engine)
+        h=h,  # Eq. 46: t_k = g(theta_k, u_k) + v_k
+        state_dim=b.numel,
+        obs_dim=M,
+        chol_Q=chol_Q,
+        chol_R=chol_R,
+        batched=True,
+        jac_h=jac_h,
+    )
+
+
+def _call_closure(closure) -> tuple:
+    """``(inputs, targets)`` from a closure; a loss-returning closure gets an explanation."""
+    pair = closure()
+    if isinstance(pair, tuple) and len(pair) == 2:
+        return pair
+    if isinstance(pair, (int, float)) or (isinstance(pair, Tensor) and pair.numel() == 1):
+        raise TypeError(
+            "closure returned a loss; a Kalman optimiser does not minimise a scalar loss: it "
+            "updates the parameter belief from the model outputs and the targets (paper 003 "
+            "Eq. 46), which one loss value does not carry. Pass the data instead: "
+            "step(inputs, targets), or a closure returning (inputs, targets); "
+            "prognos_torch.optim.fit(module, optimizer, (X, Y)) runs the loop for either kind "
+            "of optimiser"
+        )
+    raise TypeError(f"closure must return a pair (inputs, targets), got {type(pair).__name__}")
 
 
 class EKF(KalmanOptimizer):

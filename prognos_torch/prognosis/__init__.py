@@ -1,32 +1,29 @@
-"""Prognosis: fault probability and remaining-useful-life distributions from predictions."""
+"""Prognosis: learners as transition models, multi-step prediction, forecasted measurements,
+fault prediction, and fault probability and remaining-useful-life distributions.
 
-from .rul import RULDistribution, fault_probability, fault_probability_gaussian, rul_distribution
+* :mod:`.learner_model`: a trained one-step predictor as an m-order state-space model
+  (paper 002 Eq. 15-26).
+* :mod:`.paths`: recursive multi-step prediction, deterministic, Gaussian or as weighted sample
+  paths (paper 002 Eq. 11-14).
+* :mod:`.forecaster`: forecasted measurements, one learner (ROS-ELM) per channel (paper 000
+  Sec. 5); the ROS-ELM core is :mod:`prognos_torch.learners.ros_elm`.
+* :mod:`.fault`: n-step-ahead and rolling fault-parameter prediction (paper 000 Sec. 5).
+* :mod:`.rul`: fault probability and RUL distributions from predicted paths.
+* :mod:`.onset`: degradation onset (first prediction time) against a healthy baseline.
+* :mod:`.trends`: exponential, power-law and linear degradation trends as state-space models
+  estimated by the filter engine; :mod:`.learner_trend`: an ELM trend trained online by the
+  Kalman optimiser; :mod:`.protocol`: the known-threshold RUL protocol of bearing studies.
+"""
 
-__all__ = [
-    "RULDistribution",
-    "fault_probability",
-    "fault_probability_gaussian",
-    "rul_distribution",
-]
-from .forecast import (
+from ..learners.ros_elm import ROSELMState, ros_elm_forecast, ros_elm_init, ros_elm_update
+from .fault import (
     FaultPrediction,
-    GaussianPaths,
-    MeasurementForecaster,
-    RecursivePaths,
     RollingFaultPrediction,
-    ROSELMState,
-    SamplePaths,
-    gaussian_paths,
-    learner_transition_model,
-    particle_paths,
     predict_fault_parameter,
-    predict_paths,
-    recursive_predict,
     rolling_fault_prediction,
-    ros_elm_forecast,
-    ros_elm_init,
-    ros_elm_update,
 )
+from .forecaster import MeasurementForecaster
+from .learner_model import learner_transition_model
 from .learner_trend import LearnerTrendFit, TimeELM, fit_learner_trend
 from .onset import (
     ONSET_METHODS,
@@ -40,24 +37,38 @@ from .onset import (
     ksigma_onset,
     moving_median,
 )
+from .paths import (
+    GaussianPaths,
+    RecursivePaths,
+    SamplePaths,
+    gaussian_paths,
+    particle_paths,
+    predict_paths,
+    recursive_predict,
+)
+from .rul import RULDistribution, fault_probability, fault_probability_gaussian, rul_distribution
 from .trends import (
     STRONG_TRACKING_BETA,
     TREND_SHAPES,
     Passage,
     TrendFit,
     TrendNoise,
-    strong_tracking_filter,
     fit_trends,
     integrated_rw_chol,
     local_trend_model,
     noise_grid,
     path_grid,
     simulate_first_passage,
+    strong_tracking_filter,
     trend_measurement,
     trend_transition,
 )
 
-__all__ += [
+__all__ = [
+    "RULDistribution",
+    "fault_probability",
+    "fault_probability_gaussian",
+    "rul_distribution",
     "FaultPrediction",
     "GaussianPaths",
     "MeasurementForecaster",
@@ -75,9 +86,9 @@ __all__ += [
     "ros_elm_forecast",
     "ros_elm_init",
     "ros_elm_update",
-]
-
-__all__ += [
+    "LearnerTrendFit",
+    "TimeELM",
+    "fit_learner_trend",
     "ONSET_METHODS",
     "Baseline",
     "Onset",
@@ -88,18 +99,9 @@ __all__ += [
     "ksigma_false_alarm_rate",
     "ksigma_onset",
     "moving_median",
-]
-
-__all__ += [
-    "LearnerTrendFit",
-    "TimeELM",
-    "fit_learner_trend",
     "STRONG_TRACKING_BETA",
     "TREND_SHAPES",
     "Passage",
-    "strong_tracking_filter",
-    "simulate_first_passage",
-    "trend_transition",
     "TrendFit",
     "TrendNoise",
     "fit_trends",
@@ -107,5 +109,8 @@ __all__ += [
     "local_trend_model",
     "noise_grid",
     "path_grid",
+    "simulate_first_passage",
+    "strong_tracking_filter",
     "trend_measurement",
+    "trend_transition",
 ]

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.validation import as_tensor
+from ..core.validation import as_tensor, check_scalar, check_weights
 
 __all__ = [
     "RULDistribution",
@@ -52,25 +52,6 @@ def _check_direction(direction: str) -> str:
     return direction
 
 
-def _check_threshold(threshold) -> float:
-    if isinstance(threshold, bool):
-        raise TypeError("threshold must be a real number, got bool")
-    if isinstance(threshold, Tensor):
-        if threshold.numel() != 1 or threshold.dim() > 1:
-            raise ValueError(
-                f"threshold must be a scalar (0-dim tensor or number), got shape "
-                f"{tuple(threshold.shape)}"
-            )
-        threshold = threshold.item()
-    try:
-        value = float(threshold)
-    except (TypeError, ValueError) as exc:
-        raise TypeError(f"threshold must be a real number, got {type(threshold)}") from exc
-    if not math.isfinite(value):
-        raise ValueError(f"threshold must be finite, got {value}")
-    return value
-
-
 def _check_samples(samples) -> Tensor:
     samples = as_tensor(samples, "samples")
     if not samples.is_floating_point():
@@ -87,39 +68,6 @@ def _check_samples(samples) -> Tensor:
     if bool(torch.isnan(samples).any()):
         raise ValueError("samples contains NaN; shape (..., N, H)")
     return samples
-
-
-def check_weights(weights, batch_shape: Sequence[int], n: int, device, name: str = "weights"):
-    """Normalised importance weights ``(*batch_shape, n)`` as float64; ``None`` gives ``1/n``.
-
-    Raises ``ValueError`` (naming ``name``) for a wrong shape, NaN/inf, negative entries, rows that
-    are all zero, or rows that do not sum to one within ``1e-6 + 4 n eps(dtype)``. Weights are
-    never renormalised silently.
-    """
-    shape = (*tuple(batch_shape), n)
-    if weights is None:
-        return torch.full(shape, 1.0 / n, dtype=torch.float64, device=device)
-    w = as_tensor(weights, name, device=device)
-    if not w.is_floating_point():
-        raise TypeError(f"{name} must be a floating tensor of shape {shape}, got {w.dtype}")
-    if tuple(w.shape) != shape:
-        raise ValueError(f"{name} must have shape {shape} (..., N), got {tuple(w.shape)}")
-    if bool(torch.isnan(w).all(-1).any()):
-        raise ValueError(f"{name} are all NaN for some batch element; shape {shape}")
-    if not bool(torch.isfinite(w).all()):
-        raise ValueError(f"{name} contain NaN or inf; shape {shape}")
-    if bool((w < 0).any()):
-        raise ValueError(f"{name} must be non-negative")
-    if bool((w == 0).all(-1).any()):
-        raise ValueError(f"{name} are all zero for some batch element; shape {shape}")
-    tol = 1e-6 + 4.0 * n * torch.finfo(w.dtype).eps
-    w64 = w.to(torch.float64)
-    dev = (w64.sum(-1) - 1.0).abs()
-    if bool((dev > tol).any()):
-        raise ValueError(
-            f"{name} must sum to one along the last axis (max |sum - 1| = {dev.max().item():.3g})"
-        )
-    return w64
 
 
 def _crossed(samples: Tensor, threshold: float, direction: str) -> Tensor:
@@ -152,7 +100,7 @@ def fault_probability(
     """
     direction = _check_direction(direction)
     samples = _check_samples(samples)
-    thr = _check_threshold(threshold)
+    thr = check_scalar(threshold, "threshold")
     w = check_weights(weights, samples.shape[:-2], samples.shape[-2], samples.device)
     hit = _crossed(samples, thr, direction).to(torch.float64)
     return (w.unsqueeze(-1) * hit).sum(-2)
@@ -180,7 +128,7 @@ def fault_probability_gaussian(
         ``(..., H)`` float64 probabilities on the device of ``mean``.
     """
     direction = _check_direction(direction)
-    thr = _check_threshold(threshold)
+    thr = check_scalar(threshold, "threshold")
     mean = as_tensor(mean, "mean")
     std = as_tensor(std, "std", device=mean.device)
     if mean.dim() < 1:
@@ -338,7 +286,7 @@ def rul_distribution(
     """
     direction = _check_direction(direction)
     samples = _check_samples(samples)
-    thr = _check_threshold(threshold)
+    thr = check_scalar(threshold, "threshold")
     if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not math.isfinite(dt) or dt <= 0:
         raise ValueError(f"dt must be a finite positive number, got {dt!r}")
     if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not 0.0 <= tol < 1.0:

@@ -13,6 +13,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import torch
@@ -23,6 +24,7 @@ __all__ = [
     "StudyResult",
     "discover_studies",
     "format_table",
+    "load_trainer",
     "run_study",
     "trainers_dir",
     "write_outputs",
@@ -235,6 +237,29 @@ def trainers_dir() -> Path:
     return Path(__file__).resolve().parents[2] / "trainers"
 
 
+def load_trainer(path: str | os.PathLike) -> ModuleType:
+    """Import one study script by path, as module ``prognos_trainers.<stem>``.
+
+    The module is registered in ``sys.modules`` under that name (dataclasses and pickling look
+    a module up by name), so loading the same file again replaces it. Nothing else is imported:
+    a study script composes library calls and exposes ``STUDY``; it never imports the command
+    line, which is what drives it (``prognos study NAME``, ``python -m prognos_torch study NAME``).
+    """
+    path = Path(path)
+    if path.suffix != ".py" or not path.is_file():
+        raise FileNotFoundError(f"no study script at {path} (expected a .py file)")
+    name = f"prognos_trainers.{path.stem}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    try:
+        spec.loader.exec_module(mod)
+    except BaseException:
+        sys.modules.pop(name, None)
+        raise
+    return mod
+
+
 def discover_studies(directory: Path | None = None) -> dict[str, Study]:
     """Import every ``trainers/*.py`` that defines ``STUDY`` and return them by name."""
     d = Path(directory) if directory is not None else trainers_dir()
@@ -247,12 +272,7 @@ def discover_studies(directory: Path | None = None) -> dict[str, Study]:
     for path in sorted(d.glob("*.py")):
         if path.name.startswith("_"):
             continue
-        name = f"prognos_trainers.{path.stem}"
-        spec = importlib.util.spec_from_file_location(name, path)
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod  # dataclasses and pickling look the module up by name
-        spec.loader.exec_module(mod)
-        st = getattr(mod, "STUDY", None)
+        st = getattr(load_trainer(path), "STUDY", None)
         if isinstance(st, Study):
             studies[st.name] = st
     return studies

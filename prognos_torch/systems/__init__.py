@@ -12,20 +12,15 @@ model (see :func:`simulate_model`) and returns a :class:`SimulationResult` with 
 * :mod:`.lorenz` - Lorenz system and the Lorenz(x) series (paper 003 Eq. 47).
 * :mod:`.high_speed_train` - five-car train with actuator/coupler/sensor faults (paper 004).
 
+Shared pieces: :mod:`.simulation` (the loop, :class:`SimulationResult`, parameter paths),
+:mod:`.noise_streams` (per-run random streams), :mod:`.integrators` (RK4, Euler). Argument
+checks live in :mod:`prognos_torch.core.validation`; min-max scaling in
+:mod:`prognos_torch.datasets.windows`.
+
 Equations, parameter sources and the readings chosen where a paper is ambiguous:
 ``docs/systems.md``.
 """
 
-from ._common import (
-    NormalizedSeries,
-    SimulationResult,
-    draw_run_noise,
-    euler_step,
-    minmax_denormalize,
-    minmax_normalize,
-    rk4_step,
-    simulate_model,
-)
 from .cstr import (
     CSTRParams,
     cstr_feed_drift,
@@ -51,6 +46,7 @@ from .high_speed_train import (
     hst_step,
     simulate_hst,
 )
+from .integrators import euler_step, rk4_step
 from .lorenz import (
     LorenzParams,
     lorenz_model,
@@ -59,6 +55,8 @@ from .lorenz import (
     lorenz_step,
     simulate_lorenz,
 )
+from .noise_streams import draw_run_noise
+from .simulation import SimulationResult, simulate_model
 from .three_tank import (
     ThreeTankParams,
     az2_drift,
@@ -72,13 +70,10 @@ from .three_tank import (
 
 __all__ = [
     "SimulationResult",
-    "NormalizedSeries",
     "rk4_step",
     "euler_step",
     "simulate_model",
     "draw_run_noise",
-    "minmax_normalize",
-    "minmax_denormalize",
     "CSTRParams",
     "cstr_rhs",
     "cstr_step",

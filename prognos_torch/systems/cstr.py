@@ -36,18 +36,20 @@ from torch import Tensor
 from torch.func import jacfwd
 
 from ..core.model import StateSpaceModel, joint_state_parameter_model
-from ._common import (
-    SimulationResult,
-    accelerating_drift,
-    as_chol,
+from ..core.validation import (
     check_count,
     check_params_finite,
     check_positive,
     check_std,
+    chol_from_std,
     diag_chol,
+)
+from .integrators import rk4_step
+from .simulation import (
+    SimulationResult,
+    accelerating_drift,
     initial_state,
     resolve_generator,
-    rk4_step,
     simulate_with_parameter,
 )
 
@@ -237,7 +239,7 @@ def cstr_joint_model(
     """
     p = params or CSTRParams()
     SQ, SR = _model_noise(process_noise_std, measurement_noise_std, dtype, device)
-    SD = as_chol(chol_D, 1, "chol_D", dtype, device)
+    SD = chol_from_std(chol_D, 1, "chol_D", dtype, device)
     return joint_state_parameter_model(
         lambda x, th, u, k: cstr_step(x, th[..., 0], p),
         lambda x, th, u, k: _observe(x),
@@ -273,7 +275,7 @@ def simulate_cstr(
             nominal ``C_AF`` (:func:`cstr_steady_state`).
         drift: apply the feed drift of Eq. 51 (``False``: constant ``C_AF``).
         noise: ``False`` switches all noise off (no generator needed).
-        generator: the source of all randomness (see :mod:`prognos_torch.systems._common`).
+        generator: the source of all randomness (see :mod:`prognos_torch.systems.noise_streams`).
     Returns:
         :class:`SimulationResult` with ``x`` ``(T+1, runs, 2)``, ``y`` ``(T, runs, 2)``,
         ``theta`` ``(T+1, runs, 1)`` = ``C_AF,k``, ``t`` in minutes.

@@ -73,12 +73,10 @@ import torch
 from torch import Tensor
 
 from ..core.model import StateSpaceModel, joint_state_parameter_model
-from ._common import (
+from ..core.validation import check_count, check_nonneg, check_params_finite, chol_from_std
+from .noise_streams import draw_run_noise
+from .simulation import (
     SimulationResult,
-    as_chol,
-    check_count,
-    check_params_finite,
-    draw_run_noise,
     initial_state,
     input_sequence,
     resolve_generator,
@@ -267,14 +265,9 @@ def hst_measurement_variance(k: int) -> float:
     return 1.1 + 0.08 * math.cos(0.0002 * k)
 
 
-def _check_scale(v, name: str) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-        raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
-    return float(v)
-
-
 def _noise_chols(params: HSTParams, q_scale, r_scale, dtype, device):
-    qs, rs = _check_scale(q_scale, "q_scale"), _check_scale(r_scale, "r_scale")
+    qs = check_nonneg(q_scale, "q_scale", numbers_only=True)
+    rs = check_nonneg(r_scale, "r_scale", numbers_only=True)
     eye = torch.eye(params.state_dim, dtype=dtype, device=device)
 
     def chol_Q(k: int) -> Tensor:  # library step k uses the paper's Q_{k-1} (w_{k-1} in Eq. 13)
@@ -355,7 +348,7 @@ def hst_fault_model(
     """
     p = params or HSTParams()
     chol_Q, chol_R = _noise_chols(p, q_scale, r_scale, dtype, device)
-    SD = as_chol(chol_D, 3, "chol_D", dtype, device)
+    SD = chol_from_std(chol_D, 3, "chol_D", dtype, device)
 
     def f(psi, th, u, k):
         return hst_step(psi, u, th[..., :2], hst_cruise_speed((k - 1) * p.sigma), p)

@@ -9,7 +9,7 @@ condition or transient; our documented choices: classical RK4 with ``dt = 0.01``
 per step (sampling interval 0.01), initial condition ``[1, 1, 1]``, the first 1000 steps
 (10 time units) discarded as transient. :func:`lorenz_series` returns the raw x component
 (1000 points by default; the paper trains on the first 500 and tests on the last 500); the
-scaling to ``[0, 1]`` is a separate step (:func:`prognos_torch.systems.minmax_normalize`).
+scaling to ``[0, 1]`` is a separate step (:func:`prognos_torch.datasets.minmax_normalize`).
 
 As a state-space model: ``x_k = RK4(x_{k-1}) + w_k``, ``y_k = x-component + v_k``.
 """
@@ -22,19 +22,10 @@ import torch
 from torch import Tensor
 
 from ..core.model import StateSpaceModel
-from ._common import (
-    SimulationResult,
-    check_count,
-    check_params_finite,
-    check_positive,
-    check_std,
-    diag_chol,
-    draw_run_noise,
-    initial_state,
-    resolve_generator,
-    rk4_step,
-    simulate_model,
-)
+from ..core.validation import check_count, check_params_finite, check_positive, check_std, diag_chol
+from .integrators import rk4_step
+from .noise_streams import draw_run_noise
+from .simulation import SimulationResult, initial_state, resolve_generator, simulate_model
 
 __all__ = [
     "LorenzParams",
@@ -197,7 +188,7 @@ def lorenz_series(
     Samples ``x(t_j)``, ``t_j = (n_transient + j) dt`` for ``j = 0..n_points-1``, of the noise-free
     RK4 solution from ``x0`` (defaults: ``dt = 0.01``, ``x0 = [1, 1, 1]``, 1000 transient steps).
     Paper 003 uses 1000 points, the first 500 for training, and scales all 1000 to ``[0, 1]``
-    with :func:`prognos_torch.systems.minmax_normalize` before forecasting.
+    with :func:`prognos_torch.datasets.minmax_normalize` before forecasting.
     """
     check_count(n_points, "n_points")
     sim = simulate_lorenz(

@@ -36,16 +36,18 @@ import torch
 from torch import Tensor
 
 from ..core.model import StateSpaceModel, joint_state_parameter_model
-from ._common import (
-    SimulationResult,
-    accelerating_drift,
-    as_chol,
+from ..core.validation import (
     check_count,
     check_params_finite,
     check_positive,
     check_std,
+    chol_from_std,
     diag_chol,
-    euler_step,
+)
+from .integrators import euler_step
+from .simulation import (
+    SimulationResult,
+    accelerating_drift,
     initial_state,
     input_sequence,
     resolve_generator,
@@ -232,7 +234,7 @@ def three_tank_joint_model(
     """
     p = params or ThreeTankParams()
     SQ, SR = _noise(process_noise_std, measurement_noise_std, dtype, device)
-    SD = as_chol(chol_D, 1, "chol_D", dtype, device)
+    SD = chol_from_std(chol_D, 1, "chol_D", dtype, device)
     return joint_state_parameter_model(
         lambda x, th, u, k: three_tank_step(x, th[..., 0], u, p),
         lambda x, th, u, k: x.clone(),
@@ -269,7 +271,7 @@ def simulate_three_tank(
         u: ``(T, 2)`` or ``(T, runs, 2)`` pump flows, or ``None`` for the constant nominal flows.
         drift: apply Eq. 61 (``False``: ``az2`` stays nominal).
         noise: ``False`` switches all noise off (no generator needed).
-        generator: the source of all randomness (see :mod:`prognos_torch.systems._common`).
+        generator: the source of all randomness (see :mod:`prognos_torch.systems.noise_streams`).
     Returns:
         :class:`SimulationResult`: ``x`` ``(T+1, runs, 3)``, ``y`` ``(T, runs, 3)``, ``theta``
         ``(T+1, runs, 1)`` = ``az2_k``, ``t`` in seconds.

@@ -2,34 +2,37 @@
 
 ::
 
-    from prognos_torch.workflow import load_series, fit_series, load_model
+    from prognos_torch.workflow import fit_series, forecast, load_model, load_series, rul, save_model
 
     s = load_series("data.csv", column="hi", time_column="t")       # float64 Series
     model = fit_series(s, learner="anfis", optimizer="ekf")           # m chosen by validation
     print(model.metrics)                                              # held-out tail scores
-    model.save("model.pt")                                            # safe file, no pickle
+    save_model(model, "model.pt")                                     # safe file, no pickle
     model = load_model("model.pt")
-    fc = model.forecast(s, horizon=50)                                # mean and 95 % band
-    r = model.rul(s, threshold=0.8, filter="stpf")                    # RUL distribution
+    fc = forecast(model, s, horizon=50)                               # mean and 95 % band
+    r = rul(model, s, threshold=0.8, filter="stpf")                   # RUL distribution
 
-Modules: :mod:`.data` (:func:`load_series`), :mod:`.model` (:func:`fit_series`, learners and
-optimisers by name), :mod:`.predict` (:func:`forecast`, :func:`rul`), :mod:`.store`
-(:func:`save_model`, :func:`load_model` on :mod:`prognos_torch.io`), :mod:`.plots`. The
+Modules, each importing only those before it: :mod:`.data` (:func:`load_series`),
+:mod:`.fitted` (:class:`FittedModel`, a plain record), :mod:`.predict` (:func:`forecast`,
+:func:`rul`), :mod:`.model` (:func:`fit_series`, learners and optimisers by name), :mod:`.store`
+(:func:`save_model`, :func:`load_model` on :mod:`prognos_torch.io`); the figures
+(:func:`plot_forecast`, :func:`plot_rul`) live in :mod:`prognos_torch.plots`. The
 ``prognos fit | forecast | rul`` commands are thin wrappers around these functions.
 """
 
+from ..plots import plot_forecast, plot_rul
 from .data import FILL_METHODS, Series, load_series, parse_where
+from .extrapolation import ExtrapolationWarning
+from .fitted import FittedModel
 from .model import (
     DEFAULT_OPTIMIZER,
     LEARNER_DEFAULTS,
     LEARNERS,
     OPTIMIZER_DEFAULTS,
     OPTIMIZERS,
-    FittedModel,
     fit_series,
     select_embedding,
 )
-from .plots import plot_forecast, plot_rul
 from .predict import FILTER_NAMES, ForecastResult, RULResult, forecast, holdout_metrics, rul
 from .prognose import PROGNOSE_METHODS, prognose
 from .store import load_model, save_model
@@ -57,6 +60,7 @@ __all__ = [
     "load_model",
     "plot_forecast",
     "plot_rul",
+    "ExtrapolationWarning",
     "prognose",
     "PROGNOSE_METHODS",
 ]

@@ -28,9 +28,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["Series", "load_series", "parse_where", "FILL_METHODS"]
+__all__ = ["Series", "load_series", "parse_where", "FILL_METHODS", "MAX_ABS_VALUE"]
 
 FILL_METHODS = ("linear", "drop")
+#: Largest magnitude of a series value: errors and variances are formed in the data's units
+#: (forecast scores, bands), and squares of values beyond ``1e150`` overflow float64.
+MAX_ABS_VALUE = 1e150
 _MISSING = {"", "nan", "na", "n/a", "null", "none", "-"}
 
 
@@ -248,11 +251,24 @@ def load_series(
 
     Returns:
         :class:`Series` (float64 values, time if given).
+
+    Raises:
+        TypeError: ``source`` is neither a path nor an array of numbers.
+        ValueError: bad options, unparsable or infinite values, missing values without
+            ``fill``, a time axis that does not increase, or a value beyond
+            :data:`MAX_ABS_VALUE` (``1e150``) in magnitude.
     """
     if fill is not None and fill not in FILL_METHODS:
         raise ValueError(f"fill must be None, 'linear' or 'drop', got {fill!r}")
     if last is not None and (isinstance(last, bool) or not isinstance(last, int) or last < 1):
         raise ValueError(f"last must be a positive int, got {last!r}")
+    if not isinstance(source, (str, os.PathLike, Tensor, np.ndarray, Sequence)) or isinstance(
+        source, (bytes, bytearray)
+    ):
+        raise TypeError(
+            f"source must be a CSV path or a 1-D array of numbers, got {type(source).__name__} "
+            f"{source!r:.40}"
+        )
     if isinstance(source, (str, os.PathLike)):
         if name is not None or time_unit is not None:
             raise ValueError("name and time_unit apply to arrays; a CSV series takes its names")
@@ -302,6 +318,15 @@ def load_series(
 def _finish(values, time, name, time_name, unit, start, source, lines=None) -> Series:
     if values.shape[0] == 0:
         raise ValueError(f"series {name!r} is empty after selecting rows")
+    big = np.abs(values) > MAX_ABS_VALUE
+    if big.any():
+        i = int(np.flatnonzero(big)[0])
+        where = f"{source}, line {lines[i]}" if lines is not None else f"index {i}"
+        raise ValueError(
+            f"{where}: value {values[i]:g} of {name!r} exceeds {MAX_ABS_VALUE:g} in magnitude; "
+            "forecast scores and bands square the data's units, which overflows float64: "
+            f"rescale the values (e.g. divide by 1e{int(math.log10(abs(values[i])))})"
+        )
     if time is not None:
         if not np.isfinite(time).all():
             raise ValueError(f"time of series {name!r} has non-finite values")

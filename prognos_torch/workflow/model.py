@@ -1,5 +1,6 @@
 """Fit a one-step learner to a series: learners and optimisers by name, embedding dimension by
-validation, scaling, held-out metrics, and the model as a plain (learner, scaler, config) triple.
+validation, scaling and held-out metrics; the result is the plain record
+:class:`~prognos_torch.workflow.fitted.FittedModel` (learner, scaler, config).
 
 Pipeline of :func:`fit_series` (all float64):
 
@@ -43,17 +44,20 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor, nn
 
 from ..adapt.noise import SageHusa
+from ..core.validation import all_finite
 from ..datasets.windows import MinMaxScaler, embed
 from ..learners import ANFIS, ELM, LSSVR
+from ..metrics import rmse
 from ..optim import KalmanOptimizer
 from ..optim import fit as optim_fit
 from .data import Series
+from .fitted import FittedModel
+from .predict import holdout_metrics
 
 __all__ = [
     "LEARNERS",
@@ -152,10 +156,6 @@ def _predict(net: nn.Module, X: Tensor) -> Tensor:
         return net(X)[..., 0]
 
 
-def _rmse(a: Tensor, b: Tensor) -> float:
-    return float((a - b).square().mean().sqrt())
-
-
 def _pairs(z: Tensor, m: int, start: int, stop: int) -> tuple[Tensor, Tensor]:
     """Windows predicting ``z[start:stop]`` (each from the ``m`` values before it)."""
     X, Y = embed(z[start - m : stop], m)
@@ -200,10 +200,8 @@ def select_embedding(
         net = build_learner(learner, m, learner_options, seed=seed, device=z.device)
         try:
             _closed_form(learner, net, Xt, Yt, learner_options)
-            scores[m] = _rmse(_predict(net, Xv), Yv)
-        except (RuntimeError, ValueError, torch.linalg.LinAlgError):
-            scores[m] = math.inf
-        if not math.isfinite(scores[m]):
+            scores[m] = float(rmse(_predict(net, Xv), Yv))
+        except (RuntimeError, ValueError, torch.linalg.LinAlgError):  # incl. non-finite output
             scores[m] = math.inf
     best = min(scores, key=lambda k: (scores[k], k))
     if not math.isfinite(scores[best]):
@@ -279,53 +277,6 @@ def _train(
     return {"epochs": len(hist.epoch)}
 
 
-@dataclass
-class FittedModel:
-    """A trained one-step learner with its scaler and configuration (thin shell).
-
-    Attributes:
-        learner: the trained learner ``(..., m) -> (..., 1)`` on scaled values.
-        scaler: the :class:`MinMaxScaler` of the training part.
-        config: JSON-able configuration and fit record: ``learner``, ``learner_options``,
-            ``optimizer``, ``optimizer_options``, ``m``, ``m_selection``, ``scaler``
-            (``data_min``, ``data_max``, ``feature_range``), ``dtype``, ``seed``,
-            ``residual_rmse`` (scaled), ``series`` (name, time column, unit, ``dt``, rows
-            used), ``data`` (how to read the CSV again), ``holdout`` (size and metrics),
-            ``train`` (epochs, seconds, training RMSE).
-    """
-
-    learner: nn.Module
-    scaler: MinMaxScaler
-    config: dict = field(default_factory=dict)
-
-    @property
-    def m(self) -> int:
-        return int(self.config["m"])
-
-    @property
-    def metrics(self) -> dict:
-        """Held-out metrics recorded by :func:`fit_series` (empty without a holdout)."""
-        return dict(self.config.get("holdout", {}).get("metrics", {}))
-
-    def save(self, path) -> None:
-        """Write a safe model file (:func:`prognos_torch.workflow.save_model`)."""
-        from .store import save_model
-
-        save_model(self, path)
-
-    def forecast(self, series: Series, horizon: int, **kw):
-        """:func:`prognos_torch.workflow.forecast` with this model."""
-        from .predict import forecast
-
-        return forecast(self, series, horizon, **kw)
-
-    def rul(self, series: Series, threshold: float, **kw):
-        """:func:`prognos_torch.workflow.rul` with this model."""
-        from .predict import rul
-
-        return rul(self, series, threshold, **kw)
-
-
 def _holdout_size(holdout, T: int) -> int:
     if isinstance(holdout, bool):
         raise ValueError(f"holdout must be a fraction in [0, 1) or a count, got {holdout!r}")
@@ -370,8 +321,6 @@ def fit_series(
     Returns:
         :class:`FittedModel`.
     """
-    from .predict import holdout_metrics
-
     if not isinstance(series, Series):
         raise TypeError(f"series must be a Series (load_series(...)), got {type(series).__name__}")
     learner, optimizer = check_names(learner, optimizer)
@@ -422,12 +371,13 @@ def fit_series(
     record = _train(learner, optimizer, net, X, Y, lopts, oopts, seed)
     seconds = time.perf_counter() - t0
     net.eval()
-    residual = _rmse(_predict(net, X), Y)
-    if not math.isfinite(residual):
+    pred = _predict(net, X)
+    if not all_finite(pred):
         raise ValueError(
             f"training {learner.upper()} with {optimizer} diverged (non-finite predictions); "
             "try another optimizer or options"
         )
+    residual = float(rmse(pred, Y))
     config = {
         "learner": learner,
         "learner_options": lopts,

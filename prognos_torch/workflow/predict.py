@@ -1,7 +1,7 @@
 """Forecasts with an uncertainty band and RUL distributions from a fitted one-step learner.
 
 The learner becomes the m-order state-space model of paper 002 (Eq. 15-19,
-:func:`~prognos_torch.prognosis.forecast.learner_transition_model`) on the scaled series::
+:func:`~prognos_torch.prognosis.learner_model.learner_transition_model`) on the scaled series::
 
     P_{s+1} = [x_{s-m+2}, ..., x_s, f(P_s)] + w_s,    y_s = x_s + v_s
 
@@ -18,11 +18,11 @@ observations (the belief starts at the observed window with std ``r`` per elemen
 ``horizon`` steps from the filtered belief:
 
 * Gaussian filters (``sckf`` default, ``stsckf``, ``ukf``, ``ekf``, ...): the band is the
-  engine's predict-only propagation (:func:`~prognos_torch.prognosis.forecast.gaussian_paths`),
+  engine's predict-only propagation (:func:`~prognos_torch.prognosis.paths.gaussian_paths`),
   ``mean -+ z std`` of the next *measurements*; for the RUL, particles are drawn from the
   filtered Gaussian;
 * particle filters (``pf`` = bootstrap SIR, ``ekpf``, ``stpf`` = paper 002's strong-tracking PF,
-  ``upf``): weighted sample paths (:func:`~prognos_torch.prognosis.forecast.particle_paths`),
+  ``upf``): weighted sample paths (:func:`~prognos_torch.prognosis.paths.particle_paths`),
   band from weighted quantiles.
 
 RUL (paper 002, Eq. 28 and Fig. 11): the first passage of each sample path of the *state*
@@ -34,18 +34,24 @@ horizon apart as censored mass (their RUL only exceeds ``horizon * dt``).
 from __future__ import annotations
 
 import math
+import os
+import warnings
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from ..core.belief import GaussianBelief
+from ..core.validation import check_count
 from ..filters import make_filter, make_particle_filter
 from ..filters import run as run_filter
-from ..prognosis.forecast import gaussian_paths, learner_transition_model, particle_paths
+from ..metrics import mae, rmse
+from ..prognosis.learner_model import learner_transition_model
+from ..prognosis.paths import gaussian_paths, particle_paths
 from ..prognosis.rul import RULDistribution, rul_distribution
+from . import extrapolation as _extra
 from .data import Series
-from .model import FittedModel
+from .fitted import FittedModel
 
 __all__ = [
     "ForecastResult",
@@ -82,6 +88,9 @@ class ForecastResult:
         history: the series the forecast starts from.
         samples: ``(N, H)`` sample paths (particle filters), else ``None``.
         weights: ``(N,)`` their weights, else ``None``.
+        extrapolation: ``(H,)`` how far each step's inputs lie outside the training range
+            (data units; the band and std include it, see
+            :mod:`~prognos_torch.workflow.extrapolation`), or ``None``.
     """
 
     time: Tensor
@@ -94,6 +103,7 @@ class ForecastResult:
     history: Series
     samples: Tensor | None = None
     weights: Tensor | None = None
+    extrapolation: Tensor | None = None
 
     @property
     def horizon(self) -> int:
@@ -197,16 +207,22 @@ class RULResult:
 
 
 # ----------------------------------------------------------------------------- internals
-def _check_int(v, name: str, lo: int = 1) -> int:
-    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-        raise ValueError(f"{name} must be an int >= {lo}, got {v!r}")
-    return v
-
-
 def _check_filter(name) -> str:
     if not isinstance(name, str) or name.lower() not in FILTER_NAMES:
         raise ValueError(f"unknown filter {name!r}; choose one of {', '.join(FILTER_NAMES)}")
     return name.lower()
+
+
+def _check_model(model) -> FittedModel:
+    if isinstance(model, FittedModel):
+        return model
+    hint = ""
+    if isinstance(model, (str, os.PathLike)):
+        hint = f"; load the file first: load_model({str(model)!r})"
+    raise TypeError(
+        f"model must be a FittedModel (from fit_series or load_model), got "
+        f"{type(model).__name__}{hint}"
+    )
 
 
 def _noise(model: FittedModel) -> tuple[float, float]:
@@ -297,9 +313,10 @@ def forecast(
     Returns:
         :class:`ForecastResult` in data units.
     """
-    horizon = _check_int(horizon, "horizon")
-    filter_steps = _check_int(filter_steps, "filter_steps", 0)
-    n_particles = _check_int(n_particles, "n_particles")
+    model = _check_model(model)
+    horizon = check_count(horizon, "horizon", error=ValueError)
+    filter_steps = check_count(filter_steps, "filter_steps", 0, error=ValueError)
+    n_particles = check_count(n_particles, "n_particles", error=ValueError)
     name = _check_filter(filter)
     if isinstance(level, bool) or not isinstance(level, (int, float)) or not 0 < level < 1:
         raise ValueError(f"level must be a number in (0, 1), got {level!r}")
@@ -326,6 +343,11 @@ def forecast(
         )
         mean, lower, upper = inv(sp.mean), inv(sp.lower), inv(sp.upper)
         std, samples, weights = sp.std * span, inv(sp.samples), sp.weights
+    lo, hi = float(model.scaler.data_min), float(model.scaler.data_max)
+    dist = _extra.extrapolation_distance(series.values, mean, model.m, lo, hi)
+    if bool((dist > 0).any()):  # outside the training range: the learner extrapolates
+        lower, upper, std = _extra.widen(mean, lower, upper, std, dist, float(level))
+        _extra.warn("the forecast", float(dist.max()), lo, hi)
     return ForecastResult(
         time=_future_time(series, horizon),
         mean=mean,
@@ -337,6 +359,7 @@ def forecast(
         history=series,
         samples=samples,
         weights=weights,
+        extrapolation=dist,
     )
 
 
@@ -371,9 +394,10 @@ def rul(
     Raises:
         ValueError: bad arguments, or a last observed value that already reaches the threshold.
     """
-    horizon = _check_int(horizon, "horizon")
-    filter_steps = _check_int(filter_steps, "filter_steps", 0)
-    n_particles = _check_int(n_particles, "n_particles")
+    model = _check_model(model)
+    horizon = check_count(horizon, "horizon", error=ValueError)
+    filter_steps = check_count(filter_steps, "filter_steps", 0, error=ValueError)
+    n_particles = check_count(n_particles, "n_particles", error=ValueError)
     name = _check_filter(filter)
     if isinstance(threshold, bool) or not isinstance(threshold, (int, float)):
         raise ValueError(f"threshold must be a number, got {threshold!r}")
@@ -398,6 +422,13 @@ def rul(
         )
     seed = int(model.config.get("seed", 0)) if seed is None else seed
     z = _scaled(model, series)
+    lo, hi = float(model.scaler.data_min), float(model.scaler.data_max)
+    _extra.warn(
+        "the series the RUL starts from",
+        _extra.origin_distance(series.values, model.m, lo, hi),
+        lo,
+        hi,
+    )
     kind, res, ssm = _filtered(model, z, name, filter_steps, n_particles, seed)
     if kind == "gaussian":
         _, state = res
@@ -433,15 +464,16 @@ def holdout_metrics(model: FittedModel, series: Series, n_train: int) -> dict[st
 
     * ``rmse``, ``mae``: the :func:`forecast` (SCKF, 95 % band) made at the end of the training
       part over the whole tail, against the tail;
-    * ``coverage``: fraction of tail values inside that band;
+    * ``coverage``: fraction of tail values inside that band (widened where the forecast
+      leaves the training range, :mod:`~prognos_torch.workflow.extrapolation`; no warning);
     * ``one_step_rmse``: the learner's one-step predictions from the true windows;
     * ``persistence_rmse``: the last training value held constant (a baseline).
     """
-    from ..metrics import mae, rmse
-
     tail = series.values[n_train:]
     H = tail.shape[0]
-    fc = forecast(model, series.head(n_train), H)
+    with warnings.catch_warnings():  # a tail beyond the training range is what it measures
+        warnings.simplefilter("ignore", _extra.ExtrapolationWarning)
+        fc = forecast(model, series.head(n_train), H)
     z = model.scaler.transform(series.values)
     m = model.m
     windows = z.unfold(0, m, 1)[n_train - m : -1]  # windows ending just before each tail value

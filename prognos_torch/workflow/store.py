@@ -1,7 +1,8 @@
 """Save and load a :class:`~prognos_torch.workflow.FittedModel` as a safe model file.
 
-The file (:mod:`prognos_torch.io`) holds the learner's ``state_dict`` tensors (float64, raw
-bytes) and the configuration as JSON: learner, optimiser, their options, the embedding
+The file (:mod:`prognos_torch.io`, safetensors format) holds the learner's ``state_dict``
+tensors (float64, raw bytes, names prefixed ``learner.``) and, in its metadata, the
+configuration as JSON: learner, optimiser, their options, the embedding
 dimension, the scaler range, the dtype, the seed, the fit record and the library version.
 Loading parses JSON and copies bytes, never unpickles, and rebuilds the learner from the
 configuration; a model loaded in a new process forecasts bit-identically (same thread count).
@@ -15,7 +16,8 @@ import torch
 
 from ..datasets.windows import MinMaxScaler
 from ..io import ModelFileError, load_model_file, save_model_file
-from .model import LEARNERS, FittedModel, build_learner
+from .fitted import FittedModel
+from .model import LEARNERS, build_learner
 
 __all__ = ["save_model", "load_model", "MODEL_KIND"]
 

@@ -1,7 +1,7 @@
 """Grid of small panels: several estimated multivariate series against the truth over time.
 
 Paper 004 Fig. 2-5 style (state, fault, process-noise and measurement-noise estimates, one panel
-per component). Like :mod:`prognos_torch.plotting`, it draws on a fresh Agg figure (no pyplot
+per component). Like :mod:`prognos_torch.plots.figures`, it draws on a fresh Agg figure (no pyplot
 state), saves a PNG and returns the figure. Inputs may be tensors (any device) or array-likes.
 """
 

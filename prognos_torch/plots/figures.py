@@ -17,7 +17,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from .metrics import alpha_bounds, lambda_index, lambda_time
+from ..metrics import alpha_bounds, lambda_index, lambda_time
 
 __all__ = [
     "plot_prediction",

@@ -1,4 +1,5 @@
-"""Figures of the workflow: a forecast with its band, and an RUL distribution with its paths.
+"""Figures of :mod:`prognos_torch.workflow`: a forecast with its band, an RUL distribution with
+its paths.
 
 Each function draws on a fresh :class:`matplotlib.figure.Figure` (Agg canvas, no pyplot state),
 renders the PNG in memory and writes it atomically (temporary file, then rename), so a failed
@@ -9,14 +10,17 @@ from __future__ import annotations
 
 import io
 import os
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from ..io import atomic_write
-from .data import Series
-from .predict import ForecastResult, RULResult
+
+if TYPE_CHECKING:  # annotations only: the workflow imports this module, not the reverse
+    from ..workflow.data import Series
+    from ..workflow.predict import ForecastResult, RULResult
 
 __all__ = ["plot_forecast", "plot_rul", "time_label"]
 

@@ -1,0 +1,223 @@
+"""The filters of the library as configurations of the two engines, by name.
+
+Gaussian filters are :class:`~prognos_torch.filters.gaussian.GaussianFilter` configurations (a
+moment rule, the covariance algebra, adaptation pieces); particle filters are
+:class:`~prognos_torch.filters.particle.ParticleFilter` configurations (a proposal, resampling).
+A new variant is a new factory here, never a copy of a step.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from torch import Tensor
+
+from ..adapt.noise import MovingWindow, SageHusa
+from ..adapt.robust import RobustBound
+from ..adapt.strong_tracking import StrongTracking
+from ..quadrature import SigmaPoints, cubature, julier, unscented
+from .gaussian import GaussianFilter, Taylor
+from .particle import ParticleFilter
+
+__all__ = [
+    "ekf",
+    "ukf",
+    "srukf",
+    "ckf",
+    "sckf",
+    "stekf",
+    "stukf",
+    "stsckf",
+    "imsrukf",
+    "rukf",
+    "arukf",
+    "make_filter",
+    "FILTERS",
+    "sir",
+    "ekpf",
+    "upf",
+    "stpf",
+    "PARTICLE_FILTERS",
+    "make_particle_filter",
+]
+
+
+# ---------------------------------------------------------------------- Gaussian filters
+def ekf(*, sqrt: bool = True, **kw) -> GaussianFilter:
+    """Extended Kalman filter (Jacobians by ``torch.func``)."""
+    return GaussianFilter(Taylor(), sqrt=sqrt, name=kw.pop("name", "EKF"), **kw)
+
+
+def ukf(
+    alpha: float = 1.0, beta: float = 2.0, kappa: float | None = 0.0, *, sqrt: bool = False, **kw
+) -> GaussianFilter:
+    """Unscented KF with the scaled rule (full covariance algebra by default)."""
+    return GaussianFilter(
+        unscented(alpha, beta, kappa), sqrt=sqrt, name=kw.pop("name", "UKF"), **kw
+    )
+
+
+def srukf(kappa: float | None = 1.0, *, rule: SigmaPoints | None = None, **kw) -> GaussianFilter:
+    """Square-root UKF of paper 003 (Eq. 10-30), Julier's rule with ``kappa = 1`` by default."""
+    return GaussianFilter(rule or julier(kappa), sqrt=True, name=kw.pop("name", "SRUKF"), **kw)
+
+
+def ckf(**kw) -> GaussianFilter:
+    """Cubature KF (full covariance algebra)."""
+    return GaussianFilter(cubature(), sqrt=False, name=kw.pop("name", "CKF"), **kw)
+
+
+def sckf(**kw) -> GaussianFilter:
+    """Square-root cubature KF (paper 000 Eq. 21-46 without fading)."""
+    return GaussianFilter(cubature(), sqrt=True, name=kw.pop("name", "SCKF"), **kw)
+
+
+def stekf(rho: float = 0.95, beta: float = 1.0, **kw) -> GaussianFilter:
+    """Strong-tracking EKF / SFEKF (paper 000 Eq. 7-12)."""
+    return ekf(fading=StrongTracking(rho, beta), name=kw.pop("name", "STEKF"), **kw)
+
+
+def stukf(rho: float = 0.95, beta: float = 1.0, kappa: float | None = 1.0, **kw) -> GaussianFilter:
+    """Strong-tracking UKF (derivative-free fading factor on the SRUKF engine)."""
+    return srukf(kappa, fading=StrongTracking(rho, beta), name=kw.pop("name", "STUKF"), **kw)
+
+
+def stsckf(rho: float = 0.95, beta: float = 1.0, **kw) -> GaussianFilter:
+    """Strong-tracking square-root cubature KF (paper 000 Sec. 3.3, Eq. 21-46)."""
+    return sckf(fading=StrongTracking(rho, beta), name=kw.pop("name", "STSCKF"), **kw)
+
+
+def imsrukf(kappa: float | None = 1.0, *, noise: SageHusa | None = None, **kw) -> GaussianFilter:
+    """ImSRUKF: SRUKF with the Sage-Husa noise-statistics estimator (paper 003 Sec. III-B)."""
+    return srukf(kappa, noise=noise or SageHusa(), name=kw.pop("name", "ImSRUKF"), **kw)
+
+
+def rukf(
+    gamma: float,
+    M: Tensor,
+    N: float | Tensor = 1.0,
+    *,
+    alpha: float = 1.0,
+    kappa: float = 1.0,
+    form: str = "scalar",
+    **kw,
+) -> GaussianFilter:
+    """Robust UKF of paper 004 (Theorem 1, steps 1-5): sigma points of Eq. 36, gain Eq. 29.
+
+    Paper 004 Eq. 36 uses ``xi = x +- a sqrt((n + 1) P)``, i.e. the scaled rule with
+    ``alpha = a`` and ``kappa = 1``. ``form``: the reading of the bound (see
+    :class:`~prognos_torch.adapt.robust.RobustBound`; ``"scalar"`` is Eq. 28-29 as printed).
+    """
+    return GaussianFilter(
+        unscented(alpha, 0.0, kappa),
+        sqrt=kw.pop("sqrt", True),
+        robust=RobustBound(gamma, M, N, form=form),
+        name=kw.pop("name", "RUKF"),
+        **kw,
+    )
+
+
+def arukf(
+    gamma: float,
+    M: Tensor,
+    N: float | Tensor = 1.0,
+    *,
+    window: int = 50,
+    diagonal: bool = True,
+    form: str = "scalar",
+    **kw,
+) -> GaussianFilter:
+    """Adaptive robust UKF of paper 004 (Sec. 3): RUKF + moving-window Q/R estimator (Eq. 47-49).
+
+    With ``form="lemma"`` the innovation covariance is matched against ``C P~ C^T + gamma^2 M M^T``
+    (``P~`` already holds the ``N`` bound); with ``"scalar"`` against Eq. 48 as printed
+    (``(1 - N^2 / mu) C P C^T + mu M M^T``, ``mu = gamma^2``).
+    """
+    if form == "lemma":
+        est = MovingWindow(window=window, M=M, N=0.0, mu=gamma**2, diagonal=diagonal)
+    else:
+        est = MovingWindow(window=window, M=M, N=float(N), mu=gamma**2, diagonal=diagonal)
+    return rukf(gamma, M, N, form=form, noise=est, name=kw.pop("name", "ARUKF"), **kw)
+
+
+FILTERS = {
+    "ekf": ekf,
+    "ukf": ukf,
+    "srukf": srukf,
+    "ckf": ckf,
+    "sckf": sckf,
+    "stekf": stekf,
+    "stukf": stukf,
+    "stsckf": stsckf,
+    "imsrukf": imsrukf,
+}
+
+
+def make_filter(name: str, **kw) -> GaussianFilter:
+    """Build a configured filter by name (``ekf``, ``ukf``, ``srukf``, ``ckf``, ``sckf``,
+    ``stekf``, ``stukf``, ``stsckf``, ``imsrukf``)."""
+    key = name.lower()
+    if key not in FILTERS:
+        raise ValueError(f"unknown filter {name!r}; choose one of {sorted(FILTERS)}")
+    return FILTERS[key](**kw)
+
+
+# ---------------------------------------------------------------------- particle filters
+def sir(num_particles: int = 1000, **kw) -> ParticleFilter:
+    """Bootstrap (SIR) particle filter: transition prior as proposal."""
+    return ParticleFilter(num_particles, None, name=kw.pop("name", "PF"), **kw)
+
+
+def ekpf(
+    num_particles: int = 1000, *, proposal: GaussianFilter | None = None, **kw
+) -> ParticleFilter:
+    """Extended Kalman particle filter: a per-particle EKF step as proposal."""
+    return ParticleFilter(num_particles, proposal or ekf(), name=kw.pop("name", "EKPF"), **kw)
+
+
+def upf(
+    num_particles: int = 1000, *, proposal: GaussianFilter | None = None, **kw
+) -> ParticleFilter:
+    """Unscented particle filter (Van der Merwe et al. 2000): a per-particle UKF step as proposal
+    (scaled rule ``alpha=1, beta=2, kappa=0``, square-root algebra, by default)."""
+    prop = proposal or ukf(1.0, 2.0, 0.0, sqrt=True)
+    return ParticleFilter(num_particles, prop, name=kw.pop("name", "UPF"), **kw)
+
+
+def stpf(
+    num_particles: int = 1000,
+    rho: float = 0.95,
+    beta: float = 1.0,
+    *,
+    resample_threshold: float = 1.0 / 3.0,
+    **kw,
+) -> ParticleFilter:
+    """Strong-tracking particle filter of paper 002 (Eq. 27, steps 1-7): a per-particle SFEKF
+    (strong-tracking EKF, paper 000 Eq. 7-12, forgetting ``rho``, weakening ``beta``) step as
+    proposal; resampling when ``N_eff < N/3`` (step 6)."""
+    return ParticleFilter(
+        num_particles,
+        stekf(rho, beta),
+        resample_threshold=resample_threshold,
+        name=kw.pop("name", "STPF"),
+        **kw,
+    )
+
+
+PARTICLE_FILTERS: dict[str, Callable[..., ParticleFilter]] = {
+    "sir": sir,
+    "pf": sir,
+    "ekpf": ekpf,
+    "upf": upf,
+    "stpf": stpf,
+}
+
+
+def make_particle_filter(name: str, **kw) -> ParticleFilter:
+    """Build a particle filter by name (``sir``/``pf``, ``ekpf``, ``upf``, ``stpf``)."""
+    key = name.lower()
+    if key not in PARTICLE_FILTERS:
+        raise ValueError(
+            f"unknown particle filter {name!r}; choose one of {sorted(PARTICLE_FILTERS)}"
+        )
+    return PARTICLE_FILTERS[key](**kw)

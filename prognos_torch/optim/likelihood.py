@@ -1,0 +1,197 @@
+"""Maximum-likelihood fitting of model parameters through the square-root filter.
+
+The filter's prediction-error decomposition ``log p(y_{1:T}) = sum_k log N(y_k; z_{k|k-1},
+S_zz S_zz^T)`` (:attr:`~prognos_torch.filters.Trajectory.log_likelihood`) is differentiable in
+the model: autograd runs through every stage of :meth:`GaussianFilter.step` (QR, Cholesky
+downdates, triangular solves, sigma points, Jacobians by ``torch.func``). :func:`fit_likelihood`
+maximises it with any ``torch.optim`` optimiser over parameters that a user function maps to a
+:class:`~prognos_torch.core.StateSpaceModel` (noise factors, parameters of ``f`` and ``h``, the
+initial belief). Square-root factors are parameterised by their log-Cholesky form
+(:func:`from_log_cholesky`: strictly lower part free, diagonal ``exp``), so every iterate is a
+valid factor and the optimisation is unconstrained.
+
+Batches of series: ``ys`` ``(T, ..., m)`` with the belief's batch dims. The objective is the
+sum over the batch, so parameters with the batch dims (one set per series) are fitted
+independently in one pass, and parameters without them are shared by all series.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..core.belief import GaussianBelief
+from ..core.model import StateSpaceModel
+from ..filters.gaussian import GaussianFilter
+from ..filters.run import run
+
+__all__ = ["LikelihoodFit", "fit_likelihood", "from_log_cholesky", "log_cholesky"]
+
+
+def from_log_cholesky(raw: Tensor) -> Tensor:
+    """Lower-triangular factor with positive diagonal from an unconstrained ``(..., n, n)``:
+    the strictly lower part of ``raw`` plus ``diag(exp(diag(raw)))`` (the upper part is unused).
+    """
+    if not isinstance(raw, Tensor) or raw.dim() < 2 or raw.shape[-1] != raw.shape[-2]:
+        raise ValueError(
+            f"raw must be a tensor of shape (..., n, n), got {getattr(raw, 'shape', raw)}"
+        )
+    return torch.tril(raw, -1) + torch.diag_embed(torch.diagonal(raw, dim1=-2, dim2=-1).exp())
+
+
+def log_cholesky(chol: Tensor) -> Tensor:
+    """Inverse of :func:`from_log_cholesky` for a lower factor with positive diagonal."""
+    if not isinstance(chol, Tensor) or chol.dim() < 2 or chol.shape[-1] != chol.shape[-2]:
+        raise ValueError(
+            f"chol must be a tensor of shape (..., n, n), got {getattr(chol, 'shape', chol)}"
+        )
+    d = torch.diagonal(chol, dim1=-2, dim2=-1)
+    if not bool((d > 0).all()):
+        raise ValueError("chol must have a positive diagonal (a Cholesky factor)")
+    return torch.tril(chol, -1) + torch.diag_embed(d.log())
+
+
+@dataclass(frozen=True)
+class LikelihoodFit:
+    """Result of :func:`fit_likelihood`.
+
+    Attributes:
+        params: the fitted parameters (detached copies, same names and shapes as given).
+        model: ``build_model(params)`` at the fitted parameters (built from detached tensors).
+        belief: the initial belief used (from ``belief(params)`` when it is a function).
+        trace: ``(steps + 1, ...)`` log-likelihood of each series at the start and after each
+            optimiser step (fewer rows when ``tol`` stopped the fit early).
+        steps: optimiser steps taken.
+    """
+
+    params: dict[str, Tensor]
+    model: StateSpaceModel
+    belief: GaussianBelief
+    trace: Tensor
+    steps: int
+
+    @property
+    def log_likelihood(self) -> Tensor:
+        """Log-likelihood per series at the fitted parameters, ``(...)``."""
+        return self.trace[-1]
+
+
+def _adam(params: list[Tensor]) -> torch.optim.Optimizer:
+    return torch.optim.Adam(params, lr=0.05)
+
+
+def fit_likelihood(
+    build_model: Callable[[dict[str, Tensor]], StateSpaceModel],
+    params: Mapping[str, Tensor],
+    filt: GaussianFilter,
+    belief: GaussianBelief | Callable[[dict[str, Tensor]], GaussianBelief],
+    ys: Tensor,
+    us: Tensor | None = None,
+    *,
+    optimizer: torch.optim.Optimizer | Callable[[list[Tensor]], torch.optim.Optimizer] = _adam,
+    steps: int = 100,
+    k0: int = 0,
+    tol: float | None = None,
+) -> LikelihoodFit:
+    """Maximise the filter's log-likelihood of ``ys`` over ``params``.
+
+    Args:
+        build_model: ``params -> StateSpaceModel``; use :func:`from_log_cholesky` for the noise
+            factors (or any other differentiable map to valid values).
+        params: ``{name: tensor}`` initial unconstrained values (float tensors).
+        filt: the filter whose likelihood is maximised (any :class:`GaussianFilter`).
+        belief: initial belief on ``x_{k0}``, or ``params -> GaussianBelief`` to learn it.
+        ys: ``(T, ..., m)`` measurements (NaN: missing), the belief's batch dims after ``T``.
+        us: controls as in :func:`~prognos_torch.filters.run`.
+        optimizer: an optimiser instance over the tensors of ``params`` (they are updated in
+            place), or a factory ``list[Tensor] -> Optimizer`` (e.g. ``torch.optim.LBFGS`` or
+            ``lambda p: torch.optim.Adam(p, lr=0.05)``, the default) applied to copies.
+            ``step(closure)`` is called, so closure-based optimisers such as LBFGS work.
+        steps: number of optimiser steps.
+        k0: index of the initial state (as in ``run``).
+        tol: stop when the total log-likelihood changes by less than ``tol * (1 + |ll|)``
+            between steps (``None``: always take ``steps`` steps).
+    Returns:
+        :class:`LikelihoodFit`. The minimised loss is ``-sum(log_likelihood) / T``.
+    Raises:
+        FloatingPointError: the log-likelihood became non-finite (lower the learning rate).
+    """
+    if not callable(build_model):
+        raise TypeError("build_model must be a callable params -> StateSpaceModel")
+    if not isinstance(params, Mapping) or not params:
+        raise TypeError("params must be a non-empty mapping {name: tensor}")
+    for name, p in params.items():
+        if not isinstance(p, Tensor) or not p.is_floating_point():
+            raise TypeError(f"params[{name!r}] must be a floating-point torch.Tensor")
+    if not isinstance(filt, GaussianFilter):
+        raise TypeError(f"filt must be a GaussianFilter (e.g. filters.sckf()), got {type(filt)}")
+    if not isinstance(ys, Tensor) or ys.dim() < 2 or ys.shape[0] < 1:
+        raise ValueError("ys must be a tensor of shape (T, ..., m) with T >= 1")
+    if not isinstance(steps, int) or steps < 0:
+        raise ValueError(f"steps must be a non-negative int, got {steps!r}")
+
+    if isinstance(optimizer, torch.optim.Optimizer):
+        opt = optimizer
+        leaves = dict(params)
+        owned = {id(p) for g in opt.param_groups for p in g["params"]}
+        missing = [n for n, p in leaves.items() if id(p) not in owned]
+        if missing:
+            raise ValueError(f"the optimizer does not hold params {missing}")
+    elif callable(optimizer):
+        leaves = {n: p.detach().clone().requires_grad_(True) for n, p in params.items()}
+        opt = optimizer(list(leaves.values()))
+        if not isinstance(opt, torch.optim.Optimizer):
+            raise TypeError("optimizer(params) must return a torch.optim.Optimizer")
+    else:
+        raise TypeError("optimizer must be a torch.optim.Optimizer or a factory of one")
+
+    T = ys.shape[0]
+
+    def get_belief(p):
+        b = belief(p) if callable(belief) else belief
+        if not isinstance(b, GaussianBelief):
+            raise TypeError("belief must be a GaussianBelief or params -> GaussianBelief")
+        return b
+
+    def loglik(p) -> Tensor:
+        return run(filt, build_model(p), get_belief(p), ys, us, k0=k0).log_likelihood
+
+    trace: list[Tensor] = []
+    state: dict = {}
+
+    def closure():
+        opt.zero_grad()
+        ll = loglik(leaves)
+        if not bool(torch.isfinite(ll).all()):
+            raise FloatingPointError(
+                f"the log-likelihood became non-finite after {len(trace)} steps "
+                "(lower the learning rate or start closer)"
+            )
+        if "ll" not in state:  # the first evaluation of a step is at its starting point
+            state["ll"] = ll.detach()
+        loss = -ll.sum() / T
+        loss.backward()
+        return loss
+
+    taken = 0
+    for _ in range(steps):
+        state.clear()
+        opt.step(closure)
+        trace.append(state["ll"])
+        taken += 1
+        if tol is not None and len(trace) >= 2:
+            a, b = trace[-2].sum(), trace[-1].sum()
+            if bool((a - b).abs() <= tol * (1.0 + b.abs())):
+                break
+    with torch.no_grad():
+        final = {n: p.detach().clone() for n, p in leaves.items()}
+        ll = loglik(final)
+        if not bool(torch.isfinite(ll).all()):
+            raise FloatingPointError(f"the log-likelihood became non-finite after {taken} steps")
+        trace.append(ll)
+        model = build_model(final)
+        b0 = get_belief(final)
+    return LikelihoodFit(final, model, b0, torch.stack(trace), taken)

@@ -1,0 +1,43 @@
+"""Figures: one home for every plot of the library, the studies and the workflow.
+
+Every function draws on a fresh :class:`matplotlib.figure.Figure` (Agg canvas, no pyplot state,
+no window), writes a PNG to ``path`` and returns the figure. Inputs may be tensors (any device)
+or array-likes.
+
+* :mod:`.figures`: predictions, fading factors, fault probabilities, RUL distributions,
+  alpha-lambda charts, training curves;
+* :mod:`.panels`: a grid of small panels, estimated multivariate series against the truth;
+* :mod:`.workflow`: a forecast with its band and an RUL distribution with its paths (the
+  figures of :mod:`prognos_torch.workflow`, written atomically);
+* :mod:`.prognosis`: a :func:`~prognos_torch.workflow.prognose` result (paths with the
+  threshold, RUL pmf) and RUL trajectories against the alpha cone.
+"""
+
+from .figures import (
+    plot_alpha_lambda,
+    plot_fading_factor,
+    plot_fault_probability,
+    plot_fault_probability_box,
+    plot_prediction,
+    plot_rul_pdf,
+    plot_training_curves,
+)
+from .panels import plot_panels
+from .prognosis import plot_prognosis, plot_rul_trajectory
+from .workflow import plot_forecast, plot_rul, time_label
+
+__all__ = [
+    "plot_prediction",
+    "plot_fading_factor",
+    "plot_rul_pdf",
+    "plot_alpha_lambda",
+    "plot_fault_probability",
+    "plot_fault_probability_box",
+    "plot_training_curves",
+    "plot_panels",
+    "plot_forecast",
+    "plot_rul",
+    "time_label",
+    "plot_prognosis",
+    "plot_rul_trajectory",
+]

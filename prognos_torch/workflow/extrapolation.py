@@ -1,0 +1,98 @@
+"""Forecasts whose inputs leave the training range: a warning and an honestly wider band.
+
+A fitted learner has seen values inside the training range ``[data_min, data_max]`` of its
+scaler only. Outside it the learner extrapolates, and its training residuals (which set the
+filter's noise) say nothing about its error there: a forecast from far outside can look sure
+of itself (a saturated ANFIS or ELM gives a band as narrow as the noise) with no data behind
+it. So :func:`~prognos_torch.workflow.forecast` does three things:
+
+* the *extrapolation distance* of step ``k``, ``d_k >= 0`` (data units), is how far the inputs
+  of that step (the ``m`` values before it: the last observations, then the forecast means)
+  lie outside the training range at most (:func:`extrapolation_distance`);
+* the band is widened by ``d_k`` in quadrature, ``h_k' = sqrt(h_k^2 + (z d_k)^2)`` for each
+  half-width ``h_k`` (``z``: the normal quantile of the band's level), and the std likewise,
+  ``std_k' = sqrt(std_k^2 + d_k^2)`` (:func:`widen`). This says no more than that the
+  learner's output there is unknown to the extent of the distance from the data; inside the
+  range ``d_k = 0`` and the band is the filter's own. Sample paths (particle filters) are
+  left as the model drew them;
+* when ``max_k d_k`` exceeds :data:`WARN_FRACTION` of the training span, an
+  :class:`ExtrapolationWarning` says so (``prognos forecast`` and ``prognos rul`` print it as
+  one ``warning:`` line on stderr and exit 0).
+
+:func:`~prognos_torch.workflow.rul` warns in the same way when the observations it starts from
+lie outside the range; its sample paths are not widened.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "ExtrapolationWarning",
+    "WARN_FRACTION",
+    "extrapolation_distance",
+    "origin_distance",
+    "widen",
+    "warn",
+]
+
+#: Fraction of the training span beyond which a forecast warns that it extrapolates.
+WARN_FRACTION = 0.1
+
+
+class ExtrapolationWarning(UserWarning):
+    """A forecast or RUL starts from, or runs into, values outside the training range."""
+
+
+def _outside(values: Tensor, lo: float, hi: float) -> Tensor:
+    return (lo - values).clamp_min(0.0) + (values - hi).clamp_min(0.0)
+
+
+def extrapolation_distance(history: Tensor, mean: Tensor, m: int, lo: float, hi: float) -> Tensor:
+    """``d_k`` for a forecast of ``H`` steps: ``(H,)``, data units.
+
+    Args:
+        history: ``(T,)`` observed values (at least ``m``); the last ``m`` feed the first step.
+        mean: ``(H,)`` forecast means.
+        m: embedding dimension (inputs per step).
+        lo, hi: the training range.
+    """
+    seq = torch.cat([history[-m:].to(mean), mean])
+    dist = _outside(seq, lo, hi)
+    return dist.unfold(0, m, 1)[: mean.shape[0]].amax(-1)
+
+
+def origin_distance(history: Tensor, m: int, lo: float, hi: float) -> float:
+    """How far the last ``m`` observations lie outside the training range at most."""
+    return float(_outside(history[-m:], lo, hi).max())
+
+
+def widen(
+    mean: Tensor, lower: Tensor, upper: Tensor, std: Tensor, dist: Tensor, level: float
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``(lower, upper, std)`` widened by ``dist`` in quadrature (module notes)."""
+    z = math.sqrt(2.0) * float(torch.special.erfinv(torch.tensor(level, dtype=torch.float64)))
+    extra = (z * dist).square()
+    lower = mean - ((mean - lower).square() + extra).sqrt()
+    upper = mean + ((upper - mean).square() + extra).sqrt()
+    return lower, upper, (std.square() + dist.square()).sqrt()
+
+
+def warn(what: str, dist: float, lo: float, hi: float) -> None:
+    """Issue an :class:`ExtrapolationWarning` when ``dist`` exceeds :data:`WARN_FRACTION` of
+    the span."""
+    span = hi - lo
+    if not dist > WARN_FRACTION * span:
+        return
+    warnings.warn(
+        f"{what} lies outside the model's training range [{lo:.4g}, {hi:.4g}] by up to "
+        f"{dist:.4g} ({100 * dist / span:.0f} % of its span): the learner extrapolates there"
+        + (", so the band is widened by that distance" if what.startswith("the forecast") else "")
+        + " (prognos_torch.workflow.extrapolation)",
+        ExtrapolationWarning,
+        stacklevel=3,
+    )

@@ -1,0 +1,142 @@
+"""EM for linear-Gaussian models against a plain NumPy EM (dense Kalman/RTS, normal equations)."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from prognos_torch.core import GaussianBelief
+from prognos_torch.filters import ekf, run
+from prognos_torch.optim import em_linear_gaussian
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _kalman_reference import rts_reference  # noqa: E402
+
+dt = torch.float64
+t = lambda a: torch.as_tensor(a, dtype=dt)  # noqa: E731
+
+
+def numpy_em_step(A, C, Q, R, m0, P0, ys, learn):
+    """One EM iteration (Shumway and Stoffer 1982; Ghahramani and Hinton 1996)."""
+    ref = rts_reference(A, C, Q, R, m0, P0, ys)
+    ms, Ps, L = ref["means"], ref["covs"], ref["cross"]
+    T = len(ys)
+    Exx = Ps + np.einsum("ti,tj->tij", ms, ms)
+    S11, S00 = Exx[1:].sum(0), Exx[:-1].sum(0)
+    S10 = (L + np.einsum("ti,tj->tij", ms[1:], ms[:-1])).sum(0)
+    if "A" in learn:
+        A = np.linalg.solve(S00.T, S10.T).T
+    if "Q" in learn:
+        Q = (S11 - A @ S10.T - S10 @ A.T + A @ S00 @ A.T) / T
+    o = ~np.isnan(ys).all(-1)
+    yo, xo = ys[o], ms[1:][o]
+    Syx, Sxx, Syy = yo.T @ xo, Exx[1:][o].sum(0), yo.T @ yo
+    if "C" in learn:
+        C = np.linalg.solve(Sxx.T, Syx.T).T
+    if "R" in learn:
+        R = (Syy - C @ Syx.T - Syx @ C.T + C @ Sxx @ C.T) / o.sum()
+    if "init" in learn:
+        m0, P0 = ms[0], Ps[0]
+    return A, C, Q, R, m0, P0, ref["ll"]
+
+
+def problem(seed, n=2, m=2, T=60, batch=2):
+    g = np.random.default_rng(seed)
+    out = []
+    for _ in range(batch):
+        A = np.array([[0.9, 0.2], [-0.1, 0.7]]) + 0.05 * g.normal(size=(n, n))
+        C = np.array([[1.0, 0.0], [0.5, 1.0]])[:m]
+        Q, R = np.diag([0.3, 0.1]), np.diag([0.5, 0.2])[:m, :m]
+        x, ys = np.zeros(n), []
+        for _ in range(T):
+            x = A @ x + g.multivariate_normal(np.zeros(n), Q)
+            ys.append(C @ x + g.multivariate_normal(np.zeros(m), R))
+        ys = np.array(ys)
+        ys[[5, 17, T - 1]] = np.nan  # missing rows, one at the end
+        start = (
+            A + 0.2 * g.normal(size=(n, n)),
+            C + 0.2 * g.normal(size=(m, n)),
+            np.eye(n) * 0.5,
+            np.eye(m) * 1.0,
+            np.zeros(n),
+            np.eye(n) * 2.0,
+            ys,
+        )
+        out.append(start)
+    return out
+
+
+def batched(problems):
+    st = lambda i: t(np.stack([p[i] for p in problems]))  # noqa: E731
+    A, C, Q, R, m0, P0 = (st(i) for i in range(6))
+    ys = t(np.stack([p[6] for p in problems], axis=1))
+    chol = torch.linalg.cholesky
+    return A, C, chol(Q), chol(R), GaussianBelief.from_cov(m0, P0), ys
+
+
+@pytest.mark.parametrize(
+    "learn", [("A", "C", "Q", "R", "init"), ("A", "Q", "R")], ids=["all", "A-Q-R"]
+)
+def test_em_equals_numpy_em_over_several_iterations(learn):
+    problems = problem(0)
+    A, C, SQ, SR, b0, ys = batched(problems)
+    iters = 5
+    fit = em_linear_gaussian(A, C, SQ, SR, b0, ys, iterations=iters, learn=learn)
+    assert fit.iterations == iters and fit.trace.shape == (iters + 1, 2)
+    for i, p in enumerate(problems):
+        state = p[:6]
+        lls = []
+        for _ in range(iters):
+            *state, ll = numpy_em_step(*state, p[6], learn)
+            lls.append(ll)
+        lls.append(rts_reference(*state, p[6])["ll"])
+        An, Cn, Qn, Rn, m0n, P0n = state
+        np.testing.assert_allclose(fit.A[i].numpy(), An, atol=1e-8, rtol=0)
+        np.testing.assert_allclose(fit.C[i].numpy(), Cn, atol=1e-8, rtol=0)
+        np.testing.assert_allclose((fit.chol_Q @ fit.chol_Q.mT)[i].numpy(), Qn, atol=1e-8)
+        np.testing.assert_allclose((fit.chol_R @ fit.chol_R.mT)[i].numpy(), Rn, atol=1e-8)
+        np.testing.assert_allclose(fit.init.mean[i].numpy(), m0n, atol=1e-8, rtol=0)
+        np.testing.assert_allclose(fit.init.cov[i].numpy(), P0n, atol=1e-8, rtol=0)
+        np.testing.assert_allclose(fit.trace[:, i].numpy(), lls, atol=1e-7, rtol=1e-12)
+    if "C" not in learn:
+        assert torch.equal(fit.C, C)
+
+
+def test_em_log_likelihood_never_decreases():
+    problems = problem(1, T=120, batch=3)
+    A, C, SQ, SR, b0, ys = batched(problems)
+    fit = em_linear_gaussian(A, C, SQ, SR, b0, ys, iterations=25)
+    d = fit.trace[1:] - fit.trace[:-1]
+    assert bool((d >= -1e-9 * fit.trace[1:].abs()).all()), d.min()
+    assert bool((fit.trace[-1] - fit.trace[0] > 1.0).all())
+    # the returned model reproduces the last log-likelihood
+    ll = run(ekf(), fit.model, fit.init, ys).log_likelihood
+    torch.testing.assert_close(ll, fit.log_likelihood)
+
+
+def test_em_tol_stops_early_and_unbatched_inputs():
+    (p,) = problem(2, batch=1)
+    A, C, SQ, SR, b0, ys = batched([p])
+    fit = em_linear_gaussian(A[0], C[0], SQ[0], SR[0], b0[0], ys[:, 0], iterations=500, tol=1e-4)
+    assert fit.iterations < 100 and fit.A.shape == (2, 2)
+    rise = fit.trace[-1] - fit.trace[-2]
+    assert float(rise) <= 1e-4 * (1 + abs(float(fit.trace[-1])))
+
+
+def test_em_bad_arguments():
+    (p,) = problem(3, batch=1)
+    A, C, SQ, SR, b0, ys = batched([p])
+    with pytest.raises(ValueError, match="learn"):
+        em_linear_gaussian(A, C, SQ, SR, b0, ys, learn=("B",))
+    with pytest.raises(ValueError, match="A must have shape"):
+        em_linear_gaussian(A[..., :1], C, SQ, SR, b0, ys)
+    with pytest.raises(ValueError, match="ys must have shape"):
+        em_linear_gaussian(A, C, SQ, SR, b0, ys[..., :1])
+    part = ys.clone()
+    part[3, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="partially observed"):
+        em_linear_gaussian(A, C, SQ, SR, b0, part)
+    fit = em_linear_gaussian(A, C, SQ, SR, b0, part, iterations=2, learn=("A", "Q", "init"))
+    assert bool(torch.isfinite(fit.A).all())

@@ -1,0 +1,166 @@
+"""Tests of forecasted measurements and fault prediction (paper 000 Sec. 5):
+prognos_torch.learners.ros_elm, prognos_torch.prognosis.forecaster and prognos_torch.prognosis.fault.
+
+References are independent: per-run ELM.init_online / partial_fit, recursive prediction, and the
+real-time filter itself (an oracle forecaster must reproduce it).
+"""
+
+from __future__ import annotations
+
+import copy
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from prognos_torch.datasets.windows import embed
+from prognos_torch.filters import run, sckf, stsckf
+from prognos_torch.learners import ELM, ros_elm_forecast, ros_elm_init, ros_elm_update
+from prognos_torch.prognosis import (
+    MeasurementForecaster,
+    predict_fault_parameter,
+    recursive_predict,
+    rolling_fault_prediction,
+)
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _prognosis_helpers import F64, _drift_problem, _gen, _learner, _Oracle, _series  # noqa: E402
+
+
+def test_batched_ros_elm_forecaster_equals_per_run_elms():
+    R, C, p, L, lam = 3, 2, 3, 10, 1e-3
+    T = 40
+    t = torch.arange(T, dtype=F64)
+    z = torch.stack(
+        [
+            torch.stack([torch.sin(0.2 * t + r) + 0.1 * r, 0.5 * torch.cos(0.1 * t - r)], -1)
+            for r in range(R)
+        ],
+        dim=1,
+    )  # (T, R, C)
+    fc = MeasurementForecaster.ros_elm(C, p=p, n_hidden=L, lam=lam, generator=_gen(9))
+    fc.initialize(z[:20])
+    for k in range(20, 30):
+        fc.update(z[k])
+    pred = fc.forecast(4)  # (4, R, C)
+    assert pred.shape == (4, R, C)
+    for lr in fc.learners:  # the learners are not modified
+        assert float(lr.beta.detach().abs().max()) == 0.0
+    for r in range(R):
+        for c in range(C):
+            elm = copy.deepcopy(fc.learners[c])
+            X, y = embed(z[:20, r, c], p)
+            elm.init_online(X, y, lam)
+            for k in range(20, 30):
+                elm.partial_fit(z[k - p : k, r, c], z[k, r, c].reshape(1))
+            want = recursive_predict(elm, z[30 - p : 30, r, c], 4).detach()
+            torch.testing.assert_close(pred[:, r, c], want, rtol=1e-7, atol=1e-9)
+    # functional core = shell; states are immutable
+    s0 = ros_elm_init(fc.learners, z[:20], p, lam)
+    s1 = ros_elm_update(fc.learners, s0, z[20])
+    assert s0.n_seen == 17 and s1.n_seen == 18
+    torch.testing.assert_close(s0.window, z[17:20].movedim(0, -1))
+    torch.testing.assert_close(ros_elm_forecast(fc.learners, s1, 2).shape, torch.Size([2, R, C]))
+
+
+def test_static_learner_forecaster_equals_recursive_prediction():
+    lssvr, X = _learner("lssvr", m=4)
+    s = _series()
+    fc = MeasurementForecaster([lssvr], 4, online=False).initialize(s[:50].unsqueeze(-1))
+    fc.update(s[50:51])
+    got = fc.forecast(5)[:, 0]
+    torch.testing.assert_close(got, recursive_predict(lssvr, s[47:51], 5).detach())
+
+
+def test_predict_fault_parameter_with_oracle_equals_real_time_filter():
+    th, ys_all, model, init = _drift_problem(T=60)
+    filt = stsckf()
+    k, n = 40, 5
+    traj = run(filt, model, init, ys_all[: k + n])
+    state = run(filt, model, init, ys_all[:k]).final
+    mean0, chol0 = state.belief.mean.clone(), state.belief.chol.clone()
+    oracle = _Oracle(ys_all).initialize(ys_all[:k])
+    pred = predict_fault_parameter(filt, model, state, oracle, n, k, param_index=0)
+    torch.testing.assert_close(pred.theta, traj.means[k + n - 1], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(pred.means, traj.means[k:])
+    torch.testing.assert_close(pred.fading_factors, traj.fading_factors[k:])
+    assert pred.theta.shape == (3, 1) and pred.pseudo_measurements.shape == (n, 3, 2)
+    assert torch.equal(state.belief.mean, mean0) and torch.equal(state.belief.chol, chol0)
+
+
+def test_rolling_prediction_alignment_with_oracle():
+    T, n, start = 70, 4, 30
+    th, ys_all, model, init = _drift_problem(T=T)
+    filt = stsckf()
+    res = rolling_fault_prediction(
+        filt, model, ys_all[:T], _Oracle(ys_all), n, start, init=init, param_index=0
+    )
+    full = run(filt, model, init, ys_all[:T])
+    # the real-time estimate is not disturbed by the n-step runs
+    torch.testing.assert_close(res.filtered, full.means, rtol=1e-12, atol=1e-12)
+    assert res.origin.tolist() == list(range(start, T + 1))
+    torch.testing.assert_close(res.target, res.origin + n)
+    ok = res.target <= T
+    torch.testing.assert_close(res.predicted[ok], full.means[res.target[ok] - 1])
+    aligned = res.aligned()
+    assert aligned.shape == (T + n, 3, 1)
+    assert bool(torch.isnan(aligned[: start + n - 1]).all())
+    torch.testing.assert_close(aligned[start + n - 1 :], res.predicted)
+    assert res.fading_factors.shape == (T - start + 1, n, 3)
+
+
+def test_rolling_fault_prediction_strong_tracking_beats_plain_filter_on_ramp():
+    T, n, start, onset = 110, 5, 50, 30
+    th, ys_all, model, init = _drift_problem(T=T, onset=onset)
+    ys = ys_all[:T]
+    fc = MeasurementForecaster.ros_elm(2, p=3, n_hidden=20, lam=1e-8, generator=_gen(1))
+    out = {}
+    for name, filt in (("sckf", sckf()), ("stsckf", stsckf())):
+        res = rolling_fault_prediction(filt, model, ys, fc, n, start, init=init, param_index=0)
+        truth = th[res.target - 1].unsqueeze(-1)  # theta at time t is th[t - 1]
+        out[name] = float((res.predicted[..., 0] - truth).abs().mean())
+        lam = res.fading_factors
+        if name == "sckf":
+            assert bool((lam == 1).all())
+        else:
+            assert float(lam.max()) > 1.0
+    assert not fc.initialized  # the caller's forecaster is copied, not modified
+    ramp = float(th[T + n - 1] - th[start])  # size of the drift over the prediction window
+    assert out["stsckf"] < 0.5 * out["sckf"], out
+    assert out["stsckf"] < 0.1 * ramp, (out, ramp)
+
+
+def test_bad_forecaster_and_fault_arguments_raise_clear_errors():
+    fc = MeasurementForecaster.ros_elm(2, p=3, n_hidden=8, lam=1e-3)
+    with pytest.raises(RuntimeError, match="initialize"):
+        fc.forecast(3)
+    with pytest.raises(ValueError, match="N0 >= p \\+ 1"):
+        fc.initialize(torch.zeros(3, 2, dtype=F64))
+    z0 = torch.randn(20, 2, generator=_gen(0), dtype=F64)
+    with pytest.raises(ValueError, match=r"z0 must have shape \(N0, \.\.\., C\) with C=2"):
+        fc.initialize(z0[:, :1])
+    fc.initialize(z0)
+    with pytest.raises(ValueError, match="n must be a positive int"):
+        fc.forecast(0)
+    with pytest.raises(ValueError, match=r"z must have shape \(2,\)"):
+        fc.update(torch.zeros(3, dtype=F64))
+    with pytest.raises(ValueError, match="z contains non-finite"):
+        fc.update(torch.tensor([0.0, float("nan")], dtype=F64))
+    with pytest.raises(ValueError, match="p=4"):
+        MeasurementForecaster([ELM(3, 5)], 4)
+
+    th, ys_all, dmodel, init = _drift_problem(T=40)
+    state = sckf().init(dmodel, init)
+    with pytest.raises(ValueError, match="n must be a positive int"):
+        predict_fault_parameter(sckf(), dmodel, state, _Oracle(ys_all).initialize(ys_all[:5]), 0, 5)
+    with pytest.raises(ValueError, match=r"forecaster.forecast\(n\) must return shape"):
+        predict_fault_parameter(sckf(), dmodel, state, fc, 3, 5)  # 2 channels but no run dim
+    with pytest.raises(ValueError, match="start"):
+        rolling_fault_prediction(sckf(), dmodel, ys_all[:40], fc, 3, 41, init=init)
+    ys_bad = ys_all[:40].clone()
+    ys_bad[7, 0, 1] = float("nan")
+    with pytest.raises(ValueError, match="ys contains non-finite"):
+        rolling_fault_prediction(sckf(), dmodel, ys_bad, fc, 3, 20, init=init)
+    with pytest.raises(ValueError, match="param_index"):
+        rolling_fault_prediction(sckf(), dmodel, ys_all[:40], fc, 3, 20, init=init, param_index=4)
