@@ -552,7 +552,10 @@ def _cmd_rul(args) -> int:
         _check_out_folder(args.plot, "--plot")
         series, data_cfg = _series_from_args(args)
         truth = _series_from_args(args, data_cfg, truth=True)[0] if args.until else None
-        return run_prognose(args, series, data_cfg, truth)
+        censored = run_prognose(args, series, data_cfg, truth)
+        if censored:
+            raise _CensoredRUL(censored)
+        return 0
     model, series, data_cfg, truth = _load_for_prediction(args)
     res = rul(
         model,

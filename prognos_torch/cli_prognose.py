@@ -32,10 +32,15 @@ def observed_rul(truth, t_eval: float, threshold: float, direction: str) -> floa
     return float(truth.t[idx[0, 0]]) - t_eval
 
 
-def run_prognose(args, series, data_cfg: dict, truth=None) -> int:
-    """Run ``prognose`` on the loaded series and print the result; return the exit status."""
+def run_prognose(args, series, data_cfg: dict, truth=None) -> str | None:
+    """Run ``prognose`` on the loaded series and print the result (and write ``--plot``).
+
+    Returns:
+        ``None``, or the sentence for the ``censored RUL:`` line when part of the distribution
+        lies beyond the horizon (the command then exits 3, as ``prognos rul MODEL DATA`` does).
+    """
+    from .plots import plot_prognosis
     from .workflow import prognose
-    from .workflow.prognose_plots import plot_prognosis
 
     res = prognose(
         series,
@@ -85,4 +90,10 @@ def run_prognose(args, series, data_cfg: dict, truth=None) -> int:
         tr = None if truth is None else (truth.t, truth.values)
         plot_prognosis(args.plot, res, truth=tr)
         print(f"figure written to {args.plot}")
-    return 0
+    if res.status == "ok" and res.censored_mass > 0:
+        return (
+            f"{100 * res.censored_mass:.0f} % of the predicted paths do not reach the threshold "
+            f"{res.threshold:g} within the horizon of {res.bound:g} {unit} (2 x the observed life); "
+            "their RUL exceeds it and the mean is withheld"
+        )
+    return None

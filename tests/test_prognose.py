@@ -52,8 +52,27 @@ def test_auto_chooses_by_backtest_and_reports_the_scores():
     res = prognose(y, 3.0, time=t)
     sel = res.selection
     assert sel["pairs"] > 0 and set(sel["scores"]) == {"exponential", "power", "linear", "elm"}
-    assert res.model == sel["chosen"] == min(sel["scores"], key=sel["scores"].get)
+    assert res.model == sel["chosen"]
+    best = min(sel["scores"], key=sel["scores"].get)
+    assert res.model in ("exponential", best)  # the one-standard-error rule
     assert res.summary()["median"] is not None
+
+
+def test_one_standard_error_rule_and_crps():
+    from prognos_torch.workflow.prognose import crps_log_time, one_standard_error_choice
+
+    t = lambda *v: torch.tensor(v, dtype=F64)  # noqa: E731
+    # clearly better on every pair: chosen; better on average but noisy: the default stays
+    assert one_standard_error_choice({"exponential": t(1, 1, 1), "power": t(0.5, 0.4, 0.6)},
+                                     "exponential") == "power"  # fmt: skip
+    assert one_standard_error_choice({"exponential": t(1, 1, 1), "power": t(0.1, 1.5, 1.2)},
+                                     "exponential") == "exponential"  # fmt: skip
+    # CRPS of a point mass at the truth is 0; of a sample spread 0 it is |log ratio|
+    assert float(crps_log_time(t(2.0, 2.0, 2.0), 2.0, 100.0)) == pytest.approx(0.0, abs=1e-15)
+    assert float(crps_log_time(t(4.0), 2.0, 100.0)) == pytest.approx(math.log(2.0))
+    # a closed form: samples uniform on two points a < b, CRPS = mean|X-x| - (b-a)/4
+    got = float(crps_log_time(t(1.0, math.e), 1.0, 100.0))
+    assert got == pytest.approx(0.5 - 0.25)
 
 
 def test_direction_below_mirrors_above():

@@ -233,7 +233,9 @@ def test_rul_first_passage_by_hand_and_censoring():
     assert r.crossing_probability == pytest.approx(pmf.sum())
     np.testing.assert_allclose(r.distribution.support.numpy(), 0.5 * np.arange(1, 31))
     far = rul(model, s, 1e6, horizon=20, filter="sckf", n_particles=20)
-    assert far.fully_censored and all(far.summary()[k] is None for k in ("mean", "median", "q05", "q95"))
+    assert far.fully_censored and all(
+        far.summary()[k] is None for k in ("mean", "median", "q05", "q95")
+    )
     low = rul(model, s, -1e6, horizon=5, filter="sckf", n_particles=10)
     assert low.direction == "below" and low.fully_censored
     with pytest.raises(ValueError, match="already reaches the threshold"):

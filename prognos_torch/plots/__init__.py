@@ -13,7 +13,9 @@ or array-likes.
 * :mod:`.rul`: predicted RUL over prediction time with the alpha cone (:func:`plot_rul_band`),
   predicted paths against a threshold (:func:`plot_paths`);
 * :mod:`.workflow`: a forecast with its band and an RUL distribution with its paths (the
-  figures of :mod:`prognos_torch.workflow`, written atomically).
+  figures of :mod:`prognos_torch.workflow`, written atomically);
+* :mod:`.prognosis`: a :func:`~prognos_torch.workflow.prognose` result (paths with the
+  threshold, RUL pmf) and RUL trajectories against the alpha cone.
 """
 
 from .figures import (
@@ -29,6 +31,7 @@ from .heatmap import HeatmapPanel, draw_heatmap, plot_heatmaps
 from .lines import LinePanel, break_at_gaps, plot_line_panels, plot_prediction_errors
 from .panels import plot_panels
 from .rul import draw_paths, plot_paths, plot_rul_band, weighted_quantiles
+from .prognosis import plot_prognosis, plot_rul_trajectory
 from .workflow import plot_forecast, plot_rul, time_label
 
 __all__ = [
@@ -54,4 +57,6 @@ __all__ = [
     "plot_forecast",
     "plot_rul",
     "time_label",
+    "plot_prognosis",
+    "plot_rul_trajectory",
 ]

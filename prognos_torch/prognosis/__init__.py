@@ -14,8 +14,10 @@ fault prediction, and fault probability and remaining-useful-life distributions.
   threshold crossings).
 * :mod:`.rul`: fault probability and RUL distributions from predicted paths.
 * :mod:`.events`: batched Monte-Carlo simulation of samples to an event (EOD, EOL).
-* :mod:`.onset`: degradation onset against a healthy baseline (k-sigma rule, CUSUM).
-* :mod:`.trends`, :mod:`.learner_trend`: degradation-trend models filtered by the engine.
+* :mod:`.onset`: degradation onset (first prediction time) against a healthy baseline.
+* :mod:`.trends`: exponential, power-law and linear degradation trends as state-space models
+  estimated by the filter engine; :mod:`.learner_trend`: an ELM trend trained online by the
+  Kalman optimiser; :mod:`.protocol`: the known-threshold RUL protocol of bearing studies.
 """
 
 from ..learners.ros_elm import ROSELMState, ros_elm_forecast, ros_elm_init, ros_elm_update

@@ -26,12 +26,16 @@ Pipeline of :func:`prognose` (every step a library function with its own tests):
    since onset are averaged over equal-count blocks first (the baseline noise of a block mean
    is ``sigma_0 / sqrt(count)``).
 4. **Model choice** (``method="auto"``): a backtest on the series' own past. For the levels
-   ``m_0 + f (max m - m_0)``, ``f in {0.4, 0.6, 0.8}``, that the 5-point moving median ``m`` has
-   already crossed since onset, each model predicts the crossing from origins at 50 % and 80 %
-   of the way from onset to it (posterior at the origin: causal; the noise estimates use all
-   data); the score is the mean ``|log(predicted / true time to the crossing)|`` of the median
-   predicted crossing (a prediction beyond 10 x the truth scores ``log 10``). The lowest score
-   wins; with no crossed level yet, the exponential model is used.
+   ``m_0 + f (max m - m_0)``, ``f in {0.5, 0.8}``, that the 5-point moving median ``m`` has
+   already crossed since onset, each model predicts the crossing from origins at 40 % and 70 %
+   of the way from onset to it (posterior at the origin: causal; the noise grid's scale uses
+   all data). The score is the CRPS of the predicted log time to the crossing (Gneiting &
+   Raftery 2007; a proper score, so it rewards calibrated as well as sharp predictions; censored
+   paths count at 10 x the truth). Each shape's noise is the grid point of best mean score (of
+   highest likelihood when no level has been crossed yet); between models the
+   one-standard-error rule keeps the exponential model (Gebraeel's, the canonical one) unless
+   another beats it by more than one standard error of the paired score differences
+   (:func:`one_standard_error_choice`).
 5. **RUL.** ``n_paths`` sample paths from the chosen model's posterior at the last observation,
    run until every path has crossed or until the horizon ``horizon_factor x`` the observed life
    (at least 10 x the time since onset), never a short fixed cap; paths that do not cross are
@@ -64,7 +68,13 @@ from ..prognosis.trends import TREND_SHAPES, fit_trends, path_grid
 from .data import Series
 from .predict import RULResult
 
-__all__ = ["prognose", "PROGNOSE_METHODS", "MIN_POINTS"]
+__all__ = [
+    "prognose",
+    "PROGNOSE_METHODS",
+    "MIN_POINTS",
+    "crps_log_time",
+    "one_standard_error_choice",
+]
 
 #: Trend models ``prognose`` accepts (``"auto"`` chooses among all of them).
 PROGNOSE_METHODS = ("auto", *TREND_SHAPES, "elm")
@@ -73,7 +83,7 @@ MIN_POINTS = 10
 _K = 4.0  # healthy band and onset limit in baseline standard deviations
 _BACKTEST_LEVELS = (0.5, 0.8)
 _BACKTEST_ORIGINS = (0.4, 0.7)
-_BACKTEST_PATHS = 100
+_BACKTEST_PATHS = 64
 _MAX_BINS = 20_000
 
 
@@ -184,28 +194,45 @@ def crps_log_time(times: Tensor, true: float, cap: float) -> Tensor:
 
 
 def _backtest(fits: dict, pairs, t: Tensor, gen: torch.Generator) -> dict[str, Tensor]:
-    """Mean log-time CRPS over the backtest pairs, per shape and noise grid point ``(G,)``."""
+    """Log-time CRPS per backtest pair, per shape and noise grid point ``(G, P)``."""
     out = {}
     for name, fit in fits.items():
-        total = torch.zeros(fit.grid.level.numel(), dtype=torch.float64)
+        cols = []
         for c, i, t_c in pairs:
             true = t_c - float(t[i])
             grid = path_grid(float(t[i]), 10.0 * true, true / 20.0, rel=0.05)
             times = fit.grid_first_passage(i, c, grid, _BACKTEST_PATHS, gen) - float(t[i])
-            total += crps_log_time(times, true, 10.0 * true)
-        out[name] = total / len(pairs)
+            cols.append(crps_log_time(times, true, 10.0 * true))
+        out[name] = torch.stack(cols, -1)
     return out
 
 
-def _backtest_one(fit, pairs, t: Tensor, gen: torch.Generator) -> float:
-    """The same score for one model (the learner)."""
-    total = 0.0
+def _backtest_one(fit, pairs, t: Tensor, gen: torch.Generator) -> Tensor:
+    """The same scores ``(P,)`` for one model (the learner)."""
+    cols = []
     for c, i, t_c in pairs:
         true = t_c - float(t[i])
         grid = path_grid(float(t[i]), 10.0 * true, true / 20.0, rel=0.05)
         times = fit.first_passage(i, c, grid, _BACKTEST_PATHS, gen).times - float(t[i])
-        total += float(crps_log_time(times, true, 10.0 * true))
-    return total / len(pairs)
+        cols.append(crps_log_time(times, true, 10.0 * true))
+    return torch.stack(cols)
+
+
+def one_standard_error_choice(per_pair: dict[str, Tensor], default: str) -> str:
+    """The model whose mean backtest score beats ``default``'s by more than one standard error
+    of the paired differences, the best of those; otherwise ``default`` (the one-standard-error
+    rule of Breiman et al. 1984: with a handful of backtest pairs, prefer the canonical model
+    unless the evidence against it exceeds its own noise)."""
+    if default not in per_pair:
+        return min(per_pair, key=lambda k: float(per_pair[k].mean()))
+    ref = per_pair[default]
+    best, best_mean = default, float(ref.mean())
+    for name, sc in per_pair.items():
+        d = sc - ref
+        se = float(d.std(correction=1)) / math.sqrt(d.numel()) if d.numel() > 1 else math.inf
+        if float(d.mean()) < -se and float(sc.mean()) < best_mean:
+            best, best_mean = name, float(sc.mean())
+    return best
 
 
 def _flags(fit, level_thr: float, passage, n_since: int, censored: float) -> list[str]:
@@ -363,19 +390,20 @@ def prognose(
     )
     fits = fit_trends(tb, yb, phi=phi, sigma0=s0b, shapes=shapes, filter=filter)
     pairs = _backtest_pairs(tb, yb, s0b)
-    scores: dict[str, float] = {}
+    per_pair: dict[str, Tensor] = {}
     if pairs:  # noise (and model) chosen by multi-step crossing-time skill on the own past
         grid_scores = _backtest(fits, pairs, tb, gen)
         for name, sc in grid_scores.items():
-            g = int(torch.argmin(torch.nan_to_num(sc, nan=math.inf)))
+            g = int(torch.argmin(torch.nan_to_num(sc.mean(-1), nan=math.inf)))
             fits[name] = fits[name].select(g)
-            scores[name] = float(sc[g])
+            per_pair[name] = sc[g]
     models: dict = {k: v for k, v in fits.items() if method in ("auto", k)}
     if method in ("auto", "elm") and "exponential" in fits:
         origins = sorted({i for _, i, _ in pairs})
         models["elm"] = fit_learner_trend(fits["exponential"], seed=seed, snapshots=tuple(origins))
         if pairs:
-            scores["elm"] = _backtest_one(models["elm"], pairs, tb, gen)
+            per_pair["elm"] = _backtest_one(models["elm"], pairs, tb, gen)
+    scores = {k: float(v.mean()) for k, v in per_pair.items()}
     if not models:
         raise ValueError(
             f"the {method!r} model cannot be fitted: fewer than 3 values since onset exceed the "
@@ -383,12 +411,13 @@ def prognose(
         )
     chosen = next(iter(models))
     if method == "auto":
-        if scores:
-            chosen = min(scores, key=lambda k: (scores[k], list(models).index(k)))
+        if per_pair:
+            chosen = one_standard_error_choice(per_pair, "exponential")
         elif "exponential" in models:
             chosen = "exponential"
     selection = {
-        "criterion": "mean CRPS of the log time to already crossed levels (backtest)"
+        "criterion": "mean CRPS of the log time to already crossed levels (backtest), "
+        "one-standard-error rule with the exponential model as default"
         if pairs
         else "maximum likelihood (no level crossed since onset yet)",
         "pairs": len(pairs),
@@ -399,7 +428,7 @@ def prognose(
     horizon = max(horizon_factor * span_life, 10.0 * (t_last - float(t[i0])), 10 * dt_data)
     horizon += t_eval - t_last
     bin_width = max(dt_data, horizon / _MAX_BINS)
-    grid = path_grid(float(tb[-1]), horizon + (t_last - float(tb[-1])), bin_width, rel=0.01)
+    grid = path_grid(float(tb[-1]), horizon + (t_last - float(tb[-1])), bin_width, rel=0.02)
     passage = fit.first_passage(-1, thr_o, grid, n_paths, gen, keep=100)
     rul = passage.times - t_eval
     alive = passage.times > t_eval

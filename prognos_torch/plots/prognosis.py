@@ -14,13 +14,16 @@ import io
 import math
 import os
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from ..io import atomic_write
-from .predict import RULResult
+
+if TYPE_CHECKING:  # annotations only: the workflow imports the plots, not the reverse
+    from ..workflow.predict import RULResult
 
 __all__ = ["plot_prognosis", "plot_rul_trajectory"]
 
@@ -86,10 +89,15 @@ def plot_prognosis(
         tt, yt = _np(truth[0]), _np(truth[1])
         sel = (tt > result.t_last) & (tt <= t_end)
         ax.plot(tt[sel], yt[sel], ".", ms=2, color="0.65", label="what followed")
+    ylo, yhi = float(np.min(yh[keep])), float(np.max(yh[keep]))
+    lo_t, hi_t = min(ylo, result.threshold), max(yhi, result.threshold)
+    pad = 0.15 * (hi_t - lo_t) if hi_t > lo_t else 1.0
     if result.status == "ok":
         tf = result.t_last + result.dt * np.arange(1, result.horizon + 1)
         m = tf <= t_end
-        P = _np(result.paths)[:, m]
+        # paths far off the axes (an exponential path can reach 1e300) are clipped near them:
+        # huge coordinates make the Agg renderer allocate without bound
+        P = np.clip(_np(result.paths)[:, m], lo_t - 10 * pad, hi_t + 10 * pad)
         if P.shape[1]:
             lo, med, hi = np.quantile(P, [0.05, 0.5, 0.95], axis=0)
             ax.fill_between(tf[m], lo, hi, color="C1", alpha=0.2, label="paths 5-95 %")
@@ -98,9 +106,6 @@ def plot_prognosis(
             ax.plot(tf[m], med, color="C1", lw=1.3, label="median path")
     ax.axhline(result.threshold, color="C3", lw=1.0, ls="--", label="threshold")
     ax.set_xlim(t0, t_end)
-    ylo, yhi = float(np.min(yh[keep])), float(np.max(yh[keep]))
-    lo_t, hi_t = min(ylo, result.threshold), max(yhi, result.threshold)
-    pad = 0.15 * (hi_t - lo_t) if hi_t > lo_t else 1.0
     ax.set_ylim(lo_t - pad, hi_t + pad)
     ax.set_xlabel(_label(h))
     ax.set_ylabel(h.name)

@@ -1,0 +1,55 @@
+"""``prognos rul DATA.csv ...``: RUL straight from a CSV, without a model file."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import torch
+
+from prognos_torch.cli import main
+
+IMS = Path(__file__).resolve().parents[1] / "datasets" / "ims" / "test1_features.csv"
+
+
+def _csv(path: Path, y: torch.Tensor) -> Path:
+    lines = ["t,value"] + [f"{i},{float(v)!r}" for i, v in enumerate(y)]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_rul_from_the_ims_table_with_until(capsys, tmp_path):
+    args = ["rul", str(IMS), "--column", "rms", "--where", "channel=5", "--time-column",
+            "timestamp", "--threshold", "0.45", "--until", "2003-11-25T13:00:00",
+            "--plot", str(tmp_path / "rul.png")]  # fmt: skip
+    assert main(args) == 3  # partly censored: exit 3 with one 'censored RUL:' line
+    cap = capsys.readouterr()
+    out = cap.out
+    assert cap.err.startswith("censored RUL: ") and cap.err.count("\n") == 1
+    assert "degradation onset" in out and "33.959" in out
+    assert "trend model" in out and "90 % interval" in out and "censored mass" in out
+    assert re.search(r"observed RUL \(days\)\s+0\.4392", out)
+    assert (tmp_path / "rul.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_no_degradation_is_said_plainly(capsys, tmp_path):
+    g = torch.Generator().manual_seed(0)
+    y = 1.0 + 0.05 * torch.randn(400, generator=g, dtype=torch.float64)
+    path = _csv(tmp_path / "flat.csv", y)
+    assert main(["rul", str(path), "--column", "value", "--time-column", "t", "--threshold",
+                 "2"]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert "no degradation detected yet" in out and "lower bound" in out
+    assert "median RUL" not in out
+
+
+def test_bad_input_is_one_line_and_exit_2(capsys, tmp_path):
+    y = torch.cat([torch.ones(100, dtype=torch.float64), torch.full((10,), 3.0)])
+    y[::2] += 0.01
+    path = _csv(tmp_path / "done.csv", y)
+    assert main(["rul", str(path), "--column", "value", "--threshold", "2"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: threshold 2 already reached") and err.count("\n") == 1
+    assert main(["rul", str(path), "--column", "value", "--threshold", "2", "--method",
+                 "cubic"]) == 2  # fmt: skip
+    assert "method must be one of" in capsys.readouterr().err

@@ -1,0 +1,88 @@
+"""The ims-rul study in quick mode: the protocol, the outputs and the headline numbers.
+
+The headline numbers are asserted with tolerances so that the test breaks when the results move
+(a change of model, selection, seed use or protocol must show up here and in docs/RESULTS.md).
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from _study_helpers import quick_fixture, read_rows
+
+from prognos_torch.datasets import load_ims_features
+from prognos_torch.prognosis.protocol import (
+    exponential_lsq_rul,
+    known_threshold_protocol,
+    linear_slope_rul,
+    rul_scores,
+)
+
+quick_out = quick_fixture("ims-rul")
+METHODS = ("prognose (auto)", "prognose (exponential)", "linear slope", "exponential LSQ")
+
+
+def test_protocol_on_bearing_3():
+    f = load_ims_features(1)
+    pc = known_threshold_protocol(f.days, f.feature("rms")[:, 4])
+    assert pc.valid
+    assert pc.threshold == pytest.approx(0.4466, abs=1e-4)  # 0.9 x max 5-point median
+    assert pc.t_eol == pytest.approx(34.4747, abs=1e-4)
+    assert pc.t_onset == pytest.approx(33.9591, abs=1e-4)
+    torch.testing.assert_close(pc.true_rul, pc.t_eol - pc.times)
+    span = pc.t_eol - pc.t_onset
+    expected = torch.tensor([pc.t_onset + q * span for q in (0.2, 0.4, 0.6, 0.8, 0.9)])
+    torch.testing.assert_close(pc.times, expected.to(torch.float64))
+
+
+def test_baselines_and_scores_by_hand():
+    t = torch.arange(20, dtype=torch.float64)
+    y = 1.0 + 0.1 * t
+    assert linear_slope_rul(t, y, 4.0, 0.0) == pytest.approx(11.0)  # 1 + 0.1 t = 4 at t = 30
+    ye = 1.0 + torch.exp(0.1 * t)
+    assert exponential_lsq_rul(t, ye, 1.0 + math.exp(3.0), 0.0, 1.0) == pytest.approx(11.0)
+    assert linear_slope_rul(t, 5.0 - 0.1 * t, 9.0, 0.0) == math.inf
+    times = torch.tensor([0.0, 1.0, 2.0], dtype=torch.float64)
+    true = 4.0 - times
+    pred = torch.tensor([4.0, 4.0, math.inf], dtype=torch.float64)
+    sc = rul_scores(times, true, pred, t_onset=0.0, t_eol=4.0,
+                    lower=pred - 1, upper=pred + 1)  # fmt: skip
+    assert sc["alpha_lambda_0.3"] == pytest.approx(1 / 3)
+    assert sc["coverage"] == pytest.approx(2 / 3)  # [3, 5] holds 4 and 3; [inf, inf] not 2
+    assert sc["median_abs_error"] == pytest.approx(1.0)
+
+
+def test_quick_outputs(quick_out):
+    for name in ("table.md", "results.csv", "run.json", "rul_vs_time.png", "paths.png"):
+        assert (quick_out / name).stat().st_size > 0
+    rows = read_rows(quick_out)
+    assert {r["method"] for r in rows} == set(METHODS)
+    assert len(rows) == 4 * 2 * 3  # methods x series x points
+    table = (quick_out / "table.md").read_text()
+    assert "alpha-lambda 0.3" in table and "Nothing was fitted to these bearings" in table
+
+
+def _headline(rows, method):
+    rs = [r for r in rows if r["method"] == method]
+    err = torch.tensor([float(r["abs_error"]) for r in rs])
+    cone = sum(float(r["in_cone_0.3"]) for r in rs) / len(rs)
+    cov = [float(r["covered"]) for r in rs if r["covered"] not in ("", "None")]
+    return float(err.median()), cone, (sum(cov) / len(cov) if cov else None)
+
+
+def test_quick_headline_numbers(quick_out):
+    rows = read_rows(quick_out)
+    med, cone, cov = _headline(rows, "prognose (exponential)")
+    assert med == pytest.approx(0.19, abs=0.02)
+    assert cone == pytest.approx(1 / 6) and cov == pytest.approx(1.0)
+    med, cone, cov = _headline(rows, "prognose (auto)")
+    assert med == pytest.approx(0.345, abs=0.03)
+    assert cone == pytest.approx(1 / 6) and cov == pytest.approx(0.5)
+    med, cone, _ = _headline(rows, "exponential LSQ")  # deterministic
+    assert med == pytest.approx(0.0727, abs=1e-3) and cone == pytest.approx(1 / 6)
+    # per point: the exponential model's medians on bearing 3 (days)
+    b3 = [float(r["pred_rul"]) for r in rows
+          if r["method"] == "prognose (exponential)" and r["series"] == "T1 B3 rms"]  # fmt: skip
+    assert b3 == pytest.approx([0.2222, 0.4583, 0.4444], abs=0.02)
