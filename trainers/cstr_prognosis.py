@@ -41,10 +41,10 @@ import torch
 from tqdm import tqdm
 
 from prognos_torch import filters, plots, prognosis, studies
+from prognos_torch.adapt import SageHusa
 from prognos_torch.core import GaussianBelief
 from prognos_torch.datasets import embed, minmax_normalize
 from prognos_torch.learners import ANFIS
-from prognos_torch.adapt import SageHusa
 from prognos_torch.optim import ImSRUKF, ParameterBridge, StackedLearner, fit
 from prognos_torch.studies import Study, StudyConfig, StudyResult
 from prognos_torch.systems.cstr import (
