@@ -9,7 +9,7 @@ from torch import Tensor
 
 from .validation import check_chol, check_finite
 
-__all__ = ["GaussianBelief"]
+__all__ = ["GaussianBelief", "check_belief"]
 
 
 @dataclass(frozen=True)
@@ -105,3 +105,26 @@ class GaussianBelief:
         check_finite(self.mean, f"{name}.mean")
         check_chol(self.chol, f"{name}.chol", n)
         return self
+
+
+def check_belief(belief, state_dim: int, name: str = "belief"):
+    """A valid :class:`GaussianBelief` (finite mean, lower triangular
+    factor with a positive diagonal) on a state of dimension ``state_dim``; anything else is a
+    ``TypeError`` that says how to build one (a ``(mean, chol)`` pair is the usual slip)."""
+    if not isinstance(belief, GaussianBelief):
+        if isinstance(belief, (tuple, list)) and len(belief) == 2:
+            raise TypeError(
+                f"{name} must be a GaussianBelief, got a {type(belief).__name__} of two items; "
+                "wrap it: GaussianBelief(mean, chol) (or GaussianBelief.from_cov(mean, cov))"
+            )
+        raise TypeError(
+            f"{name} must be a GaussianBelief(mean (..., n), chol (..., n, n)), got "
+            f"{type(belief).__name__}"
+        )
+    belief.validate(name)
+    if belief.dim != state_dim:
+        raise ValueError(
+            f"{name}.mean must have shape (..., {state_dim}) for this model, "
+            f"got {tuple(belief.mean.shape)}"
+        )
+    return belief

@@ -35,7 +35,6 @@ __all__ = [
     "check_count",
     "check_nonneg",
     "check_scalar",
-    "check_belief",
     "check_dtype_arg",
     "check_forward_input",
     "check_matches",
@@ -348,31 +347,6 @@ def as_targets(y, name: str, *, device: torch.device, n_rows: int, n_out: int) -
 
 
 # ------------------------------------------------------------------------------ filter inputs
-def check_belief(belief, state_dim: int, name: str = "belief"):
-    """A valid :class:`~prognos_torch.core.belief.GaussianBelief` (finite mean, lower triangular
-    factor with a positive diagonal) on a state of dimension ``state_dim``; anything else is a
-    ``TypeError`` that says how to build one (a ``(mean, chol)`` pair is the usual slip)."""
-    from .belief import GaussianBelief  # belief imports this module
-
-    if not isinstance(belief, GaussianBelief):
-        if isinstance(belief, (tuple, list)) and len(belief) == 2:
-            raise TypeError(
-                f"{name} must be a GaussianBelief, got a {type(belief).__name__} of two items; "
-                "wrap it: GaussianBelief(mean, chol) (or GaussianBelief.from_cov(mean, cov))"
-            )
-        raise TypeError(
-            f"{name} must be a GaussianBelief(mean (..., n), chol (..., n, n)), got "
-            f"{type(belief).__name__}"
-        )
-    belief.validate(name)
-    if belief.dim != state_dim:
-        raise ValueError(
-            f"{name}.mean must have shape (..., {state_dim}) for this model, "
-            f"got {tuple(belief.mean.shape)}"
-        )
-    return belief
-
-
 def check_generator(generator, like: Tensor, what: str = "particles") -> torch.Generator:
     """A ``torch.Generator`` on the device type of ``like`` (the ``what`` it draws for)."""
     if not isinstance(generator, torch.Generator):

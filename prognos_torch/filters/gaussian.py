@@ -48,7 +48,7 @@ from torch import Tensor
 from ..adapt.noise import MovingWindow, NoiseEstimatorState, SageHusa, UpdateContext
 from ..adapt.robust import RobustBound
 from ..adapt.strong_tracking import StrongTracking, StrongTrackingState, fading_factor
-from ..core.belief import GaussianBelief
+from ..core.belief import GaussianBelief, check_belief
 from ..core.linalg import (
     cho_solve_right,
     chol_downdate,
@@ -58,7 +58,7 @@ from ..core.linalg import (
     tria,
 )
 from ..core.model import Noise, StateSpaceModel
-from ..core.validation import check_belief, check_control, check_measurement
+from ..core.validation import check_control, check_measurement
 from ..quadrature import SigmaPoints
 
 __all__ = [

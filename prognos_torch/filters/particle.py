@@ -58,10 +58,9 @@ from dataclasses import dataclass, fields, is_dataclass, replace
 import torch
 from torch import Tensor
 
-from ..core.belief import GaussianBelief
+from ..core.belief import GaussianBelief, check_belief
 from ..core.model import Noise, StateSpaceModel
 from ..core.validation import (
-    check_belief,
     check_control,
     check_generator,
     check_measurement,

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.belief import GaussianBelief
+from ..core.belief import GaussianBelief, check_belief
 from ..core.model import StateSpaceModel
-from ..core.validation import check_belief, check_pos_int, check_sequence
+from ..core.validation import check_pos_int, check_sequence
 from .gaussian import FilterState, GaussianFilter, StepInfo, innovation_stats
 from .sequence import scan
 

@@ -21,12 +21,11 @@ import os
 import string
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
-if TYPE_CHECKING:  # annotations only (the runner imports this module)
-    from .runner import StudyResult
+from .study import StudyResult
 
 __all__ = [
     "Stat",

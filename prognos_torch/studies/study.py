@@ -1,0 +1,78 @@
+"""The study records: a study, its options and what it returns (plain data, no I/O)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+__all__ = ["Study", "StudyConfig", "StudyResult"]
+
+
+@dataclass(frozen=True)
+class StudyConfig:
+    """Options every study accepts.
+
+    Attributes:
+        runs: Monte Carlo runs (``None``: the study's default, usually the paper's).
+        quick: a reduced protocol for tests and smoke runs (well under a minute).
+        out: output folder.
+        device: ``"cpu"`` or ``"cuda"``.
+        seed: base seed; run ``i`` uses ``torch.Generator().manual_seed(seed + i)``.
+        progress: show progress bars.
+    """
+
+    runs: int | None = None
+    quick: bool = False
+    out: Path = Path("results")
+    device: str = "cpu"
+    seed: int = 0
+    progress: bool = True
+
+    def __post_init__(self):
+        if self.runs is not None and (not isinstance(self.runs, int) or self.runs < 1):
+            raise ValueError(f"runs must be a positive int, got {self.runs!r}")
+        if self.device not in ("cpu", "cuda"):
+            raise ValueError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
+        if self.device == "cuda" and not torch.cuda.is_available():
+            raise ValueError("device 'cuda' was asked for but CUDA is not available here")
+
+    def generator(self, offset: int = 0) -> torch.Generator:
+        """A CPU generator seeded with ``seed + offset`` (simulators draw on the CPU)."""
+        return torch.Generator().manual_seed(self.seed + offset)
+
+
+@dataclass
+class StudyResult:
+    """What a study returns.
+
+    Attributes:
+        rows: one dict per (run, method): ``{"run": i, "method": name, metric: value, ...}``.
+        metrics: metric names to tabulate, in order (e.g. ``["MAE", "RMSE", "time_s"]``).
+        paper: the paper's published numbers ``{method: {metric: value}}`` (may be partial).
+        figures: paths of the figures the study saved (relative to the output folder).
+        config: study-specific settings to record in ``run.json``.
+        notes: free text appended to ``table.md`` (readings, caveats).
+        extra_tables: additional markdown blocks appended to ``table.md``.
+    """
+
+    rows: list[dict]
+    metrics: list[str]
+    paper: dict[str, dict[str, float]] = field(default_factory=dict)
+    figures: list[str] = field(default_factory=list)
+    config: dict = field(default_factory=dict)
+    notes: str = ""
+    extra_tables: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Study:
+    """A named study: ``run(cfg, out_dir) -> StudyResult``."""
+
+    name: str
+    paper: str
+    title: str
+    run: Callable[[StudyConfig, Path], StudyResult]
+    default_runs: int = 50
