@@ -46,6 +46,7 @@ otherwise, and for any other format version.
 
 from __future__ import annotations
 
+import csv
 import hashlib
 import hmac
 import json
@@ -54,7 +55,8 @@ import os
 import re
 import struct
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -65,6 +67,7 @@ from torch import Tensor
 from . import __version__
 
 __all__ = [
+    "sniffed_csv",
     "MAGIC",
     "FORMAT_VERSION",
     "ModelFile",
@@ -145,6 +148,32 @@ def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+@contextmanager
+def sniffed_csv(path: Path, *, missing: str, not_a_file: str) -> Iterator:
+    """A ``csv.reader`` over the UTF-8 text table at ``path``, its delimiter sniffed from the
+    first 64 KiB (``,``, ``;`` or tab). A missing path, a folder, a file that is not UTF-8 text
+    and malformed CSV (also while the caller reads rows) become one-line ``FileNotFoundError`` /
+    ``ValueError``s; ``missing`` and ``not_a_file`` name the path in the first two
+    (``"data file not found: ..."``, ``"data path is not a file: ..."``)."""
+    if not path.exists():
+        raise FileNotFoundError(f"{missing} not found: {path}")
+    if not path.is_file():
+        raise ValueError(f"{not_a_file} is not a file: {path}")
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as handle:
+            sample = handle.read(64 * 1024)
+            handle.seek(0)
+            try:
+                dialect = csv.Sniffer().sniff(sample, delimiters=",;\t")
+            except csv.Error:
+                dialect = csv.excel
+            yield csv.reader(handle, dialect)
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a UTF-8 text CSV file") from None
+    except csv.Error as exc:
+        raise ValueError(f"{path}: malformed CSV ({exc})") from None
 
 
 def atomic_write(path: str | os.PathLike, data: bytes) -> None:

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import atomic_write
+from ..io import atomic_write, sniffed_csv
 
 __all__ = ["FleetTable", "read_fleet_table", "write_table", "TABLE_SUFFIXES"]
 
@@ -89,46 +89,30 @@ def _missing_column(name: str, what: str, found: Sequence[str], source: str) -> 
 
 
 def _csv_columns(path: Path, names: Sequence[str], whats: Sequence[str]):
-    if not path.exists():
-        raise FileNotFoundError(f"table not found: {path}")
-    if not path.is_file():
-        raise ValueError(f"table path is not a file: {path}")
-    try:
-        with open(path, encoding="utf-8-sig", newline="") as handle:
-            sample = handle.read(64 * 1024)
-            handle.seek(0)
-            try:
-                dialect = csv.Sniffer().sniff(sample, delimiters=",;\t")
-            except csv.Error:
-                dialect = csv.excel
-            reader = csv.reader(handle, dialect)
-            header = next(reader, None)
-            if header is None or not any(c.strip() for c in header):
-                raise ValueError(f"{path}: empty file (a header row with column names is needed)")
-            header = [c.strip() for c in header]
-            idx = []
-            for name, what in zip(names, whats):
-                if name not in header:
-                    raise _missing_column(name, what, header, str(path))
-                idx.append(header.index(name))
-            cols: list[list[str]] = [[] for _ in names]
-            lines: list[int] = []
-            width = max(idx) + 1
-            for row in reader:
-                if len(row) < width:
-                    if not any(c.strip() for c in row):
-                        continue  # blank line
-                    raise ValueError(
-                        f"{path}, line {reader.line_num}: {len(row)} cells, the header has "
-                        f"{len(header)}"
-                    )
-                lines.append(reader.line_num)
-                for c, i in zip(cols, idx):
-                    c.append(row[i])
-    except UnicodeDecodeError:
-        raise ValueError(f"{path}: not a UTF-8 text CSV file") from None
-    except csv.Error as exc:
-        raise ValueError(f"{path}: malformed CSV ({exc})") from None
+    with sniffed_csv(path, missing="table", not_a_file="table path") as reader:
+        header = next(reader, None)
+        if header is None or not any(c.strip() for c in header):
+            raise ValueError(f"{path}: empty file (a header row with column names is needed)")
+        header = [c.strip() for c in header]
+        idx = []
+        for name, what in zip(names, whats):
+            if name not in header:
+                raise _missing_column(name, what, header, str(path))
+            idx.append(header.index(name))
+        cols: list[list[str]] = [[] for _ in names]
+        lines: list[int] = []
+        width = max(idx) + 1
+        for row in reader:
+            if len(row) < width:
+                if not any(c.strip() for c in row):
+                    continue  # blank line
+                raise ValueError(
+                    f"{path}, line {reader.line_num}: {len(row)} cells, the header has "
+                    f"{len(header)}"
+                )
+            lines.append(reader.line_num)
+            for c, i in zip(cols, idx):
+                c.append(row[i])
     return cols, lines
 
 

@@ -17,7 +17,6 @@ names the file, column and line):
 
 from __future__ import annotations
 
-import csv
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -27,6 +26,8 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import Tensor
+
+from ..io import sniffed_csv
 
 __all__ = ["Series", "load_series", "parse_where", "FILL_METHODS", "MAX_ABS_VALUE"]
 
@@ -131,23 +132,8 @@ def _parse_number(cell: str) -> float | None:
 
 
 def _read_csv(path: Path) -> tuple[list[str], list[list[str]]]:
-    if not path.exists():
-        raise FileNotFoundError(f"data file not found: {path}")
-    if not path.is_file():
-        raise ValueError(f"data path is not a file: {path}")
-    try:
-        with open(path, encoding="utf-8-sig", newline="") as handle:
-            sample = handle.read(64 * 1024)
-            handle.seek(0)
-            try:
-                dialect = csv.Sniffer().sniff(sample, delimiters=",;\t")
-            except csv.Error:
-                dialect = csv.excel
-            rows = list(csv.reader(handle, dialect))
-    except UnicodeDecodeError:
-        raise ValueError(f"{path}: not a UTF-8 text CSV file") from None
-    except csv.Error as exc:
-        raise ValueError(f"{path}: malformed CSV ({exc})") from None
+    with sniffed_csv(path, missing="data file", not_a_file="data path") as reader:
+        rows = list(reader)
     if not rows or not any(cell.strip() for cell in rows[0]):
         raise ValueError(f"{path}: empty file (a header row with column names is required)")
     header = [cell.strip() for cell in rows[0]]
