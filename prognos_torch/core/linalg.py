@@ -104,6 +104,14 @@ def _use_rank_one(S: Tensor, k: int) -> bool:
 def _dense(S: Tensor, V: Tensor, sign: float) -> tuple[Tensor, Tensor]:
     """``S chol(I + sign W W^T)`` with ``W = S^{-1} V``, and the determinant ratio
     (``-1`` where the Cholesky factorisation fails)."""
+    if S.shape[-1] == 1:
+        # a 1 x 1 factor (e.g. each particle's Gaussian of a 1-D state) in closed form,
+        # s' = s sqrt(1 + sign sum_j (v_j / s)^2): no batched LAPACK calls on 1 x 1 matrices
+        W = V / S
+        a = 1.0 + sign * (W * W).sum(-1, keepdim=True)
+        L = a.sqrt()  # NaN where a < 0 (a failed downdate, ratio -1 below)
+        ratio = torch.where(a[..., 0, 0] > 0, (L * L)[..., 0, 0], -1.0)
+        return S * L, ratio
     W = torch.linalg.solve_triangular(S, V, upper=False)
     eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
     L, info = torch.linalg.cholesky_ex(eye + sign * (W @ W.mT))

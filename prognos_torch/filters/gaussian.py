@@ -635,7 +635,23 @@ class GaussianFilter:
         else:
             y, any_missing = check_measurement(y, model.obs_dim, belief.batch_shape, belief.mean)
         u = check_control(u, model.control_dim, belief.batch_shape, belief.mean)
-        noise = self._noise(model, state, k)
+        return self._step(model, state, y, u, k, any_missing)
+
+    def _step(
+        self,
+        model: StateSpaceModel,
+        state: FilterState,
+        y: Tensor,
+        u: Tensor | None,
+        k: int,
+        any_missing: bool,
+        noise: Noise | None = None,
+    ) -> tuple[FilterState, StepInfo]:
+        """:meth:`step` on checked inputs (``y`` in the belief's dtype, ``any_missing``: whether
+        it has NaN; ``noise``: the model's checked noise at ``k``, or ``None`` to take it here)."""
+        belief = state.belief
+        if noise is None or state.noise is not None:
+            noise = self._noise(model, state, k)
         observed = nan = None
         if any_missing:
             nan = torch.isnan(y)

@@ -61,13 +61,14 @@ from torch import Tensor
 from ..core.belief import GaussianBelief, check_belief
 from ..core.model import Noise, StateSpaceModel
 from ..core.validation import (
+    all_finite,
     check_control,
     check_generator,
     check_measurement,
     check_sequence,
 )
 from .gaussian import FilterState, GaussianFilter, Taylor
-from .resampling import Resampler, ess, get_resampler
+from .resampling import Resampler, _draw_ancestors, get_resampler
 from .sequence import scan
 
 __all__ = [
@@ -277,12 +278,68 @@ class ParticleTrajectory:
 
 
 # ---------------------------------------------------------------------- noise
-def _noise(model: StateSpaceModel, k: int, bs: torch.Size, like: Tensor) -> Noise:
-    """Model noise at step ``k``, converted and checked: each tensor ``tail`` or ``bs + tail``."""
+@dataclass(frozen=True)
+class _PNoise:
+    """Model noise of one step as the particle side uses it, checked once.
+
+    ``q``/``r``: means with the particle dim inserted (or ``None``); ``chol_Q``/``chol_R``:
+    the square roots; ``dQ``/``dR``: their diagonals ``(..., 1, d)`` when the square root is
+    diagonal (then ``S eps = dQ * eps`` and ``S^{-1} e = e * (1 / dR)``, the same numbers as
+    the triangular solve and the matrix product), else ``None``; ``kQ``/``kR``: the constants
+    ``d log 2 pi + log det S S^T`` ``(..., 1)`` of the Gaussian log densities.
+    """
+
+    noise: Noise
+    q: Tensor | None
+    r: Tensor | None
+    dQ: Tensor | None
+    inv_dR: Tensor | None
+    inv_dQ: Tensor | None
+    kR: Tensor
+    kQ: Tensor | None
+
+
+def _diag_or_none(S: Tensor) -> Tensor | None:
+    d = torch.diagonal(S, dim1=-2, dim2=-1)
+    if S.shape[-1] == 1 or bool((S == torch.diag_embed(d)).all()):
+        return d.unsqueeze(-2)
+    return None
+
+
+def _log_norm_const(S: Tensor) -> Tensor:
+    """``d log 2 pi + log det S S^T`` ``(..., 1)`` for a lower square root ``S`` ``(..., d, d)``."""
+    logdet = 2.0 * torch.log(torch.diagonal(S, dim1=-2, dim2=-1)).sum(-1)
+    return S.shape[-1] * _LOG_2PI + logdet.unsqueeze(-1)
+
+
+def _noise(
+    model: StateSpaceModel, k: int, bs: torch.Size, like: Tensor, density_Q: bool = False
+) -> _PNoise:
+    """Model noise at step ``k``, converted and checked: each tensor ``tail`` or ``bs + tail``;
+    ``chol_R`` (and with ``density_Q`` ``chol_Q``) must have a positive diagonal."""
     noise = model.checked_noise(k, bs, like, owner="particles")
     if not bool((torch.diagonal(noise.chol_R, dim1=-2, dim2=-1) > 0).all()):
         raise ValueError("model.chol_R must have a positive diagonal (R positive definite)")
-    return noise
+    if density_Q and not bool((torch.diagonal(noise.chol_Q, dim1=-2, dim2=-1) > 0).all()):
+        raise ValueError(
+            "model.chol_Q must have a positive diagonal for a Gaussian-proposal particle "
+            "filter (the transition density p(x_k | x_{k-1}) enters the weights)"
+        )
+    dQ, dR = _diag_or_none(noise.chol_Q), _diag_or_none(noise.chol_R)
+    return _PNoise(
+        noise,
+        _pdim(noise.q, 1),
+        _pdim(noise.r, 1),
+        dQ,
+        None if dR is None else 1.0 / dR,
+        None if dQ is None or not density_Q else 1.0 / dQ,
+        _log_norm_const(noise.chol_R),
+        _log_norm_const(noise.chol_Q) if density_Q else None,
+    )
+
+
+def _constant_noise(model: StateSpaceModel) -> bool:
+    return not any(callable(v) for v in (model.q, model.chol_Q, model.r, model.chol_R))
 
 
 def _pdim(x: Tensor | None, tail: int) -> Tensor | None:
@@ -292,13 +349,18 @@ def _pdim(x: Tensor | None, tail: int) -> Tensor | None:
     return x.unsqueeze(-tail - 1)
 
 
-def _gauss_logpdf(e: Tensor, S: Tensor) -> Tensor:
+def _gauss_logpdf(e: Tensor, S: Tensor, k: Tensor | None = None, inv_d: Tensor | None = None):
     """``log N(e; 0, S S^T)`` for residuals ``e`` ``(..., N, d)`` and ``S`` ``(d, d)`` or
-    ``(..., d, d)`` (shared by the particles). Returns ``(..., N)``."""
-    d = e.shape[-1]
+    ``(..., d, d)`` (shared by the particles). Returns ``(..., N)``. ``k``: the constant
+    :func:`_log_norm_const` of ``S``; ``inv_d``: ``1 / diag(S)`` ``(..., 1, d)`` when ``S`` is
+    diagonal."""
+    if k is None:
+        k = _log_norm_const(S)
+    if inv_d is not None:
+        z = e * inv_d
+        return -0.5 * (k + (z * z).sum(-1))
     z = torch.linalg.solve_triangular(S, e.mT, upper=False)  # (..., d, N)
-    logdet = 2.0 * torch.log(torch.diagonal(S, dim1=-2, dim2=-1)).sum(-1)
-    return -0.5 * (d * _LOG_2PI + logdet.unsqueeze(-1) + (z * z).sum(-2))
+    return -0.5 * (k + (z * z).sum(-2))
 
 
 def _particle_model(model: StateSpaceModel, bs_ndim: int, N: int) -> StateSpaceModel:
@@ -329,6 +391,19 @@ def _particle_model(model: StateSpaceModel, bs_ndim: int, N: int) -> StateSpaceM
         r=lift(model.r, 1),
         chol_R=lift(model.chol_R, 2),
     )
+
+
+@dataclass(frozen=True)
+class _Setup:
+    """What :meth:`ParticleFilter.run` checks and builds once for all its steps: the noise when
+    the model's is constant (else ``None``: checked per step) and the engine's model view."""
+
+    noise: _PNoise | None
+    pmodel: StateSpaceModel | None
+    engine_noise: Noise | None
+    no_flag: Tensor  # (...) bool zeros
+    no_count: Tensor  # (...) int64 zeros
+    unit: Tensor  # (...) ones
 
 
 # ---------------------------------------------------------------------- the filter
@@ -418,21 +493,43 @@ class ParticleFilter:
             )
 
     # ------------------------------------------------------------------ stages
-    def _transition_sample(self, model, x_prev, u_p, k, noise, eps):
+    def _setup(self, model, bs: torch.Size, like: Tensor, k: int) -> _Setup:
+        """Checks and views shared by the steps of a run (noise: only when constant)."""
+        gauss = self.proposal is not None
+        const = _constant_noise(model)
+        noise = _noise(model, k, bs, like, gauss) if const else None
+        pmodel = _particle_model(model, len(bs), self.num_particles) if gauss else None
+        engine_noise = None
+        if gauss and const:
+            engine_noise = pmodel.checked_noise(k, (*bs, self.num_particles), like)
+        dev = like.device
+        return _Setup(
+            noise,
+            pmodel,
+            engine_noise,
+            torch.zeros(bs, dtype=torch.bool, device=dev),
+            torch.zeros(bs, dtype=torch.long, device=dev),
+            torch.ones(bs, dtype=like.dtype, device=dev),
+        )
+
+    @staticmethod
+    def _draw(pn: _PNoise, eps: Tensor) -> Tensor:
+        """``S_Q eps`` for ``eps`` ``(..., N, n)``."""
+        return eps * pn.dQ if pn.dQ is not None else eps @ pn.noise.chol_Q.mT
+
+    def _transition_sample(self, model, x_prev, u_p, k, pn: _PNoise, eps):
         """``f(x_{k-1}) + q`` and a draw ``f(x_{k-1}) + q + S_Q eps`` (paper 002 Eq. 15)."""
         fq = model.transition(x_prev, u_p, k)
-        q = _pdim(noise.q, 1)
-        if q is not None:
-            fq = fq + q
-        return fq, None if eps is None else fq + eps @ noise.chol_Q.mT
+        if pn.q is not None:
+            fq = fq + pn.q
+        return fq, None if eps is None else fq + self._draw(pn, eps)
 
-    def _log_lik(self, model, x, y, u_p, k, noise) -> Tensor:
+    def _log_lik(self, model, x, y, u_p, k, pn: _PNoise) -> Tensor:
         """``log p(y_k | x_k^i)`` ``(..., N)`` (paper 002 Eq. 16)."""
         hx = model.observe(x, u_p, k)
-        r = _pdim(noise.r, 1)
-        if r is not None:
-            hx = hx + r
-        return _gauss_logpdf(y.unsqueeze(-2) - hx, noise.chol_R)
+        if pn.r is not None:
+            hx = hx + pn.r
+        return _gauss_logpdf(y.unsqueeze(-2) - hx, pn.noise.chol_R, pn.kR, pn.inv_dR)
 
     def predict(
         self,
@@ -451,18 +548,18 @@ class ParticleFilter:
         bs = state.batch_shape
         u = check_control(u, model.control_dim, bs, x_prev)
         u_p = None if u is None else u if u.dim() == 1 else u.unsqueeze(-2)
-        noise = _noise(model, k, bs, x_prev)
+        pn = _noise(model, k, bs, x_prev)
         eps = torch.randn(
             x_prev.shape, generator=generator, dtype=x_prev.dtype, device=x_prev.device
         )
-        _, x = self._transition_sample(model, x_prev, u_p, k, noise, eps)
+        _, x = self._transition_sample(model, x_prev, u_p, k, pn, eps)
         fs = state.proposal
         if fs is not None:
             fs = replace(fs, belief=GaussianBelief(x, fs.belief.chol))
         return ParticleState(x, state.log_weights, fs)
 
     def _propose_gaussian(
-        self, model, state, y, y_safe, u, u_p, k, noise, eps, missing, any_missing
+        self, setup, model, state, y, y_safe, u, u_p, k, pn, eps, missing, any_missing
     ):
         """Per-particle Gaussian proposal (paper 002 STPF steps 2-3; Van der Merwe et al. 2000).
 
@@ -473,22 +570,29 @@ class ParticleFilter:
         x_prev, fs = state.particles, state.proposal
         bs, N, n = state.batch_shape, state.num_particles, model.state_dim
         dt, dev = x_prev.dtype, x_prev.device
-        if not bool((torch.diagonal(noise.chol_Q, dim1=-2, dim2=-1) > 0).all()):
-            raise ValueError(
-                "model.chol_Q must have a positive diagonal for a Gaussian-proposal particle "
-                "filter (the transition density p(x_k | x_{k-1}) enters the weights)"
-            )
-        pmodel = _particle_model(model, len(bs), N)
         y_e = y.unsqueeze(-2).expand(*bs, N, model.obs_dim)
         u_e = None if u is None else u if u.dim() == 1 else u_p.expand(*bs, N, u.shape[-1])
         # the per-particle Gaussian is centred on the particle (Van der Merwe et al., Sec. 4)
         fs_in = replace(fs, belief=GaussianBelief(x_prev, fs.belief.chol))
         prop = self.proposal
         try:
-            fs_step, pinfo = prop.step(pmodel, fs_in, y_e, u_e, k)  # ONE engine step, Eq. 27
+            # ONE engine step (Eq. 27), on inputs the particle filter has checked
+            fs_step, pinfo = prop._step(
+                setup.pmodel, fs_in, y_e, u_e, k, any_missing, setup.engine_noise
+            )
             mu, L = fs_step.belief.mean, fs_step.belief.chol
             diag = torch.diagonal(L, dim1=-2, dim2=-1)
-            ok = torch.isfinite(mu).all(-1) & torch.isfinite(L).all(-1).all(-1) & (diag > 0).all(-1)
+            # one host read: every proposal finite with a positive diagonal (the usual case)
+            total, low = torch.stack([mu.sum() + L.sum(), diag.amin()]).tolist()
+            all_ok = math.isfinite(total) and low > 0
+            ok = None
+            if not all_ok:
+                ok = (
+                    torch.isfinite(mu).all(-1)
+                    & torch.isfinite(L).all(-1).all(-1)
+                    & (diag > 0).all(-1)
+                )
+                all_ok = bool(ok.all())
             lam_i = pinfo.fading_factor
             # the engine's prior mean is exactly f(x_prev) + q for the Taylor rule (fading scales
             # only the covariance) and for the random walk; reuse it instead of calling f again
@@ -496,26 +600,31 @@ class ParticleFilter:
             fq = pinfo.prior.mean if exact_prior else None
         except torch.linalg.LinAlgError:
             fs_step, ok, fq = fs_in, torch.zeros((*bs, N), dtype=torch.bool, device=dev), None
+            all_ok = False
             mu, L = x_prev, fs.belief.chol
             diag = torch.diagonal(L, dim1=-2, dim2=-1)
             lam_i = torch.ones((*bs, N), dtype=dt, device=dev)
-        all_ok = bool(ok.all())
         # (when every proposal is finite, so is fq: mu = fq + K e would not be finite otherwise)
         if fq is None or (not all_ok and not bool(torch.isfinite(fq).all())):
-            fq, _ = self._transition_sample(model, x_prev, u_p, k, noise, None)
+            fq, _ = self._transition_sample(model, x_prev, u_p, k, pn, None)
         # sample from the proposal N(mu, L L^T) (Eq. 27); its log density uses eps directly
-        x_q = mu + (L @ eps.unsqueeze(-1)).squeeze(-1)
+        if n == 1:
+            x_q = mu + L[..., 0] * eps
+        else:
+            x_q = mu + (L @ eps.unsqueeze(-1)).squeeze(-1)
         log_q = -0.5 * (n * _LOG_2PI + (eps * eps).sum(-1)) - torch.log(diag).sum(-1)
         fast = all_ok and not any_missing
         if fast:
             x = x_q
         else:  # draw from p(x_k | x_{k-1}) where the proposal is invalid or y is missing
+            if ok is None:
+                ok = torch.ones((*bs, N), dtype=torch.bool, device=dev)
             use_q = ok & ~missing[..., None]
-            x = torch.where(use_q[..., None], x_q, fq + eps @ noise.chol_Q.mT)
-        log_lik = self._log_lik(model, x, y_safe, u_p, k, noise)
-        log_trans = _gauss_logpdf(x - fq, noise.chol_Q)
+            x = torch.where(use_q[..., None], x_q, fq + self._draw(pn, eps))
+        log_lik = self._log_lik(model, x, y_safe, u_p, k, pn)
+        log_trans = _gauss_logpdf(x - fq, pn.noise.chol_Q, pn.kQ, pn.inv_dQ)
         inc = log_lik + log_trans - log_q  # STPF step 3 (in log space)
-        n_bad = torch.zeros(bs, dtype=torch.long, device=dev)
+        n_bad = None
         if not fast:
             inc = torch.where(use_q, inc, log_lik)
             n_bad = (~ok & ~missing[..., None]).sum(-1)
@@ -525,11 +634,22 @@ class ParticleFilter:
                     f"step {k}: {int(n_bad.sum())} particle proposals were not finite/positive "
                     "definite; those particles were drawn from the transition prior",
                     ProposalFallbackWarning,
-                    stacklevel=3,
+                    stacklevel=4,
                 )
             fs_step = where_particles(ok, fs_step, fs_in)
         fs_new = replace(fs_step, belief=GaussianBelief(x, fs_step.belief.chol))
         return x, inc, fs_new, n_bad, lam_i
+
+    def _ancestors(self, lw: Tensor, W: Tensor, generator: torch.Generator) -> Tensor:
+        """Ancestor indices ``(..., N)`` of valid normalised log-weights ``lw`` with
+        ``W = exp(lw)`` (no re-validation). The inverse-CDF schemes normalise their cumulative
+        sum themselves and take ``W``; residual resampling needs ``N w_i`` exactly normalised
+        and takes ``softmax(lw)``."""
+        if callable(self.resampler):
+            return self.resampler(lw, generator)
+        name = self.resampler.lower()
+        w = torch.softmax(lw, dim=-1) if name == "residual" else W
+        return _draw_ancestors(name, w, generator)
 
     def step(
         self,
@@ -554,66 +674,112 @@ class ParticleFilter:
             The new (possibly resampled) state and a :class:`ParticleStepInfo`.
         """
         self._check_state(model, state)
-        x_prev, lw_prev = state.particles, state.log_weights
+        x_prev = state.particles
         check_generator(generator, x_prev)
+        bs = state.batch_shape
+        y, any_nan = check_measurement(y, model.obs_dim, bs, x_prev, owner="particles")
+        u = check_control(u, model.control_dim, bs, x_prev)
+        setup = self._setup(model, bs, x_prev, k)
+        missing = torch.isnan(y).any(-1) if any_nan else None
+        return self._step(model, setup, state, y, u, k, generator, missing)
+
+    def _step(
+        self,
+        model: StateSpaceModel,
+        setup: _Setup,
+        state: ParticleState,
+        y: Tensor,
+        u: Tensor | None,
+        k: int,
+        generator: torch.Generator,
+        missing: Tensor | None,
+    ) -> tuple[ParticleState, ParticleStepInfo]:
+        """:meth:`step` on checked inputs: ``y`` in the particles' dtype, ``u`` checked,
+        ``missing`` ``(...)`` bool where some run's ``y`` has NaN (else ``None``)."""
+        x_prev, lw_prev = state.particles, state.log_weights
         bs, N = state.batch_shape, state.num_particles
         dt, dev = x_prev.dtype, x_prev.device
-        y, _ = check_measurement(y, model.obs_dim, bs, x_prev, owner="particles")
-        u = check_control(u, model.control_dim, bs, x_prev)
         u_p = None if u is None else u if u.dim() == 1 else u.unsqueeze(-2)
-        missing = torch.isnan(y).any(-1)  # (...)
-        any_missing = bool(missing.any())
-        y_safe = torch.where(missing[..., None], torch.zeros_like(y), y) if any_missing else y
-        noise = _noise(model, k, bs, x_prev)
+        any_missing = missing is not None
+        if any_missing:
+            y_safe = torch.where(missing[..., None], torch.zeros_like(y), y)
+        else:
+            missing = setup.no_flag
+            y_safe = y
+        pn = setup.noise
+        if pn is None:
+            pn = _noise(model, k, bs, x_prev, self.proposal is not None)
 
         eps = torch.randn(x_prev.shape, generator=generator, dtype=dt, device=dev)
-        lam = torch.ones(bs, dtype=dt, device=dev)
         if self.proposal is None:
-            fallback = torch.zeros(bs, dtype=torch.long, device=dev)
+            fallback = None
             fs_new = None
-            _, x = self._transition_sample(model, x_prev, u_p, k, noise, eps)
-            inc = self._log_lik(model, x, y_safe, u_p, k, noise)
+            _, x = self._transition_sample(model, x_prev, u_p, k, pn, eps)
+            inc = self._log_lik(model, x, y_safe, u_p, k, pn)
             lam_prop = None
         else:
             x, inc, fs_new, fallback, lam_prop = self._propose_gaussian(
-                model, state, y, y_safe, u, u_p, k, noise, eps, missing, any_missing
+                setup, model, state, y, y_safe, u, u_p, k, pn, eps, missing, any_missing
             )
 
         # missing runs: propagate only, weights unchanged
         if any_missing:
             inc = torch.where(missing[..., None], torch.zeros_like(inc), inc)
-        finite_x = torch.isfinite(x).all(-1)
-        inc = torch.where(torch.isfinite(inc) & finite_x, inc, torch.full_like(inc, -math.inf))
         lw_un = lw_prev + inc
         ll = torch.logsumexp(lw_un, -1)  # log sum_i W_{k-1}^i w_inc^i ~ log p(y_k | y_{1:k-1})
-        collapsed = ~torch.isfinite(ll)
-        if bool(collapsed.any()):
-            if bool((collapsed & ~finite_x.any(-1)).any()):
-                raise FloatingPointError(
-                    f"step {k}: every particle of a run is non-finite (check f, h and the noise)"
+        # one host read: particles, increments, fading factors and the likelihood all finite
+        # (a finite sum has finite terms; an overflowing one takes the exact path below)
+        total = x.sum() + inc.sum() + ll.sum()
+        if lam_prop is not None:
+            total = total + lam_prop.sum()
+        finite = math.isfinite(float(total))
+        collapsed = None
+        if not finite:
+            finite_x = torch.isfinite(x).all(-1)
+            inc = torch.where(torch.isfinite(inc) & finite_x, inc, torch.full_like(inc, -math.inf))
+            lw_un = lw_prev + inc
+            ll = torch.logsumexp(lw_un, -1)
+            collapsed = ~torch.isfinite(ll)
+            if bool(collapsed.any()):
+                if bool((collapsed & ~finite_x.any(-1)).any()):
+                    raise FloatingPointError(
+                        f"step {k}: every particle of a run is non-finite (check f, h and the "
+                        "noise)"
+                    )
+                warnings.warn(
+                    f"step {k}: particle weights collapsed (all zero or non-finite) in "
+                    f"{int(collapsed.sum())} of {collapsed.numel()} runs; weights reset to uniform",
+                    WeightCollapseWarning,
+                    stacklevel=3,
                 )
-            warnings.warn(
-                f"step {k}: particle weights collapsed (all zero or non-finite) in "
-                f"{int(collapsed.sum())} of {collapsed.numel()} runs; weights reset to uniform",
-                WeightCollapseWarning,
-                stacklevel=2,
-            )
-            reset = torch.where(
-                finite_x, torch.zeros_like(lw_un), torch.full_like(lw_un, -math.inf)
-            )
-            lw_un = torch.where(collapsed[..., None], reset, lw_un)
-            ll = torch.where(collapsed, torch.full_like(ll, -math.inf), ll)
-        lw = lw_un - torch.logsumexp(lw_un, -1, keepdim=True)  # STPF step 4
+                reset = torch.where(
+                    finite_x, torch.zeros_like(lw_un), torch.full_like(lw_un, -math.inf)
+                )
+                lw_un = torch.where(collapsed[..., None], reset, lw_un)
+                ll = torch.where(collapsed, torch.full_like(ll, -math.inf), ll)
+                lw = lw_un - torch.logsumexp(lw_un, -1, keepdim=True)
+            else:
+                lw = lw_un - ll.unsqueeze(-1)
+        else:
+            lw = lw_un - ll.unsqueeze(-1)  # STPF step 4 (ll is logsumexp(lw_un))
 
         # estimates (STPF step 5); zero-weight particles may be non-finite: mask them
         W = lw.exp()
-        xs = torch.where((W > 0)[..., None], x, torch.zeros_like(x))
+        xs = x if finite else torch.where((W > 0)[..., None], x, torch.zeros_like(x))
         mean = (W.unsqueeze(-2) @ xs).squeeze(-2)
         d = xs - mean.unsqueeze(-2)
         cov = (d * W.unsqueeze(-1)).mT @ d
-        cov = 0.5 * (cov + cov.mT)
-        n_eff = ess(lw)
-        if lam_prop is not None:
+        if cov.shape[-1] > 1:  # (a 1 x 1 covariance is symmetric as it stands)
+            cov = 0.5 * (cov + cov.mT)
+        # effective sample size (sum W)^2 / sum W^2 of the normalised weights (sum W = 1 up to
+        # rounding): one product and two sums instead of the two log-sum-exps of ess()
+        sw = W.sum(-1)
+        n_eff = sw * sw / (W * W).sum(-1)
+        if lam_prop is None:
+            lam = setup.unit
+        elif finite:
+            lam = (W * lam_prop).sum(-1)
+        else:
             lam = (
                 W * torch.where(torch.isfinite(lam_prop), lam_prop, torch.ones_like(lam_prop))
             ).sum(-1)
@@ -621,24 +787,34 @@ class ParticleFilter:
         x_w, lw_w = x, lw
         # resampling (STPF step 6): particles, weights and every per-particle Gaussian
         do = n_eff < self.resample_threshold * N
-        if bool(do.any()):
-            anc = get_resampler(self.resampler)(lw, generator)
-            keep = torch.arange(N, device=dev).expand(*bs, N)
-            anc = torch.where(do[..., None], anc, keep)
-            x = gather_particles(x, anc)
+        n_do = int(do.sum())
+        if n_do:
+            anc = self._ancestors(lw, W, generator)
+            if n_do < do.numel():
+                keep = torch.arange(N, device=dev).expand(*bs, N)
+                anc = torch.where(do[..., None], anc, keep)
+                lw = torch.where(do[..., None], torch.full_like(lw, -math.log(N)), lw)
+            else:
+                lw = torch.full_like(lw, -math.log(N))
+            if tuple(anc.shape) != tuple(lw.shape):
+                raise ValueError(
+                    f"the resampler must return ancestors of shape {tuple(lw.shape)}, got "
+                    f"{tuple(anc.shape)}"
+                )
+            x = torch.gather(x, -2, anc.unsqueeze(-1).expand(x.shape))
             if fs_new is not None:
                 fs_new = gather_particles(fs_new, anc)
-            lw = torch.where(do[..., None], torch.full_like(lw, -math.log(N)), lw)
 
-        ll = torch.where(missing, torch.zeros_like(ll), ll)
+        if any_missing:
+            ll = torch.where(missing, torch.zeros_like(ll), ll)
         info = ParticleStepInfo(
             mean=mean,
             cov=cov,
             ess=n_eff,
             resampled=do,
             log_likelihood=ll,
-            collapsed=collapsed,
-            prior_fallback=fallback,
+            collapsed=setup.no_flag if collapsed is None else collapsed,
+            prior_fallback=setup.no_count if fallback is None else fallback,
             fading_factor=lam,
             missing=missing,
             particles=x_w,
@@ -664,22 +840,45 @@ class ParticleFilter:
         and ``ys[t]``. ``init`` is the belief on ``x_{k0}`` (particles are drawn from it) or a
         :class:`ParticleState` to resume. With ``keep_particles`` the weighted particle sets
         (before resampling) are returned as well.
+
+        The inputs are checked once for the whole sequence (shapes, devices, finiteness, the
+        noise when it is constant); each step is then :meth:`step` without the checks.
         """
         if isinstance(init, ParticleState):
             state = init
             self._check_state(model, state)
         else:
             state = self.init(model, init, generator=generator, k=k0)
+        like = state.particles
+        check_generator(generator, like)
         bs = state.batch_shape
         check_sequence(ys, "ys", model.obs_dim, bs, nonempty=True)
+        if ys.device != like.device:
+            raise ValueError(f"ys is on {ys.device}, the particles on {like.device}")
+        ys = ys.to(like.dtype)
         T = ys.shape[0]
+        miss_rows: list[bool] = [False] * T
+        miss = None
+        if not all_finite(ys):
+            if bool(torch.isinf(ys).any()):
+                raise ValueError("ys contains inf (use NaN to mark a missing measurement)")
+            miss = torch.isnan(ys).any(-1)  # (T, ...)
+            miss_rows = miss.reshape(T, -1).any(-1).tolist()
         if model.control_dim:
             check_sequence(us, "us", model.control_dim, bs, steps=T, shared=True)
+            if us.device != like.device:
+                raise ValueError(f"us is on {us.device}, the particles on {like.device}")
+            if not all_finite(us):
+                raise ValueError("us contains non-finite values")
+            us = us.to(like.dtype)
         elif us is not None:
             raise ValueError("us was given but the model has control_dim=0")
+        setup = self._setup(model, bs, like, k0 + 1)
 
         def step(s: ParticleState, y: Tensor, u: Tensor | None, k: int):
-            return self.step(model, s, y, u, k, generator=generator)
+            t = k - k0 - 1
+            missing = miss[t] if miss_rows[t] else None  # type: ignore[index]
+            return self._step(model, setup, s, y, u, k, generator, missing)
 
         def record(s: ParticleState, info: ParticleStepInfo) -> dict[str, Tensor | None]:
             return {

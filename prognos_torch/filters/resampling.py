@@ -15,14 +15,17 @@ copy of particle ``ancestors[b, j]``. All schemes are unbiased, ``E[#offspring o
   ``R = N - sum floor(N w_i)`` drawn multinomially from the residual weights
   ``(N w_i - floor(N w_i)) / R``.
 
-All draws are inverse-CDF look-ups (``torch.searchsorted``) on the normalised cumulative weights,
-batched over the leading dimensions: no Python loop over particles or batch elements.
+All draws are inverse-CDF look-ups (``torch.searchsorted``; NumPy's on CPU from
+``_NUMPY_SEARCH_MIN`` particles, one call per run) on the normalised cumulative weights, batched
+over the leading dimensions: no Python loop over particles.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -53,16 +56,22 @@ def _normalized(weights: Tensor, log: bool) -> Tensor:
     if not weights.is_floating_point():
         raise TypeError(f"weights must be a floating-point tensor, got {weights.dtype}")
     if log:
-        if torch.isnan(weights).any() or (weights == float("inf")).any():
-            raise ValueError("log-weights must not contain NaN or +inf")
-        mx = weights.amax(-1, keepdim=True)
-        if (mx == float("-inf")).any():
-            raise ValueError("log-weights are -inf for every particle of a batch element")
+        # one host read in the usual case: the maxima propagate NaN and +inf, and a run whose
+        # log-weights are all -inf has maximum -inf, so a finite sum of maxima means valid input
+        if not math.isfinite(float(weights.detach().amax(-1).sum())):
+            if torch.isnan(weights).any() or (weights == float("inf")).any():
+                raise ValueError("log-weights must not contain NaN or +inf")
+            mx = weights.amax(-1, keepdim=True)
+            if (mx == float("-inf")).any():
+                raise ValueError("log-weights are -inf for every particle of a batch element")
         return torch.softmax(weights, dim=-1)
-    if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()):
-        raise ValueError("weights must be finite and non-negative (or pass log=True)")
     s = weights.sum(-1, keepdim=True)
-    if bool((s <= 0).any()):
+    low, total, s_min = torch.stack([weights.amin(), s.sum(), s.amin()]).tolist()
+    # non-negative entries with a finite sum are finite (NaN makes the minimum NaN)
+    if not (low >= 0 and math.isfinite(total)):
+        if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()):
+            raise ValueError("weights must be finite and non-negative (or pass log=True)")
+    if s_min <= 0:
         raise ValueError("weights sum to zero for a batch element")
     return weights / s
 
@@ -74,51 +83,52 @@ def _cdf(w: Tensor) -> Tensor:
     return (c / c[..., -1:]).contiguous()
 
 
+#: From this many particles a CPU look-up uses NumPy's ``searchsorted``, which exploits sorted
+#: queries (systematic, stratified and residual draws are sorted): 2.5 times faster than
+#: ``torch.searchsorted`` at 10^5 particles, equal at 10^3. Both return the same indices.
+_NUMPY_SEARCH_MIN = 4096
+
+
 def _lookup(cdf: Tensor, u: Tensor) -> Tensor:
-    idx = torch.searchsorted(cdf, u.contiguous(), right=True)
-    return idx.clamp_max(cdf.shape[-1] - 1)
+    """``min(#{i : cdf_i <= u_j}, N - 1)`` for each ``u_j`` (``cdf``: ``(..., N)``, ``u``:
+    ``(..., M)``)."""
+    N = cdf.shape[-1]
+    M = u.shape[-1]
+    if cdf.device.type == "cpu" and N >= _NUMPY_SEARCH_MIN and u.shape[:-1] == cdf.shape[:-1]:
+        c2 = cdf.detach().reshape(-1, N).numpy()
+        u2 = u.detach().contiguous().reshape(-1, M).numpy()
+        out = np.empty(u2.shape, dtype=np.int64)
+        for i in range(c2.shape[0]):  # one row per run; each row is a long look-up
+            out[i] = np.searchsorted(c2[i], u2[i], side="right")
+        idx = torch.from_numpy(out).reshape(u.shape)
+    else:
+        idx = torch.searchsorted(cdf, u.contiguous(), right=True)
+    return idx.clamp_max(N - 1)
 
 
 def _uniform(shape, generator, like: Tensor) -> Tensor:
     return torch.rand(shape, generator=generator, dtype=like.dtype, device=like.device)
 
 
-def multinomial(weights: Tensor, generator: torch.Generator, *, log: bool = True) -> Tensor:
-    """Multinomial resampling: ``N`` i.i.d. ancestors from ``Cat(w)``; returns ``(..., N)``."""
-    w = _normalized(weights, log)
-    check_generator(generator, w, "weights")
+def _multinomial(w: Tensor, generator: torch.Generator) -> Tensor:
     return _lookup(_cdf(w), _uniform(w.shape, generator, w))
 
 
-def stratified(weights: Tensor, generator: torch.Generator, *, log: bool = True) -> Tensor:
-    """Stratified resampling: ``u_j = (j + U_j) / N`` with independent ``U_j ~ U[0, 1)``."""
-    w = _normalized(weights, log)
-    check_generator(generator, w, "weights")
+def _stratified(w: Tensor, generator: torch.Generator) -> Tensor:
     N = w.shape[-1]
     j = torch.arange(N, dtype=w.dtype, device=w.device)
     u = (j + _uniform(w.shape, generator, w)) / N
     return _lookup(_cdf(w), u.clamp_max(1.0 - torch.finfo(w.dtype).eps))
 
 
-def systematic(weights: Tensor, generator: torch.Generator, *, log: bool = True) -> Tensor:
-    """Systematic resampling: ``u_j = (j + U) / N`` with one ``U ~ U[0, 1)`` per batch element."""
-    w = _normalized(weights, log)
-    check_generator(generator, w, "weights")
+def _systematic(w: Tensor, generator: torch.Generator) -> Tensor:
     N = w.shape[-1]
     j = torch.arange(N, dtype=w.dtype, device=w.device)
     u = (j + _uniform(w.shape[:-1] + (1,), generator, w)) / N
     return _lookup(_cdf(w), u.clamp_max(1.0 - torch.finfo(w.dtype).eps))
 
 
-def residual(weights: Tensor, generator: torch.Generator, *, log: bool = True) -> Tensor:
-    """Residual resampling: ``floor(N w_i)`` copies of ``i``, the rest multinomial on residuals.
-
-    Batched without a loop: offspring slot ``j < D = sum_i floor(N w_i)`` is filled by the
-    particle whose cumulative deterministic count first exceeds ``j``; slots ``j >= D`` by
-    inverse-CDF draws from the residual weights.
-    """
-    w = _normalized(weights, log)
-    check_generator(generator, w, "weights")
+def _residual(w: Tensor, generator: torch.Generator) -> Tensor:
     N = w.shape[-1]
     Nw = N * w
     det = torch.floor(Nw)
@@ -130,8 +140,60 @@ def residual(weights: Tensor, generator: torch.Generator, *, log: bool = True) -
     has_res = res.sum(-1, keepdim=True) > 0
     # when no residual is left (D == N) the residual draws are unused; keep the cdf well defined
     res = torch.where(has_res, res, torch.ones_like(res))
-    res_idx = _lookup(_cdf(res), _uniform(w.shape, generator, w))
-    return torch.where(j < D, det_idx, res_idx)
+    u = _uniform(w.shape, generator, w)  # slot j >= D takes u_j (all N drawn: one stream)
+    # only slots from the smallest D on are filled by residual draws: look those up alone
+    d0 = min(int(D.min()), N - 1)
+    res_idx = _lookup(_cdf(res), u[..., d0:].contiguous())
+    out = det_idx.clone()
+    out[..., d0:] = torch.where(j[..., d0:] < D, det_idx[..., d0:], res_idx)
+    return out
+
+
+_DRAWS = {
+    "multinomial": _multinomial,
+    "stratified": _stratified,
+    "systematic": _systematic,
+    "residual": _residual,
+}
+
+
+def _draw_ancestors(name: str, w: Tensor, generator: torch.Generator) -> Tensor:
+    """The scheme ``name`` on probabilities ``w`` ``(..., N)`` that are already valid and
+    normalised (a particle filter's own weights): the public functions minus their checks."""
+    return _DRAWS[name.lower()](w, generator)
+
+
+def multinomial(weights: Tensor, generator: torch.Generator, *, log: bool = True) -> Tensor:
+    """Multinomial resampling: ``N`` i.i.d. ancestors from ``Cat(w)``; returns ``(..., N)``."""
+    w = _normalized(weights, log)
+    check_generator(generator, w, "weights")
+    return _multinomial(w, generator)
+
+
+def stratified(weights: Tensor, generator: torch.Generator, *, log: bool = True) -> Tensor:
+    """Stratified resampling: ``u_j = (j + U_j) / N`` with independent ``U_j ~ U[0, 1)``."""
+    w = _normalized(weights, log)
+    check_generator(generator, w, "weights")
+    return _stratified(w, generator)
+
+
+def systematic(weights: Tensor, generator: torch.Generator, *, log: bool = True) -> Tensor:
+    """Systematic resampling: ``u_j = (j + U) / N`` with one ``U ~ U[0, 1)`` per batch element."""
+    w = _normalized(weights, log)
+    check_generator(generator, w, "weights")
+    return _systematic(w, generator)
+
+
+def residual(weights: Tensor, generator: torch.Generator, *, log: bool = True) -> Tensor:
+    """Residual resampling: ``floor(N w_i)`` copies of ``i``, the rest multinomial on residuals.
+
+    Batched without a loop: offspring slot ``j < D = sum_i floor(N w_i)`` is filled by the
+    particle whose cumulative deterministic count first exceeds ``j``; slots ``j >= D`` by
+    inverse-CDF draws from the residual weights.
+    """
+    w = _normalized(weights, log)
+    check_generator(generator, w, "weights")
+    return _residual(w, generator)
 
 
 def normalize_log_weights(log_w: Tensor) -> tuple[Tensor, Tensor]:
