@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.linalg import cho_solve_right
+from ..core.linalg import cho_solve_right, mm
 
 __all__ = ["StrongTracking", "StrongTrackingState", "fading_factor"]
 
@@ -95,13 +95,13 @@ def fading_factor(
         ``lambda_k`` ``(...)`` and the new state.
     """
     e = innovation.unsqueeze(-1)
-    eeT = e @ e.mT
+    eeT = e * e.mT  # outer product e e^T
     V_new = torch.where(
         state.started[..., None, None], (cfg.rho * state.V + eeT) / (1.0 + cfg.rho), eeT
     )
     if H is None:
         H = cho_solve_right(pxz.mT, chol_prior)  # Eq. 17: H = P_xz^T P^{-1}, by two solves
-    HSQ = H @ chol_Q
+    HSQ = mm(H, chol_Q)
     trHQH = (HSQ * HSQ).sum((-2, -1))
     trR = (chol_R * chol_R).sum((-2, -1))
     trN = torch.diagonal(V_new, dim1=-2, dim2=-1).sum(-1) - trHQH - cfg.beta * trR

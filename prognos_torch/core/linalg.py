@@ -53,6 +53,14 @@ def tria(A: Tensor) -> Tensor:
     return (R * torch.ones_like(d).copysign(d).unsqueeze(-1)).mT
 
 
+def mm(A: Tensor, B: Tensor) -> Tensor:
+    """``A @ B``; with an inner dimension of 1 the outer product ``A * B``, the same numbers
+    without a batched matrix product (1 x 1 factors batched over particles or runs)."""
+    if A.shape[-1] == 1:
+        return A * B
+    return A @ B
+
+
 def _rank_one(S: Tensor, v: Tensor, sign: float) -> tuple[Tensor, Tensor]:
     """``S'`` with ``S' S'^T = S S^T + sign v v^T`` in O(n^2), and ``s_n`` (see below).
 

@@ -53,6 +53,7 @@ from ..core.linalg import (
     cho_solve_right,
     chol_downdate,
     chol_downdate_ex,
+    mm,
     safe_cholesky,
     symmetrize,
     tria,
@@ -235,7 +236,7 @@ class _Moments:
     H: Tensor | None  # Jacobian (Taylor rule)
 
     def pxz(self) -> Tensor:
-        P = self.dx_pos @ self.dz_pos.mT
+        P = mm(self.dx_pos, self.dz_pos.mT)
         if self.dx_neg is not None:
             P = P - self.dx_neg @ self.dz_neg.mT
         return P
@@ -438,7 +439,7 @@ class GaussianFilter:
             fx = model.transition(m, u, k)
             F = model.transition_jacobian(m, u, k)
             mean = fx if q is None else fx + q
-            return _Propagation(mean, fx, F @ S, None, None, S)
+            return _Propagation(mean, fx, mm(F, S), None, None, S)
         sig = _sigma_points(self.rule, model.state_dim, m)
         D = sig.xi @ S.mT
         X = m.unsqueeze(-2) + D  # (..., L, n), paper 000 Eq. 21
@@ -490,7 +491,7 @@ class GaussianFilter:
             hx = model.observe(x, u, k)
             H = model.observation_jacobian(x, u, k)
             z = hx if r is None else hx + r
-            return _Moments(z, S, H @ S, None, None, True, H)
+            return _Moments(z, S, mm(H, S), None, None, True, H)
         sig = _sigma_points(self.rule, model.state_dim, x)
         if self.redraw or prop.points is None:
             D = sig.xi @ S.mT  # X - x exactly
@@ -541,7 +542,7 @@ class GaussianFilter:
             # steps on large factors, the dense S chol(I - W W^T) on small ones) instead of a
             # QR of (n, L + m). Where the downdate loses precision (determinant ratio below
             # _downdate_min_ratio: a very informative measurement) the Joseph QR is used.
-            S, ratio = chol_downdate_ex(prior.chol, K @ Szz)
+            S, ratio = chol_downdate_ex(prior.chol, mm(K, Szz))
             ok = ratio > _downdate_min_ratio(ratio.dtype)
             if not _no_sync() and bool(ok.all()):
                 return S
@@ -686,7 +687,7 @@ class GaussianFilter:
                 prior = self._prior(prop, noise.chol_Q, lam, update=True)  # paper 000 Eq. 36
                 if mom_l.H is not None:  # Taylor: same mean, same h and Jacobian, new factor
                     mom = _Moments(
-                        mom_l.z, prior.chol, mom_l.H @ prior.chol, None, None, True, mom_l.H
+                        mom_l.z, prior.chol, mm(mom_l.H, prior.chol), None, None, True, mom_l.H
                     )
                 else:
                     mom = self._moments(model, prior, prop, u, k, noise.r)
@@ -708,7 +709,7 @@ class GaussianFilter:
         eps = y - mom.z
         if any_missing:
             eps = torch.where(nan, torch.zeros_like(y), eps)
-        mean = prior.mean + (K @ eps.unsqueeze(-1)).squeeze(-1)  # Eq. 45
+        mean = prior.mean + mm(K, eps.unsqueeze(-1)).squeeze(-1)  # Eq. 45
         chol = self._posterior_chol(prior, mom, K, Szz, chol_R)
         if any_missing:
             mean = torch.where(missing[..., None], prior.mean, mean)
