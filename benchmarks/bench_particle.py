@@ -213,11 +213,11 @@ def resamplers_vs_numpy(sizes: list[int], repeat: int, calls: int = 20) -> None:
         for name in ("systematic", "stratified", "multinomial", "residual"):
             fn = getattr(resampling, name)
 
-            def lib(fn=fn):
+            def lib(fn=fn, lw_t=lw_t, g=g):
                 for _ in range(calls):
                     fn(lw_t, g)
 
-            def peer(name=name):
+            def peer(name=name, lw_np=lw_np, rng=rng):
                 for _ in range(calls):
                     numpy_resampler(name, lw_np, rng)
 

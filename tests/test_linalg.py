@@ -84,3 +84,25 @@ def test_cho_solve_right_equals_dense_solve(m):
     B = torch.randn(4, 5, m, generator=g, dtype=torch.float64)
     ref = torch.linalg.solve(S @ S.mT, B.mT).mT
     torch.testing.assert_close(cho_solve_right(B, S), ref, rtol=1e-12, atol=1e-12)
+
+
+def test_one_by_one_downdate_in_closed_form_and_its_failure():
+    S = torch.tensor([[[2.0]], [[1.0]], [[3.0]]], dtype=torch.float64)
+    V = torch.tensor([[[1.2, 1.0]], [[1.0, 0.5]], [[0.0, 0.0]]], dtype=torch.float64)
+    S2, ratio = chol_downdate_ex(S, V)  # s'^2 = s^2 - sum v^2
+    assert S2[0, 0, 0].item() == pytest.approx((4.0 - 1.44 - 1.0) ** 0.5, rel=1e-15)
+    assert ratio[0].item() == pytest.approx(1.56 / 4.0, rel=1e-15)
+    assert not bool(ratio[1] > 0)  # 1 - 1.25 < 0: reported, not raised
+    assert S2[2, 0, 0].item() == 3.0 and ratio[2].item() == 1.0
+    with pytest.raises(torch.linalg.LinAlgError, match="positive definite"):
+        chol_downdate(S, V)
+
+
+@pytest.mark.parametrize("shapes", [((5, 1, 1), (5, 1, 1)), ((3, 1), (4, 1, 2)), ((2, 3), (3, 4))])
+def test_mm_equals_matmul(shapes):
+    from prognos_torch.core.linalg import mm
+
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(*shapes[0], generator=g, dtype=torch.float64)
+    B = torch.randn(*shapes[1], generator=g, dtype=torch.float64)
+    assert torch.equal(mm(A, B), A @ B)

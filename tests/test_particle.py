@@ -239,6 +239,114 @@ def test_reproducible_with_generator():
     assert not torch.equal(a.means, c.means)
 
 
+def _jump_model(batched: bool, calls: list | None = None):
+    """``x + 0.01 sin x``, observed directly; with ``calls`` the analytic Jacobians record the
+    shapes they are called with."""
+    f = lambda x, u, k: x + 0.01 * torch.sin(x)  # noqa: E731
+    h = lambda x, u, k: x  # noqa: E731
+    kw = {}
+    if calls is not None:
+
+        def jac_f(x, u, k):
+            calls.append(("f", tuple(x.shape)))
+            return (1.0 + 0.01 * torch.cos(x)).unsqueeze(-1)
+
+        def jac_h(x, u, k):
+            calls.append(("h", tuple(x.shape)))
+            return torch.ones_like(x).unsqueeze(-1)
+
+        kw = dict(jac_f=jac_f, jac_h=jac_h)
+    return StateSpaceModel(
+        f=f,
+        h=h,
+        state_dim=1,
+        obs_dim=1,
+        chol_Q=t([[0.05]]),
+        chol_R=t([[0.3]]),
+        batched=batched,
+        **kw,
+    )
+
+
+@pytest.mark.parametrize("factory", [ekpf, stpf])
+def test_batched_closed_form_jacobians_are_used_without_vmap(factory, monkeypatch):
+    """A model with ``batched=True`` and ``jac_f``/``jac_h``: each step calls them once on the
+    whole ``(runs, N, n)`` particle batch, never ``vmap(jacfwd)``, and filters as the per-sample
+    model does (whose Jacobians come from ``jacfwd``)."""
+    import prognos_torch.core.model as model_mod
+
+    N, T = 64, 12
+    ys = torch.cumsum(0.1 * torch.randn(T, 2, 1, generator=gen(3), dtype=torch.float64), 0)
+    b0 = GaussianBelief(torch.zeros(2, 1, dtype=torch.float64), t([[0.5]]).expand(2, 1, 1))
+    ref = factory(N).run(_jump_model(False), b0, ys, generator=gen(4))
+
+    def no_autodiff(*a, **k):
+        raise AssertionError("vmap(jacfwd) used although the model gives batched Jacobians")
+
+    monkeypatch.setattr(model_mod, "_jacobian", no_autodiff)
+    monkeypatch.setattr(model_mod, "vmap", no_autodiff)
+    calls: list = []
+    out = factory(N).run(_jump_model(True, calls), b0, ys, generator=gen(4))
+    assert calls.count(("f", (2, N, 1))) == T and calls.count(("h", (2, N, 1))) == T
+    assert len(calls) == 2 * T
+    torch.testing.assert_close(out.means, ref.means, rtol=0, atol=1e-12)
+    torch.testing.assert_close(out.log_likelihoods, ref.log_likelihoods, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("factory", [sir, stpf])
+def test_run_equals_its_checked_steps(factory):
+    """``run`` checks once and then steps without the checks: the same numbers as calling the
+    public ``step`` (which checks every call) in a loop, with missing rows and controls."""
+    f = lambda x, u, k: 0.9 * x + 0.1 * u  # noqa: E731
+    model = StateSpaceModel(
+        f=f,
+        h=lambda x, u, k: x,
+        state_dim=1,
+        obs_dim=1,
+        chol_Q=t([[0.1]]),
+        chol_R=lambda k: t([[0.2 + 0.01 * k]]),
+        control_dim=1,
+    )
+    T = 15
+    ys = torch.randn(T, 3, 1, generator=gen(5), dtype=torch.float64)
+    ys[4] = float("nan")
+    ys[9, 1] = float("nan")
+    us = torch.linspace(0.0, 1.0, T, dtype=torch.float64).reshape(T, 1)
+    b0 = GaussianBelief(torch.zeros(3, 1, dtype=torch.float64), t([[1.0]]).expand(3, 1, 1))
+    pf = factory(300, resample_threshold=0.6)
+    tr = pf.run(model, b0, ys, us, generator=gen(6), k0=2)
+    g = gen(6)
+    state = pf.init(model, b0, generator=g, k=2)
+    for i in range(T):
+        state, info = pf.step(model, state, ys[i], us[i], 3 + i, generator=g)
+        assert torch.equal(info.mean, tr.means[i]) and torch.equal(info.ess, tr.ess[i])
+        assert torch.equal(info.missing, tr.missing[i])
+    assert torch.equal(state.particles, tr.final.particles)
+    assert bool(tr.missing[4].all()) and tr.missing[9].tolist() == [False, True, False]
+
+
+def test_numpy_and_torch_lookups_agree(monkeypatch):
+    """The CPU look-up switches to NumPy's searchsorted for long rows: same indices as
+    ``torch.searchsorted`` on sorted and unsorted queries, ties, batches and short queries."""
+    import prognos_torch.filters.resampling as rs
+
+    g = gen(8)
+    w = torch.rand(3, 5000, generator=g, dtype=torch.float64)
+    w[:, ::7] = 0.0  # flat cdf steps (zero-weight particles)
+    cdf = rs._cdf(w)
+    u_sorted = (torch.arange(5000, dtype=torch.float64) + 0.5) / 5000
+    queries = [
+        u_sorted.expand(3, 5000),
+        torch.rand(3, 5000, generator=g, dtype=torch.float64),
+        cdf[:, ::2].contiguous(),  # ties with the cdf values themselves
+        torch.rand(3, 17, generator=g, dtype=torch.float64),
+    ]
+    got = [rs._lookup(cdf, u) for u in queries]
+    monkeypatch.setattr(rs, "_NUMPY_SEARCH_MIN", 10**9)
+    for u, a in zip(queries, got):
+        assert torch.equal(a, rs._lookup(cdf, u)) and a.dtype == torch.int64
+
+
 # ---------------------------------------------------------------------- resamplers
 def _stratified_var(w):
     """Exact offspring variance of stratified resampling: sum over strata of p (1 - p)."""
