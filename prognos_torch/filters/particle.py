@@ -573,7 +573,9 @@ class ParticleFilter:
         y_e = y.unsqueeze(-2).expand(*bs, N, model.obs_dim)
         u_e = None if u is None else u if u.dim() == 1 else u_p.expand(*bs, N, u.shape[-1])
         # the per-particle Gaussian is centred on the particle (Van der Merwe et al., Sec. 4)
-        fs_in = replace(fs, belief=GaussianBelief(x_prev, fs.belief.chol))
+        fs_in = fs
+        if fs.belief.mean is not x_prev:
+            fs_in = replace(fs, belief=GaussianBelief(x_prev, fs.belief.chol))
         prop = self.proposal
         try:
             # ONE engine step (Eq. 27), on inputs the particle filter has checked
@@ -729,10 +731,10 @@ class ParticleFilter:
         ll = torch.logsumexp(lw_un, -1)  # log sum_i W_{k-1}^i w_inc^i ~ log p(y_k | y_{1:k-1})
         # one host read: particles, increments, fading factors and the likelihood all finite
         # (a finite sum has finite terms; an overflowing one takes the exact path below)
-        total = x.sum() + inc.sum() + ll.sum()
+        parts = [x.reshape(-1), inc.reshape(-1), ll.reshape(-1)]
         if lam_prop is not None:
-            total = total + lam_prop.sum()
-        finite = math.isfinite(float(total))
+            parts.append(lam_prop.reshape(-1))
+        finite = math.isfinite(float(torch.cat(parts).sum()))
         collapsed = None
         if not finite:
             finite_x = torch.isfinite(x).all(-1)
@@ -801,9 +803,11 @@ class ParticleFilter:
                     f"the resampler must return ancestors of shape {tuple(lw.shape)}, got "
                     f"{tuple(anc.shape)}"
                 )
-            x = torch.gather(x, -2, anc.unsqueeze(-1).expand(x.shape))
-            if fs_new is not None:
+            if fs_new is not None:  # its belief's mean is x: gathered with it
                 fs_new = gather_particles(fs_new, anc)
+                x = fs_new.belief.mean
+            else:
+                x = torch.gather(x, -2, anc.unsqueeze(-1).expand(x.shape))
 
         if any_missing:
             ll = torch.where(missing, torch.zeros_like(ll), ll)
