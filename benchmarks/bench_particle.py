@@ -299,7 +299,7 @@ def profile_stpf(kind: str, N: int, T: int) -> list[tuple[str, float]]:
         )
 
     total = cum("particle.py", "run")
-    engine = cum("gaussian.py", "step")
+    engine = cum("gaussian.py", "_step")  # the engine step after its input checks
     rows = [
         ("ParticleFilter.run (total)", total),
         ("  GaussianFilter.step (engine, per-particle SFEKF)", engine),
@@ -317,7 +317,7 @@ def profile_stpf(kind: str, N: int, T: int) -> list[tuple[str, float]]:
         ("    h at the new particles (likelihood)", cum("particle.py", "_log_lik")),
         (
             "    resampling (systematic + gather)",
-            cum("resampling.py", "systematic") + cum("particle.py", "gather_particles"),
+            cum("resampling.py", "_systematic") + cum("particle.py", "gather_particles"),
         ),
     ]
     return rows

@@ -81,6 +81,7 @@ def fading_factor(
     chol_prior: Tensor,
     pzz_noR_trace: Tensor,
     pxz: Tensor | None = None,
+    any_missing: bool = True,
 ) -> tuple[Tensor, StrongTrackingState]:
     """One fading-factor computation (paper 000 Eq. 7-10 with Eq. 18/20 or 35).
 
@@ -91,6 +92,8 @@ def fading_factor(
         chol_Q: ``(..., n, n)``; chol_R: ``(..., m, m)``; chol_prior: ``(..., n, n)`` unfaded prior.
         pzz_noR_trace: ``(...)`` trace of ``P_zz^(l) - R``.
         pxz: ``(..., n, m)`` cross covariance (needed when ``H`` is ``None``).
+        any_missing: ``False`` when ``missing`` is known to be all false (the masking is then
+            skipped; the same numbers).
     Returns:
         ``lambda_k`` ``(...)`` and the new state.
     """
@@ -110,6 +113,8 @@ def fading_factor(
     lam = torch.where((trM > 0) & (lam0 > 1.0), lam0, torch.ones_like(lam0))
     if cfg.max_factor is not None:
         lam = lam.clamp(max=cfg.max_factor)
+    if not any_missing:
+        return lam, StrongTrackingState(V=V_new, started=torch.ones_like(state.started))
     lam = torch.where(missing, torch.ones_like(lam), lam)
     V = torch.where(missing[..., None, None], state.V, V_new)
     started = state.started | ~missing

@@ -670,7 +670,9 @@ class GaussianFilter:
         if isinstance(self.fading, StrongTracking):
             prior_l = self._prior(prop, noise.chol_Q, None, update=True)
             mom_l = self._moments(model, prior_l, prop, u, k, noise.r)
-            eps_l = torch.where(incomplete[..., None], torch.zeros_like(y), y - mom_l.z)
+            eps_l = y - mom_l.z
+            if any_missing:
+                eps_l = torch.where(incomplete[..., None], torch.zeros_like(y), eps_l)
             lam, fstate = fading_factor(
                 self.fading,
                 state.fading,
@@ -682,6 +684,7 @@ class GaussianFilter:
                 prior_l.chol,
                 mom_l.pzz_trace(),
                 mom_l.pxz() if mom_l.H is None else None,
+                any_missing=any_missing,
             )
             if bool((lam > 1).any()):
                 prior = self._prior(prop, noise.chol_Q, lam, update=True)  # paper 000 Eq. 36

@@ -159,6 +159,8 @@ def gather_particles(obj, ancestors: Tensor, *, leading: dict[str, int] | None =
 
     def fn(v, _others, lead, name):
         _check_leaf(v, name, lead, want)
+        if lead + nb == 0:  # one run: a row selection (the same values as the gather)
+            return v.index_select(0, ancestors)
         idx = _particle_view(ancestors, v, lead, nb).expand(v.shape)
         return torch.gather(v, lead + nb, idx)
 
@@ -684,6 +686,8 @@ class ParticleFilter:
             if fs_new is not None:  # its belief's mean is x: gathered with it
                 fs_new = gather_particles(fs_new, anc)
                 x = fs_new.belief.mean
+            elif anc.dim() == 1:
+                x = x.index_select(0, anc)
             else:
                 x = torch.gather(x, -2, anc.unsqueeze(-1).expand(x.shape))
 
