@@ -87,6 +87,11 @@ def _pdim(x: Tensor | None, tail: int) -> Tensor | None:
     return x.unsqueeze(-tail - 1)
 
 
+def _sum_last(t: Tensor) -> Tensor:
+    """``t.sum(-1)``; a last dimension of one is selected (the same numbers, one op less)."""
+    return t[..., 0] if t.shape[-1] == 1 else t.sum(-1)
+
+
 def _gauss_logpdf(e: Tensor, S: Tensor, k: Tensor | None = None, inv_d: Tensor | None = None):
     """``log N(e; 0, S S^T)`` for residuals ``e`` ``(..., N, d)`` and ``S`` ``(d, d)`` or
     ``(..., d, d)`` (shared by the particles). Returns ``(..., N)``. ``k``: the constant
@@ -96,7 +101,7 @@ def _gauss_logpdf(e: Tensor, S: Tensor, k: Tensor | None = None, inv_d: Tensor |
         k = _log_norm_const(S)
     if inv_d is not None:
         z = e * inv_d
-        return -0.5 * (k + (z * z).sum(-1))
+        return -0.5 * (k + _sum_last(z * z))
     z = torch.linalg.solve_triangular(S, e.mT, upper=False)  # (..., d, N)
     return -0.5 * (k + (z * z).sum(-2))
 

@@ -75,6 +75,7 @@ from ._particle_noise import (
     _particle_model,
     _PNoise,
     _Setup,
+    _sum_last,
 )
 from .gaussian import FilterState, GaussianFilter, Taylor
 from .resampling import Resampler, _draw_ancestors, get_resampler
@@ -494,7 +495,7 @@ class ParticleFilter:
             x_q = mu + L[..., 0] * eps
         else:
             x_q = mu + (L @ eps.unsqueeze(-1)).squeeze(-1)
-        log_q = -0.5 * (n * _LOG_2PI + (eps * eps).sum(-1)) - torch.log(diag).sum(-1)
+        log_q = -0.5 * (n * _LOG_2PI + _sum_last(eps * eps)) - _sum_last(torch.log(diag))
         fast = all_ok and not any_missing
         if fast:
             x = x_q
