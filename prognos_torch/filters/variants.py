@@ -100,6 +100,7 @@ def rukf(
     alpha: float = 1.0,
     kappa: float = 1.0,
     form: str = "scalar",
+    bound: str = "printed",
     **kw,
 ) -> GaussianFilter:
     """Robust UKF of paper 004 (Theorem 1, steps 1-5): sigma points of Eq. 36, gain Eq. 29.
@@ -107,11 +108,13 @@ def rukf(
     Paper 004 Eq. 36 uses ``xi = x +- a sqrt((n + 1) P)``, i.e. the scaled rule with
     ``alpha = a`` and ``kappa = 1``. ``form``: the reading of the bound (see
     :class:`~prognos_torch.adapt.robust.RobustBound`; ``"scalar"`` is Eq. 28-29 as printed).
+    ``bound``: ``"printed"`` (the scale fixed by ``gamma``) or ``"optimised"`` (the scale of
+    Eq. 28's bound chosen per step to minimise ``trace P_k``; ``form="scalar"`` only).
     """
     return GaussianFilter(
         unscented(alpha, 0.0, kappa),
         sqrt=kw.pop("sqrt", True),
-        robust=RobustBound(gamma, M, N, form=form),
+        robust=RobustBound(gamma, M, N, form=form, bound=bound),
         name=kw.pop("name", "RUKF"),
         **kw,
     )
@@ -125,19 +128,21 @@ def arukf(
     window: int = 50,
     diagonal: bool = True,
     form: str = "scalar",
+    bound: str = "printed",
     **kw,
 ) -> GaussianFilter:
     """Adaptive robust UKF of paper 004 (Sec. 3): RUKF + moving-window Q/R estimator (Eq. 47-49).
 
     With ``form="lemma"`` the innovation covariance is matched against ``C P~ C^T + gamma^2 M M^T``
     (``P~`` already holds the ``N`` bound); with ``"scalar"`` against Eq. 48 as printed
-    (``(1 - N^2 / mu) C P C^T + mu M M^T``, ``mu = gamma^2``).
+    (``(1 - N^2 / mu) C P C^T + mu M M^T``, ``mu = gamma^2``; also with ``bound="optimised"``,
+    which changes only the bound of Eq. 60, see :func:`rukf`).
     """
     if form == "lemma":
         est = MovingWindow(window=window, M=M, N=0.0, mu=gamma**2, diagonal=diagonal)
     else:
         est = MovingWindow(window=window, M=M, N=float(N), mu=gamma**2, diagonal=diagonal)
-    return rukf(gamma, M, N, form=form, noise=est, name=kw.pop("name", "ARUKF"), **kw)
+    return rukf(gamma, M, N, form=form, bound=bound, noise=est, name=kw.pop("name", "ARUKF"), **kw)
 
 
 FILTERS = {
