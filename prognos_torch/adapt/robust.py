@@ -48,7 +48,7 @@ chooses ``t`` at each step, per batch element, to minimise ``trace P_k(t)``, the
 the printed theorem allows. With the optimal gain ``P_k(t) = (1 - t)^{-1} (P - P_xz S(t)^{-1}
 P_xz^T)``, ``S(t) = P_zz + nu (1 - t) / t M M^T + (1 - t) R``, so each trial costs one ``(m, m)``
 Cholesky and triangular solves (the ``M M^T`` term by Woodbury, well conditioned as
-``t -> 0``); the search is a grid in ``logit t`` followed by zoomed grids
+``t -> 0``); the search is a grid in ``logit t = log eps`` followed by zoomed grids
 around the best point (fixed sizes, batched, no host synchronisation). With ``N = 0`` there is
 no uncertainty and the optimised bound is the UKF.
 """
