@@ -9,8 +9,9 @@ Protocol (paper 000 Sec. 5-6, Table 1, Fig. 1-3):
   (:class:`~prognos_torch.prognosis.MeasurementForecaster`);
 * joint state/parameter filters on ``[h1, h2, h3, az2]`` with the assistant model
   ``az2_k = az2_{k-1} + d`` (Eq. 62-63, :func:`~prognos_torch.systems.three_tank_joint_model`):
-  SCKF, STUKF and STSCKF; at each ``k = 50, ..., 200`` the filter runs over the forecast
-  ``z_{k+1..k+5}`` and ``az2^_{k+5|k+5}`` is the 5-step-ahead prediction
+  SCKF, STUKF (kappa = 1; and kappa = 3 - n with full covariances) and STSCKF; at each
+  ``k = 50, ..., 200`` the filter runs over the forecast ``z_{k+1..k+5}`` and
+  ``az2^_{k+5|k+5}`` is the 5-step-ahead prediction
   (:func:`~prognos_torch.prognosis.rolling_fault_prediction`);
 * MAE / RMSE (and MSE) of the 5-step-ahead ``az2`` prediction per Monte Carlo run, the 1-step
   filtering RMSE of ``az2`` on the real measurements, time per run; a sensitivity check of the
