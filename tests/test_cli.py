@@ -68,6 +68,23 @@ def test_bad_study_options(capsys):
     assert main(["study", "no-such-study", "--runs", "0"]) == 2
     assert "runs must be a positive int" in capsys.readouterr().err
     assert main(["study", "--list"]) == 0
+    assert main(["study", "elm-stsckf", "--threads", "0"]) == 2
+    assert "--threads must be a positive integer, got 0" in capsys.readouterr().err
+
+
+def test_study_runs_with_the_requested_threads_and_restores_the_callers(monkeypatch, capsys):
+    import torch
+
+    import prognos_torch.studies as studies_mod
+
+    seen = []
+    monkeypatch.setattr(
+        studies_mod, "run_study", lambda st, cfg: seen.append(torch.get_num_threads()) or (0, "")
+    )
+    before = torch.get_num_threads()
+    assert main(["study", "elm-stsckf"]) == 0 and seen == [1]  # default: one thread
+    assert main(["study", "elm-stsckf", "--threads", "2"]) == 0 and seen == [1, 2]
+    assert torch.get_num_threads() == before
 
 
 def test_python_m_prognos_torch_lists_the_studies():
