@@ -77,9 +77,24 @@ def stekf(rho: float = 0.95, beta: float = 1.0, **kw) -> GaussianFilter:
     return ekf(fading=StrongTracking(rho, beta), name=kw.pop("name", "STEKF"), **kw)
 
 
-def stukf(rho: float = 0.95, beta: float = 1.0, kappa: float | None = 1.0, **kw) -> GaussianFilter:
-    """Strong-tracking UKF (derivative-free fading factor on the SRUKF engine)."""
-    return srukf(kappa, fading=StrongTracking(rho, beta), name=kw.pop("name", "STUKF"), **kw)
+def stukf(
+    rho: float = 0.95, beta: float = 1.0, kappa: float | None = 1.0, *, sqrt: bool = True, **kw
+) -> GaussianFilter:
+    """Strong-tracking UKF: the derivative-free fading factor (paper 000 Eq. 27-36) on Julier's
+    rule (paper 003 Eq. 12-13, ``kappa=None``: ``3 - n``).
+
+    ``sqrt=True``: the SRUKF's square-root algebra (a negative ``W_0`` enters as a Cholesky
+    downdate, paper 003 Eq. 17); ``sqrt=False``: full covariances
+    (``P = lambda (sum_i W_i d_i d_i^T) + Q`` with ``W_0 < 0`` subtracted directly), the form of
+    a textbook UKF with ``kappa = 3 - n``.
+    """
+    return GaussianFilter(
+        julier(kappa),
+        sqrt=sqrt,
+        fading=StrongTracking(rho, beta),
+        name=kw.pop("name", "STUKF"),
+        **kw,
+    )
 
 
 def stsckf(rho: float = 0.95, beta: float = 1.0, **kw) -> GaussianFilter:
