@@ -107,10 +107,15 @@ def fading_factor(
     HSQ = mm(H, chol_Q)
     trHQH = (HSQ * HSQ).sum((-2, -1))
     trR = (chol_R * chol_R).sum((-2, -1))
-    trN = torch.diagonal(V_new, dim1=-2, dim2=-1).sum(-1) - trHQH - cfg.beta * trR
+    trN = torch.diagonal(V_new, dim1=-2, dim2=-1).sum(-1) - trHQH
+    trN = trN - (trR if cfg.beta == 1.0 else cfg.beta * trR)  # (1.0 * trR is trR)
     trM = pzz_noR_trace - trHQH
-    lam0 = trN / torch.where(trM > 0, trM, torch.ones_like(trM))
-    lam = torch.where((trM > 0) & (lam0 > 1.0), lam0, torch.ones_like(lam0))
+    pos = trM > 0
+    one = torch.ones_like(trM)
+    lam0 = trN / torch.where(pos, trM, one)
+    if lam0.shape != one.shape:
+        one = torch.ones_like(lam0)
+    lam = torch.where(pos & (lam0 > 1.0), lam0, one)
     if cfg.max_factor is not None:
         lam = lam.clamp(max=cfg.max_factor)
     if not any_missing:

@@ -117,7 +117,8 @@ def _dense(S: Tensor, V: Tensor, sign: float) -> tuple[Tensor, Tensor]:
         # s' = s sqrt(1 + sign sum_j (v_j / s)^2): no batched LAPACK calls on 1 x 1 matrices
         W = V / S
         W2 = W * W
-        a = 1.0 + sign * (W2 if W2.shape[-1] == 1 else W2.sum(-1, keepdim=True))
+        W2 = W2 if W2.shape[-1] == 1 else W2.sum(-1, keepdim=True)
+        a = 1.0 - W2 if sign < 0 else 1.0 + W2  # (1 + (-1) x is 1 - x)
         L = a.sqrt()  # NaN where a < 0 (a failed downdate, ratio -1 below)
         ratio = torch.where(a[..., 0, 0] > 0, (L * L)[..., 0, 0], -1.0)
         return S * L, ratio
