@@ -147,7 +147,7 @@ def main(argv=None):
     Xtr, Ytr, Xte, Yte = data
     model, opt = make("srukf", args.runs, Xtr)
     theta0 = opt.theta.numpy()  # (runs, 44): the runs' initial parameters
-    S0, SQ = opt._chol_P0.numpy(), opt._chol_Q.numpy()
+    S0, SQ = opt._cfg[0].chol_P0.numpy(), opt._cfg[0].chol_Q.numpy()
     P0m, Qm = S0 @ S0.T, SQ @ SQ.T
     Rm = np.array([[R]])
     print(

@@ -105,11 +105,33 @@ def _dense(S: Tensor, V: Tensor, sign: float) -> tuple[Tensor, Tensor]:
     """``S chol(I + sign W W^T)`` with ``W = S^{-1} V``, and the determinant ratio
     (``-1`` where the Cholesky factorisation fails)."""
     W = torch.linalg.solve_triangular(S, V, upper=False)
-    eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
-    L, info = torch.linalg.cholesky_ex(eye + sign * (W @ W.mT))
+    eye = _eye(S.shape[-1], S.dtype, S.device)
+    if W.dim() == 2:
+        A = torch.addmm(eye, W, W.mT, alpha=sign)
+    else:
+        A = torch.matmul(W, W.mT).mul_(sign).add_(eye)
+    L, info = torch.linalg.cholesky_ex(A)
     d = torch.diagonal(L, dim1=-2, dim2=-1)
     ratio = torch.where(info > 0, -1.0, d.square().prod(-1))
     return S @ L, ratio
+
+
+_EYE_CACHE: dict = {}
+
+
+def _eye(n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``I_n``, made once per size, dtype and device (read only: never modified in place)."""
+    if torch.compiler.is_compiling():
+        return torch.eye(n, dtype=dtype, device=device)
+    key = (n, dtype, device)
+    E = _EYE_CACHE.get(key)
+    if E is None:
+        with torch.inference_mode(False), torch.no_grad():
+            E = torch.eye(n, dtype=dtype, device=device)
+        if len(_EYE_CACHE) > 64:
+            _EYE_CACHE.clear()
+        _EYE_CACHE[key] = E
+    return E
 
 
 def chol_update(S: Tensor, V: Tensor) -> Tensor:

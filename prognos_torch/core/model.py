@@ -145,7 +145,8 @@ class StateSpaceModel:
                 x = torch.as_tensor(x, dtype=like.dtype, device=like.device)
             if x.device != like.device:
                 raise ValueError(f"{name} is on {x.device}, the {owner} on {like.device}")
-            x = x.to(like.dtype)
+            if x.dtype != like.dtype:
+                x = x.to(like.dtype)
             if tuple(x.shape) not in (tail, bs + tail):
                 raise ValueError(
                     f"{name} must have shape {what} with {tail} or batch shape {bs} + {tail}, "

@@ -347,16 +347,62 @@ def _check_measurement_traced(y, obs_dim: int, belief: GaussianBelief) -> tuple[
     return check_measurement(y, obs_dim, belief.batch_shape, belief.mean)  # raises
 
 
+_GRAM_CACHE: dict = {}
+
+
+def _gram(S: Tensor) -> Tensor:
+    """``S S^T``, remembered for the last few noise factors: a model's ``S_Q`` is usually
+    the same tensor at every step (keyed by identity and version counter, so an in-place
+    change is seen; inference tensors, which have no version counter, and traced steps are
+    not cached)."""
+    if _no_sync() or S.is_inference():
+        return S @ S.mT
+    key = (id(S), S._version)
+    hit = _GRAM_CACHE.get(key)
+    if hit is not None and hit[0] is S:
+        return hit[1]
+    G = S @ S.mT
+    if len(_GRAM_CACHE) > 16:
+        _GRAM_CACHE.clear()
+    _GRAM_CACHE[key] = (S, G)
+    return G
+
+
 def _chol_prior(pos: Tensor, chol_Q: Tensor) -> Tensor:
     """``chol(pos pos^T + S_Q S_Q^T)`` ``(..., n, n)``, with ``Tria([pos, S_Q])`` (paper 000
     Eq. 25) where the Cholesky fails. ``chol_Q``: ``(n, n)`` or batched like ``pos``."""
-    L, info = torch.linalg.cholesky_ex(pos @ pos.mT + chol_Q @ chol_Q.mT)
-    bad = info > 0
-    if not _no_sync() and not bool(bad.any()):
+    Q = _gram(chol_Q)
+    if pos.dim() == 2:
+        P = torch.addmm(Q, pos, pos.mT)
+    else:
+        P = torch.matmul(pos, pos.mT).add_(Q)
+    L, info = torch.linalg.cholesky_ex(P)
+    if not _no_sync() and not bool(info.any()):
         return L
+    bad = info > 0
     SQ = _bcast(chol_Q, pos.shape[:-2], chol_Q.shape[-2:])
     S = tria(torch.cat([pos, SQ], dim=-1))
     return torch.where(bad[..., None, None], S, L)
+
+
+_CONSTANTS: dict = {}
+
+
+def _constant(shape, dtype: torch.dtype, device: torch.device, value) -> Tensor:
+    """A tensor of ``shape`` filled with ``value``, made once per shape, dtype and device:
+    the step's flags without a missing measurement (all false) and ``lambda_k = 1`` without
+    fading. The diagnostics of :class:`StepInfo` share it; they are read, not written."""
+    if _no_sync():
+        return torch.full(tuple(shape), value, dtype=dtype, device=device)
+    key = (tuple(shape), dtype, device, value)
+    t = _CONSTANTS.get(key)
+    if t is None:
+        with torch.inference_mode(False), torch.no_grad():
+            t = torch.full(tuple(shape), value, dtype=dtype, device=device)
+        if len(_CONSTANTS) > 64:
+            _CONSTANTS.clear()
+        _CONSTANTS[key] = t
+    return t
 
 
 def _bcast(x: Tensor, batch_shape: torch.Size, tail: tuple[int, ...]) -> Tensor:
@@ -635,6 +681,17 @@ class GaussianFilter:
         else:
             y, any_missing = check_measurement(y, model.obs_dim, belief.batch_shape, belief.mean)
         u = check_control(u, model.control_dim, belief.batch_shape, belief.mean)
+        return self._update(model, state, y, u, k, any_missing)
+
+    def _update(
+        self, model: StateSpaceModel, state: FilterState, y: Tensor, u, k: int, any_missing: bool
+    ) -> tuple[FilterState, StepInfo]:
+        """:meth:`step` on checked arguments: ``y`` ``(..., m)`` in the belief's dtype and
+        device, NaN only where missing (``any_missing`` says whether any entry is NaN), ``u``
+        as :func:`check_control` returns it. A caller that has validated its data already (the
+        optimiser face: finite targets, checked once per :func:`~prognos_torch.optim.fit`
+        call) enters here, so that a step pays for no check twice."""
+        belief = state.belief
         noise = self._noise(model, state, k)
         observed = nan = None
         if any_missing:
@@ -644,7 +701,7 @@ class GaussianFilter:
             if self.robust is None and bool((incomplete & ~missing).any()):
                 observed = ~nan  # some vector is partially observed: update with its part
         else:
-            missing = torch.zeros(belief.batch_shape, dtype=torch.bool, device=y.device)
+            missing = _constant(belief.batch_shape, torch.bool, y.device, False)
             incomplete = missing
         prop = self._propagate(model, belief, u, k, noise.q)
 
@@ -700,7 +757,7 @@ class GaussianFilter:
 
         nstate = state.noise
         if nstate is None:
-            fallback = torch.zeros(belief.batch_shape, dtype=torch.bool, device=y.device)
+            fallback = _constant(belief.batch_shape, torch.bool, y.device, False)
         else:
             h_mean = mom.z if noise.r is None else mom.z - noise.r
             ctx = UpdateContext(
@@ -722,7 +779,7 @@ class GaussianFilter:
             nstate = self.noise.update(nstate, ctx)
             fallback = nstate.fallback
         if lam is None:
-            lam = torch.ones(belief.batch_shape, dtype=y.dtype, device=y.device)
+            lam = _constant(belief.batch_shape, y.dtype, y.device, 1.0)
         info = StepInfo(
             prior=GaussianBelief(prior.mean, prior.chol),
             innovation=eps,

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
+from ..core.validation import check_finite
 from .kalman import KalmanOptimizer
 
 __all__ = ["fit", "History", "METRICS"]
@@ -247,6 +248,10 @@ def fit(
 
     was_training = module.training
     best_value, best_state, since_best = float("inf"), None, 0
+    if kalman:  # values checked once here; the steps check types, shapes, dtypes and devices
+        check_finite(X, "inputs")
+        check_finite(Y, "targets")
+        optimizer._finite_checked = True
     try:
         for epoch in range(1, epochs + 1):
             if shuffle:
@@ -310,6 +315,8 @@ def fit(
                 hist.stopped_early = epoch < epochs
                 break
     finally:
+        if kalman:
+            optimizer._finite_checked = False
         if bar is not None:
             bar.close()
         module.train(was_training)

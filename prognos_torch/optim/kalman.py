@@ -717,11 +717,11 @@ class KalmanOptimizer(torch.optim.Optimizer):
     def _chunk(self) -> int | None:
         return self.param_groups[0]["chunk_size"]
 
-    def _check_inputs(self, inputs) -> Tensor:
+    def _check_inputs(self, inputs, checked: bool = False) -> Tensor:
         b = self.bridge
         if not isinstance(inputs, Tensor):
             raise TypeError(f"inputs must be a torch.Tensor, got {type(inputs)}")
-        check_matches(inputs, "inputs", b.dtype, b.device)
+        _check_matches(inputs, "inputs", b.dtype, b.device, checked)
         if self.per_run_data and (inputs.dim() < 1 or inputs.shape[0] != self.runs):
             raise ValueError(
                 f"inputs must have shape (runs={self.runs}, ...) with per_run_data=True, got "
@@ -729,9 +729,11 @@ class KalmanOptimizer(torch.optim.Optimizer):
             )
         return inputs
 
-    def _check_batch(self, inputs, targets) -> tuple[Tensor, Tensor, torch.Size]:
+    def _check_batch(self, inputs, targets, checked: bool = False):
+        """``(inputs, targets, output shape of one run)``, validated (finiteness only when
+        not ``checked`` already)."""
         b = self.bridge
-        x = self._check_inputs(inputs)
+        x = self._check_inputs(inputs, checked)
         per_run = self.per_run_data
         key = tuple(x.shape)
         out_shape = self._out_shapes.get(key)
@@ -747,7 +749,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 f"targets must have shape {want} (the model output for inputs of "
                 f"shape {tuple(x.shape)}), got {tuple(targets.shape)}"
             )
-        check_matches(targets, "targets", b.dtype, b.device)
+        _check_matches(targets, "targets", b.dtype, b.device, checked)
         return x, targets, out_shape
 
     def _chol_R(self, i: int, out_shape: torch.Size) -> Tensor:
@@ -890,6 +892,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         return ordinary tensors.
         """
         args, kwargs = (self, inputs, targets), ({} if closure is None else {"closure": closure})
+        changed = False
         for hook in chain(
             _global_optimizer_pre_hooks.values(), self._optimizer_step_pre_hooks.values()
         ):
@@ -900,6 +903,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
                         "an optimizer step pre-hook must return None or (new_args, new_kwargs)"
                     )
                 args, kwargs = result
+                changed = True
         rest = list(args[1:3]) + [None] * max(0, 3 - len(args))
         inputs = kwargs.get("inputs", rest[0])
         targets = kwargs.get("targets", rest[1])
@@ -910,10 +914,14 @@ class KalmanOptimizer(torch.optim.Optimizer):
             inputs = closure
         if callable(inputs) and targets is None:
             inputs, targets = _call_closure(inputs)
+            changed = True
         if inputs is None:
             raise TypeError("step needs inputs and targets, or a closure returning them")
+        # the values were checked finite by fit (once per call) unless a hook or a closure
+        # supplied them
+        checked = self._finite_checked and not changed
         with torch.inference_mode() if self._inference_ok(inputs) else torch.no_grad():
-            out = self._step(inputs, targets)
+            out = self._step(inputs, targets, checked)
         for hook in chain(
             self._optimizer_step_post_hooks.values(), _global_optimizer_post_hooks.values()
         ):
@@ -943,10 +951,14 @@ class KalmanOptimizer(torch.optim.Optimizer):
             inputs = inputs[0]
         return bridge.has_closed_form_jacobian(inputs, chunk)
 
-    def _step(self, inputs: Tensor, targets: Tensor) -> KalmanStep:
+    #: set by :func:`~prognos_torch.optim.fit` while it steps through data it has checked to
+    #: be finite (once per call); a step then checks types, shapes, dtypes and devices only
+    _finite_checked = False
+
+    def _step(self, inputs: Tensor, targets: Tensor, checked: bool = False) -> KalmanStep:
         norms = tracking_batch_norms(self.module)
         with batch_statistics_only(norms):
-            x, t, out_shape = self._check_batch(inputs, targets)
+            x, t, out_shape = self._check_batch(inputs, targets, checked)
         if norms:
             if self.runs is not None:
                 raise ValueError(
@@ -967,8 +979,8 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 fstate = self._engine_state(i, model)
                 key = _state_key(i)
                 k = self.state[key]["step"] + 1
-                try:
-                    new, info = cfg.filter.step(model, fstate, y, None, k)
+                try:  # y is finite (targets checked): the engine's checks are not repeated
+                    new, info = cfg.filter._update(model, fstate, y, None, k, False)
                 except RuntimeError as exc:
                     clear = explain_transform_error(exc)
                     if clear is None:
@@ -1049,6 +1061,17 @@ class KalmanOptimizer(torch.optim.Optimizer):
         if self.runs is None:
             for i, cfg in enumerate(self._cfg):
                 cfg.bridge.assign(self.state[_state_key(i)]["mean"])
+
+
+def _check_matches(x: Tensor, name: str, dtype, device, checked: bool) -> None:
+    """:func:`check_matches`; the finiteness test is skipped when the values were checked."""
+    if checked:
+        if x.dtype != dtype:
+            check_matches(x, name, dtype, device)  # raises
+        if x.device != device:
+            check_matches(x, name, dtype, device)  # raises
+        return
+    check_matches(x, name, dtype, device)
 
 
 def _random_walk_model(b: ParameterBridge, h, jac_h, M: int, chol_Q, chol_R) -> StateSpaceModel:

@@ -204,10 +204,14 @@ class ParameterBridge:
         """
         theta = self._check_theta(theta)
         lead = theta.shape[:-1]
-        theta = theta.to(self.dtype)
+        if theta.dtype != self.dtype:
+            theta = theta.to(self.dtype)
+        if len(self.names) == 1:
+            return {self.names[0]: theta.reshape(*lead, *self.shapes[0])}
+        parts = theta.split(self.numels, dim=-1)  # one operation for all the views
         return {
-            name: theta[..., sl].reshape(*lead, *shape)
-            for name, sl, shape in zip(self.names, self.slices, self.shapes)
+            name: part.reshape(*lead, *shape)
+            for name, part, shape in zip(self.names, parts, self.shapes)
         }
 
     @torch.no_grad()
@@ -216,9 +220,11 @@ class ParameterBridge:
         theta = self._check_theta(theta)
         if theta.dim() != 1:
             raise ValueError(f"theta must have shape ({self.numel},), got {tuple(theta.shape)}")
-        theta = theta.to(self.device)
-        for p, sl in zip(self._params, self.slices):
-            p.copy_(theta[sl].view_as(p))  # copy_ casts to the parameter dtype
+        if theta.device != self.device:
+            theta = theta.to(self.device)
+        parts = theta.split(self.numels)
+        # copy_ casts to the parameter dtype; one fused call for all parameters
+        torch._foreach_copy_(self._params, [t.view_as(p) for t, p in zip(parts, self._params)])
 
     # ------------------------------------------------------------------ the model as g(theta, x)
     def functional(self, theta: Tensor, x: Tensor) -> Tensor:
