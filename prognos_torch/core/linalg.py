@@ -44,6 +44,10 @@ def tria(A: Tensor) -> Tensor:
     if A.requires_grad and torch.is_grad_enabled():
         # geqrf has no derivative; the reduced QR has one (it needs a full-rank A)
         R = torch.linalg.qr(A.mT, mode="reduced")[1]
+    elif torch.compiler.is_compiling():
+        # geqrf cannot be traced (no fake-tensor rule); the R-only QR is the same
+        # Householder factorisation
+        R = torch.linalg.qr(A.mT, mode="r")[1]
     else:
         # geqrf leaves R in the upper triangle of its first output; A^T of a row-major A is
         # the column-major layout LAPACK wants, and unlike linalg.qr nothing else is computed
@@ -112,7 +116,7 @@ def _dense(S: Tensor, V: Tensor, sign: float) -> tuple[Tensor, Tensor]:
         A = torch.matmul(W, W.mT).mul_(sign).add_(eye)
     L, info = torch.linalg.cholesky_ex(A)
     d = torch.diagonal(L, dim1=-2, dim2=-1)
-    ratio = torch.where(info > 0, -1.0, d.square().prod(-1))
+    ratio = d.square().prod(-1).masked_fill(info > 0, -1.0)
     return S @ L, ratio
 
 

@@ -214,9 +214,11 @@ class ParameterBridge:
             for name, part, shape in zip(self.names, parts, self.shapes)
         }
 
-    @torch.no_grad()
     def assign(self, theta: Tensor) -> None:
         """Write ``theta`` ``(n,)`` into the module's parameters (cast to the module dtype)."""
+        if torch.is_grad_enabled():
+            with torch.no_grad():
+                return self.assign(theta)
         theta = self._check_theta(theta)
         if theta.dim() != 1:
             raise ValueError(f"theta must have shape ({self.numel},), got {tuple(theta.shape)}")
@@ -261,7 +263,8 @@ class ParameterBridge:
         """
         out = self.batched(theta, x, chunk_size=chunk_size)
         lead = theta.shape[:-1]
-        return out.reshape(*lead, -1).to(torch.float64)
+        out = out.reshape(*lead, -1)
+        return out if out.dtype == torch.float64 else out.to(torch.float64)
 
     def has_closed_form_jacobian(self, x: Tensor, chunk_size: int | None = None) -> bool:
         """Whether the module offers ``forward_and_jacobian`` (the library's learners do) and
@@ -280,7 +283,10 @@ class ParameterBridge:
         out, jac = self.module.forward_and_jacobian(self.unflatten(theta), x, self.names)
         M = out.shape[-2] * out.shape[-1]
         J = torch.cat([jac[n].reshape(*lead, M, k) for n, k in zip(self.names, self.numels)], -1)
-        return out.reshape(*lead, M).to(torch.float64), J.to(torch.float64)
+        out = out.reshape(*lead, M)
+        if out.dtype != torch.float64:
+            out, J = out.to(torch.float64), J.to(torch.float64)
+        return out, J
 
     def jacobian(
         self,
@@ -344,7 +350,9 @@ class ParameterBridge:
         reverse pass (``"autograd"``, and ``"auto"`` otherwise)."""
         if mode not in ("auto", "autograd"):
             raise ValueError(f"mode must be 'auto' or 'autograd', got {mode!r}")
-        theta = self._check_theta(theta).to(torch.float64)
+        theta = self._check_theta(theta)
+        if theta.dtype != torch.float64:
+            theta = theta.to(torch.float64)
         if mode == "auto" and self.has_closed_form_jacobian(x, chunk_size):
             return self._closed_form(theta, x)
         return self._jacobian_autograd(theta, x, chunk_size, with_output=True)
