@@ -22,7 +22,7 @@ import time
 
 import torch
 
-from prognos_torch.workflow import Series, fit_series, prognose
+from prognos_torch.workflow import Series, fit_series, prognose, rul
 
 
 def series(rows: int) -> Series:
@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> None:
         res = prognose(s, thr)
         ours.append(time.perf_counter() - t0)
         t0 = time.perf_counter()
-        fit_series(s, learner="elm").rul(s, thr, filter="stpf")
+        rul(fit_series(s, learner="elm"), s, thr, filter="stpf")
         peer.append(time.perf_counter() - t0)
     print(f"machine: {platform.platform()}, torch {torch.__version__}, threads 1")
     print(f"series: {args.rows} rows; onset at {res.onset.time:g}; model {res.model}; "

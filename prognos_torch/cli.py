@@ -39,6 +39,13 @@ def _add_study(sub) -> None:
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--seed", type=int, default=0, help="base seed")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch CPU threads (default 1: the filters work on many tiny matrices, and extra "
+        "threads slow the batched runs, most of all on a busy machine; run.json records it)",
+    )
     p.set_defaults(func=_cmd_study)
 
 
@@ -66,6 +73,9 @@ def _cmd_study(args) -> int:
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.threads < 1:
+        print(f"error: --threads must be a positive integer, got {args.threads}", file=sys.stderr)
+        return 2
     names = list(studies) if args.name == "all" else [args.name]
     unknown = [n for n in names if n not in studies]
     if unknown:
@@ -74,10 +84,17 @@ def _cmd_study(args) -> int:
             file=sys.stderr,
         )
         return 2
-    for n in names:
-        _, text = run_study(studies[n], cfg)
-        print(text)
-        print(f"[written to {Path(args.out) / n}]")
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(args.threads)  # the caller's count is restored afterwards
+    try:
+        for n in names:
+            _, text = run_study(studies[n], cfg)
+            print(text)
+            print(f"[written to {Path(args.out) / n}]")
+    finally:
+        torch.set_num_threads(threads)
     return 0
 
 

@@ -77,3 +77,13 @@ def check_outputs(d: Path, name: str, n_figures: int, methods, runs: int) -> tup
         (i, m) for i in range(runs) for m in methods
     )
     return meta, rows
+
+
+def means(rows: list[dict], metric: str) -> dict[str, float]:
+    """``{method: mean of metric over the runs}`` (empty and NaN cells skipped)."""
+    acc: dict[str, list[float]] = {}
+    for r in rows:
+        v = r.get(metric, "")
+        if v not in ("", "None", "nan"):
+            acc.setdefault(r["method"], []).append(float(v))
+    return {m: sum(v) / len(v) for m, v in acc.items()}

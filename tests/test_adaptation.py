@@ -260,3 +260,98 @@ def test_diagonal_estimates_equal_the_diagonal_of_full_estimates(estimator):
                 atol=1e-14,
             )
     assert bool((sd.Q != eye(n)).any())  # the estimates did move
+
+
+def _bound_problem(B=5, n=4, m=3, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    A = torch.randn(B, n, n, generator=g, dtype=dt)
+    P = A @ A.mT + 0.1 * torch.eye(n, dtype=dt)
+    H = torch.randn(B, m, n, generator=g, dtype=dt)
+    C = torch.randn(B, m, m, generator=g, dtype=dt)
+    RR = 0.5 * C @ C.mT + 0.2 * torch.eye(m, dtype=dt)
+    M = torch.full((m,), 0.3, dtype=dt)
+    return P, H, RR, M
+
+
+def test_optimised_bound_is_the_grid_minimum_and_beats_the_printed_scale():
+    """Paper 004 Eq. 28 as a family in t = N^2 / gamma^2: the search finds the minimum of
+    trace P_k(t) (a brute-force grid of 40,001 points agrees), below the printed t = 1/1.05^2,
+    and bound_trace is the trace of Eq. 28 with the gain of Eq. 35 (explicit test-only form)."""
+    from prognos_torch.adapt import RobustBound
+
+    P, H, RR, M = _bound_problem()
+    Pxz, Pzz, trP = P @ H.mT, H @ P @ H.mT, torch.diagonal(P, dim1=-2, dim2=-1).sum(-1)
+    rb = RobustBound(1.05, M, 1.0, bound="optimised")
+    t = rb.choose_t(trP, Pxz, Pzz, RR)
+    f = rb.bound_trace(t[:, None], trP, Pxz, Pzz, RR)[:, 0]
+    fine = torch.sigmoid(torch.linspace(-30.0, 14.0, 44001, dtype=dt)).expand(P.shape[0], -1)
+    f_fine = rb.bound_trace(fine, trP, Pxz, Pzz, RR).min(-1).values
+    assert torch.allclose(f, f_fine, rtol=1e-7)
+    assert bool((f <= f_fine * (1 + 1e-12)).all())
+    t0 = torch.full_like(t, 1.0 / 1.05**2)
+    f0 = rb.bound_trace(t0[:, None], trP, Pxz, Pzz, RR)[:, 0]
+    assert bool((f < 0.5 * f0).all())  # the printed scale is far from the best on these
+    for tt in (t, t0):  # Eq. 28 with the gain of Eq. 35, explicitly
+        T = tt[:, None, None]
+        MM = M[:, None] @ M[None, :]
+        S = Pzz + (1 - T) / T * MM + (1 - T) * RR
+        K = torch.linalg.solve(S, Pxz.mT).mT  # S symmetric
+        IKH = torch.eye(4, dtype=dt) - K @ H
+        Pk = IKH @ P @ IKH.mT / (1 - T) + K @ MM @ K.mT / T + K @ RR @ K.mT
+        ref = torch.diagonal(Pk, dim1=-2, dim2=-1).sum(-1)
+        got = rb.bound_trace(tt[:, None], trP, Pxz, Pzz, RR)[:, 0]
+        assert torch.allclose(got, ref, rtol=1e-10)
+    with pytest.raises(ValueError, match="bound"):
+        RobustBound(1.05, M, 1.0, bound="best")
+    with pytest.raises(ValueError, match="form='scalar'"):
+        RobustBound(1.05, M, 1.0, form="lemma", bound="optimised")
+
+
+def test_optimised_rukf_steps_take_the_tightest_bound():
+    """Each step of rukf(bound='optimised') ends at the minimum over t of trace P_k(t) for its
+    own prior (linear model: the unscented moments are exact), never above the printed scale's
+    bound from the same prior; square-root and full algebra agree (to the search's precision)."""
+    from prognos_torch.adapt import RobustBound
+
+    F, H, SQ, SR, xs, ys, b0 = _lin_data(T=12, B=3)
+    model = linear_gaussian_model(F, H, SQ, SR)
+    Mu = torch.full((2,), 0.3, dtype=dt)
+    opt, printed = rukf(1.05, Mu, 1.0, bound="optimised"), rukf(1.05, Mu, 1.0)
+    rb = RobustBound(1.05, Mu, 1.0, bound="optimised")
+    RR = (SR @ SR.T).expand(3, 2, 2)
+    fine = torch.sigmoid(torch.linspace(-30.0, 14.0, 44001, dtype=dt)).expand(3, -1)
+    state = opt.init(model, b0)
+    for k in range(ys.shape[0]):
+        new, info = opt.step(model, state, ys[k], k=k + 1)
+        _, info_p = printed.step(model, state, ys[k], k=k + 1)  # same start
+        S = info.prior.chol
+        P = S @ S.mT
+        Pxz, Pzz, trP = P @ H.T, H @ P @ H.T, torch.diagonal(P, dim1=-2, dim2=-1).sum(-1)
+        got = new.belief.chol.square().sum((-2, -1))
+        best = rb.bound_trace(fine, trP, Pxz, Pzz, RR).min(-1).values
+        assert torch.allclose(got, best, rtol=1e-7)
+        printed_post = printed.step(model, state, ys[k], k=k + 1)[0].belief.chol
+        assert bool((got <= printed_post.square().sum((-2, -1))).all())
+        state = new
+    a = run(opt, model, b0, ys)
+    b = run(rukf(1.05, Mu, 1.0, bound="optimised", sqrt=False), model, b0, ys)
+    # the trace is stationary at the optimum, so rounding moves t (and the gain, hence the
+    # mean) by about the square root of what it moves P_k: covariances agree to 1e-6, means 2e-3
+    assert torch.allclose(a.covs, b.covs, atol=1e-6)
+    assert torch.allclose(a.means, b.means, atol=2e-3)
+
+
+@pytest.mark.parametrize("N", [0.0, 1.0])
+def test_optimised_bound_without_uncertainty_is_the_ukf(N):
+    """M = 0 (or N = 0): no uncertainty, and the optimised bound is the plain UKF (with N = 1 the
+    search runs to t -> 0, where lambda -> 1), while the printed bound is not."""
+    F, H, SQ, SR, xs, ys, b0 = _lin_data(T=60, B=2)
+    model = linear_gaussian_model(F, H, SQ, SR)
+    ref = run(GaussianFilter(unscented(1.0, 0.0, 1.0)), model, b0, ys)
+    M0 = torch.zeros(2, dtype=dt) if N else torch.full((2,), 0.3, dtype=dt)
+    opt = run(rukf(1.05, M0, N, bound="optimised"), model, b0, ys)
+    assert torch.allclose(opt.means, ref.means, atol=1e-9, rtol=0)
+    assert torch.allclose(opt.covs, ref.covs, atol=1e-9, rtol=0)
+    if N:
+        printed = run(rukf(1.05, M0, N), model, b0, ys)
+        assert float((printed.covs - ref.covs).abs().max()) > 0.1

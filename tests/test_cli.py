@@ -35,6 +35,21 @@ def test_write_outputs_files(tmp_path):
     assert meta["study"] == "toy" and "torch" in meta["versions"] and "machine" in meta
 
 
+@pytest.mark.parametrize(
+    "argv",
+    [["trainers/toy.py", "--quick"], ["/x/prognos_torch/__main__.py", "study", "toy", "--quick"]],
+)
+def test_run_json_command_is_repeatable(tmp_path, monkeypatch, argv):
+    # the recorded command is the module form whatever the entry point, with the thread setting
+    st = Study("toy", "000", "Toy", run=lambda cfg, out: None, default_runs=2)
+    res = StudyResult(rows=[{"run": 0, "method": "A", "MAE": 1.0}], metrics=["MAE"])
+    monkeypatch.setattr("sys.argv", argv)
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    write_outputs(st, StudyConfig(out=tmp_path), res, tmp_path, 0.1)
+    meta = json.loads((tmp_path / "run.json").read_text())
+    assert meta["command"] == "OMP_NUM_THREADS=1 python -m prognos_torch study toy --quick"
+
+
 def test_bad_study_options(capsys):
     assert main(["study", "no-such-study"]) == 2
     err = capsys.readouterr().err
@@ -53,6 +68,23 @@ def test_bad_study_options(capsys):
     assert main(["study", "no-such-study", "--runs", "0"]) == 2
     assert "runs must be a positive int" in capsys.readouterr().err
     assert main(["study", "--list"]) == 0
+    assert main(["study", "elm-stsckf", "--threads", "0"]) == 2
+    assert "--threads must be a positive integer, got 0" in capsys.readouterr().err
+
+
+def test_study_runs_with_the_requested_threads_and_restores_the_callers(monkeypatch, capsys):
+    import torch
+
+    import prognos_torch.studies as studies_mod
+
+    seen = []
+    monkeypatch.setattr(
+        studies_mod, "run_study", lambda st, cfg: seen.append(torch.get_num_threads()) or (0, "")
+    )
+    before = torch.get_num_threads()
+    assert main(["study", "elm-stsckf"]) == 0 and seen == [1]  # default: one thread
+    assert main(["study", "elm-stsckf", "--threads", "2"]) == 0 and seen == [1, 2]
+    assert torch.get_num_threads() == before
 
 
 def test_python_m_prognos_torch_lists_the_studies():

@@ -123,6 +123,57 @@ def test_process_noise_is_drawn_step_by_step_whatever_the_chunk():
         np.testing.assert_array_equal(res.rul.first_passage.numpy(), ref)
 
 
+def test_active_only_gives_the_same_passages_and_advances_only_the_open_samples():
+    g0 = torch.Generator().manual_seed(3)
+    B, N, H, std = 2, 25, 200, 0.3
+    rate = 0.02 + 0.3 * torch.rand(B, N, generator=g0)
+    x0 = torch.stack([torch.zeros(B, N), rate], -1).double()
+    seen = []
+
+    def f(x, u, k):  # batched: x (rows, 2) or (B, N, 2)
+        seen.append(x.shape[:-1].numel())
+        return torch.stack([x[..., 0] + x[..., 1], x[..., 1]], -1)
+
+    model = StateSpaceModel(
+        f=f,
+        h=lambda x, u, k: x[..., :1],
+        state_dim=2,
+        obs_dim=1,
+        chol_Q=t(np.diag([std, 0.0])),
+        chol_R=t([[1.0]]),
+        batched=True,
+    )
+    ev = lambda x: x[..., 0] >= 6.0  # noqa: E731
+    out = {}
+    for flag in (False, True):
+        seen.clear()
+        out[flag] = simulate_to_event(
+            model,
+            x0,
+            ev,
+            max_steps=H,
+            process_noise=True,
+            chunk=8,
+            active_only=flag,
+            generator=torch.Generator().manual_seed(9),
+        )
+        out[flag, "rows"] = sum(seen)
+    a, b = out[False], out[True]
+    np.testing.assert_array_equal(a.rul.first_passage.numpy(), b.rul.first_passage.numpy())
+    torch.testing.assert_close(a.final_state, b.final_state, rtol=0, atol=0)
+    assert a.steps_run == b.steps_run
+    # the open samples only: the row count equals the sum over chunks of the open samples
+    fp = a.rul.first_passage.reshape(-1)
+    open_rows = sum(
+        8 * int(((fp < 0) | (fp > s)).sum()) if s else 8 * B * N for s in range(0, a.steps_run, 8)
+    )
+    assert out[True, "rows"] == open_rows < out[False, "rows"] == a.steps_run * B * N
+    with pytest.raises(ValueError, match="active_only"):
+        simulate_to_event(
+            ramp_model(), x0, ev, controls=torch.ones(H, B, 1).double(), active_only=True
+        )
+
+
 def test_sample_belief_moments():
     m = t([1.0, -2.0, 0.5])
     A = t([[1.0, 0.0, 0.0], [0.5, 2.0, 0.0], [-0.3, 0.1, 0.2]])

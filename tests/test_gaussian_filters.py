@@ -56,6 +56,7 @@ ALL_FILTERS = {
     "UKF": ukf(),
     "UKF-scaled-sqrt": ukf(alpha=0.5, beta=2.0, kappa=0.0, sqrt=True),
     "UKF-julier(3-n)": srukf(kappa=None),
+    "UKF-julier(3-n)-full": GaussianFilter(julier(None), sqrt=False),  # W_0 < 0 for n > 3
     "SRUKF": srukf(),
     "CKF": ckf(),
     "SCKF": sckf(),
@@ -389,3 +390,95 @@ def test_float32_square_root_filters_track_the_float64_kalman_filter(name):
     assert tr.means.dtype == torch.float32
     assert torch.allclose(tr.means.double(), t(mr), atol=2e-5, rtol=0)
     assert torch.allclose(tr.covs.double(), t(Pr), atol=2e-5, rtol=0)
+
+
+def _julier_ut(fn, m, P, kappa):
+    """Julier's unscented transform with the columns of chol(P) (paper 003 Eq. 12-13)."""
+    n = m.shape[0]
+    L = np.linalg.cholesky(P)
+    X = np.vstack([m, m + math.sqrt(n + kappa) * L.T, m - math.sqrt(n + kappa) * L.T])
+    w = np.full(2 * n + 1, 0.5 / (n + kappa))
+    w[0] = kappa / (n + kappa)
+    Y = np.stack([fn(x) for x in X])
+    ybar = w @ Y
+    return X, Y, ybar, w
+
+
+def _numpy_stukf(f, h, Q, R, m, P, ys, kappa, rho=0.95, beta=1.0):
+    """Plain full-covariance strong-tracking UKF (paper 000 Eq. 7-10, 17-20, 36), one run."""
+    means, covs, lams, V = [], [], [], None
+    for y in ys:
+        _, Y, xbar, w = _julier_ut(f, m, P, kappa)
+        Pf = (Y - xbar).T @ np.diag(w) @ (Y - xbar)
+
+        def moments(Pp, xbar=xbar):
+            X, Z, zbar, w = _julier_ut(h, xbar, Pp, kappa)
+            Pzz = (Z - zbar).T @ np.diag(w) @ (Z - zbar)
+            return zbar, Pzz, (X - xbar).T @ np.diag(w) @ (Z - zbar)
+
+        zbar, Pzz, Pxz = moments(Pf + Q)
+        e = y - zbar
+        V = np.outer(e, e) if V is None else (rho * V + np.outer(e, e)) / (1 + rho)
+        H = np.linalg.solve(Pf + Q, Pxz).T  # Eq. 17 (Pf + Q symmetric)
+        trHQH = np.trace(H @ Q @ H.T)
+        trN, trM = np.trace(V) - trHQH - beta * np.trace(R), np.trace(Pzz) - trHQH
+        lam = trN / trM if trM > 0 and trN / trM > 1 else 1.0
+        Pp = lam * Pf + Q  # Eq. 36
+        if lam > 1:
+            zbar, Pzz, Pxz = moments(Pp)
+        S = Pzz + R
+        K = np.linalg.solve(S, Pxz.T).T
+        m, P = xbar + K @ (y - zbar), Pp - K @ S @ K.T
+        means.append(m), covs.append(P), lams.append(lam)
+    return np.array(means), np.array(covs), np.array(lams)
+
+
+def test_full_covariance_stukf_with_negative_centre_weight_matches_numpy_and_filterpy():
+    """STUKF with kappa = 3 - n (n = 4: W_0 = -1/3) in full-covariance form on the three-tank
+    joint model of paper 000 (Eq. 62-63, drifting az2) equals a plain NumPy strong-tracking UKF;
+    with the fading factor off it equals filterpy's UKF with JulierSigmaPoints(kappa = 3 - n)."""
+    from prognos_torch.filters import stukf
+    from prognos_torch.systems.three_tank import simulate_three_tank, three_tank_joint_model
+
+    sim = simulate_three_tank(120, generator=torch.Generator().manual_seed(4))
+    ys = sim.y[:, 0]
+    model = three_tank_joint_model(chol_D=1e-3)
+    n, kappa = 4, -1.0
+    m0, P0 = np.array([1.0, 0.95, 0.9, 0.6]), np.diag([1e-3, 1e-3, 1e-3, 1e-2]) ** 2
+    b0 = GaussianBelief.from_cov(t(m0), t(P0))
+    SQ, SR = model.chol_Q.numpy(), model.chol_R.numpy()
+    Q, R = SQ @ SQ.T, SR @ SR.T
+
+    def f(x):
+        return model.transition(t(x), None, 1).numpy()
+
+    def h(x):
+        return model.observe(t(x), None, 1).numpy()
+
+    mr, Pr, lr = _numpy_stukf(f, h, Q, R, m0, P0, ys.numpy(), kappa)
+    assert (lr > 1).sum() > 10  # the fading factor really acts
+    tr = run(stukf(kappa=None, sqrt=False), model, b0, ys)
+    scale = np.abs(Pr).max(axis=(1, 2))[:, None, None]
+    assert np.abs(tr.fading_factors.numpy() - lr).max() < 1e-9 * lr.max()
+    assert np.abs(tr.means.numpy() - mr).max() < 1e-10
+    assert (np.abs(tr.covs.numpy() - Pr) / scale).max() < 1e-9
+    # the square-root form (negative W_0 by Cholesky downdates) gives the same filter
+    ts = run(stukf(kappa=None), model, b0, ys)
+    assert torch.allclose(ts.means, tr.means, atol=1e-10, rtol=0)
+
+    filterpy = pytest.importorskip("filterpy.kalman")
+    pts = filterpy.JulierSigmaPoints(n, kappa=3 - n, sqrt_method=lambda A: np.linalg.cholesky(A).T)
+    fp = filterpy.UnscentedKalmanFilter(
+        dim_x=n, dim_z=3, dt=1.0, points=pts, fx=lambda x, dt: f(x), hx=h
+    )
+    fp.x, fp.P, fp.Q, fp.R = m0.copy(), P0.copy(), Q, R
+    ref_m, ref_P = [], []
+    for y in ys.numpy():
+        fp.predict()
+        fp.update(y)
+        ref_m.append(fp.x.copy()), ref_P.append(fp.P.copy())
+    tu = run(GaussianFilter(julier(None), sqrt=False), model, b0, ys)
+    ref_P = np.array(ref_P)
+    assert np.abs(tu.means.numpy() - np.array(ref_m)).max() < 1e-10
+    scale = np.abs(ref_P).max(axis=(1, 2))[:, None, None]
+    assert (np.abs(tu.covs.numpy() - ref_P) / scale).max() < 1e-9

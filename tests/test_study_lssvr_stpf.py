@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 
 import pytest
 import torch
@@ -15,6 +16,8 @@ from prognos_torch.learners.lssvr_gram import LSSVRGram
 
 F64 = torch.float64
 METHODS = ("LS-SVR", "LS-SVR PF", "LS-SVR EKPF", "LS-SVR STPF")
+MS = tuple(n + " (ms)" for n in METHODS)  # LS-SVR chosen by the multi-step (time-to-cross) error
+PFS = METHODS[1:]
 
 
 # --------------------------------------------------------------------------- LSSVRGram
@@ -99,19 +102,20 @@ def test_quick_outputs_complete(quick_run):
 def test_quick_results_finite_and_in_range(quick_run):
     with open(quick_run / "results.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
-    assert {r["method"] for r in rows} == set(METHODS)
+    assert {r["method"] for r in rows} == set(METHODS + MS)
     assert sum(r["method"] == "LS-SVR" for r in rows) == 1  # deterministic: one row
+    assert sum(r["method"] == "LS-SVR (ms)" for r in rows) == 1
     runs = sum(r["method"] == "LS-SVR STPF" for r in rows)
     assert runs >= 2
     meta = json.loads((quick_run / "run.json").read_text())
     n_part = meta["study_config"]["particles"]
-    horizon_days = meta["study_config"]["horizon_steps"] * meta["study_config"]["dt_days"]
+    horizon_days = meta["study_config"]["cap_steps"] * meta["study_config"]["dt_days"]
     for r in rows:
-        pf = r["method"] != "LS-SVR"
+        pf = "PF" in r["method"]
         keys = ["RMSE_1_12", "RMSE_10_12", "Accuracy", "RUL_RMSE", "alpha_lambda", "CRA"]
         keys += ["censored", "time_s"]
         if pf:
-            keys += ["filt_RMSE_1_12", "filt_RMSE_10_12", "Pf_10_11", "Pf_11_12", "ess"]
+            keys += ["filt_RMSE_1_12", "filt_RMSE_10_12", "Pf_day11", "Pf_day12", "ess"]
         v = {k: float(r[k]) for k in keys}
         assert all(math.isfinite(x) for x in v.values()), r
         assert v["RMSE_1_12"] > 0 and v["RMSE_10_12"] > 0
@@ -119,9 +123,81 @@ def test_quick_results_finite_and_in_range(quick_run):
         assert 0.0 < v["Accuracy"] <= 1.0
         assert v["alpha_lambda"] in (0.0, 1.0)
         assert 0.0 <= v["censored"] <= 1.0
-        # every RUL estimate lies in (0, horizon] and every true RUL in (0, horizon)
+        # every RUL estimate lies in (0, cap] and every true RUL in (0, cap)
         assert v["RUL_RMSE"] < horizon_days
         assert v["CRA"] <= 1.0  # RA <= 1 by definition
         if pf:
-            assert 0.0 <= v["Pf_10_11"] <= 1.0 and 0.0 <= v["Pf_11_12"] <= 1.0
+            assert 0.0 <= v["Pf_day11"] <= 1.0 and 0.0 <= v["Pf_day12"] <= 1.0
             assert 1.0 - 1e-9 <= v["ess"] <= n_part + 1e-9
+
+
+# --------------------------------------------------------------------------- headline numbers
+def _means(quick_run):
+    with open(quick_run / "results.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    out = {}
+    for name in METHODS + MS:
+        mine = [r for r in rows if r["method"] == name]
+        keys = [k for k in mine[0] if k not in ("run", "method") and mine[0][k] != ""]
+        out[name] = {k: sum(float(r[k]) for r in mine) / len(mine) for k in keys}
+    return out
+
+
+def test_quick_headline_selection(quick_run):
+    """One-step CV picks the wide kernel, the time-to-cross CV the narrow one (training channel)."""
+    cfg = json.loads((quick_run / "run.json").read_text())["study_config"]
+    sd = cfg["lssvr"]["sigma"] / 30.0
+    assert cfg["lssvr"]["C"] == 1e4 and cfg["lssvr_ms"]["C"] == 1e3
+    assert cfg["lssvr_ms"]["sigma"] == pytest.approx(3.0 * sd, rel=1e-12)
+    assert cfg["lssvr_ms"]["crossing_rmse_steps"] < 0.97 * cfg["lssvr"]["crossing_rmse_steps"]
+    assert cfg["lssvr"]["cv_rmse"] == pytest.approx(0.01315, abs=2e-4)
+    assert cfg["lssvr_ms"]["cv_rmse"] == pytest.approx(0.0443, abs=1e-3)
+    # the recursion of each model has an attractor on each side of the threshold
+    table = (quick_run / "table.md").read_text()
+    census = re.search(
+        r"one-step-selected LS-SVR: (\d+) settle below 0.1 \((-?[\d.]+)\), "
+        r"(\d+) settle above 0.1 \(([\d.]+)\); \(ms\) LS-SVR: (\d+) settle "
+        r"below 0.1 \((-?[\d.]+)\), (\d+) settle above 0.1 \(([\d.]+)\)",
+        table,
+    )
+    assert census, "attractor census missing"
+    lo1, hi1, lo2, hi2 = (float(census.group(i)) for i in (2, 4, 6, 8))
+    assert lo1 == pytest.approx(-0.008, abs=3e-3) and hi1 == pytest.approx(0.97, abs=0.02)
+    assert lo2 == pytest.approx(-0.014, abs=3e-3) and hi2 == pytest.approx(0.194, abs=0.01)
+    assert int(census.group(1)) > 5 * int(census.group(3))  # most windows go low (one-step)
+    assert int(census.group(7)) > 2 * int(census.group(5))  # most go high (ms)
+
+
+def test_quick_headline_one_step_and_fault_probability(quick_run):
+    v = _means(quick_run)
+    # one-step RMSE: the LS-SVR alone is best, the filters' predictions are no better
+    for name in PFS:
+        assert v["LS-SVR"]["RMSE_1_12"] < v[name]["RMSE_1_12"] < 1.25 * v["LS-SVR"]["RMSE_1_12"]
+    assert v["LS-SVR"]["RMSE_1_12"] == pytest.approx(0.0090, abs=5e-4)
+    # days 10-12 (t >= 9): ~0.01 against the paper's 0.25-0.61 (its Table 1 is inconsistent)
+    assert all(v[n]["RMSE_10_12"] < 0.02 for n in METHODS)
+    # the 11th day, t in [10, 11): the indicator is still below 0.1 there, so every filter's
+    # one-step fault probability is small (paper: 0.5-0.8); it rises on the 12th day
+    for name in PFS:
+        assert v[name]["Pf_day11"] < 0.01
+        assert v[name + " (ms)"]["Pf_day11"] == pytest.approx(0.05, abs=0.02)
+        assert v[name]["Pf_day12"] == pytest.approx(0.635, abs=0.04)
+        assert 0.3 < v[name + " (ms)"]["Pf_day12"] < 0.7
+
+
+def test_quick_headline_rul(quick_run):
+    v = _means(quick_run)
+    # one-step-selected model: most paths sit in the low attractor for the whole 15-day cap
+    for name in METHODS:
+        assert v[name]["censored"] > 0.75 and v[name]["CRA"] < -10.0
+        assert v[name]["RUL_RMSE"] > 10.0 and v[name]["alpha_lambda"] == 0.0
+    # multi-step-selected model: every particle crosses, within hours (RUL ~ 0.1 d); the scores
+    # are those of an "RUL = 0" prediction (accuracy 0.575, RMSE 1.345, CRA 0) or a little better
+    for name in MS[1:]:
+        assert v[name]["censored"] == 0.0 and v[name]["alpha_lambda"] == 0.0
+        assert v[name]["Accuracy"] == pytest.approx(0.603, abs=0.02)
+        assert v[name]["RUL_RMSE"] == pytest.approx(1.25, abs=0.03)
+        assert 0.1 < v[name]["CRA"] < 0.4
+    # STPF is no better than the PF (paper: 0.390 against 0.104)
+    stpf, pf = v["LS-SVR STPF (ms)"], v["LS-SVR PF (ms)"]
+    assert abs(stpf["CRA"] - pf["CRA"]) < 0.05 and abs(stpf["Accuracy"] - pf["Accuracy"]) < 0.01

@@ -83,3 +83,22 @@ def test_sweep_table():
         "| 0.1 | 0.2000 | 0.0500 | 4.0 |",
         "| 1 | 0.3000 | 0.3000 | 1.0 |",
     ]
+
+
+def test_sweep_crossing_interpolates_in_log_log():
+    from prognos_torch.studies import sweep_crossing
+
+    pts = [(1.0, 0.1), (0.1, 0.05), (0.01, 0.02), (0.001, 0.01)]
+    # between 0.1 (0.05) and 0.01 (0.02): log-log linear, e = 0.05 (s / 0.1)^(log 2.5 / log 10)
+    s = sweep_crossing(pts, 0.03)
+    assert s == pytest.approx(0.1 * 10 ** (-math.log(0.05 / 0.03) / math.log(2.5)))
+    assert 0.05 * (s / 0.1) ** (math.log(2.5) / math.log(10)) == pytest.approx(0.03)
+    assert sweep_crossing(pts, 0.02) == pytest.approx(0.01)  # a point on the target
+    assert sweep_crossing(pts, 0.2) == 1.0  # already reached
+    assert sweep_crossing(pts, 0.005) is None  # never reached
+    assert sweep_crossing([(1.0, 0.1), (0.1, 0.2), (0.01, 0.05)], 0.1) == 1.0
+    assert sweep_crossing([(1.0, 0.3), (0.1, 0.2), (0.01, 0.05)], 0.1) == pytest.approx(
+        0.1 * 10 ** (-math.log(2) / math.log(4))
+    )
+    with pytest.raises(ValueError, match="points"):
+        sweep_crossing([(0.0, 0.1)], 0.1)

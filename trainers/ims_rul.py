@@ -30,7 +30,7 @@ from prognos_torch.prognosis.protocol import (
     rul_scores,
 )
 from prognos_torch.studies import Study, StudyConfig, StudyResult
-from prognos_torch.workflow import Series, fit_series, prognose
+from prognos_torch.workflow import Series, fit_series, prognose, rul
 
 MAIN = "prognose (auto)"
 METHODS = (MAIN, "prognose (exponential)", "prognose (power)", "prognose (linear)",
@@ -82,7 +82,7 @@ def predict(method: str, t, y, pc, tp: float, seed: int) -> dict:
     if method == "fit_series + rul(stpf)":
         series = Series(ys, ts, "y", "t", "days")
         model = fit_series(series, seed=seed)
-        res = model.rul(series, pc.threshold, filter="stpf", seed=seed)
+        res = rul(model, series, pc.threshold, filter="stpf", seed=seed)
         s = res.summary()
         shift = tp - float(ts[-1])
         med = math.inf if s["median"] is None else max(s["median"] - shift, 0.0)

@@ -10,17 +10,21 @@ template ``lssvr_stpf.md``):
   paper's scale (the unit-norm eigenvector, ``y / sqrt(N)``), on which the failure threshold 0.1
   is first reached on the test channel at about day 11, as the paper states;
 * LS-SVR of fourth order (embedding ``m = 4``, Gaussian kernel, Eq. 1-14), width and
-  regularisation chosen by blocked 5-fold cross-validation on the training channel;
+  regularisation chosen on the training channel in two ways, each run through the whole
+  protocol: by blocked 5-fold cross-validation of the one-step error (the paper's rows), and,
+  beyond the paper, by the time-to-cross error of the recursive prediction on the same folds
+  (:func:`~prognos_torch.learners.blocked_multistep_cv`; rows marked ``(ms)``);
 * four one-step predictors on the test channel: the LS-SVR alone (Eq. 12 on the measured
   window), and LS-SVR PF (SIR), LS-SVR EKPF and LS-SVR STPF (Eq. 27, steps 1-7) with the LS-SVR
   as the m-order transition model (:func:`~prognos_torch.prognosis.learner_transition_model`,
-  Eq. 15-26); one-step RMSE over days 1-12 and 10-12 (Table 1, Fig. 8-9);
+  Eq. 15-26); one-step RMSE over days 1-12 and 10-12 (Table 1, Fig. 8-9; days are counted from 1 as
+  in the paper, so days 10-12 are ``t in [9, 12)`` and the 11th day is ``t in [10, 11)``);
 * fault probability per step, ``fault(1, k) = sum_i w_k^i I(x_{k+1|k}^i >= 0.1)``
   (Fig. 10), and per-day box plots;
-* RUL from day 9: multi-step particle prediction with frozen weights
-  (:func:`~prognos_torch.prognosis.particle_paths`), first passage through the
-  threshold, RUL pmf and its expectation (Eq. 28, :func:`~prognos_torch.prognosis.rul.rul_distribution`),
-  Fig. 11-13; accuracy, RMSE, alpha-lambda (alpha = 0.3, lambda = 0.5) and CRA (lambda = 0,
+* RUL every 0.1 d from the ninth day (``t = 8``): particle paths with frozen weights run
+  until every particle reaches the threshold or a 15-day cap
+  (:func:`~prognos_torch.prognosis.simulate_to_event`), first passage, RUL pmf and its
+  expectation (Eq. 28), Fig. 11-13; accuracy, RMSE, alpha-lambda (alpha = 0.3, lambda = 0.5) and CRA (lambda = 0,
   0.25, 0.5, 0.75) of the RUL predictions (Table 2).
 
 Monte Carlo runs differ in the particle-filter seed only (the indicator and the LS-SVR are
@@ -39,12 +43,11 @@ from types import SimpleNamespace
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from prognos_torch.core.belief import GaussianBelief
 from prognos_torch.datasets import MinMaxScaler, embed, health_indicator
 from prognos_torch.filters import ekpf, sir, stpf
-from prognos_torch.learners import LSSVR, LSSVRGram, blocked_cv_rmse
+from prognos_torch.learners import LSSVR, LSSVRGram, blocked_multistep_cv
 from prognos_torch.metrics import first_crossing_time, point_rul_scores, rmse
 from prognos_torch.plots import (
     LinePanel,
@@ -56,10 +59,8 @@ from prognos_torch.plots import (
 )
 from prognos_torch.prognosis import (
     learner_transition_model,
-    particle_paths,
-    recursive_predict,
     rolling_particle_prediction,
-    rul_distribution,
+    simulate_to_event,
 )
 from prognos_torch.studies import Study, StudyConfig, StudyResult, fill_template, run_rows
 from prognos_torch.studies import markdown_table as md
@@ -85,23 +86,28 @@ PAPER_RUL = {
 }
 PAPER_RUL_TIMES = (9.5, 10.0, 10.5)
 METRICS = [
-    *("RMSE_1_12", "RMSE_10_12", "filt_RMSE_1_12", "filt_RMSE_10_12", "Pf_10_11", "Pf_11_12"),
+    *("RMSE_1_12", "RMSE_10_12", "filt_RMSE_1_12", "filt_RMSE_10_12", "Pf_day11", "Pf_day12"),
     *("Accuracy", "RUL_RMSE", "alpha_lambda", "CRA", "censored", "ess", "time_s"),
 ]
 METHODS = ("LS-SVR", "LS-SVR PF", "LS-SVR EKPF", "LS-SVR STPF")
+MS = " (ms)"  # rows whose LS-SVR is selected by the multi-step (time-to-cross) error
 
 M_ORDER = 4  # "fourth-order" LS-SVR (Fig. 8-9, Table 1)
 THRESHOLD = 0.1  # failure threshold on the paper's indicator scale
 FAULT_DECISION = 0.5  # "fault probability exceeds 0.5 -> failure" (Fig. 10)
 ALPHA, LAMBDA = 0.3, 0.5  # alpha-lambda (Table 2)
 CRA_LAMBDAS = (0.0, 0.25, 0.5, 0.75)  # CRA (Table 2)
-RUL_START = 9.0  # "the RUL predictions are carried out from the ninth day"
-RUL_EVERY = 0.5  # prediction times 9, 9.5, 10, ... (includes the paper's 9.5, 10, 10.5)
-HORIZON_DAYS = 3.0  # multi-step horizon (> 1.3 x the largest true RUL, 2.1 days)
-TAIL_START = 10.0  # "10-12 days" of Table 1 / Fig. 9(b)
+RUL_START = 8.0  # "from the ninth day", days counted from 1: the ninth day is t in [8, 9)
+RUL_EVERY = 0.1  # dense prediction times 8.0, 8.1, ... (the paper's 9.5, 10, 10.5 among them)
+CAP_DAYS = 15.0  # paths run until every particle crosses, or to this cap
+SELECT_DAYS = 3.0  # horizon of the multi-step selection (> the largest true RUL, 3.1 d)
+SELECT_STRIDE = 3  # every 3rd held window is an origin of the multi-step selection
+TAIL_START = 9.0  # "10-12 days" (Table 1, Fig. 9b), days counted from 1: t in [9, 12)
+DAY11 = (10.0, 11.0)  # "the 11th day": t in [10, 11)
+ATTRACTOR_STEPS = 1500  # deterministic recursion length for the attractor census
 N_PARTICLES = 100  # the paper does not give its particle count
 RESAMPLE = 1.0 / 3.0  # STPF step 6 and prognosis step 2: resample when N_eff < N/3
-DEFAULT_RUNS = 10
+DEFAULT_RUNS = 3  # the 15-day paths of 100 particles from 31 times dominate the run time
 CV_FOLDS = 5
 SIGMA_GRID = (3.0, 10.0, 30.0, 100.0)  # kernel width as multiples of the training-channel std
 C_GRID = (1e1, 1e2, 1e3, 1e4)
@@ -111,6 +117,8 @@ PMF_BIN = 12  # RUL pmf figure: bins of 12 steps (2 h)
 GAP_DAYS = 30.0 / 1440.0  # figures break their lines at recording gaps longer than 30 min
 REPORT = Path(__file__).with_name("lssvr_stpf.md")  # table.md captions, readings
 SHORT = {"LS-SVR": "lssvr", "LS-SVR PF": "pf", "LS-SVR EKPF": "ekpf", "LS-SVR STPF": "stpf"}
+SHORT |= {n + MS: v + "_ms" for n, v in SHORT.items()}
+ALL_METHODS = METHODS + tuple(n + MS for n in METHODS)
 
 
 # --------------------------------------------------------------------------- data and learner
@@ -269,22 +277,25 @@ def _figures(out_dir: Path, c: SimpleNamespace) -> list[str]:
             decision=FAULT_DECISION,
             title=f"{name}: fault probability per day (run 0)",
         )
-        # display only: mean pmf over the runs in bins of PMF_BIN steps (2 h)
-        d, n_bin = c.dists[name], c.horizon // PMF_BIN
-        pmf_bins = d.pmf[..., : n_bin * PMF_BIN].reshape(*d.pmf.shape[:-1], n_bin, PMF_BIN)
+        # display only: mean pmf over the runs in bins of PMF_BIN steps (2 h), at the paper's
+        # prediction times (Fig. 12)
+        d, sel = c.dists[name], c.paper_idx
+        n_bin = max(1, d.horizon // PMF_BIN)
+        pmf = d.pmf[sel][..., : n_bin * PMF_BIN]
+        pmf_bins = pmf.reshape(*pmf.shape[:-1], n_bin, -1)
         plot_rul_pdf(
             out_dir / fr,
-            [round(v, 2) for v in c.times.tolist()],
-            d.support[: n_bin * PMF_BIN].reshape(n_bin, PMF_BIN).mean(-1),
+            [round(v, 2) for v in c.times[sel].tolist()],
+            d.support[: n_bin * PMF_BIN].reshape(n_bin, -1).mean(-1),
             pmf_bins.sum(-1).mean(1),
-            true_rul=c.true_rul,
-            censored_mass=d.censored_mass.mean(1),
-            title=f"{name}: RUL pmf (mean of {c.runs} runs, 2 h bins, horizon {HORIZON_DAYS:g} d)",
+            true_rul=c.true_rul[sel],
+            censored_mass=d.censored_mass[sel].mean(1),
+            title=f"{name}: RUL pmf (mean of {c.runs} runs, 2 h bins, cap {CAP_DAYS:g} d)",
         )
         figs += [fn, fb, fr]
     for name, pred in c.rul_pred.items():
         fa = f"fig13_alpha_lambda_{SHORT[name]}.png"
-        kind = "deterministic" if name == "LS-SVR" else f"bars: range over {c.runs} runs"
+        kind = "deterministic" if "PF" not in name else f"bars: range over {c.runs} runs"
         plot_alpha_lambda(
             out_dir / fa,
             c.times,
@@ -301,54 +312,170 @@ def _figures(out_dir: Path, c: SimpleNamespace) -> list[str]:
     return figs
 
 
+# --------------------------------------------------------------------------- one protocol
+def _event(x):  # the indicator (newest window element) has reached the threshold
+    return x[..., -1] >= THRESHOLD
+
+
+def _census(model, windows) -> str:
+    """Where the noise-free recursion from each window settles after ATTRACTOR_STEPS steps."""
+    x = windows
+    with torch.inference_mode():
+        for k in range(ATTRACTOR_STEPS):
+            x = model.transition(x, None, k + 1)
+    end = x[:, -1]
+    parts = []
+    for name, sel in (("below", end < THRESHOLD), ("above", end >= THRESHOLD)):
+        if bool(sel.any()):
+            lo, hi_ = float(end[sel].min()), float(end[sel].max())
+            span = f"{lo:.3f}" if hi_ - lo < 5e-4 else f"{lo:.3f} to {hi_:.3f}"
+            parts.append(f"{int(sel.sum())} settle {name} {THRESHOLD:g} ({span})")
+    return ", ".join(parts)
+
+
+def _protocol(ctx, key, score, suffix, offset, cfg, dev):
+    """LS-SVR (sigma = key[0] x std, C = key[1]) and the three particle filters through the
+    whole protocol; rows are labelled ``name + suffix``."""
+    m, runs, n_part = M_ORDER, ctx.runs, ctx.n_part
+    sigma, C = key[0] * ctx.sd, key[1]
+    learner = LSSVRGram(_fit(ctx.X, ctx.y, sigma, C, dev))  # Eq. 8 / Eq. 25 by matrix products
+    # Process and measurement noise (the paper gives neither): the out-of-fold one-step
+    # residual variance s^2 of the selected LS-SVR, split equally, q^2 = r^2 = s^2 / 2, on
+    # every window element (see notes).
+    q = r = score.one_step / math.sqrt(2.0)
+    chol_Q = q * torch.eye(m, dtype=ctx.X.dtype, device=dev)
+    model = learner_transition_model(learner, m, chol_Q, r, jacobian="input_gradient")
+    # LS-SVR alone: one step from the measured window, RUL by the noise-free recursion
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        ls_pred = learner(ctx.win_test[ctx.k0 - m :])[:, 0]  # predictions of y_{k0..T-1}
+    ev = simulate_to_event(
+        model, ctx.windows[:, None], _event, max_steps=ctx.cap, dt=ctx.dt, active_only=True
+    )
+    dists, rul_pred = {"LS-SVR": ev.rul}, {"LS-SVR": ev.rul.restricted_mean.unsqueeze(-1)}
+    secs = {"LS-SVR": time.perf_counter() - t0}
+    filters = {
+        "LS-SVR PF": sir(n_part, resample_threshold=RESAMPLE),
+        "LS-SVR EKPF": ekpf(n_part, resample_threshold=RESAMPLE),
+        "LS-SVR STPF": stpf(n_part, resample_threshold=RESAMPLE),
+    }
+    res = {}
+    for i, (name, pf) in enumerate(filters.items()):
+        gen = torch.Generator(device=dev).manual_seed(cfg.seed + 1000 * (i + offset))
+        t0 = time.perf_counter()
+        res[name], parts, weights = _filter_pass(
+            pf, model, ctx.z_test, ctx.k0, runs, gen, ctx.rul_idx
+        )
+        ev = simulate_to_event(
+            model,
+            parts,
+            _event,
+            max_steps=ctx.cap,
+            weights=weights,
+            dt=ctx.dt,
+            process_noise=True,
+            generator=gen,
+            active_only=True,
+        )  # until every particle crosses, or the cap
+        dists[name], rul_pred[name] = ev.rul, ev.rul.restricted_mean  # (P, R)
+        secs[name] = (time.perf_counter() - t0) / runs
+
+    def rul_rows(pred):  # Table 2 metrics of each run's point RULs (P, R)
+        scores = [
+            point_rul_scores(ctx.times, ctx.true_rul, pred[:, i], **ctx.rul_kw)
+            for i in range(pred.shape[1])
+        ]
+        return {k: [sc[j] for sc in scores] for j, k in enumerate(RUL_KEYS)}
+
+    tail, truth = ctx.tail, ctx.truth
+    rows = run_rows(
+        "LS-SVR" + suffix,
+        {
+            "RMSE_1_12": float(rmse(ls_pred, truth)),
+            "RMSE_10_12": float(rmse(ls_pred[tail], truth[tail])),
+        }
+        | rul_rows(rul_pred["LS-SVR"])
+        | {"censored": float(dists["LS-SVR"].censored_mass.mean()), "time_s": secs["LS-SVR"]},
+    )
+    for name, out in res.items():
+        tt = truth.unsqueeze(-1).expand_as(out["pred"])
+        rows += run_rows(
+            name + suffix,
+            {
+                "RMSE_1_12": rmse(out["pred"], tt, dim=0),
+                "RMSE_10_12": rmse(out["pred"][tail], tt[tail], dim=0),
+                "filt_RMSE_1_12": rmse(out["filt"], tt, dim=0),
+                "filt_RMSE_10_12": rmse(out["filt"][tail], tt[tail], dim=0),
+                "Pf_day11": out["fault"][ctx.day11].mean(0),
+                "Pf_day12": out["fault"][ctx.t_tgt >= DAY11[1]].mean(0),
+            }
+            | rul_rows(rul_pred[name])
+            | {
+                "censored": dists[name].censored_mass.mean(0),
+                "ess": out["ess"].mean(0),
+                "time_s": secs[name],
+            },
+        )
+    tag = lambda d: {n + suffix: v for n, v in d.items()}  # noqa: E731
+    return SimpleNamespace(
+        rows=rows,
+        learner=learner,
+        model=model,
+        q=q,
+        sigma=sigma,
+        C=C,
+        score=score,
+        preds0={"LS-SVR": ls_pred} | {n: o["pred"][:, 0] for n, o in res.items()},
+        res=tag(res),
+        dists=tag(dists),
+        rul_pred=tag(rul_pred),
+    )
+
+
 # --------------------------------------------------------------------------- the study
 def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     quick = cfg.quick
-    runs = cfg.runs or (2 if quick else DEFAULT_RUNS)
-    n_part = 20 if quick else N_PARTICLES
     dev = torch.device(cfg.device)
     m = M_ORDER
     t_start = time.perf_counter()
+    ctx = SimpleNamespace(runs=cfg.runs or (2 if quick else DEFAULT_RUNS))
+    ctx.n_part = 20 if quick else N_PARTICLES
 
     # ------------------------------------------------------------ indicator and threshold
     hi, scale, z_train, z_test, t = _indicator(dev)
     t_eol = first_crossing_time(t, z_test, THRESHOLD)  # end of life: test indicator reaches 0.1
     dt_step = float(torch.diff(t).median())  # nominal sampling interval (10 min), days
-    horizon = int(round(HORIZON_DAYS / dt_step))
     mm = MinMaxScaler().fit(z_train)
     thr_minmax = float(mm.inverse_transform(torch.tensor(THRESHOLD, dtype=z_train.dtype)))
     t_minmax = first_crossing_time(t, z_test, thr_minmax)
 
-    # ------------------------------------------------------------ LS-SVR: selection and fit
+    # ------------------------------------------------------------ LS-SVR selection (training channel)
     X, y = embed(z_train, m)
     sd = float(z_train.std())
-    sig_grid = (10.0, 30.0) if quick else SIGMA_GRID
-    c_grid = (1e4,) if quick else C_GRID
-    cv = {}
-    for s in sig_grid:
-        for C in c_grid:
-            cv[(s, C)] = blocked_cv_rmse(_fitter(s * sd, C, dev), X, y, CV_FOLDS)
-    s_best, c_best = min(cv, key=cv.get)
-    s_cv = cv[(s_best, c_best)]
-    sigma = s_best * sd
-    lssvr = _fit(X, y, sigma, c_best, dev)
-    learner = LSSVRGram(lssvr)  # same Eq. 8 / Eq. 25, evaluated by matrix products
-    # Process and measurement noise (the paper gives neither): the out-of-fold one-step
-    # residual variance s^2 of the selected LS-SVR, split equally, q^2 = r^2 = s^2 / 2.
-    q = r = s_cv / math.sqrt(2.0)
-    # Window process noise: q on every element of [x_{s-3}, ..., x_s] (see notes: the
-    # Gaussian-proposal PFs need a transition density, and a small jitter on the shifted
-    # elements collapses their weights).
-    chol_Q = q * torch.eye(m, dtype=z_train.dtype, device=dev)
-    model = learner_transition_model(learner, m, chol_Q, r, jacobian="input_gradient")
+    sig_grid = (3.0, 30.0) if quick else SIGMA_GRID
+    c_grid = (1e3, 1e4) if quick else C_GRID
+    h_sel = int(round(SELECT_DAYS / dt_step))
+    scores = {
+        (s, C): blocked_multistep_cv(
+            _fitter(s * sd, C, dev),
+            z_train,
+            m,
+            h_sel,
+            CV_FOLDS,
+            threshold=THRESHOLD,
+            stride=SELECT_STRIDE,
+        )
+        for s in sig_grid
+        for C in c_grid
+    }
+    key_1 = min(scores, key=lambda k: scores[k].one_step)  # the paper's rows
+    key_ms = min(scores, key=lambda k: scores[k].crossing)  # beyond the paper: (ms) rows
 
     # ------------------------------------------------------------ time indices
     k0 = m
     if quick:  # reduced protocol: filter from day QUICK_START on
         k0 = max(m, int(torch.nonzero(t >= QUICK_START).flatten()[0]))
     t_tgt = t[k0:]  # times of the predicted samples y_{k0+1..T} (0-based index k0..T-1)
-    truth = z_test[k0:]
-    tail = t_tgt >= TAIL_START
     nominal = np.arange(RUL_START, t_eol, RUL_EVERY)
     rul_idx = []  # index of the last sample at or before each nominal prediction time
     for tp in nominal:
@@ -357,83 +484,27 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
             rul_idx.append(i)
     times = t[rul_idx].to(torch.float64)
     true_rul = t_eol - times
+    win_test, _ = embed(z_test, m)  # windows ending at samples m-1 .. T-2
+    ctx.__dict__.update(X=X, y=y, sd=sd, z_test=z_test, win_test=win_test, k0=k0, t_tgt=t_tgt)
+    ctx.__dict__.update(truth=z_test[k0:], tail=t_tgt >= TAIL_START, rul_idx=rul_idx, dt=dt_step)
+    ctx.__dict__.update(day11=(t_tgt >= DAY11[0]) & (t_tgt < DAY11[1]), times=times)
+    ctx.__dict__.update(true_rul=true_rul, cap=int(round(CAP_DAYS / dt_step)))
+    ctx.windows = torch.stack([z_test[i - m + 1 : i + 1] for i in rul_idx])  # (P, m)
     d0 = float(true_rul[0])  # accuracy normaliser: the true RUL at the first prediction
+    ctx.rul_kw = dict(t_eol=t_eol, d0=d0, alpha=ALPHA, lam=LAMBDA, cra_lambdas=CRA_LAMBDAS)
 
-    # ------------------------------------------------------------ LS-SVR alone
-    t0 = time.perf_counter()
-    with torch.no_grad():
-        win_test, _ = embed(z_test, m)  # windows ending at samples m-1 .. T-2
-        ls_pred = learner(win_test[k0 - m :])[:, 0]  # predictions of y_{k0..T-1}
-        windows = torch.stack([z_test[i - m + 1 : i + 1] for i in rul_idx])  # (P, m)
-        ls_paths = recursive_predict(learner, windows, horizon)
-    ls_dist = rul_distribution(ls_paths.unsqueeze(-2), THRESHOLD, dt=dt_step)
-    ls_rul = ls_dist.restricted_mean  # (P,) Eq. 28, censored mass at the horizon
-    ls_time = time.perf_counter() - t0
-
-    # ------------------------------------------------------------ particle filters
-    filters = {
-        "LS-SVR PF": sir(n_part, resample_threshold=RESAMPLE),
-        "LS-SVR EKPF": ekpf(n_part, resample_threshold=RESAMPLE),
-        "LS-SVR STPF": stpf(n_part, resample_threshold=RESAMPLE),
-    }
-    res, dists, secs = {}, {}, {}
-    for offset, (name, pf) in enumerate(
-        tqdm(filters.items(), desc="lssvr-stpf", disable=not cfg.progress)
-    ):
-        gen = torch.Generator(device=dev).manual_seed(cfg.seed + 1000 * offset)
-        t0 = time.perf_counter()
-        out, parts, weights = _filter_pass(pf, model, z_test, k0, runs, gen, rul_idx)
-        paths = particle_paths(model, parts, horizon, generator=gen, weights=weights)
-        dists[name] = rul_distribution(paths.samples, THRESHOLD, paths.weights, dt=dt_step)
-        secs[name] = time.perf_counter() - t0
-        res[name] = out
-
-    # ------------------------------------------------------------ rows
-    rul_kw = dict(t_eol=t_eol, d0=d0, alpha=ALPHA, lam=LAMBDA, cra_lambdas=CRA_LAMBDAS)
-
-    def rul_rows(pred):  # Table 2 metrics of each run's point RULs (P, R)
-        scores = [
-            point_rul_scores(times, true_rul, pred[:, i], **rul_kw) for i in range(pred.shape[1])
-        ]
-        return {k: [sc[j] for sc in scores] for j, k in enumerate(RUL_KEYS)}
-
-    rul_pred = {"LS-SVR": ls_rul.unsqueeze(-1)}  # (P, R)
-    rows = run_rows(
-        "LS-SVR",
-        {
-            "RMSE_1_12": float(rmse(ls_pred, truth)),
-            "RMSE_10_12": float(rmse(ls_pred[tail], truth[tail])),
-        }
-        | rul_rows(rul_pred["LS-SVR"])
-        | {"censored": float(ls_dist.censored_mass.mean()), "time_s": ls_time},
-    )
-    day = torch.floor(t_tgt)
-    for name, out in res.items():
-        tt = truth.unsqueeze(-1).expand_as(out["pred"])
-        rul_pred[name] = dists[name].restricted_mean  # (P, R) Eq. 28, censored at the horizon
-        rows += run_rows(
-            name,
-            {
-                "RMSE_1_12": rmse(out["pred"], tt, dim=0),
-                "RMSE_10_12": rmse(out["pred"][tail], tt[tail], dim=0),
-                "filt_RMSE_1_12": rmse(out["filt"], tt, dim=0),
-                "filt_RMSE_10_12": rmse(out["filt"][tail], tt[tail], dim=0),
-                "Pf_10_11": out["fault"][day == 10].mean(0),
-                "Pf_11_12": out["fault"][day >= 11].mean(0),
-            }
-            | rul_rows(rul_pred[name])
-            | {
-                "censored": [float(dists[name].censored_mass[:, i].mean()) for i in range(runs)],
-                "ess": [float(out["ess"][:, i].mean()) for i in range(runs)],
-                "time_s": secs[name] / runs,
-            },
-        )
+    # ------------------------------------------------------------ both protocols
+    one = _protocol(ctx, key_1, scores[key_1], "", 0, cfg, dev)
+    ms = _protocol(ctx, key_ms, scores[key_ms], MS, 3, cfg, dev)
+    rows = one.rows + ms.rows
+    res, dists, rul_pred = one.res | ms.res, one.dists | ms.dists, one.rul_pred | ms.rul_pred
 
     # ------------------------------------------------------------ proposal-structure diagnostic
+    q, r, n_part, runs = one.q, one.q, ctx.n_part, ctx.runs
     diag_txt = "(diagnostic skipped in quick mode)"
     if not quick:
         model_j = learner_transition_model(
-            learner, m, q, r, jacobian="input_gradient", shift_std=JITTER_DIAG * q
+            one.learner, m, q, r, jacobian="input_gradient", shift_std=JITTER_DIAG * q
         )
         steps = 200
         gen = torch.Generator(device=dev).manual_seed(cfg.seed)
@@ -448,34 +519,46 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         )
 
     # ------------------------------------------------------------ figures (run 0)
-    preds0 = {"LS-SVR": ls_pred} | {n: o["pred"][:, 0] for n, o in res.items()}
+    paper_idx = [int((times - v).abs().argmin()) for v in PAPER_RUL_TIMES if times[0] <= v]
     c = SimpleNamespace(hi=hi, t=t, z_train=z_train, z_test=z_test, t_eol=t_eol, t_tgt=t_tgt)
-    c.__dict__.update(truth=truth, preds0=preds0, res=res, dists=dists, rul_pred=rul_pred)
-    c.__dict__.update(times=times, true_rul=true_rul, horizon=horizon, runs=runs)
+    c.__dict__.update(truth=ctx.truth, preds0=one.preds0, res=res, dists=dists)
+    c.__dict__.update(rul_pred=rul_pred, times=times, true_rul=true_rul, runs=runs)
+    c.paper_idx = paper_idx
     figs = _figures(out_dir, c)
 
     # ------------------------------------------------------------ tables
-    table_rul = []
-    for p, tp in enumerate(times.tolist()):
-        cells = [f"{tp:.3f}", f"{float(true_rul[p]):.3f}"]
-        for n in METHODS:
-            cm = ls_dist.censored_mass[p] if n == "LS-SVR" else dists[n].censored_mass[p]
-            cells += [f"{float(rul_pred[n][p].mean()):.3f}", f"{float(cm.mean()):.2f}"]
-        table_rul.append(cells)
-    head_rul = [f"{n} {c}" for n in METHODS for c in ("RUL (ours)", "censored")]
-    table_cv, grid_rmse = [], []
-    for (s, C), v in cv.items():
-        lr = LSSVRGram(_fit(X, y, s * sd, C, dev))
-        with torch.no_grad():
-            te_rmse = float(rmse(lr(win_test[k0 - m :])[:, 0], truth))
-            pth = recursive_predict(lr, windows, horizon)
-        ex = rul_distribution(pth.unsqueeze(-2), THRESHOLD, dt=dt_step).expectation
-        ruls = ", ".join("—" if math.isnan(float(e)) else f"{float(e):.2f}" for e in ex)
-        mark = " **(selected)**" if (s, C) == (s_best, c_best) else ""
-        table_cv.append([f"{s:g}{mark}", f"{C:g}", f"{v:.5f}", f"{te_rmse:.5f}", ruls])
-        grid_rmse.append(te_rmse)
-    rul_at = ", ".join(f"{v:.2f}" for v in times.tolist())
-    head_cv = ["sigma / std", "C", "blocked-CV RMSE", "test one-step RMSE"]
+    every = max(1, int(round(0.5 / RUL_EVERY)))
+    table_rul = [
+        [f"{float(times[p]):.3f}", f"{float(true_rul[p]):.3f}"]
+        + [f"{float(rul_pred[n][p].mean()):.3f}" for n in ALL_METHODS]
+        for p in range(0, len(rul_idx), every)
+    ]
+    table_cv = []
+    with torch.no_grad():
+        for (s, C), sc in scores.items():
+            lr = LSSVRGram(_fit(X, y, s * sd, C, dev))
+            te_rmse = float(rmse(lr(win_test[k0 - m :])[:, 0], ctx.truth))
+            mark = " **(one-step)**" if (s, C) == key_1 else ""
+            mark += " **(ms)**" if (s, C) == key_ms else ""
+            table_cv.append(
+                [
+                    f"{s:g}{mark}",
+                    f"{C:g}",
+                    f"{sc.one_step:.5f}",
+                    f"{sc.multi_step:.5f}",
+                    f"{sc.crossing * dt_step:.3f}",
+                    f"{te_rmse:.5f}",
+                ]
+            )
+    head_cv = [
+        "sigma / std",
+        "C",
+        "one-step CV RMSE",
+        "multi-step CV RMSE",
+        "time-to-cross CV RMSE (d)",
+        "test one-step RMSE (reported only)",
+    ]
+    census_windows = win_test[int(torch.nonzero(t[m - 1 : -1] >= RUL_START).flatten()[0]) :]
 
     # ------------------------------------------------------------ readings
     def mean_of(method, key):
@@ -485,57 +568,65 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     def listing(key, names, spec):
         return ", ".join(f"{n} {mean_of(n, key):{spec}}" for n in names)
 
-    def order(key):
+    def order(key, names=METHODS):
         return " < ".join(
-            f"{n} {mean_of(n, key):.5f}" for n in sorted(METHODS, key=lambda n: mean_of(n, key))
+            f"{n} {mean_of(n, key):.5f}" for n in sorted(names, key=lambda n: mean_of(n, key))
         )
 
-    pf_names = [n for n in METHODS if n != "LS-SVR"]
+    pf_names = [n for n in ALL_METHODS if "PF" in n]
     lam_all = res["LS-SVR STPF"]["lam"]
-    n_tail = int(tail.sum())
-    frac = n_tail / truth.shape[0]
-    ra_last = {
-        n: float(1.0 - (rul_pred[n][-1] - true_rul[-1]).abs().mean() / true_rul[-1])
-        for n in METHODS
-    }
+    n_tail = int(ctx.tail.sum())
+    frac = n_tail / ctx.truth.shape[0]
+    stpf_ms = res["LS-SVR STPF" + MS]["fault"][ctx.day11]  # (steps, R)
+    zero = point_rul_scores(times, true_rul, torch.zeros_like(true_rul), **ctx.rul_kw)
     report = {
-        "table_rul": md(["prediction time (d)", "true RUL (d)", *head_rul], table_rul),
-        "table_cv": md([*head_cv, f"deterministic RUL from {rul_at} d"], table_cv),
+        "rul_zero": ", ".join(f"{k} {v:.3f}" for k, v in zip(RUL_KEYS, zero)),
+        "table_rul": md(["prediction time (d)", "true RUL (d)", *ALL_METHODS], table_rul),
+        "table_cv": md(head_cv, table_cv),
         "paper_rul_times": ", ".join(f"{v:g}" for v in PAPER_RUL_TIMES),
         "paper_rul": "; ".join(
             f"{n}: " + ", ".join(f"{v:g}" for v in vals) for n, vals in PAPER_RUL.items()
         ),
+        "our_rul_paper_times": "; ".join(
+            f"{n}: " + ", ".join(f"{float(rul_pred[n][p].mean()):.2f}" for p in paper_idx)
+            for n in pf_names
+        ),
+        "true_rul_paper_times": ", ".join(f"{float(true_rul[p]):.2f}" for p in paper_idx),
         "order_rmse": order("RMSE_1_12"),
         "order_rmse_tail": order("RMSE_10_12"),
+        "order_rmse_ms": order("RMSE_1_12", [n + MS for n in METHODS]),
+        "order_rmse_tail_ms": order("RMSE_10_12", [n + MS for n in METHODS]),
         "filt_rmse": listing("filt_RMSE_1_12", pf_names, ".5f"),
-        "pf_day10": listing("Pf_10_11", pf_names, ".2f"),
-        "pf_day11": listing("Pf_11_12", pf_names, ".2f"),
-        "censored": listing("censored", METHODS, ".2f"),
-        "alpha_lambda_met": listing("alpha_lambda", METHODS, ".0%"),
+        "pf_day11": listing("Pf_day11", pf_names, ".2f"),
+        "pf_day12": listing("Pf_day12", pf_names, ".2f"),
+        "stpf_ms_day11_frac": float((stpf_ms > FAULT_DECISION).double().mean()),
+        "stpf_ms_day11_q": ", ".join(
+            f"{float(v):.2f}"
+            for v in stpf_ms.flatten().quantile(
+                torch.tensor([0.25, 0.5, 0.75], dtype=stpf_ms.dtype)
+            )
+        ),
+        "censored": listing("censored", ALL_METHODS, ".2f"),
+        "alpha_lambda_met": listing("alpha_lambda", ALL_METHODS, ".0%"),
+        "cra": listing("CRA", ALL_METHODS, ".2f"),
         "t_first": float(times[0]),
         "t_last": float(times[-1]),
-        "rul_last": float(true_rul[-1]),
-        "ra_last": ", ".join(f"{n} {v:.1f}" for n, v in ra_last.items()),
+        "n_rul": len(rul_idx),
         "features": ", ".join(hi.feature_names),
         "n_snap": z_train.shape[0],
         "t_span": float(t[-1]),
         "train_channel": hi.train_channel,
         "test_channel": hi.test_channel,
         "n_windows": X.shape[0],
-        "grid_rmse_min": min(grid_rmse),
-        "grid_rmse_max": max(grid_rmse),
-        "step_noise": s_cv / math.sqrt(2.0),
-        "n_predicted": truth.shape[0],
+        "step_noise": one.score.one_step / math.sqrt(2.0),
+        "n_predicted": ctx.truth.shape[0],
         "n_tail": n_tail,
         "frac": frac,
         "rmse_bound": math.sqrt(frac) * 0.4302,
-        "rul_times": rul_at,
         "dt_minutes": dt_step * 1440,
-        "samples_9": int((t > times[0]).logical_and(t <= t_eol).sum()),
-        "nominal_steps": (t_eol - float(times[0])) / dt_step,
-        "fixed_pt": float(
-            recursive_predict(learner, z_test[rul_idx[0] - m + 1 : rul_idx[0] + 1], 2000)[-1]
-        ),
+        "census_one": _census(one.model, census_windows),
+        "census_ms": _census(ms.model, census_windows),
+        "n_census": census_windows.shape[0],
         "fb_total": {n: o["fallback"] for n, o in res.items()},
         "col_total": {n: o["collapsed"] for n, o in res.items()},
         "cra_lambdas": ", ".join(f"{v:g}" for v in CRA_LAMBDAS),
@@ -545,17 +636,30 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         "seed": cfg.seed,
         "quick_note": (
             f"- QUICK MODE: the filters start at day {QUICK_START:g} (RMSE_1_12 covers days "
-            f"{QUICK_START:g}-12 only), {n_part} particles, {len(cv)} LS-SVR candidates.\n"
+            f"{QUICK_START:g}-12 only), {n_part} particles, {len(scores)} LS-SVR candidates.\n"
         )
         if quick
         else "",
     }
-    constants = ("THRESHOLD", "HORIZON_DAYS", "CV_FOLDS", "TAIL_START", "ALPHA", "LAMBDA")
-    report |= {k: globals()[k] for k in constants + ("DEFAULT_RUNS", "N_PARTICLES")}
+    constants = ("THRESHOLD", "CAP_DAYS", "CV_FOLDS", "TAIL_START", "ALPHA", "LAMBDA", "RUL_EVERY")
+    constants += ("SELECT_DAYS", "SELECT_STRIDE", "ATTRACTOR_STEPS", "DEFAULT_RUNS", "N_PARTICLES")
+    constants += ("RUL_START",)
+    report |= {k: globals()[k] for k in constants}
     report |= dict(sd=sd, diag_txt=diag_txt, scale=scale, t_eol=t_eol, thr_minmax=thr_minmax)
-    report |= dict(t_minmax=t_minmax, m=m, s_best=s_best, sigma=sigma, c_best=c_best, q=q)
-    report |= dict(s_cv=s_cv, n_part=n_part, horizon=horizon, d0=d0, runs=runs)
+    report |= dict(t_minmax=t_minmax, m=m, q=q, n_part=n_part, d0=d0, runs=runs)
+    report |= dict(s_one=key_1[0], c_one=key_1[1], sigma_one=one.sigma, q_ms=ms.q)
+    report |= dict(s_ms=key_ms[0], c_ms=key_ms[1], sigma_ms=ms.sigma, s_cv=one.score.one_step)
+    report |= dict(cross_one=scores[key_1].crossing * dt_step, h_sel=h_sel, cap=ctx.cap)
+    report |= dict(cross_ms=scores[key_ms].crossing * dt_step, n_origins=scores[key_1].origins)
     report["wall"] = time.perf_counter() - t_start
+    sel = lambda o: {
+        "sigma": o.sigma,
+        "C": o.C,
+        "cv_rmse": o.score.one_step,  # noqa: E731
+        "crossing_rmse_steps": o.score.crossing,
+        "q": o.q,
+        "r": o.q,
+    }
     return StudyResult(
         rows=rows,
         metrics=METRICS,
@@ -566,15 +670,19 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
             "threshold": THRESHOLD,
             "indicator_scale": scale,
             "t_eol_days": t_eol,
-            "lssvr": {"kernel": "rbf", "sigma": sigma, "C": c_best, "cv_rmse": s_cv},
-            "q": q,
-            "r": r,
+            "lssvr": {"kernel": "rbf", **sel(one)},
+            "lssvr_ms": {
+                "kernel": "rbf",
+                **sel(ms),
+                "selection_horizon_steps": h_sel,
+                "selection_stride": SELECT_STRIDE,
+            },
             "chol_Q": "q * I",
             "particles": n_part,
             "resample_threshold": RESAMPLE,
             "stpf": {"rho": 0.95, "beta": 1.0},
             "rul_times_days": times.tolist(),
-            "horizon_steps": horizon,
+            "cap_steps": ctx.cap,
             "dt_days": dt_step,
             "accuracy_d0": d0,
             "quick_start_day": QUICK_START if quick else None,

@@ -614,12 +614,27 @@ class GaussianFilter:
         dx_pos, dx_neg = sig.columns(D)  # Eq. 43
         return _Moments(z, dx_pos, dz_pos, dx_neg, dz_neg, joseph, None)
 
-    def _innovation_chol(self, mom: _Moments, chol_R: Tensor) -> Tensor:
+    def _robust_coef(self, mom: _Moments, chol_R: Tensor) -> tuple | None:
+        """Coefficients of the robust bound (:meth:`RobustBound.coefficients`); with
+        ``bound="optimised"`` the scale ``t`` minimising ``trace P_k`` of this step."""
+        rob = self.robust
+        if rob is None:
+            return None
+        if rob.bound != "optimised":
+            return rob.coefficients()
+        tr = (mom.dx_pos * mom.dx_pos).sum((-2, -1))  # trace of the prior (redraw=True)
+        if mom.dx_neg is not None:
+            tr = tr - (mom.dx_neg * mom.dx_neg).sum((-2, -1))
+        RR = chol_R @ chol_R.mT
+        RR = RR.expand(*mom.z.shape[:-1], *RR.shape[-2:])
+        return rob.coefficients(rob.choose_t(tr, mom.pxz(), mom.pzz(), RR))
+
+    def _innovation_chol(self, mom: _Moments, chol_R: Tensor, coef: tuple | None = None) -> Tensor:
         bs = mom.z.shape[:-1]
         mdim = mom.z.shape[-1]
         SR = _bcast(chol_R, bs, (mdim, chol_R.shape[-1]))  # (m, m), or (m, 2m) when masked
         if self.robust is not None:
-            cM, cR, _ = self.robust.coefficients()
+            cM, cR = (coef or self._robust_coef(mom, chol_R))[:2]
             M = self.robust.M_matrix(mdim, SR.dtype, SR.device)
             cols = [mom.dz_pos, cM * _bcast(M, bs, M.shape), cR * SR]
         else:
@@ -635,7 +650,7 @@ class GaussianFilter:
         return safe_cholesky(P)
 
     def _posterior_chol(
-        self, prior: _Prior, mom: _Moments, K: Tensor, Szz: Tensor, chol_R
+        self, prior: _Prior, mom: _Moments, K: Tensor, Szz: Tensor, chol_R, coef=None
     ) -> Tensor:
         rob = self.robust
         # under autograd the Joseph QR throughout: a failed downdate's NaN would reach the
@@ -658,7 +673,7 @@ class GaussianFilter:
         bs = prior.mean.shape[:-1]
         mdim = mom.z.shape[-1]
         SR = _bcast(chol_R, bs, (mdim, chol_R.shape[-1]))
-        c = 1.0 if rob is None else rob.coefficients()[2]
+        c, cK = (1.0, None) if rob is None else (coef or rob.coefficients())[2:]
         if not self.sqrt:
             if rob is None:
                 U = K @ Szz
@@ -667,7 +682,7 @@ class GaussianFilter:
                 A = mom.dx_pos - K @ mom.dz_pos
                 P = c * c * (A @ A.mT) + (K @ SR) @ (K @ SR).mT
                 M = rob.M_matrix(mdim, SR.dtype, SR.device)
-                P = P + rob.gamma**2 * (K @ M) @ (K @ M).mT
+                P = P + (cK * cK) * (K @ M) @ (K @ M).mT
                 if mom.dx_neg is not None:
                     B = mom.dx_neg - K @ mom.dz_neg
                     P = P - c * c * (B @ B.mT)
@@ -677,7 +692,7 @@ class GaussianFilter:
         cols = [c * (mom.dx_pos - K @ mom.dz_pos), K @ SR]  # paper 000 Eq. 46
         if rob is not None:  # paper 004 Eq. 28 in square-root form
             M = rob.M_matrix(mdim, SR.dtype, SR.device)
-            cols.append(rob.gamma * (K @ M))
+            cols.append(cK * (K @ M))
         SJ = tria(torch.cat(cols, dim=-1))
         if mom.dx_neg is not None:
             SJ = chol_downdate(SJ, c * (mom.dx_neg - K @ mom.dz_neg))
@@ -806,7 +821,8 @@ class GaussianFilter:
         chol_R = noise.chol_R
         if observed is not None:
             mom, chol_R = _observed_part(mom, chol_R, observed)
-        Szz = self._innovation_chol(mom, chol_R)
+        coef = self._robust_coef(mom, chol_R)
+        Szz = self._innovation_chol(mom, chol_R, coef)
         K = cho_solve_right(mom.pxz(), Szz)  # paper 000 Eq. 44
         eps = y - mom.z
         if any_missing:
@@ -815,7 +831,7 @@ class GaussianFilter:
             mean = torch.addcmul(prior.mean, K[..., 0], eps)  # Eq. 45
         else:
             mean = prior.mean + (K @ eps.unsqueeze(-1)).squeeze(-1)  # Eq. 45
-        chol = self._posterior_chol(prior, mom, K, Szz, chol_R)
+        chol = self._posterior_chol(prior, mom, K, Szz, chol_R, coef)
         if any_missing:
             mean = torch.where(missing[..., None], prior.mean, mean)
             chol = torch.where(missing[..., None, None], prior.chol, chol)

@@ -77,9 +77,24 @@ def stekf(rho: float = 0.95, beta: float = 1.0, **kw) -> GaussianFilter:
     return ekf(fading=StrongTracking(rho, beta), name=kw.pop("name", "STEKF"), **kw)
 
 
-def stukf(rho: float = 0.95, beta: float = 1.0, kappa: float | None = 1.0, **kw) -> GaussianFilter:
-    """Strong-tracking UKF (derivative-free fading factor on the SRUKF engine)."""
-    return srukf(kappa, fading=StrongTracking(rho, beta), name=kw.pop("name", "STUKF"), **kw)
+def stukf(
+    rho: float = 0.95, beta: float = 1.0, kappa: float | None = 1.0, *, sqrt: bool = True, **kw
+) -> GaussianFilter:
+    """Strong-tracking UKF: the derivative-free fading factor (paper 000 Eq. 27-36) on Julier's
+    rule (paper 003 Eq. 12-13, ``kappa=None``: ``3 - n``).
+
+    ``sqrt=True``: the SRUKF's square-root algebra (a negative ``W_0`` enters as a Cholesky
+    downdate, paper 003 Eq. 17); ``sqrt=False``: full covariances
+    (``P = lambda (sum_i W_i d_i d_i^T) + Q`` with ``W_0 < 0`` subtracted directly), the form of
+    a textbook UKF with ``kappa = 3 - n``.
+    """
+    return GaussianFilter(
+        julier(kappa),
+        sqrt=sqrt,
+        fading=StrongTracking(rho, beta),
+        name=kw.pop("name", "STUKF"),
+        **kw,
+    )
 
 
 def stsckf(rho: float = 0.95, beta: float = 1.0, **kw) -> GaussianFilter:
@@ -100,6 +115,7 @@ def rukf(
     alpha: float = 1.0,
     kappa: float = 1.0,
     form: str = "scalar",
+    bound: str = "printed",
     **kw,
 ) -> GaussianFilter:
     """Robust UKF of paper 004 (Theorem 1, steps 1-5): sigma points of Eq. 36, gain Eq. 29.
@@ -107,11 +123,13 @@ def rukf(
     Paper 004 Eq. 36 uses ``xi = x +- a sqrt((n + 1) P)``, i.e. the scaled rule with
     ``alpha = a`` and ``kappa = 1``. ``form``: the reading of the bound (see
     :class:`~prognos_torch.adapt.robust.RobustBound`; ``"scalar"`` is Eq. 28-29 as printed).
+    ``bound``: ``"printed"`` (the scale fixed by ``gamma``) or ``"optimised"`` (the scale of
+    Eq. 28's bound chosen per step to minimise ``trace P_k``; ``form="scalar"`` only).
     """
     return GaussianFilter(
         unscented(alpha, 0.0, kappa),
         sqrt=kw.pop("sqrt", True),
-        robust=RobustBound(gamma, M, N, form=form),
+        robust=RobustBound(gamma, M, N, form=form, bound=bound),
         name=kw.pop("name", "RUKF"),
         **kw,
     )
@@ -125,19 +143,21 @@ def arukf(
     window: int = 50,
     diagonal: bool = True,
     form: str = "scalar",
+    bound: str = "printed",
     **kw,
 ) -> GaussianFilter:
     """Adaptive robust UKF of paper 004 (Sec. 3): RUKF + moving-window Q/R estimator (Eq. 47-49).
 
     With ``form="lemma"`` the innovation covariance is matched against ``C P~ C^T + gamma^2 M M^T``
     (``P~`` already holds the ``N`` bound); with ``"scalar"`` against Eq. 48 as printed
-    (``(1 - N^2 / mu) C P C^T + mu M M^T``, ``mu = gamma^2``).
+    (``(1 - N^2 / mu) C P C^T + mu M M^T``, ``mu = gamma^2``; also with ``bound="optimised"``,
+    which changes only the bound of Eq. 60, see :func:`rukf`).
     """
     if form == "lemma":
         est = MovingWindow(window=window, M=M, N=0.0, mu=gamma**2, diagonal=diagonal)
     else:
         est = MovingWindow(window=window, M=M, N=float(N), mu=gamma**2, diagonal=diagonal)
-    return rukf(gamma, M, N, form=form, noise=est, name=kw.pop("name", "ARUKF"), **kw)
+    return rukf(gamma, M, N, form=form, bound=bound, noise=est, name=kw.pop("name", "ARUKF"), **kw)
 
 
 FILTERS = {

@@ -6,7 +6,9 @@
 * :class:`LSSVR`: least-squares support vector regression with input Jacobian (paper 002);
   :class:`FixedSizeLSSVR`: the same model on ``M`` support points (Nystrom, for long series).
 * :class:`ANFIS`: first-order Sugeno ANFIS with grid rules, Eq. 44 parameter order (paper 003).
-* :func:`blocked_cv_rmse`: blocked (time-ordered) cross-validation of any fit/predict pair.
+* :func:`blocked_cv_rmse`: blocked (time-ordered) cross-validation of any fit/predict pair;
+  :func:`blocked_multistep_cv`: the same folds scoring the recursive (iterated) prediction
+  over a horizon and its time to cross a threshold.
 
 Every ``forward`` maps ``(..., n_in) -> (..., n_out)`` with pure tensor code, so it can be used
 with ``torch.func.functional_call``, ``vmap``, ``jacrev`` and ``jacfwd``.
@@ -19,7 +21,7 @@ from .lssvr import LSSVR
 from .lssvr_fixed import FixedSizeLSSVR
 from .lssvr_gram import LSSVRGram
 from .ros_elm import ROSELMState, ros_elm_forecast, ros_elm_init, ros_elm_update
-from .selection import blocked_cv_rmse, blocked_folds
+from .selection import MultiStepCV, blocked_cv_rmse, blocked_folds, blocked_multistep_cv
 
 __all__ = [
     "ELM",
@@ -35,4 +37,6 @@ __all__ = [
     "learner_dtype_device",
     "blocked_cv_rmse",
     "blocked_folds",
+    "blocked_multistep_cv",
+    "MultiStepCV",
 ]

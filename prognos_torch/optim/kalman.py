@@ -1025,7 +1025,8 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 same numbers as eager steps up to rounding (float64: ``<= 1e-12``). The
                 first call per mini-batch shape compiles (tens of seconds on CPU); later calls
                 reuse the code. Needs one parameter group, no per-run data, a filter without
-                adaptation state (no strong tracking, no noise estimator), a module without
+                adaptation state (no strong tracking, no noise estimator, no robust bound), a
+                module without
                 tracking BatchNorm layers, and for the EKF the learner's closed-form Jacobian.
         Returns:
             ``(T,)`` (or ``(T, R)`` with ``runs=R``) the loss of every step, as
@@ -1115,8 +1116,12 @@ class KalmanOptimizer(torch.optim.Optimizer):
             why = "one parameter group"
         elif self.per_run_data:
             why = "per_run_data=False"
-        elif cfg.filter.noise is not None or cfg.filter.fading is not None:
-            why = "a filter without strong tracking, fading or noise estimator"
+        elif (
+            cfg.filter.noise is not None
+            or cfg.filter.fading is not None
+            or cfg.filter.robust is not None
+        ):
+            why = "a filter without strong tracking, fading, noise estimator or robust bound"
         elif tracking_batch_norms(self.module):
             why = "no BatchNorm layer in training mode"
         elif isinstance(cfg.filter.rule, Taylor) and not (

@@ -30,8 +30,8 @@ from .figures import (
 from .heatmap import HeatmapPanel, draw_heatmap, plot_heatmaps
 from .lines import LinePanel, break_at_gaps, plot_line_panels, plot_prediction_errors
 from .panels import plot_panels
-from .rul import draw_paths, plot_paths, plot_rul_band, weighted_quantiles
 from .prognosis import plot_prognosis, plot_rul_trajectory
+from .rul import draw_paths, plot_paths, plot_rul_band, weighted_quantiles
 from .workflow import plot_forecast, plot_rul, time_label
 
 __all__ = [

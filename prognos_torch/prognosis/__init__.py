@@ -21,7 +21,6 @@ fault prediction, and fault probability and remaining-useful-life distributions.
 """
 
 from ..learners.ros_elm import ROSELMState, ros_elm_forecast, ros_elm_init, ros_elm_update
-from .events import EventPrediction, sample_belief, simulate_to_event
 from .assess import (
     ThresholdCrossings,
     aligned_forecasts,
@@ -31,6 +30,7 @@ from .assess import (
     predict_threshold_crossings,
     rolling_forecasts,
 )
+from .events import EventPrediction, sample_belief, simulate_to_event
 from .fault import (
     FaultPrediction,
     RollingFaultPrediction,

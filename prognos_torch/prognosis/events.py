@@ -13,7 +13,9 @@ horizon are censored and kept apart, as in :mod:`prognos_torch.prognosis.rul`.
 All samples advance together: ONE batched ``model.transition`` call per step, whatever the
 number of samples (progpy's ``MonteCarlo`` runs its simulator once per sample). The event is
 evaluated once per chunk of steps on the stacked states of the chunk, so that a step costs the
-transition only. Nothing of size ``horizon x samples`` is stored.
+transition only. Nothing of size ``horizon x samples`` is stored. With ``active_only=True`` the
+samples that have met the event are no longer advanced (for row-wise models whose transition is
+expensive, e.g. a learner; paths run until every sample has crossed, paper 002).
 """
 
 from __future__ import annotations
@@ -143,6 +145,7 @@ def simulate_to_event(
     process_noise: bool = False,
     generator: torch.Generator | None = None,
     chunk: int | None = None,
+    active_only: bool = False,
 ) -> EventPrediction:
     """Propagate ``N`` samples together until each meets ``event`` (module docstring).
 
@@ -169,6 +172,12 @@ def simulate_to_event(
         chunk: steps between event checks; does not change the result (the noise is drawn
             step by step, in the same order whatever the chunk). Default: 32 steps, fewer for
             large sample sets (the chunk's states stay within about 2 MB).
+        active_only: after each chunk, advance only the samples without an event (their rows
+            of the flattened ``(..., N)`` leading dims). The noise is still drawn for every
+            sample, so the random stream and, up to the round-off of a transition evaluated on
+            fewer rows, the result equal those of ``active_only=False``. Needs a row-wise
+            transition, no controls or shared ``(H, p)`` controls, and constant noise with an
+            ``(n, n)`` square root.
     Returns:
         :class:`EventPrediction`. The loop runs under ``torch.inference_mode`` (event times are
         step counts; nothing in the result carries a gradient).
@@ -210,19 +219,30 @@ def simulate_to_event(
     if process_noise and not isinstance(generator, torch.Generator):
         raise TypeError("process_noise=True needs a torch.Generator (generator=...)")
     w = check_weights(weights, x0.shape[:-1][:-1], x0.shape[-2], x0.device)
+    if not isinstance(active_only, bool):
+        raise TypeError(f"active_only must be a bool, got {active_only!r}")
+    if active_only:
+        if us is not None and us.dim() != 2:
+            raise ValueError("active_only=True needs shared controls of shape (H, p)")
+        if callable(model.chol_Q) or callable(model.q):
+            raise ValueError("active_only=True needs constant process noise (chol_Q, q)")
+        nz = model.checked_noise(k0 + 1, x0.shape[:-1], x0)
+        if nz.chol_Q.dim() != 2 or (nz.q is not None and nz.q.dim() != 1):
+            raise ValueError("active_only=True needs a shared (n, n) chol_Q and an (n,) q")
 
     # event times are step counts, not differentiable: skip autograd bookkeeping in the loop
     with torch.inference_mode():
         first, final, step = _loop(
-            model, x0, event, us, max_steps, k0, process_noise, generator, chunk
+            model, x0, event, us, max_steps, k0, process_noise, generator, chunk, active_only
         )
     rul = _distribution(first.clone(), w, step, float(dt))
     return EventPrediction(rul=rul, t0=float(t0), final_state=final.clone(), steps_run=step)
 
 
-def _loop(model, x0, event, us, max_steps, k0, process_noise, generator, chunk):
+def _loop(model, x0, event, us, max_steps, k0, process_noise, generator, chunk, active_only):
     x = x0
     lead = x.shape[:-1]  # (..., N)
+    rows = None  # active_only: flat indices of the samples still without an event
     first = torch.full(lead, -1, dtype=torch.int64, device=x.device)
     final = x0.clone()
     done = torch.zeros(lead, dtype=torch.bool, device=x.device)
@@ -238,7 +258,12 @@ def _loop(model, x0, event, us, max_steps, k0, process_noise, generator, chunk):
         states = buf.movedim(1, -1)
         for c in range(C):
             k = k0 + step + c + 1
-            x = model.transition(x, None if us is None else us[step + c], k)
+            u = None if us is None else us[step + c]
+            if rows is not None:
+                x = _advance_rows(model, x, rows, u, k, noise, process_noise, generator)
+                buf[c] = x.movedim(-1, 0)
+                continue
+            x = model.transition(x, u, k)
             if process_noise:
                 nz = noise if noise is not None else model.checked_noise(k, lead, x)
                 e = torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
@@ -262,7 +287,25 @@ def _loop(model, x0, event, us, max_steps, k0, process_noise, generator, chunk):
         step += C
         if bool(done.all()):
             break
+        if active_only:
+            rows = torch.nonzero(~done.reshape(-1)).flatten()
     return first, torch.where(done[..., None], final, x), step
+
+
+def _advance_rows(model, x, rows, u, k, noise, process_noise, generator):
+    """One step of the samples ``rows`` of the flattened leading dims (the others stay); the
+    noise is drawn for all samples, as in the full step."""
+    n = x.shape[-1]
+    flat = x.reshape(-1, n)
+    xa = model.transition(flat[rows], u, k)
+    if process_noise:
+        e = torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
+        xa = xa + _times(noise.chol_Q, e.reshape(-1, n)[rows])
+        if noise.q is not None:
+            xa = xa + noise.q
+    out = flat.clone()
+    out[rows] = xa
+    return out.reshape(x.shape)
 
 
 def _distribution(first: Tensor, w: Tensor, horizon: int, dt: float) -> RULDistribution:

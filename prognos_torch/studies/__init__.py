@@ -50,6 +50,7 @@ from .tables import (
     format_table,
     markdown_table,
     summarize,
+    sweep_crossing,
     sweep_table,
 )
 
@@ -68,6 +69,7 @@ __all__ = [
     "Stat",
     "summarize",
     "markdown_table",
+    "sweep_crossing",
     "sweep_table",
     "fmt_value",
     "fill_template",

@@ -84,6 +84,17 @@ def _machine() -> dict:
     }
 
 
+def _command(name: str) -> str:
+    """The run as a command a reader can repeat, whichever entry point started it (a trainer
+    script, ``prognos study NAME`` or ``python -m prognos_torch study NAME``)."""
+    args = sys.argv[1:]
+    if args[:2] == ["study", name]:
+        args = args[2:]
+    threads = os.environ.get("OMP_NUM_THREADS")
+    env = f"OMP_NUM_THREADS={threads} " if threads else ""
+    return " ".join([f"{env}python -m prognos_torch study {name}", *args])
+
+
 def write_outputs(
     study: Study, cfg: StudyConfig, result: StudyResult, out_dir: Path, wall_s: float
 ) -> str:
@@ -116,7 +127,7 @@ def write_outputs(
         "study": study.name,
         "paper": study.paper,
         "title": study.title,
-        "command": " ".join(sys.argv),
+        "command": _command(study.name),
         "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "wall_s": wall_s,
         "config": cfg_d,

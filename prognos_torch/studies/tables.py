@@ -175,3 +175,26 @@ def fill_template(path: str | os.PathLike, values: Mapping[str, object]) -> str:
     if missing:
         raise KeyError(f"{path}: no value for the template fields {missing}")
     return text.format(**values)
+
+
+def sweep_crossing(points: Sequence[tuple[float, float]], target: float) -> float | None:
+    """Where a sweep first reaches ``target``: the setting at which the error falls to it.
+
+    Args:
+        points: ``(setting, error)`` pairs in sweep order (settings and errors positive).
+        target: the error to reach.
+    Returns:
+        The first setting's value if its error is already ``<= target``; else the setting where
+        the segment between the first pair that brackets ``target`` (``e_i > target >= e_{i+1}``)
+        crosses it, interpolated linearly in ``log setting`` and ``log error``; ``None`` if no
+        segment does.
+    """
+    pts = [(float(s), float(e)) for s, e in points]
+    if not pts or any(not (s > 0 and e > 0) for s, e in pts) or not target > 0:
+        raise ValueError("points must be non-empty (setting, error) pairs > 0 and target > 0")
+    if pts[0][1] <= target:
+        return pts[0][0]
+    for (s0, e0), (s1, e1) in zip(pts, pts[1:]):
+        if e0 > target >= e1:
+            return s0 * (s1 / s0) ** (math.log(e0 / target) / math.log(e0 / e1))
+    return None
