@@ -1026,8 +1026,8 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 first call per mini-batch shape compiles (tens of seconds on CPU); later calls
                 reuse the code. Needs one parameter group, no per-run data, a filter without
                 adaptation state (no strong tracking, no noise estimator, no robust bound), a
-                module without
-                tracking BatchNorm layers, and for the EKF the learner's closed-form Jacobian.
+                module without tracking BatchNorm layers, and for the EKF the learner's
+                closed-form Jacobian.
         Returns:
             ``(T,)`` (or ``(T, R)`` with ``runs=R``) the loss of every step, as
             :attr:`KalmanStep.loss`.
