@@ -225,9 +225,7 @@ def main(argv=None):
                 np.all(np.round(dyn_mae, MAE_DECIMALS) == np.round(lib_mae[m], MAE_DECIMALS))
             )
             flag = "" if agree else "  (MAE differs at 5 decimals)"
-            print(
-                f"{head} {dt:11.4f} {dt / lt:8.2f} {comp:11.2f} {dmae:10.1e} {mae_s:>15s}{flag}"
-            )
+            print(f"{head} {dt:11.4f} {dt / lt:8.2f} {comp:11.2f} {dmae:10.1e} {mae_s:>15s}{flag}")
     if worker is not None:
         worker.close()
 
@@ -242,7 +240,9 @@ def main(argv=None):
                 t, lib_mae[m], _ = library_pass("srukf", None, data, compile=m)
                 lib_t[m].append(t)
         ft = min(fp_t)
-        print(f"\nfilterpy UKF (Julier, kappa=1) + NumPy ANFIS, 1 run: {ft:.3f} s, test MAE {mae_fp:.6f}")
+        print(
+            f"\nfilterpy UKF (Julier, kappa=1) + NumPy ANFIS, 1 run: {ft:.3f} s, test MAE {mae_fp:.6f}"
+        )
         for m in modes:
             lt = min(lib_t[m])
             same = round(mae_fp, MAE_DECIMALS) == round(float(lib_mae[m][0]), MAE_DECIMALS)

@@ -9,8 +9,8 @@ measurement) wraps the filter's step instead of writing the loop again.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping
 import time
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any, TypeVar
 
 import torch

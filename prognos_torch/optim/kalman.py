@@ -47,6 +47,7 @@ from ..core.belief import GaussianBelief
 from ..core.linalg import tria
 from ..core.model import StateSpaceModel
 from ..core.validation import check_finite, check_matches
+from ..filters import sequence as _sequence
 from ..filters.gaussian import (
     FilterState,
     GaussianFilter,
@@ -55,7 +56,6 @@ from ..filters.gaussian import (
     _sigma_points,
     deferred_fallbacks,
 )
-from ..filters import sequence as _sequence
 from ..filters.sequence import scan as _filter_scan
 from ..filters.variants import make_filter
 from ._buffers import batch_statistics_only, explain_transform_error, tracking_batch_norms
@@ -1169,7 +1169,9 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 jac_h = None
             model = _random_walk_model(b, h, jac_h, M, chol_Q, chol_R)
             yy = y if runs is None else y.expand(runs, M)
-            new, info = filt._update(model, FilterState(GaussianBelief(mean, chol)), yy, None, k, False)
+            new, info = filt._update(
+                model, FilterState(GaussianBelief(mean, chol)), yy, None, k, False
+            )
             return (new.belief.mean, new.belief.chol), info
 
         def record(state, info):
