@@ -7,6 +7,10 @@ Rows (the same 497 Lorenz(x) training pairs, initial parameters, P0, Q and R on 
 * EKF vs dynamax's EKF, 1 run and ``--runs`` runs;
 * filterpy's UKF (Julier points, kappa = 1) with a NumPy ANFIS, 1 run (same process).
 
+Every library row is timed eager and compiled (``fit(..., compile=True)``: the pass as one
+``torch.compile`` call of the engine's step under a traced scan; compile time reported apart,
+from the first, compiling pass of the run; ``--no-compile`` leaves it out).
+
 dynamax runs in a virtual environment made on first use under ``--cache``
 (``python -m venv`` + ``pip install jax jaxlib dynamax``; never a dependency of the library
 or its tests), in a worker process (``_dynamax_worker.py``) that gets the data as an ``.npz``
@@ -19,6 +23,7 @@ the pass (``History.time`` of :func:`prognos_torch.optim.fit`). Both sides run o
 every run must agree to 5 decimals between the library and each peer.
 
     python benchmarks/bench_peers.py [--repeats 3] [--runs 50] [--cache DIR] [--no-dynamax]
+        [--no-filterpy] [--no-compile]
 """
 
 from __future__ import annotations
@@ -127,11 +132,12 @@ def filterpy_pass(data, theta0, P0m, Qm, Rm):
 
 
 # --------------------------------------------------------------------------- library side
-def library_pass(filt, runs, data):
+def library_pass(filt, runs, data, compile=False):
+    """Time of one pass (compile time apart), test MAE per run, compile time."""
     Xtr, Ytr, Xte, Yte = data
     model, opt = make(filt, runs, Xtr)
-    hist = fit(model, opt, (Xtr, Ytr), epochs=1, val=(Xte, Yte), progress=False)
-    return hist.time[0], np.atleast_1d(hist.val["mae"][-1].numpy())
+    hist = fit(model, opt, (Xtr, Ytr), epochs=1, val=(Xte, Yte), progress=False, compile=compile)
+    return hist.time[0], np.atleast_1d(hist.val["mae"][-1].numpy()), hist.compile_time[0]
 
 
 def main(argv=None):
@@ -141,13 +147,16 @@ def main(argv=None):
     ap.add_argument("--cache", default=os.path.expanduser("~/.cache/prognos_torch_bench"))
     ap.add_argument("--no-dynamax", action="store_true", help="library and filterpy only")
     ap.add_argument("--no-filterpy", action="store_true")
+    ap.add_argument(
+        "--no-compile", action="store_true", help="eager library rows only (no fit(compile=True))"
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     data = lorenz_data()
     Xtr, Ytr, Xte, Yte = data
     model, opt = make("srukf", args.runs, Xtr)
     theta0 = opt.theta.numpy()  # (runs, 44): the runs' initial parameters
-    S0, SQ = opt._chol_P0.numpy(), opt._chol_Q.numpy()
+    S0, SQ = opt._cfg[0].chol_P0.numpy(), opt._cfg[0].chol_Q.numpy()
     P0m, Qm = S0 @ S0.T, SQ @ SQ.T
     Rm = np.array([[R]])
     print(
@@ -181,54 +190,67 @@ def main(argv=None):
         (f"SRUKF vs dynamax UKF, {args.runs} runs", "srukf", "ukf", args.runs),
         (f"EKF vs dynamax EKF, {args.runs} runs", "ekf", "ekf", args.runs),
     ]
+    modes = [False] if args.no_compile else [False, True]
     print(
-        f"\n{'row':34s} {'library [s]':>11s} {'dynamax [s]':>11s} {'dyn/lib':>8s} "
-        f"{'compile [s]':>11s} {'max |dMAE|':>10s} {'test MAE (lib)':>15s}"
+        f"\n{'row':34s} {'library':>8s} {'lib [s]':>8s} {'compile [s]':>11s} "
+        f"{'dynamax [s]':>11s} {'dyn/lib':>8s} {'compile [s]':>11s} {'max |dMAE|':>10s} "
+        f"{'test MAE (lib)':>15s}"
     )
-    results = []
     for label, lib_name, dyn_name, runs in rows:
-        lib_t, dyn_t, comp = [], [], None
-        lib_mae = dyn_mae = None
-        for _ in range(args.repeats):  # interleaved: A B A B ...
-            t, lib_mae = library_pass(lib_name, runs, data)
-            lib_t.append(t)
+        lib_t = {m: [] for m in modes}
+        lib_c = dict.fromkeys(modes, 0.0)
+        lib_mae = dict.fromkeys(modes)
+        dyn_t, comp, dyn_mae = [], None, None
+        for _ in range(args.repeats):  # interleaved: eager, compiled, dynamax, eager, ...
+            for m in modes:
+                t, lib_mae[m], c = library_pass(lib_name, runs, data, compile=m)
+                lib_t[m].append(t)
+                lib_c[m] = max(lib_c[m], c)
             if worker is not None:
                 ans = worker.run(dyn_name, runs or 1)
                 dyn_t.append(ans["time"])
                 comp = ans["compile"] if ans["compile"] is not None else comp
                 dyn_mae = np.asarray(ans["mae"])
-        lt = min(lib_t)
-        mae_s = f"{lib_mae.mean():.6f}"
-        if worker is None:
-            print(f"{label:34s} {lt:11.3f}{'':>55s} {mae_s:>15s}")
-            continue
-        dt = min(dyn_t)
-        dmae = float(np.abs(dyn_mae - lib_mae).max())
-        agree = bool(np.all(np.round(dyn_mae, MAE_DECIMALS) == np.round(lib_mae, MAE_DECIMALS)))
-        flag = "" if agree else "  (MAE differs at 5 decimals)"
-        print(
-            f"{label:34s} {lt:11.3f} {dt:11.4f} {dt / lt:8.2f} {comp:11.2f} {dmae:10.1e} "
-            f"{mae_s:>15s}{flag}"
-        )
-        results.append((label, lt, dt))
+        for m in modes:
+            lt = min(lib_t[m])
+            mae_s = f"{lib_mae[m].mean():.6f}"
+            kind = "compiled" if m else "eager"
+            head = f"{label:34s} {kind:>8s} {lt:8.3f} {lib_c[m]:11.1f}"
+            if worker is None:
+                print(f"{head}{'':>44s} {mae_s:>15s}")
+                continue
+            dt = min(dyn_t)
+            dmae = float(np.abs(dyn_mae - lib_mae[m]).max())
+            agree = bool(
+                np.all(np.round(dyn_mae, MAE_DECIMALS) == np.round(lib_mae[m], MAE_DECIMALS))
+            )
+            flag = "" if agree else "  (MAE differs at 5 decimals)"
+            print(f"{head} {dt:11.4f} {dt / lt:8.2f} {comp:11.2f} {dmae:10.1e} {mae_s:>15s}{flag}")
     if worker is not None:
         worker.close()
 
     if not args.no_filterpy:
-        fp_t, lib_t = [], []
+        fp_t = []
+        lib_t = {m: [] for m in modes}
+        lib_mae = dict.fromkeys(modes)
         for _ in range(args.repeats):
             t, mae_fp = filterpy_pass(tuple(a.numpy() for a in data), theta0[0], P0m, Qm, Rm)
             fp_t.append(t)
-            t, lib_mae = library_pass("srukf", None, data)
-            lib_t.append(t)
-        ft, lt = min(fp_t), min(lib_t)
-        same = round(mae_fp, MAE_DECIMALS) == round(float(lib_mae[0]), MAE_DECIMALS)
+            for m in modes:
+                t, lib_mae[m], _ = library_pass("srukf", None, data, compile=m)
+                lib_t[m].append(t)
+        ft = min(fp_t)
         print(
-            f"\nfilterpy UKF (Julier, kappa=1) + NumPy ANFIS, 1 run: {ft:.3f} s; library SRUKF "
-            f"{lt:.3f} s in the same run: library {ft / lt:.1f}x faster; test MAE filterpy "
-            f"{mae_fp:.6f}, library {float(lib_mae[0]):.6f}"
-            + ("" if same else " (differs at 5 decimals)")
+            f"\nfilterpy UKF (Julier, kappa=1) + NumPy ANFIS, 1 run: {ft:.3f} s, test MAE {mae_fp:.6f}"
         )
+        for m in modes:
+            lt = min(lib_t[m])
+            same = round(mae_fp, MAE_DECIMALS) == round(float(lib_mae[m][0]), MAE_DECIMALS)
+            print(
+                f"  library SRUKF {'compiled' if m else 'eager'}: {lt:.3f} s in the same run: "
+                f"library {ft / lt:.1f}x faster; test MAE {float(lib_mae[m][0]):.6f}"
+                + ("" if same else " (differs at 5 decimals)")
+            )
     print("load average at the end: " + " ".join(f"{x:.2f}" for x in os.getloadavg()))
 
 

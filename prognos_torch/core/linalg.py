@@ -44,6 +44,10 @@ def tria(A: Tensor) -> Tensor:
     if A.requires_grad and torch.is_grad_enabled():
         # geqrf has no derivative; the reduced QR has one (it needs a full-rank A)
         R = torch.linalg.qr(A.mT, mode="reduced")[1]
+    elif torch.compiler.is_compiling():
+        # geqrf cannot be traced (no fake-tensor rule); the R-only QR is the same
+        # Householder factorisation
+        R = torch.linalg.qr(A.mT, mode="r")[1]
     else:
         # geqrf leaves R in the upper triangle of its first output; A^T of a row-major A is
         # the column-major layout LAPACK wants, and unlike linalg.qr nothing else is computed
@@ -106,6 +110,8 @@ _RANK_ONE_MIN_N_PER_RANK = 50
 
 def _use_rank_one(S: Tensor, k: int) -> bool:
     n = S.shape[-1]
+    if k == 1 and n >= 8 and torch.compiler.is_compiling():
+        return True  # compiled, the closed form's small operations fuse: O(n^2) wins
     return S.numel() >= _RANK_ONE_MIN_NUMEL and (k == 1 or _RANK_ONE_MIN_N_PER_RANK * k <= n)
 
 
@@ -123,11 +129,33 @@ def _dense(S: Tensor, V: Tensor, sign: float) -> tuple[Tensor, Tensor]:
         ratio = torch.where(a[..., 0, 0] > 0, (L * L)[..., 0, 0], -1.0)
         return S * L, ratio
     W = torch.linalg.solve_triangular(S, V, upper=False)
-    eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
-    L, info = torch.linalg.cholesky_ex(eye + sign * (W @ W.mT))
+    eye = _eye(S.shape[-1], S.dtype, S.device)
+    if W.dim() == 2:
+        A = torch.addmm(eye, W, W.mT, alpha=sign)
+    else:
+        A = torch.matmul(W, W.mT).mul_(sign).add_(eye)
+    L, info = torch.linalg.cholesky_ex(A)
     d = torch.diagonal(L, dim1=-2, dim2=-1)
-    ratio = torch.where(info > 0, -1.0, d.square().prod(-1))
+    ratio = d.square().prod(-1).masked_fill(info > 0, -1.0)
     return S @ L, ratio
+
+
+_EYE_CACHE: dict = {}
+
+
+def _eye(n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``I_n``, made once per size, dtype and device (read only: never modified in place)."""
+    if torch.compiler.is_compiling():
+        return torch.eye(n, dtype=dtype, device=device)
+    key = (n, dtype, device)
+    E = _EYE_CACHE.get(key)
+    if E is None:
+        with torch.inference_mode(False), torch.no_grad():
+            E = torch.eye(n, dtype=dtype, device=device)
+        if len(_EYE_CACHE) > 64:
+            _EYE_CACHE.clear()
+        _EYE_CACHE[key] = E
+    return E
 
 
 def chol_update(S: Tensor, V: Tensor) -> Tensor:

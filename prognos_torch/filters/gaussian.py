@@ -39,6 +39,7 @@ not fully observed; the robust bound of paper 004 treats a partially observed ve
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
@@ -264,6 +265,21 @@ class _Sigma:
     neg: Tensor | None  # indices with wc < 0 (None if there are none)
     sw_pos: Tensor  # sqrt(wc[pos]), (Lp, 1)
     sw_neg: Tensor | None  # sqrt(-wc[neg]), (Ln, 1)
+    # xi = [0 (if centre); c I; -c I] (UKF, cubature): the deviations are +-c S^T, no product
+    centre: bool = False
+    scale: float | None = None
+
+    def deviations(self, S: Tensor) -> Tensor:
+        """``xi S^T`` ``(..., L, n)``: the points' deviations from the mean for the factor ``S``
+        ``(..., n, n)`` (for the symmetric rules the columns of ``S`` times ``+-c``, exactly
+        the entries the product gives)."""
+        if self.scale is None:
+            return self.xi @ S.mT
+        C = S.mT * self.scale
+        parts = [C, -C]
+        if self.centre:
+            parts.insert(0, C.new_zeros(*C.shape[:-2], 1, C.shape[-1]))
+        return torch.cat(parts, dim=-2)
 
     def columns(self, D: Tensor) -> tuple[Tensor, Tensor | None]:
         """``D``: ``(..., L, d)`` deviations -> ``(..., d, Lp)``, ``(..., d, Ln)`` columns ``sqrt|w| D_i``."""
@@ -285,6 +301,7 @@ def _sigma_points(rule: SigmaPoints, n: int, like: Tensor) -> _Sigma:
         pos = (wc > 0).nonzero().squeeze(-1)
         neg = (wc < 0).nonzero().squeeze(-1)
         has_neg = neg.numel() > 0
+        centre, scale = _symmetric_rule(xi)
         sig = _Sigma(
             xi,
             wm,
@@ -292,11 +309,29 @@ def _sigma_points(rule: SigmaPoints, n: int, like: Tensor) -> _Sigma:
             neg if has_neg else None,
             wc[pos].sqrt().unsqueeze(-1),
             (-wc[neg]).sqrt().unsqueeze(-1) if has_neg else None,
+            centre,
+            scale,
         )
         if len(_SIGMA_CACHE) > 256:
             _SIGMA_CACHE.clear()
         _SIGMA_CACHE[key] = sig
     return sig
+
+
+def _symmetric_rule(xi: Tensor) -> tuple[bool, float | None]:
+    """``(centre, c)`` when the unit points are exactly ``[0; c I; -c I]`` (``centre``) or
+    ``[c I; -c I]``, else ``(False, None)``."""
+    L, n = xi.shape
+    centre = L == 2 * n + 1
+    if L not in (2 * n, 2 * n + 1) or n == 0:
+        return False, None
+    body = xi[1:] if centre else xi
+    c = float(body[0, 0])
+    eye = torch.eye(n, dtype=xi.dtype, device=xi.device)
+    want = torch.cat([c * eye, -c * eye])
+    if c > 0 and torch.equal(body, want) and (not centre or not bool(xi[0].any())):
+        return centre, c
+    return False, None
 
 
 def _observed_part(mom: _Moments, chol_R: Tensor, observed: Tensor) -> tuple[_Moments, Tensor]:
@@ -333,6 +368,29 @@ def _no_sync() -> bool:
     return torch.compiler.is_compiling()
 
 
+#: While true, a step traced by ``torch.compile`` does not compute its fallbacks (the QR of a
+#: failed Cholesky prior, the Joseph form of an imprecise downdate): it writes NaN into the
+#: factor there instead, which every later step carries on. The caller (a compiled sequence
+#: of steps, :meth:`KalmanOptimizer.steps`) tests the final state once and reruns the sequence
+#: eagerly when it is not finite, so that the result is the eager one in every case.
+_DEFER_FALLBACKS = False
+
+
+@contextmanager
+def deferred_fallbacks():
+    """Inside, traced steps defer their fallbacks (see ``_DEFER_FALLBACKS``)."""
+    global _DEFER_FALLBACKS
+    old, _DEFER_FALLBACKS = _DEFER_FALLBACKS, True
+    try:
+        yield
+    finally:
+        _DEFER_FALLBACKS = old
+
+
+def _deferred() -> bool:
+    return _DEFER_FALLBACKS and torch.compiler.is_compiling()
+
+
 def _check_measurement_traced(y, obs_dim: int, belief: GaussianBelief) -> tuple[Tensor, bool]:
     """:func:`check_measurement` for a step traced by ``torch.compile``: the same type, shape
     and device checks (static), and finiteness by ``torch._assert_async`` (no host sync; a
@@ -348,16 +406,64 @@ def _check_measurement_traced(y, obs_dim: int, belief: GaussianBelief) -> tuple[
     return check_measurement(y, obs_dim, belief.batch_shape, belief.mean)  # raises
 
 
+_GRAM_CACHE: dict = {}
+
+
+def _gram(S: Tensor) -> Tensor:
+    """``S S^T``, remembered for the last few noise factors: a model's ``S_Q`` is usually
+    the same tensor at every step (keyed by identity and version counter, so an in-place
+    change is seen; inference tensors, which have no version counter, and traced steps are
+    not cached)."""
+    if _no_sync() or S.is_inference():
+        return S @ S.transpose(-2, -1)
+    key = (id(S), S._version)
+    hit = _GRAM_CACHE.get(key)
+    if hit is not None and hit[0] is S:
+        return hit[1]
+    G = S @ S.mT
+    if len(_GRAM_CACHE) > 16:
+        _GRAM_CACHE.clear()
+    _GRAM_CACHE[key] = (S, G)
+    return G
+
+
 def _chol_prior(pos: Tensor, chol_Q: Tensor) -> Tensor:
     """``chol(pos pos^T + S_Q S_Q^T)`` ``(..., n, n)``, with ``Tria([pos, S_Q])`` (paper 000
     Eq. 25) where the Cholesky fails. ``chol_Q``: ``(n, n)`` or batched like ``pos``."""
-    L, info = torch.linalg.cholesky_ex(pos @ pos.mT + chol_Q @ chol_Q.mT)
-    bad = info > 0
-    if not _no_sync() and not bool(bad.any()):
+    Q = _gram(chol_Q)
+    if pos.dim() == 2:
+        P = torch.addmm(Q, pos, pos.mT)
+    else:
+        P = torch.matmul(pos, pos.mT).add_(Q)
+    L, info = torch.linalg.cholesky_ex(P)
+    if not _no_sync() and not bool(info.any()):
         return L
+    bad = info > 0
+    if _deferred():
+        return torch.where(bad[..., None, None], float("nan"), L)
     SQ = _bcast(chol_Q, pos.shape[:-2], chol_Q.shape[-2:])
     S = tria(torch.cat([pos, SQ], dim=-1))
     return torch.where(bad[..., None, None], S, L)
+
+
+_CONSTANTS: dict = {}
+
+
+def _constant(shape, dtype: torch.dtype, device: torch.device, value) -> Tensor:
+    """A tensor of ``shape`` filled with ``value``, made once per shape, dtype and device:
+    the step's flags without a missing measurement (all false) and ``lambda_k = 1`` without
+    fading. The diagnostics of :class:`StepInfo` share it; they are read, not written."""
+    if _no_sync():
+        return torch.full(tuple(shape), value, dtype=dtype, device=device)
+    key = (tuple(shape), dtype, device, value)
+    t = _CONSTANTS.get(key)
+    if t is None:
+        with torch.inference_mode(False), torch.no_grad():
+            t = torch.full(tuple(shape), value, dtype=dtype, device=device)
+        if len(_CONSTANTS) > 64:
+            _CONSTANTS.clear()
+        _CONSTANTS[key] = t
+    return t
 
 
 def _bcast(x: Tensor, batch_shape: torch.Size, tail: tuple[int, ...]) -> Tensor:
@@ -441,7 +547,7 @@ class GaussianFilter:
             mean = fx if q is None else fx + q
             return _Propagation(mean, fx, mm(F, S), None, None, S)
         sig = _sigma_points(self.rule, model.state_dim, m)
-        D = sig.xi @ S.mT
+        D = sig.deviations(S)
         X = m.unsqueeze(-2) + D  # (..., L, n), paper 000 Eq. 21
         uu = None if u is None else u.unsqueeze(-2)
         Y = model.transition(X, uu, k)  # Eq. 23 / paper 003 Eq. 14
@@ -494,7 +600,7 @@ class GaussianFilter:
             return _Moments(z, S, mm(H, S), None, None, True, H)
         sig = _sigma_points(self.rule, model.state_dim, x)
         if self.redraw or prop.points is None:
-            D = sig.xi @ S.mT  # X - x exactly
+            D = sig.deviations(S)  # X - x exactly
             X = x.unsqueeze(-2) + D  # paper 000 Eq. 37
             joseph = True
         else:
@@ -561,6 +667,8 @@ class GaussianFilter:
             ok = ratio > _downdate_min_ratio(ratio.dtype)
             if not _no_sync() and bool(ok.all()):
                 return S
+            if _deferred():
+                return torch.where(ok[..., None, None], S, float("nan"))
         else:
             ok = None
         bs = prior.mean.shape[:-1]
@@ -651,9 +759,9 @@ class GaussianFilter:
         else:
             y, any_missing = check_measurement(y, model.obs_dim, belief.batch_shape, belief.mean)
         u = check_control(u, model.control_dim, belief.batch_shape, belief.mean)
-        return self._step(model, state, y, u, k, any_missing)
+        return self._update(model, state, y, u, k, any_missing)
 
-    def _step(
+    def _update(
         self,
         model: StateSpaceModel,
         state: FilterState,
@@ -663,8 +771,13 @@ class GaussianFilter:
         any_missing: bool,
         noise: Noise | None = None,
     ) -> tuple[FilterState, StepInfo]:
-        """:meth:`step` on checked inputs (``y`` in the belief's dtype, ``any_missing``: whether
-        it has NaN; ``noise``: the model's checked noise at ``k``, or ``None`` to take it here)."""
+        """:meth:`step` on checked arguments: ``y`` ``(..., m)`` in the belief's dtype and
+        device, NaN only where missing (``any_missing`` says whether any entry is NaN), ``u``
+        as :func:`check_control` returns it; ``noise``: the model's checked noise at ``k``, or
+        ``None`` to take it here. A caller that has validated its data already (the optimiser
+        face: finite targets, checked once per :func:`~prognos_torch.optim.fit` call; the
+        particle filters' per-particle proposal) enters here, so that a step pays for no
+        check twice."""
         belief = state.belief
         if noise is None or state.noise is not None:
             noise = self._noise(model, state, k)
@@ -676,7 +789,7 @@ class GaussianFilter:
             if self.robust is None and bool((incomplete & ~missing).any()):
                 observed = ~nan  # some vector is partially observed: update with its part
         else:
-            missing = torch.zeros(belief.batch_shape, dtype=torch.bool, device=y.device)
+            missing = _constant(belief.batch_shape, torch.bool, y.device, False)
             incomplete = missing
         prop = self._propagate(model, belief, u, k, noise.q)
 
@@ -728,7 +841,10 @@ class GaussianFilter:
         eps = y - mom.z
         if any_missing:
             eps = torch.where(nan, torch.zeros_like(y), eps)
-        mean = prior.mean + mm(K, eps.unsqueeze(-1)).squeeze(-1)  # Eq. 45
+        if eps.shape[-1] == 1:  # scalar measurement: the product K eps is one multiplication
+            mean = torch.addcmul(prior.mean, K[..., 0], eps)  # Eq. 45
+        else:
+            mean = prior.mean + mm(K, eps.unsqueeze(-1)).squeeze(-1)  # Eq. 45
         chol = self._posterior_chol(prior, mom, K, Szz, chol_R, coef)
         if any_missing:
             mean = torch.where(missing[..., None], prior.mean, mean)
@@ -736,7 +852,7 @@ class GaussianFilter:
 
         nstate = state.noise
         if nstate is None:
-            fallback = torch.zeros(belief.batch_shape, dtype=torch.bool, device=y.device)
+            fallback = _constant(belief.batch_shape, torch.bool, y.device, False)
         else:
             h_mean = mom.z if noise.r is None else mom.z - noise.r
             ctx = UpdateContext(
@@ -758,7 +874,7 @@ class GaussianFilter:
             nstate = self.noise.update(nstate, ctx)
             fallback = nstate.fallback
         if lam is None:
-            lam = torch.ones(belief.batch_shape, dtype=y.dtype, device=y.device)
+            lam = _constant(belief.batch_shape, y.dtype, y.device, 1.0)
         info = StepInfo(
             prior=GaussianBelief(prior.mean, prior.chol),
             innovation=eps,

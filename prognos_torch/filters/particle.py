@@ -460,7 +460,7 @@ class ParticleFilter:
         prop = self.proposal
         try:
             # ONE engine step (Eq. 27), on inputs the particle filter has checked
-            fs_step, pinfo = prop._step(
+            fs_step, pinfo = prop._update(
                 setup.pmodel, fs_in, y_e, u_e, k, any_missing, setup.engine_noise
             )
             mu, L = fs_step.belief.mean, fs_step.belief.chol

@@ -9,6 +9,7 @@ measurement) wraps the filter's step instead of writing the loop again.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any, TypeVar
 
@@ -30,6 +31,7 @@ def scan(
     record: Callable[[S, I], Mapping[str, Tensor | None]],
     k0: int = 0,
     progress: Callable[[Iterable[int]], Iterable[int]] | None = None,
+    compile: bool = False,
 ) -> tuple[S, dict[str, Tensor | None]]:
     """Run ``step`` over the rows of ``ys`` and stack what ``record`` returns.
 
@@ -54,6 +56,14 @@ def scan(
             is ``None`` is skipped at that step.
         k0: time index of ``state``.
         progress: wraps the step indices, e.g. ``functools.partial(tqdm, desc=...)``.
+        compile: run the whole sequence as ONE compiled call: the loop becomes
+            ``torch._higher_order_ops.scan`` inside ``torch.compile(fullgraph=True)`` (the step
+            is traced once, not unrolled, so the compile time does not grow with ``T``).
+            Then ``state`` must be a tuple of tensors whose shapes, dtypes and strides the step
+            keeps, ``record`` must give a tensor for every name at every step, the step gets
+            ``k = None`` (it must not depend on the step index) and ``progress`` is not used.
+            The first call for a step compiles (tens of seconds on CPU); later calls with the
+            same ``step``, ``record`` and shapes reuse the compiled code.
     Returns:
         The state after the last step and ``{name: (T', ...) tensor}``: the stack over the
         steps at which ``record`` gave a tensor for ``name`` (``T' = T`` unless it skipped some),
@@ -65,6 +75,8 @@ def scan(
     if us is not None and (not isinstance(us, Tensor) or us.dim() < 1 or us.shape[0] != T):
         got = tuple(us.shape) if isinstance(us, Tensor) else type(us)
         raise ValueError(f"us must have one row per step of ys (T = {T}), got {got}")
+    if compile:
+        return _compiled_scan(step, state, ys, us, record)
     steps: Iterable[int] = range(T) if progress is None else progress(range(T))
     rows: dict[str, list[Any]] = {}
     for t in steps:
@@ -74,3 +86,55 @@ def scan(
             if value is not None:
                 col.append(value)
     return state, {key: (torch.stack(col) if col else None) for key, col in rows.items()}
+
+
+_COMPILED: dict = {}
+#: Inductor's C++ wrapper: the compiled loop calls its kernels from C++ rather than Python,
+#: which is most of the gain for steps of many small operations (EKF on paper 003's ANFIS,
+#: 497 steps: 0.118 s with the Python wrapper, 0.072 s with the C++ one, eager 0.43-0.52 s;
+#: compile 26 s and 39 s on the busy 2-core machine)
+_COMPILE_OPTIONS = {"options": {"cpp_wrapper": True}}
+
+
+def _compiled_scan(step, state, ys: Tensor, us: Tensor | None, record):
+    """:func:`scan` with ``compile=True`` (see there)."""
+    if not isinstance(state, tuple) or not all(isinstance(t, Tensor) for t in state):
+        raise TypeError("with compile=True, state must be a tuple of tensors")
+    key = (step, record)
+    fn = _COMPILED.get(key)
+    if fn is None:
+        from torch._higher_order_ops.scan import scan as _hop_scan
+
+        def body(carry, xs):
+            y, u = xs
+            new, info = step(tuple(carry), y, u, None)
+            row = dict(record(new, info))
+            # the carried tensors keep the layout they came with (the scan requires it)
+            new = tuple(t.contiguous() for t in new)
+            return new, row
+
+        def run(carry, ys, us):
+            return _hop_scan(body, carry, (ys, us))
+
+        fn = torch.compile(run, fullgraph=True, **_COMPILE_OPTIONS)
+        if len(_COMPILED) > 16:
+            _COMPILED.clear()
+        _COMPILED[key] = fn
+    carry = tuple(t.contiguous() for t in state)
+    global last_compile_seconds
+    frames = torch._dynamo.utils.counters["stats"]["unique_graphs"]
+    t0 = time.perf_counter()
+    final, rows = fn(carry, ys, us)
+    if torch._dynamo.utils.counters["stats"]["unique_graphs"] != frames:
+        # this call compiled: time it apart, and run again for the result and its time
+        last_compile_seconds = time.perf_counter() - t0
+        final, rows = fn(carry, ys, us)
+    else:
+        last_compile_seconds = 0.0
+    return tuple(final), rows
+
+
+#: Seconds the last ``scan(..., compile=True)`` call spent compiling (the first, compiling
+#: call of the compiled function, whose result is discarded and recomputed); 0 when the
+#: compiled code was reused.
+last_compile_seconds = 0.0

@@ -284,21 +284,22 @@ class ANFIS(nn.Module):
         if x.dim() != 2:
             raise ValueError(f"x must have shape (B, {self.n_inputs}), got {tuple(x.shape)}")
         alpha = params.get("alpha", self.alpha)
-        premises = tuple(  # (..., 1, n * L), membership index fastest
-            params.get(name, getattr(self, name)).flatten(-2).unsqueeze(-2)
-            for name in self.premise_names
-        )
+        nL = self.n_inputs * self.n_mfs
+        premises = []  # (..., 1, n * L), membership index fastest
+        for name in self.premise_names:
+            p = params.get(name, getattr(self, name))
+            premises.append(p.reshape(*p.shape[:-2], 1, nL))
+        premises = tuple(premises)
         G, eye_R, E = self._constants(x)
         xr = x @ E  # (B, n * L): u_j once per MF of input j (E = kron(I_n, 1_L^T), exact)
         log_mu = _log_membership(xr, self.mf, premises)  # (..., B, n * L), log of Eq. 2
         log_w = log_mu @ G  # (..., B, R), log of Eq. 3 (each rule picks one MF per input)
-        log_w = log_w - log_w.amax(-1, keepdim=True)
-        w = log_w.exp()
-        wbar = w / w.sum(-1, keepdim=True)  # Eq. 4
+        wbar = torch.softmax(log_w, dim=-1)  # Eq. 4 (exp of the log firing, normalised)
         B = x.shape[0]
-        ubar = F.pad(x, (0, 1), value=1.0)  # (B, n + 1): [u_1 .. u_n, 1]
+        ubar_t = F.pad(x.mT, (0, 0, 0, 1), value=1.0)  # (n + 1, B): [u_1 .. u_n, 1] per column
+        ubar = ubar_t.mT  # (B, n + 1)
         # U[(m, i), (b, i')] = ubar[b, m] delta(i, i'), i.e. kron(ubar^T, I_R): f_i(u_b) = alpha_i . ubar_b
-        U = (ubar.mT[:, None, :, None] * eye_R[None, :, None, :]).reshape(-1, B * self.n_rules)
+        U = torch.kron(ubar_t, eye_R)  # ((n + 1) R, B R)
         P = alpha.shape[-2] * alpha.shape[-1]
         # one 2-D GEMM: a batched matmul of many (1, P) rows is several times slower
         f = (alpha.reshape(-1, P) @ U).reshape(*alpha.shape[:-2], B, self.n_rules)
@@ -334,12 +335,15 @@ class ANFIS(nn.Module):
         jac: dict[str, Tensor] = {}
         if "alpha" in names:  # (..., B, o, o', n + 1, R), zero for o != o'
             base = ubar.unsqueeze(-1) * wbar.unsqueeze(-2)  # (..., B, n + 1, R)
-            eye_o = torch.eye(o, dtype=out.dtype, device=out.device)
-            jac["alpha"] = base[..., :, None, None, :, :] * eye_o[:, :, None, None]
+            if o == 1:
+                jac["alpha"] = base[..., :, None, None, :, :]
+            else:
+                eye_o = torch.eye(o, dtype=out.dtype, device=out.device)
+                jac["alpha"] = base[..., :, None, None, :, :] * eye_o[:, :, None, None]
         wanted = [k for k, name in enumerate(self.premise_names) if name in names]
         if wanted:
             g = wbar.unsqueeze(-3) * (f - out.mT.unsqueeze(-1))  # (..., o, B, R): d t / d log w
-            d_log_mu = (g @ G.mT).movedim(-3, -2)  # (..., B, o, n * L)
+            d_log_mu = (g @ G.transpose(-2, -1)).movedim(-3, -2)  # (..., B, o, n * L)
             for k, d in zip(wanted, _log_membership_grads(xr, self.mf, premises, wanted)):
                 J = d_log_mu * d.unsqueeze(-2)  # (..., B, o, n * L)
                 jac[self.premise_names[k]] = J.reshape(*lead, B, o, self.n_inputs, self.n_mfs)
@@ -352,7 +356,11 @@ class ANFIS(nn.Module):
         """For ``like``'s dtype and device: the rule-selection matrix ``(n * L, R)`` (Eq. 3 in
         log space), ``I_R``, and ``kron(I_n, 1_L^T)`` ``(n, n * L)`` (each input once per MF)."""
         key = (like.dtype, like.device)
-        cache = self.__dict__.setdefault("_forward_constants", {})
+        cache = getattr(self, "_forward_constants", None)
+        if cache is not None and key in cache:  # read only (a traced step may not write)
+            return cache[key]
+        if cache is None:
+            cache = self._forward_constants = {}
         if key not in cache:
             G = torch.zeros(
                 self.n_inputs * self.n_mfs, self.n_rules, dtype=like.dtype, device=like.device

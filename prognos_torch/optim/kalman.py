@@ -46,8 +46,17 @@ from ..adapt.strong_tracking import StrongTracking, StrongTrackingState
 from ..core.belief import GaussianBelief
 from ..core.linalg import tria
 from ..core.model import StateSpaceModel
-from ..core.validation import check_matches
-from ..filters.gaussian import FilterState, GaussianFilter, StepInfo, Taylor
+from ..core.validation import check_finite, check_matches
+from ..filters import sequence as _sequence
+from ..filters.gaussian import (
+    FilterState,
+    GaussianFilter,
+    StepInfo,
+    Taylor,
+    _sigma_points,
+    deferred_fallbacks,
+)
+from ..filters.sequence import scan as _filter_scan
 from ..filters.variants import make_filter
 from ._buffers import batch_statistics_only, explain_transform_error, tracking_batch_norms
 from .params import ParameterBridge
@@ -717,11 +726,11 @@ class KalmanOptimizer(torch.optim.Optimizer):
     def _chunk(self) -> int | None:
         return self.param_groups[0]["chunk_size"]
 
-    def _check_inputs(self, inputs) -> Tensor:
+    def _check_inputs(self, inputs, checked: bool = False) -> Tensor:
         b = self.bridge
         if not isinstance(inputs, Tensor):
             raise TypeError(f"inputs must be a torch.Tensor, got {type(inputs)}")
-        check_matches(inputs, "inputs", b.dtype, b.device)
+        _check_matches(inputs, "inputs", b.dtype, b.device, checked)
         if self.per_run_data and (inputs.dim() < 1 or inputs.shape[0] != self.runs):
             raise ValueError(
                 f"inputs must have shape (runs={self.runs}, ...) with per_run_data=True, got "
@@ -729,9 +738,11 @@ class KalmanOptimizer(torch.optim.Optimizer):
             )
         return inputs
 
-    def _check_batch(self, inputs, targets) -> tuple[Tensor, Tensor, torch.Size]:
+    def _check_batch(self, inputs, targets, checked: bool = False):
+        """``(inputs, targets, output shape of one run)``, validated (finiteness only when
+        not ``checked`` already)."""
         b = self.bridge
-        x = self._check_inputs(inputs)
+        x = self._check_inputs(inputs, checked)
         per_run = self.per_run_data
         key = tuple(x.shape)
         out_shape = self._out_shapes.get(key)
@@ -747,7 +758,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 f"targets must have shape {want} (the model output for inputs of "
                 f"shape {tuple(x.shape)}), got {tuple(targets.shape)}"
             )
-        check_matches(targets, "targets", b.dtype, b.device)
+        _check_matches(targets, "targets", b.dtype, b.device, checked)
         return x, targets, out_shape
 
     def _chol_R(self, i: int, out_shape: torch.Size) -> Tensor:
@@ -890,6 +901,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         return ordinary tensors.
         """
         args, kwargs = (self, inputs, targets), ({} if closure is None else {"closure": closure})
+        changed = False
         for hook in chain(
             _global_optimizer_pre_hooks.values(), self._optimizer_step_pre_hooks.values()
         ):
@@ -900,6 +912,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
                         "an optimizer step pre-hook must return None or (new_args, new_kwargs)"
                     )
                 args, kwargs = result
+                changed = True
         rest = list(args[1:3]) + [None] * max(0, 3 - len(args))
         inputs = kwargs.get("inputs", rest[0])
         targets = kwargs.get("targets", rest[1])
@@ -910,10 +923,14 @@ class KalmanOptimizer(torch.optim.Optimizer):
             inputs = closure
         if callable(inputs) and targets is None:
             inputs, targets = _call_closure(inputs)
+            changed = True
         if inputs is None:
             raise TypeError("step needs inputs and targets, or a closure returning them")
+        # the values were checked finite by fit (once per call) unless a hook or a closure
+        # supplied them
+        checked = self._finite_checked and not changed
         with torch.inference_mode() if self._inference_ok(inputs) else torch.no_grad():
-            out = self._step(inputs, targets)
+            out = self._step(inputs, targets, checked)
         for hook in chain(
             self._optimizer_step_post_hooks.values(), _global_optimizer_post_hooks.values()
         ):
@@ -943,10 +960,16 @@ class KalmanOptimizer(torch.optim.Optimizer):
             inputs = inputs[0]
         return bridge.has_closed_form_jacobian(inputs, chunk)
 
-    def _step(self, inputs: Tensor, targets: Tensor) -> KalmanStep:
+    #: set by :func:`~prognos_torch.optim.fit` while it steps through data it has checked to
+    #: be finite (once per call); a step then checks types, shapes, dtypes and devices only
+    _finite_checked = False
+    #: seconds the last :meth:`steps` call spent compiling
+    compile_time = 0.0
+
+    def _step(self, inputs: Tensor, targets: Tensor, checked: bool = False) -> KalmanStep:
         norms = tracking_batch_norms(self.module)
         with batch_statistics_only(norms):
-            x, t, out_shape = self._check_batch(inputs, targets)
+            x, t, out_shape = self._check_batch(inputs, targets, checked)
         if norms:
             if self.runs is not None:
                 raise ValueError(
@@ -954,10 +977,12 @@ class KalmanOptimizer(torch.optim.Optimizer):
                     "the runs would share: call module.eval() (fixed statistics) or use runs=None"
                 )
             self.module(x)  # running statistics: once, at the parameters before the step
+        if t.dtype != torch.float64:
+            t = t.to(torch.float64)
         if self.per_run_data:
-            y = t.reshape(self.runs, -1).to(torch.float64)
+            y = t.reshape(self.runs, -1)
         else:
-            y = t.reshape(-1).to(torch.float64)
+            y = t.reshape(-1)
             if self.runs is not None:
                 y = y.expand(self.runs, y.shape[0])
         infos = []
@@ -967,8 +992,8 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 fstate = self._engine_state(i, model)
                 key = _state_key(i)
                 k = self.state[key]["step"] + 1
-                try:
-                    new, info = cfg.filter.step(model, fstate, y, None, k)
+                try:  # y is finite (targets checked): the engine's checks are not repeated
+                    new, info = cfg.filter._update(model, fstate, y, None, k, False)
                 except RuntimeError as exc:
                     clear = explain_transform_error(exc)
                     if clear is None:
@@ -986,6 +1011,174 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 infos.append(info)
         loss = infos[0].innovation.square().mean(-1)
         return KalmanStep(loss, infos[0], tuple(infos))
+
+    # ------------------------------------------------------------------ a sequence of steps
+    def steps(self, inputs: Tensor, targets: Tensor, *, compile: bool = False) -> Tensor:
+        """``T`` steps on a sequence of mini-batches, in order: ``step(inputs[t], targets[t])``.
+
+        Args:
+            inputs: ``(T, *x)``, one mini-batch per row (module dtype and device, finite).
+            targets: ``(T, *out)`` with ``out`` the model output for one mini-batch.
+            compile: run the ``T`` steps as ONE ``torch.compile(fullgraph=True)`` call, the
+                loop a traced ``scan`` (:func:`~prognos_torch.filters.scan` with
+                ``compile=True``) over the same engine step (:meth:`GaussianFilter.step`): the
+                same numbers as eager steps up to rounding (float64: ``<= 1e-12``). The
+                first call per mini-batch shape compiles (tens of seconds on CPU); later calls
+                reuse the code. Needs one parameter group, no per-run data, a filter without
+                adaptation state (no strong tracking, no noise estimator, no robust bound), a
+                module without tracking BatchNorm layers, and for the EKF the learner's
+                closed-form Jacobian.
+        Returns:
+            ``(T,)`` (or ``(T, R)`` with ``runs=R``) the loss of every step, as
+            :attr:`KalmanStep.loss`.
+
+        :attr:`compile_time` is set to the seconds this call spent compiling (0 when the
+        compiled code was reused); that first, compiling run is discarded and the pass run
+        again, so the call's time minus :attr:`compile_time` is the time of one pass.
+
+        The step hooks of ``torch.optim`` run once around the whole sequence when compiled
+        (with ``args = (self, inputs, targets)``), at every step when not.
+        """
+        if not isinstance(inputs, Tensor) or not isinstance(targets, Tensor):
+            raise TypeError("steps needs tensors inputs (T, *x) and targets (T, *out)")
+        if inputs.dim() < 1 or targets.dim() < 1 or inputs.shape[0] != targets.shape[0]:
+            raise ValueError(
+                f"inputs and targets must have one row per step (T, ...), got "
+                f"{tuple(inputs.shape)} and {tuple(targets.shape)}"
+            )
+        self.compile_time = 0.0
+        if not compile:
+            return torch.stack([self.step(x, t).loss for x, t in zip(inputs, targets)])
+        self._check_compilable(inputs)
+        T = inputs.shape[0]
+        if T == 0:
+            raise ValueError("steps needs at least one step (T >= 1)")
+        args = (self, inputs, targets)
+        for hook in chain(
+            _global_optimizer_pre_hooks.values(), self._optimizer_step_pre_hooks.values()
+        ):
+            if hook(self, args, {}) is not None:
+                raise RuntimeError("a step pre-hook may not replace the arguments of steps()")
+        checked = self._finite_checked
+        with torch.inference_mode():
+            # the rows share their shape: row 0 stands for all in the type, shape, dtype and
+            # device checks of a step; the values are checked all at once
+            _, _, out_shape = self._check_batch(inputs[0], targets[0], True)
+            if not checked:
+                check_finite(inputs, "inputs")
+                check_finite(targets, "targets")
+            step, record = self._sequence_step(inputs.shape[1:], out_shape)
+            # the caches the traced step reads (the learner's constants, the sigma points) are
+            # filled here, outside the trace
+            s = self.state[_state_key(0)]
+            self._cfg[0].bridge.measurement(s["mean"].reshape(-1, s["mean"].shape[-1]), inputs[0])
+            if not isinstance(self._cfg[0].filter.rule, Taylor):
+                _sigma_points(self._cfg[0].filter.rule, self._cfg[0].bridge.numel, s["mean"])
+            ys = targets.reshape(T, -1)
+            if ys.dtype != torch.float64:
+                ys = ys.to(torch.float64)
+            key = _state_key(0)
+            s = self.state[key]
+            with deferred_fallbacks():
+                (mean, chol), rows = _filter_scan(
+                    step, (s["mean"], s["chol"]), ys, inputs, record=record, compile=True
+                )
+            self.compile_time = _sequence.last_compile_seconds
+            if not bool(torch.isfinite(chol).all() & torch.isfinite(mean).all()):
+                # a step needed a fallback (or the pass diverged): the eager steps decide
+                return self._steps_eager_from(s, inputs, targets)
+        with torch.inference_mode(False):
+            mean, chol = mean.clone(), chol.clone()  # ordinary tensors, as eager steps keep
+        self.state[key] = {
+            "mean": mean,
+            "chol": chol,
+            "fading": None,
+            "noise": None,
+            "step": s["step"] + T,
+        }
+        if self.runs is None:
+            self._cfg[0].bridge.assign(mean)
+        for hook in chain(
+            self._optimizer_step_post_hooks.values(), _global_optimizer_post_hooks.values()
+        ):
+            hook(self, args, {})
+        return rows["loss"]
+
+    def _steps_eager_from(self, s: dict, inputs: Tensor, targets: Tensor) -> Tensor:
+        """The eager steps from the state ``s`` (the compiled pass is discarded)."""
+        self.state[_state_key(0)] = s
+        return torch.stack([self.step(x, t).loss for x, t in zip(inputs, targets)])
+
+    def _check_compilable(self, inputs) -> None:
+        cfg = self._cfg[0] if len(self._cfg) == 1 else None
+        why = None
+        if cfg is None:
+            why = "one parameter group"
+        elif self.per_run_data:
+            why = "per_run_data=False"
+        elif (
+            cfg.filter.noise is not None
+            or cfg.filter.fading is not None
+            or cfg.filter.robust is not None
+        ):
+            why = "a filter without strong tracking, fading, noise estimator or robust bound"
+        elif tracking_batch_norms(self.module):
+            why = "no BatchNorm layer in training mode"
+        elif isinstance(cfg.filter.rule, Taylor) and not (
+            self.param_groups[0]["jacobian"] == "auto"
+            and self._closed_form_applies(cfg.bridge, inputs[0], self._chunk)
+        ):
+            why = "the learner's closed-form Jacobian for the EKF"
+        elif self._chunk is not None:
+            why = "chunk_size=None"
+        if why is not None:
+            raise ValueError(f"steps(compile=True) needs {why}; use compile=False")
+
+    def _sequence_step(self, x_shape, out_shape):
+        """The step and record functions of the compiled sequence (one per mini-batch shape and
+        ``R / lr``, kept so that later passes reuse the compiled code)."""
+        cfg = self._cfg[0]
+        chol_R = self._chol_R(0, out_shape)
+        key = ("sequence", tuple(x_shape), tuple(out_shape))
+        hit = cfg.models.get(key)
+        if hit is not None and hit[0] is chol_R:
+            return hit[1], hit[2]
+        b, filt, M, runs = cfg.bridge, cfg.filter, math.prod(out_shape), self.runs
+        chol_Q = cfg.chol_Q
+        taylor = isinstance(filt.rule, Taylor)
+
+        def step(carry, y, x, k):
+            mean, chol = carry
+            if taylor:  # h and its closed-form Jacobian from one pass, as in _model
+                last: list = [None, None]
+
+                def h(th, u, k):
+                    out, J = b.measurement_and_jacobian(th, x)
+                    last[0], last[1] = th, J
+                    return out
+
+                def jac_h(th, u, k):
+                    if last[0] is th:
+                        return last[1]
+                    return b.jacobian(th, x)
+            else:
+
+                def h(th, u, k):
+                    return b.measurement(th, x)
+
+                jac_h = None
+            model = _random_walk_model(b, h, jac_h, M, chol_Q, chol_R)
+            yy = y if runs is None else y.expand(runs, M)
+            new, info = filt._update(
+                model, FilterState(GaussianBelief(mean, chol)), yy, None, k, False
+            )
+            return (new.belief.mean, new.belief.chol), info
+
+        def record(state, info):
+            return {"loss": info.innovation.square().mean(-1)}
+
+        cfg.models[key] = (chol_R, step, record)
+        return step, record
 
     # ------------------------------------------------------------------ persistence
     def load_state_dict(self, state_dict: dict) -> None:
@@ -1049,6 +1242,17 @@ class KalmanOptimizer(torch.optim.Optimizer):
         if self.runs is None:
             for i, cfg in enumerate(self._cfg):
                 cfg.bridge.assign(self.state[_state_key(i)]["mean"])
+
+
+def _check_matches(x: Tensor, name: str, dtype, device, checked: bool) -> None:
+    """:func:`check_matches`; the finiteness test is skipped when the values were checked."""
+    if checked:
+        if x.dtype != dtype:
+            check_matches(x, name, dtype, device)  # raises
+        if x.device != device:
+            check_matches(x, name, dtype, device)  # raises
+        return
+    check_matches(x, name, dtype, device)
 
 
 def _random_walk_model(b: ParameterBridge, h, jac_h, M: int, chol_Q, chol_R) -> StateSpaceModel:

@@ -204,21 +204,29 @@ class ParameterBridge:
         """
         theta = self._check_theta(theta)
         lead = theta.shape[:-1]
-        theta = theta.to(self.dtype)
+        if theta.dtype != self.dtype:
+            theta = theta.to(self.dtype)
+        if len(self.names) == 1:
+            return {self.names[0]: theta.reshape(*lead, *self.shapes[0])}
+        parts = theta.split(self.numels, dim=-1)  # one operation for all the views
         return {
-            name: theta[..., sl].reshape(*lead, *shape)
-            for name, sl, shape in zip(self.names, self.slices, self.shapes)
+            name: part.reshape(*lead, *shape)
+            for name, part, shape in zip(self.names, parts, self.shapes)
         }
 
-    @torch.no_grad()
     def assign(self, theta: Tensor) -> None:
         """Write ``theta`` ``(n,)`` into the module's parameters (cast to the module dtype)."""
+        if torch.is_grad_enabled():
+            with torch.no_grad():
+                return self.assign(theta)
         theta = self._check_theta(theta)
         if theta.dim() != 1:
             raise ValueError(f"theta must have shape ({self.numel},), got {tuple(theta.shape)}")
-        theta = theta.to(self.device)
-        for p, sl in zip(self._params, self.slices):
-            p.copy_(theta[sl].view_as(p))  # copy_ casts to the parameter dtype
+        if theta.device != self.device:
+            theta = theta.to(self.device)
+        parts = theta.split(self.numels)
+        # copy_ casts to the parameter dtype; one fused call for all parameters
+        torch._foreach_copy_(self._params, [t.view_as(p) for t, p in zip(parts, self._params)])
 
     # ------------------------------------------------------------------ the model as g(theta, x)
     def functional(self, theta: Tensor, x: Tensor) -> Tensor:
@@ -255,7 +263,8 @@ class ParameterBridge:
         """
         out = self.batched(theta, x, chunk_size=chunk_size)
         lead = theta.shape[:-1]
-        return out.reshape(*lead, -1).to(torch.float64)
+        out = out.reshape(*lead, -1)
+        return out if out.dtype == torch.float64 else out.to(torch.float64)
 
     def has_closed_form_jacobian(self, x: Tensor, chunk_size: int | None = None) -> bool:
         """Whether the module offers ``forward_and_jacobian`` (the library's learners do) and
@@ -274,7 +283,10 @@ class ParameterBridge:
         out, jac = self.module.forward_and_jacobian(self.unflatten(theta), x, self.names)
         M = out.shape[-2] * out.shape[-1]
         J = torch.cat([jac[n].reshape(*lead, M, k) for n, k in zip(self.names, self.numels)], -1)
-        return out.reshape(*lead, M).to(torch.float64), J.to(torch.float64)
+        out = out.reshape(*lead, M)
+        if out.dtype != torch.float64:
+            out, J = out.to(torch.float64), J.to(torch.float64)
+        return out, J
 
     def jacobian(
         self,
@@ -338,7 +350,9 @@ class ParameterBridge:
         reverse pass (``"autograd"``, and ``"auto"`` otherwise)."""
         if mode not in ("auto", "autograd"):
             raise ValueError(f"mode must be 'auto' or 'autograd', got {mode!r}")
-        theta = self._check_theta(theta).to(torch.float64)
+        theta = self._check_theta(theta)
+        if theta.dtype != torch.float64:
+            theta = theta.to(torch.float64)
         if mode == "auto" and self.has_closed_form_jacobian(x, chunk_size):
             return self._closed_form(theta, x)
         return self._jacobian_autograd(theta, x, chunk_size, with_output=True)
