@@ -1,0 +1,71 @@
+"""Every benchmark script runs to the end at a tiny size (speed is not measured here).
+
+The benchmarks call the public API the way a user would; without this test they fall behind
+when the API moves. Each runs in its own interpreter (they set the torch thread count), with
+arguments that shrink the work to seconds.
+"""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+TINY = {
+    "bench_datasets.py": ["--repeat", "1", "--n-files", "2", "--rows", "512", "--channels", "4"],
+    "bench_filters.py": ["--steps", "5", "--sizes", "4"],
+    "bench_fleet.py": ["--assets", "20", "--steps", "40", "--samples", "50", "--shard-size", "8"],
+    "bench_float32.py": ["--steps", "50", "--runs", "2"],
+    "bench_optim.py": ["--repeats", "1", "--runs", "2"],
+    "bench_particle.py": [
+        "--steps",
+        "10",
+        "--small",
+        "50",
+        "--large",
+        "200",
+        "--large-steps",
+        "3",
+        "--mid-steps",
+        "2",
+        "--repeat",
+        "1",
+        "--no-memory",
+    ],  # fmt: skip
+    "bench_peers.py": ["--repeats", "1", "--runs", "2", "--no-dynamax"],
+    "bench_prognose.py": ["--rows", "400", "--repeat", "1"],
+    "bench_progpy.py": [
+        "--samples",
+        "5",
+        "--large",
+        "20",
+        "--estimate-steps",
+        "5",
+        "--repeat",
+        "1",
+    ],  # fmt: skip
+    "bench_long.py": ["--rows", "300", "--learners", "elm"],
+    "bench_study_batching.py": ["--runs", "1", "2", "--threads", "1"],
+}
+
+
+def test_every_benchmark_is_listed():
+    scripts = {p.name for p in (ROOT / "benchmarks").glob("bench_*.py")}
+    assert scripts == set(TINY)
+
+
+@pytest.mark.parametrize("script", sorted(TINY))
+def test_benchmark_runs(script, tmp_path):
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / script), *TINY[script]],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, f"{script} failed:\n{proc.stderr[-3000:]}"
