@@ -299,7 +299,7 @@ def profile_stpf(kind: str, N: int, T: int) -> list[tuple[str, float]]:
         )
 
     total = cum("particle.py", "run")
-    engine = cum("gaussian.py", "_step")  # the engine step after its input checks
+    engine = cum("gaussian.py", "_update")  # the engine step after its input checks
     rows = [
         ("ParticleFilter.run (total)", total),
         ("  GaussianFilter.step (engine, per-particle SFEKF)", engine),

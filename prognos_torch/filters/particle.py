@@ -440,53 +440,55 @@ class ParticleFilter:
         return ParticleState(x, state.log_weights, fs)
 
     def _propose_gaussian(
-        self, setup, model, state, y, y_safe, u, u_p, k, pn, eps, missing, any_missing
+        self, setup, model, state, y, y_safe, u, u_p, k, pn, eps, missing, any_missing, eng=None
     ):
         """Per-particle Gaussian proposal (paper 002 STPF steps 2-3; Van der Merwe et al. 2000).
 
         Returns the new particles, the log-weight increments
         ``log p(y|x) + log p(x|x_prev) - log q(x|x_prev, y)``, the carried filter state, the
-        number of prior-fallback particles per run and the particles' fading factors.
+        number of prior-fallback particles per run, the particles' fading factors, the engine's
+        output ``eng`` and ``checks``. Without ``eng`` the engine step is run and every proposal
+        is taken to be valid; ``checks`` (proposal means, factors and log-diagonals) then go into
+        the caller's one finite test, and where it fails the caller calls again with ``eng``,
+        which tests each proposal and falls back where needed (``checks`` empty).
         """
         x_prev, fs = state.particles, state.proposal
         bs, N, n = state.batch_shape, state.num_particles, model.state_dim
         dt, dev = x_prev.dtype, x_prev.device
-        y_e = y.unsqueeze(-2).expand(*bs, N, model.obs_dim)
-        u_e = None if u is None else u if u.dim() == 1 else u_p.expand(*bs, N, u.shape[-1])
-        # the per-particle Gaussian is centred on the particle (Van der Merwe et al., Sec. 4)
-        fs_in = fs
-        if fs.belief.mean is not x_prev:
-            fs_in = replace(fs, belief=GaussianBelief(x_prev, fs.belief.chol))
         prop = self.proposal
-        try:
-            # ONE engine step (Eq. 27), on inputs the particle filter has checked
-            fs_step, pinfo = prop._update(
-                setup.pmodel, fs_in, y_e, u_e, k, any_missing, setup.engine_noise
-            )
-            mu, L = fs_step.belief.mean, fs_step.belief.chol
-            diag = torch.diagonal(L, dim1=-2, dim2=-1)
-            # one host read: every proposal finite with a positive diagonal (the usual case)
-            total, low = torch.stack([mu.sum() + L.sum(), diag.amin()]).tolist()
-            all_ok = math.isfinite(total) and low > 0
-            ok = None
-            if not all_ok:
-                ok = (
-                    torch.isfinite(mu).all(-1)
-                    & torch.isfinite(L).all(-1).all(-1)
-                    & (diag > 0).all(-1)
+        assume = eng is None
+        if eng is None:
+            y_e = y.unsqueeze(-2).expand(*bs, N, model.obs_dim)
+            u_e = None if u is None else u if u.dim() == 1 else u_p.expand(*bs, N, u.shape[-1])
+            # the per-particle Gaussian is centred on the particle (Van der Merwe et al., Sec. 4)
+            fs_in = fs
+            if fs.belief.mean is not x_prev:
+                fs_in = replace(fs, belief=GaussianBelief(x_prev, fs.belief.chol))
+            try:
+                # ONE engine step (Eq. 27), on inputs the particle filter has checked
+                fs_step, pinfo = prop._update(
+                    setup.pmodel, fs_in, y_e, u_e, k, any_missing, setup.engine_noise
                 )
-                all_ok = bool(ok.all())
-            lam_i = pinfo.fading_factor
-            # the engine's prior mean is exactly f(x_prev) + q for the Taylor rule (fading scales
-            # only the covariance) and for the random walk; reuse it instead of calling f again
-            exact_prior = (model.f is None or isinstance(prop.rule, Taylor)) and prop.noise is None
-            fq = pinfo.prior.mean if exact_prior else None
-        except torch.linalg.LinAlgError:
-            fs_step, ok, fq = fs_in, torch.zeros((*bs, N), dtype=torch.bool, device=dev), None
-            all_ok = False
-            mu, L = x_prev, fs.belief.chol
-            diag = torch.diagonal(L, dim1=-2, dim2=-1)
-            lam_i = torch.ones((*bs, N), dtype=dt, device=dev)
+                lam_i = pinfo.fading_factor
+                # the engine's prior mean is exactly f(x_prev) + q for the Taylor rule (fading
+                # scales only the covariance) and the random walk; reuse it instead of calling f
+                exact = (model.f is None or isinstance(prop.rule, Taylor)) and prop.noise is None
+                eng = (fs_in, fs_step, lam_i, pinfo.prior.mean if exact else None, False)
+            except torch.linalg.LinAlgError:
+                lam_i = torch.ones((*bs, N), dtype=dt, device=dev)
+                eng = (fs_in, fs_in, lam_i, None, True)
+                assume = False
+        fs_in, fs_step, lam_i, fq, failed = eng
+        mu, L = fs_step.belief.mean, fs_step.belief.chol
+        diag = torch.diagonal(L, dim1=-2, dim2=-1)
+        if failed:
+            ok, all_ok = torch.zeros((*bs, N), dtype=torch.bool, device=dev), False
+            mu = x_prev
+        elif assume:
+            ok, all_ok = None, True
+        else:
+            ok = torch.isfinite(mu).all(-1) & torch.isfinite(L).all(-1).all(-1) & (diag > 0).all(-1)
+            all_ok = bool(ok.all())
         # (when every proposal is finite, so is fq: mu = fq + K e would not be finite otherwise)
         if fq is None or (not all_ok and not bool(torch.isfinite(fq).all())):
             fq, _ = self._transition_sample(model, x_prev, u_p, k, pn, None)
@@ -495,7 +497,8 @@ class ParticleFilter:
             x_q = mu + L[..., 0] * eps
         else:
             x_q = mu + (L @ eps.unsqueeze(-1)).squeeze(-1)
-        log_q = -0.5 * (n * _LOG_2PI + _sum_last(eps * eps)) - _sum_last(torch.log(diag))
+        log_diag = torch.log(diag)
+        log_q = -0.5 * (n * _LOG_2PI + _sum_last(eps * eps)) - _sum_last(log_diag)
         fast = all_ok and not any_missing
         if fast:
             x = x_q
@@ -521,7 +524,8 @@ class ParticleFilter:
                 )
             fs_step = where_particles(ok, fs_step, fs_in)
         fs_new = replace(fs_step, belief=GaussianBelief(x, fs_step.belief.chol))
-        return x, inc, fs_new, n_bad, lam_i
+        checks = [mu.reshape(-1), L.reshape(-1), log_diag.reshape(-1)] if assume else []
+        return x, inc, fs_new, n_bad, lam_i, eng, checks
 
     def _ancestors(self, lw: Tensor, W: Tensor, generator: torch.Generator) -> Tensor:
         """Ancestor indices ``(..., N)`` of valid normalised log-weights ``lw`` with
@@ -594,6 +598,7 @@ class ParticleFilter:
             pn = _noise(model, k, bs, x_prev, self.proposal is not None)
 
         eps = torch.randn(x_prev.shape, generator=generator, dtype=dt, device=dev)
+        checks: list[Tensor] = []
         if self.proposal is None:
             fallback = None
             fs_new = None
@@ -601,9 +606,8 @@ class ParticleFilter:
             inc = self._log_lik(model, x, y_safe, u_p, k, pn)
             lam_prop = None
         else:
-            x, inc, fs_new, fallback, lam_prop = self._propose_gaussian(
-                setup, model, state, y, y_safe, u, u_p, k, pn, eps, missing, any_missing
-            )
+            args = (setup, model, state, y, y_safe, u, u_p, k, pn, eps, missing, any_missing)
+            x, inc, fs_new, fallback, lam_prop, eng, checks = self._propose_gaussian(*args)
 
         # missing runs: propagate only, weights unchanged
         if any_missing:
@@ -614,9 +618,14 @@ class ParticleFilter:
         # (a finite sum has finite terms; an overflowing one takes the exact path below)
         parts = [x.reshape(-1), inc.reshape(-1), ll.reshape(-1)]
         if lam_prop is not None:
-            parts.append(lam_prop.reshape(-1))
+            parts += [lam_prop.reshape(-1), *checks]
         finite = math.isfinite(float(torch.cat(parts).sum()))
         collapsed = None
+        if not finite and self.proposal is not None and checks:
+            # some proposal may be invalid: test each one, with fallbacks (same engine step)
+            x, inc, fs_new, fallback, lam_prop, eng, checks = self._propose_gaussian(*args, eng)
+            if any_missing:
+                inc = torch.where(missing[..., None], torch.zeros_like(inc), inc)
         if not finite:
             finite_x = torch.isfinite(x).all(-1)
             inc = torch.where(torch.isfinite(inc) & finite_x, inc, torch.full_like(inc, -math.inf))
