@@ -17,6 +17,7 @@ import copy
 import cProfile
 import pstats
 import time
+from pathlib import Path
 
 import torch
 
@@ -25,6 +26,7 @@ from prognos_torch.learners import ANFIS
 from prognos_torch.optim import KalmanOptimizer, ParameterBridge, fit
 from prognos_torch.systems.lorenz import lorenz_series
 
+ROOT = str(Path(__file__).resolve().parents[1]) + "/"  # trimmed from profile paths
 P0 = {"alpha": 1.0, "b": 1e-2, "beta": 1e-4}
 Q, R = 1e-6, 1e-3
 TARGET_ONE, TARGET_MANY = 0.2, 3.0
@@ -101,7 +103,7 @@ def profile(filter_name, runs, data, device=None, top=15):
     print(f"{'function':70s} {'calls/step':>10s} {'us/step':>9s}")
     rows = sorted(st.items(), key=lambda kv: -kv[1][2])[:top]
     for (file, line, func), (_, nc, tt, _, _) in rows:
-        where = f"{file.split('site-packages/')[-1].split('/work/main/')[-1]}:{line}({func})"
+        where = f"{file.split('site-packages/')[-1].split(ROOT)[-1]}:{line}({func})"
         print(f"{where[-70:]:70s} {nc / n:10.1f} {tt / n * 1e6:9.0f}")
 
 
