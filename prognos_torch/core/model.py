@@ -97,6 +97,12 @@ class StateSpaceModel:
         batched: ``f``/``h`` already accept arbitrary leading dimensions (skip ``vmap``).
         jac_f, jac_h: optional analytic Jacobians with the same signature, returning
             ``(n, n)`` / ``(m, n)`` per sample; by default ``torch.func.jacfwd`` is used.
+        f_into: optional ``f_into(x (..., n), u, k, out (..., n)) -> out``: the batched ``f``
+            written into the given tensor ``out`` (any strides, not overlapping ``x``), with
+            the same numbers as ``f``. Loops that keep their states in a buffer of their own
+            (:func:`~prognos_torch.prognosis.simulate_to_event`) use it through
+            :meth:`transition_into` to skip a copy per step; plain tensors only (no
+            ``torch.func`` transforms). Needs ``batched=True``.
     """
 
     f: Fn | None
@@ -111,6 +117,7 @@ class StateSpaceModel:
     batched: bool = False
     jac_f: Fn | None = field(default=None, repr=False)
     jac_h: Fn | None = field(default=None, repr=False)
+    f_into: Callable[..., Tensor] | None = field(default=None, repr=False)
 
     def __post_init__(self):
         if not callable(self.h):
@@ -123,6 +130,13 @@ class StateSpaceModel:
                 raise ValueError(f"{name} must be a positive int, got {v!r}")
         if not isinstance(self.control_dim, int) or self.control_dim < 0:
             raise ValueError(f"control_dim must be a non-negative int, got {self.control_dim!r}")
+        if self.f_into is not None and not (
+            callable(self.f_into) and self.f is not None and self.batched
+        ):
+            raise ValueError(
+                "f_into must be a callable f_into(x, u, k, out) -> out, given with f and "
+                "batched=True"
+            )
 
     # -- noise --------------------------------------------------------------------------
     def noise(self, k: int) -> Noise:
@@ -179,6 +193,15 @@ class StateSpaceModel:
         if self.f is None:
             return x
         return _apply(self.f, x, u, k, self.batched)
+
+    def transition_into(self, x: Tensor, u: Tensor | None, k: int, out: Tensor) -> Tensor:
+        """:meth:`transition` of ``x`` ``(..., n)`` written into ``out`` ``(..., n)``; returns ``out``.
+
+        Uses ``f_into`` when the model has one, else copies ``transition(x, u, k)`` into ``out``.
+        """
+        if self.f_into is not None:
+            return self.f_into(x, u, k, out)
+        return out.copy_(self.transition(x, u, k))
 
     def observe(self, x: Tensor, u: Tensor | None, k: int) -> Tensor:
         """Noise-free ``h`` on ``x`` of shape ``(..., n)``; returns ``(..., m)``."""

@@ -248,6 +248,7 @@ def _loop(model, x0, event, us, max_steps, k0, process_noise, generator, chunk, 
     done = torch.zeros(lead, dtype=torch.bool, device=x.device)
     const_noise = not (callable(model.chol_Q) or callable(model.q))
     noise = model.checked_noise(k0 + 1, lead, x) if process_noise and const_noise else None
+    into = model.transition_into
     step = 0
     while step < max_steps:
         C = min(chunk, max_steps - step)
@@ -256,21 +257,23 @@ def _loop(model, x0, event, us, max_steps, k0, process_noise, generator, chunk, 
         # state that way (the battery's step does)
         buf = torch.empty((C, x.shape[-1], *lead), dtype=x.dtype, device=x.device)
         states = buf.movedim(1, -1)
+        # each step is written into its row of the chunk's buffer (model.transition_into: no
+        # copy for models with f_into); the chunk's controls are split once
+        outs = states.unbind(0)
+        uc = (None,) * C if us is None else us[step : step + C].unbind(0)
         for c in range(C):
             k = k0 + step + c + 1
-            u = None if us is None else us[step + c]
             if rows is not None:
-                x = _advance_rows(model, x, rows, u, k, noise, process_noise, generator)
-                buf[c] = x.movedim(-1, 0)
+                x = _advance_rows(model, x, rows, uc[c], k, noise, process_noise, generator)
+                outs[c].copy_(x)
                 continue
-            x = model.transition(x, u, k)
+            x = into(x, uc[c], k, outs[c])
             if process_noise:
                 nz = noise if noise is not None else model.checked_noise(k, lead, x)
                 e = torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
-                x = x + _times(nz.chol_Q, e)
+                x.add_(_times(nz.chol_Q, e))
                 if nz.q is not None:
-                    x = x + nz.q
-            buf[c] = x.movedim(-1, 0)
+                    x.add_(nz.q)
         hit = torch.as_tensor(event(states), device=x.device)
         if hit.dtype != torch.bool or tuple(hit.shape) != (C, *lead):
             raise ValueError(

@@ -131,15 +131,21 @@ class BatteryCircuitParams:
             raise ValueError(f"BatteryCircuitParams.x0 must hold 4 numbers, got {self.x0!r}")
 
 
-def _parts(x: Tensor, p: BatteryCircuitParams):
-    """``tb, Vcs, Vcp, Rcp, v, SOC`` of the state ``x`` ``(..., 4)``; each ``(...)``."""
+def _voltage_parts(x: Tensor, p: BatteryCircuitParams):
+    """``tb, qb, Vcs, Vcp, v, SOC`` of the state ``x`` ``(..., 4)``; each ``(...)``."""
     tb, qb, qcp, qcs = x.unbind(-1)
     vcs = qcs * (1.0 / p.Cs)
     vcp = qcp * (1.0 / p.Ccp)
     soc = qb.mul(1.0 / p.CMax).add_((p.CMax - p.qMax) / p.CMax)
     cb = ((p.Cbp0 * soc + p.Cbp1) * soc + p.Cbp2) * soc + p.Cbp3
-    rcp = torch.exp((1.0 - soc) * p.Rcp2).mul_(p.Rcp1).add_(p.Rcp0)
     v = (qb / cb).sub_(vcp).sub_(vcs)
+    return tb, qb, vcs, vcp, v, soc
+
+
+def _parts(x: Tensor, p: BatteryCircuitParams):
+    """``tb, Vcs, Vcp, Rcp, v, SOC`` of the state ``x`` ``(..., 4)``; each ``(...)``."""
+    tb, _, vcs, vcp, v, soc = _voltage_parts(x, p)
+    rcp = torch.exp((1.0 - soc) * p.Rcp2).mul_(p.Rcp1).add_(p.Rcp0)
     return tb, vcs, vcp, rcp, v, soc
 
 
@@ -191,8 +197,60 @@ def _step_constants(p: BatteryCircuitParams, dt: float, dtype: torch.dtype, devi
     )
 
 
+@functools.lru_cache(maxsize=64)
+def _stepper(p: BatteryCircuitParams, dt: float) -> Callable[..., Tensor]:
+    """The Euler step of ``p`` and ``dt`` with every scalar factor computed once.
+
+    Returns ``step(x (..., 4), u (..., 1), out=None) -> (..., 4)``; with ``out`` (a ``(..., 4)``
+    tensor of ``x``'s dtype, any strides) the next state is written there and ``out`` returned.
+    """
+    a_soc, cbp0, rcp2, rcp1 = 1.0 / p.CMax, p.Cbp0, p.Rcp2, p.Rcp1
+    i_ccp, m_cs, i_rp = 1.0 / p.Ccp, -1.0 / p.Cs, 1.0 / p.Rp
+    a_tb = 1.0 - dt * p.ha / p.Jt
+    c_cs = dt * p.hcs / (p.Rs * p.Jt * p.Cs * p.Cs)
+    c_cp = dt * p.hcp / p.Jt
+    d_cs = 1.0 - dt / (p.Cs * p.Rs)
+    consts: dict = {}
+    none4 = (None, None, None, None)
+
+    def step(x: Tensor, u: Tensor, out: Tensor | None = None) -> Tensor:
+        i = _current(u)
+        key = (x.dtype, x.device)
+        k = consts.get(key)
+        if k is None:
+            k = consts[key] = _step_constants(p, dt, x.dtype, x.device)
+        soc0, cb1, cb2, cb3, rcp0, amb = k
+        tb, qb, qcp, qcs = x.unbind(-1)
+        soc = torch.add(soc0, qb, alpha=a_soc)
+        cb = torch.addcmul(cb3, torch.addcmul(cb2, torch.add(cb1, soc, alpha=cbp0), soc), soc)
+        rcp = torch.add(rcp0, torch.rsub(soc, rcp2, alpha=rcp2).exp_(), alpha=rcp1)
+        vcp = qcp * i_ccp
+        g = vcp / rcp  # Vcp / Rcp
+        v = torch.add((qb / cb).sub_(vcp), qcs, alpha=m_cs)  # Vb - Vcp - Vcs
+        ib = torch.add(i, v, alpha=i_rp)
+        o = none4 if out is None else out.unbind(-1)
+        # tb + dt (ha (Ta - tb) + hcs Vcs^2 / Rs + hcp Vcp^2 / Rcp) / Jt
+        tb1 = torch.add(amb, tb, alpha=a_tb, out=o[0])
+        tb1 = tb1.addcmul_(qcs, qcs, value=c_cs).addcmul_(g, vcp, value=c_cp)
+        qb1 = torch.add(qb, ib, alpha=-dt, out=o[1])
+        qcp1 = torch.add(qcp, ib, alpha=dt, out=o[2]).sub_(g, alpha=dt)
+        qcs1 = torch.mul(qcs, d_cs, out=o[3]).add_(ib, alpha=dt)
+        if out is not None:
+            return out
+        # stacked component-major and returned as a (..., 4) view: the next step's components
+        # are then contiguous rows (no interleaving copy)
+        return torch.stack([tb1, qb1, qcp1, qcs1], dim=0).movedim(0, -1)
+
+    return step
+
+
 def battery_circuit_step(
-    x: Tensor, u: Tensor, dt: float, params: BatteryCircuitParams | None = None
+    x: Tensor,
+    u: Tensor,
+    dt: float,
+    params: BatteryCircuitParams | None = None,
+    *,
+    out: Tensor | None = None,
 ) -> Tensor:
     """One Euler step ``x + dt * dx/dt`` (progpy's ``next_state``): ``(..., 4) -> (..., 4)``.
 
@@ -200,40 +258,21 @@ def battery_circuit_step(
     (the Monte-Carlo EOD prediction calls it once per step on all samples): scalar factors are
     folded into fused ``add``/``addcmul`` calls, ``tb`` and ``qcs`` enter their own updates as
     ``tb (1 - dt ha / Jt)`` and ``qcs (1 - dt / (Cs Rs))``. Equal to
-    ``x + dt * battery_circuit_rhs(x, u)`` up to rounding. The result is a ``(..., 4)`` view of
-    component-major memory (not contiguous).
+    ``x + dt * battery_circuit_rhs(x, u)`` up to rounding. Without ``out`` the result is a
+    ``(..., 4)`` view of component-major memory (not contiguous). With ``out`` (a ``(..., 4)``
+    tensor of ``x``'s shape and dtype, any strides, not overlapping ``x``) the next state is
+    written into it and ``out`` is returned (the same numbers; no stacking copy). ``out`` is for
+    plain tensors (not under ``torch.func`` transforms).
     """
-    p = params or BatteryCircuitParams()
-    i = _current(u)
-    soc0, cb1, cb2, cb3, rcp0, amb = _step_constants(p, float(dt), x.dtype, x.device)
-    tb, qb, qcp, qcs = x.unbind(-1)
-    soc = torch.add(soc0, qb, alpha=1.0 / p.CMax)
-    cb = torch.addcmul(cb3, torch.addcmul(cb2, torch.add(cb1, soc, alpha=p.Cbp0), soc), soc)
-    rcp = torch.add(rcp0, torch.rsub(soc, p.Rcp2, alpha=p.Rcp2).exp_(), alpha=p.Rcp1)
-    vcp = qcp * (1.0 / p.Ccp)
-    g = vcp / rcp  # Vcp / Rcp
-    v = torch.add((qb / cb).sub_(vcp), qcs, alpha=-1.0 / p.Cs)  # Vb - Vcp - Vcs
-    ib = torch.add(i, v, alpha=1.0 / p.Rp)
-    # tb + dt (ha (Ta - tb) + hcs Vcs^2 / Rs + hcp Vcp^2 / Rcp) / Jt
-    tb1 = torch.add(amb, tb, alpha=1.0 - dt * p.ha / p.Jt)
-    tb1 = tb1.addcmul_(qcs, qcs, value=dt * p.hcs / (p.Rs * p.Jt * p.Cs * p.Cs))
-    tb1 = tb1.addcmul_(g, vcp, value=dt * p.hcp / p.Jt)
-    # stacked component-major and returned as a (..., 4) view: the next step's components
-    # are then contiguous rows (no interleaving copy)
-    return torch.stack(
-        [
-            tb1,
-            torch.add(qb, ib, alpha=-dt),
-            torch.add(qcp, ib, alpha=dt).sub_(g, alpha=dt),
-            torch.add(qcs * (1.0 - dt / (p.Cs * p.Rs)), ib, alpha=dt),
-        ],
-        dim=0,
-    ).movedim(0, -1)
+    if out is not None and (not isinstance(out, Tensor) or out.shape != x.shape):
+        got = tuple(out.shape) if isinstance(out, Tensor) else type(out)
+        raise ValueError(f"out must be a tensor of x's shape {tuple(x.shape)}, got {got}")
+    return _stepper(params or BatteryCircuitParams(), float(dt))(x, u, out)
 
 
 def battery_voltage(x: Tensor, params: BatteryCircuitParams | None = None) -> Tensor:
     """Terminal voltage ``v = Vb - Vcp - Vcs`` (V) of ``x`` ``(..., 4)``: shape ``(...)``."""
-    return _parts(x, params or BatteryCircuitParams())[4]
+    return _voltage_parts(x, params or BatteryCircuitParams())[4]
 
 
 def battery_circuit_output(x: Tensor, params: BatteryCircuitParams | None = None) -> Tensor:
@@ -244,7 +283,7 @@ def battery_circuit_output(x: Tensor, params: BatteryCircuitParams | None = None
 def battery_event_state(x: Tensor, params: BatteryCircuitParams | None = None) -> Tensor:
     """progpy's EOD event state ``min(SOC, (v - VEOD) / VDropoff)``: ``(..., 4) -> (...)``."""
     p = params or BatteryCircuitParams()
-    *_, v, soc = _parts(x, p)
+    *_, v, soc = _voltage_parts(x, p)
     return torch.minimum(soc, (v - p.VEOD) / p.VDropoff)
 
 
@@ -258,7 +297,7 @@ def battery_eod_event(
     p = params or BatteryCircuitParams()
 
     def event(x: Tensor) -> Tensor:
-        return _parts(x, p)[4] < p.VEOD
+        return _voltage_parts(x, p)[4] < p.VEOD  # the voltage only (no Rcp)
 
     return event
 
@@ -277,7 +316,8 @@ def battery_circuit_model(
     ``f(x, u, k) = x + dt * dx/dt`` (:func:`battery_circuit_step`, ``u = [i]``,
     ``control_dim = 1``), ``h(x, u, k) = [tb, v]`` (:func:`battery_circuit_output`). The model is
     written for arbitrary leading dimensions (``batched=True``); ``model.transition`` and
-    ``model.observe`` evaluate it on ``(..., 4)``.
+    ``model.observe`` evaluate it on ``(..., 4)``, and ``model.transition_into`` writes the step
+    into a given tensor (``f_into``: :func:`battery_circuit_step` with ``out``).
 
     Args:
         dt: step length (s), positive.
@@ -296,14 +336,27 @@ def battery_circuit_model(
     SQ = diag_chol(check_std(process_noise_std, 4, "process_noise_std"), dtype, device)
     SR = diag_chol(check_std(measurement_noise_std, 2, "measurement_noise_std"), dtype, device)
 
+    step = _stepper(p, dt)
+
     def f(x, u, k):
-        return battery_circuit_step(x, u, dt, p)
+        return step(x, u)
+
+    def f_into(x, u, k, out):
+        return step(x, u, out)
 
     def h(x, u, k):
         return battery_circuit_output(x, p)
 
     return StateSpaceModel(
-        f=f, h=h, state_dim=4, obs_dim=2, chol_Q=SQ, chol_R=SR, control_dim=1, batched=True
+        f=f,
+        h=h,
+        state_dim=4,
+        obs_dim=2,
+        chol_Q=SQ,
+        chol_R=SR,
+        control_dim=1,
+        batched=True,
+        f_into=f_into,
     )
 
 
