@@ -70,6 +70,33 @@ def test_next_state_and_output_equal_progpy(pp, dt):
     assert torch.equal(model.transition(x[3], u[3], 1), nxt[3])
 
 
+def test_step_into_a_buffer_and_fused_event_equal_the_plain_forms():
+    rng = np.random.default_rng(7)
+    X = random_states(rng, 400)
+    x = t(X.T)
+    u = t(rng.uniform(-1.0, 6.0, (400, 1)))
+    model = battery_circuit_model(1.0)
+    ref = model.transition(x, u, 1)
+    # written into a component-major buffer row (the layout simulate_to_event uses)
+    buf = torch.full((3, 4, 400), float("nan"), dtype=torch.float64)
+    out = buf.movedim(1, -1)[1]
+    got = model.transition_into(x, u, 1, out)
+    assert got is out and torch.equal(out, ref)
+    assert torch.isnan(buf[0]).all() and torch.isnan(buf[2]).all()
+    # and into a plain contiguous tensor, the next state read from a buffer row
+    nxt = model.transition_into(out, u, 2, torch.empty(400, 4, dtype=torch.float64))
+    assert torch.equal(nxt, model.transition(ref, u, 2))
+    # the EOD event (fused arithmetic) decides as the documented voltage v < VEOD
+    p = BatteryCircuitParams()
+    lo = p.qMax - 0.999 * p.CMax
+    Xv = np.stack([X[0], rng.uniform(lo, lo + 0.2 * p.CMax, 400), X[2], X[3]])
+    for xs in (x, t(Xv.T)):
+        v = battery_voltage(xs)
+        assert torch.equal(battery_eod_event()(xs), v < p.VEOD)
+    below = battery_voltage(t(Xv.T)) < p.VEOD
+    assert bool(below.any()) and not bool(below.all())
+
+
 def test_parameters_are_progpy_defaults(pp):
     p = BatteryCircuitParams()
     for name in (

@@ -296,8 +296,22 @@ def battery_eod_event(
     """
     p = params or BatteryCircuitParams()
 
+    a_soc, cbp0, i_ccp, m_cs = 1.0 / p.CMax, p.Cbp0, -1.0 / p.Ccp, -1.0 / p.Cs
+    consts: dict = {}
+
     def event(x: Tensor) -> Tensor:
-        return _voltage_parts(x, p)[4] < p.VEOD  # the voltage only (no Rcp)
+        # v = Vb - Vcp - Vcs in fused operations (the step's arrangement, 9 tensor operations;
+        # it is evaluated on every state of every step)
+        key = (x.dtype, x.device)
+        k = consts.get(key)
+        if k is None:
+            k = consts[key] = _step_constants(p, 1.0, x.dtype, x.device)
+        soc0, cb1, cb2, cb3 = k[:4]
+        _, qb, qcp, qcs = x.unbind(-1)
+        soc = torch.add(soc0, qb, alpha=a_soc)
+        cb = torch.addcmul(cb3, torch.addcmul(cb2, torch.add(cb1, soc, alpha=cbp0), soc), soc)
+        v = torch.div(qb, cb).add_(qcp, alpha=i_ccp).add_(qcs, alpha=m_cs)
+        return v < p.VEOD
 
     return event
 
