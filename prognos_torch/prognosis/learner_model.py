@@ -208,3 +208,4 @@ def learner_transition_model(
         jac_f=jac_f[jacobian],
         jac_h=jac_h,
     )
+
