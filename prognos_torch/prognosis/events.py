@@ -248,7 +248,7 @@ def _loop(model, x0, event, us, max_steps, k0, process_noise, generator, chunk, 
     done = torch.zeros(lead, dtype=torch.bool, device=x.device)
     const_noise = not (callable(model.chol_Q) or callable(model.q))
     noise = model.checked_noise(k0 + 1, lead, x) if process_noise and const_noise else None
-    into = model.transition_into
+    into = model.f_into or model.transition_into  # (x, u, k, out) -> out
     step = 0
     while step < max_steps:
         C = min(chunk, max_steps - step)

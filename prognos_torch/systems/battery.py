@@ -154,7 +154,7 @@ def _current(u: Tensor | None) -> Tensor:
         raise ValueError("the battery model needs the current u of shape (..., 1)")
     if u.shape[-1] != 1:
         raise ValueError(f"u must have shape (..., 1) (the current in A), got {tuple(u.shape)}")
-    return u[..., 0]
+    return u.squeeze(-1)
 
 
 def _rates(x: Tensor, u: Tensor, p: BatteryCircuitParams) -> Tensor:
