@@ -1,8 +1,7 @@
 """The parts of the Kalman optimiser (:mod:`prognos_torch.optim.kalman`) that are not the
 optimiser class: its step result :class:`KalmanStep`, the parsing of its options (noise factors,
-filter, parameter groups, learning rate), the helpers of its persistent state, and the random-walk
-model of paper 003 Eq. 45-46 that both the eager step and the compiled sequence pass
-(:mod:`prognos_torch.optim.compiled`) build.
+filter, parameter groups and their configuration, learning rate) and the helpers of its
+persistent state and of its step arguments.
 """
 
 from __future__ import annotations
@@ -17,7 +16,6 @@ from torch import Tensor, nn
 from ..adapt.noise import MovingWindow, SageHusa
 from ..adapt.strong_tracking import StrongTracking
 from ..core.linalg import tria
-from ..core.model import StateSpaceModel
 from ..core.validation import check_matches
 from ..filters.gaussian import GaussianFilter, StepInfo
 from ..filters.variants import make_filter
@@ -300,19 +298,6 @@ def _check_matches(x: Tensor, name: str, dtype, device, checked: bool) -> None:
             check_matches(x, name, dtype, device)  # raises
         return
     check_matches(x, name, dtype, device)
-
-
-def _random_walk_model(b: ParameterBridge, h, jac_h, M: int, chol_Q, chol_R) -> StateSpaceModel:
-    return StateSpaceModel(
-        f=None,  # Eq. 45: theta_k = theta_{k-1} + w_k (exact in the engine)
-        h=h,  # Eq. 46: t_k = g(theta_k, u_k) + v_k
-        state_dim=b.numel,
-        obs_dim=M,
-        chol_Q=chol_Q,
-        chol_R=chol_R,
-        batched=True,
-        jac_h=jac_h,
-    )
 
 
 def _call_closure(closure) -> tuple:

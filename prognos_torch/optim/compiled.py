@@ -24,7 +24,8 @@ from ..filters import sequence as _sequence
 from ..filters.gaussian import FilterState, Taylor, _sigma_points, deferred_fallbacks
 from ..filters.sequence import scan as _filter_scan
 from ._buffers import tracking_batch_norms
-from ._kalman_common import _random_walk_model, _state_key
+from ._kalman_common import _state_key
+from ._step_model import _random_walk_model, measurement_noise
 
 if TYPE_CHECKING:
     from .kalman import KalmanOptimizer
@@ -122,7 +123,7 @@ def sequence_step(opt: KalmanOptimizer, x_shape, out_shape):
     """The step and record functions of the compiled sequence (one per mini-batch shape and
     ``R / lr``, kept so that later passes reuse the compiled code)."""
     cfg = opt._cfg[0]
-    chol_R = opt._chol_R(0, out_shape)
+    chol_R = measurement_noise(opt, 0, out_shape)
     key = ("sequence", tuple(x_shape), tuple(out_shape))
     hit = cfg.models.get(key)
     if hit is not None and hit[0] is chol_R:
@@ -133,7 +134,7 @@ def sequence_step(opt: KalmanOptimizer, x_shape, out_shape):
 
     def step(carry, y, x, k):
         mean, chol = carry
-        if taylor:  # h and its closed-form Jacobian from one pass, as in _model
+        if taylor:  # h and its closed-form Jacobian from one pass, as in step_model
             last: list = [None, None]
 
             def h(th, u, k):

@@ -31,9 +31,7 @@ over the runs). The module's parameters are then left untouched; use
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable
-from dataclasses import replace
 from itertools import chain
 
 import torch
@@ -51,18 +49,17 @@ from ._kalman_common import (
     OPTIMIZER_NOISE,
     KalmanStep,
     _call_closure,
-    _check_lr,
     _check_matches,
     _clone_state,
     _configure,
     _dataclass_dict,
     _Group,
     _group_bridge,
-    _random_walk_model,
     _resolve_groups,
     _state_key,
     noise_factor,
 )
+from ._step_model import step_model
 from .compiled import compiled_steps
 from .params import ParameterBridge
 
@@ -501,99 +498,6 @@ class KalmanOptimizer(torch.optim.Optimizer):
         _check_matches(targets, "targets", b.dtype, b.device, checked)
         return x, targets, out_shape
 
-    def _chol_R(self, i: int, out_shape: torch.Size) -> Tensor:
-        """Square root of group ``i``'s measurement noise ``R / lr`` of a mini-batch."""
-        cfg = self._cfg[i]
-        lr = _check_lr(self.param_groups[i]["lr"], cfg.filter, f"param_groups[{i}]['lr']")
-        M = math.prod(out_shape)
-        hit = cfg.chol_R.get(M)
-        if hit is not None and hit[0] == lr:
-            return hit[1]
-        dev = cfg.bridge.device
-        if cfg.R_scalar:
-            S = cfg.chol_R1[0, 0] * torch.eye(M, dtype=torch.float64, device=dev)
-        else:
-            n_out = cfg.chol_R1.shape[0]
-            if len(out_shape) == 0 or out_shape[-1] != n_out:
-                raise ValueError(
-                    f"R is ({n_out}, {n_out}) per output vector, but the model output has shape "
-                    f"{tuple(out_shape)} (its last dimension must be {n_out})"
-                )
-            eye = torch.eye(M // n_out, dtype=torch.float64, device=dev)
-            S = torch.kron(eye, cfg.chol_R1.contiguous())  # block diagonal: one R per sample
-        if lr != 1.0:
-            S = S / math.sqrt(lr)
-        cfg.chol_R[M] = (lr, S)
-        return S
-
-    def _model(self, i: int, x: Tensor, out_shape: torch.Size) -> StateSpaceModel:
-        """Paper 003 Eq. 45-46 for group ``i`` and this mini-batch: random walk,
-        ``h(theta) = g(theta, x)`` (the other groups at their values in the module).
-
-        The model is built once per mini-batch shape (and rebuilt with a new ``R / lr`` when
-        ``lr`` changes); its ``h`` reads the current inputs from ``self._inputs``.
-        """
-        cfg = self._cfg[i]
-        b, chunk = cfg.bridge, self.param_groups[i]["chunk_size"]
-        key = (tuple(x.shape), tuple(out_shape))
-        self._inputs[0] = x
-        chol_R = self._chol_R(i, out_shape)
-        model = cfg.models.get(key)
-        if model is not None:
-            if model.chol_R is not chol_R:
-                model = cfg.models[key] = replace(model, chol_R=chol_R)
-            return model
-        M = math.prod(out_shape)
-        mode = self.param_groups[i]["jacobian"]
-        if mode == "auto" and not self._closed_form_applies(b, x, chunk):
-            mode = "fwd" if b.numel <= M else "autograd"
-        inputs = self._inputs
-        if self.per_run_data:  # run r evaluates g(theta_r, x_r): vmap over the runs
-            if mode == "autograd":  # reverse mode through autograd does not vmap
-                mode = "rev"
-            model = self._per_run_model(b, M, chol_R, mode, chunk)
-        elif isinstance(cfg.filter.rule, Taylor) and mode in ("auto", "autograd"):
-            # the EKF asks for h and then for its Jacobian at the same point: one pass (the
-            # learner's closed form, or forward + reverse) gives both, the Jacobian is handed
-            # over by identity of the evaluation point
-            last: list = [None, None]
-
-            def h(th, u, k):
-                out, J = b.measurement_and_jacobian(th, inputs[0], chunk_size=chunk, mode=mode)
-                last[0], last[1] = th, J
-                return out
-
-            def jac_h(th, u, k):
-                if last[0] is th:
-                    J, last[0], last[1] = last[1], None, None
-                    return J
-                return b.jacobian(th, inputs[0], mode=mode, chunk_size=chunk)
-
-            model = _random_walk_model(b, h, jac_h, M, cfg.chol_Q, chol_R)
-        else:
-
-            def h(th, u, k):
-                return b.measurement(th, inputs[0], chunk_size=chunk)
-
-            def jac_h(th, u, k):
-                return b.jacobian(th, inputs[0], mode=mode, chunk_size=chunk)
-
-            model = _random_walk_model(b, h, jac_h, M, cfg.chol_Q, chol_R)
-        cfg.models[key] = model
-        return model
-
-    def _per_run_model(self, b, M: int, chol_R, mode: str, chunk) -> StateSpaceModel:
-        """Eq. 45-46 with per-run data: ``theta`` ``(R, ..., n)``, inputs ``(R, *x)``."""
-        inputs = self._inputs
-
-        def h(th, u, k):
-            return vmap(lambda t, xr: b.measurement(t, xr, chunk_size=chunk))(th, inputs[0])
-
-        def jac_h(th, u, k):
-            return vmap(lambda t, xr: b.jacobian(t, xr, mode=mode, chunk_size=chunk))(th, inputs[0])
-
-        return _random_walk_model(b, h, jac_h, M, self._cfg[0].chol_Q, chol_R)
-
     def _engine_state(self, i: int, model: StateSpaceModel) -> FilterState:
         s = self.state[_state_key(i)]
         filt = self._cfg[i].filter
@@ -728,7 +632,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         infos = []
         with batch_statistics_only(norms):
             for i, cfg in enumerate(self._cfg):
-                model = self._model(i, x, out_shape)
+                model = step_model(self, i, x, out_shape)
                 fstate = self._engine_state(i, model)
                 key = _state_key(i)
                 k = self.state[key]["step"] + 1
