@@ -102,3 +102,21 @@ def test_sweep_crossing_interpolates_in_log_log():
     )
     with pytest.raises(ValueError, match="points"):
         sweep_crossing([(0.0, 0.1)], 0.1)
+
+
+def test_threshold_census_counts_and_ranges():
+    import torch
+
+    from prognos_torch.studies import threshold_census
+
+    v = torch.tensor([0.0521, 0.0612, 0.9, 0.05, 0.1], dtype=torch.float64)
+    assert (
+        threshold_census(v, 0.1)
+        == "3 lie below 0.1 (0.050 to 0.061), 2 lie above 0.1 (0.100 to 0.900)"
+    )
+    # a range narrower than half a unit of the last decimal is one value; sides may be empty
+    assert threshold_census([0.9731, 0.9733], 0.1, verb="settle") == "2 settle above 0.1 (0.973)"
+    assert threshold_census([-0.0081], 0.1, digits=2) == "1 lie below 0.1 (-0.01)"
+    assert threshold_census([], 0.1) == ""
+    with pytest.raises(ValueError, match="finite"):
+        threshold_census([0.0, math.nan], 0.1)

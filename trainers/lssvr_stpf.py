@@ -58,11 +58,20 @@ from prognos_torch.plots import (
     plot_rul_pdf,
 )
 from prognos_torch.prognosis import (
+    last_sample_indices,
     learner_transition_model,
     rolling_particle_prediction,
+    settle,
     simulate_to_event,
 )
-from prognos_torch.studies import Study, StudyConfig, StudyResult, fill_template, run_rows
+from prognos_torch.studies import (
+    Study,
+    StudyConfig,
+    StudyResult,
+    fill_template,
+    run_rows,
+    threshold_census,
+)
 from prognos_torch.studies import markdown_table as md
 
 # Paper 002, Table 1 (one-step RMSE) and Table 2 (RUL metrics; alpha-lambda False = 0, True = 1).
@@ -317,22 +326,6 @@ def _event(x):  # the indicator (newest window element) has reached the threshol
     return x[..., -1] >= THRESHOLD
 
 
-def _census(model, windows) -> str:
-    """Where the noise-free recursion from each window settles after ATTRACTOR_STEPS steps."""
-    x = windows
-    with torch.inference_mode():
-        for k in range(ATTRACTOR_STEPS):
-            x = model.transition(x, None, k + 1)
-    end = x[:, -1]
-    parts = []
-    for name, sel in (("below", end < THRESHOLD), ("above", end >= THRESHOLD)):
-        if bool(sel.any()):
-            lo, hi_ = float(end[sel].min()), float(end[sel].max())
-            span = f"{lo:.3f}" if hi_ - lo < 5e-4 else f"{lo:.3f} to {hi_:.3f}"
-            parts.append(f"{int(sel.sum())} settle {name} {THRESHOLD:g} ({span})")
-    return ", ".join(parts)
-
-
 def _protocol(ctx, key, score, suffix, offset, cfg, dev):
     """LS-SVR (sigma = key[0] x std, C = key[1]) and the three particle filters through the
     whole protocol; rows are labelled ``name + suffix``."""
@@ -476,12 +469,8 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     if quick:  # reduced protocol: filter from day QUICK_START on
         k0 = max(m, int(torch.nonzero(t >= QUICK_START).flatten()[0]))
     t_tgt = t[k0:]  # times of the predicted samples y_{k0+1..T} (0-based index k0..T-1)
-    nominal = np.arange(RUL_START, t_eol, RUL_EVERY)
-    rul_idx = []  # index of the last sample at or before each nominal prediction time
-    for tp in nominal:
-        i = int(torch.nonzero(t <= tp + 1e-9).flatten()[-1])
-        if i >= k0 and (not rul_idx or i > rul_idx[-1]):
-            rul_idx.append(i)
+    # the last sample at or before each nominal prediction time, each sample once
+    rul_idx = last_sample_indices(t, np.arange(RUL_START, t_eol, RUL_EVERY), first=k0)
     times = t[rul_idx].to(torch.float64)
     true_rul = t_eol - times
     win_test, _ = embed(z_test, m)  # windows ending at samples m-1 .. T-2
@@ -560,6 +549,10 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     ]
     census_windows = win_test[int(torch.nonzero(t[m - 1 : -1] >= RUL_START).flatten()[0]) :]
 
+    def census(model):  # where the noise-free recursion from each window settles
+        end = settle(model, census_windows, ATTRACTOR_STEPS)[:, -1]
+        return threshold_census(end, THRESHOLD, verb="settle")
+
     # ------------------------------------------------------------ readings
     def mean_of(method, key):
         vals = [r[key] for r in rows if r["method"] == method and key in r]
@@ -624,8 +617,8 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         "frac": frac,
         "rmse_bound": math.sqrt(frac) * 0.4302,
         "dt_minutes": dt_step * 1440,
-        "census_one": _census(one.model, census_windows),
-        "census_ms": _census(ms.model, census_windows),
+        "census_one": census(one.model),
+        "census_ms": census(ms.model),
         "n_census": census_windows.shape[0],
         "fb_total": {n: o["fallback"] for n, o in res.items()},
         "col_total": {n: o["collapsed"] for n, o in res.items()},

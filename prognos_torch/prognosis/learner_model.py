@@ -208,4 +208,3 @@ def learner_transition_model(
         jac_f=jac_f[jacobian],
         jac_h=jac_h,
     )
-

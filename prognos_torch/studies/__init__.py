@@ -52,6 +52,7 @@ from .tables import (
     summarize,
     sweep_crossing,
     sweep_table,
+    threshold_census,
 )
 
 __all__ = [
@@ -71,6 +72,7 @@ __all__ = [
     "markdown_table",
     "sweep_crossing",
     "sweep_table",
+    "threshold_census",
     "fmt_value",
     "fill_template",
     "run_rows",
