@@ -120,3 +120,21 @@ def test_threshold_census_counts_and_ranges():
     assert threshold_census([], 0.1) == ""
     with pytest.raises(ValueError, match="finite"):
         threshold_census([0.0, math.nan], 0.1)
+
+
+def test_method_mean_and_ascending_readings():
+    from prognos_torch.studies import ascending, method_mean
+
+    rows = [
+        {"run": 0, "method": "a", "MAE": 0.3, "RMSE": 0.5},
+        {"run": 1, "method": "a", "MAE": 0.1},
+        {"run": 0, "method": "b", "MAE": 0.2},
+        {"run": 0, "method": "c", "MAE": math.inf},
+    ]
+    assert method_mean(rows, "a", "MAE") == pytest.approx(0.2, abs=1e-15)
+    assert method_mean(rows, "a", "RMSE") == 0.5  # only the rows that have the key
+    assert math.isnan(method_mean(rows, "b", "RMSE"))
+    assert method_mean(rows, "c", "MAE") == math.inf
+    values = {"x": 0.3, "y": 0.1, "z": 0.3}
+    assert ascending(values) == "y 0.1000 < x 0.3000 < z 0.3000"  # ties keep their order
+    assert ascending({"y": 0.1, "x": 0.25}, ".2e") == "y 1.00e-01 < x 2.50e-01"

@@ -68,7 +68,9 @@ from prognos_torch.studies import (
     Study,
     StudyConfig,
     StudyResult,
+    ascending,
     fill_template,
+    method_mean,
     run_rows,
     threshold_census,
 )
@@ -554,17 +556,11 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         return threshold_census(end, THRESHOLD, verb="settle")
 
     # ------------------------------------------------------------ readings
-    def mean_of(method, key):
-        vals = [r[key] for r in rows if r["method"] == method and key in r]
-        return float(np.mean(vals)) if vals else math.nan
-
     def listing(key, names, spec):
-        return ", ".join(f"{n} {mean_of(n, key):{spec}}" for n in names)
+        return ", ".join(f"{n} {method_mean(rows, n, key):{spec}}" for n in names)
 
     def order(key, names=METHODS):
-        return " < ".join(
-            f"{n} {mean_of(n, key):.5f}" for n in sorted(names, key=lambda n: mean_of(n, key))
-        )
+        return ascending({n: method_mean(rows, n, key) for n in names}, ".5f")
 
     pf_names = [n for n in ALL_METHODS if "PF" in n]
     lam_all = res["LS-SVR STPF"]["lam"]

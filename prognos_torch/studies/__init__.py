@@ -30,7 +30,7 @@ from .forecasters import (
     rul_scores,
 )
 from .matrix import Cell, Footnotes, MatrixResult, capture, run_forecaster_matrix
-from .rows import run_rows, write_rows_csv
+from .rows import method_mean, run_rows, write_rows_csv
 from .runner import (
     Study,
     StudyConfig,
@@ -45,6 +45,7 @@ from .runner import (
 )
 from .tables import (
     Stat,
+    ascending,
     fill_template,
     fmt_value,
     format_table,
@@ -73,6 +74,8 @@ __all__ = [
     "sweep_crossing",
     "sweep_table",
     "threshold_census",
+    "ascending",
+    "method_mean",
     "fmt_value",
     "fill_template",
     "run_rows",

@@ -10,7 +10,8 @@ helpers turn the rows into the numbers a reader compares:
 * :func:`markdown_table`: any other block (a header and rows of cells); :func:`sweep_table`:
   a sensitivity table over the settings of one parameter;
 * :func:`fmt_value`: the number format of those tables; :func:`threshold_census`: how many
-  values lie below and above a threshold, and their ranges, as a reading;
+  values lie below and above a threshold, and their ranges, as a reading; :func:`ascending`:
+  named values in increasing order (``"b 0.1 < a 0.3"``);
 * :func:`fill_template`: a study's readings written as a markdown template beside the script,
   filled with the numbers of the run (``str.format`` fields such as ``{bias:+.4f}``).
 """
@@ -38,6 +39,7 @@ __all__ = [
     "fmt_value",
     "fill_template",
     "threshold_census",
+    "ascending",
 ]
 
 
@@ -231,3 +233,13 @@ def threshold_census(values, threshold: float, *, verb: str = "lie", digits: int
             )
             parts.append(f"{int(sel.sum())} {verb} {name} {threshold:g} ({span})")
     return ", ".join(parts)
+
+
+def ascending(values: Mapping[str, float], spec: str = ".4f") -> str:
+    """Named values in increasing order as a reading: ``"b 0.1000 < a 0.3000"``.
+
+    Args:
+        values: ``name -> value``; equal values keep the mapping's order.
+        spec: the format of each value (``str.format`` spec, e.g. ``".5f"``).
+    """
+    return " < ".join(f"{k} {v:{spec}}" for k, v in sorted(values.items(), key=lambda kv: kv[1]))
