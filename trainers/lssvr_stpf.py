@@ -44,7 +44,6 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
-from prognos_torch.core.belief import GaussianBelief
 from prognos_torch.datasets import MinMaxScaler, embed, health_indicator
 from prognos_torch.filters import ekpf, sir, stpf
 from prognos_torch.learners import LSSVR, LSSVRGram, blocked_multistep_cv
@@ -63,6 +62,7 @@ from prognos_torch.prognosis import (
     rolling_particle_prediction,
     settle,
     simulate_to_event,
+    window_belief,
 )
 from prognos_torch.studies import (
     Study,
@@ -166,8 +166,7 @@ def _filter_pass(pf, model, z_test, k0, runs, gen, keep):
     sample one step ahead before it is assimilated (the library's rolling prediction)."""
     m, ys = M_ORDER, z_test[k0:]
     r = float(model.noise(1).chol_R[0, 0])
-    eye = torch.eye(m, dtype=z_test.dtype, device=z_test.device)
-    b0 = GaussianBelief(z_test[k0 - m : k0].expand(runs, m).clone(), (r * eye).expand(runs, m, m))
+    b0 = window_belief(z_test, k0, m, r, runs)  # the measured window before z_test[k0]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         rp = rolling_particle_prediction(

@@ -39,7 +39,7 @@ from .fault import (
     rolling_fault_prediction,
 )
 from .forecaster import MeasurementForecaster
-from .learner_model import learner_transition_model
+from .learner_model import learner_transition_model, window_belief
 from .learner_trend import LearnerTrendFit, TimeELM, fit_learner_trend
 from .onset import (
     ONSET_METHODS,
@@ -102,6 +102,7 @@ __all__ = [
     "SamplePaths",
     "gaussian_paths",
     "learner_transition_model",
+    "window_belief",
     "particle_paths",
     "predict_fault_parameter",
     "predict_paths",
