@@ -290,14 +290,12 @@ def _figures(out_dir: Path, c: SimpleNamespace) -> list[str]:
         # display only: mean pmf over the runs in bins of PMF_BIN steps (2 h), at the paper's
         # prediction times (Fig. 12)
         d, sel = c.dists[name], c.paper_idx
-        n_bin = max(1, d.horizon // PMF_BIN)
-        pmf = d.pmf[sel][..., : n_bin * PMF_BIN]
-        pmf_bins = pmf.reshape(*pmf.shape[:-1], n_bin, -1)
+        support, pmf = d.binned(PMF_BIN)
         plot_rul_pdf(
             out_dir / fr,
             [round(v, 2) for v in c.times[sel].tolist()],
-            d.support[: n_bin * PMF_BIN].reshape(n_bin, -1).mean(-1),
-            pmf_bins.sum(-1).mean(1),
+            support,
+            pmf[sel].mean(1),
             true_rul=c.true_rul[sel],
             censored_mass=d.censored_mass[sel].mean(1),
             title=f"{name}: RUL pmf (mean of {c.runs} runs, 2 h bins, cap {CAP_DAYS:g} d)",
