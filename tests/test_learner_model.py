@@ -144,3 +144,23 @@ def test_transition_model_shift_std_gives_a_nonsingular_Q():
         learner_transition_model(elm, 3, torch.eye(3, dtype=plain.dtype), 0.1, shift_std=0.01)
     with pytest.raises(ValueError, match="shift_std"):
         learner_transition_model(elm, 3, 0.2, 0.1, shift_std=-1.0)
+
+
+def test_window_belief_is_the_measured_window_before_end():
+    from prognos_torch.prognosis import window_belief
+
+    z = torch.arange(10, dtype=torch.float64) / 10
+    b = window_belief(z, 6, 4, 0.5)
+    assert torch.equal(b.mean, torch.tensor([0.2, 0.3, 0.4, 0.5], dtype=torch.float64))
+    assert torch.equal(b.chol, 0.5 * torch.eye(4, dtype=torch.float64))
+    br = window_belief(z, 4, 4, torch.tensor(0.25, dtype=torch.float64), runs=3)
+    assert br.mean.shape == (3, 4) and br.chol.shape == (3, 4, 4)
+    assert torch.equal(br.mean, z[:4].expand(3, 4))
+    assert torch.equal(br.chol, 0.25 * torch.eye(4, dtype=torch.float64).expand(3, 4, 4))
+    br.mean[0, 0] = 7.0  # a copy: the series is untouched
+    assert float(z[0]) == 0.0
+    for bad, match in (((z, 3, 4, 0.1), "end"), ((z, 11, 4, 0.1), "end"), ((z, 6, 4, -1.0), "std")):
+        with pytest.raises(ValueError, match=match):
+            window_belief(*bad)
+    with pytest.raises(ValueError, match="series"):
+        window_belief(z[None], 6, 4, 0.1)

@@ -74,3 +74,19 @@ def test_rul_scores_bundle_the_table_2_metrics():
     assert s.cra == pytest.approx(sum(ra) / 4, rel=1e-12)
     s2 = point_rul_scores(times, true, pred, t_eol=11.0, d0=2.0, alpha=0.1, cra_lambdas=(0.0,))
     assert s2.alpha_lambda == 0.0 and s2.cra == pytest.approx(ra[0], rel=1e-12)
+
+
+def test_binned_rul_pmf_sums_consecutive_steps():
+    g = torch.Generator().manual_seed(1)
+    paths = torch.randn(3, 50, 7, generator=g, dtype=torch.float64).cumsum(-1)  # (B, N, H=7)
+    d = rul_distribution(paths, 1.0, dt=0.5)
+    support, pmf = d.binned(3)  # bins of steps 1-3 and 4-6; step 7 is dropped
+    assert support.shape == (2,) and pmf.shape == (3, 2)
+    torch.testing.assert_close(support, torch.tensor([1.0, 2.5], dtype=torch.float64))
+    torch.testing.assert_close(pmf[:, 0], d.pmf[:, :3].sum(-1), rtol=0, atol=0)
+    torch.testing.assert_close(pmf[:, 1], d.pmf[:, 3:6].sum(-1), rtol=0, atol=0)
+    one_support, one = d.binned(10)  # fewer steps than a bin: one bin of all of them
+    torch.testing.assert_close(one[:, 0], d.pmf.sum(-1), rtol=1e-15, atol=0)
+    assert float(one_support[0]) == 2.0  # mean of 0.5 * (1..7)
+    with pytest.raises(ValueError, match="width"):
+        d.binned(0)

@@ -223,3 +223,60 @@ def test_bad_prediction_arguments_raise_clear_errors():
         predict_paths(elm, belief, 3)
     with pytest.raises(ValueError, match="method"):
         predict_paths(elm, X[0], 3, method="magic")
+
+
+def test_settle_reaches_the_fixed_points_of_a_linear_recursion():
+    # x_{k+1} = A x_k + b with spectral radius < 1 settles at (I - A)^-1 b from any start; a
+    # second, decoupled component with a = 1.5 diverges, and a start at its fixed point stays
+    from prognos_torch.prognosis import settle
+
+    A = torch.tensor([[0.5, 0.2], [0.1, 0.3]], dtype=torch.float64)
+    b = torch.tensor([1.0, -2.0], dtype=torch.float64)
+    model = StateSpaceModel(
+        f=lambda x, u, k: x @ A.mT + b,
+        h=lambda x, u, k: x[..., :1],
+        state_dim=2,
+        obs_dim=1,
+        chol_Q=torch.eye(2, dtype=torch.float64),
+        chol_R=torch.eye(1, dtype=torch.float64),
+    )
+    starts = torch.tensor([[0.0, 0.0], [10.0, -5.0], [-3.0, 7.0]], dtype=torch.float64)
+    fixed = torch.linalg.solve(torch.eye(2, dtype=torch.float64) - A, b)
+    end = settle(model, starts, 200)
+    assert end.shape == (3, 2)
+    torch.testing.assert_close(end, fixed.expand(3, 2), rtol=0, atol=1e-12)
+    # the same as the hand loop, exactly, for few steps and a time offset
+    x = starts
+    for k in range(5, 8):
+        x = model.transition(x, None, k + 1)
+    assert torch.equal(settle(model, starts, 3, k0=5), x)
+    grow = StateSpaceModel(
+        f=lambda x, u, k: 1.5 * x - 0.5,
+        h=lambda x, u, k: x,
+        state_dim=1,
+        obs_dim=1,
+        chol_Q=torch.eye(1, dtype=torch.float64),
+        chol_R=torch.eye(1, dtype=torch.float64),
+    )
+    end = settle(grow, torch.tensor([[1.0], [1.5]], dtype=torch.float64), 20)
+    assert float(end[0, 0]) == 1.0  # the fixed point 0.5 / 0.5
+    assert float(end[1, 0]) == 1.0 + 0.5 * 1.5**20
+
+
+def test_settle_refuses_bad_input():
+    from prognos_torch.prognosis import settle
+
+    model = StateSpaceModel(
+        f=lambda x, u, k: x,
+        h=lambda x, u, k: x,
+        state_dim=2,
+        obs_dim=2,
+        chol_Q=torch.eye(2, dtype=torch.float64),
+        chol_R=torch.eye(2, dtype=torch.float64),
+    )
+    with pytest.raises(ValueError, match="steps"):
+        settle(model, torch.zeros(3, 2, dtype=torch.float64), 0)
+    with pytest.raises(ValueError, match="states"):
+        settle(model, torch.zeros(3, 4, dtype=torch.float64), 5)
+    with pytest.raises(TypeError, match="model"):
+        settle(lambda x: x, torch.zeros(3, 2, dtype=torch.float64), 5)

@@ -111,3 +111,20 @@ def test_quick_headline_numbers(quick_out):
     # the fixed exponential model; no method is inside the alpha-lambda cone at most points
     assert _headline(rows, "prognose (exponential)")[0] < _headline(rows, "prognose (auto)")[0]
     assert all(_headline(rows, m)[1] <= 1 / 3 for m in METHODS)
+
+
+def test_last_sample_indices_by_hand():
+    from prognos_torch.prognosis import last_sample_indices
+
+    t = torch.tensor([0.0, 0.25, 0.5, 0.75, 1.0, 1.25], dtype=torch.float64)
+    times = torch.tensor([0.1, 0.2, 0.3, 0.5, 0.8, 1.2, 5.0], dtype=torch.float64)
+    # 0.1 and 0.2 -> sample 0 (once), 0.3 -> 1, 0.5 -> 2 (at the sample), 0.8 -> 3, 1.2 -> 4,
+    # 5.0 -> 5
+    assert last_sample_indices(t, times) == [0, 1, 2, 3, 4, 5]
+    assert last_sample_indices(t, times, first=2) == [2, 3, 4, 5]
+    # accumulated times land on a sample within the tolerance, times before t[0] are skipped
+    assert last_sample_indices(t, [0.1 * 3 - 0.05, -1.0 + 1.0 - 0.5]) == [1]
+    assert last_sample_indices(t, [0.5 - 1e-12]) == [2]
+    assert last_sample_indices(t, [0.5 - 1e-12], tol=0.0) == [1]
+    with pytest.raises(ValueError, match="t must"):
+        last_sample_indices(t[None], times)

@@ -102,3 +102,39 @@ def test_sweep_crossing_interpolates_in_log_log():
     )
     with pytest.raises(ValueError, match="points"):
         sweep_crossing([(0.0, 0.1)], 0.1)
+
+
+def test_threshold_census_counts_and_ranges():
+    import torch
+
+    from prognos_torch.studies import threshold_census
+
+    v = torch.tensor([0.0521, 0.0612, 0.9, 0.05, 0.1], dtype=torch.float64)
+    assert (
+        threshold_census(v, 0.1)
+        == "3 lie below 0.1 (0.050 to 0.061), 2 lie above 0.1 (0.100 to 0.900)"
+    )
+    # a range narrower than half a unit of the last decimal is one value; sides may be empty
+    assert threshold_census([0.9731, 0.9733], 0.1, verb="settle") == "2 settle above 0.1 (0.973)"
+    assert threshold_census([-0.0081], 0.1, digits=2) == "1 lie below 0.1 (-0.01)"
+    assert threshold_census([], 0.1) == ""
+    with pytest.raises(ValueError, match="finite"):
+        threshold_census([0.0, math.nan], 0.1)
+
+
+def test_method_mean_and_ascending_readings():
+    from prognos_torch.studies import ascending, method_mean
+
+    rows = [
+        {"run": 0, "method": "a", "MAE": 0.3, "RMSE": 0.5},
+        {"run": 1, "method": "a", "MAE": 0.1},
+        {"run": 0, "method": "b", "MAE": 0.2},
+        {"run": 0, "method": "c", "MAE": math.inf},
+    ]
+    assert method_mean(rows, "a", "MAE") == pytest.approx(0.2, abs=1e-15)
+    assert method_mean(rows, "a", "RMSE") == 0.5  # only the rows that have the key
+    assert math.isnan(method_mean(rows, "b", "RMSE"))
+    assert method_mean(rows, "c", "MAE") == math.inf
+    values = {"x": 0.3, "y": 0.1, "z": 0.3}
+    assert ascending(values) == "y 0.1000 < x 0.3000 < z 0.3000"  # ties keep their order
+    assert ascending({"y": 0.1, "x": 0.25}, ".2e") == "y 1.00e-01 < x 2.50e-01"

@@ -53,8 +53,10 @@ from prognos_torch.studies import (
     Study,
     StudyConfig,
     StudyResult,
+    ascending,
     fill_template,
     fmt_value,
+    method_mean,
     run_rows,
 )
 from prognos_torch.studies import markdown_table as md
@@ -331,20 +333,16 @@ def _figures(out_dir: Path, data: Data, res: dict[str, Outcome], prefix: str, nu
 
 
 # ---------------------------------------------------------------------- report
-def _mean(rows, method, key) -> float:
-    return float(np.mean([r[key] for r in rows if r["method"] == method]))
-
-
 def _tables(runs, rows, paper, sets, results, alones, refs) -> dict[str, str]:
     """The report's tables (their captions are in the template)."""
     Y = {d.name: d.Yte[:, 0] for d, *_ in sets}
     mse = [
         [
             m,
-            fmt_value(_mean(rows, m, "MSE")),
+            fmt_value(method_mean(rows, m, "MSE")),
             *(f"{v:.4f}" for v in (p["RMSE"], math.sqrt(p["RMSE"]))),
         ]
-        + [f"{p['MAE']:.4f}", fmt_value(_mean(rows, m, "RMSE"))]
+        + [f"{p['MAE']:.4f}", fmt_value(method_mean(rows, m, "RMSE"))]
         for m, p in paper.items()
     ]
     times, wins = [], []
@@ -392,10 +390,7 @@ def _readings(cfg: StudyConfig, rows: list[dict], refs: dict) -> dict:
     """The numbers of the readings in the template."""
 
     def maes(label):
-        return {n: _mean(rows, f"{label}: {n}", "MAE") for n in TRAINERS}
-
-    def order(d):
-        return " < ".join(f"{k} {v:.4f}" for k, v in sorted(d.items(), key=lambda kv: kv[1]))
+        return {n: method_mean(rows, f"{label}: {n}", "MAE") for n in TRAINERS}
 
     def holds(d):
         ok = d["ANFIS-ImSRUKF"] < d["ANFIS-SRUKF"] < d["ANFIS-EKF"]
@@ -409,9 +404,9 @@ def _readings(cfg: StudyConfig, rows: list[dict], refs: dict) -> dict:
     better = " and ".join(n for n in KALMAN if lor[n] < lse)
     return {
         "seed": cfg.seed,
-        "order_lorenz": order(lor),
-        "order_cstr": order(cs),
-        "order_online": order(con),
+        "order_lorenz": ascending(lor),
+        "order_cstr": ascending(cs),
+        "order_online": ascending(con),
         "holds_lorenz": holds(lor),
         "holds_cstr": holds(cs),
         "holds_online": holds(con),
@@ -471,7 +466,12 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         figures=figs,
         config={
             "anfis": {"n_inputs": EMBED, "n_mfs": N_MFS, "mf": "sigmoid", "n_parameters": 44},
-            "kalman": {"P0": P0, "Q": Q_RW, "R": R_MEAS, "imsrukf_noise": "Q (diagonal, Eq. 41), R post-fit, k0 = 300"},
+            "kalman": {
+                "P0": P0,
+                "Q": Q_RW,
+                "R": R_MEAS,
+                "imsrukf_noise": "Q (diagonal, Eq. 41), R post-fit, k0 = 300",
+            },
             "adam_lr": ADAM_LR,
             "passes": PASSES,
             "batch_size": 1,

@@ -44,7 +44,6 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
-from prognos_torch.core.belief import GaussianBelief
 from prognos_torch.datasets import MinMaxScaler, embed, health_indicator
 from prognos_torch.filters import ekpf, sir, stpf
 from prognos_torch.learners import LSSVR, LSSVRGram, blocked_multistep_cv
@@ -58,11 +57,23 @@ from prognos_torch.plots import (
     plot_rul_pdf,
 )
 from prognos_torch.prognosis import (
+    last_sample_indices,
     learner_transition_model,
     rolling_particle_prediction,
+    settle,
     simulate_to_event,
+    window_belief,
 )
-from prognos_torch.studies import Study, StudyConfig, StudyResult, fill_template, run_rows
+from prognos_torch.studies import (
+    Study,
+    StudyConfig,
+    StudyResult,
+    ascending,
+    fill_template,
+    method_mean,
+    run_rows,
+    threshold_census,
+)
 from prognos_torch.studies import markdown_table as md
 
 # Paper 002, Table 1 (one-step RMSE) and Table 2 (RUL metrics; alpha-lambda False = 0, True = 1).
@@ -155,8 +166,7 @@ def _filter_pass(pf, model, z_test, k0, runs, gen, keep):
     sample one step ahead before it is assimilated (the library's rolling prediction)."""
     m, ys = M_ORDER, z_test[k0:]
     r = float(model.noise(1).chol_R[0, 0])
-    eye = torch.eye(m, dtype=z_test.dtype, device=z_test.device)
-    b0 = GaussianBelief(z_test[k0 - m : k0].expand(runs, m).clone(), (r * eye).expand(runs, m, m))
+    b0 = window_belief(z_test, k0, m, r, runs)  # the measured window before z_test[k0]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         rp = rolling_particle_prediction(
@@ -280,14 +290,12 @@ def _figures(out_dir: Path, c: SimpleNamespace) -> list[str]:
         # display only: mean pmf over the runs in bins of PMF_BIN steps (2 h), at the paper's
         # prediction times (Fig. 12)
         d, sel = c.dists[name], c.paper_idx
-        n_bin = max(1, d.horizon // PMF_BIN)
-        pmf = d.pmf[sel][..., : n_bin * PMF_BIN]
-        pmf_bins = pmf.reshape(*pmf.shape[:-1], n_bin, -1)
+        support, pmf = d.binned(PMF_BIN)
         plot_rul_pdf(
             out_dir / fr,
             [round(v, 2) for v in c.times[sel].tolist()],
-            d.support[: n_bin * PMF_BIN].reshape(n_bin, -1).mean(-1),
-            pmf_bins.sum(-1).mean(1),
+            support,
+            pmf[sel].mean(1),
             true_rul=c.true_rul[sel],
             censored_mass=d.censored_mass[sel].mean(1),
             title=f"{name}: RUL pmf (mean of {c.runs} runs, 2 h bins, cap {CAP_DAYS:g} d)",
@@ -315,22 +323,6 @@ def _figures(out_dir: Path, c: SimpleNamespace) -> list[str]:
 # --------------------------------------------------------------------------- one protocol
 def _event(x):  # the indicator (newest window element) has reached the threshold
     return x[..., -1] >= THRESHOLD
-
-
-def _census(model, windows) -> str:
-    """Where the noise-free recursion from each window settles after ATTRACTOR_STEPS steps."""
-    x = windows
-    with torch.inference_mode():
-        for k in range(ATTRACTOR_STEPS):
-            x = model.transition(x, None, k + 1)
-    end = x[:, -1]
-    parts = []
-    for name, sel in (("below", end < THRESHOLD), ("above", end >= THRESHOLD)):
-        if bool(sel.any()):
-            lo, hi_ = float(end[sel].min()), float(end[sel].max())
-            span = f"{lo:.3f}" if hi_ - lo < 5e-4 else f"{lo:.3f} to {hi_:.3f}"
-            parts.append(f"{int(sel.sum())} settle {name} {THRESHOLD:g} ({span})")
-    return ", ".join(parts)
 
 
 def _protocol(ctx, key, score, suffix, offset, cfg, dev):
@@ -476,12 +468,8 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     if quick:  # reduced protocol: filter from day QUICK_START on
         k0 = max(m, int(torch.nonzero(t >= QUICK_START).flatten()[0]))
     t_tgt = t[k0:]  # times of the predicted samples y_{k0+1..T} (0-based index k0..T-1)
-    nominal = np.arange(RUL_START, t_eol, RUL_EVERY)
-    rul_idx = []  # index of the last sample at or before each nominal prediction time
-    for tp in nominal:
-        i = int(torch.nonzero(t <= tp + 1e-9).flatten()[-1])
-        if i >= k0 and (not rul_idx or i > rul_idx[-1]):
-            rul_idx.append(i)
+    # the last sample at or before each nominal prediction time, each sample once
+    rul_idx = last_sample_indices(t, np.arange(RUL_START, t_eol, RUL_EVERY), first=k0)
     times = t[rul_idx].to(torch.float64)
     true_rul = t_eol - times
     win_test, _ = embed(z_test, m)  # windows ending at samples m-1 .. T-2
@@ -560,18 +548,16 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     ]
     census_windows = win_test[int(torch.nonzero(t[m - 1 : -1] >= RUL_START).flatten()[0]) :]
 
-    # ------------------------------------------------------------ readings
-    def mean_of(method, key):
-        vals = [r[key] for r in rows if r["method"] == method and key in r]
-        return float(np.mean(vals)) if vals else math.nan
+    def census(model):  # where the noise-free recursion from each window settles
+        end = settle(model, census_windows, ATTRACTOR_STEPS)[:, -1]
+        return threshold_census(end, THRESHOLD, verb="settle")
 
+    # ------------------------------------------------------------ readings
     def listing(key, names, spec):
-        return ", ".join(f"{n} {mean_of(n, key):{spec}}" for n in names)
+        return ", ".join(f"{n} {method_mean(rows, n, key):{spec}}" for n in names)
 
     def order(key, names=METHODS):
-        return " < ".join(
-            f"{n} {mean_of(n, key):.5f}" for n in sorted(names, key=lambda n: mean_of(n, key))
-        )
+        return ascending({n: method_mean(rows, n, key) for n in names}, ".5f")
 
     pf_names = [n for n in ALL_METHODS if "PF" in n]
     lam_all = res["LS-SVR STPF"]["lam"]
@@ -624,8 +610,8 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         "frac": frac,
         "rmse_bound": math.sqrt(frac) * 0.4302,
         "dt_minutes": dt_step * 1440,
-        "census_one": _census(one.model, census_windows),
-        "census_ms": _census(ms.model, census_windows),
+        "census_one": census(one.model),
+        "census_ms": census(ms.model),
         "n_census": census_windows.shape[0],
         "fb_total": {n: o["fallback"] for n, o in res.items()},
         "col_total": {n: o["collapsed"] for n, o in res.items()},

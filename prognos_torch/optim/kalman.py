@@ -31,9 +31,7 @@ over the runs). The module's parameters are then left untouched; use
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable
-from dataclasses import dataclass, field, fields, replace
 from itertools import chain
 
 import torch
@@ -41,24 +39,28 @@ from torch import Tensor, nn
 from torch.func import vmap
 from torch.optim.optimizer import _global_optimizer_post_hooks, _global_optimizer_pre_hooks
 
-from ..adapt.noise import MovingWindow, NoiseEstimatorState, SageHusa
+from ..adapt.noise import NoiseEstimatorState
 from ..adapt.strong_tracking import StrongTracking, StrongTrackingState
 from ..core.belief import GaussianBelief
-from ..core.linalg import tria
 from ..core.model import StateSpaceModel
-from ..core.validation import check_finite, check_matches
-from ..filters import sequence as _sequence
-from ..filters.gaussian import (
-    FilterState,
-    GaussianFilter,
-    StepInfo,
-    Taylor,
-    _sigma_points,
-    deferred_fallbacks,
-)
-from ..filters.sequence import scan as _filter_scan
-from ..filters.variants import make_filter
+from ..filters.gaussian import FilterState, GaussianFilter, Taylor
 from ._buffers import batch_statistics_only, explain_transform_error, tracking_batch_norms
+from ._kalman_common import (
+    OPTIMIZER_NOISE,
+    KalmanStep,
+    _call_closure,
+    _check_matches,
+    _clone_state,
+    _configure,
+    _dataclass_dict,
+    _Group,
+    _group_bridge,
+    _resolve_groups,
+    _state_key,
+    noise_factor,
+)
+from ._step_model import step_model
+from .compiled import compiled_steps
 from .params import ParameterBridge
 
 __all__ = [
@@ -70,217 +72,6 @@ __all__ = [
     "noise_factor",
     "OPTIMIZER_NOISE",
 ]
-
-_STATE_KEY = "kalman"
-
-
-@dataclass(frozen=True)
-class KalmanStep:
-    """What :meth:`KalmanOptimizer.step` returns (batch dims ``(R,)`` with ``runs=R``, else ``()``).
-
-    Attributes:
-        loss: mean squared innovation ``mean_j (t_j - z_j)^2`` over the measurement vector, under
-            the prior (before the update). For the EKF ``z = g(theta_{k-1}, u_k)``, so this is the
-            pre-update mean squared error; sigma-point filters use their predicted measurement.
-        info: the engine's full :class:`~prognos_torch.filters.gaussian.StepInfo` (of the
-            first parameter group).
-        infos: the :class:`StepInfo` of every parameter group (``infos[0] is info``).
-
-    With several parameter groups ``loss`` is that of the first group's update, i.e. before
-    any group of this step was updated. ``nis`` (normalised innovation squared), ``fading_factor`` (``lambda_k``, 1 without strong
-    tracking) and ``log_likelihood`` are read from ``info`` (computed on first access).
-    """
-
-    loss: Tensor
-    info: StepInfo
-    infos: tuple[StepInfo, ...] = ()
-
-    @property
-    def nis(self) -> Tensor:
-        return self.info.nis
-
-    @property
-    def fading_factor(self) -> Tensor:
-        return self.info.fading_factor
-
-    @property
-    def log_likelihood(self) -> Tensor:
-        return self.info.log_likelihood
-
-    def item(self) -> float:
-        """The loss as a Python float (mean over runs)."""
-        return float(self.loss.mean())
-
-
-# ---------------------------------------------------------------------- option parsing
-def noise_factor(value, dim: int, name: str, *, allow_singular: bool, device=None) -> Tensor:
-    """A lower square-root factor ``(dim, dim)`` float64 of a covariance given as a scalar
-    variance (``v I``), a vector of variances ``(dim,)`` (``diag(v)``) or a matrix ``(dim, dim)``.
-
-    With ``allow_singular`` a positive semi-definite matrix (e.g. ``Q = 0``) is accepted and
-    factorised through its eigen-decomposition; otherwise it must be positive definite.
-    """
-    if isinstance(value, bool):
-        raise TypeError(f"{name} must be a number or a tensor, got {value!r}")
-    try:
-        v = torch.as_tensor(value, dtype=torch.float64, device=device)
-    except (TypeError, ValueError, RuntimeError) as exc:
-        raise TypeError(
-            f"{name} must be a number, a vector or a matrix, got {type(value)}"
-        ) from exc
-    if device is not None:
-        v = v.to(device)
-    if not bool(torch.isfinite(v).all()):
-        raise ValueError(f"{name} contains non-finite values")
-    strict = "> 0" if not allow_singular else ">= 0"
-    if v.dim() == 0 or v.dim() == 1:
-        if v.dim() == 1 and v.shape[0] != dim:
-            raise ValueError(
-                f"{name} as a vector of variances must have shape ({dim},), got {tuple(v.shape)}"
-            )
-        ok = (v >= 0) if allow_singular else (v > 0)
-        if not bool(ok.all()):
-            raise ValueError(f"{name} variances must be {strict}, got {value}")
-        d = v.sqrt().expand(dim) if v.dim() == 0 else v.sqrt()
-        return torch.diag_embed(d)
-    if v.dim() != 2 or tuple(v.shape) != (dim, dim):
-        raise ValueError(
-            f"{name} must be a scalar, a vector ({dim},) or a matrix ({dim}, {dim}), got shape "
-            f"{tuple(v.shape)}"
-        )
-    scale = float(v.abs().max()) if v.numel() else 0.0
-    if not bool(torch.allclose(v, v.mT, rtol=1e-10, atol=1e-12 * scale + 1e-300)):
-        raise ValueError(f"{name} must be a symmetric matrix ({dim}, {dim})")
-    L, info = torch.linalg.cholesky_ex(v)
-    if int(info) == 0:
-        return L
-    w, V = torch.linalg.eigh(0.5 * (v + v.mT))
-    if not allow_singular or bool((w < -1e-12 * max(scale, 1e-300)).any()):
-        raise ValueError(f"{name} must be positive {'semi-' if allow_singular else ''}definite")
-    return tria(V * w.clamp_min(0.0).sqrt().unsqueeze(-2))
-
-
-#: The noise estimator of the ``"imsrukf"`` optimiser (paper 003 Eq. 41 and 43, see
-#: :class:`KalmanOptimizer`): ``Q`` and ``R`` only, ``Q`` diagonal, ``R`` in the post-fit form,
-#: the prior weighted as ``k0 - 1 = 299`` earlier steps.
-OPTIMIZER_NOISE = SageHusa(estimate=("Q", "R"), diagonal=True, k0=300.0, r_form="post-fit")
-
-
-def _resolve_filter(filt, fading, noise) -> GaussianFilter:
-    if isinstance(filt, str):
-        # the optimiser face's fast path: random walk, prior factor by a Cholesky of S S^T + Q
-        base = replace(make_filter(filt), prior="cholesky")
-        if filt.lower() == "imsrukf":
-            base = replace(base, noise=OPTIMIZER_NOISE)
-    elif isinstance(filt, GaussianFilter):
-        base = filt
-    else:
-        raise TypeError(f"filter must be a filter name or a GaussianFilter, got {type(filt)}")
-    changes = {}
-    if fading is not None:
-        if fading is False:
-            changes["fading"] = None
-        elif fading is True:
-            changes["fading"] = StrongTracking()
-        elif isinstance(fading, (StrongTracking, int, float)):
-            changes["fading"] = fading
-        else:
-            raise TypeError("fading must be None, True/False, a float >= 1 or StrongTracking")
-    if noise is not None:
-        if noise is False:
-            changes["noise"] = None
-        elif noise is True:
-            changes["noise"] = SageHusa()
-        elif isinstance(noise, (SageHusa, MovingWindow)):
-            changes["noise"] = noise
-        else:
-            raise TypeError("noise must be None, True/False, SageHusa or MovingWindow")
-    return replace(base, **changes) if changes else base
-
-
-def _resolve_groups(params, module) -> tuple[nn.Module, list[dict]]:
-    """``(module, parameter groups)`` from the ``params``/``module`` arguments."""
-    if isinstance(params, nn.Module):
-        if module is not None and module is not params:
-            raise ValueError("module must be omitted or be the module passed as params")
-        return params, [{"params": ParameterBridge(params).parameters()}]
-    if module is None:
-        raise ValueError(
-            "module is required when params is an iterable of parameters or of parameter "
-            "groups (KalmanOptimizer(module.parameters(), module=module))"
-        )
-    if not isinstance(module, nn.Module):
-        raise TypeError(f"module must be a torch.nn.Module, got {type(module)}")
-    if isinstance(params, (Tensor, dict)) or not isinstance(params, Iterable):
-        raise TypeError(
-            "params must be a module, an iterable of its parameters, or an iterable of "
-            "parameter groups (dicts with a 'params' entry)"
-        )
-    items = list(params)
-    if not items:
-        raise ValueError("params is empty: no parameters to train")
-    groups = [isinstance(p, dict) for p in items]
-    if all(groups):
-        return module, [dict(g) for g in items]
-    if any(groups):
-        raise TypeError("params mixes parameters and parameter groups (dicts): give one kind")
-    return module, [{"params": items}]
-
-
-def _check_lr(lr, filt: GaussianFilter, where: str) -> float:
-    """``lr`` as a float; it scales the measurement noise of its group (``R / lr``)."""
-    if isinstance(lr, Tensor) and lr.numel() == 1:
-        lr = float(lr)
-    if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not math.isfinite(lr) or lr <= 0:
-        raise ValueError(
-            f"{where} must be a positive finite number (the learning rate divides the "
-            f"measurement noise: R / lr), got {lr!r}"
-        )
-    lr = float(lr)
-    noise = filt.noise
-    if lr != 1.0 and noise is not None and "R" in getattr(noise, "estimate", ()):
-        raise ValueError(
-            f"{where} = {lr:g}, but the group's filter estimates R itself "
-            f"({type(noise).__name__}, e.g. filter='imsrukf'), so a learning rate R / lr "
-            "has no meaning: keep lr = 1.0 (no learning-rate scheduler), or estimate Q only "
-            "(noise=SageHusa(estimate=('Q',), diagonal=True)), or use a filter with a fixed R"
-        )
-    return lr
-
-
-def _state_key(i: int) -> str:
-    """Key of parameter group ``i``'s filter state in ``optimizer.state``."""
-    return _STATE_KEY if i == 0 else f"{_STATE_KEY}.{i}"
-
-
-def _clone_state(obj):
-    """A copy of a frozen dataclass of tensors (``None`` stays ``None``)."""
-    if obj is None:
-        return None
-    return replace(
-        obj,
-        **{k: (v.clone() if isinstance(v, Tensor) else v) for k, v in _dataclass_dict(obj).items()},
-    )
-
-
-def _dataclass_dict(obj) -> dict | None:
-    if obj is None:
-        return None
-    return {f.name: getattr(obj, f.name) for f in fields(obj)}
-
-
-@dataclass
-class _Group:
-    """What one parameter group's options resolve to (rebuilt after ``load_state_dict``)."""
-
-    bridge: ParameterBridge
-    filter: GaussianFilter
-    chol_P0: Tensor
-    chol_Q: Tensor
-    chol_R1: Tensor
-    R_scalar: bool
-    chol_R: dict = field(default_factory=dict)  # M -> (lr, factor of R / lr, (M, M))
-    models: dict = field(default_factory=dict)  # (input shape, output shape) -> model
 
 
 # ---------------------------------------------------------------------- the optimiser
@@ -481,8 +272,10 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 "the runs' parameters that the other groups would be evaluated at; use one group "
                 "with per-parameter P0 and Q ({name: variance} dicts)"
             )
-        group["params"] = self._group_bridge(group["params"]).parameters()
-        cfg = self._configure({**self.defaults, **group}, f"param_groups[{len(self.param_groups)}]")
+        group["params"] = _group_bridge(self.module, group["params"]).parameters()
+        cfg = _configure(
+            self.module, {**self.defaults, **group}, f"param_groups[{len(self.param_groups)}]"
+        )
         super().add_param_group(group)
         if not self._building:
             i = len(self.param_groups) - 1
@@ -491,69 +284,13 @@ class KalmanOptimizer(torch.optim.Optimizer):
             self.state[_state_key(i)] = self._initial_state(i, None)
 
     # ------------------------------------------------------------------ configuration
-    def _group_bridge(self, params) -> ParameterBridge:
-        """The bridge of a group's parameters (which must be parameters of :attr:`module`)."""
-        if isinstance(params, Tensor):
-            params = [params]
-        elif isinstance(params, nn.Module):
-            raise TypeError(
-                "a parameter group's 'params' must be parameters (e.g. "
-                "module.layer.parameters()), got a module"
-            )
-        elif isinstance(params, (set, dict, str)) or not isinstance(params, Iterable):
-            raise TypeError(
-                f"a parameter group's 'params' must be an ordered iterable of parameters, got "
-                f"{type(params)}"
-            )
-        by_id = {id(p): n for n, p in self.module.named_parameters()}
-        names = []
-        for p in params:
-            if isinstance(p, tuple) and len(p) == 2:  # named_parameters()
-                p = p[1]
-            if isinstance(p, dict):
-                raise TypeError("a parameter group's 'params' must not contain dicts")
-            if not isinstance(p, Tensor) or id(p) not in by_id:
-                raise ValueError("params must contain parameters of module only")
-            names.append(by_id[id(p)])
-        if not names:
-            raise ValueError("params is empty: no parameters to train")
-        return ParameterBridge(self.module, names)
-
-    def _configure(self, g: dict, where: str) -> _Group:
-        """Resolve one group's options (validated; nothing is changed)."""
-        bridge = self._group_bridge(g["params"])
-        n, dev = bridge.numel, bridge.device
-        if g["jacobian"] not in ("auto", "rev", "fwd", "autograd"):
-            raise ValueError(
-                f"jacobian must be 'auto', 'rev', 'fwd' or 'autograd', got {g['jacobian']!r}"
-            )
-        chunk = g["chunk_size"]
-        if chunk is not None and (
-            isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1
-        ):
-            raise ValueError(f"chunk_size must be None or a positive int, got {chunk!r}")
-        filt = _resolve_filter(g["filter"], g["fading"], g["noise"])
-        _check_lr(g["lr"], filt, f"{where}['lr']")
-        P0, Q = g["P0"], g["Q"]
-        P0 = bridge.expand(P0, "P0") if isinstance(P0, dict) else P0
-        Q = bridge.expand(Q, "Q") if isinstance(Q, dict) else Q
-        chol_P0 = noise_factor(P0, n, "P0", allow_singular=False, device=dev)
-        chol_Q = noise_factor(Q, n, "Q", allow_singular=True, device=dev)
-        try:
-            R = torch.as_tensor(g["R"], dtype=torch.float64, device=dev)
-        except (TypeError, ValueError, RuntimeError) as exc:
-            raise TypeError(
-                f"R must be a number, a vector or a matrix, got {type(g['R'])}"
-            ) from exc
-        n_out = 1 if R.dim() == 0 else R.shape[0]
-        chol_R1 = noise_factor(R, n_out, "R", allow_singular=False, device=dev)
-        return _Group(bridge, filt, chol_P0, chol_Q, chol_R1, R.dim() == 0)
 
     def _setup(self) -> None:
         """Derive every group's filter and noise factors from ``param_groups`` (also after a
         load or a copy)."""
         self._cfg = [
-            self._configure(g, f"param_groups[{i}]") for i, g in enumerate(self.param_groups)
+            _configure(self.module, g, f"param_groups[{i}]")
+            for i, g in enumerate(self.param_groups)
         ]
         self._union()
         self._out_shapes: dict[tuple, torch.Size] = {}
@@ -761,99 +498,6 @@ class KalmanOptimizer(torch.optim.Optimizer):
         _check_matches(targets, "targets", b.dtype, b.device, checked)
         return x, targets, out_shape
 
-    def _chol_R(self, i: int, out_shape: torch.Size) -> Tensor:
-        """Square root of group ``i``'s measurement noise ``R / lr`` of a mini-batch."""
-        cfg = self._cfg[i]
-        lr = _check_lr(self.param_groups[i]["lr"], cfg.filter, f"param_groups[{i}]['lr']")
-        M = math.prod(out_shape)
-        hit = cfg.chol_R.get(M)
-        if hit is not None and hit[0] == lr:
-            return hit[1]
-        dev = cfg.bridge.device
-        if cfg.R_scalar:
-            S = cfg.chol_R1[0, 0] * torch.eye(M, dtype=torch.float64, device=dev)
-        else:
-            n_out = cfg.chol_R1.shape[0]
-            if len(out_shape) == 0 or out_shape[-1] != n_out:
-                raise ValueError(
-                    f"R is ({n_out}, {n_out}) per output vector, but the model output has shape "
-                    f"{tuple(out_shape)} (its last dimension must be {n_out})"
-                )
-            eye = torch.eye(M // n_out, dtype=torch.float64, device=dev)
-            S = torch.kron(eye, cfg.chol_R1.contiguous())  # block diagonal: one R per sample
-        if lr != 1.0:
-            S = S / math.sqrt(lr)
-        cfg.chol_R[M] = (lr, S)
-        return S
-
-    def _model(self, i: int, x: Tensor, out_shape: torch.Size) -> StateSpaceModel:
-        """Paper 003 Eq. 45-46 for group ``i`` and this mini-batch: random walk,
-        ``h(theta) = g(theta, x)`` (the other groups at their values in the module).
-
-        The model is built once per mini-batch shape (and rebuilt with a new ``R / lr`` when
-        ``lr`` changes); its ``h`` reads the current inputs from ``self._inputs``.
-        """
-        cfg = self._cfg[i]
-        b, chunk = cfg.bridge, self.param_groups[i]["chunk_size"]
-        key = (tuple(x.shape), tuple(out_shape))
-        self._inputs[0] = x
-        chol_R = self._chol_R(i, out_shape)
-        model = cfg.models.get(key)
-        if model is not None:
-            if model.chol_R is not chol_R:
-                model = cfg.models[key] = replace(model, chol_R=chol_R)
-            return model
-        M = math.prod(out_shape)
-        mode = self.param_groups[i]["jacobian"]
-        if mode == "auto" and not self._closed_form_applies(b, x, chunk):
-            mode = "fwd" if b.numel <= M else "autograd"
-        inputs = self._inputs
-        if self.per_run_data:  # run r evaluates g(theta_r, x_r): vmap over the runs
-            if mode == "autograd":  # reverse mode through autograd does not vmap
-                mode = "rev"
-            model = self._per_run_model(b, M, chol_R, mode, chunk)
-        elif isinstance(cfg.filter.rule, Taylor) and mode in ("auto", "autograd"):
-            # the EKF asks for h and then for its Jacobian at the same point: one pass (the
-            # learner's closed form, or forward + reverse) gives both, the Jacobian is handed
-            # over by identity of the evaluation point
-            last: list = [None, None]
-
-            def h(th, u, k):
-                out, J = b.measurement_and_jacobian(th, inputs[0], chunk_size=chunk, mode=mode)
-                last[0], last[1] = th, J
-                return out
-
-            def jac_h(th, u, k):
-                if last[0] is th:
-                    J, last[0], last[1] = last[1], None, None
-                    return J
-                return b.jacobian(th, inputs[0], mode=mode, chunk_size=chunk)
-
-            model = _random_walk_model(b, h, jac_h, M, cfg.chol_Q, chol_R)
-        else:
-
-            def h(th, u, k):
-                return b.measurement(th, inputs[0], chunk_size=chunk)
-
-            def jac_h(th, u, k):
-                return b.jacobian(th, inputs[0], mode=mode, chunk_size=chunk)
-
-            model = _random_walk_model(b, h, jac_h, M, cfg.chol_Q, chol_R)
-        cfg.models[key] = model
-        return model
-
-    def _per_run_model(self, b, M: int, chol_R, mode: str, chunk) -> StateSpaceModel:
-        """Eq. 45-46 with per-run data: ``theta`` ``(R, ..., n)``, inputs ``(R, *x)``."""
-        inputs = self._inputs
-
-        def h(th, u, k):
-            return vmap(lambda t, xr: b.measurement(t, xr, chunk_size=chunk))(th, inputs[0])
-
-        def jac_h(th, u, k):
-            return vmap(lambda t, xr: b.jacobian(t, xr, mode=mode, chunk_size=chunk))(th, inputs[0])
-
-        return _random_walk_model(b, h, jac_h, M, self._cfg[0].chol_Q, chol_R)
-
     def _engine_state(self, i: int, model: StateSpaceModel) -> FilterState:
         s = self.state[_state_key(i)]
         filt = self._cfg[i].filter
@@ -988,7 +632,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         infos = []
         with batch_statistics_only(norms):
             for i, cfg in enumerate(self._cfg):
-                model = self._model(i, x, out_shape)
+                model = step_model(self, i, x, out_shape)
                 fstate = self._engine_state(i, model)
                 key = _state_key(i)
                 k = self.state[key]["step"] + 1
@@ -1049,136 +693,12 @@ class KalmanOptimizer(torch.optim.Optimizer):
         self.compile_time = 0.0
         if not compile:
             return torch.stack([self.step(x, t).loss for x, t in zip(inputs, targets)])
-        self._check_compilable(inputs)
-        T = inputs.shape[0]
-        if T == 0:
-            raise ValueError("steps needs at least one step (T >= 1)")
-        args = (self, inputs, targets)
-        for hook in chain(
-            _global_optimizer_pre_hooks.values(), self._optimizer_step_pre_hooks.values()
-        ):
-            if hook(self, args, {}) is not None:
-                raise RuntimeError("a step pre-hook may not replace the arguments of steps()")
-        checked = self._finite_checked
-        with torch.inference_mode():
-            # the rows share their shape: row 0 stands for all in the type, shape, dtype and
-            # device checks of a step; the values are checked all at once
-            _, _, out_shape = self._check_batch(inputs[0], targets[0], True)
-            if not checked:
-                check_finite(inputs, "inputs")
-                check_finite(targets, "targets")
-            step, record = self._sequence_step(inputs.shape[1:], out_shape)
-            # the caches the traced step reads (the learner's constants, the sigma points) are
-            # filled here, outside the trace
-            s = self.state[_state_key(0)]
-            self._cfg[0].bridge.measurement(s["mean"].reshape(-1, s["mean"].shape[-1]), inputs[0])
-            if not isinstance(self._cfg[0].filter.rule, Taylor):
-                _sigma_points(self._cfg[0].filter.rule, self._cfg[0].bridge.numel, s["mean"])
-            ys = targets.reshape(T, -1)
-            if ys.dtype != torch.float64:
-                ys = ys.to(torch.float64)
-            key = _state_key(0)
-            s = self.state[key]
-            with deferred_fallbacks():
-                (mean, chol), rows = _filter_scan(
-                    step, (s["mean"], s["chol"]), ys, inputs, record=record, compile=True
-                )
-            self.compile_time = _sequence.last_compile_seconds
-            if not bool(torch.isfinite(chol).all() & torch.isfinite(mean).all()):
-                # a step needed a fallback (or the pass diverged): the eager steps decide
-                return self._steps_eager_from(s, inputs, targets)
-        with torch.inference_mode(False):
-            mean, chol = mean.clone(), chol.clone()  # ordinary tensors, as eager steps keep
-        self.state[key] = {
-            "mean": mean,
-            "chol": chol,
-            "fading": None,
-            "noise": None,
-            "step": s["step"] + T,
-        }
-        if self.runs is None:
-            self._cfg[0].bridge.assign(mean)
-        for hook in chain(
-            self._optimizer_step_post_hooks.values(), _global_optimizer_post_hooks.values()
-        ):
-            hook(self, args, {})
-        return rows["loss"]
+        return compiled_steps(self, inputs, targets)
 
     def _steps_eager_from(self, s: dict, inputs: Tensor, targets: Tensor) -> Tensor:
         """The eager steps from the state ``s`` (the compiled pass is discarded)."""
         self.state[_state_key(0)] = s
         return torch.stack([self.step(x, t).loss for x, t in zip(inputs, targets)])
-
-    def _check_compilable(self, inputs) -> None:
-        cfg = self._cfg[0] if len(self._cfg) == 1 else None
-        why = None
-        if cfg is None:
-            why = "one parameter group"
-        elif self.per_run_data:
-            why = "per_run_data=False"
-        elif (
-            cfg.filter.noise is not None
-            or cfg.filter.fading is not None
-            or cfg.filter.robust is not None
-        ):
-            why = "a filter without strong tracking, fading, noise estimator or robust bound"
-        elif tracking_batch_norms(self.module):
-            why = "no BatchNorm layer in training mode"
-        elif isinstance(cfg.filter.rule, Taylor) and not (
-            self.param_groups[0]["jacobian"] == "auto"
-            and self._closed_form_applies(cfg.bridge, inputs[0], self._chunk)
-        ):
-            why = "the learner's closed-form Jacobian for the EKF"
-        elif self._chunk is not None:
-            why = "chunk_size=None"
-        if why is not None:
-            raise ValueError(f"steps(compile=True) needs {why}; use compile=False")
-
-    def _sequence_step(self, x_shape, out_shape):
-        """The step and record functions of the compiled sequence (one per mini-batch shape and
-        ``R / lr``, kept so that later passes reuse the compiled code)."""
-        cfg = self._cfg[0]
-        chol_R = self._chol_R(0, out_shape)
-        key = ("sequence", tuple(x_shape), tuple(out_shape))
-        hit = cfg.models.get(key)
-        if hit is not None and hit[0] is chol_R:
-            return hit[1], hit[2]
-        b, filt, M, runs = cfg.bridge, cfg.filter, math.prod(out_shape), self.runs
-        chol_Q = cfg.chol_Q
-        taylor = isinstance(filt.rule, Taylor)
-
-        def step(carry, y, x, k):
-            mean, chol = carry
-            if taylor:  # h and its closed-form Jacobian from one pass, as in _model
-                last: list = [None, None]
-
-                def h(th, u, k):
-                    out, J = b.measurement_and_jacobian(th, x)
-                    last[0], last[1] = th, J
-                    return out
-
-                def jac_h(th, u, k):
-                    if last[0] is th:
-                        return last[1]
-                    return b.jacobian(th, x)
-            else:
-
-                def h(th, u, k):
-                    return b.measurement(th, x)
-
-                jac_h = None
-            model = _random_walk_model(b, h, jac_h, M, chol_Q, chol_R)
-            yy = y if runs is None else y.expand(runs, M)
-            new, info = filt._update(
-                model, FilterState(GaussianBelief(mean, chol)), yy, None, k, False
-            )
-            return (new.belief.mean, new.belief.chol), info
-
-        def record(state, info):
-            return {"loss": info.innovation.square().mean(-1)}
-
-        cfg.models[key] = (chol_R, step, record)
-        return step, record
 
     # ------------------------------------------------------------------ persistence
     def load_state_dict(self, state_dict: dict) -> None:
@@ -1226,7 +746,9 @@ class KalmanOptimizer(torch.optim.Optimizer):
                     f"{'' if i == 0 else f' with {i + 1} parameter groups'})"
                 )
             kal = conv(st[key], f"['state'][{key!r}]")
-            cfg = self._configure({**g, "params": cur["params"]}, f"state_dict param_groups[{i}]")
+            cfg = _configure(
+                self.module, {**g, "params": cur["params"]}, f"state_dict param_groups[{i}]"
+            )
             runs, n = g.get("runs"), cfg.bridge.numel
             want = (n,) if runs is None else (runs, n)
             if tuple(kal["mean"].shape) != want or tuple(kal["chol"].shape) != want + (n,):
@@ -1242,47 +764,6 @@ class KalmanOptimizer(torch.optim.Optimizer):
         if self.runs is None:
             for i, cfg in enumerate(self._cfg):
                 cfg.bridge.assign(self.state[_state_key(i)]["mean"])
-
-
-def _check_matches(x: Tensor, name: str, dtype, device, checked: bool) -> None:
-    """:func:`check_matches`; the finiteness test is skipped when the values were checked."""
-    if checked:
-        if x.dtype != dtype:
-            check_matches(x, name, dtype, device)  # raises
-        if x.device != device:
-            check_matches(x, name, dtype, device)  # raises
-        return
-    check_matches(x, name, dtype, device)
-
-
-def _random_walk_model(b: ParameterBridge, h, jac_h, M: int, chol_Q, chol_R) -> StateSpaceModel:
-    return StateSpaceModel(
-        f=None,  # Eq. 45: theta_k = theta_{k-1} + w_k (exact in the engine)
-        h=h,  # Eq. 46: t_k = g(theta_k, u_k) + v_k
-        state_dim=b.numel,
-        obs_dim=M,
-        chol_Q=chol_Q,
-        chol_R=chol_R,
-        batched=True,
-        jac_h=jac_h,
-    )
-
-
-def _call_closure(closure) -> tuple:
-    """``(inputs, targets)`` from a closure; a loss-returning closure gets an explanation."""
-    pair = closure()
-    if isinstance(pair, tuple) and len(pair) == 2:
-        return pair
-    if isinstance(pair, (int, float)) or (isinstance(pair, Tensor) and pair.numel() == 1):
-        raise TypeError(
-            "closure returned a loss; a Kalman optimiser does not minimise a scalar loss: it "
-            "updates the parameter belief from the model outputs and the targets (paper 003 "
-            "Eq. 46), which one loss value does not carry. Pass the data instead: "
-            "step(inputs, targets), or a closure returning (inputs, targets); "
-            "prognos_torch.optim.fit(module, optimizer, (X, Y)) runs the loop for either kind "
-            "of optimiser"
-        )
-    raise TypeError(f"closure must return a pair (inputs, targets), got {type(pair).__name__}")
 
 
 class EKF(KalmanOptimizer):

@@ -4,7 +4,7 @@ fault prediction, and fault probability and remaining-useful-life distributions.
 * :mod:`.learner_model`: a trained one-step predictor as an m-order state-space model
   (paper 002 Eq. 15-26).
 * :mod:`.paths`: recursive multi-step prediction, deterministic, Gaussian or as weighted sample
-  paths (paper 002 Eq. 11-14).
+  paths (paper 002 Eq. 11-14), and where the noise-free recursion settles (:func:`settle`).
 * :mod:`.forecaster`: forecasted measurements, one learner (ROS-ELM) per channel (paper 000
   Sec. 5); the ROS-ELM core is :mod:`prognos_torch.learners.ros_elm`.
 * :mod:`.fault`: n-step-ahead and rolling fault-parameter prediction (paper 000 Sec. 5).
@@ -17,7 +17,8 @@ fault prediction, and fault probability and remaining-useful-life distributions.
 * :mod:`.onset`: degradation onset (first prediction time) against a healthy baseline.
 * :mod:`.trends`: exponential, power-law and linear degradation trends as state-space models
   estimated by the filter engine; :mod:`.learner_trend`: an ELM trend trained online by the
-  Kalman optimiser; :mod:`.protocol`: the known-threshold RUL protocol of bearing studies.
+  Kalman optimiser; :mod:`.protocol`: the known-threshold RUL protocol of bearing studies
+  (:func:`last_sample_indices`: prediction times to sample indices).
 """
 
 from ..learners.ros_elm import ROSELMState, ros_elm_forecast, ros_elm_init, ros_elm_update
@@ -38,7 +39,7 @@ from .fault import (
     rolling_fault_prediction,
 )
 from .forecaster import MeasurementForecaster
-from .learner_model import learner_transition_model
+from .learner_model import learner_transition_model, window_belief
 from .learner_trend import LearnerTrendFit, TimeELM, fit_learner_trend
 from .onset import (
     ONSET_METHODS,
@@ -61,7 +62,9 @@ from .paths import (
     particle_paths,
     predict_paths,
     recursive_predict,
+    settle,
 )
+from .protocol import last_sample_indices
 from .rul import RULDistribution, fault_probability, fault_probability_gaussian, rul_distribution
 from .trends import (
     STRONG_TRACKING_BETA,
@@ -99,10 +102,13 @@ __all__ = [
     "SamplePaths",
     "gaussian_paths",
     "learner_transition_model",
+    "window_belief",
     "particle_paths",
     "predict_fault_parameter",
     "predict_paths",
     "recursive_predict",
+    "settle",
+    "last_sample_indices",
     "rolling_fault_prediction",
     "ros_elm_forecast",
     "ros_elm_init",

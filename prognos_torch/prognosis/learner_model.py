@@ -8,7 +8,8 @@
     y_s     = x_s + v_s                                              (Eq. 16 with h = x)
 
 Its Jacobian is the companion matrix whose last row is ``df/dP_s`` (Eq. 21; Eq. 25 for the
-Gaussian-kernel LS-SVR), taken by ``torch.func`` through any learner.
+Gaussian-kernel LS-SVR), taken by ``torch.func`` through any learner. A filter on this model
+starts from :func:`window_belief`, the measured window before its first measurement.
 
 By default the learner is evaluated with detached parameters through
 ``torch.func.functional_call``: the filter's beliefs carry no autograd graph to the learner (no
@@ -25,11 +26,12 @@ import torch
 from torch import Tensor, nn
 from torch.func import functional_call, jacrev, vmap
 
+from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
 from ..core.validation import check_finite, check_pos_int
 from ..learners.introspect import learner_dims, learner_dtype_device
 
-__all__ = ["learner_transition_model"]
+__all__ = ["learner_transition_model", "window_belief"]
 
 _JACOBIANS = ("autograd", "engine", "input_gradient")
 
@@ -209,3 +211,41 @@ def learner_transition_model(
         jac_h=jac_h,
     )
 
+
+def window_belief(
+    series: Tensor, end: int, m: int, std: float | Tensor, runs: int | None = None
+) -> GaussianBelief:
+    """The belief over the m-order state ``P_s`` (Eq. 15-19) from a measured window.
+
+    Mean ``series[end - m : end]`` (the ``m`` values before index ``end``, oldest first),
+    square-root covariance ``std I`` (e.g. the measurement noise: the window is measured), the
+    start of a filter whose first measurement is ``series[end]``.
+
+    Args:
+        series: ``(T,)`` the measured series.
+        end: index after the window, ``m <= end <= T``.
+        m: the embedding dimension, ``>= 1``.
+        std: standard deviation of every window element, ``>= 0`` (a number or a 0-d tensor).
+        runs: ``None``, or ``R`` to repeat the belief over ``R`` runs.
+    Returns:
+        :class:`~prognos_torch.core.belief.GaussianBelief` with mean ``(m,)`` and square-root
+        covariance ``(m, m)`` (``(R, m)``, ``(R, m, m)`` with ``runs``), copies.
+    """
+    m = check_pos_int(m, "m")
+    if not isinstance(series, Tensor) or series.dim() != 1:
+        raise ValueError(
+            f"series must be a tensor of shape (T,), got {getattr(series, 'shape', series)}"
+        )
+    if isinstance(end, bool) or not isinstance(end, int) or not m <= end <= series.shape[0]:
+        raise ValueError(
+            f"end must be an int with m={m} <= end <= T={series.shape[0]}, got {end!r}"
+        )
+    if runs is not None:
+        runs = check_pos_int(runs, "runs")
+    w = series[end - m : end]
+    chol = std * torch.eye(m, dtype=w.dtype, device=w.device)
+    if not bool(torch.isfinite(chol).all()) or bool((chol.diagonal() < 0).any()):
+        raise ValueError(f"std must be finite and >= 0, got {std!r}")
+    if runs is None:
+        return GaussianBelief(w.clone(), chol)
+    return GaussianBelief(w.expand(runs, m).clone(), chol.expand(runs, m, m).clone())

@@ -1,6 +1,7 @@
 """Recursive multi-step prediction with propagated uncertainty (paper 002, Eq. 11-14).
 
-:func:`recursive_predict` (deterministic), :func:`gaussian_paths` (the engine's
+:func:`recursive_predict` (deterministic), :func:`settle` (where the noise-free recursion of a
+model goes after many steps), :func:`gaussian_paths` (the engine's
 :func:`~prognos_torch.filters.run.forecast`, sigma points or EKF) and :func:`particle_paths`
 (weighted sample paths ``(..., N, H)`` for :func:`~prognos_torch.prognosis.rul.fault_probability`
 and :func:`~prognos_torch.prognosis.rul.rul_distribution`); :func:`predict_paths` dispatches and
@@ -42,6 +43,7 @@ __all__ = [
     "GaussianPaths",
     "SamplePaths",
     "recursive_predict",
+    "settle",
     "gaussian_paths",
     "particle_paths",
     "predict_paths",
@@ -193,6 +195,37 @@ def recursive_predict(
         out.append(nxt)
         w = shift_append(w, nxt)  # P_{k-m+j+1}
     return torch.stack(out, dim=-1)
+
+
+def settle(model: StateSpaceModel, states: Tensor, steps: int, *, k0: int = 0) -> Tensor:
+    """Where the noise-free recursion of a model goes: the state after ``steps`` transitions.
+
+    ``x_{k+1} = f(x_k, None, k + 1)`` for ``k = k0, ..., k0 + steps - 1`` from every state of
+    ``states`` (paper 002 Eq. 12-14 iterated long enough to show its attractors: a fixed point,
+    a cycle, or divergence), e.g. for an m-order learner model
+    (:func:`~prognos_torch.prognosis.learner_transition_model`) from windows of a series.
+
+    Args:
+        model: a state-space model without controls (``control_dim == 0``).
+        states: ``(..., n)`` finite start states (for a learner model: windows, oldest first).
+        steps: number of transitions, ``>= 1``.
+        k0: time index of ``states``.
+    Returns:
+        ``(..., n)`` the states after ``steps`` transitions (computed without autograd, under
+        ``torch.inference_mode``).
+    """
+    if not isinstance(model, StateSpaceModel):
+        raise TypeError(f"model must be a StateSpaceModel, got {type(model)}")
+    if model.control_dim:
+        raise ValueError(
+            f"settle iterates a model without controls, got control_dim={model.control_dim}"
+        )
+    steps = check_pos_int(steps, "steps")
+    x = check_window(states, model.state_dim, "states")
+    with torch.inference_mode():
+        for k in range(k0, k0 + steps):
+            x = model.transition(x, None, k + 1)
+    return x
 
 
 def _z_of(level: float) -> float:

@@ -19,6 +19,9 @@ alpha cone ``[(1 - alpha) r*, (1 + alpha) r*]``; overall the alpha-lambda fracti
 relative accuracy (RA) per point, CRA (the mean RA, [S10]), the prognostic horizon with the
 alpha bounds taken as a fraction of ``[onset, EoL]`` (:func:`~prognos_torch.metrics.prognostic_horizon`
 on times counted from onset), interval coverage and the median absolute error.
+
+Prediction times on a sampled series: :func:`last_sample_indices` (the newest sample at or before
+each time, each sample once).
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ __all__ = [
     "linear_slope_rul",
     "exponential_lsq_rul",
     "rul_scores",
+    "last_sample_indices",
     "PROTOCOL_FRACTIONS",
 ]
 
@@ -195,4 +199,33 @@ def rul_scores(
         cover = (r >= lo) & (r <= hi)
         out["covered"] = cover
         out["coverage"] = float(cover.to(torch.float64).mean())
+    return out
+
+
+def last_sample_indices(t, times, *, first: int = 0, tol: float = 1e-9) -> list[int]:
+    """The index of the last sample at or before each prediction time, each index once.
+
+    For every ``tp`` of ``times`` (in order) the largest ``i`` with ``t[i] <= tp + tol``; it is
+    kept when ``i >= first`` and larger than the previous kept index (times between two samples
+    map to the same sample, which is used once).
+
+    Args:
+        t: ``(T,)`` sample times, non-decreasing (a tensor or a sequence).
+        times: prediction times, increasing (a tensor, an array or a sequence).
+        first: the smallest admissible index (e.g. the first sample a filter has seen).
+        tol: slack on ``t[i] <= tp`` for times computed by accumulation (``0.1 * k``).
+    Returns:
+        The kept indices, increasing (times before ``t[first]`` are skipped).
+    """
+    ts = torch.as_tensor(t, dtype=torch.float64)
+    if ts.dim() != 1:
+        raise ValueError(f"t must have shape (T,), got {tuple(ts.shape)}")
+    out: list[int] = []
+    for tp in torch.as_tensor(times, dtype=torch.float64).flatten().tolist():
+        hit = torch.nonzero(ts <= tp + tol).flatten()
+        if hit.numel() == 0:
+            continue
+        i = int(hit[-1])
+        if i >= first and (not out or i > out[-1]):
+            out.append(i)
     return out

@@ -236,6 +236,23 @@ class RULDistribution:
         """``quantile(0.5)``; NaN when more than half of the mass is censored."""
         return self.quantile(0.5)
 
+    def binned(self, width: int) -> tuple[Tensor, Tensor]:
+        """The pmf in bins of ``width`` steps, for display: ``(support (B,), pmf (..., B))``.
+
+        ``B = max(1, H // width)`` bins of ``width`` consecutive steps (one bin of all ``H``
+        steps when ``H < width``; the last ``H - B * width`` steps are dropped); ``support`` is
+        the mean RUL of each bin's steps, ``pmf`` the mass of each bin.
+        """
+        if isinstance(width, bool) or not isinstance(width, int) or width < 1:
+            raise ValueError(f"width must be a positive int (steps per bin), got {width!r}")
+        n_bin = max(1, self.horizon // width)
+        keep = n_bin * width
+        pmf = self.pmf[..., :keep]
+        return (
+            self.support[:keep].reshape(n_bin, -1).mean(-1),
+            pmf.reshape(*pmf.shape[:-1], n_bin, -1).sum(-1),
+        )
+
     def quantile(self, q: float | Sequence[float] | Tensor) -> Tensor:
         """Lower quantile ``Q(q) = min{l in support : P(RUL <= l) >= q}``, q in (0, 1].
 

@@ -30,7 +30,7 @@ from .forecasters import (
     rul_scores,
 )
 from .matrix import Cell, Footnotes, MatrixResult, capture, run_forecaster_matrix
-from .rows import run_rows, write_rows_csv
+from .rows import method_mean, run_rows, write_rows_csv
 from .runner import (
     Study,
     StudyConfig,
@@ -45,6 +45,7 @@ from .runner import (
 )
 from .tables import (
     Stat,
+    ascending,
     fill_template,
     fmt_value,
     format_table,
@@ -52,6 +53,7 @@ from .tables import (
     summarize,
     sweep_crossing,
     sweep_table,
+    threshold_census,
 )
 
 __all__ = [
@@ -71,6 +73,9 @@ __all__ = [
     "markdown_table",
     "sweep_crossing",
     "sweep_table",
+    "threshold_census",
+    "ascending",
+    "method_mean",
     "fmt_value",
     "fill_template",
     "run_rows",

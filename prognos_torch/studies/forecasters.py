@@ -42,6 +42,7 @@ from ..prognosis import (
     predict_paths,
     recursive_predict,
     rul_distribution,
+    window_belief,
 )
 
 __all__ = [
@@ -266,9 +267,7 @@ def evaluate_alone(
 
 def _init_belief(problem: ForecastProblem, runs: int, chol_R: Tensor) -> GaussianBelief:
     """The measured window before the first target, std = the measurement noise."""
-    w0 = problem.z[problem.s0 - problem.m : problem.s0]
-    chol = chol_R[0, 0] * torch.eye(problem.m, dtype=w0.dtype, device=w0.device)
-    return GaussianBelief(_expand_runs(w0, runs).clone(), _expand_runs(chol, runs).clone())
+    return window_belief(problem.z, problem.s0, problem.m, chol_R[0, 0], runs)
 
 
 def evaluate_gaussian(

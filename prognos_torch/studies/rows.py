@@ -5,14 +5,16 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 import os
 from collections.abc import Mapping, Sequence
 
+import numpy as np
 import torch
 
 from ..io import atomic_write
 
-__all__ = ["run_rows", "write_rows_csv"]
+__all__ = ["run_rows", "write_rows_csv", "method_mean"]
 
 
 def run_rows(method: str, values: Mapping[str, object], runs: int | None = None) -> list[dict]:
@@ -49,6 +51,13 @@ def run_rows(method: str, values: Mapping[str, object], runs: int | None = None)
         }
         for i in range(runs)
     ]
+
+
+def method_mean(rows: Sequence[Mapping], method: str, key: str) -> float:
+    """The mean of ``key`` over the rows of ``method`` that have it (one per run); NaN when none
+    has it. Non-finite values are kept (a NaN or inf row makes the mean NaN or inf)."""
+    vals = [r[key] for r in rows if r["method"] == method and key in r]
+    return float(np.mean(vals)) if vals else math.nan
 
 
 def write_rows_csv(path: str | os.PathLike, rows: Sequence[Mapping]) -> None:

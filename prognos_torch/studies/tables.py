@@ -9,7 +9,9 @@ helpers turn the rows into the numbers a reader compares:
   the paper's number beside ours;
 * :func:`markdown_table`: any other block (a header and rows of cells); :func:`sweep_table`:
   a sensitivity table over the settings of one parameter;
-* :func:`fmt_value`: the number format of those tables;
+* :func:`fmt_value`: the number format of those tables; :func:`threshold_census`: how many
+  values lie below and above a threshold, and their ranges, as a reading; :func:`ascending`:
+  named values in increasing order (``"b 0.1 < a 0.3"``);
 * :func:`fill_template`: a study's readings written as a markdown template beside the script,
   filled with the numbers of the run (``str.format`` fields such as ``{bias:+.4f}``).
 """
@@ -24,6 +26,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
+import torch
 
 from .study import StudyResult
 
@@ -35,6 +38,8 @@ __all__ = [
     "sweep_table",
     "fmt_value",
     "fill_template",
+    "threshold_census",
+    "ascending",
 ]
 
 
@@ -198,3 +203,43 @@ def sweep_crossing(points: Sequence[tuple[float, float]], target: float) -> floa
         if e0 > target >= e1:
             return s0 * (s1 / s0) ** (math.log(e0 / target) / math.log(e0 / e1))
     return None
+
+
+def threshold_census(values, threshold: float, *, verb: str = "lie", digits: int = 3) -> str:
+    """How many of ``values`` lie below and at or above ``threshold``, and their ranges, as a
+    reading: ``"7 lie below 0.1 (0.052 to 0.061), 2 lie above 0.1 (0.734)"``.
+
+    Args:
+        values: ``(P,)`` finite numbers (a tensor or a sequence), e.g. where a noise-free
+            recursion settles (:func:`~prognos_torch.prognosis.settle`).
+        threshold: the dividing value (``>= threshold`` counts as above).
+        verb: the word between the count and the side (``"settle"``: "3 settle below ...").
+        digits: decimals of the ranges; a range narrower than half a unit of the last decimal
+            is written as one value.
+    Returns:
+        One phrase per non-empty side (below first), joined by ``", "``; ``""`` for no values.
+    """
+    v = torch.as_tensor(values, dtype=torch.float64).flatten()
+    if not bool(torch.isfinite(v).all()):
+        raise ValueError("values must be finite")
+    parts = []
+    for name, sel in (("below", v < threshold), ("above", v >= threshold)):
+        if bool(sel.any()):
+            lo, hi = float(v[sel].min()), float(v[sel].max())
+            span = (
+                f"{lo:.{digits}f}"
+                if hi - lo < 0.5 * 10.0**-digits
+                else f"{lo:.{digits}f} to {hi:.{digits}f}"
+            )
+            parts.append(f"{int(sel.sum())} {verb} {name} {threshold:g} ({span})")
+    return ", ".join(parts)
+
+
+def ascending(values: Mapping[str, float], spec: str = ".4f") -> str:
+    """Named values in increasing order as a reading: ``"b 0.1000 < a 0.3000"``.
+
+    Args:
+        values: ``name -> value``; equal values keep the mapping's order.
+        spec: the format of each value (``str.format`` spec, e.g. ``".5f"``).
+    """
+    return " < ".join(f"{k} {v:{spec}}" for k, v in sorted(values.items(), key=lambda kv: kv[1]))

@@ -1,0 +1,317 @@
+"""The parts of the Kalman optimiser (:mod:`prognos_torch.optim.kalman`) that are not the
+optimiser class: its step result :class:`KalmanStep`, the parsing of its options (noise factors,
+filter, parameter groups and their configuration, learning rate) and the helpers of its
+persistent state and of its step arguments.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field, fields, replace
+
+import torch
+from torch import Tensor, nn
+
+from ..adapt.noise import MovingWindow, SageHusa
+from ..adapt.strong_tracking import StrongTracking
+from ..core.linalg import tria
+from ..core.validation import check_matches
+from ..filters.gaussian import GaussianFilter, StepInfo
+from ..filters.variants import make_filter
+from .params import ParameterBridge
+
+_STATE_KEY = "kalman"
+
+
+@dataclass(frozen=True)
+class KalmanStep:
+    """What :meth:`KalmanOptimizer.step` returns (batch dims ``(R,)`` with ``runs=R``, else ``()``).
+
+    Attributes:
+        loss: mean squared innovation ``mean_j (t_j - z_j)^2`` over the measurement vector, under
+            the prior (before the update). For the EKF ``z = g(theta_{k-1}, u_k)``, so this is the
+            pre-update mean squared error; sigma-point filters use their predicted measurement.
+        info: the engine's full :class:`~prognos_torch.filters.gaussian.StepInfo` (of the
+            first parameter group).
+        infos: the :class:`StepInfo` of every parameter group (``infos[0] is info``).
+
+    With several parameter groups ``loss`` is that of the first group's update, i.e. before
+    any group of this step was updated. ``nis`` (normalised innovation squared), ``fading_factor`` (``lambda_k``, 1 without strong
+    tracking) and ``log_likelihood`` are read from ``info`` (computed on first access).
+    """
+
+    loss: Tensor
+    info: StepInfo
+    infos: tuple[StepInfo, ...] = ()
+
+    @property
+    def nis(self) -> Tensor:
+        return self.info.nis
+
+    @property
+    def fading_factor(self) -> Tensor:
+        return self.info.fading_factor
+
+    @property
+    def log_likelihood(self) -> Tensor:
+        return self.info.log_likelihood
+
+    def item(self) -> float:
+        """The loss as a Python float (mean over runs)."""
+        return float(self.loss.mean())
+
+
+# ---------------------------------------------------------------------- option parsing
+def noise_factor(value, dim: int, name: str, *, allow_singular: bool, device=None) -> Tensor:
+    """A lower square-root factor ``(dim, dim)`` float64 of a covariance given as a scalar
+    variance (``v I``), a vector of variances ``(dim,)`` (``diag(v)``) or a matrix ``(dim, dim)``.
+
+    With ``allow_singular`` a positive semi-definite matrix (e.g. ``Q = 0``) is accepted and
+    factorised through its eigen-decomposition; otherwise it must be positive definite.
+    """
+    if isinstance(value, bool):
+        raise TypeError(f"{name} must be a number or a tensor, got {value!r}")
+    try:
+        v = torch.as_tensor(value, dtype=torch.float64, device=device)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise TypeError(
+            f"{name} must be a number, a vector or a matrix, got {type(value)}"
+        ) from exc
+    if device is not None:
+        v = v.to(device)
+    if not bool(torch.isfinite(v).all()):
+        raise ValueError(f"{name} contains non-finite values")
+    strict = "> 0" if not allow_singular else ">= 0"
+    if v.dim() == 0 or v.dim() == 1:
+        if v.dim() == 1 and v.shape[0] != dim:
+            raise ValueError(
+                f"{name} as a vector of variances must have shape ({dim},), got {tuple(v.shape)}"
+            )
+        ok = (v >= 0) if allow_singular else (v > 0)
+        if not bool(ok.all()):
+            raise ValueError(f"{name} variances must be {strict}, got {value}")
+        d = v.sqrt().expand(dim) if v.dim() == 0 else v.sqrt()
+        return torch.diag_embed(d)
+    if v.dim() != 2 or tuple(v.shape) != (dim, dim):
+        raise ValueError(
+            f"{name} must be a scalar, a vector ({dim},) or a matrix ({dim}, {dim}), got shape "
+            f"{tuple(v.shape)}"
+        )
+    scale = float(v.abs().max()) if v.numel() else 0.0
+    if not bool(torch.allclose(v, v.mT, rtol=1e-10, atol=1e-12 * scale + 1e-300)):
+        raise ValueError(f"{name} must be a symmetric matrix ({dim}, {dim})")
+    L, info = torch.linalg.cholesky_ex(v)
+    if int(info) == 0:
+        return L
+    w, V = torch.linalg.eigh(0.5 * (v + v.mT))
+    if not allow_singular or bool((w < -1e-12 * max(scale, 1e-300)).any()):
+        raise ValueError(f"{name} must be positive {'semi-' if allow_singular else ''}definite")
+    return tria(V * w.clamp_min(0.0).sqrt().unsqueeze(-2))
+
+
+#: The noise estimator of the ``"imsrukf"`` optimiser (paper 003 Eq. 41 and 43, see
+#: :class:`KalmanOptimizer`): ``Q`` and ``R`` only, ``Q`` diagonal, ``R`` in the post-fit form,
+#: the prior weighted as ``k0 - 1 = 299`` earlier steps.
+OPTIMIZER_NOISE = SageHusa(estimate=("Q", "R"), diagonal=True, k0=300.0, r_form="post-fit")
+
+
+def _resolve_filter(filt, fading, noise) -> GaussianFilter:
+    if isinstance(filt, str):
+        # the optimiser face's fast path: random walk, prior factor by a Cholesky of S S^T + Q
+        base = replace(make_filter(filt), prior="cholesky")
+        if filt.lower() == "imsrukf":
+            base = replace(base, noise=OPTIMIZER_NOISE)
+    elif isinstance(filt, GaussianFilter):
+        base = filt
+    else:
+        raise TypeError(f"filter must be a filter name or a GaussianFilter, got {type(filt)}")
+    changes = {}
+    if fading is not None:
+        if fading is False:
+            changes["fading"] = None
+        elif fading is True:
+            changes["fading"] = StrongTracking()
+        elif isinstance(fading, (StrongTracking, int, float)):
+            changes["fading"] = fading
+        else:
+            raise TypeError("fading must be None, True/False, a float >= 1 or StrongTracking")
+    if noise is not None:
+        if noise is False:
+            changes["noise"] = None
+        elif noise is True:
+            changes["noise"] = SageHusa()
+        elif isinstance(noise, (SageHusa, MovingWindow)):
+            changes["noise"] = noise
+        else:
+            raise TypeError("noise must be None, True/False, SageHusa or MovingWindow")
+    return replace(base, **changes) if changes else base
+
+
+def _resolve_groups(params, module) -> tuple[nn.Module, list[dict]]:
+    """``(module, parameter groups)`` from the ``params``/``module`` arguments."""
+    if isinstance(params, nn.Module):
+        if module is not None and module is not params:
+            raise ValueError("module must be omitted or be the module passed as params")
+        return params, [{"params": ParameterBridge(params).parameters()}]
+    if module is None:
+        raise ValueError(
+            "module is required when params is an iterable of parameters or of parameter "
+            "groups (KalmanOptimizer(module.parameters(), module=module))"
+        )
+    if not isinstance(module, nn.Module):
+        raise TypeError(f"module must be a torch.nn.Module, got {type(module)}")
+    if isinstance(params, (Tensor, dict)) or not isinstance(params, Iterable):
+        raise TypeError(
+            "params must be a module, an iterable of its parameters, or an iterable of "
+            "parameter groups (dicts with a 'params' entry)"
+        )
+    items = list(params)
+    if not items:
+        raise ValueError("params is empty: no parameters to train")
+    groups = [isinstance(p, dict) for p in items]
+    if all(groups):
+        return module, [dict(g) for g in items]
+    if any(groups):
+        raise TypeError("params mixes parameters and parameter groups (dicts): give one kind")
+    return module, [{"params": items}]
+
+
+def _check_lr(lr, filt: GaussianFilter, where: str) -> float:
+    """``lr`` as a float; it scales the measurement noise of its group (``R / lr``)."""
+    if isinstance(lr, Tensor) and lr.numel() == 1:
+        lr = float(lr)
+    if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not math.isfinite(lr) or lr <= 0:
+        raise ValueError(
+            f"{where} must be a positive finite number (the learning rate divides the "
+            f"measurement noise: R / lr), got {lr!r}"
+        )
+    lr = float(lr)
+    noise = filt.noise
+    if lr != 1.0 and noise is not None and "R" in getattr(noise, "estimate", ()):
+        raise ValueError(
+            f"{where} = {lr:g}, but the group's filter estimates R itself "
+            f"({type(noise).__name__}, e.g. filter='imsrukf'), so a learning rate R / lr "
+            "has no meaning: keep lr = 1.0 (no learning-rate scheduler), or estimate Q only "
+            "(noise=SageHusa(estimate=('Q',), diagonal=True)), or use a filter with a fixed R"
+        )
+    return lr
+
+
+def _state_key(i: int) -> str:
+    """Key of parameter group ``i``'s filter state in ``optimizer.state``."""
+    return _STATE_KEY if i == 0 else f"{_STATE_KEY}.{i}"
+
+
+def _clone_state(obj):
+    """A copy of a frozen dataclass of tensors (``None`` stays ``None``)."""
+    if obj is None:
+        return None
+    return replace(
+        obj,
+        **{k: (v.clone() if isinstance(v, Tensor) else v) for k, v in _dataclass_dict(obj).items()},
+    )
+
+
+def _dataclass_dict(obj) -> dict | None:
+    if obj is None:
+        return None
+    return {f.name: getattr(obj, f.name) for f in fields(obj)}
+
+
+@dataclass
+class _Group:
+    """What one parameter group's options resolve to (rebuilt after ``load_state_dict``)."""
+
+    bridge: ParameterBridge
+    filter: GaussianFilter
+    chol_P0: Tensor
+    chol_Q: Tensor
+    chol_R1: Tensor
+    R_scalar: bool
+    chol_R: dict = field(default_factory=dict)  # M -> (lr, factor of R / lr, (M, M))
+    models: dict = field(default_factory=dict)  # (input shape, output shape) -> model
+
+
+def _group_bridge(module: nn.Module, params) -> ParameterBridge:
+    """The bridge of a group's parameters (which must be parameters of ``module``)."""
+    if isinstance(params, Tensor):
+        params = [params]
+    elif isinstance(params, nn.Module):
+        raise TypeError(
+            "a parameter group's 'params' must be parameters (e.g. "
+            "module.layer.parameters()), got a module"
+        )
+    elif isinstance(params, (set, dict, str)) or not isinstance(params, Iterable):
+        raise TypeError(
+            f"a parameter group's 'params' must be an ordered iterable of parameters, got "
+            f"{type(params)}"
+        )
+    by_id = {id(p): n for n, p in module.named_parameters()}
+    names = []
+    for p in params:
+        if isinstance(p, tuple) and len(p) == 2:  # named_parameters()
+            p = p[1]
+        if isinstance(p, dict):
+            raise TypeError("a parameter group's 'params' must not contain dicts")
+        if not isinstance(p, Tensor) or id(p) not in by_id:
+            raise ValueError("params must contain parameters of module only")
+        names.append(by_id[id(p)])
+    if not names:
+        raise ValueError("params is empty: no parameters to train")
+    return ParameterBridge(module, names)
+
+
+def _configure(module: nn.Module, g: dict, where: str) -> _Group:
+    """Resolve one group's options (validated; nothing is changed)."""
+    bridge = _group_bridge(module, g["params"])
+    n, dev = bridge.numel, bridge.device
+    if g["jacobian"] not in ("auto", "rev", "fwd", "autograd"):
+        raise ValueError(
+            f"jacobian must be 'auto', 'rev', 'fwd' or 'autograd', got {g['jacobian']!r}"
+        )
+    chunk = g["chunk_size"]
+    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
+        raise ValueError(f"chunk_size must be None or a positive int, got {chunk!r}")
+    filt = _resolve_filter(g["filter"], g["fading"], g["noise"])
+    _check_lr(g["lr"], filt, f"{where}['lr']")
+    P0, Q = g["P0"], g["Q"]
+    P0 = bridge.expand(P0, "P0") if isinstance(P0, dict) else P0
+    Q = bridge.expand(Q, "Q") if isinstance(Q, dict) else Q
+    chol_P0 = noise_factor(P0, n, "P0", allow_singular=False, device=dev)
+    chol_Q = noise_factor(Q, n, "Q", allow_singular=True, device=dev)
+    try:
+        R = torch.as_tensor(g["R"], dtype=torch.float64, device=dev)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise TypeError(f"R must be a number, a vector or a matrix, got {type(g['R'])}") from exc
+    n_out = 1 if R.dim() == 0 else R.shape[0]
+    chol_R1 = noise_factor(R, n_out, "R", allow_singular=False, device=dev)
+    return _Group(bridge, filt, chol_P0, chol_Q, chol_R1, R.dim() == 0)
+
+
+def _check_matches(x: Tensor, name: str, dtype, device, checked: bool) -> None:
+    """:func:`check_matches`; the finiteness test is skipped when the values were checked."""
+    if checked:
+        if x.dtype != dtype:
+            check_matches(x, name, dtype, device)  # raises
+        if x.device != device:
+            check_matches(x, name, dtype, device)  # raises
+        return
+    check_matches(x, name, dtype, device)
+
+
+def _call_closure(closure) -> tuple:
+    """``(inputs, targets)`` from a closure; a loss-returning closure gets an explanation."""
+    pair = closure()
+    if isinstance(pair, tuple) and len(pair) == 2:
+        return pair
+    if isinstance(pair, (int, float)) or (isinstance(pair, Tensor) and pair.numel() == 1):
+        raise TypeError(
+            "closure returned a loss; a Kalman optimiser does not minimise a scalar loss: it "
+            "updates the parameter belief from the model outputs and the targets (paper 003 "
+            "Eq. 46), which one loss value does not carry. Pass the data instead: "
+            "step(inputs, targets), or a closure returning (inputs, targets); "
+            "prognos_torch.optim.fit(module, optimizer, (X, Y)) runs the loop for either kind "
+            "of optimiser"
+        )
+    raise TypeError(f"closure must return a pair (inputs, targets), got {type(pair).__name__}")

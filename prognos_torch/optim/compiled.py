@@ -1,0 +1,164 @@
+"""The compiled sequence pass of the Kalman optimiser: ``KalmanOptimizer.steps(...,
+compile=True)``.
+
+``T`` optimiser steps (paper 003 Eq. 45-46, one engine step each) run as ONE
+``torch.compile(fullgraph=True)`` call, the loop a traced :func:`~prognos_torch.filters.scan`
+over the same engine step (:meth:`GaussianFilter.step`) that an eager step calls. The functions
+take the optimiser (a :class:`~prognos_torch.optim.kalman.KalmanOptimizer`) and read its
+configuration and state; :meth:`KalmanOptimizer.steps` delegates here.
+"""
+
+from __future__ import annotations
+
+import math
+from itertools import chain
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+from torch.optim.optimizer import _global_optimizer_post_hooks, _global_optimizer_pre_hooks
+
+from ..core.belief import GaussianBelief
+from ..core.validation import check_finite
+from ..filters import sequence as _sequence
+from ..filters.gaussian import FilterState, Taylor, _sigma_points, deferred_fallbacks
+from ..filters.sequence import scan as _filter_scan
+from ._buffers import tracking_batch_norms
+from ._kalman_common import _state_key
+from ._step_model import _random_walk_model, measurement_noise
+
+if TYPE_CHECKING:
+    from .kalman import KalmanOptimizer
+
+__all__ = ["compiled_steps", "check_compilable", "sequence_step"]
+
+
+def compiled_steps(opt: KalmanOptimizer, inputs: Tensor, targets: Tensor) -> Tensor:
+    """``opt.steps(inputs, targets, compile=True)`` after its argument checks: inputs ``(T, *x)``,
+    targets ``(T, *out)``; returns the ``(T,)`` (or ``(T, R)``) losses. Sets
+    ``opt.compile_time``; a pass that needed a fallback (non-finite result) is discarded and
+    the steps rerun eagerly (``opt._steps_eager_from``)."""
+    check_compilable(opt, inputs)
+    T = inputs.shape[0]
+    if T == 0:
+        raise ValueError("steps needs at least one step (T >= 1)")
+    args = (opt, inputs, targets)
+    for hook in chain(_global_optimizer_pre_hooks.values(), opt._optimizer_step_pre_hooks.values()):
+        if hook(opt, args, {}) is not None:
+            raise RuntimeError("a step pre-hook may not replace the arguments of steps()")
+    checked = opt._finite_checked
+    with torch.inference_mode():
+        # the rows share their shape: row 0 stands for all in the type, shape, dtype and
+        # device checks of a step; the values are checked all at once
+        _, _, out_shape = opt._check_batch(inputs[0], targets[0], True)
+        if not checked:
+            check_finite(inputs, "inputs")
+            check_finite(targets, "targets")
+        step, record = sequence_step(opt, inputs.shape[1:], out_shape)
+        # the caches the traced step reads (the learner's constants, the sigma points) are
+        # filled here, outside the trace
+        s = opt.state[_state_key(0)]
+        opt._cfg[0].bridge.measurement(s["mean"].reshape(-1, s["mean"].shape[-1]), inputs[0])
+        if not isinstance(opt._cfg[0].filter.rule, Taylor):
+            _sigma_points(opt._cfg[0].filter.rule, opt._cfg[0].bridge.numel, s["mean"])
+        ys = targets.reshape(T, -1)
+        if ys.dtype != torch.float64:
+            ys = ys.to(torch.float64)
+        key = _state_key(0)
+        s = opt.state[key]
+        with deferred_fallbacks():
+            (mean, chol), rows = _filter_scan(
+                step, (s["mean"], s["chol"]), ys, inputs, record=record, compile=True
+            )
+        opt.compile_time = _sequence.last_compile_seconds
+        if not bool(torch.isfinite(chol).all() & torch.isfinite(mean).all()):
+            # a step needed a fallback (or the pass diverged): the eager steps decide
+            return opt._steps_eager_from(s, inputs, targets)
+    with torch.inference_mode(False):
+        mean, chol = mean.clone(), chol.clone()  # ordinary tensors, as eager steps keep
+    opt.state[key] = {
+        "mean": mean,
+        "chol": chol,
+        "fading": None,
+        "noise": None,
+        "step": s["step"] + T,
+    }
+    if opt.runs is None:
+        opt._cfg[0].bridge.assign(mean)
+    for hook in chain(
+        opt._optimizer_step_post_hooks.values(), _global_optimizer_post_hooks.values()
+    ):
+        hook(opt, args, {})
+    return rows["loss"]
+
+
+def check_compilable(opt: KalmanOptimizer, inputs: Tensor) -> None:
+    """Raise a ``ValueError`` naming what ``steps(compile=True)`` needs that ``opt`` lacks."""
+    cfg = opt._cfg[0] if len(opt._cfg) == 1 else None
+    why = None
+    if cfg is None:
+        why = "one parameter group"
+    elif opt.per_run_data:
+        why = "per_run_data=False"
+    elif (
+        cfg.filter.noise is not None
+        or cfg.filter.fading is not None
+        or cfg.filter.robust is not None
+    ):
+        why = "a filter without strong tracking, fading, noise estimator or robust bound"
+    elif tracking_batch_norms(opt.module):
+        why = "no BatchNorm layer in training mode"
+    elif isinstance(cfg.filter.rule, Taylor) and not (
+        opt.param_groups[0]["jacobian"] == "auto"
+        and opt._closed_form_applies(cfg.bridge, inputs[0], opt._chunk)
+    ):
+        why = "the learner's closed-form Jacobian for the EKF"
+    elif opt._chunk is not None:
+        why = "chunk_size=None"
+    if why is not None:
+        raise ValueError(f"steps(compile=True) needs {why}; use compile=False")
+
+
+def sequence_step(opt: KalmanOptimizer, x_shape, out_shape):
+    """The step and record functions of the compiled sequence (one per mini-batch shape and
+    ``R / lr``, kept so that later passes reuse the compiled code)."""
+    cfg = opt._cfg[0]
+    chol_R = measurement_noise(opt, 0, out_shape)
+    key = ("sequence", tuple(x_shape), tuple(out_shape))
+    hit = cfg.models.get(key)
+    if hit is not None and hit[0] is chol_R:
+        return hit[1], hit[2]
+    b, filt, M, runs = cfg.bridge, cfg.filter, math.prod(out_shape), opt.runs
+    chol_Q = cfg.chol_Q
+    taylor = isinstance(filt.rule, Taylor)
+
+    def step(carry, y, x, k):
+        mean, chol = carry
+        if taylor:  # h and its closed-form Jacobian from one pass, as in step_model
+            last: list = [None, None]
+
+            def h(th, u, k):
+                out, J = b.measurement_and_jacobian(th, x)
+                last[0], last[1] = th, J
+                return out
+
+            def jac_h(th, u, k):
+                if last[0] is th:
+                    return last[1]
+                return b.jacobian(th, x)
+        else:
+
+            def h(th, u, k):
+                return b.measurement(th, x)
+
+            jac_h = None
+        model = _random_walk_model(b, h, jac_h, M, chol_Q, chol_R)
+        yy = y if runs is None else y.expand(runs, M)
+        new, info = filt._update(model, FilterState(GaussianBelief(mean, chol)), yy, None, k, False)
+        return (new.belief.mean, new.belief.chol), info
+
+    def record(state, info):
+        return {"loss": info.innovation.square().mean(-1)}
+
+    cfg.models[key] = (chol_R, step, record)
+    return step, record
