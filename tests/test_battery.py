@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -95,6 +96,11 @@ def test_step_into_a_buffer_and_fused_event_equal_the_plain_forms():
         assert torch.equal(battery_eod_event()(xs), v < p.VEOD)
     below = battery_voltage(t(Xv.T)) < p.VEOD
     assert bool(below.any()) and not bool(below.all())
+    # f_into is a capability of batched models only
+    with pytest.raises(ValueError, match="f_into"):
+        replace(model, batched=False)
+    with pytest.raises(ValueError, match="f_into"):
+        replace(model, f_into=1.0)
 
 
 def test_parameters_are_progpy_defaults(pp):
