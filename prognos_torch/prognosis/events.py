@@ -150,8 +150,10 @@ def simulate_to_event(
     """Propagate ``N`` samples together until each meets ``event`` (module docstring).
 
     Args:
-        model: the state-space model; its ``transition`` is called once per step on all
-            samples ``(..., N, n)``.
+        model: the state-space model; its transition is called once per step on all
+            samples ``(..., N, n)``, written into the chunk's state buffer
+            (:meth:`~prognos_torch.core.StateSpaceModel.transition_into`: the model's
+            ``f_into`` when it has one, else ``transition`` and a copy).
         x0: ``(..., N, n)`` sample states at time ``t0`` (step ``k0``); see :func:`sample_belief`.
         event: ``event(x) -> bool``, ``x`` of any leading shape ``(..., n)``, result ``(...)``:
             the sample has reached the event (e.g. :func:`~prognos_torch.systems.battery.
