@@ -13,19 +13,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 from torch.func import vmap
+from torch.optim import Optimizer
 
 from ..core.model import StateSpaceModel
 from ..filters.gaussian import Taylor
 from ._kalman_common import _check_lr
 from .params import ParameterBridge
-
-if TYPE_CHECKING:
-    from .kalman import KalmanOptimizer
 
 
 def _random_walk_model(b: ParameterBridge, h, jac_h, M: int, chol_Q, chol_R) -> StateSpaceModel:
@@ -42,7 +39,7 @@ def _random_walk_model(b: ParameterBridge, h, jac_h, M: int, chol_Q, chol_R) -> 
     )
 
 
-def measurement_noise(opt: KalmanOptimizer, i: int, out_shape: torch.Size) -> Tensor:
+def measurement_noise(opt: Optimizer, i: int, out_shape: torch.Size) -> Tensor:
     """Square root of group ``i``'s measurement noise ``R / lr`` of a mini-batch."""
     cfg = opt._cfg[i]
     lr = _check_lr(opt.param_groups[i]["lr"], cfg.filter, f"param_groups[{i}]['lr']")
@@ -68,7 +65,7 @@ def measurement_noise(opt: KalmanOptimizer, i: int, out_shape: torch.Size) -> Te
     return S
 
 
-def step_model(opt: KalmanOptimizer, i: int, x: Tensor, out_shape: torch.Size) -> StateSpaceModel:
+def step_model(opt: Optimizer, i: int, x: Tensor, out_shape: torch.Size) -> StateSpaceModel:
     """Paper 003 Eq. 45-46 for group ``i`` and this mini-batch: random walk,
     ``h(theta) = g(theta, x)`` (the other groups at their values in the module).
 
@@ -125,7 +122,7 @@ def step_model(opt: KalmanOptimizer, i: int, x: Tensor, out_shape: torch.Size) -
     return model
 
 
-def _per_run_model(opt: KalmanOptimizer, b, M: int, chol_R, mode: str, chunk) -> StateSpaceModel:
+def _per_run_model(opt: Optimizer, b, M: int, chol_R, mode: str, chunk) -> StateSpaceModel:
     """Eq. 45-46 with per-run data: ``theta`` ``(R, ..., n)``, inputs ``(R, *x)``."""
     inputs = opt._inputs
 

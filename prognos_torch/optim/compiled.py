@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import math
 from itertools import chain
-from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
+from torch.optim import Optimizer
 from torch.optim.optimizer import _global_optimizer_post_hooks, _global_optimizer_pre_hooks
 
 from ..core.belief import GaussianBelief
@@ -27,13 +27,10 @@ from ._buffers import tracking_batch_norms
 from ._kalman_common import _state_key
 from ._step_model import _random_walk_model, measurement_noise
 
-if TYPE_CHECKING:
-    from .kalman import KalmanOptimizer
-
 __all__ = ["compiled_steps", "check_compilable", "sequence_step"]
 
 
-def compiled_steps(opt: KalmanOptimizer, inputs: Tensor, targets: Tensor) -> Tensor:
+def compiled_steps(opt: Optimizer, inputs: Tensor, targets: Tensor) -> Tensor:
     """``opt.steps(inputs, targets, compile=True)`` after its argument checks: inputs ``(T, *x)``,
     targets ``(T, *out)``; returns the ``(T,)`` (or ``(T, R)``) losses. Sets
     ``opt.compile_time``; a pass that needed a fallback (non-finite result) is discarded and
@@ -92,7 +89,7 @@ def compiled_steps(opt: KalmanOptimizer, inputs: Tensor, targets: Tensor) -> Ten
     return rows["loss"]
 
 
-def check_compilable(opt: KalmanOptimizer, inputs: Tensor) -> None:
+def check_compilable(opt: Optimizer, inputs: Tensor) -> None:
     """Raise a ``ValueError`` naming what ``steps(compile=True)`` needs that ``opt`` lacks."""
     cfg = opt._cfg[0] if len(opt._cfg) == 1 else None
     why = None
@@ -119,7 +116,7 @@ def check_compilable(opt: KalmanOptimizer, inputs: Tensor) -> None:
         raise ValueError(f"steps(compile=True) needs {why}; use compile=False")
 
 
-def sequence_step(opt: KalmanOptimizer, x_shape, out_shape):
+def sequence_step(opt: Optimizer, x_shape, out_shape):
     """The step and record functions of the compiled sequence (one per mini-batch shape and
     ``R / lr``, kept so that later passes reuse the compiled code)."""
     cfg = opt._cfg[0]
