@@ -2,9 +2,24 @@
 
 The filters work on many tiny matrices; OpenMP worker threads only add synchronisation cost
 there, and on a busy 2-core CI machine spinning threads slow batched QR/Cholesky calls by
-orders of magnitude. Tests therefore run torch single-threaded.
+orders of magnitude. Tests therefore run torch single-threaded, and so do the BLAS libraries
+that NumPy and SciPy load (OpenBLAS reads its thread count when it is loaded, so the variables
+are set before anything imports numpy): the LLE health indicator's ``scipy.linalg.eigh``
+rounds differently with 2 threads, and the study tests assert its numbers to 1e-6.
 """
 
-import torch
+import os
+import sys
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+if "numpy" in sys.modules:  # too late for OpenBLAS to see the setting
+    import warnings
+
+    warnings.warn(
+        "numpy was imported before tests/conftest.py; BLAS threads are not pinned", stacklevel=2
+    )
+
+import torch  # noqa: E402
 
 torch.set_num_threads(1)
