@@ -23,6 +23,7 @@ denominator is garbled in the extracted Eq. 10-11; it is Zhou's standard form).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -107,20 +108,20 @@ def fading_factor(
     HSQ = mm(H, chol_Q)
     trHQH = (HSQ * HSQ).sum((-2, -1))
     trR = (chol_R * chol_R).sum((-2, -1))
-    trN = torch.diagonal(V_new, dim1=-2, dim2=-1).sum(-1) - trHQH
+    m = V_new.shape[-1]
+    trV = V_new[..., 0, 0] if m == 1 else torch.diagonal(V_new, dim1=-2, dim2=-1).sum(-1)
+    trN = trV - trHQH
     trN = trN - (trR if cfg.beta == 1.0 else cfg.beta * trR)  # (1.0 * trR is trR)
     trM = pzz_noR_trace - trHQH
-    pos = trM > 0
-    one = torch.ones_like(trM)
-    lam0 = trN / torch.where(pos, trM, one)
-    if lam0.shape != one.shape:
-        one = torch.ones_like(lam0)
-    lam = torch.where(pos & (lam0 > 1.0), lam0, one)
+    # lambda = trN / trM where trM > 0 and the ratio exceeds 1, else 1: dividing by +inf where
+    # trM <= 0 gives 0 or NaN there, neither > 1 (the same numbers as masking twice)
+    lam0 = trN / torch.where(trM > 0, trM, math.inf)
+    lam = torch.where(lam0 > 1.0, lam0, 1.0)
     if cfg.max_factor is not None:
         lam = lam.clamp(max=cfg.max_factor)
     if not any_missing:
         return lam, StrongTrackingState(V=V_new, started=torch.ones_like(state.started))
-    lam = torch.where(missing, torch.ones_like(lam), lam)
+    lam = torch.where(missing, 1.0, lam)
     V = torch.where(missing[..., None, None], state.V, V_new)
     started = state.started | ~missing
     return lam, StrongTrackingState(V=V, started=started)

@@ -145,5 +145,6 @@ class _Setup:
     pmodel: StateSpaceModel | None
     engine_noise: Noise | None
     no_flag: Tensor  # (...) bool zeros
+    yes_flag: Tensor  # (...) bool ones
     no_count: Tensor  # (...) int64 zeros
     unit: Tensor  # (...) ones

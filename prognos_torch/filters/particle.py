@@ -121,20 +121,28 @@ def _check_leaf(v: Tensor, name: str, lead: int, want: tuple[int, ...]) -> None:
         )
 
 
+_INIT_FIELDS: dict[type, tuple[str, ...]] = {}
+
+
+def _init_fields(cls: type) -> tuple[str, ...]:
+    names = _INIT_FIELDS.get(cls)
+    if names is None:
+        names = _INIT_FIELDS[cls] = tuple(f.name for f in fields(cls) if f.init)
+    return names
+
+
 def _tree_map(fn, obj, others, name: str, leading: dict[str, int]):
     if obj is None:
         return None
     if isinstance(obj, Tensor):
-        return fn(obj, [o for o in others], leading.get(name, 0), name)
+        return fn(obj, others, leading.get(name, 0), name)
     if is_dataclass(obj) and not isinstance(obj, type):
-        kw = {}
-        for f in fields(obj):
-            if not f.init:
-                continue
-            kw[f.name] = _tree_map(
-                fn, getattr(obj, f.name), [getattr(o, f.name) for o in others], f.name, leading
-            )
-        return replace(obj, **kw)
+        cls = type(obj)
+        kw = {
+            f: _tree_map(fn, getattr(obj, f), [getattr(o, f) for o in others], f, leading)
+            for f in _init_fields(cls)
+        }
+        return cls(**kw)  # (what dataclasses.replace builds, without its field scan)
     if isinstance(obj, (int, float, bool, str)):
         return obj
     raise TypeError(f"{name}: cannot map over particles of a {type(obj).__name__}")
@@ -389,6 +397,7 @@ class ParticleFilter:
             pmodel,
             engine_noise,
             torch.zeros(bs, dtype=torch.bool, device=dev),
+            torch.ones(bs, dtype=torch.bool, device=dev),
             torch.zeros(bs, dtype=torch.long, device=dev),
             torch.ones(bs, dtype=like.dtype, device=dev),
         )
@@ -448,9 +457,10 @@ class ParticleFilter:
         ``log p(y|x) + log p(x|x_prev) - log q(x|x_prev, y)``, the carried filter state, the
         number of prior-fallback particles per run, the particles' fading factors, the engine's
         output ``eng`` and ``checks``. Without ``eng`` the engine step is run and every proposal
-        is taken to be valid; ``checks`` (proposal means, factors and log-diagonals) then go into
-        the caller's one finite test, and where it fails the caller calls again with ``eng``,
-        which tests each proposal and falls back where needed (``checks`` empty).
+        is taken to be valid; ``checks`` (proposal means, factors and log-diagonals, or ``[]``
+        when nothing is missing: the increments' finite test covers them) then go into the
+        caller's one finite test, and where it fails the caller calls again with ``eng``, which
+        tests each proposal and falls back where needed (``checks`` ``None``).
         """
         x_prev, fs = state.particles, state.proposal
         bs, N, n = state.batch_shape, state.num_particles, model.state_dim
@@ -524,7 +534,13 @@ class ParticleFilter:
                 )
             fs_step = where_particles(ok, fs_step, fs_in)
         fs_new = replace(fs_step, belief=GaussianBelief(x, fs_step.belief.chol))
-        checks = [mu.reshape(-1), L.reshape(-1), log_diag.reshape(-1)] if assume else []
+        # checks for the caller's one finite test (None: each proposal was tested). Without
+        # missing runs none are needed: x = mu + L eps with a finite eps is finite only if mu and
+        # L are, and a finite increment has a finite log q, i.e. finite log-diagonals of L (so a
+        # positive diagonal), and a finite log p(x | x_prev), so a finite x
+        checks = None
+        if assume:
+            checks = [mu.reshape(-1), L.reshape(-1), log_diag.reshape(-1)] if not fast else []
         return x, inc, fs_new, n_bad, lam_i, eng, checks
 
     def _ancestors(self, lw: Tensor, W: Tensor, generator: torch.Generator) -> Tensor:
@@ -598,7 +614,7 @@ class ParticleFilter:
             pn = _noise(model, k, bs, x_prev, self.proposal is not None)
 
         eps = torch.randn(x_prev.shape, generator=generator, dtype=dt, device=dev)
-        checks: list[Tensor] = []
+        checks: list[Tensor] | None = None
         if self.proposal is None:
             fallback = None
             fs_new = None
@@ -616,12 +632,16 @@ class ParticleFilter:
         ll = torch.logsumexp(lw_un, -1)  # log sum_i W_{k-1}^i w_inc^i ~ log p(y_k | y_{1:k-1})
         # one host read: particles, increments, fading factors and the likelihood all finite
         # (a finite sum has finite terms; an overflowing one takes the exact path below)
-        parts = [x.reshape(-1), inc.reshape(-1), ll.reshape(-1)]
-        if lam_prop is not None:
-            parts += [lam_prop.reshape(-1), *checks]
-        finite = math.isfinite(float(torch.cat(parts).sum()))
+        if lam_prop is None:
+            parts = [x, inc, ll]
+        elif checks == []:  # (x is covered by inc, see _propose_gaussian)
+            parts = [inc, ll, lam_prop]
+        else:
+            parts = [x, inc, ll, lam_prop, *(checks or ())]
+        flat = [t if t.dim() == 1 else t.reshape(-1) for t in parts]
+        finite = math.isfinite(float(torch.cat(flat).sum()))
         collapsed = None
-        if not finite and self.proposal is not None and checks:
+        if not finite and self.proposal is not None and checks is not None:
             # some proposal may be invalid: test each one, with fallbacks (same engine step)
             x, inc, fs_new, fallback, lam_prop, eng, checks = self._propose_gaussian(*args, eng)
             if any_missing:
@@ -658,7 +678,8 @@ class ParticleFilter:
         # estimates (STPF step 5); zero-weight particles may be non-finite: mask them
         W = lw.exp()
         xs = x if finite else torch.where((W > 0)[..., None], x, torch.zeros_like(x))
-        mean = (W.unsqueeze(-2) @ xs).squeeze(-2)
+        # (one run: a vector-matrix product, the same numbers as the batched row product)
+        mean = W @ xs if W.dim() == 1 else (W.unsqueeze(-2) @ xs).squeeze(-2)
         d = xs - mean.unsqueeze(-2)
         cov = (d * W.unsqueeze(-1)).mT @ d
         if cov.shape[-1] > 1:  # (a 1 x 1 covariance is symmetric as it stands)
@@ -678,8 +699,12 @@ class ParticleFilter:
 
         x_w, lw_w = x, lw
         # resampling (STPF step 6): particles, weights and every per-particle Gaussian
-        do = n_eff < self.resample_threshold * N
-        n_do = int(do.sum())
+        if n_eff.dim() == 0:  # one run: one host read, no comparison and count on tensors
+            n_do = int(float(n_eff) < self.resample_threshold * N)
+            do = setup.yes_flag if n_do else setup.no_flag
+        else:
+            do = n_eff < self.resample_threshold * N
+            n_do = int(do.sum())
         if n_do:
             anc = self._ancestors(lw, W, generator)
             if n_do < do.numel():

@@ -80,7 +80,8 @@ def _cdf(w: Tensor) -> Tensor:
     # dividing by the last element makes cdf[..., -1] == 1 exactly, so every u in [0, 1) finds an
     # index < N, and zero-weight particles (flat cdf steps) are never selected (right=True).
     c = torch.cumsum(w, dim=-1)
-    return (c / c[..., -1:]).contiguous()
+    cdf = c / c[..., -1:]
+    return cdf if cdf.is_contiguous() else cdf.contiguous()
 
 
 #: From this many particles a CPU look-up uses NumPy's ``searchsorted``, which exploits sorted
@@ -103,7 +104,7 @@ def _lookup(cdf: Tensor, u: Tensor) -> Tensor:
             out[i] = np.searchsorted(c2[i], u2[i], side="right")
         idx = torch.from_numpy(out).reshape(u.shape)
     else:
-        idx = torch.searchsorted(cdf, u.contiguous(), right=True)
+        idx = torch.searchsorted(cdf, u if u.is_contiguous() else u.contiguous(), right=True)
     return idx.clamp_max(N - 1)
 
 
@@ -115,16 +116,30 @@ def _multinomial(w: Tensor, generator: torch.Generator) -> Tensor:
     return _lookup(_cdf(w), _uniform(w.shape, generator, w))
 
 
+_ARANGE: dict = {}
+
+
+def _arange(N: int, like: Tensor) -> Tensor:
+    """``arange(N)`` in ``like``'s dtype and device, kept for reuse (never written to)."""
+    key = (N, like.dtype, like.device)
+    j = _ARANGE.get(key)
+    if j is None:
+        if len(_ARANGE) > 64:
+            _ARANGE.clear()
+        j = _ARANGE[key] = torch.arange(N, dtype=like.dtype, device=like.device)
+    return j
+
+
 def _stratified(w: Tensor, generator: torch.Generator) -> Tensor:
     N = w.shape[-1]
-    j = torch.arange(N, dtype=w.dtype, device=w.device)
+    j = _arange(N, w)
     u = (j + _uniform(w.shape, generator, w)) / N
     return _lookup(_cdf(w), u.clamp_max(1.0 - torch.finfo(w.dtype).eps))
 
 
 def _systematic(w: Tensor, generator: torch.Generator) -> Tensor:
     N = w.shape[-1]
-    j = torch.arange(N, dtype=w.dtype, device=w.device)
+    j = _arange(N, w)
     u = (j + _uniform(w.shape[:-1] + (1,), generator, w)) / N
     return _lookup(_cdf(w), u.clamp_max(1.0 - torch.finfo(w.dtype).eps))
 
