@@ -71,6 +71,13 @@ class StrongTrackingState:
     started: Tensor
 
 
+def _sum_sq(A: Tensor) -> Tensor:
+    """``sum(A * A)`` over the last two dims; of a 1 x 1 ``A`` the entry of ``A * A`` (a
+    square is >= +0, so the one-element sum is that entry: the same numbers)."""
+    A2 = A * A
+    return A2[..., 0, 0] if A.shape[-2:] == (1, 1) else A2.sum((-2, -1))
+
+
 def fading_factor(
     cfg: StrongTracking,
     state: StrongTrackingState,
@@ -106,9 +113,10 @@ def fading_factor(
     if H is None:
         H = cho_solve_right(pxz.mT, chol_prior)  # Eq. 17: H = P_xz^T P^{-1}, by two solves
     HSQ = mm(H, chol_Q)
-    trHQH = (HSQ * HSQ).sum((-2, -1))
-    trR = (chol_R * chol_R).sum((-2, -1))
+    trHQH = _sum_sq(HSQ)
+    trR = _sum_sq(chol_R)
     m = V_new.shape[-1]
+    # (entries of V are >= +0: the one-element sum of a 1 x 1 V is its entry)
     trV = V_new[..., 0, 0] if m == 1 else torch.diagonal(V_new, dim1=-2, dim2=-1).sum(-1)
     trN = trV - trHQH
     trN = trN - (trR if cfg.beta == 1.0 else cfg.beta * trR)  # (1.0 * trR is trR)

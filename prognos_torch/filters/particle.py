@@ -672,15 +672,19 @@ class ParticleFilter:
                 lw = lw_un - torch.logsumexp(lw_un, -1, keepdim=True)
             else:
                 lw = lw_un - ll.unsqueeze(-1)
-        else:
-            lw = lw_un - ll.unsqueeze(-1)  # STPF step 4 (ll is logsumexp(lw_un))
+        else:  # STPF step 4 (ll is logsumexp(lw_un))
+            lw = lw_un - (ll if ll.dim() == 0 else ll.unsqueeze(-1))
 
         # estimates (STPF step 5); zero-weight particles may be non-finite: mask them
         W = lw.exp()
         xs = x if finite else torch.where((W > 0)[..., None], x, torch.zeros_like(x))
         # (one run: a vector-matrix product, the same numbers as the batched row product)
-        mean = W @ xs if W.dim() == 1 else (W.unsqueeze(-2) @ xs).squeeze(-2)
-        d = xs - mean.unsqueeze(-2)
+        if W.dim() == 1:
+            mean = W @ xs
+            d = xs - mean
+        else:
+            mean = (W.unsqueeze(-2) @ xs).squeeze(-2)
+            d = xs - mean.unsqueeze(-2)
         cov = (d * W.unsqueeze(-1)).mT @ d
         if cov.shape[-1] > 1:  # (a 1 x 1 covariance is symmetric as it stands)
             cov = 0.5 * (cov + cov.mT)
