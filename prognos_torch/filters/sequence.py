@@ -103,7 +103,13 @@ def _compiled_scan(step, state, ys: Tensor, us: Tensor | None, record):
     key = (step, record)
     fn = _COMPILED.get(key)
     if fn is None:
-        from torch._higher_order_ops.scan import scan as _hop_scan
+        try:
+            from torch._higher_order_ops.scan import scan as _hop_scan
+        except ImportError as err:  # the operator is torch's own and recent
+            raise RuntimeError(
+                f"compile=True needs torch's scan operator (torch._higher_order_ops.scan), "
+                f"which torch {torch.__version__} does not have; use compile=False"
+            ) from err
 
         def body(carry, xs):
             y, u = xs
