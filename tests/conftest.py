@@ -20,6 +20,15 @@ if "numpy" in sys.modules:  # too late for OpenBLAS to see the setting
         "numpy was imported before tests/conftest.py; BLAS threads are not pinned", stacklevel=2
     )
 
+import pytest  # noqa: E402
 import torch  # noqa: E402
 
 torch.set_num_threads(1)
+
+
+@pytest.fixture(autouse=True)
+def _seed_global_stream():
+    """Each test starts from the same global torch stream (modules draw their initial weights
+    from it), so that no test depends on what earlier tests drew; the library itself draws only
+    from explicit generators."""
+    torch.manual_seed(0)

@@ -502,11 +502,15 @@ def test_fit_early_stopping_restores_best():
     X, Y = _linear_data(N=30, d=2, seed=1)
     Xv, Yv = X[:10] + 5.0, Y[:10]  # a validation set the model cannot fit
     lin = nn.Linear(2, 1, dtype=torch.float64)
+    g = torch.Generator().manual_seed(0)  # its own initial weights, not the global stream's
+    with torch.no_grad():
+        lin.weight.copy_(torch.randn(1, 2, generator=g, dtype=torch.float64))
+        lin.bias.copy_(torch.randn(1, generator=g, dtype=torch.float64))
     opt = torch.optim.SGD(lin.parameters(), lr=0.05)
     h = fit(
         lin, opt, (X, Y), epochs=50, batch_size=30, val=(Xv, Yv), early_stopping=3, progress=False
     )
-    assert h.stopped_early and len(h.epoch) < 50
+    assert h.stopped_early and len(h.epoch) == 8  # validation error least at epoch 5
     assert h.best_epoch == len(h.epoch) - 3
     best = h.val["mae"][h.best_epoch - 1]
     with torch.no_grad():
