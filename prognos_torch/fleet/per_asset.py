@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from .trend import PaddedBatch
+from .trend import RUL_COLUMNS, PaddedBatch
 
 __all__ = ["prognose_rul"]
 
@@ -56,19 +56,7 @@ def prognose_rul(
     from ..workflow import prognose
 
     B = len(batch)
-    out = {
-        c: np.full(B, np.nan)
-        for c in (
-            "n_rows",
-            "t_last",
-            "onset_time",
-            "rul_median",
-            "rul_q05",
-            "rul_q95",
-            "p_fail_within_horizon",
-            "censored_mass",
-        )
-    }
+    out = {c: np.full(B, np.nan) for c in RUL_COLUMNS}
     flags, messages = [], []
     for b in range(B):
         n = int(batch.lengths[b])
