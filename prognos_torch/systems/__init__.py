@@ -12,6 +12,9 @@ model (see :func:`simulate_model`) and returns a :class:`SimulationResult` with 
 * :mod:`.lorenz` - Lorenz system and the Lorenz(x) series (paper 003 Eq. 47).
 * :mod:`.high_speed_train` - five-car train with actuator/coupler/sensor faults (paper 004).
 * :mod:`.battery` - equivalent-circuit battery with end of discharge (progpy's BatteryCircuit).
+* :mod:`.run_to_failure` - synthetic run-to-failure indicators from degradation processes outside
+  the trend models of :func:`~prognos_torch.workflow.prognose` (shocks, Paris-law crack growth,
+  two-phase exponential, exponential with a transient hump).
 
 Shared pieces: :mod:`.simulation` (the loop, :class:`SimulationResult`, parameter paths),
 :mod:`.noise_streams` (per-run random streams), :mod:`.integrators` (RK4, Euler). Argument
@@ -65,6 +68,12 @@ from .lorenz import (
     simulate_lorenz,
 )
 from .noise_streams import draw_run_noise
+from .run_to_failure import (
+    RUN_TO_FAILURE_FAMILIES,
+    RunToFailure,
+    run_to_failure_set,
+    simulate_run_to_failure,
+)
 from .simulation import SimulationResult, simulate_model
 from .three_tank import (
     ThreeTankParams,
@@ -124,4 +133,8 @@ __all__ = [
     "hst_model",
     "hst_fault_model",
     "simulate_hst",
+    "RUN_TO_FAILURE_FAMILIES",
+    "RunToFailure",
+    "simulate_run_to_failure",
+    "run_to_failure_set",
 ]
