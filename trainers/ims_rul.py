@@ -15,7 +15,6 @@ the recent linear slope and an exponential least-squares fit.
 
 from __future__ import annotations
 
-import math
 import time
 from pathlib import Path
 
@@ -23,20 +22,12 @@ import torch
 
 from prognos_torch.datasets import health_indicator, load_ims_features
 from prognos_torch.plots import plot_prognosis, plot_rul_trajectory
-from prognos_torch.prognosis.protocol import (
-    exponential_lsq_rul,
-    known_threshold_protocol,
-    linear_slope_rul,
-    rul_scores,
-)
 from prognos_torch.studies import Study, StudyConfig, StudyResult
-from prognos_torch.workflow import Series, fit_series, prognose, rul
+from prognos_torch.studies.rul_protocol import RUL_BASELINES, headline_table, protocol_rows
 
 MAIN = "prognose (auto)"
 METHODS = (MAIN, "prognose (exponential)", "prognose (power)", "prognose (linear)",
-           "prognose (elm)", "prognose (auto, strong tracking)", "fit_series + rul(stpf)",
-           "linear slope", "exponential LSQ")  # fmt: skip
-BASELINES = ("fit_series + rul(stpf)", "linear slope", "exponential LSQ")
+           "prognose (elm)", "prognose (auto, strong tracking)", *RUL_BASELINES)  # fmt: skip
 METRICS = ["in_cone_0.2", "in_cone_0.3", "covered", "abs_error", "rel_error", "censored"]
 
 
@@ -44,8 +35,7 @@ def series_cases(quick: bool) -> dict[str, tuple[torch.Tensor, torch.Tensor, boo
     """``{name: (days, values, held_out)}``."""
     t1 = load_ims_features(1)
     rms = t1.feature("rms")
-    cases = {"T1 B3 rms": (t1.days, rms[:, 4], False), "T1 B4 hi": None}
-    cases["T1 B4 hi"] = (*_hi(t1, 4), False)
+    cases = {"T1 B3 rms": (t1.days, rms[:, 4], False), "T1 B4 hi": (*_hi(t1, 4), False)}
     if quick:
         return cases
     cases["T1 B4 rms"] = (t1.days, rms[:, 6], False)
@@ -63,104 +53,26 @@ def _hi(features, bearing):
     return hi.days, hi.train
 
 
-def predict(method: str, t, y, pc, tp: float, seed: int) -> dict:
-    """One prediction at time ``tp`` from the data up to it: median, q05, q95, censored."""
-    sel = t <= tp
-    ts, ys = t[sel], y[sel]
-    if method.startswith("prognose"):
-        kind = method[len("prognose (") : -1]
-        filt = "stekf" if "strong tracking" in kind else "ekf"
-        res = prognose(ys, pc.threshold, time=ts, method=kind.split(",")[0], at=tp, seed=seed,
-                       filter=filt)  # fmt: skip
-        s = res.summary()
-        inf = math.inf
-        return {"pred": inf if s["median"] is None else s["median"],
-                "lo": inf if s["q05"] is None else s["q05"],
-                "hi": inf if s["q95"] is None else s["q95"],
-                "censored": s["censored_mass"], "model": res.model or res.status,
-                "result": res}  # fmt: skip
-    if method == "fit_series + rul(stpf)":
-        series = Series(ys, ts, "y", "t", "days")
-        model = fit_series(series, seed=seed)
-        res = rul(model, series, pc.threshold, filter="stpf", seed=seed)
-        s = res.summary()
-        shift = tp - float(ts[-1])
-        med = math.inf if s["median"] is None else max(s["median"] - shift, 0.0)
-        lo = math.inf if s["q05"] is None else max(s["q05"] - shift, 0.0)
-        hi = math.inf if s["q95"] is None else s["q95"] - shift
-        return {"pred": med, "lo": lo, "hi": hi, "censored": res.censored_mass, "model": "anfis"}
-    shift = tp - float(ts[-1])
-    if method == "linear slope":
-        p = linear_slope_rul(ts, ys, pc.threshold, pc.t_onset)
-    else:
-        p = exponential_lsq_rul(ts, ys, pc.threshold, pc.t_onset, pc.baseline.mean)
-    return {"pred": max(p - shift, 0.0), "lo": None, "hi": None, "censored": None, "model": ""}
-
-
 def run(cfg: StudyConfig, out: Path) -> StudyResult:
     t_start = time.perf_counter()
     torch.set_num_threads(1)
     cases = series_cases(cfg.quick)
-    methods = (MAIN, "prognose (exponential)", *BASELINES[1:]) if cfg.quick else METHODS
-    rows, panels, path_panels, per_series = [], [], [], []
-    for name, (t, y, held) in cases.items():
-        pc = known_threshold_protocol(t, y)
-        if not pc.valid:
-            per_series.append(f"| {name} | protocol not usable: {pc.reason} |")
-            continue
-        times = pc.times[::2] if cfg.quick else pc.times
-        true = pc.t_eol - times
-        preds = {m: [predict(m, t, y, pc, float(tp), cfg.seed) for tp in times] for m in methods}
-        panel = {"title": f"{name} (EoL {pc.t_eol:.2f} d)", "times": times, "true": true,
-                 "t_eol": pc.t_eol, "methods": {}}  # fmt: skip
-        for m, ps in preds.items():
-            pred = torch.tensor([p["pred"] for p in ps], dtype=torch.float64)
-            lo = None if ps[0]["lo"] is None else torch.tensor([p["lo"] for p in ps])
-            hi = None if ps[0]["hi"] is None else torch.tensor([p["hi"] for p in ps])
-            sc = rul_scores(times, true, pred, t_onset=pc.t_onset, t_eol=pc.t_eol, lower=lo,
-                            upper=hi)  # fmt: skip
-            for i, p in enumerate(ps):
-                rows.append({"run": len(rows), "method": m, "series": name, "held_out": held,
-                             "t": float(times[i]), "true_rul": float(true[i]), "pred_rul": p["pred"],
-                             "q05": p["lo"], "q95": p["hi"], "censored": p["censored"],
-                             "model": p["model"], "in_cone_0.2": float(sc["in_cone_0.2"][i]),
-                             "in_cone_0.3": float(sc["in_cone_0.3"][i]),
-                             "covered": None if lo is None else float(sc["covered"][i]),
-                             "abs_error": float(sc["abs_error"][i]),
-                             "rel_error": float(sc["rel_error"][i])})  # fmt: skip
-            per_series.append(f"| {name} | {m} | {sc['cra']:.3g} | {sc['ph_0.2']:.3g} |")
-            if m in (MAIN, "prognose (exponential)", *BASELINES):
-                panel["methods"][m] = {"pred": pred, "lo": lo, "hi": hi}
-        panels.append(panel)
-        path_panels.append((name, [p["result"] for p in preds[MAIN]], t, y))
+    methods = (MAIN, "prognose (exponential)", *RUL_BASELINES[1:]) if cfg.quick else METHODS
+    rows, panels, per_series, results = protocol_rows(
+        cases, methods, seed=cfg.seed, every=2 if cfg.quick else 1,
+        cone_methods=(MAIN, "prognose (exponential)", *RUL_BASELINES),
+    )  # fmt: skip
+    path_panels = [(n, [p["result"] for p in results[(MAIN, n)]], t, y)
+                   for n, (t, y, _) in cases.items() if (MAIN, n) in results]  # fmt: skip
     figs = _figures(out, panels, path_panels)
-    tables = [headline(rows, methods, False), headline(rows, methods, True),
+    tables = [headline_table(rows, methods, "test 1, bearings 3 and 4 (rms and health indicator)",
+                             held_out=False),
+              headline_table(rows, methods, "held-out series", held_out=True),
               "| series | method | CRA | PH (alpha = 0.2 of [onset, EoL], d) |\n|---|---|---|---|\n"
               + "\n".join(per_series)]  # fmt: skip
     return StudyResult(rows=rows, metrics=METRICS, figures=figs, notes=_notes(cfg, t_start),
                        extra_tables=tables, config={"methods": list(methods),
                                                     "series": list(cases)})  # fmt: skip
-
-
-def headline(rows: list[dict], methods, held_out: bool) -> str:
-    """alpha-lambda, coverage and the median |error| per method over the points."""
-    which = "held-out series" if held_out else "test 1, bearings 3 and 4 (rms and health indicator)"
-    head = ("| method | points | alpha-lambda 0.2 | alpha-lambda 0.3 | 90 % coverage | "
-            "median abs error (d) | mean RA |\n|---|---|---|---|---|---|---|")  # fmt: skip
-    lines = [f"**{which}**", "", head]
-    for m in methods:
-        rs = [r for r in rows if r["method"] == m and r["held_out"] == held_out]
-        if not rs:
-            continue
-        err = torch.tensor([r["abs_error"] for r in rs])
-        ra = torch.tensor([1 - r["rel_error"] for r in rs])
-        cov = [r["covered"] for r in rs if r["covered"] is not None]
-        cov_s = f"{sum(cov) / len(cov):.2f}" if cov else "—"
-        a2 = sum(r["in_cone_0.2"] for r in rs) / len(rs)
-        a3 = sum(r["in_cone_0.3"] for r in rs) / len(rs)
-        lines.append(f"| {m} | {len(rs)} | {a2:.2f} | {a3:.2f} | {cov_s} | "
-                     f"{float(err.median()):.3g} | {float(ra.mean()):.3g} |")  # fmt: skip
-    return "\n".join(lines)
 
 
 def _figures(out: Path, panels, path_panels) -> list[str]:

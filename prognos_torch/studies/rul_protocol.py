@@ -1,0 +1,158 @@
+"""RUL methods scored under the known-threshold protocol, point by point (the RUL studies).
+
+For each series, :func:`~prognos_torch.prognosis.protocol.known_threshold_protocol` gives the
+threshold, end of life, onset and prediction times; :func:`protocol_rows` predicts at each time
+from the data up to it with every method (:func:`predict_rul`) and scores the points with
+:func:`~prognos_torch.prognosis.protocol.rul_scores`; :func:`headline_table` summarises a set of
+series per method (alpha-lambda at alpha = 0.2 and 0.3, 90 % interval coverage, the median
+absolute and relative errors, the mean relative accuracy).
+
+Methods: ``"prognose (<method>)"`` for every :data:`~prognos_torch.workflow.PROGNOSE_METHODS`
+entry (``", strong tracking"`` appended: the strong-tracking EKF), and the baselines
+``"fit_series + rul(stpf)"`` (the workflow's learner forecaster and strong-tracking particle
+filter), ``"linear slope"`` and ``"exponential LSQ"``
+(:mod:`prognos_torch.prognosis.protocol`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from ..prognosis.protocol import (
+    ProtocolCase,
+    exponential_lsq_rul,
+    known_threshold_protocol,
+    linear_slope_rul,
+    rul_scores,
+)
+
+__all__ = ["RUL_BASELINES", "predict_rul", "protocol_rows", "headline_table"]
+
+RUL_BASELINES = ("fit_series + rul(stpf)", "linear slope", "exponential LSQ")
+
+
+def _inf(v) -> float:
+    return math.inf if v is None else float(v)
+
+
+def predict_rul(method: str, t: Tensor, y: Tensor, case: ProtocolCase, tp: float,
+                seed: int) -> dict:  # fmt: skip
+    """One prediction at time ``tp`` from the data ``t <= tp``.
+
+    Returns:
+        ``{"pred", "lo", "hi", "censored", "model"}`` (median, q05, q95: ``inf`` when censored;
+        ``lo``/``hi``/``censored`` ``None`` for the point baselines) and, for ``prognose``, the
+        :class:`~prognos_torch.workflow.RULResult` as ``"result"``.
+    """
+    from ..workflow import Series, fit_series, prognose, rul
+
+    sel = t <= tp
+    ts, ys = t[sel], y[sel]
+    shift = tp - float(ts[-1])
+    if method.startswith("prognose ("):
+        kind = method[len("prognose (") : -1]
+        filt = "stekf" if "strong tracking" in kind else "ekf"
+        res = prognose(ys, case.threshold, time=ts, method=kind.split(",")[0], at=tp, seed=seed,
+                       filter=filt)  # fmt: skip
+        s = res.summary()
+        return {"pred": _inf(s["median"]), "lo": _inf(s["q05"]), "hi": _inf(s["q95"]),
+                "censored": s["censored_mass"], "model": res.model or res.status,
+                "result": res}  # fmt: skip
+    if method == "fit_series + rul(stpf)":
+        series = Series(ys, ts, "y", "t", "days")
+        res = rul(fit_series(series, seed=seed), series, case.threshold, filter="stpf", seed=seed)
+        s = res.summary()
+        return {"pred": max(_inf(s["median"]) - shift, 0.0), "lo": max(_inf(s["q05"]) - shift, 0.0),
+                "hi": _inf(s["q95"]) - shift, "censored": res.censored_mass,
+                "model": "anfis"}  # fmt: skip
+    if method == "linear slope":
+        p = linear_slope_rul(ts, ys, case.threshold, case.t_onset)
+    elif method == "exponential LSQ":
+        p = exponential_lsq_rul(ts, ys, case.threshold, case.t_onset, case.baseline.mean)
+    else:
+        raise ValueError(f"unknown RUL method {method!r}")
+    return {"pred": max(p - shift, 0.0), "lo": None, "hi": None, "censored": None, "model": ""}
+
+
+def protocol_rows(
+    series: dict[str, tuple[Tensor, Tensor, bool]],
+    methods,
+    *,
+    seed: int = 0,
+    every: int = 1,
+    cone_methods=(),
+) -> tuple[list[dict], list[dict], list[str], dict]:
+    """Predict and score every method at the protocol's points of every series.
+
+    Args:
+        series: ``{name: (t, y, held_out)}``, each ``(T,)``.
+        methods: method names (module docstring).
+        seed: seeds every prediction.
+        every: use every ``every``-th prediction time (quick runs).
+        cone_methods: methods whose predictions go into the returned panels (figures).
+
+    Returns:
+        ``(rows, panels, per_series, results)``: one row per (method, series, point) with the
+        truth, prediction, interval, censored mass and scores; per series a panel dict for
+        :func:`~prognos_torch.plots.plot_rul_trajectory`; CRA and prognostic-horizon lines
+        (markdown rows, or a "protocol not usable" row); and ``{(method, name): [prediction
+        dicts]}``.
+    """
+    rows, panels, per_series, results = [], [], [], {}
+    for name, (t, y, held) in series.items():
+        pc = known_threshold_protocol(t, y)
+        if not pc.valid:
+            per_series.append(f"| {name} | protocol not usable: {pc.reason} | | |")
+            continue
+        times = pc.times[::every]
+        true = pc.t_eol - times
+        panel = {"title": f"{name} (EoL {pc.t_eol:.2f})", "times": times, "true": true,
+                 "t_eol": pc.t_eol, "methods": {}}  # fmt: skip
+        for m in methods:
+            ps = [predict_rul(m, t, y, pc, float(tp), seed) for tp in times]
+            results[(m, name)] = ps
+            pred = torch.tensor([p["pred"] for p in ps], dtype=torch.float64)
+            lo = None if ps[0]["lo"] is None else torch.tensor([p["lo"] for p in ps])
+            hi = None if ps[0]["hi"] is None else torch.tensor([p["hi"] for p in ps])
+            sc = rul_scores(times, true, pred, t_onset=pc.t_onset, t_eol=pc.t_eol, lower=lo,
+                            upper=hi)  # fmt: skip
+            for i, p in enumerate(ps):
+                rows.append({"run": len(rows), "method": m, "series": name, "held_out": held,
+                             "t": float(times[i]), "true_rul": float(true[i]), "pred_rul": p["pred"],
+                             "q05": p["lo"], "q95": p["hi"], "censored": p["censored"],
+                             "model": p["model"], "in_cone_0.2": float(sc["in_cone_0.2"][i]),
+                             "in_cone_0.3": float(sc["in_cone_0.3"][i]),
+                             "covered": None if lo is None else float(sc["covered"][i]),
+                             "abs_error": float(sc["abs_error"][i]),
+                             "rel_error": float(sc["rel_error"][i])})  # fmt: skip
+            per_series.append(f"| {name} | {m} | {sc['cra']:.3g} | {sc['ph_0.2']:.3g} |")
+            if m in cone_methods:
+                panel["methods"][m] = {"pred": pred, "lo": lo, "hi": hi}
+        panels.append(panel)
+    return rows, panels, per_series, results
+
+
+def headline_table(rows: list[dict], methods, title: str, held_out: bool | None = None) -> str:
+    """alpha-lambda, 90 % coverage, the median absolute and relative errors and the mean RA per
+    method over the rows (``held_out``: only those rows; ``None``: all)."""
+    head = ("| method | points | alpha-lambda 0.2 | alpha-lambda 0.3 | 90 % coverage | "
+            "median abs error | median rel error | mean RA |\n"
+            "|---|---|---|---|---|---|---|---|")  # fmt: skip
+    lines = [f"**{title}**", "", head]
+    for m in methods:
+        rs = [r for r in rows if r["method"] == m and held_out in (None, r["held_out"])]
+        if not rs:
+            continue
+        err = torch.tensor([r["abs_error"] for r in rs], dtype=torch.float64)
+        rel = torch.tensor([r["rel_error"] for r in rs], dtype=torch.float64)
+        cov = [r["covered"] for r in rs if r["covered"] is not None]
+        cov_s = f"{sum(cov) / len(cov):.2f}" if cov else "—"
+        a2 = sum(r["in_cone_0.2"] for r in rs) / len(rs)
+        a3 = sum(r["in_cone_0.3"] for r in rs) / len(rs)
+        lines.append(f"| {m} | {len(rs)} | {a2:.2f} | {a3:.2f} | {cov_s} | "
+                     f"{float(err.median()):.3g} | {float(rel.median()):.3g} | "
+                     f"{float((1 - rel).mean()):.3g} |")  # fmt: skip
+    return "\n".join(lines)
