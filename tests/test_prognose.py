@@ -47,15 +47,54 @@ def test_noiseless_exponential_rul_equals_the_closed_form():
     assert s["bound"] >= 2.0 * float(t[-1] - t[0])
 
 
-def test_auto_chooses_by_backtest_and_reports_the_scores():
+def test_auto_pools_exponential_and_learner_and_reports_the_scores():
     t, y = _series(noise_after=0.05)
     res = prognose(y, 3.0, time=t)
     sel = res.selection
     assert sel["pairs"] > 0 and set(sel["scores"]) == {"exponential", "power", "linear", "elm"}
-    assert res.model == sel["chosen"]
-    best = min(sel["scores"], key=sel["scores"].get)
-    assert res.model in ("exponential", best)  # the one-standard-error rule
+    assert res.model == sel["chosen"] == "exponential+elm" and sel["pool"] == ("exponential", "elm")
     assert res.summary()["median"] is not None
+    # half the paths come from each model: the pooled samples are those of the two models
+    exp = prognose(y, 3.0, time=t, method="exponential", n_paths=4000)
+    elm = prognose(y, 3.0, time=t, method="elm", n_paths=4000)
+    q = lambda r: torch.nanquantile(r.rul_samples.clamp(max=1e9), 0.5).item()  # noqa: E731
+    lo, hi = sorted((q(exp), q(elm)))
+    assert lo - 5 <= res.summary()["median"] <= hi + 5
+
+
+def test_pooled_passage_splits_the_paths():
+    from prognos_torch.prognosis.trends import Passage
+    from prognos_torch.workflow.prognose import _pooled_passage
+
+    class Fake:
+        def __init__(self, value):
+            self.value = value
+
+        def first_passage(self, index, level, grid, n, gen, *, keep=0):
+            return Passage(torch.full((n,), self.value, dtype=F64),
+                           torch.full((keep, grid.numel()), self.value, dtype=F64),
+                           torch.zeros(n, dtype=torch.bool))  # fmt: skip
+
+    grid = torch.arange(1.0, 4.0, dtype=F64)
+    p = _pooled_passage([Fake(1.0), Fake(2.0)], 0.0, grid, 2001, None)
+    assert p.times.shape == (2001,) and p.diverged.shape == (2001,)
+    assert int((p.times == 1.0).sum()) == 1001 and int((p.times == 2.0).sum()) == 1000
+    assert p.paths.shape == (100, 3) and float(p.paths[:50].max()) == 1.0
+    one = _pooled_passage([Fake(3.0)], 0.0, grid, 10, None)
+    assert one.paths.shape == (100, 3) and one.times.shape == (10,)
+
+
+def test_auto_flags_model_doubt_on_linear_wear():
+    t = torch.arange(800, dtype=F64)
+    g = torch.Generator().manual_seed(1)
+    y = 1.0 + 0.02 * torch.randn(800, generator=g, dtype=F64)
+    y = y + torch.where(t >= 400, 0.004 * (t - 400), torch.zeros_like(t))
+    res = prognose(y, 4.0, time=t)
+    assert res.model == "exponential+elm"
+    assert any(f.startswith("model doubt: the linear shape") for f in res.flags)
+    lin = prognose(y, 4.0, time=t, method="linear")
+    true = 400 + 3.0 / 0.004 - 799  # the noise-free wear reaches 4.0 at t = 1150
+    assert lin.summary()["median"] == pytest.approx(true, rel=0.1)
 
 
 def test_one_standard_error_rule_and_crps():
@@ -67,6 +106,10 @@ def test_one_standard_error_rule_and_crps():
                                      "exponential") == "power"  # fmt: skip
     assert one_standard_error_choice({"exponential": t(1, 1, 1), "power": t(0.1, 1.5, 1.2)},
                                      "exponential") == "exponential"  # fmt: skip
+    # k standard errors: d = (-0.5, -0.6, -0.4), mean -0.5, se 0.0577: beaten by 8.7 se
+    sc = {"exponential": t(1, 1, 1), "power": t(0.5, 0.4, 0.6)}
+    assert one_standard_error_choice(sc, "exponential", k=8.0) == "power"
+    assert one_standard_error_choice(sc, "exponential", k=9.0) == "exponential"
     # CRPS of a point mass at the truth is 0; of a sample spread 0 it is |log ratio|
     assert float(crps_log_time(t(2.0, 2.0, 2.0), 2.0, 100.0)) == pytest.approx(0.0, abs=1e-15)
     assert float(crps_log_time(t(4.0), 2.0, 100.0)) == pytest.approx(math.log(2.0))

@@ -132,11 +132,13 @@ class RULResult:
         status: ``"ok"``, or ``"no degradation detected yet"`` (:func:`~.prognose.prognose`
             before onset: the median and quantiles are withheld and only ``lower_bound`` holds).
         onset: the :class:`~prognos_torch.prognosis.onset.Onset` found (``prognose``).
-        model: the trend model used (``prognose``), e.g. ``"exponential"``.
+        model: the trend model used (``prognose``), e.g. ``"exponential"``, or the pooled
+            models joined by ``+`` (``"exponential+elm"``, ``method="auto"``).
         flags: warnings on the forecast (extrapolation far beyond the data, diverging paths,
             censored mass, ...), one sentence each.
         lower_bound: a lower bound on the RUL where no distribution is reported.
-        selection: backtest scores of the candidate models (``prognose(method="auto")``).
+        selection: how the noise was chosen, the backtest scores of the candidate models and
+            the models pooled (``prognose``).
         rul_samples: ``(N,)`` RUL of each path (``inf``: censored), or ``None``.
     """
 
