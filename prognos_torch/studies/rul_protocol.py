@@ -5,7 +5,8 @@ threshold, end of life, onset and prediction times; :func:`protocol_rows` predic
 from the data up to it with every method (:func:`predict_rul`) and scores the points with
 :func:`~prognos_torch.prognosis.protocol.rul_scores`; :func:`headline_table` summarises a set of
 series per method (alpha-lambda at alpha = 0.2 and 0.3, 90 % interval coverage, the median
-absolute and relative errors, the mean relative accuracy).
+absolute and relative errors, the mean relative accuracy and, for methods with RUL samples,
+the mean CRPS of the log RUL, censored at 10 x the truth).
 
 Methods: ``"prognose (<method>)"`` for every :data:`~prognos_torch.workflow.PROGNOSE_METHODS`
 entry (``", strong tracking"`` appended: the strong-tracking EKF), and the baselines
@@ -77,6 +78,17 @@ def predict_rul(method: str, t: Tensor, y: Tensor, case: ProtocolCase, tp: float
     return {"pred": max(p - shift, 0.0), "lo": None, "hi": None, "censored": None, "model": ""}
 
 
+def _crps(p: dict, true: float) -> float | None:
+    """Log-time CRPS of a prediction's RUL samples (censored at 10 x the truth), or ``None``."""
+    from ..workflow.prognose import crps_log_time
+
+    res = p.get("result")
+    if res is None or res.rul_samples is None or not true > 0:
+        return None
+    x = res.rul_samples[~torch.isnan(res.rul_samples)]
+    return float(crps_log_time(x.clamp(min=1e-12), true, 10.0 * true)) if x.numel() else None
+
+
 def protocol_rows(
     series: dict[str, tuple[Tensor, Tensor, bool]],
     methods,
@@ -127,7 +139,8 @@ def protocol_rows(
                              "in_cone_0.3": float(sc["in_cone_0.3"][i]),
                              "covered": None if lo is None else float(sc["covered"][i]),
                              "abs_error": float(sc["abs_error"][i]),
-                             "rel_error": float(sc["rel_error"][i])})  # fmt: skip
+                             "rel_error": float(sc["rel_error"][i]),
+                             "crps_log": _crps(p, float(true[i]))})  # fmt: skip
             per_series.append(f"| {name} | {m} | {sc['cra']:.3g} | {sc['ph_0.2']:.3g} |")
             if m in cone_methods:
                 panel["methods"][m] = {"pred": pred, "lo": lo, "hi": hi}
@@ -139,8 +152,8 @@ def headline_table(rows: list[dict], methods, title: str, held_out: bool | None 
     """alpha-lambda, 90 % coverage, the median absolute and relative errors and the mean RA per
     method over the rows (``held_out``: only those rows; ``None``: all)."""
     head = ("| method | points | alpha-lambda 0.2 | alpha-lambda 0.3 | 90 % coverage | "
-            "median abs error | median rel error | mean RA |\n"
-            "|---|---|---|---|---|---|---|---|")  # fmt: skip
+            "median abs error | median rel error | mean RA | mean log-time CRPS |\n"
+            "|---|---|---|---|---|---|---|---|---|")  # fmt: skip
     lines = [f"**{title}**", "", head]
     for m in methods:
         rs = [r for r in rows if r["method"] == m and held_out in (None, r["held_out"])]
@@ -152,7 +165,9 @@ def headline_table(rows: list[dict], methods, title: str, held_out: bool | None 
         cov_s = f"{sum(cov) / len(cov):.2f}" if cov else "—"
         a2 = sum(r["in_cone_0.2"] for r in rs) / len(rs)
         a3 = sum(r["in_cone_0.3"] for r in rs) / len(rs)
+        crps = [r["crps_log"] for r in rs if r.get("crps_log") is not None]
+        crps_s = f"{sum(crps) / len(crps):.3f}" if len(crps) == len(rs) else "—"
         lines.append(f"| {m} | {len(rs)} | {a2:.2f} | {a3:.2f} | {cov_s} | "
                      f"{float(err.median()):.3g} | {float(rel.median()):.3g} | "
-                     f"{float((1 - rel).mean()):.3g} |")  # fmt: skip
+                     f"{float((1 - rel).mean()):.3g} | {crps_s} |")  # fmt: skip
     return "\n".join(lines)

@@ -1,0 +1,70 @@
+"""The rul-synthetic study in quick mode: outputs, the protocol on every family, headline numbers.
+
+The predicted RULs are asserted with tolerances so that the test breaks when the results move (a
+change of generator, model, pool, seed use or protocol must show up here and in
+docs/RESULTS.md).
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from _study_helpers import quick_fixture, read_rows
+
+quick_out = quick_fixture("rul-synthetic")
+METHODS = ("prognose (auto)", "prognose (exponential)", "exponential LSQ")
+
+# Quick mode: one record per family, the 20/60/90 % points; prognose medians lie on the
+# 10-minute grid (multiples of 1/144 d), the baseline is a closed form.
+QUICK_PRED_RUL = {
+    ("prognose (auto)", "shocks 0"): [1.2152777778, 0.4791666667, 35.0347222222],
+    ("prognose (exponential)", "shocks 0"): [1.2152777778, 0.5625, 0.6319444444],
+    ("exponential LSQ", "shocks 0"): [1.1447349313, 0.360948877, 0.0],
+    ("prognose (auto)", "paris 0"): [5.7777777778, 0.8263888889, 0.2222222222],
+    ("prognose (exponential)", "paris 0"): [2.5138888889, 0.8472222222, 0.2152777778],
+    ("exponential LSQ", "paris 0"): [1.895521328, 0.9501385423, 0.2828814746],
+    ("prognose (auto)", "two_phase 0"): [8.0902777778, 1.2291666667, 0.5694444444],
+    ("prognose (exponential)", "two_phase 0"): [12.7638888889, 0.8819444444, 0.3680555556],
+    ("exponential LSQ", "two_phase 0"): [math.inf, 0.8917023371, 0.199662916],
+    ("prognose (auto)", "hump 0"): [0.3125, 1.0694444444, 0.2291666667],
+    ("prognose (exponential)", "hump 0"): [0.3541666667, 2.2291666667, 0.4097222222],
+    ("exponential LSQ", "hump 0"): [0.7011203188, 1.794311744, 0.6106250937],
+}
+
+
+def test_quick_outputs_and_headline_numbers(quick_out):
+    for name in ("table.md", "results.csv", "run.json", "rul_vs_time.png"):
+        assert (quick_out / name).stat().st_size > 0
+    rows = read_rows(quick_out)
+    assert {r["method"] for r in rows} == set(METHODS)
+    got: dict = {}
+    for r in rows:
+        got.setdefault((r["method"], r["series"]), []).append(float(r["pred_rul"]))
+        assert float(r["true_rul"]) > 0
+    assert set(got) == set(QUICK_PRED_RUL)
+    for k, ref in QUICK_PRED_RUL.items():
+        assert got[k] == pytest.approx(ref, rel=1e-6, abs=1e-12), k
+    # every prognose row carries a finite log-time CRPS and a 90 % interval
+    for r in rows:
+        if r["method"].startswith("prognose"):
+            assert math.isfinite(float(r["crps_log"])) and r["covered"] in ("0.0", "1.0")
+    table = (quick_out / "table.md").read_text()
+    assert "family: paris" in table and "mean log-time CRPS" in table
+
+
+def test_headline_table_by_hand():
+    from prognos_torch.studies.rul_protocol import headline_table
+
+    def row(m, err, rel, cone, cov, crps, held=True):
+        return {"method": m, "held_out": held, "abs_error": err, "rel_error": rel,
+                "in_cone_0.2": cone, "in_cone_0.3": cone, "covered": cov, "crps_log": crps}  # fmt: skip
+
+    rows = [row("a", 1.0, 0.1, 1.0, 1.0, 0.2), row("a", 3.0, 0.5, 0.0, 0.0, 0.4),
+            row("b", 2.0, 0.2, 1.0, None, None), row("a", 9.0, 9.0, 0.0, 1.0, 9.0, held=False)]  # fmt: skip
+    table = headline_table(rows, ["a", "b"], "t", held_out=True)
+    # a: 2 points, half in the cone, coverage 0.5, median |error| the lower median 1.0 (torch),
+    # median rel 0.1, mean RA 1 - 0.3 = 0.7, mean CRPS 0.3; b has no interval and no CRPS
+    assert "| a | 2 | 0.50 | 0.50 | 0.50 | 1 | 0.1 | 0.7 | 0.300 |" in table
+    assert "| b | 1 | 1.00 | 1.00 | — | 2 | 0.2 | 0.8 | — |" in table
+    assert "| a | 3 |" in headline_table(rows, ["a"], "t")
