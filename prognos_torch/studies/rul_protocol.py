@@ -166,7 +166,9 @@ def headline_table(rows: list[dict], methods, title: str, held_out: bool | None 
         a2 = sum(r["in_cone_0.2"] for r in rs) / len(rs)
         a3 = sum(r["in_cone_0.3"] for r in rs) / len(rs)
         crps = [r["crps_log"] for r in rs if r.get("crps_log") is not None]
-        crps_s = f"{sum(crps) / len(crps):.3f}" if len(crps) == len(rs) else "—"
+        crps_s = f"{sum(crps) / len(crps):.3f}" if crps else "—"
+        if crps and len(crps) < len(rs):  # points without samples (no degradation detected)
+            crps_s += f" ({len(crps)} of {len(rs)})"
         lines.append(f"| {m} | {len(rs)} | {a2:.2f} | {a3:.2f} | {cov_s} | "
                      f"{float(err.median()):.3g} | {float(rel.median()):.3g} | "
                      f"{float((1 - rel).mean()):.3g} | {crps_s} |")  # fmt: skip
