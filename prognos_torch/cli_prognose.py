@@ -75,7 +75,7 @@ def run_prognose(args, series, data_cfg: dict, truth=None) -> str | None:
             ("censored mass", f"{s['censored_mass']:.3f} (RUL > {_fmt(s['bound'])} {unit})"),
         ]
     else:
-        rows += [(f"lower bound ({unit})", _fmt(s["bound"]))]
+        rows += [(f"lower bound if it stays healthy ({unit})", _fmt(s["bound"]))]
     if truth is not None:
         obs = observed_rul(truth, res.t_last, res.threshold, res.direction)
         rows.append(

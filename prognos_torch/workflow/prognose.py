@@ -571,7 +571,9 @@ def _no_degradation(t, yo, thr_o, sign, base, ons, gen, t_eval, span_life, dt_da
         model=None,
         flags=(
             "no degradation detected yet: the RUL is not estimated; the bound is the 5 % "
-            "quantile of the first passage under a linear trend of the healthy data",
+            "quantile of the first passage under a linear trend of the healthy data, a bound "
+            "only while the asset stays healthy (a degradation that starts later can end "
+            "sooner)",
         ),
         lower_bound=bound,
         **common,
