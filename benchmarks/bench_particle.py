@@ -4,7 +4,7 @@ Usage::
 
     python benchmarks/bench_particle.py [--steps 500] [--large 100000] [--large-steps 20]
                                         [--repeat 3] [--threads 1] [--profile] [--no-memory]
-                                        [--no-peers]
+                                        [--no-peers] [--peers-only] [--cpu-time]
 
 Prints tables of
 
@@ -16,7 +16,9 @@ Prints tables of
   belief, same systematic resampling at ``N_eff < N / 2``, the same per-step outputs: weighted
   mean and variance, ``N_eff``, log-likelihood increment) at 10^3, 10^4 and 10^5 particles,
   timed interleaved in this process (library, NumPy, library, ...), with the speed ratio
-  ``NumPy time / library time`` (>= 1: the library is at least as fast; target >= 1);
+  ``NumPy time / library time`` (>= 1: the library is at least as fast; target >= 1). Both get
+  their measurements and model built beforehand and create their generator inside the timed
+  call (the library's ``ParticleFilter.run`` includes its input checks and the initial draw);
 * the four resamplers (:mod:`prognos_torch.filters.resampling`, public functions with their
   input checks, from log-weights) beside NumPy equivalents (``cumsum`` + ``searchsorted``),
   interleaved, with ratios;
@@ -24,6 +26,10 @@ Prints tables of
 * peak resident memory of a run at 10^5 particles (``resource.getrusage`` in a fresh child
   process, minus the child's footprint before the run);
 * with ``--profile``: where the STPF time goes (engine step, Jacobians, QR, particle side).
+
+``--peers-only`` runs the NumPy comparisons alone; ``--cpu-time`` times with the process's CPU
+time (``time.process_time``) instead of the wall clock, which on a shared machine leaves out
+the time the process waits for a core (not the slowdown other jobs cause while it runs).
 
 The model is paper 002's setting reduced to one health indicator: a slowly drifting state
 ``x_k = x_{k-1} + 0.01 sin(x_{k-1}) + w_k`` observed directly, ``y_k = x_k + v_k``, with a jump
@@ -48,6 +54,7 @@ import warnings
 import numpy as np
 import torch
 
+import prognos_torch
 from prognos_torch.core import GaussianBelief, StateSpaceModel
 from prognos_torch.filters import resampling, sir, stpf
 
@@ -168,6 +175,10 @@ def numpy_resampler(name: str, log_w: np.ndarray, rng: np.random.Generator) -> n
     return np.minimum(np.searchsorted(cdf, u, side="right"), N - 1)
 
 
+#: the clock of every timing (``--cpu-time``: ``time.process_time``)
+CLOCK = time.perf_counter
+
+
 def interleaved(fns: list, repeat: int) -> list[float]:
     """Median seconds of each function, run in turn ``repeat`` times (same machine load)."""
     times: list[list[float]] = [[] for _ in fns]
@@ -175,9 +186,9 @@ def interleaved(fns: list, repeat: int) -> list[float]:
         fn()
     for _ in range(repeat):
         for i, fn in enumerate(fns):
-            start = time.perf_counter()
+            start = CLOCK()
             fn()
-            times[i].append(time.perf_counter() - start)
+            times[i].append(CLOCK() - start)
     return [statistics.median(t) for t in times]
 
 
@@ -187,10 +198,16 @@ def sir_vs_numpy(counts: list[tuple[int, int]], repeat: int) -> None:
         f"{'N':>8}{'steps':>7}{'library s':>11}{'NumPy s':>10}{'ratio':>8}"
         f"{'lib p-steps/s':>15}{'|mean diff|':>13}"
     )
+    model = make_model("batched+jac")
+    b0 = GaussianBelief(torch.zeros(1, dtype=torch.float64), torch.eye(1, dtype=torch.float64))
     for N, T in counts:
         ys = make_data(T)
         ys_np = ys[:, 0].numpy()
-        lib = lambda N=N, T=T: one_run("SIR", "batched+jac", N, T)  # noqa: E731
+        pf = make_filter("SIR", N)
+
+        def lib(pf=pf, ys=ys):
+            return pf.run(model, b0, ys, generator=torch.Generator().manual_seed(1))
+
         peer = lambda N=N, ys_np=ys_np: numpy_sir(ys_np, N)  # noqa: E731
         t_lib, t_np = interleaved([lib, peer], repeat)
         # the two filters use different random streams: their means agree to Monte Carlo error
@@ -231,9 +248,9 @@ def resamplers_vs_numpy(sizes: list[int], repeat: int, calls: int = 20) -> None:
 def timed(fn, repeat: int) -> tuple[float, float]:
     times = []
     for _ in range(repeat):
-        start = time.perf_counter()
+        start = CLOCK()
         fn()
-        times.append(time.perf_counter() - start)
+        times.append(CLOCK() - start)
     return statistics.median(times), min(times)
 
 
@@ -334,21 +351,39 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--profile", action="store_true", help="profile the STPF run")
     parser.add_argument("--no-memory", action="store_true", help="skip the memory rows")
     parser.add_argument("--no-peers", action="store_true", help="skip the NumPy comparisons")
+    parser.add_argument("--peers-only", action="store_true", help="only the NumPy comparisons")
+    parser.add_argument("--cpu-time", action="store_true", help="time with process CPU time")
     parser.add_argument("--mid-steps", type=int, default=100, help="steps of the 10^4 runs")
     parser.add_argument(
         "--child", nargs=4, metavar=("FILTER", "MODEL", "N", "T"), help=argparse.SUPPRESS
     )
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    global CLOCK
+    CLOCK = time.process_time if args.cpu_time else time.perf_counter
     if args.child:
         name, kind, N, T = args.child
         child_memory(name, kind, int(N), int(T))
         return
 
     print(
-        f"torch {torch.__version__}, {platform.processor() or platform.machine()}, "
-        f"{os.cpu_count()} CPUs, torch threads {torch.get_num_threads()}, float64"
+        f"torch {torch.__version__}, numpy {np.__version__}, "
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+        f"torch threads {torch.get_num_threads()}, float64, load average "
+        + " ".join(f"{v:.2f}" for v in os.getloadavg())
     )
+    print(f"prognos_torch from {os.path.dirname(prognos_torch.__file__)}")
+    print(f"clock: {'process CPU time' if args.cpu_time else 'wall'}")
+    if args.peers_only:
+        counts = [
+            (args.small, args.steps),
+            (10 * args.small, args.mid_steps),
+            (args.large, args.large_steps),
+        ]
+        sir_vs_numpy(counts, args.repeat)
+        resamplers_vs_numpy([args.small, 10 * args.small, args.large], args.repeat)
+        print("\nload average at the end " + " ".join(f"{v:.2f}" for v in os.getloadavg()))
+        return
     print(
         f"\nSTPF, {args.small} particles, 1-D state, {args.steps} steps "
         "(targets: per-sample <= 1 s, batched <= 0.2 s)"
@@ -389,6 +424,8 @@ def main(argv: list[str] | None = None) -> None:
             kind = "per-sample"
             run_mib, proc_mib = memory_row(name, kind, args.large, args.large_steps, args.threads)
             print(f"{name:<6}{kind:<14}{run_mib:>9.1f}{proc_mib:>13.1f}")
+
+    print("\nload average at the end " + " ".join(f"{v:.2f}" for v in os.getloadavg()))
 
     if args.profile:
         for kind in ("per-sample", "batched+jac"):
