@@ -23,7 +23,7 @@ the pass (``History.time`` of :func:`prognos_torch.optim.fit`). Both sides run o
 every run must agree to 5 decimals between the library and each peer.
 
     python benchmarks/bench_peers.py [--repeats 3] [--runs 50] [--cache DIR] [--no-dynamax]
-        [--no-filterpy] [--no-compile]
+        [--no-filterpy] [--no-compile] [--filters srukf ekf]
 """
 
 from __future__ import annotations
@@ -150,6 +150,13 @@ def main(argv=None):
     ap.add_argument(
         "--no-compile", action="store_true", help="eager library rows only (no fit(compile=True))"
     )
+    ap.add_argument(
+        "--filters",
+        nargs="+",
+        choices=("srukf", "ekf"),
+        default=["srukf", "ekf"],
+        help="the library filters of the dynamax rows (default both)",
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     data = lorenz_data()
@@ -190,6 +197,7 @@ def main(argv=None):
         (f"SRUKF vs dynamax UKF, {args.runs} runs", "srukf", "ukf", args.runs),
         (f"EKF vs dynamax EKF, {args.runs} runs", "ekf", "ekf", args.runs),
     ]
+    rows = [row for row in rows if row[1] in args.filters]
     modes = [False] if args.no_compile else [False, True]
     print(
         f"\n{'row':34s} {'library':>8s} {'lib [s]':>8s} {'compile [s]':>11s} "

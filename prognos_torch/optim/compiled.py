@@ -19,6 +19,7 @@ from torch.optim import Optimizer
 from torch.optim.optimizer import _global_optimizer_post_hooks, _global_optimizer_pre_hooks
 
 from ..core.belief import GaussianBelief
+from ..core.model import Noise, diagonal_noise
 from ..core.validation import check_finite
 from ..filters import sequence as _sequence
 from ..filters.gaussian import FilterState, Taylor, _sigma_points, deferred_fallbacks
@@ -128,6 +129,9 @@ def sequence_step(opt: Optimizer, x_shape, out_shape):
     b, filt, M, runs = cfg.bridge, cfg.filter, math.prod(out_shape), opt.runs
     chol_Q = cfg.chol_Q
     taylor = isinstance(filt.rule, Taylor)
+    # the noise of every step, checked and its diagonal test done here, outside the trace
+    # (a traced step would form S_Q S_Q^T at every step)
+    noise = Noise(None, chol_Q, None, chol_R, diagonal_noise(chol_Q))
 
     def step(carry, y, x, k):
         mean, chol = carry
@@ -151,7 +155,8 @@ def sequence_step(opt: Optimizer, x_shape, out_shape):
             jac_h = None
         model = _random_walk_model(b, h, jac_h, M, chol_Q, chol_R)
         yy = y if runs is None else y.expand(runs, M)
-        new, info = filt._update(model, FilterState(GaussianBelief(mean, chol)), yy, None, k, False)
+        state = FilterState(GaussianBelief(mean, chol))
+        new, info = filt._update(model, state, yy, None, k, False, noise)
         return (new.belief.mean, new.belief.chol), info
 
     def record(state, info):
