@@ -136,6 +136,50 @@ def test_diagonal_noise_test_follows_the_factor():
     assert model.checked_noise(1, (), b0.mean).diag_Q is None
 
 
+@pytest.mark.parametrize("traced", [False, True])
+def test_potter_posterior_linear_kalman_reference(monkeypatch, traced):
+    # a scalar measurement of a linear random walk: Potter's posterior square root (not
+    # triangular) carries the Kalman filter's means and covariances; the priors (Cholesky of
+    # S S^T + Q) are triangular again
+    g = torch.Generator().manual_seed(11)
+    H = torch.randn(1, N, generator=g, dtype=torch.float64)
+    sq = torch.linspace(0.01, 0.3, N, dtype=torch.float64)
+    Q, R = torch.diag(sq.square()), torch.tensor([[0.04]], dtype=torch.float64)
+    model = StateSpaceModel(
+        None,
+        lambda x, u, k: x @ H.mT,
+        N,
+        1,
+        chol_Q=torch.diag(sq),
+        chol_R=R.sqrt(),
+        batched=True,
+    )
+    m0 = torch.randn(N, generator=g, dtype=torch.float64)
+    A = torch.randn(N, N, generator=g, dtype=torch.float64)
+    P0 = A @ A.mT / N + 0.1 * torch.eye(N, dtype=torch.float64)
+    ys = torch.randn(15, 1, generator=g, dtype=torch.float64)
+    eye = torch.eye(N, dtype=torch.float64)
+    ref_m, ref_P, _ = kalman_filter(*(a.numpy() for a in (eye, H, Q, R, m0, P0, ys)))
+    if traced:
+        monkeypatch.setattr(gaussian, "_no_sync", lambda: True)
+    filt = GaussianFilter(Taylor(), prior="cholesky", posterior="potter")
+    st = filt.init(model, GaussianBelief.from_cov(m0, P0))
+    for k, y in enumerate(ys, 1):
+        st, info = filt.step(model, st, y, None, k)
+        m, S = st.belief.mean, st.belief.chol
+        torch.testing.assert_close(m, torch.from_numpy(ref_m[k - 1]), rtol=0, atol=1e-12)
+        torch.testing.assert_close(S @ S.mT, torch.from_numpy(ref_P[k - 1]), rtol=0, atol=1e-12)
+        assert not torch.equal(S, S.tril())  # Potter's factor, not a downdated triangle
+        assert torch.equal(info.prior.chol, info.prior.chol.tril())
+
+
+def test_posterior_option_is_checked():
+    with pytest.raises(ValueError, match="posterior"):
+        GaussianFilter(Taylor(), posterior="qr")
+    with pytest.raises(ValueError, match="Taylor"):
+        GaussianFilter(julier(1.0), posterior="potter")
+
+
 def test_cholesky_prior_falls_back_to_qr_where_it_fails():
     # a zero factor and Q = 0: S S^T + Q = 0 has no Cholesky factor; Tria([0, 0]) = 0
     S = torch.zeros(2, N, N, dtype=torch.float64)

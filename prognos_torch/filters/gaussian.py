@@ -230,6 +230,16 @@ class GaussianFilter:
             instead of a QR of ``(n, L + n)``, 1.3-1.4 times faster at n = 44; the QR is the
             fallback wherever the Cholesky fails). The optimiser face (random walk, where
             ``A = S``) uses ``"cholesky"``; both give the same factor up to rounding.
+        posterior: the posterior square root of the square-root algebra where the measurement
+            is a scalar and ``P_xz = S Z^T`` (the Taylor rule: ``Z = H S``): ``"downdate"``
+            (the lower-triangular Cholesky downdate of paper 003 Eq. 28-29) or ``"potter"``
+            (Potter's square root ``S - beta K Z`` with ``beta = 1 / (1 + s_R / s_zz)``,
+            ``s_R^2`` the measurement noise: one O(n^2) outer product, NOT triangular; the
+            same covariance ``P - K s_zz^2 K^T``). A non-triangular posterior is only right
+            where the next step does not need a triangular one: the Taylor rule (any square
+            root gives the same moments), whose next prior (``"cholesky"``, or the QR) is
+            triangular again; the compiled optimiser pass uses it and re-triangularises the
+            final factor (one QR). Vector measurements keep the downdate.
         name: label for tables.
     """
 
@@ -240,6 +250,7 @@ class GaussianFilter:
     noise: SageHusa | MovingWindow | None = None
     robust: RobustBound | None = None
     prior: str = "qr"
+    posterior: str = "downdate"
     name: str = ""
 
     def __post_init__(self):
@@ -254,6 +265,13 @@ class GaussianFilter:
             raise ValueError("the robust update needs redraw=True (Joseph-form posterior)")
         if self.prior not in ("qr", "cholesky"):
             raise ValueError(f"prior must be 'qr' or 'cholesky', got {self.prior!r}")
+        if self.posterior not in ("downdate", "potter"):
+            raise ValueError(f"posterior must be 'downdate' or 'potter', got {self.posterior!r}")
+        if self.posterior == "potter" and not (isinstance(self.rule, Taylor) and self.sqrt):
+            raise ValueError(
+                "posterior='potter' needs the Taylor rule and sqrt=True (its factor is not "
+                "triangular: sigma points drawn from it would differ)"
+            )
 
     # ------------------------------------------------------------------ state
     def init(self, model: StateSpaceModel, belief: GaussianBelief, k: int = 0) -> FilterState:
@@ -410,14 +428,23 @@ class GaussianFilter:
             # QR of (n, L + m). Where the downdate loses precision (determinant ratio below
             # _downdate_min_ratio: a very informative measurement) the Joseph QR is used.
             W = None
-            if mom.dx_pos is prior.chol and mom.dx_neg is None:
-                # P_xz = S Z^T (EKF: Z = H S), so W = S^{-1} K S_zz = Z^T S_zz^{-T}: no
-                # n x n triangular solve
-                if Szz.shape[-1] == 1:
-                    W = mom.dz_pos.mT / Szz
-                else:
-                    W = torch.linalg.solve_triangular(Szz, mom.dz_pos, upper=False).mT
-            S, ratio = chol_downdate_ex(prior.chol, mm(K, Szz), W)
+            cross = mom.dx_pos is prior.chol and mom.dx_neg is None
+            if cross and self.posterior == "potter" and Szz.shape[-1] == 1:
+                # P - v v^T = S (I - w w^T) S^T with w = Z^T / s_zz and v = S w = K s_zz;
+                # I - w w^T = (I - beta w w^T)^2 with beta = 1 / (1 + sqrt(1 - |w|^2)), and
+                # 1 - |w|^2 = s_R^2 / s_zz^2 (the determinant ratio): S - beta K Z
+                ratio = chol_R.square().sum((-2, -1)) / Szz[..., 0, 0].square()
+                beta = 1.0 / (1.0 + ratio.sqrt())
+                S = prior.chol - (beta[..., None, None] * K) * mom.dz_pos
+            else:
+                if cross:
+                    # P_xz = S Z^T (EKF: Z = H S), so W = S^{-1} K S_zz = Z^T S_zz^{-T}: no
+                    # n x n triangular solve
+                    if Szz.shape[-1] == 1:
+                        W = mom.dz_pos.mT / Szz
+                    else:
+                        W = torch.linalg.solve_triangular(Szz, mom.dz_pos, upper=False).mT
+                S, ratio = chol_downdate_ex(prior.chol, mm(K, Szz), W)
             ok = ratio > _downdate_min_ratio(ratio.dtype)
             if not _no_sync() and bool(ok.all()):
                 return S
