@@ -23,7 +23,7 @@ the pass (``History.time`` of :func:`prognos_torch.optim.fit`). Both sides run o
 every run must agree to 5 decimals between the library and each peer.
 
     python benchmarks/bench_peers.py [--repeats 3] [--runs 50] [--cache DIR] [--no-dynamax]
-        [--no-filterpy] [--no-compile]
+        [--no-filterpy] [--no-compile] [--filters srukf ekf]
 """
 
 from __future__ import annotations
@@ -140,6 +140,48 @@ def library_pass(filt, runs, data, compile=False):
     return hist.time[0], np.atleast_1d(hist.val["mae"][-1].numpy()), hist.compile_time[0]
 
 
+def prior_floor_pass(runs, data):
+    """Time of the square-root prior ALONE over one pass, compiled: ``T`` steps of
+    ``chol(S S^T + Q)`` (the product, Q's diagonal, the LAPACK Cholesky), the engine's
+    Cholesky prior of the EKF optimiser's random walk, under the same one-loop ``scan``;
+    nothing else of the step. The floor of the square-root form against a full-covariance
+    peer (no learner, no update). Returns (time, compile time)."""
+    from prognos_torch.core.model import diagonal_noise
+    from prognos_torch.filters import scan
+    from prognos_torch.filters.gaussian import _chol_prior, deferred_fallbacks
+
+    Xtr, Ytr, _, _ = data
+    _, opt = make("ekf", runs, Xtr)
+    s = opt.state[next(iter(opt.state))]
+    chol_Q = opt._cfg[0].chol_Q
+    diag_Q = diagonal_noise(chol_Q)
+    key = ("floor", runs)
+    step = _FLOOR.get(key)
+    if step is None:
+
+        def step(carry, y, u, k):
+            (S,) = carry
+            return (_chol_prior(S, chol_Q, diag_Q),), None
+
+        _FLOOR[key] = step
+    ys = Ytr.reshape(Ytr.shape[0], -1).to(torch.float64)
+    with torch.inference_mode(), deferred_fallbacks():
+        t0 = time.perf_counter()
+        scan(step, (s["chol"],), ys, ys, record=_floor_record, compile=True)
+        dt = time.perf_counter() - t0
+    from prognos_torch.filters import sequence
+
+    c = sequence.last_compile_seconds
+    return dt - c, c
+
+
+_FLOOR: dict = {}
+
+
+def _floor_record(state, info):
+    return {"tr": state[0].diagonal(dim1=-2, dim2=-1).sum(-1)}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--repeats", type=int, default=3, help="interleaved passes per row (best)")
@@ -149,6 +191,18 @@ def main(argv=None):
     ap.add_argument("--no-filterpy", action="store_true")
     ap.add_argument(
         "--no-compile", action="store_true", help="eager library rows only (no fit(compile=True))"
+    )
+    ap.add_argument(
+        "--floor",
+        action="store_true",
+        help="also time the square-root prior alone (compiled) beside dynamax's EKF passes",
+    )
+    ap.add_argument(
+        "--filters",
+        nargs="+",
+        choices=("srukf", "ekf"),
+        default=["srukf", "ekf"],
+        help="the library filters of the dynamax rows (default both)",
     )
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
@@ -190,6 +244,7 @@ def main(argv=None):
         (f"SRUKF vs dynamax UKF, {args.runs} runs", "srukf", "ukf", args.runs),
         (f"EKF vs dynamax EKF, {args.runs} runs", "ekf", "ekf", args.runs),
     ]
+    rows = [row for row in rows if row[1] in args.filters]
     modes = [False] if args.no_compile else [False, True]
     print(
         f"\n{'row':34s} {'library':>8s} {'lib [s]':>8s} {'compile [s]':>11s} "
@@ -201,11 +256,17 @@ def main(argv=None):
         lib_c = dict.fromkeys(modes, 0.0)
         lib_mae = dict.fromkeys(modes)
         dyn_t, comp, dyn_mae = [], None, None
+        floor = args.floor and lib_name == "ekf"
+        floor_t, floor_c = [], 0.0
         for _ in range(args.repeats):  # interleaved: eager, compiled, dynamax, eager, ...
             for m in modes:
                 t, lib_mae[m], c = library_pass(lib_name, runs, data, compile=m)
                 lib_t[m].append(t)
                 lib_c[m] = max(lib_c[m], c)
+            if floor:
+                t, c = prior_floor_pass(runs, data)
+                floor_t.append(t)
+                floor_c = max(floor_c, c)
             if worker is not None:
                 ans = worker.run(dyn_name, runs or 1)
                 dyn_t.append(ans["time"])
@@ -226,6 +287,12 @@ def main(argv=None):
             )
             flag = "" if agree else "  (MAE differs at 5 decimals)"
             print(f"{head} {dt:11.4f} {dt / lt:8.2f} {comp:11.2f} {dmae:10.1e} {mae_s:>15s}{flag}")
+        if floor:
+            ft = min(floor_t)
+            tail = "" if worker is None else f" {min(dyn_t):11.4f} {min(dyn_t) / ft:8.2f}"
+            print(
+                f"{'  square-root prior alone':34s} {'compiled':>8s} {ft:8.3f} {floor_c:11.1f}{tail}"
+            )
     if worker is not None:
         worker.close()
 

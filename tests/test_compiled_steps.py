@@ -32,7 +32,7 @@ def _opt(filt, runs=None, R=1e-3):
     return model, opt
 
 
-@pytest.mark.parametrize("filt,runs", [("srukf", None), ("ekf", 3)])
+@pytest.mark.parametrize("filt,runs", [("srukf", None), ("ekf", None), ("ekf", 3)])
 def test_compiled_steps_equal_eager_steps(filt, runs):
     X, Y = _data()
     xs, ys = X.unsqueeze(1), Y.unsqueeze(1)  # mini-batches of one sample

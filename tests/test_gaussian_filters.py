@@ -291,8 +291,8 @@ def test_very_informative_measurements_match_kalman(name, monkeypatch):
 
     real = engine.chol_downdate_ex
 
-    def spy(S, V):
-        out = real(S, V)
+    def spy(S, V, W=None):
+        out = real(S, V, W)
         calls.append(float(out[1].min()))
         return out
 

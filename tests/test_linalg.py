@@ -106,3 +106,19 @@ def test_mm_equals_matmul(shapes):
     A = torch.randn(*shapes[0], generator=g, dtype=torch.float64)
     B = torch.randn(*shapes[1], generator=g, dtype=torch.float64)
     assert torch.equal(mm(A, B), A @ B)
+
+
+@pytest.mark.parametrize("n,k", [(1, 1), (5, 1), (20, 1), (20, 3)])
+def test_downdate_with_the_callers_solve_equals_the_solved_one(n, k, path):
+    # W = S^{-1} V handed over (the Kalman update knows it without a solve): the same factor
+    # and ratio as with the solve, both against the Cholesky of the formed matrix
+    g = torch.Generator().manual_seed(7 * n + k)
+    S = _spd_factor(g, 3, n=n)
+    W = 0.5 * torch.randn(3, n, k, generator=g, dtype=torch.float64) / (n * k) ** 0.5
+    V = S @ W
+    down, ratio = chol_downdate_ex(S, V)
+    given, ratio_given = chol_downdate_ex(S, V, W)
+    ref = torch.linalg.cholesky(S @ S.mT - V @ V.mT)
+    for got in (down, given):
+        torch.testing.assert_close(got, ref, rtol=0, atol=1e-12 * float(ref.abs().max()))
+    torch.testing.assert_close(ratio_given, ratio, rtol=1e-12, atol=0)

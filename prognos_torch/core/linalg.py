@@ -65,7 +65,7 @@ def mm(A: Tensor, B: Tensor) -> Tensor:
     return A @ B
 
 
-def _rank_one(S: Tensor, v: Tensor, sign: float) -> tuple[Tensor, Tensor]:
+def _rank_one(S: Tensor, v: Tensor, sign: float, w: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """``S'`` with ``S' S'^T = S S^T + sign v v^T`` in O(n^2), and ``s_n`` (see below).
 
     With ``w = S^{-1} v`` (one triangular solve), ``S S^T + sign v v^T = S (I + sign w w^T) S^T``
@@ -79,9 +79,11 @@ def _rank_one(S: Tensor, v: Tensor, sign: float) -> tuple[Tensor, Tensor]:
     which needs one reverse cumulative sum over the columns: no loop over ``j``. ``S'`` is lower
     triangular with a positive diagonal, i.e. the Cholesky factor. A downdate is valid while
     ``s_n > 0``; ``s_n`` (the ratio of the determinants after and before) is returned so the
-    caller can judge the loss of precision, which grows like ``eps / s_n``.
+    caller can judge the loss of precision, which grows like ``eps / s_n``. ``w``: ``S^{-1} v``
+    when the caller has it (then ``v`` is not read).
     """
-    w = torch.linalg.solve_triangular(S, v.unsqueeze(-1), upper=False).squeeze(-1)
+    if w is None:
+        w = torch.linalg.solve_triangular(S, v.unsqueeze(-1), upper=False).squeeze(-1)
     w2 = w * w
     c = torch.cumsum(w2, dim=-1)
     if sign < 0:
@@ -115,9 +117,9 @@ def _use_rank_one(S: Tensor, k: int) -> bool:
     return S.numel() >= _RANK_ONE_MIN_NUMEL and (k == 1 or _RANK_ONE_MIN_N_PER_RANK * k <= n)
 
 
-def _dense(S: Tensor, V: Tensor, sign: float) -> tuple[Tensor, Tensor]:
-    """``S chol(I + sign W W^T)`` with ``W = S^{-1} V``, and the determinant ratio
-    (``-1`` where the Cholesky factorisation fails)."""
+def _dense(S: Tensor, V: Tensor, sign: float, W: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """``S chol(I + sign W W^T)`` with ``W = S^{-1} V`` (given, or by a triangular solve), and
+    the determinant ratio (``-1`` where the Cholesky factorisation fails)."""
     if S.shape[-1] == 1:
         # a 1 x 1 factor (e.g. each particle's Gaussian of a 1-D state) in closed form,
         # s' = s sqrt(1 + sign sum_j (v_j / s)^2): no batched LAPACK calls on 1 x 1 matrices
@@ -128,7 +130,8 @@ def _dense(S: Tensor, V: Tensor, sign: float) -> tuple[Tensor, Tensor]:
         L = a.sqrt()  # NaN where a < 0 (a failed downdate, ratio -1 below)
         ratio = torch.where(a[..., 0, 0] > 0, (L * L)[..., 0, 0], -1.0)
         return S * L, ratio
-    W = torch.linalg.solve_triangular(S, V, upper=False)
+    if W is None:
+        W = torch.linalg.solve_triangular(S, V, upper=False)
     eye = _eye(S.shape[-1], S.dtype, S.device)
     if W.dim() == 2:
         A = torch.addmm(eye, W, W.mT, alpha=sign)
@@ -173,7 +176,7 @@ def chol_update(S: Tensor, V: Tensor) -> Tensor:
     return S
 
 
-def chol_downdate_ex(S: Tensor, V: Tensor) -> tuple[Tensor, Tensor]:
+def chol_downdate_ex(S: Tensor, V: Tensor, W: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Cholesky downdate ``S' S'^T = S S^T - V V^T`` without raising; also returns ``ratio``.
 
     ``ratio`` ``(...)`` is ``det(S' S'^T) / det(S S^T)`` (in ``(0, 1]`` for a valid downdate,
@@ -181,12 +184,18 @@ def chol_downdate_ex(S: Tensor, V: Tensor) -> tuple[Tensor, Tensor]:
     garbage there, so test ``ratio > 0``, which is false for NaN). Large factors, small ranks:
     ``k`` closed-form rank-one downdates (Gill et al. 1974, O(n^2) each); otherwise
     ``S chol(I - W W^T)`` with ``W = S^{-1} V`` (one triangular solve, one small Cholesky).
+
+    ``W`` ``(..., n, k)`` (like ``V``): ``S^{-1} V`` when the caller knows it without a solve
+    (a Kalman update whose cross-covariance is ``S Z^T``: ``W = Z^T S_zz^{-T}``); the
+    triangular solves are then skipped. Sequential rank-one steps need ``S^{-1} V`` against
+    the factor of each step, so there only the first column's ``W`` is used.
     """
     if V.dim() == S.dim() - 1:
         V = V.unsqueeze(-1)
+        W = None if W is None else W.unsqueeze(-1)
     if not _use_rank_one(S, V.shape[-1]):
-        return _dense(S, V, -1.0)
-    S, ratio = _rank_one(S, V[..., 0], -1.0)
+        return _dense(S, V, -1.0, W)
+    S, ratio = _rank_one(S, V[..., 0], -1.0, None if W is None else W[..., 0])
     for j in range(1, V.shape[-1]):
         S, r = _rank_one(S, V[..., j], -1.0)
         ratio = ratio * r

@@ -19,13 +19,19 @@ leading batch dimensions (e.g. one ``Q`` per Monte Carlo run).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 from torch import Tensor
 from torch.func import jacfwd, vmap
 
-__all__ = ["StateSpaceModel", "Noise", "joint_state_parameter_model", "linear_gaussian_model"]
+__all__ = [
+    "StateSpaceModel",
+    "Noise",
+    "diagonal_noise",
+    "joint_state_parameter_model",
+    "linear_gaussian_model",
+]
 
 Fn = Callable[[Tensor, "Tensor | None", int], Tensor]
 TensorOrFn = "Tensor | Callable[[int], Tensor]"
@@ -40,12 +46,32 @@ class Noise:
         chol_Q: process-noise square root ``(..., n, n)``.
         r: measurement-noise mean ``(..., m)`` or ``None`` (zero).
         chol_R: measurement-noise square root ``(..., m, m)``.
+        diag_Q: ``(..., n)``, the diagonal of ``Q = S_Q S_Q^T`` when ``S_Q`` is diagonal (then
+            ``Q`` is that diagonal: the Cholesky prior adds it to the diagonal of ``A A^T``
+            instead of forming ``S_Q S_Q^T``), or ``None`` (not known to be diagonal).
     """
 
     q: Tensor | None
     chol_Q: Tensor
     r: Tensor | None
     chol_R: Tensor
+    diag_Q: Tensor | None = None
+
+
+def diagonal_noise(chol_Q: Tensor) -> Tensor | None:
+    """``(..., n)`` the diagonal of ``S_Q S_Q^T`` when the factor ``chol_Q`` ``(..., n, n)`` is
+    diagonal, else ``None``. Tests the factor's entries: one host synchronisation, for
+    constant noise made once (:meth:`StateSpaceModel.checked_noise` caches it)."""
+    d = torch.diagonal(chol_Q, dim1=-2, dim2=-1)
+    if torch.count_nonzero(chol_Q) != torch.count_nonzero(d):
+        return None
+    return d.square()
+
+
+def _version(t: Tensor) -> int:
+    """``t``'s version counter (in-place changes), -1 for inference tensors (which have none
+    and cannot be changed in place outside inference mode)."""
+    return -1 if t.is_inference() else t._version
 
 
 def _at(v, k: int):
@@ -154,7 +180,9 @@ class StateSpaceModel:
         key = (bs, like.dtype, like.device)
         hit = None if torch.compiler.is_compiling() else self.__dict__.get("_checked_noise")
         if hit is not None and hit[0] == key and all(a is b for a, b in zip(hit[1], raw)):
-            return hit[2]  # constant noise, already checked for this batch shape and dtype
+            if hit[3] == _version(hit[2].chol_Q):
+                return hit[2]  # constant noise, already checked for this batch shape and dtype
+            # S_Q changed in place: its diagonal test is redone below
         noise = self.noise(k)
 
         def conv(x, name, tail, what):
@@ -183,8 +211,12 @@ class StateSpaceModel:
             a is b for a, b in zip(raw, (out.q, out.chol_Q, out.r, out.chol_R))
         ):
             # constant tensors used as they are (no conversion that an in-place change of the
-            # original would make stale): remember the check for the next step
-            object.__setattr__(self, "_checked_noise", (key, raw, out))
+            # original would make stale): remember the check for the next step, with the
+            # diagonal of a diagonal Q
+            if not out.chol_Q.requires_grad:  # (a diagonal under autograd would cut its graph)
+                with torch.inference_mode(False), torch.no_grad():
+                    out = replace(out, diag_Q=diagonal_noise(out.chol_Q))
+            object.__setattr__(self, "_checked_noise", (key, raw, out, _version(out.chol_Q)))
         return out
 
     # -- batched evaluation -------------------------------------------------------------

@@ -162,14 +162,19 @@ def _gram(S: Tensor) -> Tensor:
     return G
 
 
-def _chol_prior(pos: Tensor, chol_Q: Tensor) -> Tensor:
+def _chol_prior(pos: Tensor, chol_Q: Tensor, diag_Q: Tensor | None = None) -> Tensor:
     """``chol(pos pos^T + S_Q S_Q^T)`` ``(..., n, n)``, with ``Tria([pos, S_Q])`` (paper 000
-    Eq. 25) where the Cholesky fails. ``chol_Q``: ``(n, n)`` or batched like ``pos``."""
-    Q = _gram(chol_Q)
-    if pos.dim() == 2:
-        P = torch.addmm(Q, pos, pos.mT)
+    Eq. 25) where the Cholesky fails. ``chol_Q``: ``(n, n)`` or batched like ``pos``;
+    ``diag_Q``: ``Q``'s diagonal when ``Q`` is diagonal (:class:`Noise`), added to the
+    diagonal of the product (batched or traced steps; a single eager step keeps the one
+    ``addmm`` with the remembered ``Q``, fewer operations)."""
+    if diag_Q is not None and (pos.dim() > 2 or _no_sync()):
+        P = torch.matmul(pos, pos.mT)
+        P.diagonal(dim1=-2, dim2=-1).add_(diag_Q)
+    elif pos.dim() == 2:
+        P = torch.addmm(_gram(chol_Q), pos, pos.mT)
     else:
-        P = torch.matmul(pos, pos.mT).add_(Q)
+        P = torch.matmul(pos, pos.mT).add_(_gram(chol_Q))
     L, info = torch.linalg.cholesky_ex(P)
     if not _no_sync() and not bool(info.any()):
         return L
@@ -225,6 +230,16 @@ class GaussianFilter:
             instead of a QR of ``(n, L + n)``, 1.3-1.4 times faster at n = 44; the QR is the
             fallback wherever the Cholesky fails). The optimiser face (random walk, where
             ``A = S``) uses ``"cholesky"``; both give the same factor up to rounding.
+        posterior: the posterior square root of the square-root algebra where the measurement
+            is a scalar and ``P_xz = S Z^T`` (the Taylor rule: ``Z = H S``): ``"downdate"``
+            (the lower-triangular Cholesky downdate of paper 003 Eq. 28-29) or ``"potter"``
+            (Potter's square root ``S - beta K Z`` with ``beta = 1 / (1 + s_R / s_zz)``,
+            ``s_R^2`` the measurement noise: one O(n^2) outer product, NOT triangular; the
+            same covariance ``P - K s_zz^2 K^T``). A non-triangular posterior is only right
+            where the next step does not need a triangular one: the Taylor rule (any square
+            root gives the same moments), whose next prior (``"cholesky"``, or the QR) is
+            triangular again; the compiled optimiser pass uses it and re-triangularises the
+            final factor (one QR). Vector measurements keep the downdate.
         name: label for tables.
     """
 
@@ -235,6 +250,7 @@ class GaussianFilter:
     noise: SageHusa | MovingWindow | None = None
     robust: RobustBound | None = None
     prior: str = "qr"
+    posterior: str = "downdate"
     name: str = ""
 
     def __post_init__(self):
@@ -249,6 +265,13 @@ class GaussianFilter:
             raise ValueError("the robust update needs redraw=True (Joseph-form posterior)")
         if self.prior not in ("qr", "cholesky"):
             raise ValueError(f"prior must be 'qr' or 'cholesky', got {self.prior!r}")
+        if self.posterior not in ("downdate", "potter"):
+            raise ValueError(f"posterior must be 'downdate' or 'potter', got {self.posterior!r}")
+        if self.posterior == "potter" and not (isinstance(self.rule, Taylor) and self.sqrt):
+            raise ValueError(
+                "posterior='potter' needs the Taylor rule and sqrt=True (its factor is not "
+                "triangular: sigma points drawn from it would differ)"
+            )
 
     # ------------------------------------------------------------------ state
     def init(self, model: StateSpaceModel, belief: GaussianBelief, k: int = 0) -> FilterState:
@@ -293,10 +316,16 @@ class GaussianFilter:
         return _Propagation(mean, f_mean, pos, neg, pts, D, sig)
 
     def _prior(
-        self, prop: _Propagation, chol_Q: Tensor, lam: Tensor | None, update: bool = False
+        self,
+        prop: _Propagation,
+        chol_Q: Tensor,
+        lam: Tensor | None,
+        update: bool = False,
+        diag_Q: Tensor | None = None,
     ) -> _Prior:
         """Prior factor ``Tria([sqrt(lambda) A, S_Q])``; before an update with a robust bound of
-        the ``"lemma"`` form, the bound ``P~`` of :class:`RobustBound` replaces it."""
+        the ``"lemma"`` form, the bound ``P~`` of :class:`RobustBound` replaces it. ``diag_Q``:
+        ``Q``'s diagonal when it is diagonal (:attr:`Noise.diag_Q`; the Cholesky prior)."""
         bs = prop.mean.shape[:-1]
         n = prop.mean.shape[-1]
         pos, neg = prop.pos, prop.neg
@@ -305,7 +334,7 @@ class GaussianFilter:
             pos = sl * pos
             neg = None if neg is None else sl * neg
         if self.sqrt and self.prior == "cholesky" and neg is None:
-            S = _chol_prior(pos, chol_Q)
+            S = _chol_prior(pos, chol_Q, diag_Q)
             if update and self.robust is not None:
                 S = self.robust.inflate(S)
             return _Prior(prop.mean, S, None)
@@ -398,7 +427,24 @@ class GaussianFilter:
             # steps on large factors, the dense S chol(I - W W^T) on small ones) instead of a
             # QR of (n, L + m). Where the downdate loses precision (determinant ratio below
             # _downdate_min_ratio: a very informative measurement) the Joseph QR is used.
-            S, ratio = chol_downdate_ex(prior.chol, mm(K, Szz))
+            W = None
+            cross = mom.dx_pos is prior.chol and mom.dx_neg is None
+            if cross and self.posterior == "potter" and Szz.shape[-1] == 1:
+                # P - v v^T = S (I - w w^T) S^T with w = Z^T / s_zz and v = S w = K s_zz;
+                # I - w w^T = (I - beta w w^T)^2 with beta = 1 / (1 + sqrt(1 - |w|^2)), and
+                # 1 - |w|^2 = s_R^2 / s_zz^2 (the determinant ratio): S - beta K Z
+                ratio = chol_R.square().sum((-2, -1)) / Szz[..., 0, 0].square()
+                beta = 1.0 / (1.0 + ratio.sqrt())
+                S = prior.chol - (beta[..., None, None] * K) * mom.dz_pos
+            else:
+                if cross:
+                    # P_xz = S Z^T (EKF: Z = H S), so W = S^{-1} K S_zz = Z^T S_zz^{-T}: no
+                    # n x n triangular solve
+                    if Szz.shape[-1] == 1:
+                        W = mom.dz_pos.mT / Szz
+                    else:
+                        W = torch.linalg.solve_triangular(Szz, mom.dz_pos, upper=False).mT
+                S, ratio = chol_downdate_ex(prior.chol, mm(K, Szz), W)
             ok = ratio > _downdate_min_ratio(ratio.dtype)
             if not _no_sync() and bool(ok.all()):
                 return S
@@ -450,7 +496,7 @@ class GaussianFilter:
                 dtype=prop.mean.dtype,
                 device=prop.mean.device,
             )
-        prior = self._prior(prop, noise.chol_Q, lam)
+        prior = self._prior(prop, noise.chol_Q, lam, False, noise.diag_Q)
         return replace(state, belief=GaussianBelief(prior.mean, prior.chol))
 
     def predict_measurement(
@@ -531,7 +577,7 @@ class GaussianFilter:
         fstate = state.fading
         lam = None
         if isinstance(self.fading, StrongTracking):
-            prior_l = self._prior(prop, noise.chol_Q, None, update=True)
+            prior_l = self._prior(prop, noise.chol_Q, None, True, noise.diag_Q)
             mom_l = self._moments(model, prior_l, prop, u, k, noise.r)
             eps_l = y - mom_l.z
             if any_missing:
@@ -550,7 +596,7 @@ class GaussianFilter:
                 any_missing=any_missing,
             )
             if bool((lam > 1).any()):
-                prior = self._prior(prop, noise.chol_Q, lam, update=True)  # paper 000 Eq. 36
+                prior = self._prior(prop, noise.chol_Q, lam, True, noise.diag_Q)  # paper 000 Eq. 36
                 if mom_l.H is not None:  # Taylor: same mean, same h and Jacobian, new factor
                     mom = _Moments(
                         mom_l.z, prior.chol, mm(mom_l.H, prior.chol), None, None, True, mom_l.H
@@ -564,7 +610,7 @@ class GaussianFilter:
                 lam = torch.full(
                     belief.batch_shape, float(self.fading), dtype=y.dtype, device=y.device
                 )
-            prior = self._prior(prop, noise.chol_Q, lam, update=True)
+            prior = self._prior(prop, noise.chol_Q, lam, True, noise.diag_Q)
             mom = self._moments(model, prior, prop, u, k, noise.r)
 
         chol_R = noise.chol_R

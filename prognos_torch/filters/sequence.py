@@ -92,8 +92,13 @@ _COMPILED: dict = {}
 #: Inductor's C++ wrapper: the compiled loop calls its kernels from C++ rather than Python,
 #: which is most of the gain for steps of many small operations (EKF on paper 003's ANFIS,
 #: 497 steps: 0.118 s with the Python wrapper, 0.072 s with the C++ one, eager 0.43-0.52 s;
-#: compile 26 s and 39 s on the busy 2-core machine)
-_COMPILE_OPTIONS = {"options": {"cpp_wrapper": True}}
+#: compile 26 s and 39 s on the busy 2-core machine). ``decompose_mm_pass``: a matrix
+#: product with one row (a vector times a matrix: the learner on one sample, ``H S``) becomes
+#: a reduction that fuses with its neighbours instead of a BLAS call; the EKF step on paper
+#: 003's ANFIS goes from 7 BLAS calls and 7 fused kernels to 2 and 4
+_COMPILE_OPTIONS = {
+    "options": {"cpp_wrapper": True, "post_grad_fusion_options": {"decompose_mm_pass": {}}}
+}
 
 
 def _compiled_scan(step, state, ys: Tensor, us: Tensor | None, record):

@@ -6,11 +6,18 @@ compile=True)``.
 over the same engine step (:meth:`GaussianFilter.step`) that an eager step calls. The functions
 take the optimiser (a :class:`~prognos_torch.optim.kalman.KalmanOptimizer`) and read its
 configuration and state; :meth:`KalmanOptimizer.steps` delegates here.
+
+The EKF with a scalar measurement runs the engine configured with ``posterior="potter"``:
+Potter's posterior square root ``S - beta K (H S)`` (one outer product) instead of the
+triangular downdate; its factor is not triangular, which the next step's Cholesky prior does
+not need, and the factor the pass ends with is re-triangularised once (``tria``), so that the
+state is the lower-triangular factor eager steps keep (the same to rounding).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from itertools import chain
 
 import torch
@@ -19,6 +26,8 @@ from torch.optim import Optimizer
 from torch.optim.optimizer import _global_optimizer_post_hooks, _global_optimizer_pre_hooks
 
 from ..core.belief import GaussianBelief
+from ..core.linalg import tria
+from ..core.model import Noise, diagonal_noise
 from ..core.validation import check_finite
 from ..filters import sequence as _sequence
 from ..filters.gaussian import FilterState, Taylor, _sigma_points, deferred_fallbacks
@@ -27,7 +36,7 @@ from ._buffers import tracking_batch_norms
 from ._kalman_common import _state_key
 from ._step_model import _random_walk_model, measurement_noise
 
-__all__ = ["compiled_steps", "check_compilable", "sequence_step"]
+__all__ = ["compiled_steps", "check_compilable", "sequence_step", "potter_posterior"]
 
 
 def compiled_steps(opt: Optimizer, inputs: Tensor, targets: Tensor) -> Tensor:
@@ -71,6 +80,8 @@ def compiled_steps(opt: Optimizer, inputs: Tensor, targets: Tensor) -> Tensor:
         if not bool(torch.isfinite(chol).all() & torch.isfinite(mean).all()):
             # a step needed a fallback (or the pass diverged): the eager steps decide
             return opt._steps_eager_from(s, inputs, targets)
+    if potter_posterior(opt, out_shape):
+        chol = tria(chol).contiguous()  # the triangular factor of S S^T (Potter's is not)
     with torch.inference_mode(False):
         mean, chol = mean.clone(), chol.clone()  # ordinary tensors, as eager steps keep
     opt.state[key] = {
@@ -116,6 +127,12 @@ def check_compilable(opt: Optimizer, inputs: Tensor) -> None:
         raise ValueError(f"steps(compile=True) needs {why}; use compile=False")
 
 
+def potter_posterior(opt: Optimizer, out_shape) -> bool:
+    """Whether the compiled pass takes Potter's posterior square root
+    (``GaussianFilter(posterior="potter")``): the EKF with a scalar measurement."""
+    return isinstance(opt._cfg[0].filter.rule, Taylor) and math.prod(out_shape) == 1
+
+
 def sequence_step(opt: Optimizer, x_shape, out_shape):
     """The step and record functions of the compiled sequence (one per mini-batch shape and
     ``R / lr``, kept so that later passes reuse the compiled code)."""
@@ -128,6 +145,13 @@ def sequence_step(opt: Optimizer, x_shape, out_shape):
     b, filt, M, runs = cfg.bridge, cfg.filter, math.prod(out_shape), opt.runs
     chol_Q = cfg.chol_Q
     taylor = isinstance(filt.rule, Taylor)
+    # the noise of every step, checked and its diagonal test done here, outside the trace
+    # (a traced step would form S_Q S_Q^T at every step)
+    noise = Noise(None, chol_Q, None, chol_R, diagonal_noise(chol_Q))
+    if potter_posterior(opt, out_shape):
+        # a scalar EKF measurement: Potter's O(n^2) posterior square root (not triangular;
+        # the next step's Cholesky prior is, and compiled_steps re-triangularises the last)
+        filt = replace(filt, posterior="potter")
 
     def step(carry, y, x, k):
         mean, chol = carry
@@ -151,7 +175,8 @@ def sequence_step(opt: Optimizer, x_shape, out_shape):
             jac_h = None
         model = _random_walk_model(b, h, jac_h, M, chol_Q, chol_R)
         yy = y if runs is None else y.expand(runs, M)
-        new, info = filt._update(model, FilterState(GaussianBelief(mean, chol)), yy, None, k, False)
+        state = FilterState(GaussianBelief(mean, chol))
+        new, info = filt._update(model, state, yy, None, k, False, noise)
         return (new.belief.mean, new.belief.chol), info
 
     def record(state, info):
