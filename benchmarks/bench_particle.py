@@ -340,6 +340,14 @@ def profile_stpf(kind: str, N: int, T: int) -> list[tuple[str, float]]:
     return rows
 
 
+def peers(args) -> None:
+    """SIR and the resamplers beside NumPy at the three particle counts."""
+    counts = [(args.small, args.steps), (10 * args.small, args.mid_steps),
+              (args.large, args.large_steps)]  # fmt: skip
+    sir_vs_numpy(counts, args.repeat)
+    resamplers_vs_numpy([args.small, 10 * args.small, args.large], args.repeat)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--steps", type=int, default=500, help="steps of the 10^3-particle runs")
@@ -375,13 +383,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"prognos_torch from {os.path.dirname(prognos_torch.__file__)}")
     print(f"clock: {'process CPU time' if args.cpu_time else 'wall'}")
     if args.peers_only:
-        counts = [
-            (args.small, args.steps),
-            (10 * args.small, args.mid_steps),
-            (args.large, args.large_steps),
-        ]
-        sir_vs_numpy(counts, args.repeat)
-        resamplers_vs_numpy([args.small, 10 * args.small, args.large], args.repeat)
+        peers(args)
         print("\nload average at the end " + " ".join(f"{v:.2f}" for v in os.getloadavg()))
         return
     print(
@@ -401,13 +403,7 @@ def main(argv: list[str] | None = None) -> None:
         )
 
     if not args.no_peers:
-        counts = [
-            (args.small, args.steps),
-            (10 * args.small, args.mid_steps),
-            (args.large, args.large_steps),
-        ]
-        sir_vs_numpy(counts, args.repeat)
-        resamplers_vs_numpy([args.small, 10 * args.small, args.large], args.repeat)
+        peers(args)
 
     print("\nthroughput (particle-steps per second, median)")
     print(f"{'filter':<6}{'model form':<14}{'N':>9}{'steps':>7}{'seconds':>10}{'p-steps/s':>13}")
