@@ -274,7 +274,7 @@ def _add_rul(sub) -> None:
     p.add_argument(
         "--method",
         default="auto",
-        help="without a model file: auto (backtest choice), exponential, power, linear, elm",
+        help="without a model file: auto (exponential + elm pool), exponential, power, linear, elm",
     )
     p.add_argument(
         "--paths", type=int, default=2000, help="without a model file: sample paths (2000)"

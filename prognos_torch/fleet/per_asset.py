@@ -2,7 +2,7 @@
 
 ``fleet_rul(..., method="prognose")`` runs the single-series entry point of the RUL workflow
 on every asset of a shard: its onset rule, its trend models (exponential, power law, linear and
-the online ELM, chosen by backtest with ``method="auto"``), its guard rails and its honest
+the online ELM; ``method="auto"`` pools the exponential and ELM trends), its guard rails and its honest
 horizon. ``prognose`` fits one series at a time (its engine run is batched over trend shapes
 and noise grid points, not over assets), so this method loops over the shard's assets; shards
 still run in parallel on the Ray backend. The default fleet method,

@@ -85,7 +85,7 @@ __all__ = [
     "AUTO_POOL",
 ]
 
-#: Trend models ``prognose`` accepts (``"auto"`` chooses among all of them).
+#: Trend models ``prognose`` accepts (``"auto"``: the :data:`AUTO_POOL`, every shape backtested).
 PROGNOSE_METHODS = ("auto", *TREND_SHAPES, "elm")
 #: The trend models whose RUL distributions ``method="auto"`` pools with equal weights.
 AUTO_POOL = ("exponential", "elm")
@@ -315,8 +315,8 @@ def prognose(
         series: a :class:`~prognos_torch.workflow.Series` or values ``(T,)`` (NaN: missing).
         threshold: failure threshold in data units.
         time: ``(T,)`` strictly increasing times for array input (default: the index).
-        method: ``"auto"`` (backtest choice), ``"exponential"``, ``"power"``, ``"linear"`` or
-            ``"elm"`` (:data:`PROGNOSE_METHODS`).
+        method: ``"auto"`` (the exponential + elm pool), ``"exponential"``, ``"power"``,
+            ``"linear"`` or ``"elm"`` (:data:`PROGNOSE_METHODS`).
         seed: seeds the path draws and the ELM's random features.
         direction: ``"above"``, ``"below"`` or ``"auto"`` (the side of the baseline the
             threshold is on).
