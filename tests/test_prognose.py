@@ -127,6 +127,28 @@ def test_direction_below_mirrors_above():
     torch.testing.assert_close(down.paths, -up.paths)
 
 
+@pytest.mark.parametrize("method", ["exponential", "power", "linear", "elm"])
+def test_rul_does_not_depend_on_units(method):
+    """A change of units of the data (scale and offset: g to m/s^2, a sensor bias) or of the
+    clock (days to minutes, another origin) maps the RUL exactly: every model, the learner
+    trend's prior included, sees only unit-free quantities."""
+    t, y = _series(noise_after=0.05, n=520)
+    ref = prognose(y, 3.0, time=t, method=method, at=525.0).summary()
+
+    def same(s, tscale=1.0):
+        for k in ("median", "q05", "q95"):
+            a, b = ref[k], s[k]
+            assert (a is None) == (b is None), k
+            if a is not None:
+                assert b / tscale == pytest.approx(a, rel=1e-8), k
+        assert s["censored_mass"] == pytest.approx(ref["censored_mass"], abs=1e-12)
+
+    for c, d in ((1e-3, 0.0), (9.81, 0.0), (1e3, 0.0), (1.0, 7.0), (-2.5, 3.0)):
+        same(prognose(c * y + d, c * 3.0 + d, time=t, method=method, at=525.0).summary())
+    for ts, t0 in ((1440.0, 0.0), (1.0, 1e4)):
+        same(prognose(y, 3.0, time=ts * t + t0, method=method, at=ts * 525.0 + t0).summary(), ts)
+
+
 def test_missing_values_are_skipped():
     t, y = _series(noise_after=0.05)
     ym = y.clone()

@@ -18,13 +18,13 @@ METHODS = ("prognose (auto)", "prognose (exponential)", "exponential LSQ")
 # Quick mode: one record per family, the 20/60/90 % points; prognose medians lie on the
 # 10-minute grid (multiples of 1/144 d), the baseline is a closed form.
 QUICK_PRED_RUL = {
-    ("prognose (auto)", "shocks 0"): [1.2152777778, 0.4791666667, 35.0347222222],
+    ("prognose (auto)", "shocks 0"): [1.2152777778, 0.4791666667, 33.013888889],
     ("prognose (exponential)", "shocks 0"): [1.2152777778, 0.5625, 0.6319444444],
     ("exponential LSQ", "shocks 0"): [1.1447349313, 0.360948877, 0.0],
-    ("prognose (auto)", "paris 0"): [5.7777777778, 0.8263888889, 0.2222222222],
+    ("prognose (auto)", "paris 0"): [4.3819444444, 0.8263888889, 0.2222222222],
     ("prognose (exponential)", "paris 0"): [2.5138888889, 0.8472222222, 0.2152777778],
     ("exponential LSQ", "paris 0"): [1.895521328, 0.9501385423, 0.2828814746],
-    ("prognose (auto)", "two_phase 0"): [8.0902777778, 1.2291666667, 0.5694444444],
+    ("prognose (auto)", "two_phase 0"): [5.7777777778, 1.2291666667, 0.5694444444],
     ("prognose (exponential)", "two_phase 0"): [12.7638888889, 0.8819444444, 0.3680555556],
     ("exponential LSQ", "two_phase 0"): [math.inf, 0.8917023371, 0.199662916],
     ("prognose (auto)", "hump 0"): [0.3125, 1.0694444444, 0.2291666667],

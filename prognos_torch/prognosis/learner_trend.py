@@ -22,9 +22,11 @@ learning while the asset degrades**; its posterior ``N(theta, P)`` is what the R
 
 Noise and prior (from the exponential :class:`~prognos_torch.prognosis.trends.TrendFit`): the
 measurement variance is ``R = r + median(a) + w`` (white, baseline and wander variances of that
-fit); the prior is ``theta ~ N(0, diag)`` with std ``10 sd(z)`` for ``c_0``, ``3 (max z - min z)``
-for ``c_1`` and ``(max z - min z) / sqrt(L / 4)`` for ``beta`` (so ``H beta`` can bend the line
-by about the observed rise); the random walk ``Q = diag(R, R, R / (L / 4), ...) / n`` per
+fit); the prior is ``theta ~ N(m, diag)`` with mean ``m = [z_1, 0, ..., 0]`` (``z_1``: the first
+value since onset, so that a change of the data's units, a shift of ``z``, shifts ``g`` and
+leaves the RUL unchanged) and std ``10 sd(z)`` for ``c_0``, ``3 (max z - min z)`` for ``c_1``
+and ``(max z - min z) / sqrt(L / 4)`` for ``beta`` (so ``H beta`` can bend the line by about the
+observed rise); the random walk ``Q = diag(R, R, R / (L / 4), ...) / n`` per
 observation (the same per unit time however dense the sampling) lets ``g`` drift by about two
 noise standard deviations over the observed span, so ``theta`` can follow a change of regime.
 
@@ -264,6 +266,8 @@ def fit_learner_trend(
     scale = max(float(t[-1]) - t_on, 1e-12)
     gen = torch.Generator().manual_seed(int(seed))
     module = TimeELM(n_hidden, gen)
+    with torch.no_grad():  # prior mean of c_0: the first value, so a change of units (a shift
+        module.c[0, 0] = zz[0]  # of z = log(y - phi)) shifts g and leaves the RUL unchanged
     rise = max(float(zz.max() - zz.min()), 1e-6)
     sd = max(float(zz.std(correction=1)) if zz.numel() > 1 else 0.0, 1e-6)
     P0 = {"c": torch.tensor([(10 * sd) ** 2, (3 * rise) ** 2], dtype=torch.float64)[:, None],
