@@ -159,6 +159,24 @@ def test_cusum_false_alarm_rate_matches_siegmund():
     assert arl == pytest.approx(cusum_arl0(0.5, 4.0), rel=0.15)
 
 
+def test_onset_after_the_healthy_window_skips_a_run_in():
+    g = _gen(4)
+    x = 0.1 * torch.randn(1000, generator=g, dtype=F64)
+    x += 3.0 * torch.exp(-torch.arange(1000, dtype=F64) / 5.0)  # run-in in the first ~20 samples
+    x[700:] += 1.0  # a 10-sigma step
+    b = healthy_baseline(x[100:], torch.arange(100, 1000, dtype=F64))  # a clean window
+    b = Baseline(b.mean, b.std, b.median, b.n, 299.0, b.noise)  # taken as [0, 299]
+    assert ksigma_onset(x, baseline=b).index < 20  # the run-in counts as onset ...
+    on = ksigma_onset(x, baseline=b, after=b.t_end)  # ... unless the window is taken as healthy
+    assert on.detected and 700 <= on.index <= 704
+    assert not ksigma_onset(x[:600], baseline=b, after=b.t_end).detected
+    cu = cusum_onset(x, baseline=b, after=b.t_end)
+    assert cu.detected and 690 <= cu.index <= 705
+    assert ksigma_onset(x, baseline=b, after=None).index == ksigma_onset(x, baseline=b).index
+    with pytest.raises(ValueError, match="after"):
+        ksigma_onset(x, after="end")
+
+
 def test_bad_input():
     x = torch.randn(100, dtype=F64)
     with pytest.raises(ValueError, match="shape"):

@@ -180,6 +180,19 @@ def test_no_degradation_gives_a_lower_bound_only():
     assert any("no degradation detected yet" in f for f in res.flags)
 
 
+def test_a_run_in_transient_is_no_onset():
+    """A decaying run-in at the start (common on bearings) lies in the healthy window, which is
+    taken as healthy: before the real onset the answer is "no degradation detected yet", after
+    it the onset is the real one (a little later than with a clean start: the run-in widens
+    the band)."""
+    t, y = _series(noise_after=0.05)
+    y = y + 1.0 * torch.exp(-t / 5.0)
+    early = prognose(y[:350], 3.0, time=t[:350])
+    assert early.status == "no degradation detected yet" and not early.onset.detected
+    late = prognose(y, 3.0, time=t, method="exponential")
+    assert late.status == "ok" and ON <= late.onset.time < ON + 150
+
+
 def test_extrapolation_is_flagged():
     t, y = _series(noise_after=0.05)
     res = prognose(y, 1e4, time=t, method="linear")

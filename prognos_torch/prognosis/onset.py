@@ -272,6 +272,14 @@ def _resolve_baseline(x: Tensor, t: Tensor, baseline, sign: float) -> Baseline:
     return Baseline(sign * b.mean, b.std, sign * b.median, b.n, b.t_end, b.noise)
 
 
+def _after_mask(t: Tensor, after) -> Tensor:
+    if after is None:
+        return torch.ones_like(t, dtype=torch.bool)
+    if isinstance(after, bool) or not isinstance(after, (int, float)) or math.isnan(after):
+        raise ValueError(f"after must be a time (a number) or None, got {after!r}")
+    return t > float(after)
+
+
 # --------------------------------------------------------------------------- detectors
 def ksigma_onset(
     values,
@@ -282,6 +290,7 @@ def ksigma_onset(
     window: int = 5,
     consecutive: int = 5,
     direction: str = "above",
+    after: float | None = None,
 ) -> Onset:
     """Onset by the k-sigma rule on a trailing moving median (module docstring).
 
@@ -294,6 +303,9 @@ def ksigma_onset(
         window: moving-median window ``w``.
         consecutive: number ``c`` of consecutive exceedances (of observed samples).
         direction: ``"above"`` (degradation raises the indicator) or ``"below"``.
+        after: only exceedances at times later than ``after`` count (``None``: all). The end
+            of the healthy window (``Baseline.t_end``) treats that window as healthy: a
+            transient inside it (a run-in, say) is no onset.
 
     Returns:
         :class:`Onset`; ``index`` is the first of the ``c`` exceedances, ``alarm_index`` the last.
@@ -303,6 +315,7 @@ def ksigma_onset(
     window = _check_int(window, "window", 1)
     consecutive = _check_int(consecutive, "consecutive", 1)
     x, t = _series(values, time)
+    late = _after_mask(t, after)
     sign = 1.0 if direction == "above" else -1.0
     base = _resolve_baseline(x, t, baseline, sign)
     obs = torch.nonzero(~torch.isnan(x)).flatten()
@@ -312,7 +325,7 @@ def ksigma_onset(
         med = moving_median(x[obs], window)
         z = sign * (med - base.mean) / base.std
         stat[obs] = z
-        above = (z > k).to(torch.int64)
+        above = ((z > k) & late[obs]).to(torch.int64)
         if above.shape[0] >= consecutive:
             runs = above.unfold(0, consecutive, 1).sum(-1)  # (n - c + 1,)
             hits = torch.nonzero(runs == consecutive).flatten()
@@ -332,11 +345,14 @@ def cusum_onset(
     drift: float = 0.5,
     limit: float = 12.0,
     direction: str = "above",
+    after: float | None = None,
 ) -> Onset:
     """Onset by a one-sided CUSUM on the standardised indicator (module docstring).
 
     Args:
         values, time, baseline, direction: as :func:`ksigma_onset`.
+        after: the CUSUM starts at the first sample later than ``after`` (``None``: at the
+            first sample).
         drift: reference value ``kappa >= 0`` (baseline standard deviations).
         limit: decision limit ``h > 0``.
 
@@ -348,9 +364,10 @@ def cusum_onset(
     drift = _check_pos(drift, "drift", allow_zero=True)
     limit = _check_pos(limit, "limit")
     x, t = _series(values, time)
+    late = _after_mask(t, after)
     sign = 1.0 if direction == "above" else -1.0
     base = _resolve_baseline(x, t, baseline, sign)
-    obs = torch.nonzero(~torch.isnan(x)).flatten()
+    obs = torch.nonzero(~torch.isnan(x) & late).flatten()
     stat = torch.full_like(x, math.nan)
     rate = 1.0 / cusum_arl0(drift, limit)
     if obs.numel():

@@ -17,8 +17,9 @@ Pipeline of :func:`prognose` (every step a library function with its own tests):
    side the threshold is on. A threshold already reached by the median of the last 5 values is
    an error (the RUL is 0).
 2. **Onset** (:mod:`prognos_torch.prognosis.onset`; k-sigma rule on the 5-point moving median,
-   5 consecutive exceedances, or a CUSUM). Before onset the answer is *"no degradation detected
-   yet"*: no median or interval is reported, only a lower bound (below).
+   5 consecutive exceedances, or a CUSUM), searched after the healthy window (which is assumed
+   healthy: a run-in transient in it is no onset). Before onset the answer is *"no degradation
+   detected yet"*: no median or interval is reported, only a lower bound (below).
 3. **Trend models** on the data since onset (:mod:`~prognos_torch.prognosis.trends`:
    exponential, power law, linear, all filtered at once by the strong-tracking EKF with their
    noise by maximum likelihood; :mod:`~prognos_torch.prognosis.learner_trend`: an ELM growth
@@ -322,7 +323,8 @@ def prognose(
             threshold is on).
         at: evaluation time ``>= `` the last observation (default: the last observation).
         baseline: the healthy window as a fraction of the time span, or a
-            :class:`~prognos_torch.prognosis.onset.Baseline` (data units).
+            :class:`~prognos_torch.prognosis.onset.Baseline` (data units). Onset is searched
+            after the window's end (``Baseline.t_end``).
         onset: ``"ksigma"`` (default) or ``"cusum"``.
         n_paths: sample paths of the RUL distribution.
         horizon_factor: the horizon is this multiple of the observed life (and at least 10
@@ -396,7 +398,7 @@ def prognose(
             "the last value is beyond the threshold while the median of the last 5 is not "
             "(a spike or the start of failure)"
         )
-    ons = detect_onset(x, t, method=onset, baseline=base, direction=direction)
+    ons = detect_onset(x, t, method=onset, baseline=base, direction=direction, after=base.t_end)
     gen = torch.Generator().manual_seed(int(seed))
     span_life = t_last - float(t[0])
     dt_data = float(torch.diff(t).median())
