@@ -181,17 +181,34 @@ def test_onset_batch_equals_the_per_series_rule():
     values = [v.copy() for v in tab.values]
     values[3][10:14] = np.nan  # gaps are skipped by both
     batch = pad_batch(tab.assets, tab.times, values)
-    for direction in ("above", "below"):
-        got = ksigma_onset_batch(batch.values, batch.times, batch.lengths, direction=direction)
+    for direction, skip in (("above", False), ("below", False), ("above", True)):
+        got = ksigma_onset_batch(batch.values, batch.times, batch.lengths, direction=direction,
+                                 skip_window=skip)  # fmt: skip
         for b in range(len(batch)):
-            ref = onset.ksigma_onset(torch.from_numpy(values[b]), torch.from_numpy(tab.times[b]),
-                                     direction=direction)  # fmt: skip
+            x, tb = torch.from_numpy(values[b]), torch.from_numpy(tab.times[b])
+            ref = onset.ksigma_onset(x, tb, direction=direction)
+            if skip:
+                ref = onset.ksigma_onset(x, tb, direction=direction, after=ref.baseline.t_end)
             if ref.detected:
                 assert int(got.index[b]) == ref.index
                 assert float(got.time[b]) == ref.time
             else:
                 assert int(got.index[b]) == -1
             assert math.isclose(float(got.base_mean[b]), ref.baseline.mean, rel_tol=1e-12)
+
+
+def test_onset_batch_skips_a_run_in_in_the_healthy_window():
+    g = np.random.default_rng(0)
+    t = np.arange(400.0)
+    x = 1.0 + 0.05 * g.standard_normal((2, 400))
+    x[:, 300:] += 4.0  # a step at 300
+    x[1, :6] += 3.0  # a run-in on the second asset (6 of the window's 120 samples)
+    batch = pad_batch(["a", "b"], [t, t], [x[0], x[1]])
+    plain = ksigma_onset_batch(batch.values, batch.times, batch.lengths)
+    skip = ksigma_onset_batch(batch.values, batch.times, batch.lengths, skip_window=True)
+    assert 300 <= int(plain.index[0]) == int(skip.index[0]) <= 304
+    assert int(plain.index[1]) < 6  # the run-in counts as onset ...
+    assert 300 <= int(skip.index[1]) <= 304  # ... unless the window is taken as healthy
 
 
 # --------------------------------------------------------------------------- tables

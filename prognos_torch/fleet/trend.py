@@ -7,9 +7,11 @@ result depends on the other assets of the shard (shard-size invariance; tested t
 1. **Onset** (first prediction time): the k-sigma rule on a trailing moving median against a
    healthy baseline (the first ``baseline`` fraction of each asset's observed time span; mean
    and standard deviation ddof = 1; moving median over the observed samples, window ``w``; onset
-   = first of ``c`` consecutive medians beyond ``mean + k std`` in the degradation direction).
-   This is the rule of :func:`prognos_torch.prognosis.onset.ksigma_onset`, batched over assets
-   with NaN padding. Before onset the asset is reported as "no degradation detected yet"
+   = first of ``c`` consecutive medians beyond ``mean + k std`` in the degradation direction,
+   after the healthy window, which is taken as healthy: a run-in transient in it is no onset).
+   This is the rule of :func:`prognos_torch.prognosis.onset.ksigma_onset` with ``after`` the
+   window's end, as in :func:`~prognos_torch.workflow.prognose`, batched over assets with NaN
+   padding. Before onset the asset is reported as "no degradation detected yet"
    (``no_onset``) and no RUL number is given.
 2. **Exponential trend** (Gebraeel et al., 2005): ``y = phi + theta exp(beta tau + eps)``,
    ``tau = t - t_onset``, i.e. ``z = log(s (y - phi)) = a + beta tau + eps`` with
@@ -149,8 +151,12 @@ def ksigma_onset_batch(
     window: int = 5,
     consecutive: int = 5,
     direction: str = "above",
+    skip_window: bool = False,
 ) -> BatchOnset:
-    """The k-sigma moving-median onset rule (module docstring), batched over ``(B, T)`` rows."""
+    """The k-sigma moving-median onset rule (module docstring), batched over ``(B, T)`` rows.
+
+    ``skip_window=True`` counts only exceedances after each row's healthy window (the
+    per-series rule with ``after=Baseline.t_end``): a run-in transient in it is no onset."""
     B, T = values.shape
     sign = 1.0 if direction == "above" else -1.0
     cols = torch.arange(T, device=values.device)
@@ -176,7 +182,8 @@ def ksigma_onset_batch(
     pad = torch.full((B, window - 1), math.nan, dtype=xc.dtype, device=xc.device)
     med = torch.cat([pad, xc], 1).unfold(1, window, 1).nanmedian(-1).values  # (B, T)
     z = sign * (med - mean[:, None]) / torch.where(ok, std, torch.ones_like(std))[:, None]
-    above = (valid & (z > k)).to(torch.int64)
+    late = valid & ~inside if skip_window else valid
+    above = (late & (z > k)).to(torch.int64)
     if T < consecutive:
         above = torch.cat([above, above.new_zeros(B, consecutive - T)], 1)
     runs = above.unfold(1, consecutive, 1).sum(-1) == consecutive  # (B, T - c + 1)
@@ -302,6 +309,7 @@ def exponential_trend_rul(
         window=window,
         consecutive=consecutive,
         direction=direction,
+        skip_window=True,
     )
     d = s * (y - phi)
     z = torch.where(obs & (d > 0), torch.log(torch.where(d > 0, d, torch.ones_like(d))), torch.nan)
