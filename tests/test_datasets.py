@@ -29,6 +29,7 @@ from prognos_torch.datasets import (
     lle_cost_matrix,
     lle_fit,
     load_ims_features,
+    one_step_pairs,
     read_raw_features,
     reconstruction_weights,
     shift_append,
@@ -607,6 +608,23 @@ def test_chronological_split():
         chronological_split(x, 1.5)
     with pytest.raises(ValueError, match="n_train=0"):
         chronological_split(x, 0.05)
+
+
+def test_one_step_pairs_split_at_the_targets_hand_example():
+    # T = 8, m = 3, the first 5 samples hold the training targets x_4, x_5 (1-based)
+    x = torch.tensor([1.0, 2, 4, 8, 16, 32, 64, 128], dtype=torch.float64)
+    p = one_step_pairs(x, 3, 5)
+    assert torch.equal(p.X_train, torch.tensor([[1.0, 2, 4], [2, 4, 8]], dtype=torch.float64))
+    assert p.Y_train.tolist() == [[8.0], [16.0]]
+    assert p.X_test.tolist() == [[4.0, 8, 16], [8.0, 16, 32], [16.0, 32, 64]]
+    assert p.Y_test.tolist() == [[32.0], [64.0], [128.0]]
+    assert p.k_test.tolist() == [6, 7, 8]  # 1-based indices of the test targets
+    assert torch.equal(x[p.k_test - 1], p.Y_test[:, 0])
+    for bad in (3, 8, 2.5):
+        with pytest.raises(ValueError, match="n_train"):
+            one_step_pairs(x, 3, bad)
+    with pytest.raises(ValueError, match=r"shape \(T,\)"):
+        one_step_pairs(x.reshape(4, 2), 2, 3)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

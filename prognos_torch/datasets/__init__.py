@@ -3,7 +3,7 @@
 * :mod:`.ims`: raw IMS snapshot reader, the shipped feature table, paper 002's health indicator.
 * :mod:`.lle`: locally linear embedding (Roweis & Saul 2000) with out-of-sample mapping.
 * :mod:`.windows`: time-delay embedding (paper 002, Eq. 9-10), recursive input update
-  (Eq. 12-14), min-max scaling, chronological splits.
+  (Eq. 12-14), min-max scaling, chronological splits, one-step-ahead train/test pairs.
 """
 
 from prognos_torch.datasets.ims import (
@@ -36,10 +36,12 @@ from prognos_torch.datasets.lle import (
 from prognos_torch.datasets.windows import (
     MinMaxScaler,
     NormalizedSeries,
+    OneStepPairs,
     chronological_split,
     embed,
     minmax_denormalize,
     minmax_normalize,
+    one_step_pairs,
     shift_append,
 )
 
@@ -74,4 +76,6 @@ __all__ = [
     "chronological_split",
     "embed",
     "shift_append",
+    "OneStepPairs",
+    "one_step_pairs",
 ]

@@ -30,6 +30,8 @@ __all__ = [
     "minmax_normalize",
     "minmax_denormalize",
     "chronological_split",
+    "OneStepPairs",
+    "one_step_pairs",
 ]
 
 
@@ -295,3 +297,49 @@ def chronological_split(
             f"need 1 <= n_train <= {T - 1}"
         )
     return x[:n_train], x[n_train:]
+
+
+class OneStepPairs(NamedTuple):
+    """One-step-ahead (window, next sample) pairs of a scalar series, split in time.
+
+    Attributes:
+        X_train: ``(n_train - m, m)`` windows whose targets lie among the first ``n_train``
+            samples; Y_train: ``(n_train - m, 1)`` their targets.
+        X_test: ``(T - n_train, m)`` the remaining windows; Y_test: ``(T - n_train, 1)``.
+        k_test: ``(T - n_train,)`` the 1-based sample index of each test target
+            (``n_train + 1, ..., T``).
+    """
+
+    X_train: Tensor
+    Y_train: Tensor
+    X_test: Tensor
+    Y_test: Tensor
+    k_test: np.ndarray
+
+
+def one_step_pairs(series: Tensor, m: int, n_train: int) -> OneStepPairs:
+    """:func:`embed` a series with order ``m`` and split the pairs chronologically so that the
+    targets among the first ``n_train`` samples train and the later ones test (paper 003
+    Sec. V: the first 500 Lorenz points train, the last 500 are predicted one step ahead; the
+    first ``m`` samples are inputs only, so ``n_train - m`` pairs train).
+
+    Args:
+        series: ``(T,)``, time first; m: embedding dimension; n_train: ``m < n_train < T``.
+    Returns:
+        :class:`OneStepPairs` (targets with a trailing unit dim, the shape of a one-output
+        learner's predictions).
+    """
+    x = as_tensor(series, "series")
+    if x.dim() != 1:
+        raise ValueError(f"series must have shape (T,), got {tuple(x.shape)}")
+    inputs, targets = embed(x, m)
+    if isinstance(n_train, bool) or not isinstance(n_train, (int, np.integer)):
+        raise ValueError(f"n_train must be an int, got {n_train!r}")
+    if not m < n_train < x.shape[0]:
+        raise ValueError(
+            f"n_train={n_train} must lie between m={m} and T={x.shape[0]} (exclusive): "
+            f"both parts need at least one target"
+        )
+    X_train, X_test = chronological_split(inputs, n_train=n_train - m)
+    Y_train, Y_test = chronological_split(targets.unsqueeze(-1), n_train=n_train - m)
+    return OneStepPairs(X_train, Y_train, X_test, Y_test, np.arange(n_train + 1, x.shape[0] + 1))
