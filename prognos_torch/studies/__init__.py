@@ -7,15 +7,19 @@ and method), ``run.json`` (configuration, versions, machine) and the figures the
 :mod:`.tables` holds the table helpers every study uses (summaries over runs, markdown tables,
 notes filled from a template); :mod:`.evaluate` and :mod:`.forecasters` the evaluation
 protocols the studies share (fault prediction, one-step forecasters alone and inside prognostic
-filters); :mod:`.matrix` a learner x trainer x filter matrix over test problems; :mod:`.rows`
-builds the per-run result rows and writes them as CSV.
+filters); :mod:`.training` timed training of a learner by an optimiser over input/target
+pairs, Monte Carlo runs batched or in turn, its frozen and online test readings; :mod:`.matrix`
+a learner x trainer x filter matrix over test problems; :mod:`.rows` builds the per-run result
+rows and writes them as CSV.
 """
 
 from .evaluate import (
     crossing_scores,
     crossing_table,
     fault_prediction_errors,
+    lowest_counts,
     rolling_forecast_rmse,
+    run_errors,
 )
 from .forecasters import (
     ForecastProblem,
@@ -55,6 +59,14 @@ from .tables import (
     sweep_table,
     threshold_census,
 )
+from .training import (
+    TrainTest,
+    kalman_runs,
+    outcome_rows,
+    runs_in_turn,
+    train_and_test,
+    untrained_runs,
+)
 
 __all__ = [
     "Study",
@@ -84,6 +96,14 @@ __all__ = [
     "rolling_forecast_rmse",
     "crossing_scores",
     "crossing_table",
+    "run_errors",
+    "lowest_counts",
+    "TrainTest",
+    "train_and_test",
+    "kalman_runs",
+    "runs_in_turn",
+    "untrained_runs",
+    "outcome_rows",
     "ForecastProblem",
     "ForecastProtocol",
     "point_errors",

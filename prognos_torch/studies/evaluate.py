@@ -6,7 +6,9 @@
   (:func:`~prognos_torch.prognosis.rolling_forecasts`) against the true signal;
 * :func:`crossing_scores`: per-run errors of predicted threshold-crossing times
   (:func:`~prognos_torch.prognosis.predict_threshold_crossings`), and :func:`crossing_table`:
-  the median predicted RUL and the censored fraction per prediction time.
+  the median predicted RUL and the censored fraction per prediction time;
+* :func:`run_errors`: per-run MAE, RMSE and MSE of predictions against one target series, and
+  :func:`lowest_counts`: in how many runs each method has the lowest score.
 
 They sit in :mod:`prognos_torch.studies` (above :mod:`~prognos_torch.prognosis` and
 :mod:`~prognos_torch.metrics`) because they combine both.
@@ -32,6 +34,8 @@ __all__ = [
     "rolling_forecast_rmse",
     "crossing_scores",
     "crossing_table",
+    "run_errors",
+    "lowest_counts",
 ]
 
 
@@ -129,3 +133,19 @@ def crossing_table(crossings: Mapping[str, ThresholdCrossings], true_crossing: i
         rows.append(cells)
     head = [c for n in crossings for c in (f"{n} pred. RUL (median)", f"{n} censored")]
     return markdown_table(["k_p", "true RUL", *head], rows)
+
+
+def run_errors(pred: Tensor, target: Tensor) -> dict[str, Tensor]:
+    """Per-run MAE, RMSE (paper 003 Eq. 48-49) and MSE (``RMSE**2``) of ``pred`` ``(..., N)``
+    against ``target`` ``(N,)`` (broadcast over the leading run dims); each ``(...)``."""
+    t = target.expand_as(pred)
+    r = rmse(pred, t, dim=-1)
+    return {"MAE": mae(pred, t, dim=-1), "RMSE": r, "MSE": r.square()}
+
+
+def lowest_counts(scores: Mapping[str, Tensor]) -> dict[str, int]:
+    """In how many runs each method has the lowest score: ``scores`` maps each method to its
+    ``(R,)`` per-run values (lower is better); a tie goes to the method named first."""
+    m = torch.stack(list(scores.values()))  # (M, R)
+    counts = torch.bincount(m.argmin(0), minlength=len(scores)).tolist()
+    return dict(zip(scores, counts))
