@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from prognos_torch.plots import LinePanel, break_at_gaps, plot_line_panels
+from prognos_torch.plots import LinePanel, break_at_gaps, plot_line_panels, plot_line_row
 
 
 def test_break_at_gaps_inserts_nan_at_each_pause():
@@ -37,3 +37,20 @@ def test_panels_with_own_x_gaps_and_vline(tmp_path):
     np.testing.assert_array_equal(b.get_lines()[-1].get_xdata(), tail.numpy())
     with pytest.raises(ValueError, match="lines\\['b'\\]"):
         plot_line_panels(tmp_path / "q.png", t, [LinePanel({"b": t}, x=tail)])
+
+
+def test_line_row_one_y_scale_label_on_the_first_axes(tmp_path):
+    x = np.arange(1, 5)
+    panels = {"frozen": {"a": x * 1.0, "b": x * 2.0}, "online": {"a": x * 10.0, "b": x * 0.5}}
+    fig = plot_line_row(tmp_path / "r.png", x, panels, ylabel="error", logy=True, style="o-")
+    assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    a, b = fig.axes
+    assert [a.get_title(), b.get_title()] == ["frozen", "online"]
+    assert (a.get_ylabel(), b.get_ylabel()) == ("error", "")
+    assert a.get_yscale() == b.get_yscale() == "log"
+    assert a.get_ylim() == b.get_ylim()  # shared: spans 0.5 .. 40 on both
+    np.testing.assert_array_equal(b.get_lines()[0].get_ydata(), x * 10.0)
+    assert b.get_lines()[1].get_marker() == "o" and b.get_lines()[1].get_color() == "C1"
+    assert tuple(fig.get_size_inches()) == (11.0, 4.2)
+    one = plot_line_row(tmp_path / "s.png", x, {"t": {"a": x}})
+    assert tuple(one.get_size_inches()) == (7.5, 4.2) and one.axes[0].get_yscale() == "linear"

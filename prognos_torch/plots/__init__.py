@@ -7,8 +7,8 @@ or array-likes.
 * :mod:`.figures`: predictions, fading factors, fault probabilities, RUL distributions,
   alpha-lambda charts, training curves;
 * :mod:`.panels`: a grid of small panels, estimated multivariate series against the truth;
-* :mod:`.lines`: panels of labelled lines (:func:`plot_line_panels`), predictions with their
-  errors (:func:`plot_prediction_errors`);
+* :mod:`.lines`: panels of labelled lines (:func:`plot_line_panels`; one row on one y scale:
+  :func:`plot_line_row`), predictions with their errors (:func:`plot_prediction_errors`);
 * :mod:`.heatmap`: annotated heatmaps of a results matrix (:func:`plot_heatmaps`);
 * :mod:`.rul`: predicted RUL over prediction time with the alpha cone (:func:`plot_rul_band`),
   predicted paths against a threshold (:func:`plot_paths`);
@@ -28,7 +28,13 @@ from .figures import (
     plot_training_curves,
 )
 from .heatmap import HeatmapPanel, draw_heatmap, plot_heatmaps
-from .lines import LinePanel, break_at_gaps, plot_line_panels, plot_prediction_errors
+from .lines import (
+    LinePanel,
+    break_at_gaps,
+    plot_line_panels,
+    plot_line_row,
+    plot_prediction_errors,
+)
 from .panels import plot_panels
 from .prognosis import plot_prognosis, plot_rul_trajectory
 from .rul import draw_paths, plot_paths, plot_rul_band, weighted_quantiles
@@ -45,6 +51,7 @@ __all__ = [
     "plot_panels",
     "LinePanel",
     "plot_line_panels",
+    "plot_line_row",
     "break_at_gaps",
     "plot_prediction_errors",
     "HeatmapPanel",

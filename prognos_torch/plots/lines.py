@@ -15,7 +15,13 @@ from matplotlib.figure import Figure
 
 from .figures import PathLike, _np, _same_len, _save
 
-__all__ = ["LinePanel", "plot_line_panels", "plot_prediction_errors", "break_at_gaps"]
+__all__ = [
+    "LinePanel",
+    "plot_line_panels",
+    "plot_line_row",
+    "plot_prediction_errors",
+    "break_at_gaps",
+]
 
 
 @dataclass(frozen=True)
@@ -146,6 +152,43 @@ def plot_line_panels(
     if title:
         fig.suptitle(title, fontsize=10)
     return _save(fig, path)
+
+
+def plot_line_row(
+    path: PathLike,
+    x,
+    panels: Mapping[str, Mapping[str, object]],
+    *,
+    ylabel: str = "",
+    xlabel: str = "time",
+    title: str | None = None,
+    logy: bool = False,
+    style: str = "-",
+    figsize: tuple[float, float] | None = None,
+) -> Figure:
+    """One row of axes on one y scale, one per panel ``title -> {label: (T,) series}``.
+
+    A shorthand of :func:`plot_line_panels` for side-by-side readings of the same methods (the
+    same labels, hence colours, in every panel): ``ylabel`` on the first axes only; ``figsize``
+    ``(7.5, 4.2)`` for one panel and ``(5.5 n, 4.2)`` for ``n`` by default.
+
+    Args:
+        x: ``(T,)`` common x values; logy: logarithmic y axis; style: line style of the series.
+    """
+    n = len(panels)
+    return plot_line_panels(
+        path,
+        x,
+        [
+            LinePanel(lines, title=t, ylabel=ylabel if i == 0 else "", logy=logy, style=style)
+            for i, (t, lines) in enumerate(panels.items())
+        ],
+        ncols=max(n, 1),
+        sharey=True,
+        xlabel=xlabel,
+        title=title,
+        figsize=figsize or (7.5 if n == 1 else 5.5 * n, 4.2),
+    )
 
 
 def plot_prediction_errors(
