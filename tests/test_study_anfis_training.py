@@ -1,5 +1,5 @@
 """The anfis-training study (paper 003) end to end in quick mode (its training helpers:
-tests/test_optim_online.py)."""
+tests/test_optim_online.py, tests/test_studies_training.py)."""
 
 from __future__ import annotations
 

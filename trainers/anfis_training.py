@@ -10,7 +10,8 @@ Protocol (paper 003 Sec. V, Tables I and III, Fig. 3-5 and 7-8):
   and the ImSRUKF (SRUKF + Sage-Husa Q and R, Eq. 41, 43) on the random walk of Eq. 45-46, and
   Adam as the gradient baseline, all through :func:`~prognos_torch.optim.train_in_blocks` (one
   sample per step, in time order, the same number of passes). The Kalman runs are trained as
-  one batch (``runs=R``); Adam runs one after the other.
+  one batch (``runs=R``, :func:`~prognos_torch.studies.kalman_runs`); Adam runs one after the
+  other (:func:`~prognos_torch.studies.runs_in_turn`).
 * Lorenz(x) (Eq. 47): 1000 points of :func:`~prognos_torch.systems.lorenz.lorenz_series`, all
   scaled to ``[0, 1]``, first 500 points train (497 input/target pairs), the last 500 are
   predicted one step ahead.
@@ -30,7 +31,7 @@ from __future__ import annotations
 
 import copy
 import math
-import time
+from functools import partial
 from pathlib import Path
 from typing import NamedTuple
 
@@ -39,25 +40,19 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from prognos_torch.datasets.windows import MinMaxScaler, chronological_split, embed
+from prognos_torch import plots, studies
+from prognos_torch.datasets import MinMaxScaler, one_step_pairs
 from prognos_torch.learners import ANFIS
-from prognos_torch.metrics import mae, rmse
-from prognos_torch.optim import (
-    KalmanOptimizer,
-    ParameterBridge,
-    predict_then_update,
-    train_in_blocks,
-)
-from prognos_torch.plots import LinePanel, plot_line_panels, plot_panels
+from prognos_torch.optim import KalmanOptimizer
 from prognos_torch.studies import (
     Study,
     StudyConfig,
     StudyResult,
+    TrainTest,
     ascending,
-    fill_template,
     fmt_value,
     method_mean,
-    run_rows,
+    run_errors,
 )
 from prognos_torch.studies import markdown_table as md
 from prognos_torch.systems.cstr import simulate_cstr
@@ -92,6 +87,11 @@ Q_RW, R_MEAS = 1e-6, 1e-3
 ADAM_LR = 1e-3  # best of {1e-4, ..., 1e-1} on Lorenz after one pass (tests/test_optim.py)
 PASSES = 1  # Sec. IV step (3): one sweep over the training samples
 CSTR_SEED_OFFSET = 1_000_000  # the CSTR noise draws from seed + this (ANFIS runs use seed + i)
+READINGS = {"frozen after training": "pred", "online (predict, then update)": "online_pred"}
+PERSISTENCE, LSE = (
+    "persistence (t^_(k+1) = t_k)",
+    "ANFIS, premises as initialised, least-squares consequents (Eq. 6)",
+)
 REPORT = Path(__file__).with_name("anfis_training.md")  # table.md captions, readings
 HEAD_MSE = "method|MSE (ours)|paper 'RMSE'|sqrt(paper 'RMSE')|paper MAE|RMSE (ours)"
 HEAD_TIME = (
@@ -101,7 +101,8 @@ HEAD_TIME = (
 
 
 class Data(NamedTuple):
-    """One-step-ahead pairs of a series scaled to [0, 1]: inputs (N, 3), targets (N, 1)."""
+    """One-step-ahead pairs of a series scaled to [0, 1] (:func:`one_step_pairs`, ``m = 3``):
+    inputs (N, 3), targets (N, 1)."""
 
     name: str
     Xtr: Tensor
@@ -112,257 +113,113 @@ class Data(NamedTuple):
     block: int  # optimiser steps per point of the training curves
 
 
-class Outcome(NamedTuple):
-    """One trainer on one data set, ``R`` runs: predictions ``(R, N)``, seconds per run."""
-
-    pred: Tensor
-    pred_train: Tensor
-    train_time: float
-    test_time: float
-    curve: Tensor | None = None  # (n_blocks, R) mean loss of the optimiser steps per block
-    curve_steps: list[int] | None = None
-    online_pred: Tensor | None = None  # predict-then-update on the test segment
-    online_time: float = math.nan
-
-
-def _pairs(name: str, z: Tensor, n_train: int, block: int, device) -> Data:
-    """Embed ``z`` with ``m = 3`` and split: targets among the first ``n_train`` points train."""
-    U, T = embed(z.to(device), EMBED)
-    Xtr, Xte = chronological_split(U, n_train=n_train - EMBED)
-    Ytr, Yte = chronological_split(T.unsqueeze(-1), n_train=n_train - EMBED)
-    return Data(name, Xtr, Ytr, Xte, Yte, np.arange(n_train + 1, z.shape[0] + 1), block)
-
-
 def _lorenz(cfg: StudyConfig) -> Data:
     n = 400 if cfg.quick else 1000
     z = MinMaxScaler().fit_transform(lorenz_series(n))  # all points scaled together (Sec. V-A)
-    return _pairs("Lorenz", z, n // 2, 25, cfg.device)
+    return Data("Lorenz", *one_step_pairs(z.to(cfg.device), EMBED, n // 2), 25)
 
 
 def _cstr(cfg: StudyConfig, realisation: int = 0) -> Data:
     sim = simulate_cstr(200, generator=cfg.generator(CSTR_SEED_OFFSET + realisation))
     z = MinMaxScaler().fit_transform(sim.y[:, 0, 0])  # measured C_A, scaled (Sec. V-B)
-    return _pairs("CSTR", z, 100, 10, cfg.device)
+    return Data("CSTR", *one_step_pairs(z.to(cfg.device), EMBED, 100), 10)
 
 
-def _inits(cfg: StudyConfig, runs: int, data: Data) -> list[ANFIS]:
-    return [
-        ANFIS(EMBED, N_MFS, generator=cfg.generator(i)).init_premises(data.Xtr).to(cfg.device)
-        for i in range(runs)
-    ]
+def _mae(pred: Tensor, data: Data) -> Tensor:
+    return run_errors(pred, data.Yte[:, 0])["MAE"]
+
+
+def _adam(module: torch.nn.Module) -> torch.optim.Adam:
+    return torch.optim.Adam(module.parameters(), ADAM_LR)
 
 
 # ---------------------------------------------------------------------- training
-def _kalman(module, filt: str, inits=None) -> KalmanOptimizer:
-    runs, theta0 = (len(inits), ParameterBridge(module).stack(inits)) if inits else (None, None)
-    return KalmanOptimizer(module, filter=filt, P0=P0, Q=Q_RW, R=R_MEAS, runs=runs, theta0=theta0)
-
-
-def _timed(fn, X):
-    t0 = time.perf_counter()
-    with torch.no_grad():
-        out = fn(X)
-    return out[..., 0], time.perf_counter() - t0
-
-
-def _train(module, opt, data: Data, online: bool, predict=None, block=None) -> dict:
-    """Train in blocks, predict the test segment with frozen parameters, optionally go on
-    online; a batched Kalman optimiser's runs lead every prediction. The training-set
-    predictions (train_MAE) are taken at the end: for the Kalman trainers after the online
-    steps, for Adam before them (as the committed results were made)."""
-    kalman = isinstance(opt, KalmanOptimizer)
-    predict = predict or (opt.predict if kalman else module)
-    steps, curve, t_train = train_in_blocks(
-        module, opt, data.Xtr, data.Ytr, block or data.block, PASSES
-    )
-    pred, t_test = _timed(predict, data.Xte)
-    out = dict(pred=pred, curve=curve, steps=steps, train=t_train, test=t_test)
-    if not kalman:
-        out["fit"] = _timed(predict, data.Xtr)[0]
-    if online:
-        p, out["online"] = predict_then_update(module, opt, data.Xte, data.Yte)
-        out["online_pred"] = p[..., 0]
-    if kalman:
-        out["fit"] = _timed(predict, data.Xtr)[0]
-    return out
-
-
-def _outcome(parts: list[dict], R: int, batched: bool) -> Outcome:
-    """One batched part (Kalman) or ``R`` single runs (Adam, stacked) as an :class:`Outcome`."""
-    get = (lambda k: parts[0][k]) if batched else (lambda k: torch.stack([p[k] for p in parts]))
-    secs = lambda k: sum(p[k] for p in parts) / R  # noqa: E731
-    online = "online_pred" in parts[0]
-    curve = parts[0]["curve"] if batched else torch.stack([p["curve"] for p in parts], -1)
-    return Outcome(
-        get("pred"),
-        get("fit"),
-        secs("train"),
-        secs("test"),
-        curve,
-        parts[0]["steps"],
-        get("online_pred") if online else None,
-        secs("online") if online else math.nan,
-    )
-
-
 def _run_trainers(cfg: StudyConfig, data: Data, runs: int, online: bool, bar=None, alone=None):
-    """Every trainer on ``data``: the Kalman runs batched (and run 0 alone into ``alone``),
-    Adam's runs in turn."""
-    inits, res = _inits(cfg, runs, data), {}
+    """Every trainer on ``data``: the Kalman runs batched (and run 0 alone into ``alone``:
+    train + test seconds, test MAE), Adam's runs in turn; returns the results and the inits."""
+    inits = [
+        ANFIS(EMBED, N_MFS, generator=cfg.generator(i)).init_premises(data.Xtr).to(cfg.device)
+        for i in range(runs)
+    ]
+    pairs = dict(train=(data.Xtr, data.Ytr), test=(data.Xte, data.Yte), passes=PASSES)
+    res: dict[str, TrainTest] = {}
     for name, filt in KALMAN.items():
-        module = copy.deepcopy(inits[0])
-        res[name] = _outcome([_train(module, _kalman(module, filt, inits), data, online)], runs, 1)
-        if alone is not None:  # run 0 trained by itself: (train + test seconds, test MAE)
-            m0 = copy.deepcopy(inits[0])
-            r0 = _train(m0, _kalman(m0, filt), data, False, m0, data.Xtr.shape[0])
-            alone[name] = (r0["train"] + r0["test"], _mae(r0["pred"][None], data)[0].item())
+        kal = dict(filter=filt, P0=P0, Q=Q_RW, R=R_MEAS)
+        out = studies.kalman_runs(inits, **pairs, block=data.block, online=online, **kal)
+        # train_MAE of the Kalman rows is taken after the online steps, Adam's before them
+        # (as the committed results were made)
+        res[name] = out._replace(pred_train=out.online_pred_train) if online else out
+        if alone is not None:  # run 0 trained by itself, the whole pass as one block
+            make = partial(KalmanOptimizer, **kal)
+            r0 = studies.runs_in_turn(inits[:1], make, **pairs, block=data.Xtr.shape[0])
+            alone[name] = (r0.train_time + r0.test_time, _mae(r0.pred, data)[0].item())
         if bar:
             bar.update(2)
-    parts = []
-    for init in inits:
-        module = copy.deepcopy(init)
-        parts.append(_train(module, torch.optim.Adam(module.parameters(), ADAM_LR), data, online))
-    res[ADAM] = _outcome(parts, runs, False)
+    res[ADAM] = studies.runs_in_turn(inits, _adam, **pairs, block=data.block, online=online)
     if bar:
         bar.update(1)
     return res, inits
 
 
-def _untrained(inits: list[ANFIS], data: Data) -> Outcome:
-    parts = [dict(pred=_timed(m, data.Xte), fit=_timed(m, data.Xtr)[0]) for m in inits]
-    pred = torch.stack([p["pred"][0] for p in parts])
-    t_test = sum(p["pred"][1] for p in parts) / len(inits)
-    return Outcome(pred, torch.stack([p["fit"] for p in parts]), 0.0, t_test)
-
-
-# ---------------------------------------------------------------------- scoring
-def _errors(pred: Tensor, target: Tensor) -> dict[str, Tensor]:
-    """Per-run MAE, RMSE (Eq. 48-49) and MSE of ``pred`` ``(R, N)`` against ``target`` ``(N,)``."""
-    t = target.expand_as(pred)
-    r = rmse(pred, t, dim=-1)
-    return {"MAE": mae(pred, t, dim=-1), "RMSE": r, "MSE": r.square()}
-
-
-def _mae(pred: Tensor, data: Data) -> Tensor:
-    return _errors(pred, data.Yte[:, 0])["MAE"]
-
-
-def _rows(label: str, out: Outcome, data: Data, online: bool = False) -> list[dict]:
-    pred, test_time = (out.online_pred, out.online_time) if online else (out.pred, out.test_time)
-    err = _errors(pred, data.Yte[:, 0])
-    err["train_MAE"] = _errors(out.pred_train, data.Ytr[:, 0])["MAE"]
-    err["train_time_s"], err["test_time_s"] = round(out.train_time, 6), round(test_time, 6)
-    return run_rows(label, err | {"time_s": round(out.train_time + test_time, 6)})
-
-
 # ---------------------------------------------------------------------- figures
-def _lines(out_dir, f, x, panels: dict, *, xlabel, ylabel, title, style="-") -> str:
-    """One log-scale axes per panel ``title -> {label: y}``; returns the file name."""
-    plot_line_panels(
-        out_dir / f,
-        x,
-        [
-            LinePanel(lines, title=t, ylabel=ylabel * (i == 0), logy=True, style=style)
-            for i, (t, lines) in enumerate(panels.items())
-        ],
-        ncols=len(panels),
-        sharey=True,
-        xlabel=xlabel,
-        title=title,
-        figsize=(7.5 if len(panels) == 1 else 11.0, 4.2),
-    )
-    return f
-
-
-def _figures(out_dir: Path, data: Data, res: dict[str, Outcome], prefix: str, nums) -> list[str]:
+def _figures(out_dir: Path, data: Data, res: dict[str, TrainTest], prefix: str, nums) -> list[str]:
     """Fig. 3-5 (Lorenz) or 6-8 (CSTR) style figures of one data set; returns file names."""
-    online = res[TRAINERS[0]].online_pred is not None
-    readings = {"frozen after training": "pred"}
-    if online:
-        readings["online (predict, then update)"] = "online_pred"
-    truth, first = data.Yte[:, 0], res[TRAINERS[0]]
-    get = {r: {n: getattr(res[n], key) for n in TRAINERS} for r, key in readings.items()}
-    f = f"{prefix}_fig{nums[0]}_predictions.png"
-    plot_panels(
-        out_dir / f,
+    get = {r: {n: getattr(res[n], key) for n in TRAINERS}
+           for r, key in READINGS.items() if getattr(res[ADAM], key) is not None}  # fmt: skip
+    truth, name, R = data.Yte[:, 0], data.name, res[ADAM].pred.shape[0]
+    files = [f"{prefix}_fig{nums[0]}_predictions.png", f"{prefix}_fig{nums[1]}_abs_error.png",
+             f"{prefix}_fig{nums[2]}_mae_per_run.png", f"{prefix}_training_curves.png"]  # fmt: skip
+    plots.plot_panels(
+        out_dir / files[0],
         data.k_test,
         {f"{r}, run 0": torch.stack([p[0] for p in g.values()], -1) for r, g in get.items()},
         truth=truth[:, None].expand(-1, len(TRAINERS)),
         names=list(TRAINERS),
         ncols=2,
-        clip=0.3 if online else None,
+        clip=0.3 if len(get) > 1 else None,
         xlabel="sample k",
         panel_size=(4.6, 2.4),
-        title=f"{data.name}: one-step-ahead test predictions vs truth (scaled to [0, 1])",
+        title=f"{name}: one-step-ahead test predictions vs truth (scaled to [0, 1])",
     )
-    return [
-        f,
-        _lines(
-            out_dir,
-            f"{prefix}_fig{nums[1]}_abs_error.png",
-            data.k_test,
-            {r: {n: (p[0] - truth).abs() for n, p in g.items()} for r, g in get.items()},
-            xlabel="sample k",
-            ylabel="absolute error",
-            title=f"{data.name}: absolute one-step prediction error (run 0)",
-        ),
-        _lines(
-            out_dir,
-            f"{prefix}_fig{nums[2]}_mae_per_run.png",
-            np.arange(first.pred.shape[0]),
-            {r: {n: _errors(p, truth)["MAE"] for n, p in g.items()} for r, g in get.items()},
-            xlabel="Monte Carlo run (ANFIS initialisation)",
-            ylabel="test MAE",
-            title=f"{data.name}: test MAE of each run",
-            style="o-",
-        ),
-        _lines(
-            out_dir,
-            f"{prefix}_training_curves.png",
-            first.curve_steps,
-            {
-                f"squared error before each step, mean over blocks of {data.block} steps and "
-                "over runs": {n: res[n].curve.mean(-1) for n in TRAINERS}
-            },
-            xlabel="optimiser steps (training samples seen)",
-            ylabel="training loss",
-            title=f"{data.name}: training curves (one pass, one sample per step)",
-            style="o-",
-        ),
-    ]
+    err = {r: {n: (p[0] - truth).abs() for n, p in g.items()} for r, g in get.items()}
+    plots.plot_line_row(out_dir / files[1], data.k_test, err, xlabel="sample k", logy=True,
+                        ylabel="absolute error",
+                        title=f"{name}: absolute one-step prediction error (run 0)")  # fmt: skip
+    mae = {r: {n: run_errors(p, truth)["MAE"] for n, p in g.items()} for r, g in get.items()}
+    plots.plot_line_row(out_dir / files[2], np.arange(R), mae, ylabel="test MAE", logy=True,
+                        xlabel="Monte Carlo run (ANFIS initialisation)", style="o-",
+                        title=f"{name}: test MAE of each run")  # fmt: skip
+    curves = {f"squared error before each step, mean over blocks of {data.block} steps and over "
+              "runs": {n: res[n].curve.mean(-1) for n in TRAINERS}}  # fmt: skip
+    plots.plot_line_row(out_dir / files[3], res[ADAM].curve_steps, curves, logy=True,
+                        xlabel="optimiser steps (training samples seen)", ylabel="training loss",
+                        title=f"{name}: training curves (one pass, one sample per step)",
+                        style="o-")  # fmt: skip
+    return files
 
 
 # ---------------------------------------------------------------------- report
-def _tables(runs, rows, paper, sets, results, alones, refs) -> dict[str, str]:
+def _tables(rows, paper, sets, results, alones, refs) -> dict[str, str]:
     """The report's tables (their captions are in the template)."""
     Y = {d.name: d.Yte[:, 0] for d, *_ in sets}
-    mse = [
-        [
-            m,
-            fmt_value(method_mean(rows, m, "MSE")),
-            *(f"{v:.4f}" for v in (p["RMSE"], math.sqrt(p["RMSE"]))),
-        ]
-        + [f"{p['MAE']:.4f}", fmt_value(method_mean(rows, m, "RMSE"))]
-        for m, p in paper.items()
-    ]
+    mse = [[m, fmt_value(method_mean(rows, m, "MSE")), f"{p['RMSE']:.4f}",
+            f"{math.sqrt(p['RMSE']):.4f}", f"{p['MAE']:.4f}",
+            fmt_value(method_mean(rows, m, "RMSE"))] for m, p in paper.items()]  # fmt: skip
     times, wins = [], []
     for ds, res in results.items():
         for n in KALMAN:
             secs, mae0 = alones[ds][n]
-            d0 = mae0 - _errors(res[n].pred[:1], Y[ds])["MAE"][0].item()
+            d0 = mae0 - run_errors(res[n].pred[:1], Y[ds])["MAE"][0].item()
             cells = [f"{res[n].train_time:.4f}", f"{res[n].test_time:.2e}", f"{secs:.3f}"]
             times.append([ds, n, *cells, f"{d0:+.1e}", PAPER_TABLES[ds][n]["time_s"]])
         adam = [f"{res[ADAM].train_time:.4f} (runs in turn)", f"{res[ADAM].test_time:.2e}"]
         times.append([ds, ADAM, *adam, "—", "—", "—"])
         for label, key in ((ds, "pred"), (f"{ds} online", "online_pred")):
-            if getattr(res[TRAINERS[0]], key) is not None:
-                m = torch.stack([_errors(getattr(res[n], key), Y[ds])["MAE"] for n in TRAINERS])
-                wins.append([label, *torch.bincount(m.argmin(0), minlength=len(TRAINERS)).tolist()])
-    ref = [
-        [ds, n, f"{e['MAE'][0].item():.4f}", f"{e['RMSE'][0].item():.4f}"]
-        for ds, r in refs.items()
-        for n, e in r.items()
-    ]
+            if getattr(res[ADAM], key) is not None:
+                m = {n: run_errors(getattr(res[n], key), Y[ds])["MAE"] for n in TRAINERS}
+                wins.append([label, *studies.lowest_counts(m).values()])
+    ref = [[ds, n, f"{e['MAE'][0].item():.4f}", f"{e['RMSE'][0].item():.4f}"]
+           for ds, r in refs.items() for n, e in r.items()]  # fmt: skip
     return {
         "table_mse": md(HEAD_MSE.split("|"), mse),
         "table_time": md(HEAD_TIME.split("|"), times),
@@ -378,7 +235,7 @@ def _cstr_sensitivity(cfg: StudyConfig, runs: int, realisations: int, bar) -> st
         data = _cstr(cfg, j)
         res, _ = _run_trainers(cfg, data, runs, True)
         cells = [str(j), f"{_mae(data.Xte[None, :, -1], data).item():.4f}"]
-        for key in ("pred", "online_pred"):
+        for key in READINGS.values():
             cells += [f"{_mae(getattr(res[n], key), data).mean().item():.4f}" for n in TRAINERS]
         body.append(cells)
         bar.update(1)
@@ -389,27 +246,24 @@ def _cstr_sensitivity(cfg: StudyConfig, runs: int, realisations: int, bar) -> st
 def _readings(cfg: StudyConfig, rows: list[dict], refs: dict) -> dict:
     """The numbers of the readings in the template."""
 
-    def maes(label):
-        return {n: method_mean(rows, f"{label}: {n}", "MAE") for n in TRAINERS}
-
     def holds(d):
         ok = d["ANFIS-ImSRUKF"] < d["ANFIS-SRUKF"] < d["ANFIS-EKF"]
         return "holds" if ok else "does not hold"
 
-    lor, cs, con = maes("Lorenz"), maes("CSTR"), maes("CSTR online")
+    labels = {"lorenz": "Lorenz", "cstr": "CSTR", "online": "CSTR online"}
+    maes = {
+        k: {n: method_mean(rows, f"{v}: {n}", "MAE") for n in TRAINERS} for k, v in labels.items()
+    }
+    lor, cs = maes["lorenz"], maes["cstr"]
     kal = [lor[n] for n in KALMAN]
     p_lor = [v["MAE"] for v in PAPER_TABLES["Lorenz"].values()]
     p_cs = [v["MAE"] for v in PAPER_TABLES["CSTR"].values()]
-    lse = list(refs["Lorenz"].values())[1]["MAE"][0].item()
+    lse = refs["Lorenz"][LSE]["MAE"][0].item()
     better = " and ".join(n for n in KALMAN if lor[n] < lse)
     return {
         "seed": cfg.seed,
-        "order_lorenz": ascending(lor),
-        "order_cstr": ascending(cs),
-        "order_online": ascending(con),
-        "holds_lorenz": holds(lor),
-        "holds_cstr": holds(cs),
-        "holds_online": holds(con),
+        **{f"order_{k}": ascending(v) for k, v in maes.items()},
+        **{f"holds_{k}": holds(v) for k, v in maes.items()},
         "lorenz_ratio_low": min(p_lor) / max(kal),
         "lorenz_ratio_high": max(p_lor) / min(kal),
         "paper_lorenz_min": min(p_lor),
@@ -418,7 +272,7 @@ def _readings(cfg: StudyConfig, rows: list[dict], refs: dict) -> dict:
         "paper_cstr_max": max(p_cs),
         "lse_lorenz": lse,
         "best_cstr": min(cs[n] for n in KALMAN),
-        "persistence_cstr": next(iter(refs["CSTR"].values()))["MAE"][0].item(),
+        "persistence_cstr": refs["CSTR"][PERSISTENCE]["MAE"][0].item(),
         "lse_comparison": f"above the one-pass {better}, which also train the premises"
         if better
         else "below every trainer after one pass",
@@ -436,26 +290,22 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     for data, online, prefix, nums in sets:
         alones[data.name] = {}
         res, inits = _run_trainers(cfg, data, runs, online, bar, alones[data.name])
-        res[UNTRAINED] = _untrained(inits, data)
+        res[UNTRAINED] = studies.untrained_runs(inits, data.Xtr, data.Xte)
+        results[data.name], ys = res, (data.Ytr[:, 0], data.Yte[:, 0])
         lse = copy.deepcopy(inits[0]).init_consequents_lstsq(data.Xtr, data.Ytr)
-        with torch.no_grad():
-            refs[data.name] = {
-                "persistence (t^_(k+1) = t_k)": _errors(data.Xte[None, :, -1], data.Yte[:, 0]),
-                "ANFIS, premises as initialised, least-squares consequents (Eq. 6)": _errors(
-                    lse(data.Xte)[None, :, 0], data.Yte[:, 0]
-                ),
-            }
-        results[data.name] = res
+        with torch.no_grad():  # references without iterative training
+            refs[data.name] = {PERSISTENCE: run_errors(data.Xte[None, :, -1], ys[1]),
+                               LSE: run_errors(lse(data.Xte)[None, :, 0], ys[1])}  # fmt: skip
         for label, on in [(data.name, False)] + ([(f"{data.name} online", True)] if online else []):
             for name in TRAINERS + (() if on else (UNTRAINED,)):
-                rows += _rows(f"{label}: {name}", res[name], data, online=on)
+                rows += studies.outcome_rows(f"{label}: {name}", res[name], *ys, online=on)
                 if name in PAPER_TABLES[data.name]:
                     paper[f"{label}: {name}"] = PAPER_TABLES[data.name][name]
         figs += _figures(out_dir, data, res, prefix, nums)
     bar.set_postfix_str("CSTR noise realisations")
     sens = _cstr_sensitivity(cfg, sens_runs, sens_real, bar)
     bar.close()
-    report = _tables(runs, rows, paper, sets, results, alones, refs) | _readings(cfg, rows, refs)
+    report = _tables(rows, paper, sets, results, alones, refs) | _readings(cfg, rows, refs)
     report |= {"table_sensitivity": sens, "sens_last_run": sens_runs - 1, "runs": runs}
     report |= {"sens_realisations": sens_real, "CSTR_SEED_OFFSET": CSTR_SEED_OFFSET}
     report |= {"P0": P0, "Q_RW": Q_RW, "R_MEAS": R_MEAS, "ADAM_LR": ADAM_LR}
@@ -480,7 +330,7 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
             "cstr_sensitivity": {"runs": sens_runs, "noise_realisations": sens_real},
             "time_s": "train + test seconds per run; Kalman runs batched (batch time / runs)",
         },
-        notes=fill_template(REPORT, report),
+        notes=studies.fill_template(REPORT, report),
     )
 
 
