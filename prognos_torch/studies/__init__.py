@@ -9,8 +9,8 @@ notes filled from a template); :mod:`.evaluate` and :mod:`.forecasters` the eval
 protocols the studies share (fault prediction, one-step forecasters alone and inside prognostic
 filters); :mod:`.training` timed training of a learner by an optimiser over input/target
 pairs, Monte Carlo runs batched or in turn, its frozen and online test readings; :mod:`.matrix`
-a learner x trainer x filter matrix over test problems; :mod:`.rows` builds the per-run result
-rows and writes them as CSV.
+a learner x trainer x filter matrix over test problems (:mod:`.matrix_training` trains its
+learners by name); :mod:`.rows` builds the per-run result rows and writes them as CSV.
 """
 
 from .evaluate import (
@@ -28,12 +28,22 @@ from .forecasters import (
     evaluate_filtered,
     evaluate_gaussian,
     evaluate_particle,
+    forecast_problem,
     healthy_runs,
     point_errors,
     residual_noise,
     rul_scores,
 )
-from .matrix import Cell, Footnotes, MatrixResult, capture, run_forecaster_matrix
+from .matrix import (
+    Cell,
+    Footnotes,
+    MatrixResult,
+    capture,
+    filter_factories,
+    matrix_metrics,
+    run_forecaster_matrix,
+)
+from .matrix_training import MatrixTraining, not_applicable, persistence, train_forecasters
 from .rows import method_mean, run_rows, write_rows_csv
 from .runner import (
     Study,
@@ -114,9 +124,16 @@ __all__ = [
     "evaluate_gaussian",
     "evaluate_particle",
     "evaluate_filtered",
+    "forecast_problem",
     "Cell",
     "Footnotes",
     "MatrixResult",
     "capture",
+    "filter_factories",
+    "matrix_metrics",
     "run_forecaster_matrix",
+    "MatrixTraining",
+    "not_applicable",
+    "persistence",
+    "train_forecasters",
 ]

@@ -26,12 +26,14 @@ with alpha-lambda (Saxena et al. 2010, :func:`~prognos_torch.metrics.alpha_lambd
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from ..core.belief import GaussianBelief
+from ..datasets import embed
 from ..filters import GaussianFilter, ParticleFilter, multinomial
 from ..filters import run as filter_run
 from ..metrics import alpha_bounds, alpha_lambda, lambda_index, mae, probability_in_bounds, rmse
@@ -48,6 +50,7 @@ from ..prognosis import (
 __all__ = [
     "ForecastProblem",
     "ForecastProtocol",
+    "forecast_problem",
     "point_errors",
     "rul_scores",
     "residual_noise",
@@ -136,6 +139,70 @@ class ForecastProtocol:
     lam: float = 0.5
     beta: float = 0.5
     chunk: int = 100
+
+
+def _first_reaching(x: Tensor, v: float, what: str) -> int:
+    idx = torch.nonzero(x >= v).flatten()
+    if idx.numel() == 0:
+        raise ValueError(f"no {what} reaches {v:g}")
+    return int(idx[0])
+
+
+def forecast_problem(
+    name: str,
+    train: Tensor,
+    z: Tensor,
+    m: int,
+    *,
+    stride: int,
+    s0: int | None = None,
+    days: Tensor | None = None,
+    test_from: float | None = None,
+    threshold: float | None = None,
+    rul_times: Sequence[float] = (),
+    dt: float = 1.0,
+    device: str | torch.device | None = None,
+) -> ForecastProblem:
+    """A :class:`ForecastProblem` from a scaled training series and a scaled test series.
+
+    Args:
+        name: label; m: embedding dimension.
+        train: ``(N + m,)`` training series: ``N`` windows and targets
+            (:func:`~prognos_torch.datasets.embed`).
+        z: ``(T,)`` test series; stride: spacing of the multi-step origins.
+        s0: index in ``z`` of the first test target; or (``None``) the first index with
+            ``days >= test_from``, at least ``m``.
+        days: ``(T,)`` time of each value of ``z`` (stays on its device).
+        threshold: failure threshold in the units of ``z``: the end of life ``t_eol`` is the
+            time of the first value of ``z`` that reaches it.
+        rul_times: RUL prediction times: the first index with ``days >=`` each.
+        dt: time per step; device: where ``X``, ``Y`` and ``z`` go.
+    """
+    X, Y = embed(train, m)
+    if s0 is None:
+        if days is None or test_from is None:
+            raise ValueError("give s0, or days and test_from")
+        s0 = max(_first_reaching(days, test_from, "time"), m)
+    t_eol = None
+    if threshold is not None:
+        if days is None:
+            raise ValueError("a threshold needs days")
+        t_eol = float(days[_first_reaching(z, threshold, "test value")])
+    rul_idx = tuple(_first_reaching(days, t, "time") for t in rul_times)
+    return ForecastProblem(
+        name,
+        m,
+        X.to(device),
+        Y[:, None].to(device),
+        z.to(device),
+        s0,
+        stride,
+        days=days,
+        threshold=threshold,
+        t_eol=t_eol,
+        rul_idx=rul_idx,
+        dt=dt,
+    )
 
 
 def _expand_runs(x: Tensor, runs: int) -> Tensor:

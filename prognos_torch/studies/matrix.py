@@ -11,6 +11,8 @@ row each. :class:`MatrixResult` answers the questions a reader asks of the matri
 a metric in a cell, the cost, the best combination with ties broken by cost, and writes the
 full table (:meth:`MatrixResult.table`), one learner x trainer pivot per problem
 (:meth:`MatrixResult.pivots`) and heatmap panels (:meth:`MatrixResult.heatmap`).
+:func:`filter_factories` builds the filters of a matrix by name, :func:`matrix_metrics` names
+its metric columns. The learners are trained by :mod:`.matrix_training`.
 """
 
 from __future__ import annotations
@@ -25,8 +27,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ..filters import PARTICLE_FILTERS, make_filter, make_particle_filter
 from ..optim import StackedLearner
 from .forecasters import (
+    RUL_KEYS,
     ForecastProblem,
     ForecastProtocol,
     evaluate_alone,
@@ -36,9 +40,43 @@ from .forecasters import (
 )
 from .tables import Stat, markdown_table, summarize
 
-__all__ = ["Cell", "Footnotes", "MatrixResult", "capture", "run_forecaster_matrix"]
+__all__ = [
+    "Cell",
+    "Footnotes",
+    "MatrixResult",
+    "capture",
+    "filter_factories",
+    "matrix_metrics",
+    "run_forecaster_matrix",
+]
 
 EVAL_ERRORS = (FloatingPointError, torch.linalg.LinAlgError, ValueError)
+
+
+def matrix_metrics(horizon: int = 10) -> list[str]:
+    """The per-run metrics of a matrix's summary table, in order (the RUL ones are empty on
+    problems without a threshold)."""
+    return ["RMSE_1", "MAE_1", f"RMSE_{horizon}", f"MAE_{horizon}", *RUL_KEYS, "time_s"]
+
+
+def filter_factories(
+    names: Sequence[str], n_particles: int
+) -> dict[str, Callable[[], object] | None]:
+    """``name -> factory`` of each filter of a matrix (:func:`run_forecaster_matrix`):
+    ``"none"`` -> ``None`` (the forecaster alone), particle filters by
+    :func:`~prognos_torch.filters.make_particle_filter` name (``"PF"``, ``"EKPF"``, ``"STPF"``,
+    ...) with ``n_particles``, Gaussian filters by :func:`~prognos_torch.filters.make_filter`
+    name (``"SCKF"``, ``"STSCKF"``, ...)."""
+    out: dict[str, Callable[[], object] | None] = {}
+    for f in names:
+        if f == "none":
+            out[f] = None
+        elif f.lower() in PARTICLE_FILTERS:
+            out[f] = lambda f=f: make_particle_filter(f, num_particles=n_particles)
+        else:
+            make_filter(f)  # an unknown name fails here, not inside the matrix
+            out[f] = lambda f=f: make_filter(f)
+    return out
 
 
 @dataclass(frozen=True)
