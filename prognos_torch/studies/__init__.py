@@ -10,7 +10,8 @@ protocols the studies share (fault prediction, one-step forecasters alone and in
 filters); :mod:`.training` timed training of a learner by an optimiser over input/target
 pairs, Monte Carlo runs batched or in turn, its frozen and online test readings; :mod:`.matrix`
 a learner x trainer x filter matrix over test problems (:mod:`.matrix_training` trains its
-learners by name); :mod:`.rows` builds the per-run result rows and writes them as CSV.
+learners by name, :mod:`.matrix_report` draws its figures); :mod:`.rows` builds the per-run
+result rows and writes them as CSV.
 """
 
 from .evaluate import (
@@ -42,6 +43,14 @@ from .matrix import (
     filter_factories,
     matrix_metrics,
     run_forecaster_matrix,
+)
+from .matrix_report import (
+    always_censored,
+    best_label,
+    matrix_figures,
+    most_hits,
+    problem_summary,
+    ratio_text,
 )
 from .matrix_training import MatrixTraining, not_applicable, persistence, train_forecasters
 from .rows import method_mean, run_rows, write_rows_csv
@@ -132,6 +141,12 @@ __all__ = [
     "filter_factories",
     "matrix_metrics",
     "run_forecaster_matrix",
+    "matrix_figures",
+    "best_label",
+    "ratio_text",
+    "most_hits",
+    "always_censored",
+    "problem_summary",
     "MatrixTraining",
     "not_applicable",
     "persistence",

@@ -12,7 +12,8 @@ a metric in a cell, the cost, the best combination with ties broken by cost, and
 full table (:meth:`MatrixResult.table`), one learner x trainer pivot per problem
 (:meth:`MatrixResult.pivots`) and heatmap panels (:meth:`MatrixResult.heatmap`).
 :func:`filter_factories` builds the filters of a matrix by name, :func:`matrix_metrics` names
-its metric columns. The learners are trained by :mod:`.matrix_training`.
+its metric columns. The learners are trained by :mod:`.matrix_training`, the figures drawn by
+:mod:`.matrix_report`.
 """
 
 from __future__ import annotations
