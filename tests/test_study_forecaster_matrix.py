@@ -10,6 +10,7 @@ import pytest
 import torch
 from _study_helpers import means, quick_fixture, read_rows, trainer_fixture
 
+from prognos_torch import studies
 from prognos_torch.studies import StudyConfig
 
 RUNS = 2
@@ -51,9 +52,10 @@ def test_quick_outputs_complete_and_finite(fm, quick_out):
         assert f"{series} | persistence-none | none" in methods
     assert "CSTR | LSSVR-EKF | none" in methods  # a 98-entry state on the CSTR: evaluated
     # on the full bearing series the 1,260-entry LS-SVR state is marked n/a
-    s = fm._hi_series(fm._Protocol(StudyConfig(runs=RUNS)), "cpu")
-    assert fm._not_applicable("LSSVR", "EKF", s) is not None
-    assert fm._not_applicable("LSSVR", "closed", s) is None
+    pr = fm._Protocol(StudyConfig(runs=RUNS))
+    s = fm._hi_series(pr, "cpu")
+    assert studies.not_applicable("LSSVR", "EKF", s, pr.training) is not None
+    assert studies.not_applicable("LSSVR", "closed", s, pr.training) is None
     for r in rows:
         assert sum(1 for q in rows if q["method"] == r["method"]) == RUNS
         if r["diverged"] == "1.0":
@@ -93,13 +95,13 @@ def test_elm_kalman_equals_ridge(fm):
     # solution (Bayesian linear regression), whatever the mini-batch size
     g = torch.Generator().manual_seed(3)
     z = torch.rand(120, generator=g, dtype=torch.float64).cumsum(0) / 60.0
-    X, Y = fm.embed(z[:84], 4)  # 80 pairs: ten mini-batches of 8 on the bearing setting
-    s = fm.ForecastProblem("HI", 4, X, Y[:, None], z, 84, stride=10)
-    pr = fm._Protocol(StudyConfig(runs=2))
-    cfg = StudyConfig(runs=2)
-    ridge = fm._train("ELM", "closed", s, pr, cfg)
+    # 80 pairs: ten mini-batches of 8 on the bearing setting
+    s = studies.forecast_problem("HI", z[:84], z, 4, stride=10, s0=84)
+    pr, cfg = fm._Protocol(StudyConfig(runs=2)), StudyConfig(runs=2)
+    kw = dict(runs=pr.runs, generator=cfg.generator)
+    ridge = studies.train_forecasters("ELM", "closed", s, pr.training, **kw)
     for tn in ("EKF", "SRUKF"):
-        kal = fm._train("ELM", tn, s, pr, cfg)
+        kal = studies.train_forecasters("ELM", tn, s, pr.training, **kw)
         k, r = kal.parameter_sets(), ridge.parameter_sets()
         torch.testing.assert_close(k["beta"], r["beta"], rtol=1e-6, atol=1e-6)
         torch.testing.assert_close(k["a"], r["a"], rtol=0, atol=0)

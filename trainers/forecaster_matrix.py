@@ -44,26 +44,25 @@ runs, all Adam runs) and filtered as one batch (runs leading, particles after th
 generator per (series, filter) shared by all combinations (common random numbers). LS-SVR and
 its trainers are deterministic: it is evaluated on ``SHARED_RUNS`` runs that differ only in the
 particle draws. Quick mode runs a reduced matrix: every (learner, trainer) alone, every filter
-with one trainer per learner. The matrix is run by
+with one trainer per learner. The learners are trained by
+:func:`~prognos_torch.studies.train_forecasters`, the matrix is run by
 :func:`~prognos_torch.studies.run_forecaster_matrix` (evaluation:
-:mod:`prognos_torch.studies.forecasters`); the readings in ``table.md`` are the template
+:mod:`prognos_torch.studies.forecasters`) and drawn by
+:func:`~prognos_torch.studies.matrix_figures`; the readings in ``table.md`` are the template
 ``forecaster_matrix.md`` filled with the run's numbers.
 """
 
 from __future__ import annotations
 
 import math
+from functools import partial
 from pathlib import Path
 
 import torch
-from torch import Tensor
 
-from prognos_torch import filters, plots, studies
-from prognos_torch.datasets import MinMaxScaler, embed, health_indicator, minmax_normalize
-from prognos_torch.learners import ANFIS, ELM, LSSVR, LSSVRGram
-from prognos_torch.optim import KalmanOptimizer, StackedLearner, fit, fit_kalman_runs, fit_together
-from prognos_torch.plots import HeatmapPanel
-from prognos_torch.studies import ForecastProblem, Study, StudyConfig, StudyResult
+from prognos_torch import studies
+from prognos_torch.datasets import MinMaxScaler, health_indicator, minmax_normalize
+from prognos_torch.studies import ForecastProblem, MatrixTraining, Study, StudyConfig, StudyResult
 from prognos_torch.systems.cstr import simulate_cstr
 
 # ----------------------------------------------------------------------------------- settings
@@ -137,27 +136,13 @@ NA_REASONS = {
     ),
 }
 
-METRICS = [
-    "RMSE_1",
-    "MAE_1",
-    "RMSE_10",
-    "MAE_10",
-    "RUL_MAE_d",
-    "RUL_bias_d",
-    "RUL_censored",
-    "AL_mass",
-    "alpha_lambda",
-    "time_s",
-]
-
-
 # Quick mode (a reduced matrix): every learner with every trainer alone ("none"), and every
 # filter with one trainer per learner.
 QUICK_FILTERED = {"ELM": "closed", "LSSVR": "closed", "ANFIS": "EKF"}
 
 
 class _Protocol:
-    """Sizes of one study run (full or quick)."""
+    """Sizes of one study run (full or quick) and the learners' training settings."""
 
     def __init__(self, cfg: StudyConfig):
         q = cfg.quick
@@ -169,236 +154,95 @@ class _Protocol:
         self.hi_from_day = 9.8 if q else HI_TEST_FROM_DAY
         self.hi_train_days = 2.0 if q else None  # quick: train on the last two days only
         self.rul_days = (9.9, 10.5) if q else RUL_DAYS
+        self.training = MatrixTraining(
+            elm_hidden=ELM_HIDDEN, elm_lam=ELM_LAM, lssvr_sigma=LSSVR_SIGMA, lssvr_C=LSSVR_C,
+            anfis_mfs=ANFIS_MFS, kalman_R=KF_R, kalman_Q=KF_Q, kalman_P0=P0,
+            kalman_batch=KF_BATCH, adam_lr=ADAM_LR, adam=self.adam,
+            lssvr_kalman_max=LSSVR_KALMAN_MAX,
+        )  # fmt: skip
 
 
 NOTES = Path(__file__).with_name("forecaster_matrix.md")  # the readings of table.md
 
 
 # ----------------------------------------------------------------------------------- data
-def _first_at(days: Tensor, d: float) -> int:
-    return int(torch.nonzero(days >= d).flatten()[0])
-
-
 def _hi_series(pr: _Protocol, device) -> ForecastProblem:
     hi = health_indicator(train_channel=5, test_channel=6)  # bearing 3, last 12 days
     scaler = MinMaxScaler().fit(hi.train)
     z_tr, z_te, days = scaler.transform(hi.train), scaler.transform(hi.test), hi.elapsed
     thr = float(scaler.transform(torch.tensor(HI_THRESHOLD, dtype=torch.float64)))
-    m = EMBED["HI"]
     if pr.hi_train_days is not None:
         z_tr = z_tr[days >= days[-1] - pr.hi_train_days]
-    X, Y = embed(z_tr, m)
-    return ForecastProblem(
-        "HI",
-        m,
-        X.to(device),
-        Y[:, None].to(device),
-        z_te.to(device),
-        s0=max(_first_at(days, pr.hi_from_day), m),
-        stride=STRIDE["HI"],
-        days=days,
-        threshold=thr,
-        t_eol=float(days[torch.nonzero(z_te >= thr).flatten()[0]]),
-        rul_idx=tuple(_first_at(days, d) for d in pr.rul_days),
-        dt=DT_DAYS,
-    )
+    return studies.forecast_problem(
+        "HI", z_tr, z_te, EMBED["HI"], stride=STRIDE["HI"], days=days, test_from=pr.hi_from_day,
+        threshold=thr, rul_times=pr.rul_days, dt=DT_DAYS, device=device,
+    )  # fmt: skip
 
 
 def _cstr_series(cfg: StudyConfig) -> ForecastProblem:
     sim = simulate_cstr(200, generator=cfg.generator(10**6))  # docs/systems.md reading
     z = minmax_normalize(sim.y[:, 0, 0]).values  # paper 003: the whole series to [0, 1]
-    X, Y = embed(z[:100], EMBED["CSTR"])
-    dev = cfg.device
-    return ForecastProblem(
-        "CSTR", EMBED["CSTR"], X.to(dev), Y[:, None].to(dev), z.to(dev), 100, STRIDE["CSTR"]
-    )
+    m, stride = EMBED["CSTR"], STRIDE["CSTR"]
+    return studies.forecast_problem("CSTR", z[:100], z, m, stride=stride, s0=100, device=cfg.device)
 
 
-# ----------------------------------------------------------------------------------- learners
-def _not_applicable(learner: str, trainer: str, s: ForecastProblem) -> str | None:
-    if learner == "ANFIS" and trainer == "closed":
-        return NA_REASONS["ANFIS-closed"]
-    kalman = trainer in ("EKF", "SRUKF", "ImSRUKF")
-    if learner == "LSSVR" and kalman and s.X.shape[0] > LSSVR_KALMAN_MAX:
-        return NA_REASONS["LSSVR-Kalman"]
-    return None
-
-
-def _train(learner: str, trainer: str, s: ForecastProblem, pr: _Protocol, cfg: StudyConfig):
-    """``pr.runs`` trained forecasters (a StackedLearner), or the one deterministic LS-SVR."""
-    X, Y, dev, gen = s.X, s.Y, cfg.device, cfg.generator
-    kalman = dict(filter=trainer.lower(), P0=P0[learner], Q=KF_Q[learner], R=KF_R)
-    # the ImSRUKF noise estimator needs equal mini-batches: it drops an incomplete last one
-    kfit = dict(epochs=1, batch_size=KF_BATCH[s.name], drop_last=trainer == "ImSRUKF")
-    kfit["progress"] = False
-    epochs, bs = pr.adam[s.name]
-    if learner == "LSSVR":  # deterministic: the KKT solution (paper 002 Eq. 4), shared by runs
-        mod = LSSVR(sigma=LSSVR_SIGMA, C=LSSVR_C).to(dev).fit(X, Y)
-        if trainer == "Adam":  # from the KKT solution, mini-batches in time order
-            opt = torch.optim.Adam([p for p in mod.parameters() if p.requires_grad], lr=ADAM_LR)
-            fit(mod, opt, (X, Y), epochs=epochs, batch_size=bs, progress=False)
-        elif trainer != "closed":  # state (alpha, b), prior mean = the KKT solution
-            fit(mod, KalmanOptimizer(mod, **kalman), (X, Y), **kfit)
-        return LSSVRGram(mod)
-    if learner == "ELM":
-        mods = [ELM(s.m, ELM_HIDDEN, generator=gen(i)).to(dev) for i in range(pr.runs)]
-    else:
-        mods = [
-            ANFIS(s.m, ANFIS_MFS, generator=gen(i)).to(dev).init_premises(X) for i in range(pr.runs)
-        ]
-    if trainer == "closed":  # ELM ridge, paper 000 Eq. 52-54
-        return StackedLearner.from_modules([m.fit_ridge(X, Y, ELM_LAM) for m in mods])
-    if trainer == "Adam":  # one optimiser over the runs: shuffled mini-batches shared by all
-        adam = lambda ps: torch.optim.Adam(ps, lr=ADAM_LR)  # noqa: E731
-        opts = dict(epochs=epochs, batch_size=bs, shuffle=True, generator=gen(2 * 10**6))
-        return fit_together(mods, adam, (X, Y), progress=False, **opts)
-    # Kalman optimisers (paper 003 Sec. IV), one pass: one optimiser for the ANFIS runs, one per
-    # ELM run (each has its own hidden layer)
-    return fit_kalman_runs(mods, (X, Y), fit_options=kfit, **kalman)
-
-
-def _persistence(x: Tensor) -> Tensor:
-    """Reference forecaster ``x_{k+1} = x_k`` (the newest window value)."""
-    return x[..., -1:]
-
-
-# ----------------------------------------------------------------------------------- outputs
-def _figures(out_dir: Path, res: studies.MatrixResult, problems) -> list[str]:
-    figs = ["fig1_one_step_rmse.png", "fig2_filters_one_step_rmse.png", "fig3_rul.png"]
-    panels = []
-    for s in problems:  # 1. one-step RMSE of the forecaster alone, learner x trainer (log)
-        ref = res.mean(res.combo(s.name, "persistence", "none"), "none", "RMSE_1")
-        title = f"{s.name}: one-step RMSE, forecaster alone\n(persistence {ref:.3f})"
-        h = res.heatmap(s.name, "RMSE_1", alone=True, log=True, fmt=".3f")
-        panels.append(HeatmapPanel(*h, title=title, cmap="viridis_r", colorbar="log10 RMSE"))
-    plots.plot_heatmaps(out_dir / figs[0], panels, figsize=(10.0, 3.4))
-    panels = [  # 2. one-step RMSE of every (learner, trainer) x filter
-        HeatmapPanel(
-            *res.heatmap(s.name, "RMSE_1", log=True, fmt=".3g"),
-            title=f"{s.name}: one-step RMSE",
-            cmap="viridis_r",
-            colorbar="log10 RMSE",
-        )
-        for s in problems
-    ]
-    plots.plot_heatmaps(out_dir / figs[1], panels, figsize=(10.0, 6.0))
-
-    def rul_text(c, f, mass):  # 3. bearing RUL: error of the median (text), AL mass (colour)
-        err, cens = res.mean(c, f, "RUL_MAE_d"), res.mean(c, f, "RUL_censored")
-        text = f"{err:.2f} d" if math.isfinite(err) else "cens."
-        return text + (f"\n{cens:.0%} c" if 0 < cens < 1 else "")
-
-    title = (
-        "HI: RUL error of the median (text; 'cens.': beyond the horizon)\n"
-        f"colour: P(RUL within ±{RUL_ALPHA:.0%} of the truth at t_lambda)"
-    )
-    panel = HeatmapPanel(
-        *res.heatmap("HI", "AL_mass", text=rul_text),
-        title=title,
-        cmap="viridis",
-        clim=(0.0, 1.0),
-        colorbar="alpha-lambda mass",
-    )
-    plots.plot_heatmaps(out_dir / figs[2], [panel], figsize=(6.5, 6.0))
-    return figs
-
-
+# ----------------------------------------------------------------------------------- notes
 def _notes(res: studies.MatrixResult, problems, pr: _Protocol) -> str:
     hi, cs = problems
-
-    def best(p, metric, filters=None, high=False):
-        b = res.best(p, metric, filters, high) or (math.nan, " | —", "—")  # quick: none
-        return b[0], f"{b[1].split(' | ')[1]} + {b[2]}"
-
-    def ratios(p):  # median over the combinations of RMSE_1 with the filter / alone
-        return ", ".join(f"{f} {res.median_ratio(p, f):.2f}" for f in FILTERS[1:])
-
     v = {p.name: res.view(p.name) for p in problems}
-    alone, alone_name = best("HI", "RMSE_1", ("none",))
-    best10, best10_name = best("HI", "RMSE_10")
+    sums = {f"{p.name}_sum": studies.problem_summary(res, p.name, H_MULTI) for p in problems}
+    alone, alone_name = sums["HI_sum"]["alone"], sums["HI_sum"]["alone_name"]
     elm_vs_best = v["HI"]["ELM-closed none"] / alone - 1
-    hits = [
-        (round(st["alpha_lambda"].mean * st["alpha_lambda"].n), st["alpha_lambda"].n)
-        for meth, st in res.summary.items()
-        if meth.startswith("HI") and "alpha_lambda" in st and "persistence" not in meth
-    ]
-    bias = res.means("HI", "RUL_bias_d") or [math.nan]
     true_rul = [hi.t_eol - float(hi.days[i]) for i in hi.rul_idx]
-    gaps = [
-        abs(v[s][f"ELM-{tn} {f}"] - v[s][f"ELM-closed {f}"])
-        for s in v
-        for tn in ("EKF", "SRUKF")
-        for f in FILTERS
-    ]
+    cells = [(s, tn, f) for s in v for tn in ("EKF", "SRUKF") for f in FILTERS]
+    gaps = [abs(v[s][f"ELM-{tn} {f}"] - v[s][f"ELM-closed {f}"]) for s, tn, f in cells]
     cost = res.view("HI", "cost")
     values = {k: x for k, x in globals().items() if k.isupper()} | dict(hi=hi, cs=cs, pr=pr)
-    values |= {**v, "HI_div": res.view("HI", "diverged"), "HI_cost": cost}
+    values |= {**v, **sums, "HI_div": res.view("HI", "diverged"), "HI_cost": cost}
     values |= {"CSTR_std": res.view("CSTR", "std")}
     values |= dict(
         rul_days=", ".join(f"{float(hi.days[i]):.2f}" for i in hi.rul_idx),
         true_ruls=", ".join(f"{r:.2f}" for r in true_rul),
         horizon_days=pr.rul_horizon * DT_DAYS,
-        alone=alone,
-        alone_name=alone_name,
-        ratios_hi=ratios("HI"),
-        ratios_cs=ratios("CSTR"),
         elm_pick=(
             f"ELM ridge is within {elm_vs_best:.1%} of the best and the cheapest "
             f"({cost['ELM-closed none']:.3f} s/run): pick it for one-step forecasts."
             if elm_vs_best <= 0.05
             else f"ELM ridge is {elm_vs_best:.0%} behind the best: pick {alone_name}."
         ),
-        best10=best10,
-        best10_name=best10_name,
         reading10=": persistence wins (our reading: the recursive predictions revert towards "
         "the training level while the indicator drifts up). "
-        if v["HI"]["persistence-none none RMSE_10"] < best10
+        if v["HI"]["persistence-none none RMSE_10"] < sums["HI_sum"]["best_h"]
         else ". ",
-        censored_alone=", ".join(
-            c.split(" | ")[1]
-            for c, _, _ in res.combos("HI")
-            if res.summary.get(f"{c} | none") and res.mean(c, "none", "RUL_censored") == 1.0
-        )
-        or "no combination",
-        bias_min=min(bias),
-        bias_max=max(bias),
         rul_min=min(true_rul),
         rul_max=max(true_rul),
-        hits=max(hits)[0] if hits else 0,
-        hits_n=max(hits)[1] if hits else 0,
         elm_gap=max((g for g in gaps if math.isfinite(g)), default=math.nan),
         elm_kalman_cost=cost["ELM-EKF none"] / max(cost["ELM-closed none"], 1e-9),
         costs=", ".join(f"{f} {cost[f'ELM-closed {f}']:.3f}" for f in FILTERS),
     )
-    for key, p in (("best_hi", "HI"), ("best_cs", "CSTR")):
-        values[key], values[key + "_name"] = best(p, "RMSE_1")
-    values["best_mass"], values["best_mass_name"] = best("HI", "AL_mass", high=True)
     return studies.fill_template(NOTES, values)
 
 
 def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     pr = _Protocol(cfg)
     problems = [_hi_series(pr, cfg.device), _cstr_series(cfg)]
-    make = {"PF": filters.sir, "EKPF": filters.ekpf, "STPF": filters.stpf}
-    flt = {"none": None} | {f: (lambda f=f: make[f](pr.n_particles)) for f in make}
-    flt |= {"SCKF": filters.sckf, "STSCKF": filters.stsckf}
+    flt = studies.filter_factories(FILTERS, pr.n_particles)
     protocol = studies.ForecastProtocol(
         H_MULTI, pr.rul_horizon, pr.rul_paths, RUL_ALPHA, RUL_LAMBDA, RUL_BETA
     )
+    kw = dict(settings=pr.training, runs=pr.runs, generator=cfg.generator, device=cfg.device)
+    train = partial(studies.train_forecasters, **kw)  # (learner, trainer, problem) -> forecaster
 
     def skip(ln, tn, f):  # quick mode: a reduced matrix
-        return (
-            "quick mode: not run"
-            if cfg.quick and f != "none" and tn != QUICK_FILTERED[ln]
-            else None
-        )
+        reduced = cfg.quick and f != "none" and tn != QUICK_FILTERED[ln]
+        return "quick mode: not run" if reduced else None
 
     res = studies.run_forecaster_matrix(
         problems,
         LEARNERS,
         TRAINERS,
         flt,
-        lambda ln, tn, s: _train(ln, tn, s, pr, cfg),
+        train,
         runs=pr.runs,
         protocol=protocol,
         r_share=R_SHARE,
@@ -407,9 +251,9 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         shared_runs=SHARED_RUNS,
         seed=cfg.seed + 3 * 10**6,  # common random numbers: one seed per (series, filter)
         device=cfg.device,
-        not_applicable=_not_applicable,
+        not_applicable=lambda ln, tn, s: studies.not_applicable(ln, tn, s, pr.training, NA_REASONS),
         skip=skip,
-        references={"persistence": _persistence},
+        references={"persistence": studies.persistence},
         progress=cfg.progress,
     )
     hi = problems[0]
@@ -419,16 +263,12 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     )
     return StudyResult(
         rows=res.rows,
-        metrics=METRICS,
-        figures=_figures(out_dir, res, problems),
+        metrics=studies.matrix_metrics(H_MULTI),
+        figures=studies.matrix_figures(res, out_dir, rul_problem="HI", alpha=RUL_ALPHA),
         config={
             "runs": pr.runs,
             "embedding": EMBED,
-            "elm": {"hidden": ELM_HIDDEN, "lambda": ELM_LAM, "activation": "sigmoid"},
-            "lssvr": {"kernel": "rbf", "sigma": LSSVR_SIGMA, "C": LSSVR_C},
-            "anfis": {"mfs": ANFIS_MFS, "mf": "sigmoid"},
-            "kalman": {"R": KF_R, "Q": KF_Q, "P0": P0, "batch": KF_BATCH, "passes": 1},
-            "adam": {"lr": ADAM_LR, "epochs_batch": pr.adam},
+            **pr.training.config(),
             "particles": pr.n_particles,
             "multi_step": {"horizon": H_MULTI, "stride": STRIDE},
             "filter_noise": {"R_share": R_SHARE, "shift_std": SHIFT_STD},
