@@ -52,11 +52,13 @@ from .high_speed_train import (
     hst_measurement_variance,
     hst_model,
     hst_noise_variances,
+    hst_nominal_fault_model,
     hst_process_variance,
     hst_rhs,
     hst_sensor_fault,
     hst_step,
     simulate_hst,
+    simulate_hst_runs,
 )
 from .integrators import euler_step, rk4_step
 from .lorenz import (
@@ -132,7 +134,9 @@ __all__ = [
     "hst_estimation_errors",
     "hst_model",
     "hst_fault_model",
+    "hst_nominal_fault_model",
     "simulate_hst",
+    "simulate_hst_runs",
     "RUN_TO_FAILURE_FAMILIES",
     "RunToFailure",
     "simulate_run_to_failure",

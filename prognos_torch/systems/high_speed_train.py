@@ -66,7 +66,9 @@ two-car coupler mode ``sqrt(2 k / m)``).
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -98,7 +100,9 @@ __all__ = [
     "hst_estimation_errors",
     "hst_model",
     "hst_fault_model",
+    "hst_nominal_fault_model",
     "simulate_hst",
+    "simulate_hst_runs",
 ]
 
 _FA = (
@@ -441,6 +445,37 @@ def hst_fault_model(
     )
 
 
+def hst_nominal_fault_model(
+    params: HSTParams | None = None,
+    *,
+    q_level: float = 1.0,
+    r_level: float = 1.1,
+    chol_D=(1e-2, 1e-2, 1e-4),
+    q_scale: float = 1.0,
+    dtype=torch.float64,
+    device=None,
+) -> StateSpaceModel:
+    """:func:`hst_fault_model` with fixed nominal noise instead of the true ``Q_k``, ``R_k``.
+
+    The statistics a filter assumes when it does not know Eq. 67-68: the constant parts
+    ``Q = q_scale q_level I`` (Eq. 67: 1) and ``R = r_level I`` (Eq. 68: 1.1), with the fault
+    random walk ``chol_D`` (Eq. 12) as in :func:`hst_fault_model`.
+
+    Returns:
+        The augmented model, state ``2n-1+3``; ``chol_Q`` ``(2n+2, 2n+2)`` =
+        ``blockdiag(sqrt(q_scale q_level) I, chol_D)``, ``chol_R`` ``(2n-1, 2n-1)`` =
+        ``sqrt(r_level) I``, both constant.
+    """
+    p = params or HSTParams()
+    check_nonneg(q_level, "q_level", numbers_only=True)
+    check_nonneg(r_level, "r_level", numbers_only=True)
+    model = hst_fault_model(p, chol_D=chol_D, q_scale=q_scale, dtype=dtype, device=device)
+    eye = torch.eye(p.state_dim, dtype=dtype, device=device)
+    SD = chol_from_std(chol_D, 3, "chol_D", dtype, device)
+    cQ = torch.block_diag(math.sqrt(q_scale * q_level) * eye, SD)
+    return dataclasses.replace(model, chol_Q=cQ, chol_R=math.sqrt(r_level) * eye)
+
+
 # --------------------------------------------------------------------------- simulator
 def simulate_hst(
     n_steps: int = 2000,
@@ -539,3 +574,40 @@ def simulate_hst(
             "parameters_source": "literature values, not paper 004's (its Table 1 was lost)",
         },
     )
+
+
+def simulate_hst_runs(
+    n_steps: int,
+    generators: Sequence[torch.Generator],
+    *,
+    params: HSTParams | None = None,
+    q_scale: float = 1.0,
+    r_scale: float = 1.0,
+    dtype=torch.float64,
+    device=None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`simulate_hst` once per generator, run ``i`` from ``generators[i]`` alone (so that a
+    run does not depend on how many runs are drawn), stacked along the run dimension.
+
+    Returns:
+        ``(truth, y, t)``: ``truth`` ``(T+1, B, 2n-1+3)`` = ``cat([x, theta], -1)``, the state of
+        :func:`hst_fault_model` at steps ``0..T``; ``y`` ``(T, B, 2n-1)``; ``t`` ``(T+1,)``
+        seconds; ``B = len(generators)``.
+    """
+    if not generators:
+        raise ValueError("generators must list at least one torch.Generator")
+    sims = [
+        simulate_hst(
+            n_steps,
+            1,
+            params=params,
+            q_scale=q_scale,
+            r_scale=r_scale,
+            generator=g,
+            dtype=dtype,
+            device=device,
+        )
+        for g in generators
+    ]
+    x, theta = torch.cat([s.x for s in sims], 1), torch.cat([s.theta for s in sims], 1)
+    return torch.cat([x, theta], -1), torch.cat([s.y for s in sims], 1), sims[-1].t
