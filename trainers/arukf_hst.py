@@ -28,61 +28,53 @@ segments (resuming from the filter state) to bound memory.
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import time
 from pathlib import Path
-from typing import NamedTuple
 
 import torch
-from tqdm import tqdm
 
-from prognos_torch.adapt import MovingWindow
-from prognos_torch.core.belief import GaussianBelief
-from prognos_torch.filters import GaussianFilter, arukf, rukf, run_in_segments, ukf
+from prognos_torch.filters import ukf
 from prognos_torch.plots import plot_panels
-from prognos_torch.quadrature import unscented
 from prognos_torch.studies import (
     Study,
     StudyConfig,
     StudyResult,
     fill_template,
     format_table,
-    run_rows,
     sweep_crossing,
     write_rows_csv,
 )
+from prognos_torch.studies.hst_estimation import (
+    FAULT_COLS,
+    FAULT_NAMES,
+    OPT,
+    ORACLE,
+    Q_COLS,
+    R_COLS,
+    STATE_COLS,
+    STATE_NAMES,
+    SUMMARY,
+    HSTProtocol,
+    gamma_sweep,
+    hst_filters,
+    noise_sweep,
+    score_filter,
+    score_filters,
+)
 from prognos_torch.systems.high_speed_train import (
     HSTParams,
-    hst_estimation_errors,
     hst_fault_model,
     hst_noise_variances,
+    hst_nominal_fault_model,
     hst_process_variance,
-    simulate_hst,
+    simulate_hst_runs,
 )
-
-STATE_NAMES = ("x1", "x2", "x3", "x4", "v1", "v2", "v3", "v4", "v5")
-FAULT_NAMES = ("f_a^c", "f_a^d", "f_s")
-SUMMARY = [
-    "state RMSE",
-    "fault RMSE",
-    "Q RMSE",
-    "R RMSE",
-    "Q RMSE (k>N)",
-    "R RMSE (k>N)",
-    "time_s",
-]
-STATE_COLS = [f"RMSE {s}" for s in STATE_NAMES]
-FAULT_COLS = [f"RMSE {s}" for s in FAULT_NAMES]
-Q_COLS = [f"Q{i} RMSE" for i in range(1, 10)]
-R_COLS = [f"R{i} RMSE" for i in range(1, 10)]
 
 # Averages quoted in the text of paper 004 Sec. 4 (its Tables 2-5 lost their numbers).
 PAPER = {
     "RUKF": {"state RMSE": 0.0731, "fault RMSE": 0.0105},
     "ARUKF": {"state RMSE": 0.0329, "fault RMSE": 0.005, "Q RMSE": 0.0779, "R RMSE": 0.0764},
 }
-OPT = " (eps-opt)"  # method-name suffix: Theorem 1's scale chosen per step (bound="optimised")
 PAPER |= {k + OPT: v for k, v in PAPER.items()}
 
 Q_LEVEL, R_LEVEL = 1.0, 1.1  # constant parts of Eq. 67-68 (the nominal statistics)
@@ -113,125 +105,68 @@ QUOTED = {
     "aukf_misspec_R_late": ("AUKF" + MISSPEC, "R RMSE (k>N)"),
     "ukf_state": ("UKF",),
     "ukf_misspec_state": ("UKF" + MISSPEC,),
-    "oracle_state": ("UKF (true Q,R)",),
-    "oracle_fault": ("UKF (true Q,R)", "fault RMSE"),
+    "oracle_state": (ORACLE,),
+    "oracle_fault": (ORACLE, "fault RMSE"),
 }
 
 
-class Protocol(NamedTuple):
-    runs: int
-    n_steps: int
-    window: int
-    segment: int
-    sens_runs: int
-    sens_steps: int
-    gammas: tuple[float, ...]
-    r_scales: tuple[float, ...]  # noise-level sweep: R (truth and filters) times these
-    qr_scales: tuple[float, ...]  # ... and Q and R both times these (oracle only)
-
-
-def _protocol(cfg: StudyConfig) -> Protocol:
+def _protocol(cfg: StudyConfig) -> HSTProtocol:
+    p = HSTParams()
+    # q_scale = sigma^2: Eq. 67 read as the covariance of w(t) in Eq. 8 (module docstring)
+    fixed = dict(segment=250, q_scale=p.sigma**2, chol_D=CHOL_D, p0_std=P0_STD, q_level=Q_LEVEL,
+                 r_level=R_LEVEL, params=p)  # fmt: skip
     if cfg.quick:
         runs = cfg.runs or 3
-        return Protocol(runs, 500, 100, 250, min(2, runs), 300, (1.05, 10.0), (1.0, 0.01), (1e-4,))
+        return HSTProtocol(runs, 500, 100, sens_runs=min(2, runs), sens_steps=300,
+                           gammas=(1.05, 10.0), r_scales=(1.0, 0.01), qr_scales=(1e-4,),
+                           **fixed)  # fmt: skip
     runs = cfg.runs or STUDY.default_runs
-    return Protocol(
-        runs, 3000, 400, 250, min(10, runs), 2000, (1.05, 2.0, 10.0, 100.0),
-        (1.0, 0.1, 0.01, 1e-3, 1e-4), (1e-2, 1e-4),
-    )  # fmt: skip
+    return HSTProtocol(runs, 3000, 400, sens_runs=min(10, runs), sens_steps=2000,
+                       gammas=(1.05, 2.0, 10.0, 100.0), r_scales=(1.0, 0.1, 0.01, 1e-3, 1e-4),
+                       qr_scales=(1e-2, 1e-4), **fixed)  # fmt: skip
 
 
-# ------------------------------------------------------------------------------ composition
-def _nominal_model(p: HSTParams, q_scale: float, r_level: float, dtype, device):
-    """The augmented model (Eq. 13) with fixed nominal ``Q = q_scale Q_LEVEL I``, ``R``."""
-    model = hst_fault_model(p, chol_D=CHOL_D, q_scale=q_scale, dtype=dtype, device=device)
-    std = [math.sqrt(q_scale * Q_LEVEL)] * p.state_dim + list(CHOL_D)
-    cQ = torch.diag(torch.tensor(std, dtype=dtype, device=device))
-    cR = math.sqrt(r_level) * torch.eye(p.state_dim, dtype=dtype, device=device)
-    return dataclasses.replace(model, chol_Q=cQ, chol_R=cR)
-
-
-def _filters(p: HSTParams, window: int, gamma: float | None = None) -> dict:
-    g = p.gamma if gamma is None else gamma
-    M = torch.tensor(p.M, dtype=torch.float64)
-    window_noise = MovingWindow(window=window, diagonal=True)
-    return {
-        "UKF": ukf(1.0, 0.0, 1.0, sqrt=True),
-        "RUKF": rukf(g, M, p.N),
-        "ARUKF": arukf(g, M, p.N, window=window, diagonal=True),
-        "RUKF" + OPT: rukf(g, M, p.N, bound="optimised"),
-        "ARUKF" + OPT: arukf(g, M, p.N, window=window, bound="optimised"),
-        # Eq. 36: +- sqrt((n + 1) P), a = 1
-        "AUKF": GaussianFilter(unscented(1.0, 0.0, 1.0), noise=window_noise, name="AUKF"),
-    }
-
-
-def _belief0(runs: int, dtype, device) -> GaussianBelief:
-    std = torch.tensor(P0_STD, dtype=dtype, device=device)
-    mean = torch.zeros(runs, len(P0_STD), dtype=dtype, device=device)
-    return GaussianBelief(mean, torch.diag(std).expand(runs, -1, -1).clone())
-
-
-def _simulate(cfg: StudyConfig, p: HSTParams, q_scale: float, runs: int, T: int, r_scale=1.0):
-    """Run ``i`` draws from ``cfg.generator(i)``; returns the truth (T+1, B, 12) and ys (T, B, 9)."""
-    dev, kw = torch.device(cfg.device), {"q_scale": q_scale, "r_scale": r_scale}
-    sims = [
-        simulate_hst(T, 1, params=p, generator=cfg.generator(i), device=dev, **kw)
-        for i in range(runs)
-    ]
-    x, theta = torch.cat([s.x for s in sims], 1), torch.cat([s.theta for s in sims], 1)
-    return torch.cat([x, theta], -1), torch.cat([s.y for s in sims], 1), sims[-1].t
-
-
-def _score(method, filt, model, truth, ys, q_scale, proto, detail=True, r_scale=1.0):
-    """Filter all runs (in time segments), score them (paper 004 Tables 2-5; Q, R in the units
-    of Eq. 67-68) and return the rows and the trajectory."""
-    t0 = time.perf_counter()
-    tr = run_in_segments(
-        filt, model, _belief0(ys.shape[1], ys.dtype, ys.device), ys, segment=proto.segment
-    )
-    secs = (time.perf_counter() - t0) / ys.shape[1]
-    e = hst_estimation_errors(
-        tr.means, tr.var_Q, tr.var_R / r_scale, truth, q_scale=q_scale, skip=proto.window
-    )
-    keys = ("state", "fault", "Q", "R", "Q_late", "R_late")
-    vals = {name: e[k].mean(-1) for name, k in zip(SUMMARY, keys)}
-    if detail:
-        for cols, k in ((STATE_COLS, "state"), (FAULT_COLS, "fault"), (Q_COLS, "Q"), (R_COLS, "R")):
-            vals |= {c: e[k][:, j] for j, c in enumerate(cols)}
-    return run_rows(method, vals | {"time_s": secs}), tr
-
-
-# ------------------------------------------------------------------------------ study
 def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     """The study (module docstring): simulate, filter, score, tabulate and plot."""
     torch.set_num_threads(1)
     proto = _protocol(cfg)
-    p = HSTParams()
+    p, q_scale, T = proto.params, proto.q_scale, proto.n_steps
     dt, dev = torch.float64, torch.device(cfg.device)
-    q_scale = p.sigma**2
-    B, T = proto.runs, proto.n_steps
+    gens = [cfg.generator(i) for i in range(proto.runs)]
+    truth, ys, t_grid = simulate_hst_runs(T, gens, params=p, q_scale=q_scale, device=dev)
 
-    truth, ys, t_grid = _simulate(cfg, p, q_scale, B, T)
+    oracle = ukf(1.0, 0.0, 1.0, sqrt=True)
     true_model = hst_fault_model(p, chol_D=CHOL_D, q_scale=q_scale, dtype=dt, device=dev)
-    models = {
-        "": _nominal_model(p, q_scale, R_LEVEL, dt, dev),
-        MISSPEC: _nominal_model(p, q_scale, R_MISSPEC * R_LEVEL, dt, dev),
-    }
-    jobs = [("UKF (true Q,R)", ukf(1.0, 0.0, 1.0, sqrt=True), true_model)]
-    for suffix, model in models.items():
-        jobs += [(name + suffix, f, model) for name, f in _filters(p, proto.window).items()]
+    jobs = [(ORACLE, oracle, true_model)]
+    for suffix, r_level in (("", R_LEVEL), (MISSPEC, R_MISSPEC * R_LEVEL)):
+        model = hst_nominal_fault_model(p, q_level=Q_LEVEL, r_level=r_level, chol_D=CHOL_D,
+                                        q_scale=q_scale, dtype=dt, device=dev)  # fmt: skip
+        jobs += [(name + suffix, f, model) for name, f in hst_filters(p, proto.window).items()]
+    rows, traces = score_filters(proto, jobs, truth, ys, progress=cfg.progress)
 
-    rows: list[dict] = []
-    outs: dict[str, dict] = {}
-    for name, filt, model in tqdm(jobs, desc="arukf-hst", disable=not cfg.progress):
-        r, tr = _score(name, filt, model, truth, ys, q_scale, proto)
-        rows += r
-        outs[name] = {"means": tr.means[:, 0], "Q": tr.var_Q.mean(1), "R": tr.var_R.mean(1)}
-
-    sens_rows, sweep_rows = _sensitivity(cfg, proto, p, truth, ys, q_scale)
-    figures = _figures(out_dir, t_grid[1 : T + 1], truth[1 : T + 1, 0], outs, q_scale)
+    # sensitivity (reduced protocol): gamma, Eq. 67 taken literally, the noise level
+    Bs, Ts = proto.sens_runs, proto.sens_steps
+    tr_s, ys_s = truth[: Ts + 1, :Bs], ys[:Ts, :Bs]
+    sens_rows = gamma_sweep(proto, tr_s, ys_s)
+    gens_s = [cfg.generator(i) for i in range(Bs)]  # fresh draws, Eq. 67 taken literally
+    truth1, ys1, _ = simulate_hst_runs(Ts, gens_s, params=p, q_scale=1.0, device=dev)
+    for label, qs, tr_, y_ in (("q_scale=sigma^2", q_scale, tr_s, ys_s),
+                               ("q_scale=1", 1.0, truth1, ys1)):  # fmt: skip
+        model = hst_fault_model(p, chol_D=CHOL_D, q_scale=qs, dtype=dt, device=dev)
+        sens_rows += score_filter(proto, f"{ORACLE}, {label}", oracle, model, tr_, y_, q_scale=qs,
+                                  detail=False)[0]  # fmt: skip
+    sweep_rows = noise_sweep(proto, cfg.generator, device=dev)
+    figures = _figures(out_dir, t_grid[1 : T + 1], truth[1 : T + 1, 0], traces, q_scale)
     write_rows_csv(out_dir / "sensitivity.csv", sens_rows + sweep_rows)
+    return StudyResult(
+        rows=rows, metrics=SUMMARY, paper=PAPER, figures=figures, config=_config(cfg, proto),
+        notes=fill_template(REPORT, _report(proto, rows, sens_rows, sweep_rows)),
+    )  # fmt: skip
+
+
+def _report(proto: HSTProtocol, rows, sens_rows, sweep_rows) -> dict:
+    """The template's fields: the readings' numbers and the extra tables."""
+    p, T = proto.params, proto.n_steps
 
     def table(rs, cols):
         return format_table(StudyResult(rows=rs, metrics=cols))
@@ -255,11 +190,7 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         "best_fad": f"{min(v for (_, key), v in means.items() if key == 'RMSE f_a^d'):.3g}",
         "sw_lo": f"{min(proto.r_scales):g}",
     }
-    for tag, meth in (
-        ("oracle", "UKF (true Q,R)"),
-        ("rukfo", "RUKF" + OPT),
-        ("arukfo", "ARUKF" + OPT),
-    ):
+    for tag, meth in (("oracle", ORACLE), ("rukfo", "RUKF" + OPT), ("arukfo", "ARUKF" + OPT)):
         pts = [(rs, means[(f"{meth}, R x{rs:g}", "state RMSE")]) for rs in proto.r_scales]
         sc = sweep_crossing(pts, PAPER["ARUKF"]["state RMSE"])
         best = min(pts, key=lambda sv: sv[1])
@@ -273,7 +204,7 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
                 report[f"sw_{tag}_{sc}_{met}"] = (
                     f"{means[(f'{meth}, R x{key}', met + ' RMSE')]:.3g}"
                 )
-    report |= {
+    return report | {
         "table_states": table(rows, STATE_COLS),
         "table_faults": table(rows, FAULT_COLS),
         "table_Q": table(rows, Q_COLS),
@@ -281,7 +212,7 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         "table_sensitivity": table(sens_rows, SUMMARY),
         "sens_runs": proto.sens_runs,
         "sens_steps": proto.sens_steps,
-        "oracle_literal_state": m("UKF (true Q,R), q_scale=1", rs=sens_rows),
+        "oracle_literal_state": m(f"{ORACLE}, q_scale=1", rs=sens_rows),
         "runs": proto.runs,
         "n_steps": T,
         "sigma": p.sigma,
@@ -295,116 +226,63 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
         "eps_printed": p.N**2 / (p.gamma**2 - p.N**2),
         "q_end": hst_process_variance(T - 1),
     }
-    return StudyResult(
-        rows=rows,
-        metrics=SUMMARY,
-        paper=PAPER,
-        figures=figures,
-        config={
-            "n_steps": T,
-            "duration_s": T * p.sigma,
-            "sigma_s": p.sigma,
-            "window_N": proto.window,
-            "segment": proto.segment,
-            "q_scale": q_scale,
-            "nominal_Q": f"{Q_LEVEL} * q_scale * I_9 (+ chol_D^2 on the faults)",
-            "nominal_R": f"{R_LEVEL} * I_9; scenario [R x{R_MISSPEC:g}]: {R_MISSPEC * R_LEVEL} * I_9",
-            "chol_D": CHOL_D,
-            "P0_std": P0_STD,
-            "gamma": p.gamma,
-            "M": p.M,
-            "N": p.N,
-            "mu": "gamma^2 (MovingWindow default reading)",
-            "sigma_points": "scaled unscented alpha=1, beta=0, kappa=1 (Eq. 36, a = 1)",
-            "sensitivity": {
-                "runs": proto.sens_runs,
-                "n_steps": proto.sens_steps,
-                "gammas": proto.gammas,
-                "noise sweep: R x": proto.r_scales,
-                "noise sweep: Q and R x (oracle)": proto.qr_scales,
-            },
-            "eps-opt": "RobustBound(bound='optimised'): Theorem 1's scale chosen per step",
-            "seeds": f"run i: simulate_hst(generator=torch.Generator().manual_seed({cfg.seed} + i))",
-            "params": "HSTParams() literature values (paper 004 Table 1 lost)",
+
+
+def _config(cfg: StudyConfig, proto: HSTProtocol) -> dict:
+    p = proto.params
+    return {
+        "n_steps": proto.n_steps,
+        "duration_s": proto.n_steps * p.sigma,
+        "sigma_s": p.sigma,
+        "window_N": proto.window,
+        "segment": proto.segment,
+        "q_scale": proto.q_scale,
+        "nominal_Q": f"{Q_LEVEL} * q_scale * I_9 (+ chol_D^2 on the faults)",
+        "nominal_R": f"{R_LEVEL} * I_9; scenario [R x{R_MISSPEC:g}]: {R_MISSPEC * R_LEVEL} * I_9",
+        "chol_D": CHOL_D,
+        "P0_std": P0_STD,
+        "gamma": p.gamma,
+        "M": p.M,
+        "N": p.N,
+        "mu": "gamma^2 (MovingWindow default reading)",
+        "sigma_points": "scaled unscented alpha=1, beta=0, kappa=1 (Eq. 36, a = 1)",
+        "sensitivity": {
+            "runs": proto.sens_runs,
+            "n_steps": proto.sens_steps,
+            "gammas": proto.gammas,
+            "noise sweep: R x": proto.r_scales,
+            "noise sweep: Q and R x (oracle)": proto.qr_scales,
         },
-        notes=fill_template(REPORT, report),
-    )
+        "eps-opt": "RobustBound(bound='optimised'): Theorem 1's scale chosen per step",
+        "seeds": f"run i: simulate_hst(generator=torch.Generator().manual_seed({cfg.seed} + i))",
+        "params": "HSTParams() literature values (paper 004 Table 1 lost)",
+    }
 
 
-def _sensitivity(cfg, proto, p, truth, ys, q_scale) -> list[dict]:
-    """RUKF/ARUKF over gamma, the literal Eq. 67 reading and the noise level (R, or Q and R,
-    scaled in the truth and in every filter), on a reduced protocol."""
-    dt, dev = truth.dtype, truth.device
-    Bs, Ts = proto.sens_runs, proto.sens_steps
-    tr_s, ys_s = truth[: Ts + 1, :Bs], ys[:Ts, :Bs]
-    nominal = _nominal_model(p, q_scale, R_LEVEL, dt, dev)
-    rows: list[dict] = []
-    sweep_rows: list[dict] = []
-    for g in proto.gammas:
-        for name in ("RUKF", "ARUKF"):
-            filt = _filters(p, proto.window, gamma=g)[name]
-            rows += _score(f"{name} (gamma={g:g})", filt, nominal, tr_s, ys_s, q_scale, proto, 0)[0]
-    truth1, ys1, _ = _simulate(cfg, p, 1.0, Bs, Ts)
-    oracle = ukf(1.0, 0.0, 1.0, sqrt=True)
-    for label, qs, tr_, y_ in (
-        ("q_scale=sigma^2", q_scale, tr_s, ys_s),
-        ("q_scale=1", 1.0, truth1, ys1),
-    ):
-        model = hst_fault_model(p, chol_D=CHOL_D, q_scale=qs, dtype=dt, device=dev)
-        rows += _score(f"UKF (true Q,R), {label}", oracle, model, tr_, y_, qs, proto, 0)[0]
-    sweep = [("R", 1.0, s) for s in proto.r_scales] + [("Q,R", s, s) for s in proto.qr_scales]
-    for what, qm, rs in sweep:
-        tr_, y_, _ = _simulate(cfg, p, qm * q_scale, Bs, Ts, r_scale=rs)
-        true_m = hst_fault_model(
-            p, chol_D=CHOL_D, q_scale=qm * q_scale, r_scale=rs, dtype=dt, device=dev
-        )
-        jobs = [("UKF (true Q,R)", oracle, true_m)]
-        if what == "R":
-            fs = _filters(p, proto.window)
-            nom = _nominal_model(p, q_scale, rs * R_LEVEL, dt, dev)
-            jobs += [(k, fs[k], nom) for k in ("RUKF" + OPT, "ARUKF" + OPT)]
-        for name, filt, model in jobs:
-            label = f"{name}, {what} x{rs:g}"
-            sweep_rows += _score(label, filt, model, tr_, y_, qm * q_scale, proto, 1, rs)[0]
-    return rows, sweep_rows
-
-
-def _figures(out_dir: Path, t, truth0, outs: dict, q_scale: float) -> list[str]:
+def _figures(out_dir: Path, t, truth0, traces: dict, q_scale: float) -> list[str]:
+    """Paper 004 Fig. 2-5: run 0's state and fault estimates, the noise variances in use."""
     # later lines on top; the printed-bound RUKF/ARUKF diverge (their rows) and are not drawn
-    shown = ["AUKF", "ARUKF" + OPT, "RUKF" + OPT, "UKF (true Q,R)"]
+    shown = ["AUKF", "ARUKF" + OPT, "RUKF" + OPT, ORACLE]
     span = "axes: truth range +- its span; RUKF/ARUKF with the printed bound diverge, not drawn"
-    for f, sl, names, what in (
-        ("fig2_states.png", slice(0, 9), STATE_NAMES, span),
-        ("fig3_faults.png", slice(9, None), FAULT_NAMES, span),
+    for f, sl, names, kind in (
+        ("fig2_states.png", slice(0, 9), STATE_NAMES, "State"),
+        ("fig3_faults.png", slice(9, None), FAULT_NAMES, "Fault"),
     ):
-        est = {k: outs[k]["means"][:, sl] for k in shown}
-        kind = "State" if sl.start == 0 else "Fault"
-        plot_panels(
-            out_dir / f,
-            t,
-            est,
-            truth=truth0[:, sl],
-            names=names,
-            clip=1.0,
-            title=f"{kind} estimates, run 0 ({what})",
-            xlabel="t (s)",
-        )
+        est = {k: traces[k].means[:, sl] for k in shown}
+        title = f"{kind} estimates, run 0 ({span})"
+        plot_panels(out_dir / f, t, est, truth=truth0[:, sl], names=names, clip=1.0, title=title,
+                    xlabel="t (s)")  # fmt: skip
     qt, rt = hst_noise_variances(t.shape[0], dtype=truth0.dtype, device=truth0.device)
     noise_shown = ["ARUKF", "ARUKF" + OPT, "AUKF", "ARUKF" + OPT + MISSPEC, "AUKF" + MISSPEC]
     for f, key, ref, scale, clip, what in (
         ("fig4_Q.png", "Q", qt, q_scale, 2.0, "Process-noise variances Q_ii (units of Eq. 67)"),
         ("fig5_R.png", "R", rt, 1.0, 80.0, "Measurement-noise variances R_ii"),
     ):
-        plot_panels(
-            out_dir / f,
-            t,
-            {k: outs[k][key][:, :9] / scale for k in noise_shown},
-            truth=ref[:, None].expand(-1, 9),
-            names=[f"{key}{i}" for i in range(1, 10)],
-            clip=clip,
-            title=f"{what} in use, mean over runs (axes clipped)",
-            xlabel="t (s)",
-        )
+        est = {k: getattr(traces[k], key)[:, :9] / scale for k in noise_shown}
+        title = f"{what} in use, mean over runs (axes clipped)"
+        names = [f"{key}{i}" for i in range(1, 10)]
+        plot_panels(out_dir / f, t, est, truth=ref[:, None].expand(-1, 9), names=names, clip=clip,
+                    title=title, xlabel="t (s)")  # fmt: skip
     return ["fig2_states.png", "fig3_faults.png", "fig4_Q.png", "fig5_R.png"]
 
 
