@@ -4,7 +4,10 @@
 * :mod:`.ros_elm`: ROS-ELM as a functional core batched over runs (:class:`ROSELMState`,
   :func:`ros_elm_init`, :func:`ros_elm_update`, :func:`ros_elm_forecast`; paper 000 Eq. 54-56).
 * :class:`LSSVR`: least-squares support vector regression with input Jacobian (paper 002);
-  :class:`FixedSizeLSSVR`: the same model on ``M`` support points (Nystrom, for long series).
+  :class:`FixedSizeLSSVR`: the same model on ``M`` support points (Nystrom, for long series);
+  :class:`LSSVRGram`: a fitted RBF LS-SVR evaluated through matrix products
+  (:func:`fit_lssvr_gram`; :func:`lssvr_gram_fitter` and :func:`lssvr_grid_cv` for the blocked
+  cross-validation).
 * :class:`ANFIS`: first-order Sugeno ANFIS with grid rules, Eq. 44 parameter order (paper 003).
 * :func:`blocked_cv_rmse`: blocked (time-ordered) cross-validation of any fit/predict pair;
   :func:`blocked_multistep_cv`: the same folds scoring the recursive (iterated) prediction
@@ -19,7 +22,7 @@ from .elm import ELM
 from .introspect import learner_dims, learner_dtype_device
 from .lssvr import LSSVR
 from .lssvr_fixed import FixedSizeLSSVR
-from .lssvr_gram import LSSVRGram
+from .lssvr_gram import LSSVRGram, fit_lssvr_gram, lssvr_gram_fitter, lssvr_grid_cv
 from .ros_elm import ROSELMState, ros_elm_forecast, ros_elm_init, ros_elm_update
 from .selection import MultiStepCV, blocked_cv_rmse, blocked_folds, blocked_multistep_cv
 
@@ -27,6 +30,9 @@ __all__ = [
     "ELM",
     "LSSVR",
     "LSSVRGram",
+    "fit_lssvr_gram",
+    "lssvr_gram_fitter",
+    "lssvr_grid_cv",
     "FixedSizeLSSVR",
     "ANFIS",
     "ROSELMState",

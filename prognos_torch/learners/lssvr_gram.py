@@ -30,17 +30,20 @@ evaluator, not a trainable model; re-create it after re-fitting the LS-SVR.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+
 import torch
 from torch import Tensor, nn
 
 from ..core.validation import check_forward_input
 from .lssvr import LSSVR, _blocked
+from .selection import MultiStepCV, blocked_multistep_cv
 
 #: Row-block budget of the ``(B, M)`` kernel values (bytes; no ``(B, M, n)`` difference tensor
 #: is formed here, so the budget is larger than the LS-SVR's ``KERNEL_BLOCK_BYTES``).
 GRAM_BLOCK_BYTES = 64 * 2**20
 
-__all__ = ["LSSVRGram"]
+__all__ = ["LSSVRGram", "fit_lssvr_gram", "lssvr_gram_fitter", "lssvr_grid_cv"]
 
 
 class LSSVRGram(nn.Module):
@@ -127,3 +130,70 @@ class LSSVRGram(nn.Module):
 
         per_row = x.element_size() * self.support_vectors.shape[0]
         return _blocked(block, x, per_row, GRAM_BLOCK_BYTES)
+
+
+def fit_lssvr_gram(X: Tensor, y: Tensor, *, sigma: float, C: float) -> LSSVRGram:
+    """A Gaussian-kernel :class:`LSSVR` fitted on ``(X, y)`` (Eq. 1-8, the KKT system of Eq. 4,
+    on the device of ``X``) and returned as its Gram evaluator.
+
+    Args:
+        X: ``(M, n_in)`` training windows; y: ``(M,)`` or ``(M, 1)`` targets.
+        sigma: kernel width; C: regularisation (both finite, ``> 0``).
+    Returns:
+        :class:`LSSVRGram`, ``(..., n_in) -> (..., 1)``.
+    """
+    return LSSVRGram(LSSVR(kernel="rbf", sigma=sigma, C=C).to(X.device).fit(X, y))
+
+
+def lssvr_gram_fitter(
+    sigma: float, C: float
+) -> Callable[[Tensor, Tensor], Callable[[Tensor], Tensor]]:
+    """``fit(X, y) -> predict`` for the blocked cross-validation
+    (:func:`~prognos_torch.learners.blocked_multistep_cv`): each fold's model is
+    :func:`fit_lssvr_gram` with these ``sigma`` and ``C``, its predictor ``(B, n_in) -> (B,)``."""
+
+    def fit(X: Tensor, y: Tensor) -> Callable[[Tensor], Tensor]:
+        g = fit_lssvr_gram(X, y, sigma=sigma, C=C)
+        return lambda Xh: g(Xh)[:, 0]
+
+    return fit
+
+
+def lssvr_grid_cv(
+    series: Tensor,
+    m: int,
+    horizon: int,
+    *,
+    sigmas: Sequence[float],
+    Cs: Sequence[float],
+    scale: float = 1.0,
+    folds: int = 5,
+    threshold: float | None = None,
+    stride: int = 1,
+) -> dict[tuple[float, float], MultiStepCV]:
+    """Blocked cross-validation of the Gaussian-kernel LS-SVR over a grid of kernel widths and
+    regularisations (:func:`~prognos_torch.learners.blocked_multistep_cv` of
+    :func:`lssvr_gram_fitter` per grid point).
+
+    Args:
+        series: ``(n,)`` the training series in time order; m: embedding dimension.
+        horizon, folds, threshold, stride: as in
+            :func:`~prognos_torch.learners.blocked_multistep_cv`.
+        sigmas: kernel widths in units of ``scale`` (e.g. multiples of the series' std);
+            Cs: regularisations.
+    Returns:
+        ``{(s, C): MultiStepCV}`` for the width ``s * scale``, ``s`` outer and ``C`` inner.
+    """
+    return {
+        (s, C): blocked_multistep_cv(
+            lssvr_gram_fitter(s * scale, C),
+            series,
+            m,
+            horizon,
+            folds,
+            threshold=threshold,
+            stride=stride,
+        )
+        for s in sigmas
+        for C in Cs
+    }
