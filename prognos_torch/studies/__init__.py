@@ -11,7 +11,9 @@ filters); :mod:`.training` timed training of a learner by an optimiser over inpu
 pairs, Monte Carlo runs batched or in turn, its frozen and online test readings; :mod:`.matrix`
 a learner x trainer x filter matrix over test problems (:mod:`.matrix_training` trains its
 learners by name, :mod:`.matrix_report` draws its figures); :mod:`.rows` builds the per-run
-result rows and writes them as CSV.
+result rows and writes them as CSV; :mod:`.indicator_protocol` runs paper 002's protocol on a
+measured health indicator (a learner alone and inside particle filters: one-step prediction,
+fault probability, RUL, their rows, figures and tables).
 """
 
 from .evaluate import (
