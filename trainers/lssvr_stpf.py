@@ -1,8 +1,8 @@
 """Paper 002 study: LS-SVR + strong-tracking particle filter on the IMS bearing health indicator.
 
 Protocol (paper 002, Sec. "Experiments and results", Table 1, Table 2, Fig. 8-13), as far as the
-data allow (every reading is listed in ``table.md``; its captions and readings are the
-template ``lssvr_stpf.md``):
+data allow, run by :mod:`prognos_torch.studies.indicator_protocol` (every reading is listed in
+``table.md``; its captions and readings are the template ``lssvr_stpf.md``):
 
 * health indicator (:func:`~prognos_torch.datasets.health_indicator`): bearing 3 of IMS test 1,
   six time-domain features (the shipped table has no median), LLE with 12 neighbours, last 12
@@ -13,68 +13,40 @@ template ``lssvr_stpf.md``):
   regularisation chosen on the training channel in two ways, each run through the whole
   protocol: by blocked 5-fold cross-validation of the one-step error (the paper's rows), and,
   beyond the paper, by the time-to-cross error of the recursive prediction on the same folds
-  (:func:`~prognos_torch.learners.blocked_multistep_cv`; rows marked ``(ms)``);
+  (:func:`~prognos_torch.learners.lssvr_grid_cv`; rows marked ``(ms)``);
 * four one-step predictors on the test channel: the LS-SVR alone (Eq. 12 on the measured
   window), and LS-SVR PF (SIR), LS-SVR EKPF and LS-SVR STPF (Eq. 27, steps 1-7) with the LS-SVR
-  as the m-order transition model (:func:`~prognos_torch.prognosis.learner_transition_model`,
-  Eq. 15-26); one-step RMSE over days 1-12 and 10-12 (Table 1, Fig. 8-9; days are counted from 1 as
-  in the paper, so days 10-12 are ``t in [9, 12)`` and the 11th day is ``t in [10, 11)``);
-* fault probability per step, ``fault(1, k) = sum_i w_k^i I(x_{k+1|k}^i >= 0.1)``
-  (Fig. 10), and per-day box plots;
-* RUL every 0.1 d from the ninth day (``t = 8``): particle paths with frozen weights run
-  until every particle reaches the threshold or a 15-day cap
-  (:func:`~prognos_torch.prognosis.simulate_to_event`), first passage, RUL pmf and its
-  expectation (Eq. 28), Fig. 11-13; accuracy, RMSE, alpha-lambda (alpha = 0.3, lambda = 0.5) and CRA (lambda = 0,
-  0.25, 0.5, 0.75) of the RUL predictions (Table 2).
+  as the m-order transition model (Eq. 15-26); one-step RMSE over days 1-12 and 10-12 (Table 1,
+  Fig. 8-9; days are counted from 1 as in the paper, so days 10-12 are ``t in [9, 12)`` and the
+  11th day is ``t in [10, 11)``);
+* fault probability per step, ``fault(1, k)`` with the threshold 0.1 (Fig. 10), and per-day box
+  plots;
+* RUL every 0.1 d from the ninth day (``t = 8``): paths until every particle reaches the
+  threshold or a 15-day cap, RUL pmf and its expectation (Eq. 28), Fig. 11-13; accuracy, RMSE,
+  alpha-lambda (alpha = 0.3, lambda = 0.5) and CRA (lambda = 0, 0.25, 0.5, 0.75) of the RUL
+  predictions (Table 2).
 
 Monte Carlo runs differ in the particle-filter seed only (the indicator and the LS-SVR are
-deterministic); the runs are one batched pass through the filters' batch dimension, each
-predicting one step ahead before it assimilates a sample
-(:func:`~prognos_torch.prognosis.rolling_particle_prediction`).
+deterministic); the runs are one batched pass through the filters' batch dimension.
 """
 
 from __future__ import annotations
 
 import math
 import time
-import warnings
 from pathlib import Path
 from types import SimpleNamespace
 
-import numpy as np
 import torch
 
 from prognos_torch.datasets import MinMaxScaler, embed, health_indicator
 from prognos_torch.filters import ekpf, sir, stpf
-from prognos_torch.learners import LSSVR, LSSVRGram, blocked_multistep_cv
+from prognos_torch.learners import fit_lssvr_gram, lssvr_grid_cv
 from prognos_torch.metrics import first_crossing_time, point_rul_scores, rmse
-from prognos_torch.plots import (
-    LinePanel,
-    plot_alpha_lambda,
-    plot_fault_probability,
-    plot_fault_probability_box,
-    plot_line_panels,
-    plot_rul_pdf,
-)
-from prognos_torch.prognosis import (
-    last_sample_indices,
-    learner_transition_model,
-    rolling_particle_prediction,
-    settle,
-    simulate_to_event,
-    window_belief,
-)
-from prognos_torch.studies import (
-    Study,
-    StudyConfig,
-    StudyResult,
-    ascending,
-    fill_template,
-    method_mean,
-    run_rows,
-    threshold_census,
-)
-from prognos_torch.studies import markdown_table as md
+from prognos_torch.plots import LinePanel, plot_line_panels
+from prognos_torch.prognosis import learner_transition_model, settle
+from prognos_torch.studies import Study, StudyConfig, StudyResult, method_mean, tables
+from prognos_torch.studies import indicator_protocol as ip
 
 # Paper 002, Table 1 (one-step RMSE) and Table 2 (RUL metrics; alpha-lambda False = 0, True = 1).
 # The paper's "Proposed method"/"Proposed algorithm" is LS-SVR STPF; Table 2's "LS-SVR EKFPF" is
@@ -115,6 +87,7 @@ SELECT_DAYS = 3.0  # horizon of the multi-step selection (> the largest true RUL
 SELECT_STRIDE = 3  # every 3rd held window is an origin of the multi-step selection
 TAIL_START = 9.0  # "10-12 days" (Table 1, Fig. 9b), days counted from 1: t in [9, 12)
 DAY11 = (10.0, 11.0)  # "the 11th day": t in [10, 11)
+DIAG_STEPS = 200  # steps of the proposal-structure diagnostic (full runs only)
 ATTRACTOR_STEPS = 1500  # deterministic recursion length for the attractor census
 N_PARTICLES = 100  # the paper does not give its particle count
 RESAMPLE = 1.0 / 3.0  # STPF step 6 and prognosis step 2: resample when N_eff < N/3
@@ -130,551 +103,213 @@ REPORT = Path(__file__).with_name("lssvr_stpf.md")  # table.md captions, reading
 SHORT = {"LS-SVR": "lssvr", "LS-SVR PF": "pf", "LS-SVR EKPF": "ekpf", "LS-SVR STPF": "stpf"}
 SHORT |= {n + MS: v + "_ms" for n, v in SHORT.items()}
 ALL_METHODS = METHODS + tuple(n + MS for n in METHODS)
+FILTERS = {"LS-SVR PF": sir, "LS-SVR EKPF": ekpf, "LS-SVR STPF": stpf}  # each with the LS-SVR
 
 
-# --------------------------------------------------------------------------- data and learner
 def _indicator(dev):
     """The health indicator on the paper's scale (unit-norm LLE eigenvector) and its time axis."""
     hi = health_indicator()  # bearing 3, channels 5 -> 6, six features, K = 12, last 12 days
-    n = hi.train.shape[0]
     # health_indicator scales the LLE coordinate to (1/N) sum y^2 = 1 (Roweis & Saul);
     # the unit-norm eigenvector (eigs, scikit-learn) is y / sqrt(N).
-    scale = math.sqrt(n)
+    scale = math.sqrt(hi.train.shape[0])
     return hi, scale, (hi.train / scale).to(dev), (hi.test / scale).to(dev), hi.elapsed.to(dev)
 
 
-def _fit(X, y, sigma: float, C: float, dev) -> LSSVR:
-    return LSSVR(kernel="rbf", sigma=sigma, C=C).to(dev).fit(X, y)
-
-
-def _fitter(sigma: float, C: float, dev):
-    """``fit(X, y) -> predict`` for the blocked cross-validation (evaluated by LSSVRGram)."""
-
-    def fit(X, y):
-        g = LSSVRGram(_fit(X, y, sigma, C, dev))
-        return lambda Xh: g(Xh)[:, 0]
-
-    return fit
-
-
-RUL_KEYS = ("Accuracy", "RUL_RMSE", "alpha_lambda", "CRA")  # metrics.PointRULScores, Table 2
-
-
-# --------------------------------------------------------------------------- filtering
-def _filter_pass(pf, model, z_test, k0, runs, gen, keep):
-    """One particle filter over ``z_test[k0:]`` in ``runs`` batched runs, predicting each
-    sample one step ahead before it is assimilated (the library's rolling prediction)."""
-    m, ys = M_ORDER, z_test[k0:]
-    r = float(model.noise(1).chol_R[0, 0])
-    b0 = window_belief(z_test, k0, m, r, runs)  # the measured window before z_test[k0]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        rp = rolling_particle_prediction(
-            pf,
-            model,
-            b0,
-            ys[:, None, None].expand(-1, runs, 1),
-            generator=gen,
-            threshold=THRESHOLD,
-            k0=k0 - 1,
-            keep=keep,
-        )
-    out = {
-        "pred": rp.mean[..., 0],
-        "fault": rp.fault_probability[..., 0],
-        "filt": rp.filtered[..., -1],
-        "ess": rp.ess,
-        "lam": rp.fading_factors,
-        "fallback": int(rp.prior_fallback.sum()),
-        "collapsed": int(rp.collapsed.sum()),
-    }
-    parts = torch.stack([rp.states[i].particles for i in keep])  # (P, R, N, m)
-    weights = torch.stack([rp.states[i].weights for i in keep])  # (P, R, N)
-    return out, parts, weights
-
-
-# --------------------------------------------------------------------------- figures
-def _figures(out_dir: Path, c: SimpleNamespace) -> list[str]:
-    """Fig. 1 and 8-13 in the paper's style (run 0) from the run's results ``c``; returns the
-    file names."""
-    plot_line_panels(
-        out_dir / "fig1_indicator.png",
-        c.t,
-        [
-            LinePanel(
-                {
-                    f"training, channel {c.hi.train_channel}": c.z_train,
-                    f"test, channel {c.hi.test_channel}": c.z_test,
-                },
-                title="Health indicator of bearing 3 (LLE of six features, unit-norm scale)",
-                ylabel="LLE health indicator",
-                hline=THRESHOLD,
-                vline=c.t_eol,
-                gap=GAP_DAYS,
-                vline_label=f"test crosses at {c.t_eol:.2f} d",
-                legend="upper left",
-            )
-        ],
-        xlabel="time (days, last 12 days of test 1)",
-        lw=0.7,
-    )
-    one_step = [
-        LinePanel(
-            {"one-step prediction": p},
-            title=f"({'abcd'[i]}) {name}",
-            truth=c.truth,
-            truth_label="test indicator",
-            hline=THRESHOLD,
-            gap=GAP_DAYS,
-            legend="upper left" if i == 0 else None,
-        )
-        for i, (name, p) in enumerate(c.preds0.items())
-    ]
-    plot_line_panels(
-        out_dir / "fig8_one_step.png",
-        c.t_tgt,
-        one_step,
-        ncols=2,
-        lw=0.7,
-        xlabel="time (days)",
-        figsize=(8.0, 7.0),
-    )
-    err = {n: (p - c.truth).abs() for n, p in c.preds0.items()}
-    tail = c.t_tgt >= TAIL_START
-    plot_line_panels(
-        out_dir / "fig9_abs_error.png",
-        c.t_tgt,
-        [
-            LinePanel(
-                err,
-                title="(a) absolute one-step error, days 1-12 (run 0)",
-                ylabel="|error|",
-                gap=GAP_DAYS,
-                legend="upper left",
-            ),
-            LinePanel(
-                {n: e[tail] for n, e in err.items()},
-                x=c.t_tgt[tail],
-                style=".-",
-                gap=GAP_DAYS,
-                title=f"(b) absolute one-step error, days {TAIL_START:g}-12 (run 0)",
-                ylabel="|error|",
-                legend="upper left",
-            ),
-        ],
-        xlabel="time (days)",
-        lw=0.7,
-        figsize=(8.0, 5.5),
-    )
-    figs = ["fig1_indicator.png", "fig8_one_step.png", "fig9_abs_error.png"]
-    for name, out in c.res.items():
-        fn, fb, fr = (
-            f"fig{k}_{SHORT[name]}.png"
-            for k in ("10_fault_probability", "10_fault_probability_box", "12_rul_pdf")
-        )
-        plot_fault_probability(
-            out_dir / fn,
-            c.t_tgt,
-            {name: out["fault"][:, 0]},
-            decision=FAULT_DECISION,
-            title=f"{name}: fault probability per step (threshold {THRESHOLD:g}, run 0)",
-        )
-        plot_fault_probability_box(
-            out_dir / fb,
-            c.t_tgt,
-            out["fault"][:, 0],
-            period=1.0,
-            decision=FAULT_DECISION,
-            title=f"{name}: fault probability per day (run 0)",
-        )
-        # display only: mean pmf over the runs in bins of PMF_BIN steps (2 h), at the paper's
-        # prediction times (Fig. 12)
-        d, sel = c.dists[name], c.paper_idx
-        support, pmf = d.binned(PMF_BIN)
-        plot_rul_pdf(
-            out_dir / fr,
-            [round(v, 2) for v in c.times[sel].tolist()],
-            support,
-            pmf[sel].mean(1),
-            true_rul=c.true_rul[sel],
-            censored_mass=d.censored_mass[sel].mean(1),
-            title=f"{name}: RUL pmf (mean of {c.runs} runs, 2 h bins, cap {CAP_DAYS:g} d)",
-        )
-        figs += [fn, fb, fr]
-    for name, pred in c.rul_pred.items():
-        fa = f"fig13_alpha_lambda_{SHORT[name]}.png"
-        kind = "deterministic" if "PF" not in name else f"bars: range over {c.runs} runs"
-        plot_alpha_lambda(
-            out_dir / fa,
-            c.times,
-            c.true_rul,
-            pred[:, 0],
-            alpha=ALPHA,
-            lower=pred.min(-1).values,
-            upper=pred.max(-1).values,
-            lam=LAMBDA,
-            t_eol=c.t_eol,
-            title=f"{name}: RUL (Eq. 28); {kind}",
-        )
-        figs.append(fa)
-    return figs
-
-
-# --------------------------------------------------------------------------- one protocol
-def _event(x):  # the indicator (newest window element) has reached the threshold
-    return x[..., -1] >= THRESHOLD
-
-
-def _protocol(ctx, key, score, suffix, offset, cfg, dev):
-    """LS-SVR (sigma = key[0] x std, C = key[1]) and the three particle filters through the
-    whole protocol; rows are labelled ``name + suffix``."""
-    m, runs, n_part = M_ORDER, ctx.runs, ctx.n_part
-    sigma, C = key[0] * ctx.sd, key[1]
-    learner = LSSVRGram(_fit(ctx.X, ctx.y, sigma, C, dev))  # Eq. 8 / Eq. 25 by matrix products
+def _protocol(case, X, y, sd, scores, runs, n_part, key, suffix, seed):
+    """LS-SVR (sigma = key[0] x std, C = key[1]) and the three particle filters (seeds ``seed +
+    1000 x filter index``) through the whole protocol; rows are labelled ``name + suffix``."""
+    m, sigma, C, score = M_ORDER, key[0] * sd, key[1], scores[key]
+    learner = fit_lssvr_gram(X, y, sigma=sigma, C=C)  # Eq. 8 / Eq. 25 by matrix products
     # Process and measurement noise (the paper gives neither): the out-of-fold one-step
     # residual variance s^2 of the selected LS-SVR, split equally, q^2 = r^2 = s^2 / 2, on
     # every window element (see notes).
-    q = r = score.one_step / math.sqrt(2.0)
-    chol_Q = q * torch.eye(m, dtype=ctx.X.dtype, device=dev)
-    model = learner_transition_model(learner, m, chol_Q, r, jacobian="input_gradient")
-    # LS-SVR alone: one step from the measured window, RUL by the noise-free recursion
-    t0 = time.perf_counter()
-    with torch.no_grad():
-        ls_pred = learner(ctx.win_test[ctx.k0 - m :])[:, 0]  # predictions of y_{k0..T-1}
-    ev = simulate_to_event(
-        model, ctx.windows[:, None], _event, max_steps=ctx.cap, dt=ctx.dt, active_only=True
+    q = score.one_step / math.sqrt(2.0)
+    chol_Q = q * torch.eye(m, dtype=X.dtype, device=X.device)
+    model = learner_transition_model(learner, m, chol_Q, q, jacobian="input_gradient")
+    pfs = {n + suffix: make(n_part, resample_threshold=RESAMPLE) for n, make in FILTERS.items()}
+    seeds = [seed + 1000 * i for i in range(len(pfs))]
+    res = ip.evaluate_learner_filters(
+        learner, model, pfs, case, runs=runs, seeds=seeds, name="LS-SVR" + suffix
     )
-    dists, rul_pred = {"LS-SVR": ev.rul}, {"LS-SVR": ev.rul.restricted_mean.unsqueeze(-1)}
-    secs = {"LS-SVR": time.perf_counter() - t0}
-    filters = {
-        "LS-SVR PF": sir(n_part, resample_threshold=RESAMPLE),
-        "LS-SVR EKPF": ekpf(n_part, resample_threshold=RESAMPLE),
-        "LS-SVR STPF": stpf(n_part, resample_threshold=RESAMPLE),
-    }
-    res = {}
-    for i, (name, pf) in enumerate(filters.items()):
-        gen = torch.Generator(device=dev).manual_seed(cfg.seed + 1000 * (i + offset))
-        t0 = time.perf_counter()
-        res[name], parts, weights = _filter_pass(
-            pf, model, ctx.z_test, ctx.k0, runs, gen, ctx.rul_idx
-        )
-        ev = simulate_to_event(
-            model,
-            parts,
-            _event,
-            max_steps=ctx.cap,
-            weights=weights,
-            dt=ctx.dt,
-            process_noise=True,
-            generator=gen,
-            active_only=True,
-        )  # until every particle crosses, or the cap
-        dists[name], rul_pred[name] = ev.rul, ev.rul.restricted_mean  # (P, R)
-        secs[name] = (time.perf_counter() - t0) / runs
+    config = {"kernel": "rbf", "sigma": sigma, "C": C, "cv_rmse": score.one_step}
+    config |= {"crossing_rmse_steps": score.crossing, "q": q, "r": q}
+    return SimpleNamespace(learner=learner, model=model, q=q, sigma=sigma, score=score, res=res,
+                           config=config)  # fmt: skip
 
-    def rul_rows(pred):  # Table 2 metrics of each run's point RULs (P, R)
-        scores = [
-            point_rul_scores(ctx.times, ctx.true_rul, pred[:, i], **ctx.rul_kw)
-            for i in range(pred.shape[1])
-        ]
-        return {k: [sc[j] for sc in scores] for j, k in enumerate(RUL_KEYS)}
 
-    tail, truth = ctx.tail, ctx.truth
-    rows = run_rows(
-        "LS-SVR" + suffix,
-        {
-            "RMSE_1_12": float(rmse(ls_pred, truth)),
-            "RMSE_10_12": float(rmse(ls_pred[tail], truth[tail])),
-        }
-        | rul_rows(rul_pred["LS-SVR"])
-        | {"censored": float(dists["LS-SVR"].censored_mass.mean()), "time_s": secs["LS-SVR"]},
+def _diagnostic(one, case, n_part, seed, ess_uni):
+    """Mean ESS of the EKPF over the first steps with a small jitter on the shifted elements."""
+    q, m = one.q, M_ORDER
+    model_j = learner_transition_model(
+        one.learner, m, q, q, jacobian="input_gradient", shift_std=JITTER_DIAG * q
     )
-    for name, out in res.items():
-        tt = truth.unsqueeze(-1).expand_as(out["pred"])
-        rows += run_rows(
-            name + suffix,
-            {
-                "RMSE_1_12": rmse(out["pred"], tt, dim=0),
-                "RMSE_10_12": rmse(out["pred"][tail], tt[tail], dim=0),
-                "filt_RMSE_1_12": rmse(out["filt"], tt, dim=0),
-                "filt_RMSE_10_12": rmse(out["filt"][tail], tt[tail], dim=0),
-                "Pf_day11": out["fault"][ctx.day11].mean(0),
-                "Pf_day12": out["fault"][ctx.t_tgt >= DAY11[1]].mean(0),
-            }
-            | rul_rows(rul_pred[name])
-            | {
-                "censored": dists[name].censored_mass.mean(0),
-                "ess": out["ess"].mean(0),
-                "time_s": secs[name],
-            },
-        )
-    tag = lambda d: {n + suffix: v for n, v in d.items()}  # noqa: E731
-    return SimpleNamespace(
-        rows=rows,
-        learner=learner,
-        model=model,
-        q=q,
-        sigma=sigma,
-        C=C,
-        score=score,
-        preds0={"LS-SVR": ls_pred} | {n: o["pred"][:, 0] for n, o in res.items()},
-        res=tag(res),
-        dists=tag(dists),
-        rul_pred=tag(rul_pred),
+    gen = torch.Generator(device=case.z.device).manual_seed(seed)
+    pf_j = ekpf(n_part, resample_threshold=RESAMPLE)
+    z = case.z[: m + DIAG_STEPS]
+    ess = ip.particle_pass(pf_j, model_j, z, m, 1, gen, threshold=THRESHOLD).ess
+    j = f"{JITTER_DIAG:g} q"
+    return (
+        f"EKPF over the first {DIAG_STEPS} steps (1 run, {n_part} particles): mean ESS "
+        f"{float(ess.mean()):.1f} with Q = diag({j}, {j}, {j}, q) against "
+        f"{ess_uni:.1f} with Q = q^2 I."
     )
 
 
-# --------------------------------------------------------------------------- the study
+def _fig1(out_dir, hi, t, z_train, z_test, t_eol) -> str:
+    """Fig. 1: the indicator of both channels, the threshold and the test channel's end of life."""
+    lines = {f"training, channel {hi.train_channel}": z_train}
+    lines[f"test, channel {hi.test_channel}"] = z_test
+    title = "Health indicator of bearing 3 (LLE of six features, unit-norm scale)"
+    panel = LinePanel(lines, title=title, ylabel="LLE health indicator", hline=THRESHOLD,
+                      vline=t_eol, gap=GAP_DAYS, vline_label=f"test crosses at {t_eol:.2f} d",
+                      legend="upper left")  # fmt: skip
+    xlabel = "time (days, last 12 days of test 1)"
+    plot_line_panels(out_dir / "fig1_indicator.png", t, [panel], xlabel=xlabel, lw=0.7)
+    return "fig1_indicator.png"
+
+
 def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
-    quick = cfg.quick
-    dev = torch.device(cfg.device)
-    m = M_ORDER
+    quick, dev, m = cfg.quick, torch.device(cfg.device), M_ORDER
     t_start = time.perf_counter()
-    ctx = SimpleNamespace(runs=cfg.runs or (2 if quick else DEFAULT_RUNS))
-    ctx.n_part = 20 if quick else N_PARTICLES
+    runs, n_part = cfg.runs or (2 if quick else DEFAULT_RUNS), 20 if quick else N_PARTICLES
 
-    # ------------------------------------------------------------ indicator and threshold
+    # data: the indicator, its end of life and the RUL prediction times (quick: from QUICK_START)
     hi, scale, z_train, z_test, t = _indicator(dev)
-    t_eol = first_crossing_time(t, z_test, THRESHOLD)  # end of life: test indicator reaches 0.1
-    dt_step = float(torch.diff(t).median())  # nominal sampling interval (10 min), days
+    case = ip.indicator_case(z_test, t, m, threshold=THRESHOLD, rul_start=RUL_START,
+                             rul_every=RUL_EVERY, horizon=CAP_DAYS,
+                             start=QUICK_START if quick else None)  # fmt: skip
+    t_eol, dt_step, times, true_rul = case.t_eol, case.dt, case.times, case.true_rul
     mm = MinMaxScaler().fit(z_train)
     thr_minmax = float(mm.inverse_transform(torch.tensor(THRESHOLD, dtype=z_train.dtype)))
     t_minmax = first_crossing_time(t, z_test, thr_minmax)
 
-    # ------------------------------------------------------------ LS-SVR selection (training channel)
+    # models: LS-SVR selection on the training channel, by the one-step and time-to-cross errors
     X, y = embed(z_train, m)
-    sd = float(z_train.std())
-    sig_grid = (3.0, 30.0) if quick else SIGMA_GRID
-    c_grid = (1e3, 1e4) if quick else C_GRID
-    h_sel = int(round(SELECT_DAYS / dt_step))
-    scores = {
-        (s, C): blocked_multistep_cv(
-            _fitter(s * sd, C, dev),
-            z_train,
-            m,
-            h_sel,
-            CV_FOLDS,
-            threshold=THRESHOLD,
-            stride=SELECT_STRIDE,
-        )
-        for s in sig_grid
-        for C in c_grid
-    }
+    sd, h_sel = float(z_train.std()), int(round(SELECT_DAYS / dt_step))
+    grid = dict(sigmas=(3.0, 30.0), Cs=(1e3, 1e4)) if quick else dict(sigmas=SIGMA_GRID, Cs=C_GRID)
+    scores = lssvr_grid_cv(z_train, m, h_sel, **grid, scale=sd, folds=CV_FOLDS,
+                           threshold=THRESHOLD, stride=SELECT_STRIDE)  # fmt: skip
     key_1 = min(scores, key=lambda k: scores[k].one_step)  # the paper's rows
     key_ms = min(scores, key=lambda k: scores[k].crossing)  # beyond the paper: (ms) rows
 
-    # ------------------------------------------------------------ time indices
-    k0 = m
-    if quick:  # reduced protocol: filter from day QUICK_START on
-        k0 = max(m, int(torch.nonzero(t >= QUICK_START).flatten()[0]))
-    t_tgt = t[k0:]  # times of the predicted samples y_{k0+1..T} (0-based index k0..T-1)
-    # the last sample at or before each nominal prediction time, each sample once
-    rul_idx = last_sample_indices(t, np.arange(RUL_START, t_eol, RUL_EVERY), first=k0)
-    times = t[rul_idx].to(torch.float64)
-    true_rul = t_eol - times
-    win_test, _ = embed(z_test, m)  # windows ending at samples m-1 .. T-2
-    ctx.__dict__.update(X=X, y=y, sd=sd, z_test=z_test, win_test=win_test, k0=k0, t_tgt=t_tgt)
-    ctx.__dict__.update(truth=z_test[k0:], tail=t_tgt >= TAIL_START, rul_idx=rul_idx, dt=dt_step)
-    ctx.__dict__.update(day11=(t_tgt >= DAY11[0]) & (t_tgt < DAY11[1]), times=times)
-    ctx.__dict__.update(true_rul=true_rul, cap=int(round(CAP_DAYS / dt_step)))
-    ctx.windows = torch.stack([z_test[i - m + 1 : i + 1] for i in rul_idx])  # (P, m)
+    # results: both protocols ((ms) filters: seed + 1000 x (filter index + 3))
+    args = (case, X, y, sd, scores, runs, n_part)
+    one = _protocol(*args, key_1, "", cfg.seed)
+    ms = _protocol(*args, key_ms, MS, cfg.seed + 3000)
+    res = one.res | ms.res
+    t_tgt, truth = case.t_target, case.truth
+    tail, day12 = t_tgt >= TAIL_START, t_tgt >= DAY11[1]
+    day11 = (t_tgt >= DAY11[0]) & (t_tgt < DAY11[1])
     d0 = float(true_rul[0])  # accuracy normaliser: the true RUL at the first prediction
-    ctx.rul_kw = dict(t_eol=t_eol, d0=d0, alpha=ALPHA, lam=LAMBDA, cra_lambdas=CRA_LAMBDAS)
-
-    # ------------------------------------------------------------ both protocols
-    one = _protocol(ctx, key_1, scores[key_1], "", 0, cfg, dev)
-    ms = _protocol(ctx, key_ms, scores[key_ms], MS, 3, cfg, dev)
-    rows = one.rows + ms.rows
-    res, dists, rul_pred = one.res | ms.res, one.dists | ms.dists, one.rul_pred | ms.rul_pred
-
-    # ------------------------------------------------------------ proposal-structure diagnostic
-    q, r, n_part, runs = one.q, one.q, ctx.n_part, ctx.runs
+    rul_kw = dict(t_eol=t_eol, d0=d0, alpha=ALPHA, lam=LAMBDA, cra_lambdas=CRA_LAMBDAS)
+    spans, fault_spans = {"1_12": None, "10_12": tail}, {"Pf_day11": day11, "Pf_day12": day12}
+    rows = ip.protocol_rows(res, case, spans=spans, fault_spans=fault_spans, rul_kw=rul_kw)
     diag_txt = "(diagnostic skipped in quick mode)"
-    if not quick:
-        model_j = learner_transition_model(
-            one.learner, m, q, r, jacobian="input_gradient", shift_std=JITTER_DIAG * q
-        )
-        steps = 200
-        gen = torch.Generator(device=dev).manual_seed(cfg.seed)
-        pf_j = ekpf(n_part, resample_threshold=RESAMPLE)
-        out_j, _, _ = _filter_pass(pf_j, model_j, z_test[: m + steps], m, 1, gen, [m + steps - 1])
-        ess_uni = float(res["LS-SVR EKPF"]["ess"][:steps].mean())
-        j = f"{JITTER_DIAG:g} q"
-        diag_txt = (
-            f"EKPF over the first {steps} steps (1 run, {n_part} particles): mean ESS "
-            f"{float(out_j['ess'].mean()):.1f} with Q = diag({j}, {j}, {j}, q) against "
-            f"{ess_uni:.1f} with Q = q^2 I."
-        )
+    if not quick:  # proposal-structure diagnostic
+        ess_uni = float(res["LS-SVR EKPF"].filter.ess[:DIAG_STEPS].mean())
+        diag_txt = _diagnostic(one, case, n_part, cfg.seed, ess_uni)
 
-    # ------------------------------------------------------------ figures (run 0)
+    # figures (run 0)
     paper_idx = [int((times - v).abs().argmin()) for v in PAPER_RUL_TIMES if times[0] <= v]
-    c = SimpleNamespace(hi=hi, t=t, z_train=z_train, z_test=z_test, t_eol=t_eol, t_tgt=t_tgt)
-    c.__dict__.update(truth=ctx.truth, preds0=one.preds0, res=res, dists=dists)
-    c.__dict__.update(rul_pred=rul_pred, times=times, true_rul=true_rul, runs=runs)
-    c.paper_idx = paper_idx
-    figs = _figures(out_dir, c)
+    figs = [_fig1(out_dir, hi, t, z_train, z_test, t_eol)]
+    figs += ip.protocol_figures(out_dir, one.res, res, case, short=SHORT, tail=tail,
+                                span_labels=("days 1-12", f"days {TAIL_START:g}-12"),
+                                paper_idx=paper_idx, alpha=ALPHA, lam=LAMBDA,
+                                decision=FAULT_DECISION, pmf_bin=(PMF_BIN, "2 h"),
+                                gap=GAP_DAYS)  # fmt: skip
 
-    # ------------------------------------------------------------ tables
-    every = max(1, int(round(0.5 / RUL_EVERY)))
-    table_rul = [
-        [f"{float(times[p]):.3f}", f"{float(true_rul[p]):.3f}"]
-        + [f"{float(rul_pred[n][p].mean()):.3f}" for n in ALL_METHODS]
-        for p in range(0, len(rul_idx), every)
-    ]
-    table_cv = []
-    with torch.no_grad():
-        for (s, C), sc in scores.items():
-            lr = LSSVRGram(_fit(X, y, s * sd, C, dev))
-            te_rmse = float(rmse(lr(win_test[k0 - m :])[:, 0], ctx.truth))
-            mark = " **(one-step)**" if (s, C) == key_1 else ""
-            mark += " **(ms)**" if (s, C) == key_ms else ""
-            table_cv.append(
-                [
-                    f"{s:g}{mark}",
-                    f"{C:g}",
-                    f"{sc.one_step:.5f}",
-                    f"{sc.multi_step:.5f}",
-                    f"{sc.crossing * dt_step:.3f}",
-                    f"{te_rmse:.5f}",
-                ]
-            )
-    head_cv = [
-        "sigma / std",
-        "C",
-        "one-step CV RMSE",
-        "multi-step CV RMSE",
-        "time-to-cross CV RMSE (d)",
-        "test one-step RMSE (reported only)",
-    ]
+    # tables and readings
+    with torch.no_grad():  # the test one-step RMSE of every candidate (reported, not used)
+        w = case.one_step_windows
+        fit = {k: fit_lssvr_gram(X, y, sigma=k[0] * sd, C=k[1]) for k in scores}
+        test_rmse = {k: float(rmse(f(w)[:, 0], truth)) for k, f in fit.items()}
+    win_test, _ = embed(z_test, m)  # windows ending at samples m-1 .. T-2
     census_windows = win_test[int(torch.nonzero(t[m - 1 : -1] >= RUL_START).flatten()[0]) :]
 
     def census(model):  # where the noise-free recursion from each window settles
         end = settle(model, census_windows, ATTRACTOR_STEPS)[:, -1]
-        return threshold_census(end, THRESHOLD, verb="settle")
+        return tables.threshold_census(end, THRESHOLD, verb="settle")
 
-    # ------------------------------------------------------------ readings
     def listing(key, names, spec):
         return ", ".join(f"{n} {method_mean(rows, n, key):{spec}}" for n in names)
 
     def order(key, names=METHODS):
-        return ascending({n: method_mean(rows, n, key) for n in names}, ".5f")
+        return tables.ascending({n: method_mean(rows, n, key) for n in names}, ".5f")
 
-    pf_names = [n for n in ALL_METHODS if "PF" in n]
-    lam_all = res["LS-SVR STPF"]["lam"]
-    n_tail = int(ctx.tail.sum())
-    frac = n_tail / ctx.truth.shape[0]
-    stpf_ms = res["LS-SVR STPF" + MS]["fault"][ctx.day11]  # (steps, R)
-    zero = point_rul_scores(times, true_rul, torch.zeros_like(true_rul), **ctx.rul_kw)
-    report = {
-        "rul_zero": ", ".join(f"{k} {v:.3f}" for k, v in zip(RUL_KEYS, zero)),
-        "table_rul": md(["prediction time (d)", "true RUL (d)", *ALL_METHODS], table_rul),
-        "table_cv": md(head_cv, table_cv),
-        "paper_rul_times": ", ".join(f"{v:g}" for v in PAPER_RUL_TIMES),
-        "paper_rul": "; ".join(
-            f"{n}: " + ", ".join(f"{v:g}" for v in vals) for n, vals in PAPER_RUL.items()
+    def at_paper_times(n):
+        return ", ".join(f"{float(res[n].rul_pred[p].mean()):.2f}" for p in paper_idx)
+
+    pf_names, ms_names = [n for n in ALL_METHODS if "PF" in n], [n + MS for n in METHODS]
+    lam_all = res["LS-SVR STPF"].filter.fading_factors
+    n_tail = int(tail.sum())
+    frac = n_tail / truth.shape[0]
+    stpf_ms = res["LS-SVR STPF" + MS].filter.fault[day11]  # (steps, R)
+    stpf_ms_q = stpf_ms.flatten().quantile(torch.tensor([0.25, 0.5, 0.75], dtype=stpf_ms.dtype))
+    zero = point_rul_scores(times, true_rul, torch.zeros_like(true_rul), **rul_kw)
+    paper_rul = (f"{n}: " + ", ".join(f"{v:g}" for v in vals) for n, vals in PAPER_RUL.items())
+    report = dict(
+        rul_zero=", ".join(f"{k} {v:.3f}" for k, v in zip(ip.POINT_RUL_KEYS, zero)),
+        table_rul=ip.rul_table(res, case, ALL_METHODS, every=max(1, round(0.5 / RUL_EVERY))),
+        table_cv=ip.selection_table(
+            scores, dt=dt_step, test_rmse=test_rmse, chosen={"one-step": key_1, "ms": key_ms}
         ),
-        "our_rul_paper_times": "; ".join(
-            f"{n}: " + ", ".join(f"{float(rul_pred[n][p].mean()):.2f}" for p in paper_idx)
-            for n in pf_names
-        ),
-        "true_rul_paper_times": ", ".join(f"{float(true_rul[p]):.2f}" for p in paper_idx),
-        "order_rmse": order("RMSE_1_12"),
-        "order_rmse_tail": order("RMSE_10_12"),
-        "order_rmse_ms": order("RMSE_1_12", [n + MS for n in METHODS]),
-        "order_rmse_tail_ms": order("RMSE_10_12", [n + MS for n in METHODS]),
-        "filt_rmse": listing("filt_RMSE_1_12", pf_names, ".5f"),
-        "pf_day11": listing("Pf_day11", pf_names, ".2f"),
-        "pf_day12": listing("Pf_day12", pf_names, ".2f"),
-        "stpf_ms_day11_frac": float((stpf_ms > FAULT_DECISION).double().mean()),
-        "stpf_ms_day11_q": ", ".join(
-            f"{float(v):.2f}"
-            for v in stpf_ms.flatten().quantile(
-                torch.tensor([0.25, 0.5, 0.75], dtype=stpf_ms.dtype)
-            )
-        ),
-        "censored": listing("censored", ALL_METHODS, ".2f"),
-        "alpha_lambda_met": listing("alpha_lambda", ALL_METHODS, ".0%"),
-        "cra": listing("CRA", ALL_METHODS, ".2f"),
-        "t_first": float(times[0]),
-        "t_last": float(times[-1]),
-        "n_rul": len(rul_idx),
-        "features": ", ".join(hi.feature_names),
-        "n_snap": z_train.shape[0],
-        "t_span": float(t[-1]),
-        "train_channel": hi.train_channel,
-        "test_channel": hi.test_channel,
-        "n_windows": X.shape[0],
-        "step_noise": one.score.one_step / math.sqrt(2.0),
-        "n_predicted": ctx.truth.shape[0],
-        "n_tail": n_tail,
-        "frac": frac,
-        "rmse_bound": math.sqrt(frac) * 0.4302,
-        "dt_minutes": dt_step * 1440,
-        "census_one": census(one.model),
-        "census_ms": census(ms.model),
-        "n_census": census_windows.shape[0],
-        "fb_total": {n: o["fallback"] for n, o in res.items()},
-        "col_total": {n: o["collapsed"] for n, o in res.items()},
-        "cra_lambdas": ", ".join(f"{v:g}" for v in CRA_LAMBDAS),
-        "lam_median": float(lam_all.median()),
-        "lam_q95": float(lam_all.quantile(0.95)),
-        "lam_max": float(lam_all.max()),
-        "seed": cfg.seed,
-        "quick_note": (
-            f"- QUICK MODE: the filters start at day {QUICK_START:g} (RMSE_1_12 covers days "
-            f"{QUICK_START:g}-12 only), {n_part} particles, {len(scores)} LS-SVR candidates.\n"
-        )
+        paper_rul_times=", ".join(f"{v:g}" for v in PAPER_RUL_TIMES),
+        paper_rul="; ".join(paper_rul),
+        our_rul_paper_times="; ".join(f"{n}: {at_paper_times(n)}" for n in pf_names),
+        true_rul_paper_times=", ".join(f"{float(true_rul[p]):.2f}" for p in paper_idx),
+        order_rmse=order("RMSE_1_12"),
+        order_rmse_tail=order("RMSE_10_12"),
+        order_rmse_ms=order("RMSE_1_12", ms_names),
+        order_rmse_tail_ms=order("RMSE_10_12", ms_names),
+        filt_rmse=listing("filt_RMSE_1_12", pf_names, ".5f"),
+        pf_day11=listing("Pf_day11", pf_names, ".2f"),
+        pf_day12=listing("Pf_day12", pf_names, ".2f"),
+        stpf_ms_day11_frac=float((stpf_ms > FAULT_DECISION).double().mean()),
+        stpf_ms_day11_q=", ".join(f"{float(v):.2f}" for v in stpf_ms_q),
+        censored=listing("censored", ALL_METHODS, ".2f"),
+        alpha_lambda_met=listing("alpha_lambda", ALL_METHODS, ".0%"),
+        cra=listing("CRA", ALL_METHODS, ".2f"),
+        fb_total={n: r.filter.prior_fallback for n, r in res.items() if r.filter},
+        col_total={n: r.filter.collapsed for n, r in res.items() if r.filter},
+        cra_lambdas=", ".join(f"{v:g}" for v in CRA_LAMBDAS),
+        features=", ".join(hi.feature_names),
+        census_one=census(one.model),
+        census_ms=census(ms.model),
+    )
+    report["quick_note"] = (
+        f"- QUICK MODE: the filters start at day {QUICK_START:g} (RMSE_1_12 covers days "
+        f"{QUICK_START:g}-12 only), {n_part} particles, {len(scores)} LS-SVR candidates.\n"
         if quick
-        else "",
-    }
+        else ""
+    )
     constants = ("THRESHOLD", "CAP_DAYS", "CV_FOLDS", "TAIL_START", "ALPHA", "LAMBDA", "RUL_EVERY")
     constants += ("SELECT_DAYS", "SELECT_STRIDE", "ATTRACTOR_STEPS", "DEFAULT_RUNS", "N_PARTICLES")
     constants += ("RUL_START",)
     report |= {k: globals()[k] for k in constants}
+    report |= dict(t_first=float(times[0]), t_last=float(times[-1]), n_rul=len(case.rul_idx))
+    report |= dict(n_snap=z_train.shape[0], t_span=float(t[-1]), n_windows=X.shape[0])
+    report |= dict(train_channel=hi.train_channel, test_channel=hi.test_channel, seed=cfg.seed)
+    report |= dict(step_noise=one.score.one_step / math.sqrt(2.0), n_predicted=truth.shape[0])
+    report |= dict(n_tail=n_tail, frac=frac, rmse_bound=math.sqrt(frac) * 0.4302)
+    report |= dict(dt_minutes=dt_step * 1440, n_census=census_windows.shape[0])
+    report |= dict(lam_median=float(lam_all.median()), lam_q95=float(lam_all.quantile(0.95)))
+    report |= dict(lam_max=float(lam_all.max()))
     report |= dict(sd=sd, diag_txt=diag_txt, scale=scale, t_eol=t_eol, thr_minmax=thr_minmax)
-    report |= dict(t_minmax=t_minmax, m=m, q=q, n_part=n_part, d0=d0, runs=runs)
+    report |= dict(t_minmax=t_minmax, m=m, q=one.q, n_part=n_part, d0=d0, runs=runs)
     report |= dict(s_one=key_1[0], c_one=key_1[1], sigma_one=one.sigma, q_ms=ms.q)
     report |= dict(s_ms=key_ms[0], c_ms=key_ms[1], sigma_ms=ms.sigma, s_cv=one.score.one_step)
-    report |= dict(cross_one=scores[key_1].crossing * dt_step, h_sel=h_sel, cap=ctx.cap)
+    report |= dict(cross_one=scores[key_1].crossing * dt_step, h_sel=h_sel, cap=case.cap)
     report |= dict(cross_ms=scores[key_ms].crossing * dt_step, n_origins=scores[key_1].origins)
     report["wall"] = time.perf_counter() - t_start
-    sel = lambda o: {
-        "sigma": o.sigma,
-        "C": o.C,
-        "cv_rmse": o.score.one_step,  # noqa: E731
-        "crossing_rmse_steps": o.score.crossing,
-        "q": o.q,
-        "r": o.q,
-    }
-    return StudyResult(
-        rows=rows,
-        metrics=METRICS,
-        paper=PAPER,
-        figures=figs,
-        config={
-            "m": m,
-            "threshold": THRESHOLD,
-            "indicator_scale": scale,
-            "t_eol_days": t_eol,
-            "lssvr": {"kernel": "rbf", **sel(one)},
-            "lssvr_ms": {
-                "kernel": "rbf",
-                **sel(ms),
-                "selection_horizon_steps": h_sel,
-                "selection_stride": SELECT_STRIDE,
-            },
-            "chol_Q": "q * I",
-            "particles": n_part,
-            "resample_threshold": RESAMPLE,
-            "stpf": {"rho": 0.95, "beta": 1.0},
-            "rul_times_days": times.tolist(),
-            "cap_steps": ctx.cap,
-            "dt_days": dt_step,
-            "accuracy_d0": d0,
-            "quick_start_day": QUICK_START if quick else None,
-        },
-        notes=fill_template(REPORT, report),
-    )
+    config = dict(m=m, threshold=THRESHOLD, indicator_scale=scale, t_eol_days=t_eol)
+    selection = dict(selection_horizon_steps=h_sel, selection_stride=SELECT_STRIDE)
+    config |= dict(lssvr=one.config, lssvr_ms=ms.config | selection)
+    config |= dict(chol_Q="q * I", particles=n_part, resample_threshold=RESAMPLE)
+    config |= dict(stpf={"rho": 0.95, "beta": 1.0}, rul_times_days=times.tolist())
+    config |= dict(cap_steps=case.cap, dt_days=dt_step, accuracy_d0=d0)
+    config["quick_start_day"] = QUICK_START if quick else None
+    return StudyResult(rows=rows, metrics=METRICS, paper=PAPER, figures=figs, config=config,
+                       notes=tables.fill_template(REPORT, report))  # fmt: skip
 
 
 STUDY = Study(
