@@ -60,6 +60,10 @@ Before onset the lower bound is the 5 % quantile of the first passage under a lo
 trend (drift and Brownian level) fitted to the healthy data, or the horizon when even that is
 censored: a statement about the data seen so far, not a forecast of when degradation will
 start.
+
+Units: every step uses only unit-free quantities, so the RUL is the same (to rounding) in any
+units of the data (scale, offset, sign) and of the clock (scale, origin), for every ``method``
+(``tests/test_prognose.py``).
 """
 
 from __future__ import annotations
