@@ -145,10 +145,7 @@ def _run_trainers(cfg: StudyConfig, data: Data, runs: int, online: bool, bar=Non
     res: dict[str, TrainTest] = {}
     for name, filt in KALMAN.items():
         kal = dict(filter=filt, P0=P0, Q=Q_RW, R=R_MEAS)
-        out = studies.kalman_runs(inits, **pairs, block=data.block, online=online, **kal)
-        # train_MAE of the Kalman rows is taken after the online steps, Adam's before them
-        # (as the committed results were made)
-        res[name] = out._replace(pred_train=out.online_pred_train) if online else out
+        res[name] = studies.kalman_runs(inits, **pairs, block=data.block, online=online, **kal)
         if alone is not None:  # run 0 trained by itself, the whole pass as one block
             make = partial(KalmanOptimizer, **kal)
             r0 = studies.runs_in_turn(inits[:1], make, **pairs, block=data.Xtr.shape[0])
