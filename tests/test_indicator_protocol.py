@@ -14,6 +14,7 @@ from prognos_torch.filters import ekpf, sir
 from prognos_torch.learners import MultiStepCV
 from prognos_torch.prognosis import learner_transition_model
 from prognos_torch.studies import indicator_protocol as ip
+from prognos_torch.studies.indicator_report import protocol_figures
 
 F64 = torch.float64
 
@@ -183,7 +184,7 @@ def test_tables_by_hand(drift_run):
 
 def test_protocol_figures_write_the_paper_figures(drift_run, tmp_path):
     case, res = drift_run
-    figs = ip.protocol_figures(
+    figs = protocol_figures(
         tmp_path, res, res, case, short={"drift": "d", "PF": "pf", "EKPF": "ekpf"},
         tail=case.t_target >= 3.0, span_labels=("all", "late"), paper_idx=[0, 2], alpha=0.3,
         lam=0.5, pmf_bin=(2, "1 d"), gap=0.75,

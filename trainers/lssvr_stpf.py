@@ -47,6 +47,7 @@ from prognos_torch.plots import LinePanel, plot_line_panels
 from prognos_torch.prognosis import learner_transition_model, settle
 from prognos_torch.studies import Study, StudyConfig, StudyResult, method_mean, tables
 from prognos_torch.studies import indicator_protocol as ip
+from prognos_torch.studies.indicator_report import protocol_figures
 
 # Paper 002, Table 1 (one-step RMSE) and Table 2 (RUL metrics; alpha-lambda False = 0, True = 1).
 # The paper's "Proposed method"/"Proposed algorithm" is LS-SVR STPF; Table 2's "LS-SVR EKFPF" is
@@ -212,7 +213,7 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     # figures (run 0)
     paper_idx = [int((times - v).abs().argmin()) for v in PAPER_RUL_TIMES if times[0] <= v]
     figs = [_fig1(out_dir, hi, t, z_train, z_test, t_eol)]
-    figs += ip.protocol_figures(out_dir, one.res, res, case, short=SHORT, tail=tail,
+    figs += protocol_figures(out_dir, one.res, res, case, short=SHORT, tail=tail,
                                 span_labels=("days 1-12", f"days {TAIL_START:g}-12"),
                                 paper_idx=paper_idx, alpha=ALPHA, lam=LAMBDA,
                                 decision=FAULT_DECISION, pmf_bin=(PMF_BIN, "2 h"),

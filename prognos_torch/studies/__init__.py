@@ -13,7 +13,7 @@ a learner x trainer x filter matrix over test problems (:mod:`.matrix_training` 
 learners by name, :mod:`.matrix_report` draws its figures); :mod:`.rows` builds the per-run
 result rows and writes them as CSV; :mod:`.indicator_protocol` runs paper 002's protocol on a
 measured health indicator (a learner alone and inside particle filters: one-step prediction,
-fault probability, RUL, their rows, figures and tables).
+fault probability, RUL, their rows and tables; :mod:`.indicator_report` draws its figures).
 """
 
 from .evaluate import (

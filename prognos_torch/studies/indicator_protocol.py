@@ -1,6 +1,6 @@
 """Paper 002's protocol on a measured health indicator: a one-step learner alone and as the
 m-order transition model of particle filters (Sec. "Experiments and results", Table 1-2,
-Fig. 8-13).
+Fig. 8-13; the figures: :mod:`~prognos_torch.studies.indicator_report`).
 
 * :func:`indicator_case` (:class:`IndicatorCase`): the test indicator, the first predicted
   sample, the end of life (first sample at the threshold), the RUL prediction times (the last
@@ -18,8 +18,7 @@ Fig. 8-13).
 * :func:`protocol_rows`: the per-run result rows: one-step and filtered RMSE over spans of the
   predicted samples (Table 1), the mean fault probability over spans, the point-RUL scores of
   Table 2 (:func:`~prognos_torch.metrics.point_rul_scores`), the censored mass, ESS and time;
-* :func:`protocol_figures`: Fig. 8-13 of a run (run 0; the files carry the paper's figure
-  numbers); :func:`rul_table`: the point RULs per prediction time; :func:`selection_table`: the
+* :func:`rul_table`: the point RULs per prediction time; :func:`selection_table`: the
   blocked cross-validation scores of an LS-SVR grid
   (:func:`~prognos_torch.learners.lssvr_grid_cv`) as a markdown table.
 """
@@ -30,7 +29,6 @@ import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -41,14 +39,6 @@ from ..datasets import embed
 from ..filters import ParticleFilter
 from ..learners import MultiStepCV
 from ..metrics import first_crossing_time, point_rul_scores, rmse
-from ..plots import (
-    LinePanel,
-    plot_alpha_lambda,
-    plot_fault_probability,
-    plot_fault_probability_box,
-    plot_line_panels,
-    plot_rul_pdf,
-)
 from ..prognosis import (
     RULDistribution,
     last_sample_indices,
@@ -68,7 +58,6 @@ __all__ = [
     "MethodResult",
     "evaluate_learner_filters",
     "protocol_rows",
-    "protocol_figures",
     "rul_table",
     "selection_table",
 ]
@@ -376,142 +365,6 @@ def protocol_rows(
         v |= {"censored": r.rul.censored_mass.mean(0), "ess": p.ess.mean(0), "time_s": r.seconds}
         rows += run_rows(name, v)
     return rows
-
-
-def protocol_figures(
-    out_dir: Path,
-    one_step: Mapping[str, MethodResult],
-    results: Mapping[str, MethodResult],
-    case: IndicatorCase,
-    *,
-    short: Mapping[str, str],
-    tail: Tensor,
-    span_labels: tuple[str, str],
-    paper_idx: Sequence[int],
-    alpha: float,
-    lam: float,
-    decision: float = 0.5,
-    pmf_bin: tuple[int, str] = (1, "1-step"),
-    gap: float | None = None,
-) -> list[str]:
-    """Fig. 8-13 in the paper's style (run 0, times in days); returns the file names written to
-    ``out_dir``.
-
-    Args:
-        one_step: the methods of Fig. 8-9 (one-step predictions and their absolute errors).
-        results: every method: Fig. 10 (fault probability per step and per ``1`` time unit)
-            and 12 (RUL pmf at the prediction times ``paper_idx``, mean over the runs) for the
-            filters, Fig. 13 (alpha-lambda, ``alpha``, ``lam``) for all.
-        short: ``{name: file-name part}``.
-        tail: ``(T',)`` mask of the zoom of Fig. 9(b); span_labels: the titles' names of the
-            whole span and of the zoom.
-        decision: fault probability that declares a fault (the paper: 0.5).
-        pmf_bin: steps per bin of the RUL pmf and the bin's label (display only).
-        gap: break the lines of Fig. 8-9 at recording gaps longer than this.
-    """
-    t_tgt, truth, thr = case.t_target, case.truth, case.threshold
-    preds0 = {n: r.pred if r.filter is None else r.pred[:, 0] for n, r in one_step.items()}
-    panels = [
-        LinePanel(
-            {"one-step prediction": p},
-            title=f"({'abcd'[i]}) {name}",
-            truth=truth,
-            truth_label="test indicator",
-            hline=thr,
-            gap=gap,
-            legend="upper left" if i == 0 else None,
-        )
-        for i, (name, p) in enumerate(preds0.items())
-    ]
-    plot_line_panels(
-        out_dir / "fig8_one_step.png",
-        t_tgt,
-        panels,
-        ncols=2,
-        lw=0.7,
-        xlabel="time (days)",
-        figsize=(8.0, 7.0),
-    )
-    err = {n: (p - truth).abs() for n, p in preds0.items()}
-    plot_line_panels(
-        out_dir / "fig9_abs_error.png",
-        t_tgt,
-        [
-            LinePanel(
-                err,
-                title=f"(a) absolute one-step error, {span_labels[0]} (run 0)",
-                ylabel="|error|",
-                gap=gap,
-                legend="upper left",
-            ),
-            LinePanel(
-                {n: e[tail] for n, e in err.items()},
-                x=t_tgt[tail],
-                style=".-",
-                gap=gap,
-                title=f"(b) absolute one-step error, {span_labels[1]} (run 0)",
-                ylabel="|error|",
-                legend="upper left",
-            ),
-        ],
-        xlabel="time (days)",
-        lw=0.7,
-        figsize=(8.0, 5.5),
-    )
-    figs = ["fig8_one_step.png", "fig9_abs_error.png"]
-    for name, r in results.items():
-        if r.filter is None:
-            continue
-        fn, fb, fr = (
-            f"fig{k}_{short[name]}.png"
-            for k in ("10_fault_probability", "10_fault_probability_box", "12_rul_pdf")
-        )
-        fault0 = r.filter.fault[:, 0]
-        plot_fault_probability(
-            out_dir / fn,
-            t_tgt,
-            {name: fault0},
-            decision=decision,
-            title=f"{name}: fault probability per step (threshold {thr:g}, run 0)",
-        )
-        plot_fault_probability_box(
-            out_dir / fb,
-            t_tgt,
-            fault0,
-            period=1.0,
-            decision=decision,
-            title=f"{name}: fault probability per day (run 0)",
-        )
-        support, pmf = r.rul.binned(pmf_bin[0])  # display only: mean pmf over the runs
-        plot_rul_pdf(
-            out_dir / fr,
-            [round(v, 2) for v in case.times[paper_idx].tolist()],
-            support,
-            pmf[paper_idx].mean(1),
-            true_rul=case.true_rul[paper_idx],
-            censored_mass=r.rul.censored_mass[paper_idx].mean(1),
-            title=f"{name}: RUL pmf (mean of {r.rul_pred.shape[1]} runs, {pmf_bin[1]} bins, "
-            f"cap {case.horizon:g} d)",
-        )
-        figs += [fn, fb, fr]
-    for name, r in results.items():
-        fa = f"fig13_alpha_lambda_{short[name]}.png"
-        runs = r.rul_pred.shape[1]
-        kind = "deterministic" if r.filter is None else f"bars: range over {runs} runs"
-        plot_alpha_lambda(
-            out_dir / fa,
-            case.times,
-            case.true_rul,
-            r.rul_pred[:, 0],
-            alpha=alpha,
-            lower=r.rul_pred.min(-1).values,
-            upper=r.rul_pred.max(-1).values,
-            lam=lam,
-            t_eol=case.t_eol,
-            title=f"{name}: RUL (Eq. 28); {kind}",
-        )
-        figs.append(fa)
-    return figs
 
 
 def rul_table(
