@@ -185,3 +185,14 @@ def test_noise_sweep_rows_score_noise_in_the_units_of_eq_67_68():
     oracle = hst_fault_model(P, chol_D=CHOL_D, q_scale=QS)
     alone, _ = score_filter(proto, "x", ukf(1.0, 0.0, 1.0, sqrt=True), oracle, truth, ys)
     assert by[f"{ORACLE}, R x1"]["state RMSE"] == alone[0]["state RMSE"]
+
+
+def test_state_and_fault_names():
+    from prognos_torch.systems import HST_FAULT_NAMES, hst_state_names
+
+    assert hst_state_names(5) == ("x1", "x2", "x3", "x4", "v1", "v2", "v3", "v4", "v5")
+    assert hst_state_names(2) == ("x1", "v1", "v2")
+    assert HST_FAULT_NAMES == ("f_a^c", "f_a^d", "f_s")
+    sim = simulate_hst(5, generator=torch.Generator().manual_seed(0))
+    assert sim.meta["state_names"] == hst_state_names(5)
+    assert sim.meta["param_names"] == HST_FAULT_NAMES

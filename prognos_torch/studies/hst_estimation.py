@@ -28,10 +28,12 @@ from ..filters import GaussianFilter, arukf, rukf, run_in_segments, ukf
 from ..filters.segments import SegmentedTrajectory
 from ..quadrature import unscented
 from ..systems.high_speed_train import (
+    HST_FAULT_NAMES,
     HSTParams,
     hst_estimation_errors,
     hst_fault_model,
     hst_nominal_fault_model,
+    hst_state_names,
     simulate_hst_runs,
 )
 from .rows import run_rows
@@ -57,8 +59,8 @@ __all__ = [
 
 OPT = " (eps-opt)"  # method-name suffix: Theorem 1's scale chosen per step (bound="optimised")
 ORACLE = "UKF (true Q,R)"  # the UKF with the true Q_k, R_k of Eq. 67-68
-STATE_NAMES = ("x1", "x2", "x3", "x4", "v1", "v2", "v3", "v4", "v5")
-FAULT_NAMES = ("f_a^c", "f_a^d", "f_s")
+STATE_NAMES = hst_state_names(5)
+FAULT_NAMES = HST_FAULT_NAMES
 SUMMARY = ["state RMSE", "fault RMSE", "Q RMSE", "R RMSE", "Q RMSE (k>N)", "R RMSE (k>N)", "time_s"]
 STATE_COLS = [f"RMSE {s}" for s in STATE_NAMES]  # Table 2
 FAULT_COLS = [f"RMSE {s}" for s in FAULT_NAMES]  # Table 3

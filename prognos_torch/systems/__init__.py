@@ -42,6 +42,7 @@ from .cstr import (
     simulate_cstr,
 )
 from .high_speed_train import (
+    HST_FAULT_NAMES,
     HSTParams,
     hst_actuator_fault,
     hst_coupler_fault,
@@ -56,6 +57,7 @@ from .high_speed_train import (
     hst_process_variance,
     hst_rhs,
     hst_sensor_fault,
+    hst_state_names,
     hst_step,
     simulate_hst,
     simulate_hst_runs,
@@ -121,6 +123,8 @@ __all__ = [
     "simulate_lorenz",
     "lorenz_series",
     "HSTParams",
+    "HST_FAULT_NAMES",
+    "hst_state_names",
     "hst_rhs",
     "hst_step",
     "hst_measure",

@@ -86,6 +86,8 @@ from .simulation import (
 )
 
 __all__ = [
+    "HST_FAULT_NAMES",
+    "hst_state_names",
     "HSTParams",
     "hst_rhs",
     "hst_step",
@@ -104,6 +106,16 @@ __all__ = [
     "simulate_hst",
     "simulate_hst_runs",
 ]
+
+#: Names of the faults ``[f_a^c, f_a^d, f_s]`` (Eq. 61-65), the fault model's last states.
+HST_FAULT_NAMES = ("f_a^c", "f_a^d", "f_s")
+
+
+def hst_state_names(n_cars: int = 5) -> tuple[str, ...]:
+    """Names of the state ``psi``: the ``n - 1`` coupler displacements ``x1..`` and the ``n``
+    car speeds ``v1..`` (Eq. 1-8)."""
+    return tuple(f"x{i}" for i in range(1, n_cars)) + tuple(f"v{i}" for i in range(1, n_cars + 1))
+
 
 _FA = (
     (0.0, 0.0),
@@ -558,11 +570,8 @@ def simulate_hst(
             "equations": "Eq. 1-8, 13 (Euler), 14, 61-68",
             "dt": p.sigma,
             "time_unit": "s",
-            "state_names": ("x1", "x2", "x3", "x4", "v1", "v2", "v3", "v4", "v5")
-            if p.n_cars == 5
-            else tuple(f"x{i}" for i in range(1, p.n_cars))
-            + tuple(f"v{i}" for i in range(1, p.n_cars + 1)),
-            "param_names": ("f_a^c", "f_a^d", "f_s"),
+            "state_names": hst_state_names(p.n_cars),
+            "param_names": HST_FAULT_NAMES,
             "v_r": torch.tensor([hst_cruise_speed(t) for t in ts], dtype=dtype, device=device),
             "delta_E": dE,
             "M": p.M,
