@@ -40,7 +40,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from prognos_torch import plots, studies
+from prognos_torch import studies
 from prognos_torch.datasets import MinMaxScaler, one_step_pairs
 from prognos_torch.learners import ANFIS
 from prognos_torch.optim import KalmanOptimizer
@@ -55,6 +55,7 @@ from prognos_torch.studies import (
     run_errors,
 )
 from prognos_torch.studies import markdown_table as md
+from prognos_torch.studies.training_report import training_figures
 from prognos_torch.systems.cstr import simulate_cstr
 from prognos_torch.systems.lorenz import lorenz_series
 
@@ -129,10 +130,6 @@ def _mae(pred: Tensor, data: Data) -> Tensor:
     return run_errors(pred, data.Yte[:, 0])["MAE"]
 
 
-def _adam(module: torch.nn.Module) -> torch.optim.Adam:
-    return torch.optim.Adam(module.parameters(), ADAM_LR)
-
-
 # ---------------------------------------------------------------------- training
 def _run_trainers(cfg: StudyConfig, data: Data, runs: int, online: bool, bar=None, alone=None):
     """Every trainer on ``data``: the Kalman runs batched (and run 0 alone into ``alone``:
@@ -152,47 +149,16 @@ def _run_trainers(cfg: StudyConfig, data: Data, runs: int, online: bool, bar=Non
             alone[name] = (r0.train_time + r0.test_time, _mae(r0.pred, data)[0].item())
         if bar:
             bar.update(2)
-    res[ADAM] = studies.runs_in_turn(inits, _adam, **pairs, block=data.block, online=online)
+    res[ADAM] = studies.runs_in_turn(
+        inits,
+        lambda m: torch.optim.Adam(m.parameters(), ADAM_LR),
+        **pairs,
+        block=data.block,
+        online=online,
+    )
     if bar:
         bar.update(1)
     return res, inits
-
-
-# ---------------------------------------------------------------------- figures
-def _figures(out_dir: Path, data: Data, res: dict[str, TrainTest], prefix: str, nums) -> list[str]:
-    """Fig. 3-5 (Lorenz) or 6-8 (CSTR) style figures of one data set; returns file names."""
-    get = {r: {n: getattr(res[n], key) for n in TRAINERS}
-           for r, key in READINGS.items() if getattr(res[ADAM], key) is not None}  # fmt: skip
-    truth, name, R = data.Yte[:, 0], data.name, res[ADAM].pred.shape[0]
-    files = [f"{prefix}_fig{nums[0]}_predictions.png", f"{prefix}_fig{nums[1]}_abs_error.png",
-             f"{prefix}_fig{nums[2]}_mae_per_run.png", f"{prefix}_training_curves.png"]  # fmt: skip
-    plots.plot_panels(
-        out_dir / files[0],
-        data.k_test,
-        {f"{r}, run 0": torch.stack([p[0] for p in g.values()], -1) for r, g in get.items()},
-        truth=truth[:, None].expand(-1, len(TRAINERS)),
-        names=list(TRAINERS),
-        ncols=2,
-        clip=0.3 if len(get) > 1 else None,
-        xlabel="sample k",
-        panel_size=(4.6, 2.4),
-        title=f"{name}: one-step-ahead test predictions vs truth (scaled to [0, 1])",
-    )
-    err = {r: {n: (p[0] - truth).abs() for n, p in g.items()} for r, g in get.items()}
-    plots.plot_line_row(out_dir / files[1], data.k_test, err, xlabel="sample k", logy=True,
-                        ylabel="absolute error",
-                        title=f"{name}: absolute one-step prediction error (run 0)")  # fmt: skip
-    mae = {r: {n: run_errors(p, truth)["MAE"] for n, p in g.items()} for r, g in get.items()}
-    plots.plot_line_row(out_dir / files[2], np.arange(R), mae, ylabel="test MAE", logy=True,
-                        xlabel="Monte Carlo run (ANFIS initialisation)", style="o-",
-                        title=f"{name}: test MAE of each run")  # fmt: skip
-    curves = {f"squared error before each step, mean over blocks of {data.block} steps and over "
-              "runs": {n: res[n].curve.mean(-1) for n in TRAINERS}}  # fmt: skip
-    plots.plot_line_row(out_dir / files[3], res[ADAM].curve_steps, curves, logy=True,
-                        xlabel="optimiser steps (training samples seen)", ylabel="training loss",
-                        title=f"{name}: training curves (one pass, one sample per step)",
-                        style="o-")  # fmt: skip
-    return files
 
 
 # ---------------------------------------------------------------------- report
@@ -298,7 +264,11 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
                 rows += studies.outcome_rows(f"{label}: {name}", res[name], *ys, online=on)
                 if name in PAPER_TABLES[data.name]:
                     paper[f"{label}: {name}"] = PAPER_TABLES[data.name][name]
-        figs += _figures(out_dir, data, res, prefix, nums)
+        files = [f"{prefix}_fig{nums[0]}_predictions.png", f"{prefix}_fig{nums[1]}_abs_error.png",
+                 f"{prefix}_fig{nums[2]}_mae_per_run.png", f"{prefix}_training_curves.png"]  # fmt: skip
+        figs += training_figures(out_dir, {n: res[n] for n in TRAINERS}, data.k_test, ys[1],
+                                 name=data.name, block=data.block, files=files,
+                                 readings=READINGS)  # fmt: skip
     bar.set_postfix_str("CSTR noise realisations")
     sens = _cstr_sensitivity(cfg, sens_runs, sens_real, bar)
     bar.close()

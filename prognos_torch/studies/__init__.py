@@ -8,7 +8,8 @@ and method), ``run.json`` (configuration, versions, machine) and the figures the
 notes filled from a template); :mod:`.evaluate` and :mod:`.forecasters` the evaluation
 protocols the studies share (fault prediction, one-step forecasters alone and inside prognostic
 filters); :mod:`.training` timed training of a learner by an optimiser over input/target
-pairs, Monte Carlo runs batched or in turn, its frozen and online test readings; :mod:`.matrix`
+pairs, Monte Carlo runs batched or in turn, its frozen and online test readings
+(:mod:`.training_report` draws them); :mod:`.matrix`
 a learner x trainer x filter matrix over test problems (:mod:`.matrix_training` trains its
 learners by name, :mod:`.matrix_report` draws its figures); :mod:`.rows` builds the per-run
 result rows and writes them as CSV; :mod:`.indicator_protocol` runs paper 002's protocol on a
