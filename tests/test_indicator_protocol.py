@@ -197,3 +197,47 @@ def test_protocol_figures_write_the_paper_figures(drift_run, tmp_path):
     assert figs == expected
     for f in figs:
         assert (tmp_path / f).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", f
+
+
+# --------------------------------------------------------------------------- diagnostics
+def test_candidate_test_rmse_fits_each_grid_point_on_the_training_pairs():
+    from prognos_torch.datasets import embed
+    from prognos_torch.learners import fit_lssvr_gram
+
+    t = 0.5 * torch.arange(30, dtype=F64)
+    k = torch.arange(30, dtype=F64)
+    z = 0.04 * k + 0.1 * torch.sin(0.7 * k)  # reaches 0.9 near k = 22
+    case = ip.indicator_case(z, t, 2, threshold=0.9, rul_start=1.0, rul_every=1.0, horizon=2.0)
+    X, y = embed(z[:20], 2)
+    keys = [(1.0, 10.0), (3.0, 1e3)]
+    got = ip.candidate_test_rmse(X, y, keys, scale=0.5, case=case)
+    assert list(got) == keys
+    for s, C in keys:  # sigma = key[0] x scale, scored on the windows before each predicted sample
+        f = fit_lssvr_gram(X, y, sigma=0.5 * s, C=C)
+        pred = f(case.one_step_windows)[:, 0].detach()
+        ref = float((pred - case.truth).pow(2).mean().sqrt())
+        assert got[(s, C)] == pytest.approx(ref, rel=1e-12)
+    assert all(math.isfinite(v) and v > 0 for v in got.values())
+
+
+def test_proposal_ess_is_the_jittered_ekpf_pass(drift_run):
+    case, _ = drift_run
+    learner, q = _Drift(0.125), 1e-3
+    kw = dict(n_particles=16, steps=6, resample_threshold=0.5, threshold=0.8, seed=3)
+    ess = ip.proposal_ess(learner, 2, q, case.z, jitter=0.1, **kw)
+    model = learner_transition_model(learner, 2, q, q, jacobian="input_gradient",
+                                     shift_std=0.1 * q)  # fmt: skip
+    gen = torch.Generator().manual_seed(3)
+    ref = ip.particle_pass(ekpf(16, resample_threshold=0.5), model, case.z[:8], 2, 1, gen,
+                           threshold=0.8).ess  # fmt: skip
+    assert ref.shape[0] == 6 and ess == pytest.approx(float(ref.mean()), rel=1e-12)
+    assert 1.0 <= ess <= 16.0
+
+
+def test_indicator_figure_writes_its_file(tmp_path):
+    from prognos_torch.studies.indicator_report import indicator_figure
+
+    t = torch.arange(10, dtype=F64)
+    indicator_figure(tmp_path / "fig1.png", t, {"a": 0.1 * t, "b": 0.05 * t}, threshold=0.5,
+                     t_eol=5.0, title="x", ylabel="y", xlabel="t", gap=None)  # fmt: skip
+    assert (tmp_path / "fig1.png").stat().st_size > 0

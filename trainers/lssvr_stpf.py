@@ -42,12 +42,11 @@ import torch
 from prognos_torch.datasets import MinMaxScaler, embed, health_indicator
 from prognos_torch.filters import ekpf, sir, stpf
 from prognos_torch.learners import fit_lssvr_gram, lssvr_grid_cv
-from prognos_torch.metrics import first_crossing_time, point_rul_scores, rmse
-from prognos_torch.plots import LinePanel, plot_line_panels
+from prognos_torch.metrics import first_crossing_time, point_rul_scores
 from prognos_torch.prognosis import learner_transition_model, settle
 from prognos_torch.studies import Study, StudyConfig, StudyResult, method_mean, tables
 from prognos_torch.studies import indicator_protocol as ip
-from prognos_torch.studies.indicator_report import protocol_figures
+from prognos_torch.studies.indicator_report import indicator_figure, protocol_figures
 
 # Paper 002, Table 1 (one-step RMSE) and Table 2 (RUL metrics; alpha-lambda False = 0, True = 1).
 # The paper's "Proposed method"/"Proposed algorithm" is LS-SVR STPF; Table 2's "LS-SVR EKFPF" is
@@ -138,37 +137,6 @@ def _protocol(case, X, y, sd, scores, runs, n_part, key, suffix, seed):
                            config=config)  # fmt: skip
 
 
-def _diagnostic(one, case, n_part, seed, ess_uni):
-    """Mean ESS of the EKPF over the first steps with a small jitter on the shifted elements."""
-    q, m = one.q, M_ORDER
-    model_j = learner_transition_model(
-        one.learner, m, q, q, jacobian="input_gradient", shift_std=JITTER_DIAG * q
-    )
-    gen = torch.Generator(device=case.z.device).manual_seed(seed)
-    pf_j = ekpf(n_part, resample_threshold=RESAMPLE)
-    z = case.z[: m + DIAG_STEPS]
-    ess = ip.particle_pass(pf_j, model_j, z, m, 1, gen, threshold=THRESHOLD).ess
-    j = f"{JITTER_DIAG:g} q"
-    return (
-        f"EKPF over the first {DIAG_STEPS} steps (1 run, {n_part} particles): mean ESS "
-        f"{float(ess.mean()):.1f} with Q = diag({j}, {j}, {j}, q) against "
-        f"{ess_uni:.1f} with Q = q^2 I."
-    )
-
-
-def _fig1(out_dir, hi, t, z_train, z_test, t_eol) -> str:
-    """Fig. 1: the indicator of both channels, the threshold and the test channel's end of life."""
-    lines = {f"training, channel {hi.train_channel}": z_train}
-    lines[f"test, channel {hi.test_channel}"] = z_test
-    title = "Health indicator of bearing 3 (LLE of six features, unit-norm scale)"
-    panel = LinePanel(lines, title=title, ylabel="LLE health indicator", hline=THRESHOLD,
-                      vline=t_eol, gap=GAP_DAYS, vline_label=f"test crosses at {t_eol:.2f} d",
-                      legend="upper left")  # fmt: skip
-    xlabel = "time (days, last 12 days of test 1)"
-    plot_line_panels(out_dir / "fig1_indicator.png", t, [panel], xlabel=xlabel, lw=0.7)
-    return "fig1_indicator.png"
-
-
 def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     quick, dev, m = cfg.quick, torch.device(cfg.device), M_ORDER
     t_start = time.perf_counter()
@@ -208,11 +176,23 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     diag_txt = "(diagnostic skipped in quick mode)"
     if not quick:  # proposal-structure diagnostic
         ess_uni = float(res["LS-SVR EKPF"].filter.ess[:DIAG_STEPS].mean())
-        diag_txt = _diagnostic(one, case, n_part, cfg.seed, ess_uni)
+        ess_j = ip.proposal_ess(one.learner, m, one.q, case.z, n_particles=n_part,
+                                steps=DIAG_STEPS, jitter=JITTER_DIAG, seed=cfg.seed,
+                                resample_threshold=RESAMPLE, threshold=THRESHOLD)  # fmt: skip
+        j = f"{JITTER_DIAG:g} q"
+        diag_txt = (f"EKPF over the first {DIAG_STEPS} steps (1 run, {n_part} particles): mean "
+                    f"ESS {ess_j:.1f} with Q = diag({j}, {j}, {j}, q) against {ess_uni:.1f} with "
+                    "Q = q^2 I.")  # fmt: skip
 
     # figures (run 0)
     paper_idx = [int((times - v).abs().argmin()) for v in PAPER_RUL_TIMES if times[0] <= v]
-    figs = [_fig1(out_dir, hi, t, z_train, z_test, t_eol)]
+    lines = {f"training, channel {hi.train_channel}": z_train}
+    lines[f"test, channel {hi.test_channel}"] = z_test
+    indicator_figure(out_dir / "fig1_indicator.png", t, lines, threshold=THRESHOLD, t_eol=t_eol,
+                     title="Health indicator of bearing 3 (LLE of six features, unit-norm scale)",
+                     ylabel="LLE health indicator", gap=GAP_DAYS,
+                     xlabel="time (days, last 12 days of test 1)")  # fmt: skip
+    figs = ["fig1_indicator.png"]
     figs += protocol_figures(out_dir, one.res, res, case, short=SHORT, tail=tail,
                                 span_labels=("days 1-12", f"days {TAIL_START:g}-12"),
                                 paper_idx=paper_idx, alpha=ALPHA, lam=LAMBDA,
@@ -220,10 +200,7 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
                                 gap=GAP_DAYS)  # fmt: skip
 
     # tables and readings
-    with torch.no_grad():  # the test one-step RMSE of every candidate (reported, not used)
-        w = case.one_step_windows
-        fit = {k: fit_lssvr_gram(X, y, sigma=k[0] * sd, C=k[1]) for k in scores}
-        test_rmse = {k: float(rmse(f(w)[:, 0], truth)) for k, f in fit.items()}
+    test_rmse = ip.candidate_test_rmse(X, y, scores, scale=sd, case=case)  # reported, not used
     win_test, _ = embed(z_test, m)  # windows ending at samples m-1 .. T-2
     census_windows = win_test[int(torch.nonzero(t[m - 1 : -1] >= RUL_START).flatten()[0]) :]
 

@@ -9,7 +9,8 @@ Fig. 8-13; the figures: :mod:`~prognos_torch.studies.indicator_report`).
   sample predicted one step ahead before it is assimilated
   (:func:`~prognos_torch.prognosis.rolling_particle_prediction`), with the fault probability
   ``fault(1, k) = sum_i w_k^i I(x_{k+1|k}^i >= threshold)`` (Fig. 10) and the weighted particle
-  sets at the RUL prediction times;
+  sets at the RUL prediction times; :func:`proposal_ess`: the EKPF's mean ESS with jitter on
+  the shifted window elements (a diagnostic of the proposal's structure);
 * :func:`evaluate_learner_filters`: the learner alone (Eq. 12 on the measured window; its RUL
   by the noise-free recursion, Eq. 12-14) and each filter (its RUL from the weighted particles,
   frozen weights and process noise); the paths run until every one reaches the threshold or
@@ -20,7 +21,8 @@ Fig. 8-13; the figures: :mod:`~prognos_torch.studies.indicator_report`).
   Table 2 (:func:`~prognos_torch.metrics.point_rul_scores`), the censored mass, ESS and time;
 * :func:`rul_table`: the point RULs per prediction time; :func:`selection_table`: the
   blocked cross-validation scores of an LS-SVR grid
-  (:func:`~prognos_torch.learners.lssvr_grid_cv`) as a markdown table.
+  (:func:`~prognos_torch.learners.lssvr_grid_cv`) as a markdown table, with each candidate's
+  test one-step RMSE (:func:`candidate_test_rmse`).
 """
 
 from __future__ import annotations
@@ -32,16 +34,17 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from ..core.model import StateSpaceModel
 from ..datasets import embed
-from ..filters import ParticleFilter
-from ..learners import MultiStepCV
+from ..filters import ParticleFilter, ekpf
+from ..learners import MultiStepCV, fit_lssvr_gram
 from ..metrics import first_crossing_time, point_rul_scores, rmse
 from ..prognosis import (
     RULDistribution,
     last_sample_indices,
+    learner_transition_model,
     rolling_particle_prediction,
     simulate_to_event,
     window_belief,
@@ -55,10 +58,12 @@ __all__ = [
     "indicator_case",
     "ParticlePass",
     "particle_pass",
+    "proposal_ess",
     "MethodResult",
     "evaluate_learner_filters",
     "protocol_rows",
     "rul_table",
+    "candidate_test_rmse",
     "selection_table",
 ]
 
@@ -228,6 +233,33 @@ def particle_pass(
     )
 
 
+def proposal_ess(
+    learner: nn.Module,
+    m: int,
+    q: float,
+    z: Tensor,
+    *,
+    n_particles: int,
+    steps: int,
+    jitter: float,
+    resample_threshold: float,
+    threshold: float,
+    seed: int,
+) -> float:
+    """Mean ESS of an EKPF (1 run) over the first ``steps`` samples after the first window of
+    ``z`` ``(T,)``, with the learner's m-order transition model whose process noise is ``q`` on
+    the newest window element and ``jitter q`` on the shifted ones (a diagnostic of the
+    proposal's structure: with ``q^2 I`` the shifted elements are nearly deterministic)."""
+    model = learner_transition_model(
+        learner, m, q, q, jacobian="input_gradient", shift_std=jitter * q
+    )
+    gen = torch.Generator(device=z.device).manual_seed(seed)
+    pf = ekpf(n_particles, resample_threshold=resample_threshold)
+    return float(
+        particle_pass(pf, model, z[: m + steps], m, 1, gen, threshold=threshold).ess.mean()
+    )
+
+
 @dataclass(frozen=True)
 class MethodResult:
     """One method through the protocol (:func:`evaluate_learner_filters`).
@@ -378,6 +410,18 @@ def rul_table(
         for p in range(0, len(case.rul_idx), every)
     ]
     return markdown_table(["prediction time (d)", "true RUL (d)", *names], rows)
+
+
+def candidate_test_rmse(
+    X: Tensor, y: Tensor, keys: Sequence[tuple[float, float]], *, scale: float, case: IndicatorCase
+) -> dict[tuple[float, float], float]:
+    """The test one-step RMSE of each LS-SVR grid candidate ``(sigma / scale, C)`` fitted on the
+    training pairs ``X`` ``(N, m)``, ``y`` ``(N, 1)``, on the case's one-step windows (reported
+    beside the cross-validation scores of :func:`selection_table`, never used to choose)."""
+    w = case.one_step_windows
+    with torch.no_grad():
+        fits = {k: fit_lssvr_gram(X, y, sigma=k[0] * scale, C=k[1]) for k in keys}
+        return {k: float(rmse(f(w)[:, 0], case.truth)) for k, f in fits.items()}
 
 
 def selection_table(

@@ -22,7 +22,7 @@ from ..plots import (
 )
 from .indicator_protocol import IndicatorCase, MethodResult
 
-__all__ = ["protocol_figures"]
+__all__ = ["indicator_figure", "protocol_figures"]
 
 
 def protocol_figures(
@@ -159,3 +159,23 @@ def protocol_figures(
         )
         figs.append(fa)
     return figs
+
+
+def indicator_figure(
+    path: Path,
+    t: Tensor,
+    lines: Mapping[str, Tensor],
+    *,
+    threshold: float,
+    t_eol: float,
+    title: str,
+    ylabel: str,
+    xlabel: str,
+    gap: float | None = None,
+) -> None:
+    """Fig. 1: indicator series ``{label: (T,)}`` over ``t`` ``(T,)`` with the failure threshold
+    and the end of life (first crossing) of the test series."""
+    panel = LinePanel(dict(lines), title=title, ylabel=ylabel, hline=threshold, vline=t_eol,
+                      gap=gap, vline_label=f"test crosses at {t_eol:.2f} d",
+                      legend="upper left")  # fmt: skip
+    plot_line_panels(path, t, [panel], xlabel=xlabel, lw=0.7)
