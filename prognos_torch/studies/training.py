@@ -58,7 +58,6 @@ class TrainTest(NamedTuple):
         curve_steps: optimiser steps taken at the end of each block.
         online_pred: ``(R, N)`` predict-then-update predictions of the test segment, or
             ``None`` without the online reading.
-        online_pred_train: ``(R, N_train)`` training-set predictions after the online steps.
         online_time: seconds of the online pass, NaN without one.
     """
 
@@ -69,7 +68,6 @@ class TrainTest(NamedTuple):
     curve: Tensor | None = None
     curve_steps: list[int] | None = None
     online_pred: Tensor | None = None
-    online_pred_train: Tensor | None = None
     online_time: float = math.nan
 
     def per_run(self, runs: int) -> TrainTest:
@@ -120,9 +118,7 @@ def train_and_test(
     if not online:
         return out
     p, t_online = predict_then_update(module, optimizer, Xt, Yt, predict)
-    return out._replace(
-        online_pred=p[..., 0], online_pred_train=_predict(predict, X)[0], online_time=t_online
-    )
+    return out._replace(online_pred=p[..., 0], online_time=t_online)
 
 
 def _stack_runs(parts: Sequence[TrainTest]) -> TrainTest:
@@ -144,7 +140,6 @@ def _stack_runs(parts: Sequence[TrainTest]) -> TrainTest:
         stack("curve", -1),
         parts[0].curve_steps,
         stack("online_pred"),
-        stack("online_pred_train"),
         secs("online_time"),
     )
 
