@@ -209,3 +209,13 @@ def test_bad_arguments():
         StackedLearner.from_modules([m], run_dim=2)
     with pytest.raises(ValueError, match="both lo and hi"):
         StackedLearner.from_modules([m], lo=torch.zeros(1))
+
+
+def test_kalman_runs_optimizer_starts_each_run_from_its_module():
+    from prognos_torch.optim import kalman_runs_optimizer
+
+    mods = _anfis(3)
+    opt = kalman_runs_optimizer(mods[0], mods, filter="ekf", P0=1e-2, Q=1e-6, R=1e-3)
+    assert isinstance(opt, KalmanOptimizer)
+    for r, m in enumerate(mods):
+        torch.testing.assert_close(opt.theta[r], ParameterBridge(m).flatten())

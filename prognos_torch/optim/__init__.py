@@ -34,6 +34,7 @@ from .stacked import (
     StackedLearner,
     fit_kalman_runs,
     fit_together,
+    kalman_runs_optimizer,
     run_sum_mse,
 )
 
@@ -57,6 +58,7 @@ __all__ = [
     "run_sum_mse",
     "fit_together",
     "fit_kalman_runs",
+    "kalman_runs_optimizer",
     "fit_likelihood",
     "LikelihoodFit",
     "from_log_cholesky",

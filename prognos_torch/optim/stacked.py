@@ -47,6 +47,7 @@ __all__ = [
     "run_sum_mse",
     "fit_together",
     "fit_kalman_runs",
+    "kalman_runs_optimizer",
 ]
 
 EVALUATE = ("vmap", "broadcast")
@@ -325,6 +326,17 @@ def _share_the_rest(modules: Sequence[nn.Module], bridge: ParameterBridge) -> bo
     return True
 
 
+def kalman_runs_optimizer(
+    base: nn.Module, modules: Sequence[nn.Module], **kalman_options
+) -> KalmanOptimizer:
+    """One :class:`~prognos_torch.optim.KalmanOptimizer` with ``runs=R`` on ``base``, run ``r``
+    starting from the parameters of ``modules[r]`` (structurally identical to ``base`` and
+    sharing every tensor outside the Kalman state with it). ``kalman_options``: filter, P0, Q,
+    R, ..."""
+    theta0 = ParameterBridge(base).stack(modules)
+    return KalmanOptimizer(base, runs=len(modules), theta0=theta0, **kalman_options)
+
+
 def fit_kalman_runs(
     modules: Sequence[nn.Module],
     train: tuple[Tensor, Tensor],
@@ -355,9 +367,7 @@ def fit_kalman_runs(
     if batched is None:
         batched = _share_the_rest(modules, bridge)
     if batched:
-        opt = KalmanOptimizer(
-            base, runs=len(modules), theta0=bridge.stack(modules), **kalman_options
-        )
+        opt = kalman_runs_optimizer(base, modules, **kalman_options)
         fit(base, opt, train, **fit_options)
         return StackedLearner.from_theta(base, opt.theta)
     for mod in modules:

@@ -27,7 +27,12 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from ..optim import KalmanOptimizer, ParameterBridge, predict_then_update, train_in_blocks
+from ..optim import (
+    KalmanOptimizer,
+    kalman_runs_optimizer,
+    predict_then_update,
+    train_in_blocks,
+)
 from .evaluate import run_errors
 from .rows import run_rows
 from .runner import timed
@@ -160,8 +165,7 @@ def kalman_runs(
     Kalman state). Arguments as for :func:`train_and_test`; ``kalman_options`` go to the
     optimiser (``filter``, ``P0``, ``Q``, ``R``, ...). Seconds per run (batch time / ``R``)."""
     module = copy.deepcopy(inits[0])
-    theta0 = ParameterBridge(module).stack(inits)
-    opt = KalmanOptimizer(module, runs=len(inits), theta0=theta0, **kalman_options)
+    opt = kalman_runs_optimizer(module, inits, **kalman_options)
     out = train_and_test(module, opt, train, test, block=block, passes=passes, online=online)
     return out.per_run(len(inits))
 
