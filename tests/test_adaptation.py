@@ -300,7 +300,11 @@ def test_optimised_bound_is_the_grid_minimum_and_beats_the_printed_scale():
         Pk = IKH @ P @ IKH.mT / (1 - T) + K @ MM @ K.mT / T + K @ RR @ K.mT
         ref = torch.diagonal(Pk, dim1=-2, dim2=-1).sum(-1)
         got = rb.bound_trace(tt[:, None], trP, Pxz, Pzz, RR)[:, 0]
-        assert torch.allclose(got, ref, rtol=1e-10)
+        # the explicit form solves with S, whose condition number reaches 3e12 where the optimum
+        # t is near 0 (last problem): its own error is then up to about cond(S) eps, and moves
+        # with the BLAS kernel (2.5e-9 measured on one CPU); 1e-10 where S is well conditioned
+        rtol = 1e-10 + 1e-14 * torch.linalg.cond(S)
+        assert bool(((got - ref).abs() <= rtol * ref.abs()).all())
     with pytest.raises(ValueError, match="bound"):
         RobustBound(1.05, M, 1.0, bound="best")
     with pytest.raises(ValueError, match="form='scalar'"):

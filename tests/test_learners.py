@@ -604,7 +604,11 @@ def test_vmap_over_parameter_vectors_equals_loop(name):
     assert out.shape == (n_batch, 7, 2)
     for s in range(n_batch):
         ref = functional_call(model, {n: v[s] for n, v in batched.items()}, (x,))
-        np.testing.assert_allclose(out[s].detach().numpy(), ref.detach().numpy(), rtol=1e-13)
+        # entries near 0 are sums of O(1) terms: rounding is relative to the output's scale
+        r = ref.detach().numpy()
+        np.testing.assert_allclose(
+            out[s].detach().numpy(), r, rtol=1e-13, atol=1e-13 * np.abs(r).max()
+        )
 
 
 @pytest.mark.parametrize("name", ["elm", "lssvr", "anfis"])

@@ -250,8 +250,19 @@ def test_quick_headline_numbers(quick_out):
         for k, v in ref.items():
             # the health indicator's SciPy eigendecomposition rounds differently across CPUs and
             # BLAS kernels (about 1e-8); iterated ten steps through a trained ANFIS that becomes
-            # up to 2e-6 (measured between two machines), so the HI cells get 1e-5
-            rel = 1e-4 if ("PF" in k or "ImSRUKF" in k) else 1e-5 if k.startswith("HI") else 1e-6
+            # up to 2e-6 (measured between two machines), so the HI cells get 1e-5. With 30
+            # particles such rounding can move a resampling draw across a cumulative-weight edge
+            # and swap one ancestor: 1.2e-4 in one PF cell between an AMD and an Intel CPU, so
+            # the particle filter cells get 1e-3
+            rel = (
+                1e-3
+                if "PF" in k
+                else 1e-4
+                if "ImSRUKF" in k
+                else 1e-5
+                if k.startswith("HI")
+                else 1e-6
+            )
             assert got[k] == pytest.approx(v, rel=rel), (metric, k)
     r1, r10 = means(rows, "RMSE_1"), means(rows, "RMSE_10")
     for series in ("HI", "CSTR"):
