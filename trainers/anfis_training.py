@@ -276,29 +276,18 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     report |= {"table_sensitivity": sens, "sens_last_run": sens_runs - 1, "runs": runs}
     report |= {"sens_realisations": sens_real, "CSTR_SEED_OFFSET": CSTR_SEED_OFFSET}
     report |= {"P0": P0, "Q_RW": Q_RW, "R_MEAS": R_MEAS, "ADAM_LR": ADAM_LR}
-    return StudyResult(
-        rows=rows,
-        metrics=METRICS,
-        paper=paper,
-        figures=figs,
-        config={
-            "anfis": {"n_inputs": EMBED, "n_mfs": N_MFS, "mf": "sigmoid", "n_parameters": 44},
-            "kalman": {
-                "P0": P0,
-                "Q": Q_RW,
-                "R": R_MEAS,
-                "imsrukf_noise": "Q (diagonal, Eq. 41), R post-fit, k0 = 300",
-            },
-            "adam_lr": ADAM_LR,
-            "passes": PASSES,
-            "batch_size": 1,
-            "lorenz": {"points": 400 if cfg.quick else 1000, "train_points": "first half"},
-            "cstr": {"steps": 200, "train_points": 100, "noise_seed_offset": CSTR_SEED_OFFSET},
-            "cstr_sensitivity": {"runs": sens_runs, "noise_realisations": sens_real},
-            "time_s": "train + test seconds per run; Kalman runs batched (batch time / runs)",
-        },
-        notes=studies.fill_template(REPORT, report),
-    )
+    config = {
+        "anfis": {"n_inputs": EMBED, "n_mfs": N_MFS, "mf": "sigmoid", "n_parameters": 44},
+        "kalman": {"P0": P0, "Q": Q_RW, "R": R_MEAS,
+                   "imsrukf_noise": "Q (diagonal, Eq. 41), R post-fit, k0 = 300"},
+        "adam_lr": ADAM_LR, "passes": PASSES, "batch_size": 1,
+        "lorenz": {"points": 400 if cfg.quick else 1000, "train_points": "first half"},
+        "cstr": {"steps": 200, "train_points": 100, "noise_seed_offset": CSTR_SEED_OFFSET},
+        "cstr_sensitivity": {"runs": sens_runs, "noise_realisations": sens_real},
+        "time_s": "train + test seconds per run; Kalman runs batched (batch time / runs)",
+    }  # fmt: skip
+    return StudyResult(rows=rows, metrics=METRICS, paper=paper, figures=figs, config=config,
+                       notes=studies.fill_template(REPORT, report))  # fmt: skip
 
 
 STUDY = Study(
