@@ -229,6 +229,24 @@ def test_bad_input(kwargs, match):
         prognose(y, time=t, **kwargs)
 
 
+def test_threshold_and_at_as_tensor_or_numpy_scalars():
+    """A 0-dim tensor or a NumPy scalar is the number it holds (the same RUL to the last bit);
+    a bool, a 1-element vector or a string is refused with the argument's name."""
+    import numpy as np
+
+    t, y = _series(noise_after=0.05)
+    ref = prognose(y[:480], 3.0, time=t[:480], method="exponential", at=480.0)
+    for thr, at in (
+        (torch.tensor(3.0, dtype=F64), torch.tensor(480)),
+        (np.float32(3.0), np.int64(480)),
+    ):
+        got = prognose(y[:480], thr, time=t[:480], method="exponential", at=at)
+        assert torch.allclose(got.rul_samples, ref.rul_samples, equal_nan=True, rtol=0, atol=0)
+    for bad in (True, torch.tensor(True), torch.tensor([3.0]), "3.0", 3 + 0j):
+        with pytest.raises(ValueError, match="threshold must be a finite number"):
+            prognose(y[:480], bad, time=t[:480])
+
+
 def test_too_short_and_bad_arrays():
     with pytest.raises(ValueError, match="at least"):
         prognose(torch.ones(5, dtype=F64), 2.0)

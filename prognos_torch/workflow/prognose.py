@@ -69,6 +69,7 @@ units of the data (scale, offset, sign) and of the clock (scale, origin), for ev
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 from torch import Tensor
@@ -128,7 +129,10 @@ def _as_series(series, time) -> tuple[Tensor, Tensor, Series | None]:
 
 
 def _number(v, name: str) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+    """A finite real number: a Python or NumPy scalar or a 0-dim real tensor (not a bool)."""
+    if isinstance(v, Tensor) and v.dim() == 0:
+        v = v.item()  # (a bool or complex tensor gives a bool or complex: refused below)
+    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(float(v)):
         raise ValueError(f"{name} must be a finite number, got {v!r}")
     return float(v)
 
