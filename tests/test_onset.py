@@ -177,13 +177,39 @@ def test_onset_after_the_healthy_window_skips_a_run_in():
         ksigma_onset(x, after="end")
 
 
+def test_quantised_data_with_a_constant_window():
+    """A sensor reporting whole units (or tenths): the constant healthy window's spread is the
+    rounding noise q / sqrt(12), so a sustained level two steps up is an onset and one step up
+    is not (4 sigma = 1.15 q). A constant window with off-grid values later (a stuck sensor that
+    recovers) or a constant series is still an error."""
+    t = torch.arange(400, dtype=F64)
+    level = torch.where(
+        t < 250, torch.full_like(t, 20.0), 20.0 + 0.25 * torch.exp((t - 250) / 40.0)
+    )
+    x = level.round()
+    for scale in (1.0, 0.1):
+        b = healthy_baseline(scale * x[:330], fraction=0.3)
+        assert b.resolution == pytest.approx(scale, rel=1e-12)
+        assert b.std == b.noise == pytest.approx(scale / math.sqrt(12.0), rel=1e-12)
+        assert (b.mean, b.median) == (pytest.approx(20.0 * scale), pytest.approx(20.0 * scale))
+        on = ksigma_onset(scale * x[:330], baseline=b)
+        # the trailing median of 5 steps up 2 samples after the data (3 of 5 at 22)
+        first_two_up = int(torch.nonzero(x >= 22.0)[0])
+        assert on.detected and on.index == first_two_up + 2
+    one_up = torch.where(t < 250, 20.0, 21.0)
+    assert not ksigma_onset(one_up, baseline=healthy_baseline(one_up, fraction=0.3)).detected
+    stuck = torch.where(t < 250, 20.0, 20.0 + 0.013 * (t - 250) ** 1.5)
+    with pytest.raises(ValueError, match="not quantised on a common step"):
+        healthy_baseline(stuck, fraction=0.3)
+
+
 def test_bad_input():
     x = torch.randn(100, dtype=F64)
     with pytest.raises(ValueError, match="shape"):
         ksigma_onset(x.reshape(10, 10))
     with pytest.raises(ValueError, match="strictly increasing"):
         ksigma_onset(x, torch.zeros(100, dtype=F64))
-    with pytest.raises(ValueError, match="constant"):
+    with pytest.raises(ValueError, match="the series is constant"):
         healthy_baseline(torch.ones(100, dtype=F64))
     with pytest.raises(ValueError, match="direction"):
         cusum_onset(x, direction="up")

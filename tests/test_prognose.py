@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from prognos_torch.prognosis import healthy_baseline
 from prognos_torch.workflow import RULResult, Series, prognose
 
 F64 = torch.float64
@@ -245,6 +246,22 @@ def test_threshold_and_at_as_tensor_or_numpy_scalars():
     for bad in (True, torch.tensor(True), torch.tensor([3.0]), "3.0", 3 + 0j):
         with pytest.raises(ValueError, match="threshold must be a finite number"):
             prognose(y[:480], bad, time=t[:480])
+
+
+def test_quantised_series_with_a_constant_healthy_window():
+    """Whole-unit readings: prognose runs on the rounding noise of the data's step (flagged),
+    exactly as with that baseline given explicitly; the previous code refused the series."""
+    t = torch.arange(400, dtype=F64)
+    x = torch.where(t < 250, 20.0, 20.0 + 0.25 * torch.exp((t - 250) / 40.0)).round()
+    res = prognose(x[:360], 60.0, method="exponential")
+    assert res.status == "ok" and res.onset.detected
+    assert any("quantisation noise of the data's step 1" in f for f in res.flags)
+    b = healthy_baseline(x[:360], fraction=0.3)
+    ref = prognose(x[:360], 60.0, method="exponential", baseline=b)
+    assert torch.allclose(res.rul_samples, ref.rul_samples, equal_nan=True, rtol=0, atol=0)
+    before = prognose(x[:300], 60.0)  # one step up only: no degradation, the flag kept
+    assert before.status == "no degradation detected yet"
+    assert any("quantisation" in f for f in before.flags)
 
 
 def test_too_short_and_bad_arrays():

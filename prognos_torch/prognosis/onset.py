@@ -80,6 +80,8 @@ class Baseline:
         noise: short-term noise std of the window, ``1.4826 MAD(diff x) / sqrt(2)`` (the std
             of independent noise on a slowly varying level; unlike ``std`` it ignores slow
             wander), or ``None``.
+        resolution: the step ``q`` of quantised data when the window is constant and ``std``
+            (and ``noise``) are the quantisation noise ``q / sqrt(12)``; else ``None``.
     """
 
     mean: float
@@ -88,6 +90,7 @@ class Baseline:
     n: int
     t_end: float
     noise: float | None = None
+    resolution: float | None = None
 
 
 @dataclass(frozen=True)
@@ -222,7 +225,10 @@ def healthy_baseline(values, time=None, *, fraction: float = 0.3) -> Baseline:
 
     The window holds the samples with ``t <= t_0 + fraction (t_T - t_0)`` (the first ``fraction``
     of the samples when ``time`` is ``None``); NaN samples are skipped. At least 3 finite
-    samples and a positive spread are required.
+    samples and a positive spread are required, with one exception: when the window is constant
+    and every value of the series lies on a common grid ``x_0 + k q`` (quantised data, e.g. a
+    sensor that reports whole degrees), the spread is the quantisation noise ``q / sqrt(12)``
+    of a uniform rounding error (Widrow & Kollar 2008) and ``resolution`` is ``q``.
 
     Args:
         values: ``(T,)`` indicator (NaN: missing).
@@ -251,8 +257,22 @@ def healthy_baseline(values, time=None, *, fraction: float = 0.3) -> Baseline:
             f"{xb.shape[0]} samples; at least 3 are needed"
         )
     std = float(xb.std(correction=1))
+    q = None
     if not std > 0:
-        raise ValueError("the baseline window is constant (zero spread); onset is undefined")
+        q = _resolution(x[ok])
+        if q is None and bool((x[ok] == xb[0]).all()):
+            raise ValueError(
+                f"the series is constant (every observed value is {float(xb[0]):g}): there is "
+                "no spread to set a healthy band from and no degradation to see"
+            )
+        if q is None:
+            raise ValueError(
+                "the baseline window is constant (zero spread) and the series is not quantised "
+                "on a common step, so onset is undefined (a stuck sensor?); pass the healthy "
+                "statistics as baseline=Baseline(mean, std, median, n, t_end) with the sensor's "
+                "noise std, or a longer baseline window"
+            )
+        std = q / math.sqrt(12.0)  # uniform rounding error of step q
     d = torch.diff(xb)
     noise = float((d - d.median()).abs().median()) * 1.4826 / math.sqrt(2.0)
     return Baseline(
@@ -262,14 +282,27 @@ def healthy_baseline(values, time=None, *, fraction: float = 0.3) -> Baseline:
         n=int(xb.shape[0]),
         t_end=float(t[inside][-1]),
         noise=noise if noise > 0 else std,
+        resolution=q,
     )
+
+
+def _resolution(x: Tensor) -> float | None:
+    """The step ``q`` of values that all lie on ``x_0 + k q`` (integer ``k``, to 1e-6 of a
+    step), the smallest gap between distinct values; ``None`` for a single value or values
+    off such a grid."""
+    u = torch.unique(x)
+    if u.shape[0] < 2:
+        return None
+    q = float(torch.diff(u).min())
+    k = (u - u[0]) / q
+    return q if bool(((k - k.round()).abs() <= 1e-6).all()) else None
 
 
 def _resolve_baseline(x: Tensor, t: Tensor, baseline, sign: float) -> Baseline:
     if isinstance(baseline, Baseline):
         return baseline
     b = healthy_baseline(sign * x, t, fraction=baseline)  # statistics of the oriented series
-    return Baseline(sign * b.mean, b.std, sign * b.median, b.n, b.t_end, b.noise)
+    return Baseline(sign * b.mean, b.std, sign * b.median, b.n, b.t_end, b.noise, b.resolution)
 
 
 def _after_mask(t: Tensor, after) -> Tensor:

@@ -273,6 +273,15 @@ def one_standard_error_choice(per_pair: dict[str, Tensor], default: str, k: floa
     return best
 
 
+def _baseline_flags(base: Baseline) -> list[str]:
+    if base.resolution is None:
+        return []
+    return [
+        "the healthy window is constant: its spread is the quantisation noise of the data's "
+        f"step {base.resolution:.4g} (step / sqrt(12))"
+    ]
+
+
 def _flags(fit, level_thr: float, passage, n_since: int, censored: float) -> list[str]:
     out = []
     z = fit.level_fit.z if hasattr(fit, "level_fit") else fit.z
@@ -400,7 +409,7 @@ def prognose(
             f"threshold {thr:g} already reached: the median of the last 5 values is "
             f"{sign * now:.4g} (direction {direction!r}); the RUL is 0"
         )
-    flags: list[str] = []
+    flags = _baseline_flags(base)
     if float(yo[-1]) >= thr_o:
         flags.append(
             "the last value is beyond the threshold while the median of the last 5 is not "
@@ -584,7 +593,8 @@ def _no_degradation(t, yo, thr_o, sign, base, ons, gen, t_eval, span_life, dt_da
             "quantile of the first passage under a linear trend of the healthy data, a bound "
             "only while the asset stays healthy (a degradation that starts later can end "
             "sooner)",
-        ),
+        )
+        + tuple(_baseline_flags(base)),
         lower_bound=bound,
         **common,
     )
