@@ -275,3 +275,15 @@ def test_too_short_and_bad_arrays():
         prognose(torch.randn(5, 5, dtype=F64), 9.0)
     with pytest.raises(ValueError, match="inf"):
         prognose(torch.tensor([1.0] * 20 + [math.inf], dtype=F64), 9.0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_series_gives_the_cpu_result():
+    """A series on the GPU is computed on the CPU: the same RUL samples as the CPU series."""
+    t, y = _series(noise_after=0.05)
+    ref = prognose(y[:480], 3.0, time=t[:480])
+    got = prognose(y[:480].cuda(), 3.0, time=t[:480].cuda())
+    assert got.rul_samples.device.type == "cpu"
+    assert torch.allclose(got.rul_samples, ref.rul_samples, equal_nan=True, rtol=0, atol=0)
+    s = Series(y[:480].cuda(), t[:480].cuda())
+    assert torch.equal(prognose(s, 3.0).rul_samples.isnan(), ref.rul_samples.isnan())

@@ -106,11 +106,12 @@ _MAX_BINS = 20_000
 
 # ----------------------------------------------------------------------------- inputs
 def _as_series(series, time) -> tuple[Tensor, Tensor, Series | None]:
+    # one series is a few thousand values: computed on the CPU wherever the data live
     if isinstance(series, Series):
         if time is not None:
             raise ValueError("time is taken from the Series; do not pass time= as well")
-        return series.values.to(torch.float64), series.t.to(torch.float64), series
-    x = as_tensor(series, "series").to(torch.float64)
+        return series.values.to("cpu", torch.float64), series.t.to("cpu", torch.float64), series
+    x = as_tensor(series, "series").to("cpu", torch.float64)
     if x.dim() != 1:
         raise ValueError(f"series must be a Series or have shape (T,), got {tuple(x.shape)}")
     if time is None:
@@ -330,7 +331,8 @@ def prognose(
     """RUL distribution of a degradation series for a failure ``threshold`` (module docstring).
 
     Args:
-        series: a :class:`~prognos_torch.workflow.Series` or values ``(T,)`` (NaN: missing).
+        series: a :class:`~prognos_torch.workflow.Series` or values ``(T,)`` (NaN: missing), on
+            any device (the computation and the result are on the CPU).
         threshold: failure threshold in data units.
         time: ``(T,)`` strictly increasing times for array input (default: the index).
         method: ``"auto"`` (the exponential + elm pool), ``"exponential"``, ``"power"``,
