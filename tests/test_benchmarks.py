@@ -35,7 +35,7 @@ TINY = {
         "1",
         "--no-memory",
     ],  # fmt: skip
-    "bench_peers.py": ["--repeats", "1", "--runs", "2", "--no-dynamax"],
+    "bench_peers.py": ["--repeats", "1", "--runs", "2", "--no-dynamax", "--filters", "ekf"],
     "bench_prognose.py": ["--rows", "400", "--repeat", "1"],
     "bench_progpy.py": [
         "--samples",
