@@ -1,0 +1,25 @@
+"""The RUL example prints the ``ims-rul`` study's ``prognose (auto)`` rows (it says so)."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_ims_rul_example_prints_the_study_rows(tmp_path):
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "examples" / "ims_rul.py"), "--out", str(tmp_path)],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = [line.split() for line in proc.stdout.splitlines() if line[:1] == " " and "[" in line]
+    assert len(rows) == 5  # 20/40/60/80/90 % of [onset, end of life]
+    median = [float(r[2]) for r in rows]
+    # test_study_ims_rul's quick reference: points 1, 3 and 5 of "T1 B3 rms"
+    assert median[::2] == pytest.approx([0.1666666667, 0.2569444444, 0.3263888889], abs=1e-3)
+    assert (tmp_path / "ims_prognose_rul.png").stat().st_size > 0
