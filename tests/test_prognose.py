@@ -167,6 +167,12 @@ def test_evaluation_time_after_the_last_observation():
     res = prognose(y, 3.0, time=t, method="exponential", at=float(t[-1]) + 10.0)
     assert res.t_last == float(t[-1]) + 10.0
     assert res.summary()["median"] == pytest.approx(res0.summary()["median"] - 10.0, abs=1.5)
+    # paths that crossed before `at` are dropped, and counted in a flag
+    late = prognose(y, 3.0, time=t, method="exponential", at=float(t[-1]) + res0.summary()["q05"])
+    flag = [f for f in late.flags if "crossed before the evaluation time" in f]
+    dead = int(flag[0].split(" of ")[0])
+    assert flag[0].startswith(f"{dead} of 2000 paths (") and 0 < dead < 2000
+    assert int(late.rul_samples.isnan().sum()) == dead
 
 
 def test_no_degradation_gives_a_lower_bound_only():

@@ -147,6 +147,41 @@ def test_rul_intervals_are_calibrated_on_data_from_the_model():
     assert abs(cover - 0.9) <= tol, cover
 
 
+@pytest.mark.parametrize("tau", [5.0, 0.002])
+def test_first_passage_paths_follow_the_exact_recursion(tau):
+    """The simulated paths are the sequential recursion ``L += ds beta + w_L``, ``beta += w_b``,
+    ``c = rho c + w_c`` with the same draws, across chunk boundaries: with a slow wander (the
+    cumulative-product form) and with one that decays so fast that ``prod rho`` underflows
+    (the decay-matrix form). There the cumulative-product form overflowed, and about half of the
+    paths 'crossed' an unreachable level at one step."""
+    N, chunk = 40, 16
+    noise = TrendNoise(*(torch.tensor([v], dtype=F64) for v in (1e-4, 1e-6, 0.0, 0.04, tau)))
+    m = torch.tensor([[0.0, 0.01, 0.0]], dtype=F64)
+    S = torch.diag(torch.tensor([0.01, 0.001, 0.2], dtype=F64))[None]
+    grid = path_grid(0.0, 300.0, 0.5, rel=0.02)
+    ds = torch.diff(torch.cat([grid.new_zeros(1), grid]))
+    J = ds.numel()
+    first, levels = simulate_first_passage(
+        m, S, noise, ds, 1e6, N, torch.Generator().manual_seed(3), keep=N, chunk=chunk
+    )
+    assert bool((first == J).all())  # 1e6 is never reached
+    g = torch.Generator().manual_seed(3)  # the same draws, in the same order
+    x = m[:, None, :] + torch.randn(1, N, 3, generator=g, dtype=F64) @ S.mT
+    ref = []
+    for j0 in range(0, J, chunk):
+        d = ds[j0 : j0 + chunk]
+        rho, SQ = trend_transition(d[None], TrendNoise(*(v[:, None] for v in noise._fields())))
+        w = torch.randn(1, N, d.numel(), 3, generator=g, dtype=F64)
+        w = (SQ[:, None] @ w.unsqueeze(-1)).squeeze(-1)
+        for k in range(d.numel()):
+            L = x[..., 0] + d[k] * x[..., 1] + w[:, :, k, 0]
+            x = torch.stack(
+                [L, x[..., 1] + w[:, :, k, 1], rho[0, k] * x[..., 2] + w[:, :, k, 2]], -1
+            )
+            ref.append(x[0, :, 0] + x[0, :, 2])
+    torch.testing.assert_close(levels, torch.stack(ref, -1), rtol=1e-9, atol=1e-12)
+
+
 def test_noise_chosen_by_maximum_likelihood_and_band_floor():
     t, y = _degradation(gaps=False)
     fits = fit_trends(t, y, phi=1.0, sigma0=0.05, filter="ekf")

@@ -265,6 +265,23 @@ def noise_grid(z: Tensor, s: Tensor, a: Tensor) -> TrendNoise:
     return TrendNoise(*G.unbind(-1))
 
 
+#: Largest decay ``-log prod rho`` over a chunk for which the cumulative-product solution of the
+#: OU recursion is used: beyond it ``exp(-log prod rho)`` nears the float64 range (e^709), and
+#: its overflow would make the wander +-inf (spurious crossings at one step).
+_OU_LOG_SPAN = 600.0
+
+
+def _ou_by_decay_matrix(logr: Tensor, w: Tensor, c0: Tensor) -> Tensor:
+    """``c_j = sum_{i <= j} exp(logr_j - logr_i) w_i + exp(logr_j) c_0`` for a fast-decaying OU
+    (decay factors <= 1, no overflow): ``logr`` ``(B, c)``, ``w`` ``(B, N, c)``, ``c0``
+    ``(B, N, 1)`` -> ``(B, N, c)``."""
+    k = logr.shape[-1]
+    lower = torch.ones(k, k, dtype=torch.bool, device=logr.device).tril()
+    gap = logr[:, :, None] - logr[:, None, :]  # (B, c, c): logr_j - logr_i
+    decay = torch.where(lower, gap, -math.inf).exp()
+    return w @ decay.mT + torch.exp(logr)[:, None, :] * c0
+
+
 def simulate_first_passage(
     means: Tensor,
     chols: Tensor,
@@ -320,7 +337,10 @@ def simulate_first_passage(
         level = x[..., :1] + torch.cumsum(d * before + w[..., 0], -1)
         # OU: c_j = rho_j c_{j-1} + w_j, solved by cumulative products (rho > 0)
         logr = torch.cumsum(torch.log(rho.clamp(min=1e-300)), -1)[:, None, :]  # (B, 1, c)
-        c = torch.exp(logr) * (x[..., 2:3] + torch.cumsum(w[..., 2] * torch.exp(-logr), -1))
+        if bool((logr[..., -1] < -_OU_LOG_SPAN).any()):
+            c = _ou_by_decay_matrix(logr[:, 0], w[..., 2], x[..., 2:3])
+        else:
+            c = torch.exp(logr) * (x[..., 2:3] + torch.cumsum(w[..., 2] * torch.exp(-logr), -1))
         obs = level + c
         hit = obs >= z_level
         step = torch.arange(j0, j1, device=dev)

@@ -496,7 +496,8 @@ def prognose(
     p_alive = float(alive.to(torch.float64).mean())
     if p_alive < 1.0:
         flags.append(
-            f"{100 * (1 - p_alive):.0f} % of the paths crossed before the evaluation time "
+            f"{int((~alive).sum())} of {alive.numel()} paths ({100 * (1 - p_alive):.2g} %) "
+            "crossed before the evaluation time "
             f"{t_eval:g}; the RUL is conditioned on the asset still running then"
         )
     if p_alive == 0.0:
