@@ -203,6 +203,18 @@ def test_quantised_data_with_a_constant_window():
         healthy_baseline(stuck, fraction=0.3)
 
 
+def test_baseline_window_does_not_depend_on_the_clock_origin():
+    """The window's rounding allowance is relative to the span (and a few ulp of the clock), so
+    epoch-like origins give the same window; it used to grow with |t| (1e-12 |t_end|: 100
+    samples more at an origin of 1e14)."""
+    x = 1.0 + 0.05 * torch.randn(550, generator=torch.Generator().manual_seed(0), dtype=F64)
+    t = torch.arange(550, dtype=F64)
+    ref = healthy_baseline(x, t, fraction=0.3)
+    for t0 in (1.7e9, 1.7e12, 1e14):
+        b = healthy_baseline(x, t + t0, fraction=0.3)
+        assert (b.n, b.mean, b.std) == (ref.n, ref.mean, ref.std)
+
+
 def test_bad_input():
     x = torch.randn(100, dtype=F64)
     with pytest.raises(ValueError, match="shape"):

@@ -136,7 +136,7 @@ def test_rul_does_not_depend_on_units(method):
     t, y = _series(noise_after=0.05, n=520)
     ref = prognose(y, 3.0, time=t, method=method, at=525.0).summary()
 
-    def same(s, tscale=1.0):
+    def same(s, tscale=1.0, ref=ref):
         for k in ("median", "q05", "q95"):
             a, b = ref[k], s[k]
             assert (a is None) == (b is None), k
@@ -144,10 +144,60 @@ def test_rul_does_not_depend_on_units(method):
                 assert b / tscale == pytest.approx(a, rel=1e-8), k
         assert s["censored_mass"] == pytest.approx(ref["censored_mass"], abs=1e-12)
 
-    for c, d in ((1e-3, 0.0), (9.81, 0.0), (1e3, 0.0), (1.0, 7.0), (-2.5, 3.0)):
+    for c, d in ((1e-3, 0.0), (9.81, 0.0), (1e3, 0.0), (1.0, 7.0), (-2.5, 3.0), (1e-9, 0.0),
+                 (1.0, 1e6)):  # fmt: skip
         same(prognose(c * y + d, c * 3.0 + d, time=t, method=method, at=525.0).summary())
-    for ts, t0 in ((1440.0, 0.0), (1.0, 1e4)):
+    # 10-minute samples in hours (a step that is no binary fraction); Unix seconds
+    # at the last observation the crossings fall on bin edges, where rounding used to decide
+    ref0 = prognose(y, 3.0, time=t, method=method).summary()
+    for ts, t0 in ((1440.0, 0.0), (1.0, 1e4), (1.0 / 6.0, 0.0), (600.0, 1.7e9)):
         same(prognose(y, 3.0, time=ts * t + t0, method=method, at=ts * 525.0 + t0).summary(), ts)
+        same(prognose(y, 3.0, time=ts * t + t0, method=method).summary(), ts, ref0)
+
+
+def test_every_path_keeps_its_bin_when_the_clock_changes():
+    """Crossings on the grid's linear part lie on bin edges ``t_last + k dt``; with the clock in
+    hours and 10-minute samples (``dt = 1/6``, no binary fraction) or in Unix seconds, rounding
+    used to push most of them one bin later (1163 of 2000 paths). Now each path keeps its bin."""
+    t = torch.arange(550, dtype=F64)
+    g = torch.Generator().manual_seed(0)
+    y = 1.0 + 0.05 * torch.randn(550, generator=g, dtype=F64)
+    rise = 0.05 * torch.exp(0.02 * (t - 400).clamp(min=0))
+    rise = rise * torch.exp(0.05 * torch.randn(550, generator=g, dtype=F64))
+    y = torch.where(t >= 400, 1.0 + rise + 0.05 * torch.randn(550, generator=g, dtype=F64), y)
+    ref = prognose(y, 3.0, time=t, method="exponential")
+    assert ref.summary()["median"] < 50  # on the linear part of the grid
+    for ts, t0 in ((1.0 / 6.0, 0.0), (600.0, 1.7e9), (0.1, 0.0)):
+        got = prognose(y, 3.0, time=ts * t + t0, method="exponential")
+        assert torch.equal(got.distribution.first_passage, ref.distribution.first_passage)
+
+
+def test_lower_bound_before_onset_does_not_depend_on_units():
+    """The no-degradation bound (a linear trend of the healthy data) in any units of the data
+    and the clock; its positive floors used to be absolute (1 step for values near 1e-9)."""
+    g = torch.Generator().manual_seed(0)
+    y = 1.0 + 0.05 * torch.randn(3000, generator=g, dtype=F64)
+    t = torch.arange(3000, dtype=F64)
+    ref = prognose(y, 2.0, time=t).summary()["bound"]
+    assert ref > 1000
+    for c, d in ((1e-9, 0.0), (1e3, 0.0), (1.0, 1e6), (-1.0, 0.0)):
+        assert prognose(c * y + d, c * 2.0 + d, time=t).summary()["bound"] == pytest.approx(ref)
+    for ts, t0 in ((1.0 / 6.0, 0.0), (600.0, 1.7e9)):
+        b = prognose(y, 2.0, time=ts * t + t0).summary()["bound"]
+        assert b / ts == pytest.approx(ref)
+
+
+def test_rul_after_a_long_gap_keeps_the_bin_resolution():
+    """With ``at`` far after the last observation the path grid starts again at ``at``: the
+    RULs near 0 lie on the bins ``k dt`` (the grid's geometric steps from the last observation
+    used to leave nothing below about 2 % of the gap)."""
+    t, y = _series(noise_after=0.05, n=520)
+    res = prognose(y, 3.0, time=t, method="linear", at=float(t[-1]) + 200.0)
+    r = res.rul_samples[torch.isfinite(res.rul_samples)]
+    near = r[r < 50 * res.dt]
+    assert near.numel() > 0 and float(near.min()) <= 5 * res.dt
+    k = near / res.dt
+    assert torch.allclose(k, k.round(), atol=1e-9)
 
 
 def test_missing_values_are_skipped():

@@ -171,7 +171,14 @@ def ksigma_onset_batch(
     last = (n_obs - 1).clamp(min=0)
     t0 = tc[:, 0]
     t1 = tc.gather(1, last[:, None])[:, 0]
-    limit = t0 + baseline * (t1 - t0) + 1e-12 * torch.clamp(t1.abs(), min=1.0)
+    # (the rounding allowance of onset.healthy_baseline: span-relative plus a few ulp)
+    eps = torch.finfo(tc.dtype).eps
+    limit = (
+        t0
+        + baseline * (t1 - t0)
+        + 1e-12 * (t1 - t0)
+        + 4.0 * eps * torch.maximum(t0.abs(), t1.abs())
+    )
     inside = valid & (tc <= limit[:, None])
     nb = inside.sum(1)
     xs = torch.where(inside, xc, torch.zeros_like(xc))

@@ -249,7 +249,11 @@ def healthy_baseline(values, time=None, *, fraction: float = 0.3) -> Baseline:
     if int(ok.sum()) < 3:
         raise ValueError(f"values has {int(ok.sum())} finite samples; a baseline needs at least 3")
     t0, t1 = float(t[ok][0]), float(t[ok][-1])
-    inside = ok & (t <= t0 + fraction * (t1 - t0) + 1e-12 * max(1.0, abs(t1)))
+    # the window's end t0 + f (t1 - t0), widened by its rounding: relative to the span and a
+    # few ulp of the clock's magnitude, so the window does not depend on the clock's origin
+    eps = torch.finfo(torch.float64).eps
+    tol = 1e-12 * (t1 - t0) + 4.0 * eps * max(abs(t0), abs(t1))
+    inside = ok & (t <= t0 + fraction * (t1 - t0) + tol)
     xb = x[inside]
     if xb.shape[0] < 3:
         raise ValueError(

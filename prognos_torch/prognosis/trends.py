@@ -226,6 +226,16 @@ def local_trend_model(chol_Q: Tensor, rho: Tensor, meas_var: Tensor) -> StateSpa
     )
 
 
+def _floor_scale(z: Tensor) -> float:
+    """A scale of ``z`` for positive floors that moves with its units (scale and offset): its
+    range, else its magnitude, else 1 (a constant zero series)."""
+    rng = float(z.max() - z.min())
+    if rng > 0:
+        return rng
+    mag = float(z.abs().max())
+    return mag if mag > 0 else 1.0
+
+
 def noise_grid(z: Tensor, s: Tensor, a: Tensor) -> TrendNoise:
     """The noise grid searched by :func:`fit_trends`, scaled by the data (``(G,)``, G = 27).
 
@@ -233,7 +243,8 @@ def noise_grid(z: Tensor, s: Tensor, a: Tensor) -> TrendNoise:
     median clock step, ``span`` the clock span, ``g = (max z - min z) / span`` the mean slope and
     ``u`` the robust variance of ``z`` about a straight line:
 
-    * ``q_L in v / ds x {1e-3, 1e-2, 0.1}`` (a positive floor: the band never collapses);
+    * ``q_L in v / ds x {1e-3, 1e-2, 0.1}`` (``v`` at least ``(1e-6 x`` the range of ``z)^2``,
+      a floor in the data's own units: the band never collapses);
     * ``q_b in g^2 / span x {1e-4, 1e-2, 0.3}`` (from a practically constant slope, Gebraeel's
       model, to one that wanders by about ``g / 2`` over the span);
     * wander: none, or ``w = u`` with ``tau in span x {0.03, 0.2}``;
@@ -247,7 +258,7 @@ def noise_grid(z: Tensor, s: Tensor, a: Tensor) -> TrendNoise:
     dz, ds = torch.diff(zz), torch.diff(ss)
     dsm = float(ds[ds > 0].median()) if bool((ds > 0).any()) else 1.0
     dev = (dz - dz.median()).abs().median() * 1.4826
-    v = max(float(dev) ** 2, 1e-12 * max(1.0, float(zz.abs().max())) ** 2)
+    v = max(float(dev) ** 2, (1e-6 * _floor_scale(zz)) ** 2)  # unit-free positive floor
     span = max(float(ss[-1] - ss[0]), dsm)
     g = max(float(zz.max() - zz.min()), math.sqrt(v)) / span
     sc = ss - ss.mean()
@@ -565,7 +576,7 @@ def _prior(z: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
     ok = ~torch.isnan(z)
     zz, ss = z[ok], s[ok]
     sd = float(zz.std(correction=1)) if zz.numel() > 1 else 0.0
-    sd = max(sd, 1e-6 * max(1.0, abs(float(zz[0]))))
+    sd = max(sd, 1e-6 * _floor_scale(zz))
     span = max(float(ss[-1] - ss[0]), 1e-12)
     rng = max(float(zz.max() - zz.min()), sd)
     mean = torch.tensor([float(zz[0]), 0.0, 0.0], dtype=z.dtype, device=z.device)

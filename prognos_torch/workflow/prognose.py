@@ -160,12 +160,17 @@ def _blocks(t: Tensor, y: Tensor, sigma0: float, max_points: int):
 
 
 # ----------------------------------------------------------------------------- RUL pieces
-def _distribution(rul: Tensor, weights: Tensor, bin_width: float, bins: int) -> RULDistribution:
+def _distribution(
+    rul: Tensor, weights: Tensor, bin_width: float, bins: int, t_scale: float
+) -> RULDistribution:
     """A :class:`RULDistribution` on ``bin_width * (1..bins)`` from per-path RULs (inf:
-    censored)."""
+    censored); ``t_scale``: the magnitude of the clock's times the RULs were subtracted from."""
+    # crossing times on the grid's linear part lie on the bin edges t_eval + k w, up to a few
+    # ulp of the clock's magnitude: such a RUL is bin k whatever the clock's unit or origin
+    x = rul / bin_width - (1e-9 + 8.0 * torch.finfo(torch.float64).eps * t_scale / bin_width)
     fp = torch.where(
-        torch.isfinite(rul) & (rul <= bins * bin_width),
-        torch.ceil(rul / bin_width).clamp(min=1, max=bins).to(torch.int64),
+        torch.isfinite(rul) & (x <= bins),
+        torch.ceil(x).clamp(min=1, max=bins).to(torch.int64),
         torch.full_like(rul, -1, dtype=torch.int64),
     )
     idx = torch.where(fp > 0, fp - 1, torch.full_like(fp, bins))
@@ -178,6 +183,17 @@ def _distribution(rul: Tensor, weights: Tensor, bin_width: float, bins: int) -> 
     if cens > 0:
         expectation = torch.tensor(math.nan, dtype=torch.float64)
     return RULDistribution(fp, weights, pmf, cens, expectation, float(bin_width), 0.0)
+
+
+def _rul_grid(origin: float, t_last: float, t_eval: float, horizon: float, bin_width: float,
+              rel: float) -> Tensor:  # fmt: skip
+    """Path grid from ``origin`` (the fit's last time) to ``t_last + horizon`` with steps of at
+    most ``bin_width`` from the evaluation time ``t_eval`` on: when ``t_eval`` lies beyond the
+    linear part of :func:`path_grid` (``bin_width / rel``), a second grid starts there."""
+    if t_eval - origin <= bin_width / rel:
+        return path_grid(origin, horizon + (t_last - origin), bin_width, rel=rel)
+    return torch.cat([path_grid(origin, t_eval - origin, bin_width, rel=rel),
+                      path_grid(t_eval, horizon - (t_eval - t_last), bin_width, rel=rel)])  # fmt: skip
 
 
 def _backtest_pairs(t: Tensor, y: Tensor, sigma0: float) -> list[tuple[float, int, float]]:
@@ -489,7 +505,7 @@ def prognose(
     horizon = max(horizon_factor * span_life, 10.0 * (t_last - float(t[i0])), 10 * dt_data)
     horizon += t_eval - t_last
     bin_width = max(dt_data, horizon / _MAX_BINS)
-    grid = path_grid(float(tb[-1]), horizon + (t_last - float(tb[-1])), bin_width, rel=0.02)
+    grid = _rul_grid(float(tb[-1]), t_last, t_eval, horizon, bin_width, 0.02)
     passage = _pooled_passage([models[k] for k in pool], thr_o, grid, n_paths, gen)
     rul = passage.times - t_eval
     alive = passage.times > t_eval
@@ -507,8 +523,9 @@ def prognose(
         )
     w = alive.to(torch.float64) / alive.sum()
     bins = max(1, math.ceil((horizon - (t_eval - t_last)) / bin_width))
+    t_scale = max(abs(t_eval), abs(float(grid[-1])))
     dist = _distribution(
-        torch.where(alive, rul, torch.full_like(rul, math.inf)), w, bin_width, bins
+        torch.where(alive, rul, torch.full_like(rul, math.inf)), w, bin_width, bins, t_scale
     )
     censored = float(dist.censored_mass)
     flags += _flags(fit, thr_o, passage, int(t_on.shape[0]), censored)
@@ -568,14 +585,15 @@ def _no_degradation(t, yo, thr_o, sign, base, ons, gen, t_eval, span_life, dt_da
     fit = fits["linear"]
     horizon = max(2.0 * span_life, 10 * dt_data) + (t_eval - float(t[-1]))
     bin_width = max(dt_data, horizon / _MAX_BINS)
-    grid = path_grid(float(t[-1]), horizon, bin_width, rel=0.01)
+    grid = _rul_grid(float(t[-1]), float(t[-1]), t_eval, horizon, bin_width, 0.01)
     passage = fit.first_passage(-1, thr_o, grid, 2000, gen)
     rul = passage.times - t_eval
     alive = passage.times > t_eval
     w = alive.to(torch.float64) / alive.sum().clamp(min=1)
     bins = max(1, math.ceil((horizon - (t_eval - float(t[-1]))) / bin_width))
+    t_scale = max(abs(t_eval), abs(float(grid[-1])))
     dist = _distribution(
-        torch.where(alive, rul, torch.full_like(rul, math.inf)), w, bin_width, bins
+        torch.where(alive, rul, torch.full_like(rul, math.inf)), w, bin_width, bins, t_scale
     )
     q05 = float(dist.quantile(0.05))
     bound = bins * bin_width if math.isnan(q05) else q05
