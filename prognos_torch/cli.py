@@ -288,7 +288,12 @@ def _add_rul(sub) -> None:
     p.add_argument("--horizon", type=int, default=200, help="steps predicted (default 200)")
     _add_data_options(p)
     _add_prediction_options(p, "stpf")
-    p.set_defaults(func=_cmd_rul)
+    # None: not given (prognose, without a model file, refuses these; with one, the defaults)
+    p.set_defaults(func=_cmd_rul, **{k: None for k in _MODEL_RUL_DEFAULTS})
+
+
+#: the options of ``prognos rul MODEL DATA`` that ``prognos rul DATA`` (prognose) does not use
+_MODEL_RUL_DEFAULTS = {"horizon": 200, "filter": "stpf", "filter_steps": 100, "particles": 500}
 
 
 class _CensoredRUL(Exception):
@@ -565,6 +570,15 @@ def _cmd_rul(args) -> int:
     if args.data is None:  # prognos rul DATA.csv ...: no model file
         from .cli_prognose import run_prognose
 
+        given = [
+            f"--{k.replace('_', '-')}" for k in _MODEL_RUL_DEFAULTS if getattr(args, k) is not None
+        ]
+        if given:
+            raise ValueError(
+                f"{', '.join(given)} apply with a model file (prognos rul MODEL DATA.csv); "
+                "without one, prognose sets its horizon from the observed life and filters its "
+                "trend models itself (--paths, --method, --seed, --direction apply)"
+            )
         args.data = args.model
         _check_out_folder(args.plot, "--plot")
         series, data_cfg = _series_from_args(args)
@@ -573,6 +587,9 @@ def _cmd_rul(args) -> int:
         if censored:
             raise _CensoredRUL(censored)
         return 0
+    for k, v in _MODEL_RUL_DEFAULTS.items():
+        if getattr(args, k) is None:
+            setattr(args, k, v)
     model, series, data_cfg, truth = _load_for_prediction(args)
     res = rul(
         model,
@@ -649,19 +666,20 @@ def _workflow(cmd):
         from .workflow.memory import allocation_failure
 
         torch.set_num_threads(1)  # tiny matrices: threads only add overhead (see tests/conftest)
+        caught: list = []
         try:
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always", ExtrapolationWarning)
-                try:
+            try:
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always", ExtrapolationWarning)
                     return cmd(args)
-                finally:
-                    for w in caught:
-                        if issubclass(w.category, ExtrapolationWarning):
-                            print(f"warning: {w.message}", file=sys.stderr)
-                        else:
-                            warnings.showwarning(
-                                w.message, w.category, w.filename, w.lineno, w.file, w.line
-                            )
+            finally:  # after the recording has ended: showing a warning no longer records it
+                for w in caught:
+                    if issubclass(w.category, ExtrapolationWarning):
+                        print(f"warning: {w.message}", file=sys.stderr)
+                    else:
+                        warnings.showwarning(
+                            w.message, w.category, w.filename, w.lineno, w.file, w.line
+                        )
         except _CensoredRUL as exc:
             print(f"censored RUL: {exc}", file=sys.stderr)
             return 3

@@ -273,7 +273,9 @@ def test_bad_input_messages_name_the_asset_and_row(tmp_path):
     with pytest.raises(ValueError, match=r"asset 'B', row 14 .*time 3.0 comes after 5.0"):
         fleet_rul(p, 2.0)
     p = _small_csv(tmp_path, good + "B,x,1.0\n")
-    with pytest.raises(ValueError, match=r"asset 'B', row 13 .*neither a number nor an ISO"):
+    with pytest.raises(
+        ValueError, match=r"asset 'B', row 13 .*is not a number, while .* holds the number"
+    ):
         fleet_rul(p, 2.0)
     with pytest.raises(ValueError, match="threshold 0.5 must lie above phi = 1"):
         fleet_rul(_small_csv(tmp_path, good), 0.5, phi=1.0)
@@ -413,3 +415,92 @@ def test_prognose_method_equals_prognose_per_asset_whatever_the_shards():
         got = a.row(asset)[col]
         assert (math.isnan(want) and math.isnan(got)) or got == want
     assert a.row(asset)["censored_mass"] == r.censored_mass
+
+
+def test_threshold_on_the_healthy_side_is_flagged_not_rul_zero():
+    """A falling indicator (capacity near 1, threshold 0.8) with the default direction "above":
+    the healthy assets used to get RUL 0 and `threshold_reached`; now a flag and no RUL."""
+    t = np.arange(150.0)
+    rng = np.random.default_rng(0)
+    table = {"asset": ["c0"] * 150 + ["c1"] * 150, "t": np.concatenate([t, t]),
+             "value": np.concatenate([1.0 - 0.0001 * t, 0.97 - 0.0001 * t]) + 0.002 * rng.normal(size=300)}  # fmt: skip
+    res = fleet_rul(table, 0.8)
+    for a in ("c0", "c1"):
+        row = res.row(a)
+        assert (
+            "threshold_on_healthy_side" in row["flags"] and "threshold_reached" not in row["flags"]
+        )
+        assert math.isnan(row["rul_median"]) and math.isnan(row["p_fail_within_horizon"])
+
+
+def test_prognose_method_counts_the_rul_from_the_last_row_and_checks_the_horizon():
+    """An asset whose last values are missing: the RUL counts from its last row (t_last), as the
+    exponential method's does (prognose evaluates at=t_last); horizons are checked alike."""
+    from prognos_torch.fleet import asset_seed
+    from prognos_torch.workflow import prognose
+
+    sf = synthetic_fleet(2, 200, seed=2, healthy_fraction=0.0)
+    a = sf.assets[0]
+    rows = sf.table["asset"] == a
+    t, y = sf.table["t"][rows].copy(), sf.table["value"][rows].copy()
+    y[-15:] = np.nan
+    res = fleet_rul({"asset": [a] * len(t), "t": t, "value": y}, sf.threshold,
+                    method="prognose", n_paths=200, horizon=30.0)  # fmt: skip
+    r = prognose(torch.from_numpy(y), sf.threshold, time=torch.from_numpy(t), n_paths=200,
+                 seed=asset_seed(0, a), direction="above", at=float(t[-1]))  # fmt: skip
+    row = res.row(a)
+    assert row["t_last"] == float(t[-1]) and r.t_last == float(t[-1])
+    assert row["rul_median"] == r.summary()["median"]
+    alive = r.rul_samples[~torch.isnan(r.rul_samples)]
+    assert row["p_fail_within_horizon"] == pytest.approx(float((alive <= 30.0).double().mean()))
+    for method in ("exponential", "prognose"):
+        for bad in (math.inf, math.nan, -5.0, "30", True):
+            with pytest.raises(ValueError, match="horizon"):
+                fleet_rul(sf.table, sf.threshold, method=method, horizon=bad)
+    ok = fleet_rul(sf.table, sf.threshold, horizon=np.int64(30), samples=100)
+    _assert_same(ok, fleet_rul(sf.table, sf.threshold, horizon=30.0, samples=100))
+
+
+def test_asset_ids_duplicate_columns_and_date_times(tmp_path):
+    """A whole-number float id is the integer (7.0 is asset "7"); a missing id is an error, not
+    an asset "nan"; a column named twice is an error; date-times outside 1678-2262 (where
+    nanoseconds wrap) or numbers mixed into a date-time column are errors; a time zone is
+    applied (the same table in UTC gives the same RULs, and t_last)."""
+    t = np.arange(60.0)
+    y = 1.0 + 0.02 * np.random.default_rng(0).normal(size=60)
+    y[40:] += 0.05 * np.exp(0.15 * (t[40:] - 40))
+    ints = fleet_rul({"asset": [7] * 60, "t": t, "value": y}, 3.0, samples=50)
+    floats = fleet_rul({"asset": [7.0] * 60, "t": t, "value": y}, 3.0, samples=50)
+    assert floats.columns["asset"] == ["7"] and ints.columns["asset"] == ["7"]
+    _assert_same(ints, floats, rtol=0)
+    ids = np.array(["a"] * 60, dtype=object)
+    ids[5] = float("nan")
+    with pytest.raises(ValueError, match="empty asset id"):
+        read_fleet_table({"asset": ids, "t": t, "value": y})
+    p = tmp_path / "dup.csv"
+    p.write_text("asset,t,value,value\n" + "".join(f"a,{k},1.0,2.0\n" for k in range(20)))
+    with pytest.raises(ValueError, match="'value' appears more than once"):
+        read_fleet_table(p)
+    stamps = [f"2024-01-01T{k // 60:02d}:{k % 60:02d}:00" for k in range(60)]
+    naive = fleet_rul({"asset": ["a"] * 60, "t": np.array(stamps), "value": y}, 3.0, samples=50)
+    zoned = [f"2024-01-01T{(k // 60) + 1:02d}:{k % 60:02d}:00+01:00" for k in range(60)]
+    tz = fleet_rul({"asset": ["a"] * 60, "t": np.array(zoned), "value": y}, 3.0, samples=50)
+    _assert_same(naive, tz, rtol=0)
+    with pytest.raises(ValueError, match="ISO 8601 date-time in 1678-2262"):
+        read_fleet_table(
+            {"asset": ["a"] * 60, "t": np.array(["9999-12-31"] + stamps[1:]), "value": y}
+        )
+    with pytest.raises(ValueError, match="numbers or ISO 8601 date-times, not both"):
+        read_fleet_table({"asset": ["a"] * 60, "t": np.array(["0"] + stamps[1:]), "value": y})
+
+
+def test_cli_refuses_options_it_would_ignore(tmp_path, fleet, capsys):
+    write_table(tmp_path / "f.csv", {k: list(v) for k, v in fleet.table.items()})
+    base = ["rul", str(tmp_path / "f.csv"), "--group-by", "asset", "--threshold", "20",
+            "--out", str(tmp_path / "o.csv"), "--no-progress"]  # fmt: skip
+    for extra, text in ((["--method", "prognose", "--phi", "15"], "--phi applies to"),
+                        (["--min-rows", "-3"], "--min-rows must be at least 1")):  # fmt: skip
+        assert cli_main([*base, *extra]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and text in err
+        assert not (tmp_path / "o.csv").exists()

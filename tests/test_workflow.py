@@ -293,3 +293,36 @@ def test_model_file_round_trip_in_a_fresh_process(tmp_path):
     for k in ("mean", "lower", "upper"):
         assert torch.equal(torch.tensor(got[k], dtype=torch.float64), getattr(fc, k))
     assert torch.equal(torch.tensor(got["pmf"], dtype=torch.float64), r.distribution.pmf)
+
+
+def test_load_series_date_times_zones_fractions_and_duplicate_columns(tmp_path):
+    """A zone designator is applied (the same instants as in UTC), the start keeps its fraction
+    of a second (until= used to count from the start truncated to the second), date-times
+    outside 1678-2262 are refused (nanoseconds wrap there), and a column named twice is an
+    error instead of a silent choice."""
+    from prognos_torch.workflow.data import datetime_ns
+
+    assert datetime_ns("2024-01-01T01:30:00+01:30") == datetime_ns("2024-01-01T00:00:00Z")
+    assert datetime_ns("2024-01-01 00:00:00-0500") == datetime_ns("2024-01-01T05:00:00")
+    for bad in ("9999-12-31", "1500-01-01T00:00", "17", "noon"):
+        with pytest.raises(ValueError):
+            datetime_ns(bad)
+    p = tmp_path / "frac.csv"
+    p.write_text(
+        "t,v\n" + "".join(f"2024-01-01T00:00:{0.9 + 0.1 * k:06.3f},{k}\n" for k in range(30))
+    )
+    s = load_series(p, column="v", time_column="t", until="2024-01-01T00:00:01.000")
+    assert s.start == "2024-01-01T00:00:00.900" and len(s) == 2
+    z = tmp_path / "zone.csv"
+    z.write_text(
+        "t,v\n"
+        + "".join(f"2024-01-01T0{1 + k // 60}:{k % 60:02d}:00+01:00,{k}\n" for k in range(30))
+    )
+    u = tmp_path / "utc.csv"
+    u.write_text("t,v\n" + "".join(f"2024-01-01T00:{k % 60:02d}:00,{k}\n" for k in range(30)))
+    a, b = load_series(z, column="v", time_column="t"), load_series(u, column="v", time_column="t")
+    assert torch.equal(a.t, b.t) and a.start == b.start == "2024-01-01T00:00:00"
+    d = tmp_path / "dup.csv"
+    d.write_text("t,v,v\n" + "".join(f"{k},{k},{2 * k}\n" for k in range(30)))
+    with pytest.raises(ValueError, match="'v' appears more than once"):
+        load_series(d, column="v", time_column="t")

@@ -223,3 +223,50 @@ def test_cli_fill_censored_rul_and_help(tmp_path, capsys):
             main([cmd, "--help"])
         assert exc.value.code == 0
         assert example in capsys.readouterr().out
+
+
+def _zoned_csv(path: Path, zone: str) -> Path:
+    rows = ["ts,rms"]
+    for i in range(60):
+        v = 1.0 + 0.01 * (i % 7) + (0.05 * (i - 40) if i > 40 else 0.0)
+        h = i // 60 + (1 if zone == "+01:00" else 0)
+        rows.append(f"2024-01-01T{h:02d}:{i % 60:02d}:00{zone},{v}")
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def test_cli_rul_with_time_zones_and_warnings_ends(tmp_path):
+    """ISO times with a zone (Z, +01:00) are the same instants as in UTC: the same report.
+    A warning raised inside a command used to loop forever (it was re-shown while still being
+    recorded); a time zone raised one."""
+    cmd = [sys.executable, "-W", "always", "-m", "prognos_torch", "rul"]
+    outs = []
+    for zone in ("", "Z", "+01:00"):
+        csv_path = _zoned_csv(tmp_path / f"z{len(zone)}.csv", zone)
+        proc = subprocess.run(
+            [*cmd, str(csv_path), "--column", "rms", "--time-column", "ts", "--threshold", "5"],
+            capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+        assert proc.returncode in (0, 3), proc.stderr[-2000:]
+        outs.append(proc.stdout.split("\n", 1)[1])  # after the header line (the file name)
+    assert outs[0] == outs[1] == outs[2]
+    code = (
+        "import warnings, sys\n"
+        "from prognos_torch import cli\n"
+        "def noisy(args):\n"
+        "    warnings.warn('a warning inside the command')\n"
+        "    return 0\n"
+        "sys.exit(cli._workflow(noisy)(None))\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and proc.stderr.count("a warning inside the command") == 1
+
+
+def test_cli_rul_without_a_model_refuses_options_it_would_ignore(tmp_path, capsys):
+    csv_path = _zoned_csv(tmp_path / "s.csv", "")
+    base = ["rul", str(csv_path), "--column", "rms", "--time-column", "ts", "--threshold", "5"]
+    for extra, named in ((["--horizon", "5"], "--horizon"), (["--filter", "pf"], "--filter"),
+                         (["--particles", "3"], "--particles")):  # fmt: skip
+        assert main([*base, *extra]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and named in err and err.count("\n") == 1

@@ -21,7 +21,9 @@ each asset's times must increase. Output: one row per asset with the columns ass
 t_last, onset_time, rul_median, rul_q05, rul_q95, p_fail_within_horizon, censored_mass, flags,
 message. The file is written atomically at the end: an interrupted run leaves no partial file.
 Flags: too_few_rows, no_baseline, no_onset (no degradation detected yet: no RUL number),
-threshold_reached, few_degraded_points, nonpositive_dropped, far_extrapolation, bad_input.
+threshold_on_healthy_side (the baseline already lies at or beyond the threshold: check
+--direction), threshold_reached, few_degraded_points, nonpositive_dropped, far_extrapolation,
+bad_input.
 exit status: 0 success, 2 bad input (one line on stderr, nothing written), 130 interrupted."""
 
 
@@ -55,7 +57,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="exponential (default: batched over assets) or prognose (the workflow's prognose "
         "per asset: trend models chosen by backtest; slower)",
     )
-    p.add_argument("--phi", type=float, default=0.0, help="offset of the exponential model")
+    p.add_argument(
+        "--phi", type=float, help="offset of the exponential model (default 0; exponential only)"
+    )
     p.add_argument("--samples", type=int, default=1000, help="posterior draws / paths per asset")
     p.add_argument("--min-rows", type=int, default=10, help="fewer rows: flagged, no RUL")
     p.add_argument("--seed", type=int, default=0, help="fleet seed (default 0)")
@@ -86,6 +90,10 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--out must end in {', '.join(TABLE_SUFFIXES)}, got {args.out}")
         if not (args.out.parent if str(args.out.parent) else Path(".")).is_dir():
             raise ValueError(f"--out folder does not exist: {args.out.parent}")
+        if args.phi is not None and args.method != "exponential":
+            raise ValueError("--phi applies to --method exponential only")
+        if args.min_rows < 1:
+            raise ValueError(f"--min-rows must be at least 1, got {args.min_rows}")
         ray_init = {"address": args.ray_address} if args.ray_address else None
         t0 = time.perf_counter()
         res = fleet_rul(
@@ -105,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
             method=args.method,
             min_rows=args.min_rows,
             **(
-                {"samples": args.samples, "phi": args.phi}
+                {"samples": args.samples, "phi": 0.0 if args.phi is None else args.phi}
                 if args.method == "exponential"
                 else {"n_paths": args.samples}
             ),

@@ -68,7 +68,10 @@ def prognose_rul(
             messages.append("")
             continue
         try:
-            r = prognose(y, threshold, time=t, seed=batch.seeds[b], direction=direction, **options)
+            # the RUL counts from the asset's last row (t_last), also when its last values are
+            # missing: prognose evaluates there, conditioned on the asset still running
+            r = prognose(y, threshold, time=t, seed=batch.seeds[b], direction=direction,
+                         at=float(t[-1]), **options)  # fmt: skip
         except ValueError as exc:
             flags.append("prognose_error")
             messages.append(" ".join(str(exc).split()))
@@ -83,8 +86,9 @@ def prognose_rul(
             out["censored_mass"][b] = r.censored_mass
             if horizon is None:
                 out["p_fail_within_horizon"][b] = 1.0 - r.censored_mass
-            elif r.rul_samples is not None:
-                rs = r.rul_samples.to(torch.float64)
+            elif r.rul_samples is not None:  # among the paths alive at t_last (NaN: crossed
+                rs = r.rul_samples.to(torch.float64)  # before it; inf: censored)
+                rs = rs[~torch.isnan(rs)]
                 out["p_fail_within_horizon"][b] = float((rs <= float(horizon)).to(rs.dtype).mean())
         if r.onset is not None and getattr(r.onset, "detected", False):
             out["onset_time"][b] = r.onset.time

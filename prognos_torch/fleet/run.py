@@ -27,6 +27,7 @@ aside by the table checks (``on_error="flag"``) get a row with NaN results, the 
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -165,6 +166,16 @@ def _run_ray(shards, method, threshold, options, progress, ray_init):
             ray.shutdown()
 
 
+def _real(v, name: str) -> float:
+    """A finite real number (Python or NumPy scalar, 0-dim array or tensor; not a bool or a
+    string) as a float."""
+    if hasattr(v, "ndim") and v.ndim == 0 and hasattr(v, "item"):
+        v = v.item()
+    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(float(v)):
+        raise ValueError(f"{name} must be a finite number, got {v!r}")
+    return float(v)
+
+
 def fleet_rul(
     source,
     threshold: float,
@@ -212,9 +223,11 @@ def fleet_rul(
         raise ValueError(f"shard_size must be a positive int, got {shard_size!r}")
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise TypeError(f"seed must be an int, got {seed!r}")
-    thr = float(threshold)
-    if not math.isfinite(thr):
-        raise ValueError(f"threshold must be finite, got {threshold!r}")
+    thr = _real(threshold, "threshold")
+    if horizon is not None:
+        horizon = _real(horizon, "horizon")
+        if not horizon > 0:
+            raise ValueError(f"horizon must be positive (or None: ever), got {horizon!r}")
     table = (
         source
         if isinstance(source, FleetTable)

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import atomic_write, sniffed_csv
+from ..workflow.data import datetime_ns, iso_start
 
 __all__ = ["FleetTable", "read_fleet_table", "write_table", "TABLE_SUFFIXES"]
 
@@ -98,6 +99,8 @@ def _csv_columns(path: Path, names: Sequence[str], whats: Sequence[str]):
         for name, what in zip(names, whats):
             if name not in header:
                 raise _missing_column(name, what, header, str(path))
+            if header.count(name) > 1:
+                raise _duplicate_column(name, what, str(path))
             idx.append(header.index(name))
         cols: list[list[str]] = [[] for _ in names]
         lines: list[int] = []
@@ -116,12 +119,20 @@ def _csv_columns(path: Path, names: Sequence[str], whats: Sequence[str]):
     return cols, lines
 
 
+def _duplicate_column(name: str, what: str, source: str) -> ValueError:
+    return ValueError(
+        f"{source}: {what} column {name!r} appears more than once in the header; rename one"
+    )
+
+
 def _frame_columns(frame, names: Sequence[str], whats: Sequence[str], source: str):
     found = [str(c) for c in frame.columns]
     out = []
     for name, what in zip(names, whats):
         if name not in frame.columns:
             raise _missing_column(name, what, found, source)
+        if list(frame.columns).count(name) > 1:
+            raise _duplicate_column(name, what, source)
         out.append(frame[name].to_numpy())
     return out
 
@@ -135,15 +146,25 @@ def _mapping_columns(data: Mapping, names: Sequence[str], whats: Sequence[str], 
     return out
 
 
+def _id_text(v) -> str:
+    """One asset id as text: a missing cell (None, NaN, pandas' NA) is empty; a whole-number
+    float is the integer it holds (7.0 is asset "7", as 7 is)."""
+    if v is None or type(v).__name__ == "NAType":
+        return ""
+    if isinstance(v, (float, np.floating)):
+        if not math.isfinite(v):
+            return ""
+        return str(int(v)) if float(v).is_integer() else repr(float(v))
+    return str(v).strip()
+
+
 def _asset_text(col) -> np.ndarray:
     arr = np.asarray(col)
     if arr.dtype.kind in "iu":
         return arr.astype(str)
-    if arr.dtype.kind == "f":
-        return np.array([repr(float(v)) if math.isfinite(v) else "" for v in arr], dtype=object)
     if arr.dtype.kind == "U":
         return np.char.strip(arr).astype(object)
-    return np.array(["" if v is None else str(v).strip() for v in arr.tolist()], dtype=object)
+    return np.array([_id_text(v) for v in arr.tolist()], dtype=object)
 
 
 def _numbers(col, what: str):
@@ -202,20 +223,28 @@ def _times(col, where):
         t, bad = _numbers(arr, "time")
         if bad.size == 0 and not np.isnan(t).any():
             return t, None, None
-        first_text = bad[0] if bad.size else None
-        try:
-            stamps = np.array([np.datetime64(str(c).strip(), "ns") for c in arr.tolist()])
-        except ValueError:
-            i = first_text if first_text is not None else int(np.flatnonzero(np.isnan(t))[0])
+        if bad.size and np.isfinite(t).any():  # numbers and text in one time column
+            i, j = int(bad[0]), int(np.flatnonzero(np.isfinite(t))[0])
             raise ValueError(
-                f"{where(i)}: time {arr[i]!r} is neither a number nor an ISO 8601 date-time"
-            ) from None
+                f"{where(i)}: time {arr[i]!r} is not a number, while {where(j)} holds the "
+                f"number {arr[j]!r}: a time column holds numbers or ISO 8601 date-times, not both"
+            )
+        cells = arr.tolist()
+        stamps = np.empty(len(cells), dtype="datetime64[ns]")
+        for i, c in enumerate(cells):
+            try:
+                stamps[i] = datetime_ns(str(c))
+            except ValueError as exc:
+                raise ValueError(
+                    f"{where(i)}: time {c!r} is neither a number nor an ISO 8601 date-time in "
+                    f"1678-2262 ({exc}); a time column holds one or the other"
+                ) from None
     nat = np.flatnonzero(np.isnat(stamps))
     if nat.size:
         raise ValueError(f"{where(nat[0])}: the time is missing")
     epoch = stamps.min()
     days = (stamps - epoch) / np.timedelta64(1, "D")
-    return days.astype(np.float64), "days", str(epoch.astype("datetime64[s]"))
+    return days.astype(np.float64), "days", iso_start(epoch)
 
 
 def read_fleet_table(

@@ -34,7 +34,9 @@ result depends on the other assets of the shard (shard-size invariance; tested t
    beyond every crossing.
 
 Flags (``;``-separated per asset): ``too_few_rows``, ``no_baseline`` (baseline window with fewer
-than 3 samples, no spread, or non-positive ``s (y - phi)``), ``no_onset``, ``threshold_reached``
+than 3 samples, no spread, or non-positive ``s (y - phi)``), ``no_onset``,
+``threshold_on_healthy_side`` (the baseline mean is at or beyond the threshold: a falling
+indicator with ``direction="above"``, say; no RUL), ``threshold_reached``
 (the last observed value is at or beyond the threshold: RUL 0), ``few_degraded_points`` (fewer
 than 3 usable samples after onset: the interval is wide), ``nonpositive_dropped`` (samples with
 ``s (y - phi) <= 0`` after onset were treated as missing), ``far_extrapolation`` (median RUL
@@ -45,6 +47,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -289,8 +292,13 @@ def exponential_trend_rul(
             f"threshold {thr:g} must lie {side} phi = {phi:g} for direction {direction!r} "
             "(the exponential model y = phi + theta exp(beta t) grows away from phi)"
         )
-    if horizon is not None and not (isinstance(horizon, (int, float)) and horizon > 0):
-        raise ValueError(f"horizon must be a positive number or None, got {horizon!r}")
+    if horizon is not None and not (
+        isinstance(horizon, numbers.Real)
+        and not isinstance(horizon, bool)
+        and math.isfinite(horizon)
+        and horizon > 0
+    ):
+        raise ValueError(f"horizon must be a positive finite number or None, got {horizon!r}")
     if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
         raise ValueError(f"samples must be a positive int, got {samples!r}")
     log_thr = math.log(s * (thr - phi))
@@ -330,7 +338,10 @@ def exponential_trend_rul(
     base_ok = on.baseline_ok & (nzb >= 3) & (zb_std > 0) & ~nonpos_base
     enough = n_obs >= min_rows
     has_onset = (on.index >= 0) & base_ok & enough
-    reached = (s * (y_last - thr) >= 0) & (n_obs > 0)
+    # a threshold on the healthy side of the baseline (a falling indicator with direction
+    # "above", say): no RUL, a flag; the healthy asset would count as failed
+    healthy_side = enough & on.baseline_ok & (s * (thr - on.base_mean) <= 0)
+    reached = (s * (y_last - thr) >= 0) & (n_obs > 0) & ~healthy_side
 
     # post-onset samples, shifted so that each asset's onset row is step 0
     i0 = torch.where(has_onset, on.index, lengths)  # no onset: nothing to filter
@@ -397,7 +408,7 @@ def exponential_trend_rul(
     )
 
     nan = torch.full((B,), math.nan, dtype=dt, device=dev)
-    usable = has_onset & ~reached
+    usable = has_onset & ~reached & ~healthy_side
     out = {
         "n_rows": lengths.to(dt),
         "t_last": t_last,
@@ -422,6 +433,7 @@ def exponential_trend_rul(
     checks = [
         ("too_few_rows", ~enough),
         ("no_baseline", enough & ~base_ok),
+        ("threshold_on_healthy_side", healthy_side),
         ("threshold_reached", reached & enough),
         ("no_onset", enough & base_ok & (on.index < 0) & ~reached),
         ("few_degraded_points", has_onset & (n_deg < 3) & ~reached),

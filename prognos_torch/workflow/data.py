@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -145,6 +146,46 @@ def _lines(lines: Sequence[int], limit: int = 5) -> str:
     return shown + (f" and {len(lines) - limit} more" if len(lines) > limit else "")
 
 
+_ZONE = re.compile(r"(Z|[+-]\d{2}(?::?\d{2})?)$")
+#: datetime64[ns] covers 1678-2262; outside it NumPy wraps around silently
+_NS_RANGE = (np.datetime64("1678-01-01", "us"), np.datetime64("2262-01-01", "us"))
+
+
+def datetime_ns(text: str) -> np.datetime64:
+    """An ISO 8601 date-time as ``datetime64[ns]`` in UTC: a zone designator (``Z``, ``+01:00``,
+    ``-0500``) is applied explicitly; a date-time outside 1678-2262 (where nanoseconds wrap) or
+    a text that is no date-time raises ``ValueError``; an empty cell, ``nan`` or ``NaT`` is
+    ``NaT`` (missing)."""
+    body = text.strip()
+    if body.lower() in ("", "nan", "nat"):
+        return np.datetime64("NaT", "ns")  # missing
+    zone = _ZONE.search(body) if "T" in body or " " in body else None
+    offset = np.timedelta64(0, "m")
+    if zone is not None:
+        z = zone.group(1)
+        body = body[: zone.start()].rstrip()
+        if z != "Z":
+            hh, mm = z[1:3], z[3:].lstrip(":") or "0"
+            offset = (np.timedelta64(int(hh), "h") + np.timedelta64(int(mm), "m")) * (
+                1 if z[0] == "+" else -1
+            )
+    if body.replace(".", "", 1).lstrip("+-").isdigit():
+        raise ValueError(f"{text!r} is a number, not an ISO 8601 date-time")
+    stamp = np.datetime64(body)  # ValueError if it is no date-time; NaT for "NaT"
+    if not np.isnat(stamp):
+        us = stamp.astype("datetime64[us]")
+        if not (_NS_RANGE[0] <= us < _NS_RANGE[1]):
+            raise ValueError(f"{text!r} lies outside 1678-2262, the range of nanosecond times")
+    return stamp.astype("datetime64[ns]") - offset
+
+
+def iso_start(stamp: np.datetime64) -> str:
+    """A ``datetime64[ns]`` as ISO 8601 text: to the second, or finer where it carries a
+    fraction of a second (never truncated)."""
+    seconds = stamp.astype("datetime64[s]")
+    return str(seconds) if seconds == stamp else str(np.datetime_as_string(stamp, unit="auto"))
+
+
 def _parse_time(cells: list[str], lines: list[int], path: str, col: str):
     """Numbers, or ISO 8601 date-times -> days since the first row."""
     numeric = []
@@ -164,17 +205,17 @@ def _parse_time(cells: list[str], lines: list[int], path: str, col: str):
     stamps = []
     for cell, line in zip(cells, lines):
         try:
-            stamps.append(np.datetime64(cell.strip(), "ns"))
-        except ValueError:
+            stamps.append(datetime_ns(cell))
+        except ValueError as exc:
             raise ValueError(
                 f"{path}, line {line}: time column {col!r} value {cell!r} is neither a number "
-                "nor an ISO 8601 date-time"
+                f"nor an ISO 8601 date-time in 1678-2262 ({exc})"
             ) from None
         if np.isnat(stamps[-1]):
             raise ValueError(f"{path}, line {line}: time column {col!r} is empty")
     stamps = np.asarray(stamps)
     days = (stamps - stamps[0]) / np.timedelta64(1, "D")
-    return days.astype(np.float64), "days", str(stamps[0].astype("datetime64[s]"))
+    return days.astype(np.float64), "days", iso_start(stamps[0])
 
 
 def _fill(values: np.ndarray, time: np.ndarray | None, where: list, fill, lines, label: str):
@@ -355,12 +396,12 @@ def _until_value(until, start: str | None) -> float:
                 f"until={until!r} is a date-time but the time column does not hold date-times"
             )
         try:
-            stamp = np.datetime64(until.strip(), "ns")
+            stamp = datetime_ns(until)
         except ValueError:
             raise ValueError(
                 f"until must be a number or an ISO 8601 date-time, got {until!r}"
             ) from None
-        return float((stamp - np.datetime64(start, "ns")) / np.timedelta64(1, "D"))
+        return float((stamp - datetime_ns(start)) / np.timedelta64(1, "D"))
     raise ValueError(f"until must be a number or an ISO 8601 date-time, got {until!r}")
 
 
@@ -379,6 +420,9 @@ def _load_csv(path, column, time_column, where, fill, last, until) -> Series:
         column = others[0]
     if column not in index:
         raise ValueError(f"{path}: no column {column!r}; columns: {', '.join(header)}")
+    for col in {column, time_column, *where} - {None}:
+        if header.count(col) > 1:
+            raise ValueError(f"{path}: column {col!r} appears more than once in the header")
     j = index[column]
     jt = index[time_column] if time_column is not None else None
     wj = [(index[c], v) for c, v in where.items()]
