@@ -322,6 +322,9 @@ def test_load_series_date_times_zones_fractions_and_duplicate_columns(tmp_path):
     u.write_text("t,v\n" + "".join(f"2024-01-01T00:{k % 60:02d}:00,{k}\n" for k in range(30)))
     a, b = load_series(z, column="v", time_column="t"), load_series(u, column="v", time_column="t")
     assert torch.equal(a.t, b.t) and a.start == b.start == "2024-01-01T00:00:00"
+    for bad in ("nan", "inf", "-inf"):
+        with pytest.raises(ValueError, match="until must be finite"):
+            load_series(u, column="v", time_column="t", until=bad)
     d = tmp_path / "dup.csv"
     d.write_text("t,v,v\n" + "".join(f"{k},{k},{2 * k}\n" for k in range(30)))
     with pytest.raises(ValueError, match="'v' appears more than once"):

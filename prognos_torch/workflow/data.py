@@ -388,9 +388,13 @@ def _until_value(until, start: str | None) -> float:
         return float(until)
     if isinstance(until, str):
         try:
-            return float(until)
+            value = float(until)
         except ValueError:
-            pass
+            value = None
+        if value is not None:
+            if not math.isfinite(value):
+                raise ValueError(f"until must be finite, got {until!r}")
+            return value
         if start is None:
             raise ValueError(
                 f"until={until!r} is a date-time but the time column does not hold date-times"
