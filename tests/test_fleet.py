@@ -292,12 +292,16 @@ def test_bad_input_messages_name_the_asset_and_row(tmp_path):
     p = _small_csv(tmp_path, good + "\nB,0,1.0\nB,1,abc\n")
     with pytest.raises(ValueError, match=r"asset 'B', row 14 \(line 16\): value 'abc'"):
         fleet_rul(p, 2.0)
-    # ISO 8601 date-times: days since the earliest time of the table
+    # ISO 8601 date-times: days since the Unix epoch, whatever else the table holds (results
+    # of tables read apart merge; they used to count from each table's earliest time)
     p = _small_csv(tmp_path, "".join(f"A,2026-01-{k + 1:02d}T12:00:00,{1 + 0.01 * k}\n"
                                      for k in range(12)))  # fmt: skip
     tab = read_fleet_table(p)
-    assert tab.time_unit == "days" and tab.epoch == "2026-01-01T12:00:00"
-    np.testing.assert_array_equal(tab.times[0], np.arange(12.0))
+    assert tab.time_unit == "days" and tab.epoch == "1970-01-01T00:00:00"
+    np.testing.assert_array_equal(tab.times[0], 20454.5 + np.arange(12.0))
+    early = _small_csv(tmp_path, "".join(f"{a},2025-0{k // 5 + 1}-{k % 5 + 1:02d}T12:00:00,1\n"
+                                         for a in "AB" for k in range(12)))  # fmt: skip
+    np.testing.assert_array_equal(read_fleet_table(early).times[0][:3], tab.times[0][:3] - 365)
     # missing values are NaN (skipped), not errors
     res = fleet_rul(_small_csv(tmp_path, good + "".join(f"E,{k},\n" for k in range(12))), 2.0)
     assert res.row("E")["n_rows"] == 12.0

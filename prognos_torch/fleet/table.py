@@ -8,7 +8,8 @@ after the header; a CSV message also gives the file line, blank lines skipped):
 * the asset, time and value columns must exist (the message lists the columns found);
 * the asset id is text (numbers are read as their text, so ``7`` in a DataFrame and ``"7"`` in a
   CSV are the same asset); an empty id is an error;
-* time: numbers, or ISO 8601 date-times (then days since the earliest time in the table);
+* time: numbers, or ISO 8601 date-times (then days since 1970-01-01T00:00:00 UTC, the same
+  axis for every table, so that the results of shards read apart merge);
   missing or non-finite times are errors;
 * value: a number; empty cells and ``nan``/``NA``/``null``/``none``/``-`` are missing (NaN);
   anything else (text, ``inf``) is a *non-numeric value*;
@@ -208,8 +209,11 @@ def _numbers(col, what: str):
     return out, np.asarray(bad, dtype=np.int64)
 
 
+_UNIX_EPOCH = np.datetime64("1970-01-01T00:00:00", "ns")
+
+
 def _times(col, where):
-    """Numeric times, or date-times as days since the earliest; returns (t, unit, epoch)."""
+    """Numeric times, or date-times as days since 1970-01-01 UTC; returns (t, unit, epoch)."""
     arr = np.asarray(col)
     if arr.dtype.kind == "M":
         stamps = arr.astype("datetime64[ns]")
@@ -242,9 +246,10 @@ def _times(col, where):
     nat = np.flatnonzero(np.isnat(stamps))
     if nat.size:
         raise ValueError(f"{where(nat[0])}: the time is missing")
-    epoch = stamps.min()
-    days = (stamps - epoch) / np.timedelta64(1, "D")
-    return days.astype(np.float64), "days", iso_start(epoch)
+    # days since the Unix epoch (UTC): the same axis in every table, so that the results of
+    # tables read apart (shards of one fleet, files of different days) compare and merge
+    days = (stamps - _UNIX_EPOCH) / np.timedelta64(1, "D")
+    return days.astype(np.float64), "days", iso_start(_UNIX_EPOCH)
 
 
 def read_fleet_table(
