@@ -419,6 +419,59 @@ def test_parameters_iterable_selects_subset():
     assert torch.equal(elm.a, a) and torch.equal(elm.beta, beta)
 
 
+def test_frozen_parameters_swept_in_with_trainable_ones_are_not_trained():
+    """module.parameters() of a model with a frozen layer (as torch.optim leaves it): only the
+    trainable parameters form theta; the ELM's random hidden layer stays fixed either way."""
+    torch.manual_seed(0)
+    m = nn.Sequential(nn.Linear(2, 4), nn.Tanh(), nn.Linear(4, 1)).double()
+    m[0].weight.requires_grad_(False)
+    w0 = m[0].weight.clone()
+    for make in (EKF, SRUKF):
+        o = make(m.parameters(), m)
+        assert o.bridge.names == ("0.bias", "2.weight", "2.bias")
+        o.step(torch.ones(3, 2, dtype=torch.float64), torch.ones(3, 1, dtype=torch.float64))
+        assert torch.equal(m[0].weight, w0)
+    elm = ELM(2, 4, generator=_gen(0))
+    assert SRUKF(elm.parameters(), elm).bridge.names == SRUKF(elm).bridge.names == ("beta",)
+
+
+def test_scalar_and_empty_parameters_and_a_tuple_output():
+    """A scalar parameter (shape ()) trains like any other (its reshape used to fail); a
+    selection of empty parameters only, or a module returning a tuple, is refused clearly."""
+
+    class Gain(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.c = nn.Parameter(torch.tensor(0.5, dtype=torch.float64))
+            self.e = nn.Parameter(torch.zeros(0, dtype=torch.float64))
+
+        def forward(self, x):
+            return self.c * x[..., :1]
+
+    X = torch.linspace(-1, 1, 40, dtype=torch.float64)[:, None]
+    for make in (EKF, SRUKF):
+        g = Gain()
+        o = make(g, P0=10.0, R=1e-4)
+        for i in range(0, 40, 8):
+            o.step(X[i : i + 8], 2.0 * X[i : i + 8])
+        assert float(g.c) == pytest.approx(2.0, abs=1e-3)
+    g = Gain()
+    with pytest.raises(ValueError, match="no elements"):
+        KalmanOptimizer([g.e], module=g)
+
+    class Pair(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.lin = nn.Linear(1, 2, dtype=torch.float64)
+
+        def forward(self, x):
+            y = self.lin(x)
+            return y[..., :1], y[..., 1:]
+
+    with pytest.raises(TypeError, match="must return one tensor"):
+        EKF(Pair()).step(X[:4], X[:4])
+
+
 # --------------------------------------------------------------------------- fit
 def test_fit_lbfgs_and_adam_reach_least_squares():
     X, Y = _linear_data(N=40, d=3, seed=9)

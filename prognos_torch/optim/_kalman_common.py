@@ -256,10 +256,15 @@ def _group_bridge(module: nn.Module, params) -> ParameterBridge:
             raise TypeError("a parameter group's 'params' must not contain dicts")
         if not isinstance(p, Tensor) or id(p) not in by_id:
             raise ValueError("params must contain parameters of module only")
-        names.append(by_id[id(p)])
+        names.append((by_id[id(p)], p.requires_grad))
     if not names:
         raise ValueError("params is empty: no parameters to train")
-    return ParameterBridge(module, names)
+    # as with torch.optim, a frozen parameter (requires_grad=False) swept in with trainable ones
+    # (module.parameters() of a model with frozen layers) is not trained; a list of frozen
+    # parameters only is an explicit request to train them
+    if any(trainable for _, trainable in names):
+        names = [(n, t) for n, t in names if t]
+    return ParameterBridge(module, [n for n, _ in names])
 
 
 def _configure(module: nn.Module, g: dict, where: str) -> _Group:

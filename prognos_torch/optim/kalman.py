@@ -88,7 +88,10 @@ class KalmanOptimizer(torch.optim.Optimizer):
         params: the module to train (its parameters with ``requires_grad=True`` form ``theta``),
             an iterable of some of its parameters, or an iterable of parameter groups (dicts with
             ``"params"`` and any of the options below, as in ``torch.optim``); with an iterable,
-            ``module`` is required.
+            ``module`` is required. As with ``torch.optim``, frozen parameters
+            (``requires_grad=False``) in an iterable that also holds trainable ones are not
+            trained (``module.parameters()`` of a model with frozen layers); an iterable of
+            frozen parameters only trains them.
         module: the module, when ``params`` is an iterable.
         filter: a filter name of :func:`~prognos_torch.filters.variants.make_filter` (``"ekf"``,
             ``"srukf"``, ``"imsrukf"``, ``"ukf"``, ``"ckf"``, ``"sckf"``, ``"stekf"``, ``"stukf"``,
@@ -485,7 +488,13 @@ class KalmanOptimizer(torch.optim.Optimizer):
         out_shape = self._out_shapes.get(key)
         if out_shape is None:  # the output of one run (per-run data: for its own inputs)
             theta = self._union_mean().reshape(-1, b.numel)[0]
-            out_shape = b.functional(theta, x[0] if per_run else x).shape
+            out = b.functional(theta, x[0] if per_run else x)
+            if not isinstance(out, Tensor):
+                raise TypeError(
+                    f"the module must return one tensor (the measurement y), got "
+                    f"{type(out).__name__}; concatenate several outputs into one"
+                )
+            out_shape = out.shape
             self._out_shapes[key] = out_shape
         want = ((self.runs,) if per_run else ()) + tuple(out_shape)
         if not isinstance(targets, Tensor):

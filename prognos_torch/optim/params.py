@@ -86,6 +86,11 @@ class ParameterBridge:
                 "params selects no trainable parameters of the module (default: parameters "
                 "with requires_grad=True); pass params=[names] to choose them explicitly"
             )
+        if sum(p.numel() for _, p in chosen) == 0:
+            raise ValueError(
+                f"params selects only parameters with no elements ({', '.join(n for n, _ in chosen)}"
+                "): theta would be empty"
+            )
         dtypes = {p.dtype for _, p in chosen}
         devices = {p.device for _, p in chosen}
         if len(dtypes) != 1 or not next(iter(dtypes)).is_floating_point:
@@ -206,11 +211,12 @@ class ParameterBridge:
         lead = theta.shape[:-1]
         if theta.dtype != self.dtype:
             theta = theta.to(self.dtype)
+        # (shapes as one tuple: a scalar parameter of shape () needs reshape(()))
         if len(self.names) == 1:
-            return {self.names[0]: theta.reshape(*lead, *self.shapes[0])}
+            return {self.names[0]: theta.reshape(tuple(lead) + tuple(self.shapes[0]))}
         parts = theta.split(self.numels, dim=-1)  # one operation for all the views
         return {
-            name: part.reshape(*lead, *shape)
+            name: part.reshape(tuple(lead) + tuple(shape))
             for name, part, shape in zip(self.names, parts, self.shapes)
         }
 
