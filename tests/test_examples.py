@@ -1,4 +1,5 @@
-"""The RUL example prints the ``ims-rul`` study's ``prognose (auto)`` rows (it says so)."""
+"""The examples run to the end; the RUL example prints the ``ims-rul`` study's ``prognose (auto)``
+rows (it says so)."""
 
 import os
 import subprocess
@@ -23,3 +24,21 @@ def test_ims_rul_example_prints_the_study_rows(tmp_path):
     # test_study_ims_rul's quick reference: points 1, 3 and 5 of "T1 B3 rms"
     assert median[::2] == pytest.approx([0.1666666667, 0.2569444444, 0.3263888889], abs=1e-3)
     assert (tmp_path / "ims_prognose_rul.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize(
+    ("script", "figures"),
+    [("user_csv.py", ("user_csv_forecast.png", "user_csv_rul.png")),
+     ("ims_bearing.py", ("ims_forecast.png", "ims_rul.png"))],
+)  # fmt: skip
+def test_every_other_example_runs_to_the_end(script, figures, tmp_path):
+    """The examples call the public API as a user would; without this test they fall behind
+    when it moves (both failed once RULResult.summary() gained its text fields)."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "examples" / script), "--out", str(tmp_path)],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    for name in figures:
+        assert (tmp_path / name).stat().st_size > 0
