@@ -472,6 +472,30 @@ def test_scalar_and_empty_parameters_and_a_tuple_output():
         EKF(Pair()).step(X[:4], X[:4])
 
 
+def test_group_options_other_than_lr_cannot_change_silently():
+    """Setting param_groups[0]["R"] or ["Q"] after construction used to be ignored by the next
+    steps and applied by a state-dict reload (a resumed run then differed): now refused, with
+    the way out; lr stays live (schedulers), and a reload with the new values is allowed."""
+    m = nn.Linear(2, 1, dtype=torch.float64)
+    o = EKF(m, R=1e-2)
+    x, y = torch.ones(3, 2, dtype=torch.float64), torch.ones(3, 1, dtype=torch.float64)
+    o.step(x, y)
+    o.param_groups[0]["lr"] = 0.5
+    o.step(x, y)
+    for key, value in (("R", 100.0), ("Q", 0.1)):
+        saved = o.param_groups[0][key]
+        o.param_groups[0][key] = value
+        with pytest.raises(ValueError, match=rf"param_groups\[0\]\['{key}'\] changed"):
+            o.step(x, y)
+        o.param_groups[0][key] = saved
+    o.step(x, y)
+    sd = o.state_dict()
+    sd["param_groups"][0]["R"] = 1.0
+    o.load_state_dict(sd)
+    o.step(x, y)
+    assert o.param_groups[0]["R"] == 1.0
+
+
 # --------------------------------------------------------------------------- fit
 def test_fit_lbfgs_and_adam_reach_least_squares():
     X, Y = _linear_data(N=40, d=3, seed=9)

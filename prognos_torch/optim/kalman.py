@@ -75,6 +75,14 @@ __all__ = [
 
 
 # ---------------------------------------------------------------------- the optimiser
+#: the group options read when the optimiser is built or loaded (``lr`` is read at each step)
+_FIXED_OPTIONS = ("filter", "P0", "Q", "R", "fading", "noise", "jacobian", "chunk_size")
+
+
+def _option_sources(group: dict) -> dict:
+    return {k: group[k] for k in _FIXED_OPTIONS if k in group}
+
+
 class KalmanOptimizer(torch.optim.Optimizer):
     """Train a module by Gaussian filtering of its parameters (paper 003 Eq. 44-46).
 
@@ -283,6 +291,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         if not self._building:
             i = len(self.param_groups) - 1
             self._cfg.append(cfg)
+            self._sources.append(_option_sources(self.param_groups[i]))
             self._union()
             self.state[_state_key(i)] = self._initial_state(i, None)
 
@@ -295,6 +304,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
             _configure(self.module, g, f"param_groups[{i}]")
             for i, g in enumerate(self.param_groups)
         ]
+        self._sources = [_option_sources(g) for g in self.param_groups]
         self._union()
         self._out_shapes: dict[tuple, torch.Size] = {}
         self._inputs: list = [None]
@@ -619,7 +629,21 @@ class KalmanOptimizer(torch.optim.Optimizer):
     #: seconds the last :meth:`steps` call spent compiling
     compile_time = 0.0
 
+    def _check_options(self) -> None:
+        """Options other than ``lr`` are read when the optimiser is built or loaded: a later
+        change in ``param_groups`` is refused rather than ignored (and then applied by a
+        reload, so that a resumed run would differ)."""
+        for i, (g, src) in enumerate(zip(self.param_groups, self._sources)):
+            for key, value in src.items():
+                if g.get(key) is not value:
+                    raise ValueError(
+                        f"param_groups[{i}][{key!r}] changed after the optimiser was built; "
+                        "options other than 'lr' are read when it is built or loaded "
+                        "(load_state_dict): build a new optimiser to change them"
+                    )
+
     def _step(self, inputs: Tensor, targets: Tensor, checked: bool = False) -> KalmanStep:
+        self._check_options()
         norms = tracking_batch_norms(self.module)
         with batch_statistics_only(norms):
             x, t, out_shape = self._check_batch(inputs, targets, checked)
@@ -702,6 +726,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         self.compile_time = 0.0
         if not compile:
             return torch.stack([self.step(x, t).loss for x, t in zip(inputs, targets)])
+        self._check_options()
         return compiled_steps(self, inputs, targets)
 
     def _steps_eager_from(self, s: dict, inputs: Tensor, targets: Tensor) -> Tensor:
