@@ -496,6 +496,34 @@ def test_group_options_other_than_lr_cannot_change_silently():
     assert o.param_groups[0]["R"] == 1.0
 
 
+def test_weights_written_into_the_module_after_construction_are_continued_from():
+    """As with torch.optim: weights loaded into the module after the optimiser was built (or
+    edited by hand) are where the next step starts; they used to be overwritten by the
+    filter's old mean. Reloading the module's own weights changes nothing (a float32 module's
+    float64 mean is kept, so a resume stays bit-identical)."""
+    X = torch.randn(20, 3, generator=_gen(1), dtype=torch.float64)
+    Y = X @ torch.tensor([[1.0], [-2.0], [0.5]], dtype=torch.float64)
+    for make in (EKF, SRUKF):
+        m = nn.Linear(3, 1, bias=False, dtype=torch.float64)
+        o = make(m, P0=1e-6, R=1.0)  # a tight prior: the step barely moves the weights
+        o.step(X[:5], Y[:5])
+        with torch.no_grad():
+            m.weight.copy_(torch.tensor([[1.0, -2.0, 0.5]], dtype=torch.float64))
+        o.step(X[5:10], Y[5:10])
+        torch.testing.assert_close(m.weight, torch.tensor([[1.0, -2.0, 0.5]], dtype=torch.float64))
+    # the same weights reloaded into a float32 module: the float64 mean is kept
+    m32 = nn.Linear(3, 1)
+    a, b = EKF(m32, P0=0.1), None
+    x32, y32 = X[:5].float(), Y[:5].float()
+    a.step(x32, y32)
+    b = EKF(copy.deepcopy(m32), P0=0.1)
+    b.load_state_dict(a.state_dict())
+    m32.load_state_dict(m32.state_dict())  # a rewrite with the same float32 values
+    a.step(x32, y32)
+    b.step(x32, y32)
+    assert torch.equal(a.theta, b.theta)
+
+
 # --------------------------------------------------------------------------- fit
 def test_fit_lbfgs_and_adam_reach_least_squares():
     X, Y = _linear_data(N=40, d=3, seed=9)

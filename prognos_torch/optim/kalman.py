@@ -146,7 +146,9 @@ class KalmanOptimizer(torch.optim.Optimizer):
     on ``A`` and on ``B`` stepped in that order (``tests/test_optim_groups.py``); the cost is one
     ``n_g``-dimensional filter step per group instead of one ``n``-dimensional one.
     :meth:`add_param_group` adds a group whose belief starts at the module's current values
-    with its ``P0``. :attr:`theta`, :attr:`belief`, :meth:`parameter_covariance` and
+    with its ``P0``. Parameters written outside the optimiser between steps (weights loaded
+    into the module, a manual edit) become the belief's mean at the next step, with its
+    covariance kept, as a ``torch.optim`` optimiser continues from them. :attr:`theta`, :attr:`belief`, :meth:`parameter_covariance` and
     :meth:`parameter_std` list the groups one after another (block-diagonal); per group:
     :attr:`beliefs`, :attr:`filters`, :attr:`filter_states`.
 
@@ -642,8 +644,26 @@ class KalmanOptimizer(torch.optim.Optimizer):
                         "(load_state_dict): build a new optimiser to change them"
                     )
 
+    def _adopt_module_writes(self) -> None:
+        """Parameters written outside the optimiser since its last step (weights loaded into the
+        module, a manual edit) become the filter's mean, as a ``torch.optim`` optimiser would
+        continue from them; the covariance and the adaptive states are kept. A rewrite with the
+        same values (the module's own state reloaded) keeps the float64 mean."""
+        if self.runs is not None:
+            return
+        for i, cfg in enumerate(self._cfg):
+            b = cfg.bridge
+            if not b.written_since_assign():
+                continue
+            s = self.state[_state_key(i)]
+            theta = b.flatten()
+            if not torch.equal(theta, s["mean"].to(b.dtype).to(torch.float64)):
+                s["mean"] = theta
+            b.mark_seen()
+
     def _step(self, inputs: Tensor, targets: Tensor, checked: bool = False) -> KalmanStep:
         self._check_options()
+        self._adopt_module_writes()
         norms = tracking_batch_norms(self.module)
         with batch_statistics_only(norms):
             x, t, out_shape = self._check_batch(inputs, targets, checked)
@@ -727,6 +747,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         if not compile:
             return torch.stack([self.step(x, t).loss for x, t in zip(inputs, targets)])
         self._check_options()
+        self._adopt_module_writes()
         return compiled_steps(self, inputs, targets)
 
     def _steps_eager_from(self, s: dict, inputs: Tensor, targets: Tensor) -> Tensor:
