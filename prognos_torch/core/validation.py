@@ -11,6 +11,7 @@ parameters (dataclass fields, noise standard deviations).
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Sequence
 from dataclasses import fields
 
@@ -35,6 +36,7 @@ __all__ = [
     "check_count",
     "check_nonneg",
     "check_scalar",
+    "check_real",
     "check_dtype_arg",
     "check_forward_input",
     "check_matches",
@@ -260,6 +262,17 @@ def check_scalar(x, name: str) -> float:
     if not math.isfinite(value):
         raise ValueError(f"{name} must be finite, got {value}")
     return value
+
+
+def check_real(v, name: str) -> float:
+    """A finite real number as a float: a Python or NumPy scalar, or a 0-dim tensor or array.
+    Unlike :func:`check_scalar`, text (``"20"``) and one-element vectors are refused, and every
+    refusal is a ``ValueError`` naming ``name``."""
+    if getattr(v, "ndim", None) == 0 and hasattr(v, "item"):
+        v = v.item()  # (a bool or complex tensor gives a bool or complex: refused below)
+    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(float(v)):
+        raise ValueError(f"{name} must be a finite number, got {v!r}")
+    return float(v)
 
 
 # ------------------------------------------------------------------------------ learner data

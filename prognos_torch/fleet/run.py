@@ -26,14 +26,13 @@ aside by the table checks (``on_error="flag"``) get a row with NaN results, the 
 
 from __future__ import annotations
 
-import math
-import numbers
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from ..core.validation import check_real
 from .per_asset import prognose_rul
 from .table import FleetTable, read_fleet_table, write_table
 from .trend import RUL_COLUMNS, exponential_trend_rul, pad_batch
@@ -166,16 +165,6 @@ def _run_ray(shards, method, threshold, options, progress, ray_init):
             ray.shutdown()
 
 
-def _real(v, name: str) -> float:
-    """A finite real number (Python or NumPy scalar, 0-dim array or tensor; not a bool or a
-    string) as a float."""
-    if hasattr(v, "ndim") and v.ndim == 0 and hasattr(v, "item"):
-        v = v.item()
-    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(float(v)):
-        raise ValueError(f"{name} must be a finite number, got {v!r}")
-    return float(v)
-
-
 def fleet_rul(
     source,
     threshold: float,
@@ -223,9 +212,9 @@ def fleet_rul(
         raise ValueError(f"shard_size must be a positive int, got {shard_size!r}")
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise TypeError(f"seed must be an int, got {seed!r}")
-    thr = _real(threshold, "threshold")
+    thr = check_real(threshold, "threshold")
     if horizon is not None:
-        horizon = _real(horizon, "horizon")
+        horizon = check_real(horizon, "horizon")
         if not horizon > 0:
             raise ValueError(f"horizon must be positive (or None: ever), got {horizon!r}")
     table = (

@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,8 +54,10 @@ import torch
 from torch import Tensor
 
 from ..core import GaussianBelief, StateSpaceModel
+from ..core.validation import check_real
 from ..filters import ekf, run
 from ..filters.gaussian import GaussianFilter
+from ..prognosis.onset import window_end
 
 __all__ = [
     "PaddedBatch",
@@ -174,15 +175,7 @@ def ksigma_onset_batch(
     last = (n_obs - 1).clamp(min=0)
     t0 = tc[:, 0]
     t1 = tc.gather(1, last[:, None])[:, 0]
-    # (the rounding allowance of onset.healthy_baseline: span-relative plus a few ulp)
-    eps = torch.finfo(tc.dtype).eps
-    limit = (
-        t0
-        + baseline * (t1 - t0)
-        + 1e-12 * (t1 - t0)
-        + 4.0 * eps * torch.maximum(t0.abs(), t1.abs())
-    )
-    inside = valid & (tc <= limit[:, None])
+    inside = valid & (tc <= window_end(t0, t1, baseline)[:, None])  # as healthy_baseline
     nb = inside.sum(1)
     xs = torch.where(inside, xc, torch.zeros_like(xc))
     mean = xs.sum(1) / nb.clamp(min=1)
@@ -292,12 +285,7 @@ def exponential_trend_rul(
             f"threshold {thr:g} must lie {side} phi = {phi:g} for direction {direction!r} "
             "(the exponential model y = phi + theta exp(beta t) grows away from phi)"
         )
-    if horizon is not None and not (
-        isinstance(horizon, numbers.Real)
-        and not isinstance(horizon, bool)
-        and math.isfinite(horizon)
-        and horizon > 0
-    ):
+    if horizon is not None and not check_real(horizon, "horizon") > 0:
         raise ValueError(f"horizon must be a positive finite number or None, got {horizon!r}")
     if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
         raise ValueError(f"samples must be a positive int, got {samples!r}")

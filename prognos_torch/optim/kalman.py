@@ -148,8 +148,9 @@ class KalmanOptimizer(torch.optim.Optimizer):
     :meth:`add_param_group` adds a group whose belief starts at the module's current values
     with its ``P0``. Parameters written outside the optimiser between steps (weights loaded
     into the module, a manual edit) become the belief's mean at the next step, with its
-    covariance kept, as a ``torch.optim`` optimiser continues from them. :attr:`theta`, :attr:`belief`, :meth:`parameter_covariance` and
-    :meth:`parameter_std` list the groups one after another (block-diagonal); per group:
+    covariance kept, as a ``torch.optim`` optimiser continues from them. :attr:`theta`,
+    :attr:`belief`, :meth:`parameter_covariance` and :meth:`parameter_std` list the groups one
+    after another (block-diagonal); per group:
     :attr:`beliefs`, :attr:`filters`, :attr:`filter_states`.
 
     Learning rate. ``lr`` is the learning rate ``eta`` of EKF training (Puskorius and Feldkamp:
@@ -661,9 +662,13 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 s["mean"] = theta
             b.mark_seen()
 
-    def _step(self, inputs: Tensor, targets: Tensor, checked: bool = False) -> KalmanStep:
+    def _before_steps(self) -> None:
+        """What a step (or a compiled sequence of steps) checks and adopts first."""
         self._check_options()
         self._adopt_module_writes()
+
+    def _step(self, inputs: Tensor, targets: Tensor, checked: bool = False) -> KalmanStep:
+        self._before_steps()
         norms = tracking_batch_norms(self.module)
         with batch_statistics_only(norms):
             x, t, out_shape = self._check_batch(inputs, targets, checked)
@@ -746,8 +751,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         self.compile_time = 0.0
         if not compile:
             return torch.stack([self.step(x, t).loss for x, t in zip(inputs, targets)])
-        self._check_options()
-        self._adopt_module_writes()
+        self._before_steps()
         return compiled_steps(self, inputs, targets)
 
     def _steps_eager_from(self, s: dict, inputs: Tensor, targets: Tensor) -> Tensor:

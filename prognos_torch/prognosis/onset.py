@@ -248,12 +248,8 @@ def healthy_baseline(values, time=None, *, fraction: float = 0.3) -> Baseline:
     ok = ~torch.isnan(x)
     if int(ok.sum()) < 3:
         raise ValueError(f"values has {int(ok.sum())} finite samples; a baseline needs at least 3")
-    t0, t1 = float(t[ok][0]), float(t[ok][-1])
-    # the window's end t0 + f (t1 - t0), widened by its rounding: relative to the span and a
-    # few ulp of the clock's magnitude, so the window does not depend on the clock's origin
-    eps = torch.finfo(torch.float64).eps
-    tol = 1e-12 * (t1 - t0) + 4.0 * eps * max(abs(t0), abs(t1))
-    inside = ok & (t <= t0 + fraction * (t1 - t0) + tol)
+    t0, t1 = t[ok][0], t[ok][-1]
+    inside = ok & (t <= window_end(t0, t1, fraction))
     xb = x[inside]
     if xb.shape[0] < 3:
         raise ValueError(
@@ -288,6 +284,15 @@ def healthy_baseline(values, time=None, *, fraction: float = 0.3) -> Baseline:
         noise=noise if noise > 0 else std,
         resolution=q,
     )
+
+
+def window_end(t0: Tensor, t1: Tensor, fraction: float) -> Tensor:
+    """The end ``t0 + fraction (t1 - t0)`` of a healthy window over ``[t0, t1]`` (``(...)``
+    times), widened by its rounding: relative to the span plus a few ulp of the clock's
+    magnitude, so that the window does not depend on the clock's origin."""
+    eps = torch.finfo(t0.dtype).eps
+    tol = 1e-12 * (t1 - t0) + 4.0 * eps * torch.maximum(t0.abs(), t1.abs())
+    return t0 + fraction * (t1 - t0) + tol
 
 
 def _resolution(x: Tensor) -> float | None:

@@ -69,12 +69,11 @@ units of the data (scale, offset, sign) and of the clock (scale, origin), for ev
 from __future__ import annotations
 
 import math
-import numbers
 
 import torch
 from torch import Tensor
 
-from ..core.validation import as_tensor
+from ..core.validation import as_tensor, check_real
 from ..prognosis.learner_trend import fit_learner_trend
 from ..prognosis.onset import Baseline, detect_onset, healthy_baseline, moving_median
 from ..prognosis.rul import RULDistribution
@@ -127,15 +126,6 @@ def _as_series(series, time) -> tuple[Tensor, Tensor, Series | None]:
     if x.shape[0] > 1 and not bool((t[1:] > t[:-1]).all()):
         raise ValueError("time must be strictly increasing, shape (T,)")
     return x, t, None
-
-
-def _number(v, name: str) -> float:
-    """A finite real number: a Python or NumPy scalar or a 0-dim real tensor (not a bool)."""
-    if isinstance(v, Tensor) and v.dim() == 0:
-        v = v.item()  # (a bool or complex tensor gives a bool or complex: refused below)
-    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(float(v)):
-        raise ValueError(f"{name} must be a finite number, got {v!r}")
-    return float(v)
 
 
 def _check_int(v, name: str, lo: int) -> int:
@@ -381,14 +371,14 @@ def prognose(
             wrong side of it, a threshold already reached, unknown options).
     """
     x, t, src = _as_series(series, time)
-    thr = _number(threshold, "threshold")
+    thr = check_real(threshold, "threshold")
     if method not in PROGNOSE_METHODS:
         raise ValueError(f"method must be one of {', '.join(PROGNOSE_METHODS)}, got {method!r}")
     if direction not in ("auto", "above", "below"):
         raise ValueError(f"direction must be 'auto', 'above' or 'below', got {direction!r}")
     n_paths = _check_int(n_paths, "n_paths", 10)
     max_points = _check_int(max_points, "max_points", 20)
-    horizon_factor = _number(horizon_factor, "horizon_factor")
+    horizon_factor = check_real(horizon_factor, "horizon_factor")
     if horizon_factor <= 0:
         raise ValueError(f"horizon_factor must be positive, got {horizon_factor}")
     keep = ~torch.isnan(x)
@@ -399,7 +389,7 @@ def prognose(
             "(a healthy baseline and a trend)"
         )
     t_last = float(t[-1])
-    t_eval = t_last if at is None else _number(at, "at")
+    t_eval = t_last if at is None else check_real(at, "at")
     if t_eval < t_last:
         raise ValueError(f"at = {t_eval:g} is before the last observation {t_last:g}")
     base = baseline if isinstance(baseline, Baseline) else healthy_baseline(x, t, fraction=baseline)
