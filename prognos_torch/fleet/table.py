@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import atomic_write, sniffed_csv
-from ..workflow.data import datetime_ns, iso_start
+from ..workflow.data import check_unique_columns, datetime_ns, iso_start
 
 __all__ = ["FleetTable", "read_fleet_table", "write_table", "TABLE_SUFFIXES"]
 
@@ -96,12 +96,11 @@ def _csv_columns(path: Path, names: Sequence[str], whats: Sequence[str]):
         if header is None or not any(c.strip() for c in header):
             raise ValueError(f"{path}: empty file (a header row with column names is needed)")
         header = [c.strip() for c in header]
+        check_unique_columns(header, names, str(path))
         idx = []
         for name, what in zip(names, whats):
             if name not in header:
                 raise _missing_column(name, what, header, str(path))
-            if header.count(name) > 1:
-                raise _duplicate_column(name, what, str(path))
             idx.append(header.index(name))
         cols: list[list[str]] = [[] for _ in names]
         lines: list[int] = []
@@ -120,20 +119,13 @@ def _csv_columns(path: Path, names: Sequence[str], whats: Sequence[str]):
     return cols, lines
 
 
-def _duplicate_column(name: str, what: str, source: str) -> ValueError:
-    return ValueError(
-        f"{source}: {what} column {name!r} appears more than once in the header; rename one"
-    )
-
-
 def _frame_columns(frame, names: Sequence[str], whats: Sequence[str], source: str):
+    check_unique_columns(frame.columns, names, source)
     found = [str(c) for c in frame.columns]
     out = []
     for name, what in zip(names, whats):
         if name not in frame.columns:
             raise _missing_column(name, what, found, source)
-        if list(frame.columns).count(name) > 1:
-            raise _duplicate_column(name, what, source)
         out.append(frame[name].to_numpy())
     return out
 

@@ -186,6 +186,17 @@ def iso_start(stamp: np.datetime64) -> str:
     return str(seconds) if seconds == stamp else str(np.datetime_as_string(stamp, unit="auto"))
 
 
+def check_unique_columns(header: Sequence, names: Sequence, source: str) -> None:
+    """Each of ``names`` (``None`` skipped) appears at most once in ``header``: a column named
+    twice is an error, not a silent choice of one of them."""
+    header = list(header)
+    for name in names:
+        if name is not None and header.count(name) > 1:
+            raise ValueError(
+                f"{source}: column {name!r} appears more than once in the header; rename one"
+            )
+
+
 def _parse_time(cells: list[str], lines: list[int], path: str, col: str):
     """Numbers, or ISO 8601 date-times -> days since the first row."""
     numeric = []
@@ -424,9 +435,7 @@ def _load_csv(path, column, time_column, where, fill, last, until) -> Series:
         column = others[0]
     if column not in index:
         raise ValueError(f"{path}: no column {column!r}; columns: {', '.join(header)}")
-    for col in {column, time_column, *where} - {None}:
-        if header.count(col) > 1:
-            raise ValueError(f"{path}: column {col!r} appears more than once in the header")
+    check_unique_columns(header, [column, time_column, *where], str(path))
     j = index[column]
     jt = index[time_column] if time_column is not None else None
     wj = [(index[c], v) for c, v in where.items()]
