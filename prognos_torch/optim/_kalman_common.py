@@ -16,7 +16,7 @@ from torch import Tensor, nn
 from ..adapt.noise import MovingWindow, SageHusa
 from ..adapt.strong_tracking import StrongTracking
 from ..core.linalg import tria
-from ..core.validation import check_matches
+from ..core.validation import all_finite, check_matches
 from ..filters.gaussian import GaussianFilter, StepInfo
 from ..filters.variants import make_filter
 from .params import ParameterBridge
@@ -303,6 +303,19 @@ def _check_matches(x: Tensor, name: str, dtype, device, checked: bool) -> None:
             check_matches(x, name, dtype, device)  # raises
         return
     check_matches(x, name, dtype, device)
+
+
+def _check_targets(t: Tensor, dtype, device) -> bool:
+    """Targets of a step: the module's dtype and device, finite or NaN where a target is
+    missing (the filter then updates with the observed entries only; a step with none
+    observed is a prediction). Returns whether any entry is missing."""
+    if t.dtype != dtype or t.device != device:
+        check_matches(t, "targets", dtype, device)  # raises
+    if all_finite(t):
+        return False
+    if bool(torch.isinf(t).any()):
+        raise ValueError("targets contains inf (NaN marks a missing target)")
+    return True
 
 
 def _call_closure(closure) -> tuple:

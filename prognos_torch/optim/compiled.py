@@ -28,7 +28,7 @@ from torch.optim.optimizer import _global_optimizer_post_hooks, _global_optimize
 from ..core.belief import GaussianBelief
 from ..core.linalg import tria
 from ..core.model import Noise, diagonal_noise
-from ..core.validation import check_finite
+from ..core.validation import all_finite, check_finite
 from ..filters import sequence as _sequence
 from ..filters.gaussian import FilterState, Taylor, _sigma_points, deferred_fallbacks
 from ..filters.sequence import scan as _filter_scan
@@ -56,10 +56,16 @@ def compiled_steps(opt: Optimizer, inputs: Tensor, targets: Tensor) -> Tensor:
     with torch.inference_mode():
         # the rows share their shape: row 0 stands for all in the type, shape, dtype and
         # device checks of a step; the values are checked all at once
-        _, _, out_shape = opt._check_batch(inputs[0], targets[0], True)
+        _, _, out_shape, _ = opt._check_batch(inputs[0], targets[0], True)
         if not checked:
             check_finite(inputs, "inputs")
-            check_finite(targets, "targets")
+            if not all_finite(targets):
+                if bool(torch.isnan(targets).any()):
+                    raise ValueError(
+                        "targets contains NaN (missing targets): the compiled pass needs "
+                        "complete targets; compile=False steps update with the observed ones"
+                    )
+                check_finite(targets, "targets")
         step, record = sequence_step(opt, inputs.shape[1:], out_shape)
         # the caches the traced step reads (the learner's constants, the sigma points) are
         # filled here, outside the trace

@@ -23,26 +23,46 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
-from ..core.validation import check_finite
+from ..core.validation import all_finite, check_finite
 from .kalman import KalmanOptimizer
 
 __all__ = ["fit", "History", "METRICS"]
 
 
+def _observed_mean(v: Tensor, target: Tensor, dims) -> Tensor:
+    """Mean of ``v`` (a function of ``pred - target``) over ``dims``, where the target is
+    observed: NaN targets (missing) are left out, a NaN of ``v`` where the target is observed
+    (a diverged prediction) is kept."""
+    obs = ~torch.isnan(target)
+    if bool(obs.all()):
+        return v.mean(dims)
+    obs = obs.expand(v.shape)
+    return torch.where(obs, v, 0.0).sum(dims) / obs.sum(dims)
+
+
 def _mae(pred: Tensor, target: Tensor, dims) -> Tensor:
-    return (pred - target).abs().mean(dims)
+    return _observed_mean((pred - target).abs(), target, dims)
 
 
 def _rmse(pred: Tensor, target: Tensor, dims) -> Tensor:
-    return (pred - target).square().mean(dims).sqrt()  # paper 003 Eq. 49
+    return _observed_mean((pred - target).square(), target, dims).sqrt()  # paper 003 Eq. 49
 
 
 def _mse(pred: Tensor, target: Tensor, dims) -> Tensor:
-    return (pred - target).square().mean(dims)
+    return _observed_mean((pred - target).square(), target, dims)
 
 
-#: Built-in metrics (paper 003 Eq. 48-49), computed in float64 over all output entries.
-#: Non-finite predictions give NaN (a diverged run is reported, not raised).
+def _observed_mse(pred: Tensor, target: Tensor) -> Tensor:
+    """The default loss of gradient optimisers when some targets are missing (NaN): the mean
+    squared error over the observed targets, 0 with no gradient for a mini-batch with none."""
+    obs = ~torch.isnan(target)
+    d = torch.where(obs, pred - target, 0.0)
+    return d.square().sum() / obs.sum().clamp(min=1)
+
+
+#: Built-in metrics (paper 003 Eq. 48-49), computed in float64 over the output entries whose
+#: target is observed (NaN targets are missing and left out). Non-finite predictions give NaN
+#: (a diverged run is reported, not raised).
 METRICS: dict[str, Callable[[Tensor, Tensor, tuple[int, ...]], Tensor]] = {
     "mae": _mae,
     "rmse": _rmse,
@@ -124,6 +144,16 @@ def _check_data(data, name: str, runs: int | None = None) -> tuple[Tensor, Tenso
     return X, Y
 
 
+def _check_values(X: Tensor, Y: Tensor, name: str) -> bool:
+    """Finite inputs; targets finite or NaN (missing). Returns whether any target is missing."""
+    check_finite(X, f"{name} inputs X")
+    if all_finite(Y):
+        return False
+    if bool(torch.isinf(Y).any()):
+        raise ValueError(f"{name} targets Y contain inf (NaN marks a missing target)")
+    return True
+
+
 def _metric_fns(metrics) -> list[tuple[str, Callable]]:
     if isinstance(metrics, str):
         metrics = (metrics,)
@@ -186,6 +216,10 @@ def fit(
             ``loss_fn(module(xb), yb)`` and calls ``backward()``.
         train: inputs ``X`` ``(N, ...)`` and targets ``Y`` ``(N, ...)`` (``module(X).shape``);
             for a :class:`KalmanOptimizer` with ``per_run_data``, ``(R, N, ...)`` each.
+            ``X`` finite; NaN in ``Y`` marks a missing target: a Kalman optimiser updates with
+            the observed entries of each mini-batch (one with none observed only adds the
+            random walk's ``Q``), the default loss of gradient optimisers and the metrics
+            leave them out, and the epoch's loss is the mean over steps that observed one.
         epochs: number of passes over ``train``.
         batch_size: samples per optimiser step (Kalman: the measurement vector of one step).
         shuffle: draw a new order of the samples each epoch (``torch.randperm`` with
@@ -214,8 +248,10 @@ def fit(
     per_run = isinstance(optimizer, KalmanOptimizer) and optimizer.per_run_data
     runs = optimizer.runs if per_run else None
     X, Y = _check_data(train, "train", runs)
+    missing = _check_values(X, Y, "train")
     if val is not None:
         Xv, Yv = _check_data(val, "val", runs)
+        _check_values(Xv, Yv, "val")
     if not isinstance(optimizer, torch.optim.Optimizer):
         raise TypeError(f"optimizer must be a torch.optim.Optimizer, got {type(optimizer)}")
     if not isinstance(module, nn.Module):
@@ -239,7 +275,13 @@ def fit(
     if kalman and optimizer.module is not module:
         raise ValueError("optimizer is a KalmanOptimizer built on a different module")
     if loss_fn is None:
-        loss_fn = nn.functional.mse_loss
+        loss_fn = _observed_mse if missing else nn.functional.mse_loss
+    elif missing and not kalman:
+        raise ValueError(
+            "train targets contain NaN (missing): the default loss leaves them out, a custom "
+            "loss_fn would get them; drop those samples or mask them in loss_fn and pass "
+            "targets without NaN"
+        )
     if not isinstance(compile, bool):
         raise TypeError(f"compile must be a bool, got {type(compile).__name__}")
     if compile and not kalman:
@@ -265,10 +307,10 @@ def fit(
 
     was_training = module.training
     best_value, best_state, since_best = float("inf"), None, 0
-    if kalman:  # values checked once here; the steps check types, shapes, dtypes and devices
-        check_finite(X, "inputs")
-        check_finite(Y, "targets")
-        optimizer._finite_checked = True
+    if kalman:
+        # values checked once here; the steps check types, shapes, dtypes and devices (with
+        # missing targets each step finds its own: the filter updates with the observed ones)
+        optimizer._finite_checked = not missing
     try:
         for epoch in range(1, epochs + 1):
             if shuffle:
@@ -319,7 +361,9 @@ def fit(
                     bar.update(1)
             hist.time.append(time.perf_counter() - t0 - compiled_time)
             hist.compile_time.append(compiled_time)
-            hist.loss.append(torch.stack(losses).mean(0))
+            stacked = torch.stack(losses)
+            # (a step whose targets are all missing has a NaN loss: it observed nothing)
+            hist.loss.append(stacked.nanmean(0) if missing else stacked.mean(0))
             hist.epoch.append(epoch)
 
             module.eval()

@@ -50,6 +50,7 @@ from ._kalman_common import (
     KalmanStep,
     _call_closure,
     _check_matches,
+    _check_targets,
     _clone_state,
     _configure,
     _dataclass_dict,
@@ -492,8 +493,9 @@ class KalmanOptimizer(torch.optim.Optimizer):
         return inputs
 
     def _check_batch(self, inputs, targets, checked: bool = False):
-        """``(inputs, targets, output shape of one run)``, validated (finiteness only when
-        not ``checked`` already)."""
+        """``(inputs, targets, output shape of one run, any target missing)``, validated (the
+        values only when not ``checked`` already: finite inputs, targets finite or NaN where
+        missing)."""
         b = self.bridge
         x = self._check_inputs(inputs, checked)
         per_run = self.per_run_data
@@ -517,8 +519,10 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 f"targets must have shape {want} (the model output for inputs of "
                 f"shape {tuple(x.shape)}), got {tuple(targets.shape)}"
             )
-        _check_matches(targets, "targets", b.dtype, b.device, checked)
-        return x, targets, out_shape
+        if checked:
+            _check_matches(targets, "targets", b.dtype, b.device, True)
+            return x, targets, out_shape, False
+        return x, targets, out_shape, _check_targets(targets, b.dtype, b.device)
 
     def _engine_state(self, i: int, model: StateSpaceModel) -> FilterState:
         s = self.state[_state_key(i)]
@@ -671,7 +675,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         self._before_steps()
         norms = tracking_batch_norms(self.module)
         with batch_statistics_only(norms):
-            x, t, out_shape = self._check_batch(inputs, targets, checked)
+            x, t, out_shape, any_missing = self._check_batch(inputs, targets, checked)
         if norms:
             if self.runs is not None:
                 raise ValueError(
@@ -694,8 +698,8 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 fstate = self._engine_state(i, model)
                 key = _state_key(i)
                 k = self.state[key]["step"] + 1
-                try:  # y is finite (targets checked): the engine's checks are not repeated
-                    new, info = cfg.filter._update(model, fstate, y, None, k, False)
+                try:  # y checked (finite, NaN where missing): the engine's checks not repeated
+                    new, info = cfg.filter._update(model, fstate, y, None, k, any_missing)
                 except RuntimeError as exc:
                     clear = explain_transform_error(exc)
                     if clear is None:
@@ -711,7 +715,11 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 if self.runs is None:
                     cfg.bridge.assign(new.belief.mean)
                 infos.append(info)
-        loss = infos[0].innovation.square().mean(-1)
+        e2 = infos[0].innovation.square()  # (the engine's innovation is 0 where y is missing)
+        if any_missing:  # the mean over the observed entries (NaN where none is observed)
+            loss = e2.sum(-1) / (~torch.isnan(y)).sum(-1)
+        else:
+            loss = e2.mean(-1)
         return KalmanStep(loss, infos[0], tuple(infos))
 
     # ------------------------------------------------------------------ a sequence of steps
