@@ -116,10 +116,17 @@ def test_gradient_baseline_default_loss_leaves_missing_targets_out():
     a = nn.Linear(3, 1, dtype=torch.float64)
     b = nn.Linear(3, 1, dtype=torch.float64)
     b.load_state_dict(a.state_dict())
-    ha = fit(a, torch.optim.SGD(a.parameters(), lr=0.1), (X, Ym), epochs=5, batch_size=24,
-             progress=False)
-    hb = fit(b, torch.optim.SGD(b.parameters(), lr=0.1), (X[obs], Ym[obs]), epochs=5,
-             batch_size=int(obs.sum()), progress=False)
+    ha = fit(
+        a, torch.optim.SGD(a.parameters(), lr=0.1), (X, Ym), epochs=5, batch_size=24, progress=False
+    )
+    hb = fit(
+        b,
+        torch.optim.SGD(b.parameters(), lr=0.1),
+        (X[obs], Ym[obs]),
+        epochs=5,
+        batch_size=int(obs.sum()),
+        progress=False,
+    )
     torch.testing.assert_close(a.weight, b.weight, rtol=0, atol=1e-14)
     torch.testing.assert_close(torch.stack(ha.loss), torch.stack(hb.loss), rtol=0, atol=1e-14)
     torch.testing.assert_close(ha.train["mae"][-1], hb.train["mae"][-1], rtol=0, atol=1e-14)
@@ -146,7 +153,12 @@ def test_bad_values_are_refused_by_name():
     with pytest.raises(ValueError, match="val inputs X"):
         fit(lin, EKF(lin), (X, Y), val=(Xn, Y), progress=False)
     with pytest.raises(ValueError, match="custom loss_fn"):
-        fit(lin, torch.optim.SGD(lin.parameters(), lr=0.1), (X, Ym), progress=False,
-            loss_fn=nn.functional.l1_loss)
+        fit(
+            lin,
+            torch.optim.SGD(lin.parameters(), lr=0.1),
+            (X, Ym),
+            progress=False,
+            loss_fn=nn.functional.l1_loss,
+        )
     with pytest.raises(ValueError, match="compiled pass needs complete targets"):
         SRUKF(lin).steps(X[:20].reshape(5, 4, 3), Ym[:20].reshape(5, 4, 2), compile=True)

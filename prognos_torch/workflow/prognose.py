@@ -497,8 +497,7 @@ def prognose(
     bin_width = max(dt_data, horizon / _MAX_BINS)
     grid = _rul_grid(float(tb[-1]), t_last, t_eval, horizon, bin_width, 0.02)
     passage = _pooled_passage([models[k] for k in pool], thr_o, grid, n_paths, gen)
-    rul = passage.times - t_eval
-    alive = passage.times > t_eval
+    dist, alive, bins = _rul_at(passage.times, t_eval, t_last, horizon, bin_width, grid)
     p_alive = float(alive.to(torch.float64).mean())
     if p_alive < 1.0:
         flags.append(
@@ -511,12 +510,6 @@ def prognose(
             f"every predicted path crossed the threshold before at = {t_eval:g}: the model says "
             "the asset has already failed; evaluate at the last observation instead"
         )
-    w = alive.to(torch.float64) / alive.sum()
-    bins = max(1, math.ceil((horizon - (t_eval - t_last)) / bin_width))
-    t_scale = max(abs(t_eval), abs(float(grid[-1])))
-    dist = _distribution(
-        torch.where(alive, rul, torch.full_like(rul, math.inf)), w, bin_width, bins, t_scale
-    )
     censored = float(dist.censored_mass)
     flags += _flags(fit, thr_o, passage, int(t_on.shape[0]), censored)
     if block > 1:
@@ -536,7 +529,7 @@ def prognose(
         model=chosen,
         flags=tuple(flags),
         selection=selection,
-        rul_samples=torch.where(alive, rul, torch.full_like(rul, math.nan)),
+        rul_samples=torch.where(alive, passage.times - t_eval, math.nan),
         **common,
     )
 
@@ -565,6 +558,20 @@ def _uniform_paths(paths, grid, t_eval, bin_width, bins, sign) -> Tensor:
     return sign * torch.as_tensor(out, dtype=torch.float64)
 
 
+def _rul_at(
+    times: Tensor, t_eval: float, t_last: float, horizon: float, bin_width: float, grid: Tensor
+) -> tuple[RULDistribution, Tensor, int]:
+    """The RUL distribution at ``t_eval`` of first-passage ``times`` on ``grid``, among the
+    paths still running then, in ``bins`` bins of ``bin_width`` up to ``t_last + horizon``;
+    also the paths' ``alive`` mask and ``bins``."""
+    alive = times > t_eval
+    w = alive.to(torch.float64) / alive.sum().clamp(min=1)
+    bins = max(1, math.ceil((horizon - (t_eval - t_last)) / bin_width))
+    t_scale = max(abs(t_eval), abs(float(grid[-1])))
+    rul = torch.where(alive, times - t_eval, torch.full_like(times, math.inf))
+    return _distribution(rul, w, bin_width, bins, t_scale), alive, bins
+
+
 def _no_degradation(t, yo, thr_o, sign, base, ons, gen, t_eval, span_life, dt_data, filt, common):
     """Before onset: a lower bound from a linear trend on the healthy data (module doc)."""
     n = t.shape[0]
@@ -577,14 +584,7 @@ def _no_degradation(t, yo, thr_o, sign, base, ons, gen, t_eval, span_life, dt_da
     bin_width = max(dt_data, horizon / _MAX_BINS)
     grid = _rul_grid(float(t[-1]), float(t[-1]), t_eval, horizon, bin_width, 0.01)
     passage = fit.first_passage(-1, thr_o, grid, 2000, gen)
-    rul = passage.times - t_eval
-    alive = passage.times > t_eval
-    w = alive.to(torch.float64) / alive.sum().clamp(min=1)
-    bins = max(1, math.ceil((horizon - (t_eval - float(t[-1]))) / bin_width))
-    t_scale = max(abs(t_eval), abs(float(grid[-1])))
-    dist = _distribution(
-        torch.where(alive, rul, torch.full_like(rul, math.inf)), w, bin_width, bins, t_scale
-    )
+    dist, _, bins = _rul_at(passage.times, t_eval, float(t[-1]), horizon, bin_width, grid)
     q05 = float(dist.quantile(0.05))
     bound = bins * bin_width if math.isnan(q05) else q05
     return RULResult(
