@@ -410,6 +410,31 @@ def test_resampler_offspring_moments(name, log):
             assert svar.sum() < 0.8 * mult.sum()
 
 
+def test_residual_one_run_counts_and_ragged_batches():
+    """One run (1-D weights, the repeat-interleave path): floor(N w_i) copies exactly, N in all,
+    and E[#offspring] = N w_i over repeated calls; a batch whose runs need different numbers
+    of residual draws (one none at all) keeps each run's deterministic part."""
+    N, reps = W_TEST.shape[1], 4000
+    g = gen(5)
+    for b in range(2):
+        wb = W_TEST[b]
+        counts = np.zeros((reps, N))
+        for r in range(reps):
+            anc = residual(t(wb), g, log=False)
+            assert anc.shape == (N,) and anc.dtype == torch.int64
+            counts[r] = np.bincount(anc.numpy(), minlength=N)
+        assert np.all(counts >= np.floor(N * wb)) and np.all(counts.sum(1) == N)
+        var = _exact_var("residual", wb)
+        se = np.sqrt(var / reps)
+        live = var > 1e-12
+        assert np.all(np.abs(counts.mean(0) - N * wb)[live] <= 4.5 * se[live])
+    w = t([[0.25, 0.25, 0.25, 0.25], [0.7, 0.1, 0.1, 0.1], [0.4, 0.35, 0.2, 0.05]])
+    anc = residual(w, g, log=False)
+    assert anc[0].tolist() == [0, 1, 2, 3]  # no residual draw
+    assert anc[1, :2].tolist() == [0, 0] and anc[2, :2].tolist() == [0, 1]
+    assert bool(((anc >= 0) & (anc < 4)).all())
+
+
 def test_ess_closed_form():
     w = t([0.5, 0.25, 0.125, 0.125])
     assert torch.allclose(ess(torch.log(w) + 3.0), 1.0 / (w * w).sum())

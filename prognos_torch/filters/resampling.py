@@ -144,25 +144,63 @@ def _systematic(w: Tensor, generator: torch.Generator) -> Tensor:
     return _lookup(_cdf(w), u.clamp_max(1.0 - torch.finfo(w.dtype).eps))
 
 
+def _sorted_uniforms(n: Tensor, m: int, generator: torch.Generator, like: Tensor) -> Tensor:
+    """Row ``b`` of the ``(..., m)`` result starts with the order statistics of ``n_b <= m``
+    independent ``U[0, 1)`` draws, by normalised exponential spacings (``S_k / S_{n_b + 1}``,
+    ``S_k`` the sum of ``k`` standard exponentials: O(m), no sort). Sorted queries are what
+    the inverse-CDF look-up is fastest on; entries past ``n_b`` are not draws (callers do not
+    read them)."""
+    e = torch.empty((*n.shape, m + 1), dtype=like.dtype, device=like.device).exponential_(
+        generator=generator
+    )
+    S = torch.cumsum(e, dim=-1)
+    # (a draw of 1, possible only through an exponential of 0, is clamped by the look-up)
+    return S[..., :m] / S.gather(-1, n.unsqueeze(-1))
+
+
 def _residual(w: Tensor, generator: torch.Generator) -> Tensor:
+    """``floor(N w_i)`` copies of ``i`` in slots ``j < D``, then ``R = N - D`` draws from the
+    residual weights ``N w_i - floor(N w_i)`` (inverse CDF at ``R`` sorted uniforms)."""
     N = w.shape[-1]
+    bs = w.shape[:-1]
     Nw = N * w
     det = torch.floor(Nw)
-    cum_det = torch.cumsum(det, dim=-1).contiguous()  # exact small integers in floating point
-    D = cum_det[..., -1:]  # (..., 1)
-    j = torch.arange(N, dtype=w.dtype, device=w.device).expand(w.shape).contiguous()
-    det_idx = _lookup(cum_det, j)
-    res = (Nw - det).clamp_min(0.0)
-    has_res = res.sum(-1, keepdim=True) > 0
-    # when no residual is left (D == N) the residual draws are unused; keep the cdf well defined
-    res = torch.where(has_res, res, torch.ones_like(res))
-    u = _uniform(w.shape, generator, w)  # slot j >= D takes u_j (all N drawn: one stream)
-    # only slots from the smallest D on are filled by residual draws: look those up alone
-    d0 = min(int(D.min()), N - 1)
-    res_idx = _lookup(_cdf(res), u[..., d0:].contiguous())
-    out = det_idx.clone()
-    out[..., d0:] = torch.where(j[..., d0:] < D, det_idx[..., d0:], res_idx)
+    counts = det.to(torch.int64)
+    R = N - counts.sum(-1)  # (...), residual draws per run (floors sum to at most N)
+    # slot j < D of a run: the particle whose cumulative count first exceeds j, by one
+    # repeat_interleave over all runs; each run's residual slots first hold the pad value N
+    vals = _arange_long(N + 1, w.device).expand(*bs, N + 1)
+    ext = torch.cat([counts, R.unsqueeze(-1)], dim=-1)
+    out = torch.repeat_interleave(vals.reshape(-1), ext.reshape(-1)).reshape(w.shape)
+    r_max = int(R.max())
+    if r_max == 0:
+        return out
+    # a run with R_b > 0 draws has residual mass sum_i (N w_i - floor(N w_i)) = R_b >= 1 (up
+    # to rounding); a run with none has no residual slot, whatever its look-up gives
+    res = Nw - det
+    # the last r_max slots hold every run's residual slots: run b's k-th draw goes to slot
+    # N - R_b + k, so the slot's query is its draw (k = j - (N - r_max) - (r_max - R_b))
+    u = _sorted_uniforms(R, r_max, generator, w)
+    k = (_arange_long(r_max, w.device) - (r_max - R).unsqueeze(-1)).clamp_min(0)
+    q = u.gather(-1, k)
+    res_idx = _lookup(_cdf(res), q.contiguous())
+    tail = out[..., N - r_max :]
+    out[..., N - r_max :] = torch.where(tail == N, res_idx, tail)
     return out
+
+
+_ARANGE_LONG: dict = {}
+
+
+def _arange_long(n: int, device) -> Tensor:
+    """``arange(n)`` (int64) on ``device``, kept for reuse (never written to)."""
+    key = (n, device)
+    j = _ARANGE_LONG.get(key)
+    if j is None:
+        if len(_ARANGE_LONG) > 64:
+            _ARANGE_LONG.clear()
+        j = _ARANGE_LONG[key] = torch.arange(n, device=device)
+    return j
 
 
 _DRAWS = {
