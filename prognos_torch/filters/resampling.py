@@ -155,6 +155,8 @@ def _sorted_uniforms(n: Tensor, m: int, generator: torch.Generator, like: Tensor
     )
     S = torch.cumsum(e, dim=-1)
     # (a draw of 1, possible only through an exponential of 0, is clamped by the look-up)
+    if n.dim() == 0:  # one run: n = m
+        return S[:m] / S[m]
     return S[..., :m] / S.gather(-1, n.unsqueeze(-1))
 
 
@@ -178,9 +180,12 @@ def _residual(w: Tensor, generator: torch.Generator) -> Tensor:
     # a run with R_b > 0 draws has residual mass sum_i (N w_i - floor(N w_i)) = R_b >= 1 (up
     # to rounding); a run with none has no residual slot, whatever its look-up gives
     res = Nw - det
+    u = _sorted_uniforms(R, r_max, generator, w)
+    if not bs:  # one run: its R draws fill the last R slots, in order
+        out[N - r_max :] = _lookup(_cdf(res), u)
+        return out
     # the last r_max slots hold every run's residual slots: run b's k-th draw goes to slot
     # N - R_b + k, so the slot's query is its draw (k = j - (N - r_max) - (r_max - R_b))
-    u = _sorted_uniforms(R, r_max, generator, w)
     k = (_arange_long(r_max, w.device) - (r_max - R).unsqueeze(-1)).clamp_min(0)
     q = u.gather(-1, k)
     res_idx = _lookup(_cdf(res), q.contiguous())
