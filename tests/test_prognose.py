@@ -271,6 +271,7 @@ def test_series_input():
         ({"threshold": 1.25}, "already reached"),
         ({"threshold": 1.05}, "inside the healthy band"),
         ({"threshold": 0.5, "direction": "above"}, "wrong side"),
+        ({"threshold": 0.5}, "left the band above it.*wrong side"),  # rising, threshold below
         ({"threshold": 3.0, "method": "cubic"}, "method must be"),
         ({"threshold": 3.0, "at": 10.0}, "before the last observation"),
         ({"threshold": math.nan}, "finite number"),
@@ -284,6 +285,12 @@ def test_bad_input(kwargs, match):
         t = torch.arange(y.shape[0], dtype=F64)
     with pytest.raises(ValueError, match=match):
         prognose(y, time=t, **kwargs)
+
+
+def test_explicit_direction_predicts_on_its_side_of_a_series_degrading_the_other_way():
+    t, y = _series()
+    res = prognose(y, 0.5, time=t, direction="below")
+    assert res.status == "no degradation detected yet" and res.direction == "below"
 
 
 def test_threshold_and_at_as_tensor_or_numpy_scalars():

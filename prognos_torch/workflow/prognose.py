@@ -345,7 +345,8 @@ def prognose(
             ``"linear"`` or ``"elm"`` (:data:`PROGNOSE_METHODS`).
         seed: seeds the path draws and the ELM's random features.
         direction: ``"above"``, ``"below"`` or ``"auto"`` (the side of the baseline the
-            threshold is on).
+            threshold is on; a series that has left its healthy band only on the other side
+            is then refused as a threshold on the wrong side).
         at: evaluation time ``>= `` the last observation (default: the last observation).
         baseline: the healthy window as a fraction of the time span, or a
             :class:`~prognos_torch.prognosis.onset.Baseline` (data units). Onset is searched
@@ -394,7 +395,8 @@ def prognose(
         raise ValueError(f"at = {t_eval:g} is before the last observation {t_last:g}")
     base = baseline if isinstance(baseline, Baseline) else healthy_baseline(x, t, fraction=baseline)
     lo_band, hi_band = base.mean - _K * base.std, base.mean + _K * base.std
-    if direction == "auto":
+    auto_side = direction == "auto"
+    if auto_side:
         if lo_band <= thr <= hi_band:
             raise ValueError(
                 f"threshold {thr:g} lies inside the healthy band [{lo_band:.4g}, {hi_band:.4g}] "
@@ -424,6 +426,16 @@ def prognose(
             "(a spike or the start of failure)"
         )
     ons = detect_onset(x, t, method=onset, baseline=base, direction=direction, after=base.t_end)
+    if auto_side and not ons.detected:
+        other = "below" if direction == "above" else "above"
+        away = detect_onset(x, t, method=onset, baseline=base, direction=other, after=base.t_end)
+        if away.detected:  # the series degrades, but away from the threshold
+            raise ValueError(
+                f"threshold {thr:g} is {direction} the healthy band, but the series left the "
+                f"band {other} it (onset at {away.time:g}, last value {float(x[-1]):.4g}): the "
+                f"threshold looks to be on the wrong side; pass direction={direction!r} to "
+                "predict a crossing on that side regardless"
+            )
     gen = torch.Generator().manual_seed(int(seed))
     span_life = t_last - float(t[0])
     dt_data = float(torch.diff(t).median())
