@@ -172,6 +172,18 @@ def test_every_path_keeps_its_bin_when_the_clock_changes():
         assert torch.equal(got.distribution.first_passage, ref.distribution.first_passage)
 
 
+def test_backtest_origins_on_sample_times_do_not_depend_on_the_clock_origin():
+    """Regular sampling puts a backtest origin (a fraction of the way to a crossed level)
+    exactly on a sample time; in seconds from 0 and in days since 1970 the same sample must
+    be taken, whatever the last bit of the clock's rounding."""
+    t, y = _series(noise_after=0.1, seed=1)
+    ref = prognose(y[:490], 3.0, time=t[:490] * 10.0, method="exponential").summary()
+    got = prognose(y[:490], 3.0, time=t[:490] * 10.0 / 86400 + 19700.0, method="exponential")
+    got = got.summary()
+    assert got["median"] * 86400 == pytest.approx(ref["median"], rel=1e-6)
+    assert got["censored_mass"] == pytest.approx(ref["censored_mass"], abs=1e-12)
+
+
 def test_lower_bound_before_onset_does_not_depend_on_units():
     """The no-degradation bound (a linear trend of the healthy data) in any units of the data
     and the clock; its positive floors used to be absolute (1 step for values near 1e-9)."""

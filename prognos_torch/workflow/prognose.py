@@ -75,7 +75,13 @@ from torch import Tensor
 
 from ..core.validation import as_tensor, check_real
 from ..prognosis.learner_trend import fit_learner_trend
-from ..prognosis.onset import Baseline, detect_onset, healthy_baseline, moving_median
+from ..prognosis.onset import (
+    Baseline,
+    detect_onset,
+    healthy_baseline,
+    moving_median,
+    window_end,
+)
 from ..prognosis.rul import RULDistribution
 from ..prognosis.trends import TREND_SHAPES, Passage, fit_trends, path_grid
 from .data import Series
@@ -195,10 +201,12 @@ def _backtest_pairs(t: Tensor, y: Tensor, sigma0: float) -> list[tuple[float, in
         for f in _BACKTEST_LEVELS:
             c = m0 + f * (top - m0)
             k = int(torch.nonzero(m >= c).flatten()[0])
-            t_on, t_c = float(t[0]), float(t[k])
+            t_c = float(t[k])
             for g in _BACKTEST_ORIGINS:
-                o = t_on + g * (t_c - t_on)
-                i = int(torch.searchsorted(t, torch.tensor(o, dtype=t.dtype), right=True)) - 1
+                # (an origin on a sample time takes that sample in any clock: the rounding
+                # allowance of window_end)
+                o = window_end(t[0], t[k], g)
+                i = int(torch.searchsorted(t, o, right=True)) - 1
                 if 4 <= i < k and t_c > float(t[i]):
                     pairs.append((c, i, t_c))
     return pairs
