@@ -299,6 +299,45 @@ def test_bad_input(kwargs, match):
         prognose(y, time=t, **kwargs)
 
 
+def test_pandas_and_datetime_input_give_the_array_result():
+    """A pandas Series is taken by position (a filtered index is no time), a read-only pandas
+    array raises no warning, and date-times (NumPy, pandas, zone-aware, or a Series on a
+    DatetimeIndex) are days since the first: the RUL of the same data in days."""
+    import warnings
+
+    import numpy as np
+
+    pd = pytest.importorskip("pandas")
+    t, y = _series(noise_after=0.05)
+    n = 480
+    ref = prognose(y[:n], 3.0, time=t[:n] / 144.0, method="exponential").summary()  # 10-min steps
+    rows = pd.Series(y[:n].numpy(), index=np.arange(n) * 2 + 7, name="rms")  # filtered rows
+    stamps = pd.Timestamp("2004-02-12 10:32:39") + pd.to_timedelta(t[:n].numpy() * 10, unit="min")
+    cases = {
+        "datetime64": (rows.to_numpy(), {"time": stamps.to_numpy()}),
+        "pandas series": (rows, {"time": pd.Series(stamps)}),
+        "zone-aware": (rows, {"time": stamps.tz_localize("Europe/Berlin")}),
+        "DatetimeIndex": (pd.Series(rows.to_numpy(), index=stamps, name="rms"), {}),
+    }
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for label, (values, kw) in cases.items():
+            res = prognose(values, 3.0, method="exponential", **kw)
+            got = res.summary()
+            assert res.time_unit == "days", label
+            assert got["median"] == pytest.approx(ref["median"], rel=1e-9), label
+            assert got["censored_mass"] == pytest.approx(ref["censored_mass"], abs=1e-12), label
+        by_position = prognose(rows, 3.0, method="exponential").summary()
+    plain = prognose(y[:n], 3.0, method="exponential").summary()
+    assert by_position["median"] == plain["median"]
+    bad = stamps.to_numpy().copy()
+    bad[3] = np.datetime64("NaT")
+    with pytest.raises(ValueError, match="NaT"):
+        prognose(rows, 3.0, time=bad)
+    with pytest.raises(TypeError, match="series must be numbers, got date-times"):
+        prognose(pd.Series(stamps), 3.0)
+
+
 def test_explicit_direction_predicts_on_its_side_of_a_series_degrading_the_other_way():
     t, y = _series()
     res = prognose(y, 0.5, time=t, direction="below")

@@ -78,6 +78,17 @@ def test_load_series_csv_values_time_and_where(tmp_path):
     s3 = load_series(path, "value", time_column="timestamp", where={"channel": 2}, until=5 / 24)
     assert torch.equal(s2.values, s3.values)
     assert len(load_series(path, "value", where=["channel=1"], last=4)) == 4
+    # the same rows from pandas: a Series on a DatetimeIndex gives the CSV's series
+    pd = pytest.importorskip("pandas")
+    index = pd.DatetimeIndex([datetime(2024, 1, 1, i) for i in range(12)])
+    p = load_series(pd.Series(x * 2, index=index, name="value"))
+    assert torch.equal(p.values, s.values) and torch.equal(p.time, s.time)
+    assert (p.name, p.time_unit, p.start) == ("value", "days", "2024-01-01T00:00:00")
+    p2 = load_series(pd.Series(x * 2, index=index + pd.Timedelta(0)), until="2024-01-01T05:00")
+    assert torch.equal(p2.values, s2.values)
+    # a filtered pandas Series is taken by position, its index labels are no time
+    sel = pd.Series(x * 2, index=np.arange(12) * 3 + 1)
+    assert load_series(sel).time is None and torch.equal(load_series(sel).values, s.values)
 
 
 def test_load_series_gaps_fill_and_errors(tmp_path):

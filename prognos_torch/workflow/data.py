@@ -186,6 +186,54 @@ def iso_start(stamp: np.datetime64) -> str:
     return str(seconds) if seconds == stamp else str(np.datetime_as_string(stamp, unit="auto"))
 
 
+def array_values(v, name: str) -> np.ndarray:
+    """A 1-D array-like of numbers (tensor, NumPy array, pandas Series or Index, sequence) as
+    a float64 NumPy array of its own (pandas' read-only arrays are copied, never written).
+    A pandas object gives its values by position, not by index label; ``NA`` becomes NaN
+    (missing). Raises ``TypeError`` naming ``name`` for anything else."""
+    if isinstance(v, Tensor):
+        return v.detach().to("cpu", torch.float64).numpy().copy()
+    if is_datetime(v):  # (pandas would give nanoseconds since 1970 as numbers)
+        raise TypeError(f"{name} must be numbers, got date-times ({v.dtype})")
+    try:
+        to_numpy = getattr(v, "to_numpy", None)
+        if to_numpy is not None:  # pandas
+            return np.array(to_numpy(dtype=np.float64, na_value=np.nan))
+        return np.array(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TypeError(
+            f"{name} must be a 1-D array of numbers (a tensor, a NumPy array, a pandas Series "
+            f"or a sequence), got {type(v).__name__}"
+        ) from None
+
+
+def is_datetime(v) -> bool:
+    """``v`` holds date-times: NumPy ``datetime64`` or a pandas datetime Series or Index
+    (with or without a time zone)."""
+    return getattr(getattr(v, "dtype", None), "kind", None) == "M"
+
+
+def array_times(v, name: str) -> tuple[np.ndarray, str | None, str | None]:
+    """Times as float64: numbers as given (unit ``None``: the caller's), or date-times (NumPy
+    ``datetime64``, a pandas datetime Series or ``DatetimeIndex``; zone-aware ones in UTC) as
+    days since the first, with the unit ``"days"`` and the first as ISO 8601 text, as the CSV
+    reader gives them."""
+    if not is_datetime(v):
+        return array_values(v, name), None, None
+    if getattr(v.dtype, "tz", None) is not None:  # pandas, zone-aware: to naive UTC
+        acc = getattr(v, "dt", None)
+        if acc is not None:  # a Series
+            v = acc.tz_convert("UTC").dt.tz_localize(None)
+        else:  # a DatetimeIndex
+            v = v.tz_convert("UTC").tz_localize(None)
+    ns = np.asarray(v).astype("datetime64[ns]")
+    if np.isnat(ns).any():
+        where = _lines([int(i) for i in np.flatnonzero(np.isnat(ns))])
+        raise ValueError(f"{name} has missing date-times (NaT) at index {where}")
+    days = (ns - ns[0]) / np.timedelta64(1, "D")
+    return days.astype(np.float64), "days", iso_start(ns[0])
+
+
 def check_unique_columns(header: Sequence, names: Sequence, source: str) -> None:
     """Each of ``names`` (``None`` skipped) appears at most once in ``header``: a column named
     twice is an error, not a silent choice of one of them."""
@@ -272,11 +320,15 @@ def load_series(
     """Load a univariate series from a CSV column or an array.
 
     Args:
-        source: path of a CSV file with a header row, or a 1-D array/tensor of values.
+        source: path of a CSV file with a header row, or a 1-D array of values (a tensor, a
+            NumPy array, a pandas Series, by position and named after it, or a sequence).
         column: the value column (CSV); may be omitted when the file has exactly one column
             besides ``time_column`` and the ``where`` columns.
         time_column: optional time column (CSV): numbers or ISO 8601 date-times.
-        time: optional ``(T,)`` time values for an array ``source``.
+        time: optional ``(T,)`` time values for an array ``source``: numbers, or date-times
+            (NumPy ``datetime64``, pandas; zone-aware ones in UTC) as days since the first
+            (``time_unit`` ``"days"``), as from a CSV. A pandas Series on a ``DatetimeIndex``
+            takes that index as its time.
         where: rows to keep, e.g. ``{"channel": "5"}`` or ``["channel=5"]`` (CSV).
         fill: ``None`` (missing values are an error), ``"linear"`` or ``"drop"``.
         last: keep only the last ``last`` rows (after ``where`` and ``until``, before gap
@@ -300,9 +352,10 @@ def load_series(
         raise ValueError(f"fill must be None, 'linear' or 'drop', got {fill!r}")
     if last is not None and (isinstance(last, bool) or not isinstance(last, int) or last < 1):
         raise ValueError(f"last must be a positive int, got {last!r}")
-    if not isinstance(source, (str, os.PathLike, Tensor, np.ndarray, Sequence)) or isinstance(
-        source, (bytes, bytearray)
-    ):
+    pandas_like = hasattr(source, "to_numpy") and not isinstance(source, (str, os.PathLike))
+    if not (
+        isinstance(source, (str, os.PathLike, Tensor, np.ndarray, Sequence)) or pandas_like
+    ) or isinstance(source, (bytes, bytearray)):
         raise TypeError(
             f"source must be a CSV path or a 1-D array of numbers, got {type(source).__name__} "
             f"{source!r:.40}"
@@ -316,30 +369,25 @@ def load_series(
     for arg, v in (("name", name), ("time_unit", time_unit)):
         if v is not None and (not isinstance(v, str) or not v):
             raise ValueError(f"{arg} must be a non-empty string, got {v!r}")
-    if isinstance(source, Tensor):
-        arr = source.detach().to("cpu", torch.float64).numpy()
-    else:
-        try:
-            arr = np.asarray(source, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise TypeError(
-                f"source must be a CSV path or a 1-D array of numbers, got {type(source).__name__}"
-            ) from None
+    arr = array_values(source, "source")
     if arr.ndim != 1:
         raise ValueError(f"source must be 1-D (T,), got shape {arr.shape}")
-    tarr = None
+    tarr = start = None
+    if time is None and is_datetime(getattr(source, "index", None)):
+        time = source.index  # a pandas Series on a DatetimeIndex
     if time is not None:
-        tarr = (
-            time.detach().to("cpu", torch.float64).numpy()
-            if isinstance(time, Tensor)
-            else np.asarray(time, dtype=np.float64)
-        )
+        tarr, t_unit, start = array_times(time, "time")
+        if t_unit is not None:
+            if time_unit not in (None, t_unit):
+                raise ValueError(f"time holds date-times (days since the first); time_unit "
+                                 f"{time_unit!r} does not apply")  # fmt: skip
+            time_unit = t_unit
         if tarr.shape != arr.shape:
             raise ValueError(f"time must have shape {arr.shape} like source, got {tarr.shape}")
     if until is not None:
         if tarr is None:
             raise ValueError("until needs a time axis: pass time=...")
-        keep = tarr <= _until_value(until, None)
+        keep = tarr <= _until_value(until, start)
         arr, tarr = arr[keep], tarr[keep]
     if last is not None:
         arr = arr[-last:]
@@ -350,7 +398,9 @@ def load_series(
     idx = list(range(arr.shape[0]))
     arr, tarr, _ = _fill(arr, tarr, ["index"], fill, idx, "source")
     unit = "steps" if tarr is None else (time_unit or "time")
-    return _finish(arr, tarr, name or "series", None, unit, None, None)
+    if name is None and isinstance(getattr(source, "name", None), str) and source.name:
+        name = source.name  # a pandas Series' name
+    return _finish(arr, tarr, name or "series", None, unit, start, None)
 
 
 def _finish(values, time, name, time_name, unit, start, source, lines=None) -> Series:

@@ -73,7 +73,7 @@ import math
 import torch
 from torch import Tensor
 
-from ..core.validation import as_tensor, check_real
+from ..core.validation import check_real
 from ..prognosis.learner_trend import fit_learner_trend
 from ..prognosis.onset import (
     Baseline,
@@ -84,7 +84,7 @@ from ..prognosis.onset import (
 )
 from ..prognosis.rul import RULDistribution
 from ..prognosis.trends import TREND_SHAPES, Passage, fit_trends, path_grid
-from .data import Series
+from .data import Series, array_times, array_values, is_datetime
 from .predict import RULResult
 
 __all__ = [
@@ -116,22 +116,31 @@ def _as_series(series, time) -> tuple[Tensor, Tensor, Series | None]:
         if time is not None:
             raise ValueError("time is taken from the Series; do not pass time= as well")
         return series.values.to("cpu", torch.float64), series.t.to("cpu", torch.float64), series
-    x = as_tensor(series, "series").to("cpu", torch.float64)
+    x = torch.from_numpy(array_values(series, "series"))
     if x.dim() != 1:
         raise ValueError(f"series must be a Series or have shape (T,), got {tuple(x.shape)}")
+    index = getattr(series, "index", None)  # a pandas Series on a DatetimeIndex
+    if time is None and not isinstance(series, Tensor) and is_datetime(index):
+        time = index
+    src = None
     if time is None:
-        t = torch.arange(x.shape[0], dtype=torch.float64, device=x.device)
+        t = torch.arange(x.shape[0], dtype=torch.float64)
     else:
-        t = as_tensor(time, "time", device=x.device).to(torch.float64)
+        tv, unit, start = array_times(time, "time")
+        t = torch.from_numpy(tv)
         if tuple(t.shape) != tuple(x.shape):
             raise ValueError(f"time must have shape {tuple(x.shape)} (T,), got {tuple(t.shape)}")
+        if unit is not None:  # date-times: days since the first, as from a CSV
+            name = getattr(series, "name", None)
+            src = Series(x, t, name if isinstance(name, str) and name else "series", "time",
+                         unit, start)  # fmt: skip
     if bool(torch.isinf(x).any()):
         raise ValueError("series contains inf (use NaN to mark a missing value)")
     if not bool(torch.isfinite(t).all()):
         raise ValueError("time must be finite")
     if x.shape[0] > 1 and not bool((t[1:] > t[:-1]).all()):
         raise ValueError("time must be strictly increasing, shape (T,)")
-    return x, t, None
+    return x, t, src
 
 
 def _check_int(v, name: str, lo: int) -> int:
@@ -345,10 +354,14 @@ def prognose(
     """RUL distribution of a degradation series for a failure ``threshold`` (module docstring).
 
     Args:
-        series: a :class:`~prognos_torch.workflow.Series` or values ``(T,)`` (NaN: missing), on
-            any device (the computation and the result are on the CPU).
+        series: a :class:`~prognos_torch.workflow.Series` or values ``(T,)`` (NaN: missing): a
+            tensor on any device (the computation and the result are on the CPU), a NumPy
+            array, a pandas Series (by position; on a ``DatetimeIndex`` that index is the
+            time) or a sequence.
         threshold: failure threshold in data units.
-        time: ``(T,)`` strictly increasing times for array input (default: the index).
+        time: ``(T,)`` strictly increasing times for array input (default: the position):
+            numbers, or date-times (NumPy ``datetime64``, pandas; zone-aware ones in UTC),
+            which become days since the first, so that the RUL is in days.
         method: ``"auto"`` (the exponential + elm pool), ``"exponential"``, ``"power"``,
             ``"linear"`` or ``"elm"`` (:data:`PROGNOSE_METHODS`).
         seed: seeds the path draws and the ELM's random features.
