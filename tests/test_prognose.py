@@ -299,6 +299,23 @@ def test_bad_input(kwargs, match):
         prognose(y, time=t, **kwargs)
 
 
+def test_block_means_end_at_the_newest_value():
+    """Above max_points values since onset the filter sees block means; the newest block is
+    always a full one (a short newest block entered with a full block's noise, so the RUL
+    followed the parity of the number of values), the oldest takes the remainder."""
+    from prognos_torch.workflow.prognose import _blocks
+
+    g = torch.Generator().manual_seed(0)
+    for n in (501, 502, 1003):
+        t = torch.arange(n, dtype=F64)
+        y = torch.randn(n, generator=g, dtype=F64)
+        tb, yb, s0, size = _blocks(t, y, 0.3, 500)
+        assert size == math.ceil(n / 500) and s0 == pytest.approx(0.3 / math.sqrt(size))
+        torch.testing.assert_close(yb[-1], y[-size:].mean(), rtol=0, atol=1e-15)
+        torch.testing.assert_close(tb[1:], t[n % size + size :].reshape(-1, size).mean(1))
+        torch.testing.assert_close(yb[0], y[: size + n % size].mean(), rtol=0, atol=1e-15)
+
+
 def test_pandas_and_datetime_input_give_the_array_result():
     """A pandas Series is taken by position (a filtered index is no time), a read-only pandas
     array raises no warning, and date-times (NumPy, pandas, zone-aware, or a Series on a

@@ -150,17 +150,18 @@ def _check_int(v, name: str, lo: int) -> int:
 
 
 def _blocks(t: Tensor, y: Tensor, sigma0: float, max_points: int):
-    """Equal-count block means when there are more than ``max_points`` values."""
+    """Block means of ``size`` values when there are more than ``max_points`` values, ending
+    at the newest value; the oldest block also takes the ``n mod size`` values left over (its
+    mean's noise, below ``sigma0 / sqrt(size)``, is overstated). A short newest block would
+    enter the filter with a full block's noise, and the RUL would follow the parity of the
+    number of values."""
     n = t.shape[0]
     if n <= max_points:
         return t, y, sigma0, 1
     size = math.ceil(n / max_points)
-    m = n // size
-    tb = t[: m * size].reshape(m, size).mean(1)
-    yb = y[: m * size].reshape(m, size).mean(1)
-    if m * size < n:  # the newest values form the last block
-        tb = torch.cat([tb, t[m * size :].mean().reshape(1)])
-        yb = torch.cat([yb, y[m * size :].mean().reshape(1)])
+    first = size + n % size
+    tb = torch.cat([t[:first].mean().reshape(1), t[first:].reshape(-1, size).mean(1)])
+    yb = torch.cat([y[:first].mean().reshape(1), y[first:].reshape(-1, size).mean(1)])
     return tb, yb, sigma0 / math.sqrt(size), size
 
 
