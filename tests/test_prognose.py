@@ -299,6 +299,17 @@ def test_bad_input(kwargs, match):
         prognose(y, time=t, **kwargs)
 
 
+def test_a_threshold_reached_before_and_fallen_back_from_is_flagged():
+    t, y = _series(noise_after=0.05)
+    y = y[:480].clone()
+    y[440:446] = 3.5  # the median of 5 crosses 3.0, then the series falls back
+    res = prognose(y, 3.0, time=t[:480], method="exponential")
+    assert res.status == "ok"
+    assert any("already reached the threshold at 442" in f for f in res.flags), res.flags
+    clean = prognose(_series(noise_after=0.05)[1][:480], 3.0, time=t[:480], method="exponential")
+    assert not any("already reached" in f for f in clean.flags)
+
+
 def test_block_means_end_at_the_newest_value():
     """Above max_points values since onset the filter sees block means; the newest block is
     always a full one (a short newest block entered with a full block's noise, so the RUL

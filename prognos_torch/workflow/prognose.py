@@ -442,6 +442,13 @@ def prognose(
             f"{sign * now:.4g} (direction {direction!r}); the RUL is 0"
         )
     flags = _baseline_flags(base)
+    over = torch.nonzero(moving_median(yo, 5) >= thr_o).flatten()
+    if over.numel():  # (the newest median is below it: checked above)
+        flags.append(
+            f"the median of 5 values already reached the threshold at {float(t[over[0]]):g} "
+            f"and fell back ({over.numel()} such medians): the asset may already count as "
+            "failed; the RUL is that of a new crossing"
+        )
     if float(yo[-1]) >= thr_o:
         flags.append(
             "the last value is beyond the threshold while the median of the last 5 is not "
