@@ -221,6 +221,12 @@ def test_missing_values_are_skipped():
     a = prognose(ym, 3.0, time=t, method="exponential", seed=1)
     b = prognose(y[keep], 3.0, time=t[keep], method="exponential", seed=1)
     assert a.summary()["median"] == b.summary()["median"]
+    # the onset's indices and statistic refer to the series as given (NaN where missing)
+    oa, ob = a.onset, b.onset
+    assert oa.time == ob.time and float(t[oa.index]) == oa.time
+    assert float(t[oa.alarm_index]) == oa.alarm_time
+    assert oa.statistic.shape == ym.shape and bool(torch.isnan(oa.statistic[gone]).all())
+    torch.testing.assert_close(oa.statistic[keep], ob.statistic)
 
 
 def test_evaluation_time_after_the_last_observation():

@@ -69,6 +69,7 @@ units of the data (scale, offset, sign) and of the clock (scale, origin), for ev
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import torch
 from torch import Tensor
@@ -77,6 +78,7 @@ from ..core.validation import check_real
 from ..prognosis.learner_trend import fit_learner_trend
 from ..prognosis.onset import (
     Baseline,
+    Onset,
     detect_onset,
     healthy_baseline,
     moving_median,
@@ -473,9 +475,10 @@ def prognose(
         threshold=thr, direction=direction, time_unit=_unit(src), history=_history(x, t, src)
     )
 
+    reported = _on_input(ons, keep)
     if not ons.detected:
         return _no_degradation(
-            t, yo, thr_o, sign, base, ons, gen, t_eval, span_life, dt_data, filter, common
+            t, yo, thr_o, sign, base, reported, gen, t_eval, span_life, dt_data, filter, common
         )
 
     i0 = ons.index
@@ -566,7 +569,7 @@ def prognose(
         filter=getattr(fit, "filter", "ekf (Kalman optimiser)"),
         n_particles=n_paths,
         status="ok",
-        onset=ons,
+        onset=reported,
         model=chosen,
         flags=tuple(flags),
         selection=selection,
@@ -597,6 +600,22 @@ def _uniform_paths(paths, grid, t_eval, bin_width, bins, sign) -> Tensor:
     g = grid.numpy()
     out = np.stack([np.interp(tq, g, p) for p in paths.numpy()])
     return sign * torch.as_tensor(out, dtype=torch.float64)
+
+
+def _on_input(ons: Onset, keep: Tensor) -> Onset:
+    """The onset with its indices into the series as given and its statistic ``(T,)`` with
+    NaN at the missing values (the detector saw the observed values only)."""
+    if bool(keep.all()):
+        return ons
+    pos = torch.nonzero(keep).flatten()
+    stat = torch.full(keep.shape, math.nan, dtype=ons.statistic.dtype)
+    stat[pos] = ons.statistic
+    return replace(
+        ons,
+        index=None if ons.index is None else int(pos[ons.index]),
+        alarm_index=None if ons.alarm_index is None else int(pos[ons.alarm_index]),
+        statistic=stat,
+    )
 
 
 def _rul_at(
