@@ -19,6 +19,8 @@ import sys
 import warnings
 from pathlib import Path
 
+from .cli_prognose import fmt_time
+
 __all__ = ["main", "build_parser"]
 
 
@@ -523,7 +525,7 @@ def _cmd_forecast(args) -> int:
     pct = f"{100 * fc.level:g} %"
     print(
         f"forecast of {_describe(series, data_cfg)}: {H} steps after t = "
-        f"{float(series.t[-1]):g} {unit}, {fc.filter.upper()}, {pct} band"
+        f"{fmt_time(float(series.t[-1]))} {unit}, {fc.filter.upper()}, {pct} band"
     )
     print(_table(rows, header))
     if actual is not None:
@@ -533,7 +535,7 @@ def _cmd_forecast(args) -> int:
         last = series.values[-1].expand(n)
         pers = (last - actual).square().mean().sqrt()
         print(
-            f"against the {n} observed values after t = {float(series.t[-1]):g}: RMSE "
+            f"against the {n} observed values after t = {fmt_time(float(series.t[-1]))}: RMSE "
             f"{_fmt(float(err))}, band coverage {_fmt(float(inside))}, persistence RMSE "
             f"{_fmt(float(pers))}"
         )
@@ -612,7 +614,7 @@ def _cmd_rul(args) -> int:
             else "n/a"
         )
     print(
-        f"RUL of {_describe(series, data_cfg)} at t = {res.t_last:g} {unit}: threshold "
+        f"RUL of {_describe(series, data_cfg)} at t = {fmt_time(res.t_last)} {unit}: threshold "
         f"{res.threshold:g} ({res.direction}), {res.filter.upper()} with {res.n_particles} "
         f"particles, horizon {res.horizon} steps = {res.bound:g} {unit}"
     )

@@ -8,7 +8,14 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["run_prognose", "observed_rul"]
+__all__ = ["run_prognose", "observed_rul", "fmt_time"]
+
+
+def fmt_time(v: float) -> str:
+    """A time on the series' clock with 10 significant digits: Unix seconds (1.7e9) and day
+    counts keep the digits that tell two times apart (``%g`` prints 1700021180 and
+    1700017580 both as 1.70002e+09)."""
+    return f"{v:.10g}"
 
 
 def _fmt(v, digits: int = 4) -> str:
@@ -54,11 +61,11 @@ def run_prognose(args, series, data_cfg: dict, truth=None) -> str | None:
     where = data_cfg.get("where") or {}
     sel = f" ({', '.join(f'{k}={v}' for k, v in where.items())})" if where else ""
     print(
-        f"RUL of {series.name!r}{sel} from {series.source} at t = {res.t_last:g} {unit}: "
+        f"RUL of {series.name!r}{sel} from {series.source} at t = {fmt_time(res.t_last)} {unit}: "
         f"threshold {res.threshold:g} ({res.direction})"
     )
     on = res.onset
-    onset = f"{on.time:g} {unit} ({on.method}, baseline mean {on.baseline.mean:.4g}, std " \
+    onset = f"{fmt_time(on.time)} {unit} ({on.method}, baseline mean {on.baseline.mean:.4g}, std " \
         f"{on.baseline.std:.4g})" if on is not None and on.detected else "not detected"  # fmt: skip
     rows = [("status", res.status), ("degradation onset", onset)]
     if res.status == "ok":
@@ -92,8 +99,8 @@ def run_prognose(args, series, data_cfg: dict, truth=None) -> str | None:
         print(f"figure written to {args.plot}")
     if res.status == "ok" and res.censored_mass > 0:
         return (
-            f"{100 * res.censored_mass:.0f} % of the predicted paths do not reach the threshold "
-            f"{res.threshold:g} within the horizon of {res.bound:g} {unit} (2 x the observed life); "
-            "their RUL exceeds it and the mean is withheld"
+            f"{100 * res.censored_mass:.3g} % of the predicted paths do not reach the threshold "
+            f"{res.threshold:g} within the horizon of {res.bound:g} {unit}; their RUL exceeds it "
+            "and the mean is withheld"
         )
     return None

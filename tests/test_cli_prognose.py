@@ -53,3 +53,29 @@ def test_bad_input_is_one_line_and_exit_2(capsys, tmp_path):
     assert main(["rul", str(path), "--column", "value", "--threshold", "2", "--method",
                  "cubic"]) == 2  # fmt: skip
     assert "method must be one of" in capsys.readouterr().err
+
+
+def test_epoch_times_and_small_censored_masses_are_printed_in_full(capsys, tmp_path):
+    """Unix-second times keep their digits (``%g`` printed 1700021180 and 1700017580 both as
+    1.70002e+09); a censored mass under 0.5 % reads as such (it read '0 %'), and the horizon is
+    not described as '2 x the observed life' (it can be longer)."""
+    from prognos_torch.workflow import prognose
+
+    t = torch.arange(550, dtype=torch.float64)
+    y = 1.0 + 0.05 * (-1.0) ** torch.arange(550, dtype=torch.float64)
+    g = torch.Generator().manual_seed(2)
+    rise = 0.05 * torch.exp(0.02 * (t - 400).clamp(min=0))
+    y = torch.where(t >= 400, 1.0 + rise * torch.exp(0.05 * torch.randn(550, generator=g)), y)
+    stamps = 1.7e9 + 600.0 * t[:480]
+    path = tmp_path / "epoch.csv"
+    path.write_text(
+        "t,value\n" + "".join(f"{float(s)!r},{float(v)!r}\n" for s, v in zip(stamps, y))
+    )
+    res = prognose(y[:480], 3.0, time=stamps)
+    code = main(["rul", str(path), "--column", "value", "--time-column", "t", "--threshold", "3"])
+    cap = capsys.readouterr()
+    assert f"at t = {stamps[-1]:.0f} t:" in cap.out
+    assert f"{res.onset.time:.0f} t (ksigma" in cap.out
+    if res.censored_mass > 0:
+        assert code == 3 and f"{100 * res.censored_mass:.3g} % of the predicted" in cap.err
+        assert "observed life" not in cap.err
