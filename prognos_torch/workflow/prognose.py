@@ -54,7 +54,9 @@ Pipeline of :func:`prognose` (every step a library function with its own tests):
 6. **Guard rails** (``flags``): a threshold far beyond the range seen since onset (more than 3
    times the rise observed so far, in the model's measurement space), diverging paths, censored
    mass above 5 %, few observations since onset, a last value beyond the threshold while the
-   median is not.
+   median is not, a threshold that the median of 5 values reached before and fell back from.
+   With ``direction="auto"`` a series that left its healthy band only on the side away from
+   the threshold is refused (a threshold on the wrong side), not reported as healthy.
 
 Before onset the lower bound is the 5 % quantile of the first passage under a local *linear*
 trend (drift and Brownian level) fitted to the healthy data, or the horizon when even that is
