@@ -119,3 +119,93 @@ def test_particle_run_is_the_step_by_step_loop():
         assert torch.equal(tr.particles[t], info.particles)
     assert bool(tr.missing[4, 1]) and not bool(tr.missing[4, 0])
     assert torch.equal(tr.final.particles, state.particles)
+
+
+def test_scan_runs_later_steps_in_inference_mode_when_nothing_needs_a_gradient():
+    """``inference=True``: once the first step shows that nothing needs a gradient, the other
+    steps run under inference mode; what is handed out is ordinary all the same (writable,
+    usable with autograd). A state that needs a gradient keeps autograd at every step."""
+    modes = []
+
+    def step(s, y, u, k):
+        modes.append(torch.is_inference_mode_enabled())
+        return s + y, None
+
+    ys = torch.arange(4.0, dtype=F64).reshape(4, 1)
+    final, out = scan(step, torch.zeros(1, dtype=F64), ys, record=lambda s, i: {"s": s},
+                      inference=True)  # fmt: skip
+    assert modes == [False, True, True, True]
+    assert not final.is_inference() and not out["s"].is_inference()
+    final.add_(1.0)  # writable outside inference mode
+    modes.clear()
+    x0 = torch.zeros(1, dtype=F64, requires_grad=True)
+    final, out = scan(step, x0, ys, record=lambda s, i: {"s": s}, inference=True)
+    assert modes == [False] * 4
+    out["s"].sum().backward()
+    assert float(x0.grad) == 4.0
+
+
+def test_filter_runs_hand_out_ordinary_tensors_and_stay_differentiable():
+    model, ys, b0 = _problem()
+    tr = run(sckf(), model, b0, ys)
+    assert not tr.final.belief.mean.is_inference() and not tr.final.belief.chol.is_inference()
+    assert not tr.means.is_inference()
+    ptr = sir(64).run(model, b0, ys, generator=torch.Generator().manual_seed(3))
+    assert not ptr.final.particles.is_inference() and not ptr.final.log_weights.is_inference()
+    ptr.final.particles.mul_(1.0)
+    m0 = b0.mean.clone().requires_grad_(True)
+    tr = run(sckf(), model, GaussianBelief(m0, b0.chol), ys)
+    tr.log_likelihoods.sum().backward()
+    assert m0.grad is not None and bool(torch.isfinite(m0.grad).all())
+
+
+def test_caches_filled_in_inference_mode_hold_ordinary_tensors():
+    """A step run in inference mode may fill the library's caches; what they keep must serve
+    a later step that autograd records (an inference tensor cannot be saved for backward)."""
+    from prognos_torch.filters._blocks import _sigma_points
+    from prognos_torch.filters.resampling import _arange, _arange_long
+    from prognos_torch.learners import ANFIS
+
+    like = torch.zeros(3, dtype=F64)
+    with torch.inference_mode():
+        sig = _sigma_points(sckf().rule, 13, like)
+        j, jl = _arange(12347, like), _arange_long(12347, like.device)
+        consts = ANFIS(2, 2)._constants(like)
+    tensors = [sig.xi, sig.wm, j, jl, *consts]
+    assert not any(t.is_inference() for t in tensors)
+    w = torch.ones(sig.wm.shape, dtype=F64, requires_grad=True)
+    (sig.wm * w).sum().backward()  # saved for backward: fails with an inference tensor
+
+
+def test_a_model_that_differentiates_inside_falls_back_to_autograd_with_the_same_draws():
+    """A transition Jacobian by reverse-mode autograd cannot run in inference mode: that step
+    is undone (the generator's draws too) and the run goes on with autograd, with the numbers
+    of the step-by-step loop."""
+    from prognos_torch.core.model import StateSpaceModel
+    from prognos_torch.filters import stpf
+
+    def f(x, u, k):
+        return x + 0.1 * torch.sin(x)
+
+    def jac_f(x, u, k):
+        with torch.enable_grad():
+            xr = x.detach().clone().requires_grad_(True)
+            (g,) = torch.autograd.grad(f(xr, u, k).sum(), xr)
+        return g.unsqueeze(-1)
+
+    model = StateSpaceModel(
+        f=f, h=lambda x, u, k: x, state_dim=1, obs_dim=1, batched=True, jac_f=jac_f,
+        jac_h=lambda x, u, k: torch.ones_like(x).unsqueeze(-1),
+        chol_Q=torch.tensor([[0.1]], dtype=F64), chol_R=torch.tensor([[0.3]], dtype=F64),
+    )  # fmt: skip
+    ys = torch.cumsum(0.1 * torch.ones(12, 1, dtype=F64), 0)
+    b0 = GaussianBelief(torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64))
+    pf = stpf(50)
+    a = pf.run(model, b0, ys, generator=torch.Generator().manual_seed(4))
+    g = torch.Generator().manual_seed(4)
+    state = pf.init(model, b0, generator=g, k=0)
+    for t in range(ys.shape[0]):
+        state, info = pf.step(model, state, ys[t], None, t + 1, generator=g)
+        assert torch.equal(a.means[t], info.mean) and torch.equal(a.ess[t], info.ess)
+    assert torch.equal(a.final.particles, state.particles)
+    assert not a.final.particles.is_inference()

@@ -251,25 +251,31 @@ def _sigma_points(rule: SigmaPoints, n: int, like: Tensor) -> _Sigma:
     key = (rule, n, like.dtype, like.device)
     sig = _SIGMA_CACHE.get(key)
     if sig is None:
-        xi, wm, wc = rule.points(n, dtype=like.dtype, device=like.device)
-        pos = (wc > 0).nonzero().squeeze(-1)
-        neg = (wc < 0).nonzero().squeeze(-1)
-        has_neg = neg.numel() > 0
-        centre, scale = _symmetric_rule(xi)
-        sig = _Sigma(
-            xi,
-            wm,
-            None if pos.numel() == wc.numel() else pos,
-            neg if has_neg else None,
-            wc[pos].sqrt().unsqueeze(-1),
-            (-wc[neg]).sqrt().unsqueeze(-1) if has_neg else None,
-            centre,
-            scale,
-        )
+        with torch.inference_mode(False), torch.no_grad():  # ordinary tensors in the cache
+            sig = _make_sigma(rule, n, like)
         if len(_SIGMA_CACHE) > 256:
             _SIGMA_CACHE.clear()
         _SIGMA_CACHE[key] = sig
     return sig
+
+
+def _make_sigma(rule: SigmaPoints, n: int, like: Tensor) -> _Sigma:
+    """The cached form of ``rule``'s points and weights for dimension ``n``."""
+    xi, wm, wc = rule.points(n, dtype=like.dtype, device=like.device)
+    pos = (wc > 0).nonzero().squeeze(-1)
+    neg = (wc < 0).nonzero().squeeze(-1)
+    has_neg = neg.numel() > 0
+    centre, scale = _symmetric_rule(xi)
+    return _Sigma(
+        xi,
+        wm,
+        None if pos.numel() == wc.numel() else pos,
+        neg if has_neg else None,
+        wc[pos].sqrt().unsqueeze(-1),
+        (-wc[neg]).sqrt().unsqueeze(-1) if has_neg else None,
+        centre,
+        scale,
+    )
 
 
 def _symmetric_rule(xi: Tensor) -> tuple[bool, float | None]:

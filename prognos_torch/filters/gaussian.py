@@ -155,7 +155,8 @@ def _gram(S: Tensor) -> Tensor:
     hit = _GRAM_CACHE.get(key)
     if hit is not None and hit[0] is S:
         return hit[1]
-    G = S @ S.mT
+    with torch.inference_mode(False):  # an ordinary tensor in the cache
+        G = S @ S.mT
     if len(_GRAM_CACHE) > 16:
         _GRAM_CACHE.clear()
     _GRAM_CACHE[key] = (S, G)

@@ -820,5 +820,11 @@ class ParticleFilter:
                 "log_weights": info.log_weights if keep_particles else None,
             }
 
-        state, stacked = scan(step, state, ys, us, record=record, k0=k0)
+        def rewind():  # a step redone with autograd draws the same numbers again
+            saved = generator.get_state()
+            return lambda: generator.set_state(saved)
+
+        state, stacked = scan(
+            step, state, ys, us, record=record, k0=k0, inference=True, rewind=rewind
+        )
         return ParticleTrajectory(**stacked, final=state)

@@ -126,7 +126,8 @@ def _arange(N: int, like: Tensor) -> Tensor:
     if j is None:
         if len(_ARANGE) > 64:
             _ARANGE.clear()
-        j = _ARANGE[key] = torch.arange(N, dtype=like.dtype, device=like.device)
+        with torch.inference_mode(False):  # an ordinary tensor, whatever mode fills it
+            j = _ARANGE[key] = torch.arange(N, dtype=like.dtype, device=like.device)
     return j
 
 
@@ -204,7 +205,8 @@ def _arange_long(n: int, device) -> Tensor:
     if j is None:
         if len(_ARANGE_LONG) > 64:
             _ARANGE_LONG.clear()
-        j = _ARANGE_LONG[key] = torch.arange(n, device=device)
+        with torch.inference_mode(False):
+            j = _ARANGE_LONG[key] = torch.arange(n, device=device)
     return j
 
 

@@ -146,7 +146,8 @@ def run(
             infos.append(info)
         return s, info
 
-    state, stacked = scan(step, state, ys, us, record=_record, k0=k0)
+    # (with keep_steps the steps' StepInfo are handed out: they stay ordinary tensors)
+    state, stacked = scan(step, state, ys, us, record=_record, k0=k0, inference=not keep_steps)
     # one vectorised pass over the whole trajectory instead of one per step
     stacked["nis"], stacked["log_likelihoods"] = innovation_stats(
         stacked["innovations"],

@@ -362,6 +362,11 @@ class ANFIS(nn.Module):
         if cache is None:
             cache = self._forward_constants = {}
         if key not in cache:
+            cache[key] = self._make_constants(like)
+        return cache[key]
+
+    def _make_constants(self, like: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        with torch.inference_mode(False), torch.no_grad():  # ordinary tensors in the cache
             G = torch.zeros(
                 self.n_inputs * self.n_mfs, self.n_rules, dtype=like.dtype, device=like.device
             )
@@ -370,8 +375,7 @@ class ANFIS(nn.Module):
                     G[j * self.n_mfs + l, i] = 1.0
             E = torch.eye(self.n_inputs, dtype=like.dtype, device=like.device)
             E = E.repeat_interleave(self.n_mfs, dim=-1)
-            cache[key] = (G, torch.eye(self.n_rules, dtype=like.dtype, device=like.device), E)
-        return cache[key]
+            return G, torch.eye(self.n_rules, dtype=like.dtype, device=like.device), E
 
     # ---------------------------------------------------------------- initialisation helpers
     @torch.no_grad()
