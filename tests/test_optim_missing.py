@@ -15,7 +15,7 @@ import torch
 from torch import nn
 
 from prognos_torch.learners import ELM
-from prognos_torch.optim import EKF, SRUKF, fit
+from prognos_torch.optim import EKF, SRUKF, KalmanOptimizer, fit
 
 torch.set_num_threads(1)
 
@@ -130,11 +130,6 @@ def test_gradient_baseline_default_loss_leaves_missing_targets_out():
     torch.testing.assert_close(a.weight, b.weight, rtol=0, atol=1e-14)
     torch.testing.assert_close(torch.stack(ha.loss), torch.stack(hb.loss), rtol=0, atol=1e-14)
     torch.testing.assert_close(ha.train["mae"][-1], hb.train["mae"][-1], rtol=0, atol=1e-14)
-    # a mini-batch with no observed target contributes no gradient
-    c = nn.Linear(3, 1, dtype=torch.float64)
-    w = c.weight.detach().clone()
-    fit(c, torch.optim.SGD(c.parameters(), lr=0.1), (X[5:6], Ym[5:6]), progress=False)
-    torch.testing.assert_close(c.weight.detach(), w, rtol=0, atol=0)
 
 
 def test_bad_values_are_refused_by_name():
@@ -162,3 +157,80 @@ def test_bad_values_are_refused_by_name():
         )
     with pytest.raises(ValueError, match="compiled pass needs complete targets"):
         SRUKF(lin).steps(X[:20].reshape(5, 4, 3), Ym[:20].reshape(5, 4, 2), compile=True)
+
+
+def test_robust_filter_refuses_partly_missing_batches_and_predicts_through_empty_ones():
+    from prognos_torch.filters import rukf
+
+    X, _, Ym = _data()
+    lin = nn.Linear(3, 2, dtype=torch.float64)
+    M = 0.1 * torch.eye(8, dtype=torch.float64)
+    opt = KalmanOptimizer(lin, filter=rukf(1.05, M, 0.1), P0=0.5, Q=1e-3, R=0.2)
+    part = Ym[6:10].clone()
+    assert bool(torch.isnan(part).any()) and not bool(torch.isnan(part).all())
+    theta = opt.theta.clone()
+    with pytest.raises(ValueError, match="robust filter updates with whole mini-batches"):
+        opt.step(X[6:10], part)
+    torch.testing.assert_close(opt.theta, theta, rtol=0, atol=0)  # nothing written
+    opt.step(X[:4], torch.full((4, 2), float("nan"), dtype=torch.float64))  # a prediction
+    torch.testing.assert_close(opt.theta, theta, rtol=0, atol=0)
+
+
+def test_fit_refuses_compile_with_missing_targets_before_any_step():
+    X, _, Ym = _data(N=12)
+    lin = nn.Linear(3, 2, dtype=torch.float64)
+    opt = SRUKF(lin)
+    theta = opt.theta.clone()
+    with pytest.raises(ValueError, match="compiled pass needs complete targets"):
+        fit(lin, opt, (X, Ym), batch_size=5, compile=True, progress=False)
+    torch.testing.assert_close(opt.theta, theta, rtol=0, atol=0)
+
+
+def test_gradient_optimiser_takes_no_step_on_a_batch_with_nothing_observed():
+    X, Y, _ = _data(N=6, n_out=1)
+    Ym = Y.clone()
+    Ym[2:4] = float("nan")  # the second mini-batch of 2 has no target
+    a, b = nn.Linear(3, 1, dtype=torch.float64), nn.Linear(3, 1, dtype=torch.float64)
+    b.load_state_dict(a.state_dict())
+    ha = fit(a, torch.optim.SGD(a.parameters(), lr=0.1, momentum=0.9), (X, Ym), batch_size=2,
+             progress=False)  # fmt: skip
+    keep = torch.tensor([0, 1, 4, 5])
+    hb = fit(b, torch.optim.SGD(b.parameters(), lr=0.1, momentum=0.9), (X[keep], Y[keep]),
+             batch_size=2, progress=False)  # fmt: skip
+    torch.testing.assert_close(a.weight, b.weight, rtol=0, atol=0)
+    torch.testing.assert_close(ha.loss[0], hb.loss[0], rtol=0, atol=1e-15)
+
+
+def test_all_missing_targets_of_a_run_are_refused_by_name():
+    X, Y, _ = _data(N=12, n_out=1)
+    lin = nn.Linear(3, 1, dtype=torch.float64)
+    nan = torch.full_like(Y, float("nan"))
+    with pytest.raises(ValueError, match="val targets Y are all missing"):
+        fit(lin, EKF(lin), (X, Y), val=(X, nan), early_stopping=2, progress=False)
+    from prognos_torch.optim import KalmanOptimizer as KO
+
+    Yr = torch.stack([Y, nan, Y])
+    Xr = X.expand(3, -1, -1).clone()
+    with pytest.raises(ValueError, match="train targets Y of run 1 are all missing"):
+        fit(lin, KO(lin, runs=3, per_run_data=True), (Xr, Yr), progress=False)
+
+
+def test_fit_together_leaves_missing_targets_out():
+    from prognos_torch.optim import fit_together
+
+    X, Y, _ = _data(N=10, n_out=1)
+    Ym = Y.clone()
+    Ym[[2, 7]] = float("nan")
+    keep = ~torch.isnan(Ym[:, 0])
+    init = [nn.Linear(3, 1, dtype=torch.float64) for _ in range(2)]
+    again = [nn.Linear(3, 1, dtype=torch.float64) for _ in range(2)]
+    for a, b in zip(init, again):
+        b.load_state_dict(a.state_dict())
+
+    def opt(ps):
+        return torch.optim.Adam(ps, lr=1e-2)
+
+    sa = fit_together(init, opt, (X, Ym), epochs=3, batch_size=10, progress=False)
+    sb = fit_together(again, opt, (X[keep], Y[keep]), epochs=3, batch_size=8, progress=False)
+    for pa, pb in zip(sa.parameter_sets().values(), sb.parameter_sets().values()):
+        torch.testing.assert_close(pa, pb, rtol=0, atol=1e-15)

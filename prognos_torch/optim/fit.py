@@ -16,6 +16,7 @@ evaluated after every epoch on the whole training set (and ``val``) in float64.
 from __future__ import annotations
 
 import copy
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -144,13 +145,18 @@ def _check_data(data, name: str, runs: int | None = None) -> tuple[Tensor, Tenso
     return X, Y
 
 
-def _check_values(X: Tensor, Y: Tensor, name: str) -> bool:
-    """Finite inputs; targets finite or NaN (missing). Returns whether any target is missing."""
+def _check_values(X: Tensor, Y: Tensor, name: str, runs: int | None) -> bool:
+    """Finite inputs; targets finite or NaN (missing), with at least one observed target (per
+    run with per-run data). Returns whether any target is missing."""
     check_finite(X, f"{name} inputs X")
     if all_finite(Y):
         return False
     if bool(torch.isinf(Y).any()):
         raise ValueError(f"{name} targets Y contain inf (NaN marks a missing target)")
+    seen = (~torch.isnan(Y)).reshape(runs or 1, -1).any(-1)
+    if not bool(seen.all()):
+        whose = "" if runs is None else f" of run {int((~seen).nonzero()[0, 0])}"
+        raise ValueError(f"{name} targets Y{whose} are all missing (NaN): nothing to fit or score")
     return True
 
 
@@ -217,9 +223,13 @@ def fit(
         train: inputs ``X`` ``(N, ...)`` and targets ``Y`` ``(N, ...)`` (``module(X).shape``);
             for a :class:`KalmanOptimizer` with ``per_run_data``, ``(R, N, ...)`` each.
             ``X`` finite; NaN in ``Y`` marks a missing target: a Kalman optimiser updates with
-            the observed entries of each mini-batch (one with none observed only adds the
-            random walk's ``Q``), the default loss of gradient optimisers and the metrics
-            leave them out, and the epoch's loss is the mean over steps that observed one.
+            the observed entries of each mini-batch (one with none observed is the filter's
+            prediction alone, ``P + Q`` for the random walk; strong tracking and noise
+            estimators skip a mini-batch with any target missing; a robust filter refuses
+            one with some missing), the default loss of gradient optimisers and the built-in
+            metrics leave them out (a metric callable gets them as they are), a gradient
+            optimiser takes no step on a mini-batch with none observed, and the epoch's loss
+            is the mean over the steps that observed one. Every run needs an observed target.
         epochs: number of passes over ``train``.
         batch_size: samples per optimiser step (Kalman: the measurement vector of one step).
         shuffle: draw a new order of the samples each epoch (``torch.randperm`` with
@@ -234,7 +244,9 @@ def fit(
             (a Kalman optimiser with a noise estimator or strong tracking needs equal sizes).
         progress: show a ``tqdm`` progress bar.
         metrics: names in :data:`METRICS` or callables ``(pred, target) -> Tensor``.
-        loss_fn: loss of gradient optimisers (default: mean squared error).
+        loss_fn: loss of gradient optimisers (default: mean squared error). With missing
+            targets a loss_fn must leave them out itself and say so by an attribute
+            ``loss_fn.handles_missing = True`` (as :func:`~prognos_torch.optim.run_sum_mse`).
         compile: a :class:`KalmanOptimizer` runs each epoch's full mini-batches as one
             compiled sequence (:meth:`KalmanOptimizer.steps` with ``compile=True``: the same
             numbers as eager steps up to rounding, float64 ``<= 1e-12``); a last, smaller
@@ -248,10 +260,10 @@ def fit(
     per_run = isinstance(optimizer, KalmanOptimizer) and optimizer.per_run_data
     runs = optimizer.runs if per_run else None
     X, Y = _check_data(train, "train", runs)
-    missing = _check_values(X, Y, "train")
+    missing = _check_values(X, Y, "train", runs)
     if val is not None:
         Xv, Yv = _check_data(val, "val", runs)
-        _check_values(Xv, Yv, "val")
+        _check_values(Xv, Yv, "val", runs)
     if not isinstance(optimizer, torch.optim.Optimizer):
         raise TypeError(f"optimizer must be a torch.optim.Optimizer, got {type(optimizer)}")
     if not isinstance(module, nn.Module):
@@ -276,11 +288,11 @@ def fit(
         raise ValueError("optimizer is a KalmanOptimizer built on a different module")
     if loss_fn is None:
         loss_fn = _observed_mse if missing else nn.functional.mse_loss
-    elif missing and not kalman:
+    elif missing and not kalman and not getattr(loss_fn, "handles_missing", False):
         raise ValueError(
             "train targets contain NaN (missing): the default loss leaves them out, a custom "
-            "loss_fn would get them; drop those samples or mask them in loss_fn and pass "
-            "targets without NaN"
+            "loss_fn would get them; drop those samples, or leave them out in loss_fn and "
+            "mark it with loss_fn.handles_missing = True"
         )
     if not isinstance(compile, bool):
         raise TypeError(f"compile must be a bool, got {type(compile).__name__}")
@@ -288,6 +300,11 @@ def fit(
         raise ValueError("compile=True needs a KalmanOptimizer (gradient optimisers run eager)")
     if compile and optimizer.per_run_data:
         raise ValueError("compile=True needs per_run_data=False")
+    if compile and missing:
+        raise ValueError(
+            "train targets contain NaN (missing): the compiled pass needs complete targets; "
+            "compile=False steps update with the observed ones"
+        )
 
     N = X.shape[1 if per_run else 0]  # per-run data: (runs, N, ...)
     n_batches = N // batch_size if drop_last else -(-N // batch_size)
@@ -344,6 +361,10 @@ def fit(
                     xb, yb = (X[:, sl], Y[:, sl]) if per_run else (X[sl], Y[sl])
                 if kalman:
                     loss = optimizer.step(xb, yb).loss
+                elif missing and not bool((~torch.isnan(yb)).any()):
+                    # no observed target: nothing to learn from, no step (a zero gradient
+                    # would still move a momentum optimiser); its loss is NaN, left out
+                    loss = torch.tensor(math.nan, dtype=torch.float64)
                 else:
 
                     def closure(xb=xb, yb=yb):

@@ -691,6 +691,8 @@ class KalmanOptimizer(torch.optim.Optimizer):
             y = t.reshape(-1)
             if self.runs is not None:
                 y = y.expand(self.runs, y.shape[0])
+        if any_missing:
+            self._check_partial(y)
         infos = []
         with batch_statistics_only(norms):
             for i, cfg in enumerate(self._cfg):
@@ -721,6 +723,19 @@ class KalmanOptimizer(torch.optim.Optimizer):
         else:
             loss = e2.mean(-1)
         return KalmanStep(loss, infos[0], tuple(infos))
+
+    def _check_partial(self, y: Tensor) -> None:
+        """A robust filter (paper 004's bound) updates with whole measurement vectors only: a
+        mini-batch with some targets missing would be skipped whole, so it is refused."""
+        nan = torch.isnan(y)
+        partial = bool((nan.any(-1) & ~nan.all(-1)).any())
+        if partial and any(cfg.filter.robust is not None for cfg in self._cfg):
+            raise ValueError(
+                "targets contain NaN (missing) beside observed ones, and the robust filter "
+                "updates with whole mini-batches only (the engine's robust bound): it would "
+                "skip this one whole; drop the missing samples, or use a filter without the "
+                "robust bound"
+            )
 
     # ------------------------------------------------------------------ a sequence of steps
     def steps(self, inputs: Tensor, targets: Tensor, *, compile: bool = False) -> Tensor:

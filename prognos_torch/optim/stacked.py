@@ -58,9 +58,17 @@ def run_sum_mse(pred: Tensor, target: Tensor) -> Tensor:
 
     With ``pred`` and ``target`` ``(B, R, ...)`` (the layout of a :class:`StackedLearner` with
     ``run_dim=1``), ``sum_r mean_b (pred - target)^2``: its gradient for run ``r``'s parameters
-    is that run's own mean-squared-error gradient.
+    is that run's own mean-squared-error gradient. NaN targets (missing) are left out of the
+    means (:func:`~prognos_torch.optim.fit` accepts it with missing targets).
     """
-    return (pred - target).square().mean(0).sum()
+    obs = ~torch.isnan(target)
+    if bool(obs.all()):
+        return (pred - target).square().mean(0).sum()
+    d = torch.where(obs, pred - target, 0.0)
+    return (d.square().sum(0) / obs.sum(0).clamp(min=1)).sum()
+
+
+run_sum_mse.handles_missing = True  # type: ignore[attr-defined]
 
 
 def _index(index, runs: int) -> Tensor | slice:
