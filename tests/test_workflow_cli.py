@@ -112,7 +112,7 @@ def test_cli_on_the_shipped_ims_table(tmp_path, capsys):
     assert main(["forecast", str(model), str(IMS), "--until", "33.3", "--horizon", "20",
                  "--plot", str(png)]) == 0  # fmt: skip
     out = capsys.readouterr().out
-    assert "against the 20 observed values after t = 33.2994" in out
+    assert "against the 20 observed values after t = 33.29939815" in out
     assert png.read_bytes()[:4] == b"\x89PNG"
     rul = ["rul", str(model), str(IMS), "--until", "33.3", "--threshold", "0.18"]
     rul += ["--filter", "pf", "--particles", "100", "--filter-steps", "20", "--horizon", "150"]
