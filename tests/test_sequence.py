@@ -147,14 +147,15 @@ def test_scan_runs_later_steps_in_inference_mode_when_nothing_needs_a_gradient()
 
 def test_filter_runs_hand_out_ordinary_tensors_and_stay_differentiable():
     model, ys, b0 = _problem()
-    tr = run(sckf(), model, b0, ys)
+    tr = run(sckf(), model, b0, ys, inference=True)
+    assert torch.equal(tr.means, run(sckf(), model, b0, ys).means)
     assert not tr.final.belief.mean.is_inference() and not tr.final.belief.chol.is_inference()
     assert not tr.means.is_inference()
-    ptr = sir(64).run(model, b0, ys, generator=torch.Generator().manual_seed(3))
+    ptr = sir(64).run(model, b0, ys, generator=torch.Generator().manual_seed(3), inference=True)
     assert not ptr.final.particles.is_inference() and not ptr.final.log_weights.is_inference()
     ptr.final.particles.mul_(1.0)
     m0 = b0.mean.clone().requires_grad_(True)
-    tr = run(sckf(), model, GaussianBelief(m0, b0.chol), ys)
+    tr = run(sckf(), model, GaussianBelief(m0, b0.chol), ys, inference=True)
     tr.log_likelihoods.sum().backward()
     assert m0.grad is not None and bool(torch.isfinite(m0.grad).all())
 
@@ -201,7 +202,7 @@ def test_a_model_that_differentiates_inside_falls_back_to_autograd_with_the_same
     ys = torch.cumsum(0.1 * torch.ones(12, 1, dtype=F64), 0)
     b0 = GaussianBelief(torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64))
     pf = stpf(50)
-    a = pf.run(model, b0, ys, generator=torch.Generator().manual_seed(4))
+    a = pf.run(model, b0, ys, generator=torch.Generator().manual_seed(4), inference=True)
     g = torch.Generator().manual_seed(4)
     state = pf.init(model, b0, generator=g, k=0)
     for t in range(ys.shape[0]):
@@ -209,3 +210,27 @@ def test_a_model_that_differentiates_inside_falls_back_to_autograd_with_the_same
         assert torch.equal(a.means[t], info.mean) and torch.equal(a.ess[t], info.ess)
     assert torch.equal(a.final.particles, state.particles)
     assert not a.final.particles.is_inference()
+
+
+def test_by_default_a_run_keeps_autograd_for_parameters_used_only_later():
+    """Inference mode is opt-in: by default a parameter that enters the model only from the
+    second step (a fault onset, say) keeps its gradient, and the noise Gram of a factor that
+    needs a gradient is not cached (a second backward pass used to find its graph spent)."""
+    model, ys, b0 = _problem()
+    rate = torch.tensor(0.1, dtype=F64, requires_grad=True)
+    f0 = model.f if model.f is not None else (lambda x, u, k: x)
+
+    def f(x, u, k):
+        return f0(x, u, k) + rate if k >= 2 else f0(x, u, k)
+
+    from dataclasses import replace
+
+    m2 = replace(model, f=f, F=None) if hasattr(model, "F") else replace(model, f=f)
+    tr = run(sckf(), m2, b0, ys)
+    tr.log_likelihoods[torch.isfinite(tr.log_likelihoods)].sum().backward()
+    assert rate.grad is not None and float(rate.grad) != 0.0
+    SQ = model.chol_Q.clone().requires_grad_(True)
+    m3 = replace(model, chol_Q=SQ)
+    for _ in range(2):  # the second pass rebuilds S S^T: nothing cached with a spent graph
+        run(sckf(prior="cholesky"), m3, b0, ys).log_likelihoods.nansum().backward()
+    assert SQ.grad is not None and bool(torch.isfinite(SQ.grad).all())

@@ -147,15 +147,16 @@ _GRAM_CACHE: dict = {}
 def _gram(S: Tensor) -> Tensor:
     """``S S^T``, remembered for the last few noise factors: a model's ``S_Q`` is usually
     the same tensor at every step (keyed by identity and version counter, so an in-place
-    change is seen; inference tensors, which have no version counter, and traced steps are
-    not cached)."""
-    if _no_sync() or S.is_inference():
+    change is seen; inference tensors, which have no version counter, traced steps and
+    factors that need a gradient are not cached: a cached product's graph would be spent by
+    the first backward pass)."""
+    if _no_sync() or S.is_inference() or S.requires_grad:
         return S @ S.transpose(-2, -1)
     key = (id(S), S._version)
     hit = _GRAM_CACHE.get(key)
     if hit is not None and hit[0] is S:
         return hit[1]
-    with torch.inference_mode(False):  # an ordinary tensor in the cache
+    with torch.inference_mode(False), torch.no_grad():  # an ordinary tensor in the cache
         G = S @ S.mT
     if len(_GRAM_CACHE) > 16:
         _GRAM_CACHE.clear()

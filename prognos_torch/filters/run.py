@@ -118,6 +118,7 @@ def run(
     *,
     k0: int = 0,
     keep_steps: bool = False,
+    inference: bool = False,
 ) -> Trajectory:
     """Filter the measurements ``ys`` ``(T, ..., m)`` (NaN: missing; a row that is NaN
     throughout only predicts, a partially NaN row updates with its observed components).
@@ -125,7 +126,9 @@ def run(
     Step ``t`` (0-based) uses ``k = k0 + t + 1``, the control ``us[t]`` (``(T, ..., p)`` or
     ``(T, p)`` shared by the batch) and measurement ``ys[t]``. ``init`` is the belief on
     ``x_{k0}`` (or a :class:`FilterState` to resume). ``keep_steps=True`` keeps every
-    step's :class:`StepInfo` in ``Trajectory.steps``.
+    step's :class:`StepInfo` in ``Trajectory.steps``. ``inference=True`` runs the steps after
+    the first under ``torch.inference_mode()`` (not with ``keep_steps``; the conditions of
+    :meth:`~prognos_torch.filters.ParticleFilter.run`).
     """
     state = _start(filt, model, init, k0 + 1)
     bs = state.belief.batch_shape
@@ -147,7 +150,8 @@ def run(
         return s, info
 
     # (with keep_steps the steps' StepInfo are handed out: they stay ordinary tensors)
-    state, stacked = scan(step, state, ys, us, record=_record, k0=k0, inference=not keep_steps)
+    fast = inference and not keep_steps
+    state, stacked = scan(step, state, ys, us, record=_record, k0=k0, inference=fast)
     # one vectorised pass over the whole trajectory instead of one per step
     stacked["nis"], stacked["log_likelihoods"] = innovation_stats(
         stacked["innovations"],

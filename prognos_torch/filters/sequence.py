@@ -72,7 +72,11 @@ def scan(
             ``ys`` nor ``us`` does), run the other steps under ``torch.inference_mode()``:
             the same numbers without autograd's bookkeeping (about 15 % of a particle
             filter's step). The stacked records and the returned state are ordinary tensors
-            all the same. Only for steps that keep no tensors elsewhere (the filters' own).
+            all the same. Only for steps that keep no tensors elsewhere (the filters' own)
+            and whose models do not differentiate inside: ``torch.autograd.functional``
+            returns zeros in inference mode without an error, forward-mode AD tangents are
+            dropped, and a parameter the first step does not use loses its gradient (the
+            filters' runs therefore take it only when asked, ``inference=True``).
             A step that fails there with a ``RuntimeError`` (a model that differentiates
             inside, e.g. an autograd Jacobian) is undone and run again with autograd, and so
             is every later step.
