@@ -170,13 +170,13 @@ def test_caches_filled_in_inference_mode_hold_ordinary_tensors():
     """A step run in inference mode may fill the library's caches; what they keep must serve
     a later step that autograd records (an inference tensor cannot be saved for backward)."""
     from prognos_torch.filters._blocks import _sigma_points
-    from prognos_torch.filters.resampling import _arange, _arange_long
+    from prognos_torch.filters.resampling import _arange
     from prognos_torch.learners import ANFIS
 
     like = torch.zeros(3, dtype=F64)
     with torch.inference_mode():
         sig = _sigma_points(sckf().rule, 13, like)
-        j, jl = _arange(12347, like), _arange_long(12347, like.device)
+        j, jl = _arange(12347, F64, like.device), _arange(12347, torch.int64, like.device)
         consts = ANFIS(2, 2)._constants(like)
     tensors = [sig.xi, sig.wm, j, jl, *consts]
     assert not any(t.is_inference() for t in tensors)

@@ -119,28 +119,28 @@ def _multinomial(w: Tensor, generator: torch.Generator) -> Tensor:
 _ARANGE: dict = {}
 
 
-def _arange(N: int, like: Tensor) -> Tensor:
-    """``arange(N)`` in ``like``'s dtype and device, kept for reuse (never written to)."""
-    key = (N, like.dtype, like.device)
+def _arange(N: int, dtype: torch.dtype, device) -> Tensor:
+    """``arange(N)`` in ``dtype`` on ``device``, kept for reuse (never written to)."""
+    key = (N, dtype, device)
     j = _ARANGE.get(key)
     if j is None:
         if len(_ARANGE) > 64:
             _ARANGE.clear()
         with torch.inference_mode(False):  # an ordinary tensor, whatever mode fills it
-            j = _ARANGE[key] = torch.arange(N, dtype=like.dtype, device=like.device)
+            j = _ARANGE[key] = torch.arange(N, dtype=dtype, device=device)
     return j
 
 
 def _stratified(w: Tensor, generator: torch.Generator) -> Tensor:
     N = w.shape[-1]
-    j = _arange(N, w)
+    j = _arange(N, w.dtype, w.device)
     u = (j + _uniform(w.shape, generator, w)) / N
     return _lookup(_cdf(w), u.clamp_max(1.0 - torch.finfo(w.dtype).eps))
 
 
 def _systematic(w: Tensor, generator: torch.Generator) -> Tensor:
     N = w.shape[-1]
-    j = _arange(N, w)
+    j = _arange(N, w.dtype, w.device)
     u = (j + _uniform(w.shape[:-1] + (1,), generator, w)) / N
     return _lookup(_cdf(w), u.clamp_max(1.0 - torch.finfo(w.dtype).eps))
 
@@ -172,7 +172,7 @@ def _residual(w: Tensor, generator: torch.Generator) -> Tensor:
     R = N - counts.sum(-1)  # (...), residual draws per run (floors sum to at most N)
     # slot j < D of a run: the particle whose cumulative count first exceeds j, by one
     # repeat_interleave over all runs; each run's residual slots first hold the pad value N
-    vals = _arange_long(N + 1, w.device).expand(*bs, N + 1)
+    vals = _arange(N + 1, torch.int64, w.device).expand(*bs, N + 1)
     ext = torch.cat([counts, R.unsqueeze(-1)], dim=-1)
     out = torch.repeat_interleave(vals.reshape(-1), ext.reshape(-1)).reshape(w.shape)
     r_max = int(R.max())
@@ -187,27 +187,12 @@ def _residual(w: Tensor, generator: torch.Generator) -> Tensor:
         return out
     # the last r_max slots hold every run's residual slots: run b's k-th draw goes to slot
     # N - R_b + k, so the slot's query is its draw (k = j - (N - r_max) - (r_max - R_b))
-    k = (_arange_long(r_max, w.device) - (r_max - R).unsqueeze(-1)).clamp_min(0)
+    k = (_arange(r_max, torch.int64, w.device) - (r_max - R).unsqueeze(-1)).clamp_min(0)
     q = u.gather(-1, k)
     res_idx = _lookup(_cdf(res), q.contiguous())
     tail = out[..., N - r_max :]
     out[..., N - r_max :] = torch.where(tail == N, res_idx, tail)
     return out
-
-
-_ARANGE_LONG: dict = {}
-
-
-def _arange_long(n: int, device) -> Tensor:
-    """``arange(n)`` (int64) on ``device``, kept for reuse (never written to)."""
-    key = (n, device)
-    j = _ARANGE_LONG.get(key)
-    if j is None:
-        if len(_ARANGE_LONG) > 64:
-            _ARANGE_LONG.clear()
-        with torch.inference_mode(False):
-            j = _ARANGE_LONG[key] = torch.arange(n, device=device)
-    return j
 
 
 _DRAWS = {
