@@ -103,6 +103,7 @@ def scan(
     with contextlib.ExitStack() as mode:
         for t in steps:
             args = (ys[t], None if us is None else us[t], k0 + t + 1)
+            row = None
             if fast:
                 undo = None if rewind is None else rewind()
                 try:
@@ -111,15 +112,13 @@ def scan(
                     inferred = True
                 except RuntimeError:
                     # the step needs autograd (a model differentiating inside it): undo its
-                    # side effects, leave inference mode and run it again, and the rest too
+                    # side effects, leave inference mode and run it again below, the rest too
                     if undo is not None:
                         undo()
                     mode.close()
                     fast = False
                     state = _ordinary(state)
-                    new, info = step(state, *args)
-                    row = record(new, info)
-            else:
+            if row is None:
                 new, info = step(state, *args)
                 row = record(new, info)
             state = new
