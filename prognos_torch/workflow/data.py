@@ -213,6 +213,18 @@ def is_datetime(v) -> bool:
     return getattr(getattr(v, "dtype", None), "kind", None) == "M"
 
 
+def datetime_index(v):
+    """The ``DatetimeIndex`` of a pandas Series on one (the series' own time), else ``None``."""
+    index = getattr(v, "index", None)
+    return index if is_datetime(index) else None
+
+
+def pandas_name(v) -> str | None:
+    """The name of a pandas Series, when it is a non-empty string."""
+    name = getattr(v, "name", None)
+    return name if isinstance(name, str) and name else None
+
+
 def array_times(v, name: str) -> tuple[np.ndarray, str | None, str | None]:
     """Times as float64: numbers as given (unit ``None``: the caller's), or date-times (NumPy
     ``datetime64``, a pandas datetime Series or ``DatetimeIndex``; zone-aware ones in UTC) as
@@ -352,7 +364,7 @@ def load_series(
         raise ValueError(f"fill must be None, 'linear' or 'drop', got {fill!r}")
     if last is not None and (isinstance(last, bool) or not isinstance(last, int) or last < 1):
         raise ValueError(f"last must be a positive int, got {last!r}")
-    pandas_like = hasattr(source, "to_numpy") and not isinstance(source, (str, os.PathLike))
+    pandas_like = hasattr(source, "to_numpy")
     if not (
         isinstance(source, (str, os.PathLike, Tensor, np.ndarray, Sequence)) or pandas_like
     ) or isinstance(source, (bytes, bytearray)):
@@ -373,8 +385,8 @@ def load_series(
     if arr.ndim != 1:
         raise ValueError(f"source must be 1-D (T,), got shape {arr.shape}")
     tarr = start = None
-    if time is None and is_datetime(getattr(source, "index", None)):
-        time = source.index  # a pandas Series on a DatetimeIndex
+    if time is None:
+        time = datetime_index(source)
     if time is not None:
         tarr, t_unit, start = array_times(time, "time")
         if t_unit is not None:
@@ -398,9 +410,8 @@ def load_series(
     idx = list(range(arr.shape[0]))
     arr, tarr, _ = _fill(arr, tarr, ["index"], fill, idx, "source")
     unit = "steps" if tarr is None else (time_unit or "time")
-    if name is None and isinstance(getattr(source, "name", None), str) and source.name:
-        name = source.name  # a pandas Series' name
-    return _finish(arr, tarr, name or "series", None, unit, start, None)
+    name = name or pandas_name(source) or "series"
+    return _finish(arr, tarr, name, None, unit, start, None)
 
 
 def _finish(values, time, name, time_name, unit, start, source, lines=None) -> Series:

@@ -88,7 +88,7 @@ from ..prognosis.onset import (
 )
 from ..prognosis.rul import RULDistribution
 from ..prognosis.trends import TREND_SHAPES, Passage, fit_trends, path_grid
-from .data import Series, array_times, array_values, is_datetime
+from .data import Series, array_times, array_values, datetime_index, pandas_name
 from .predict import RULResult
 
 __all__ = [
@@ -123,9 +123,8 @@ def _as_series(series, time) -> tuple[Tensor, Tensor, Series | None]:
     x = torch.from_numpy(array_values(series, "series"))
     if x.dim() != 1:
         raise ValueError(f"series must be a Series or have shape (T,), got {tuple(x.shape)}")
-    index = getattr(series, "index", None)  # a pandas Series on a DatetimeIndex
-    if time is None and not isinstance(series, Tensor) and is_datetime(index):
-        time = index
+    if time is None:
+        time = datetime_index(series)
     src = None
     if time is None:
         t = torch.arange(x.shape[0], dtype=torch.float64)
@@ -135,9 +134,7 @@ def _as_series(series, time) -> tuple[Tensor, Tensor, Series | None]:
         if tuple(t.shape) != tuple(x.shape):
             raise ValueError(f"time must have shape {tuple(x.shape)} (T,), got {tuple(t.shape)}")
         if unit is not None:  # date-times: days since the first, as from a CSV
-            name = getattr(series, "name", None)
-            src = Series(x, t, name if isinstance(name, str) and name else "series", "time",
-                         unit, start)  # fmt: skip
+            src = Series(x, t, pandas_name(series) or "series", "time", unit, start)
     if bool(torch.isinf(x).any()):
         raise ValueError("series contains inf (use NaN to mark a missing value)")
     if not bool(torch.isfinite(t).all()):
@@ -439,14 +436,15 @@ def prognose(
         )
     sign = 1.0 if direction == "above" else -1.0
     yo, thr_o = sign * x, sign * thr  # oriented: degradation raises yo
-    now = float(moving_median(yo[-5:], 5)[-1])
+    medians = moving_median(yo, 5)
+    now = float(medians[-1])
     if now >= thr_o:
         raise ValueError(
             f"threshold {thr:g} already reached: the median of the last 5 values is "
             f"{sign * now:.4g} (direction {direction!r}); the RUL is 0"
         )
     flags = _baseline_flags(base)
-    over = torch.nonzero(moving_median(yo, 5) >= thr_o).flatten()
+    over = torch.nonzero(medians >= thr_o).flatten()
     if over.numel():  # (the newest median is below it: checked above)
         flags.append(
             f"the median of 5 values already reached the threshold at {float(t[over[0]]):g} "
