@@ -137,7 +137,7 @@ def test_bad_values_are_refused_by_name():
     lin = nn.Linear(3, 2, dtype=torch.float64)
     bad = Y.clone()
     bad[0, 0] = float("inf")
-    with pytest.raises(ValueError, match="train targets Y contain inf"):
+    with pytest.raises(ValueError, match="train targets Y contains inf"):
         fit(lin, EKF(lin), (X, bad), progress=False)
     with pytest.raises(ValueError, match="targets contains inf"):
         EKF(lin).step(X[:2], bad[:2])

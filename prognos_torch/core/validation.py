@@ -81,6 +81,16 @@ def all_finite(x: Tensor) -> bool:
     return bool(torch.isfinite(x).all())
 
 
+def has_missing(x: Tensor, name: str, what: str = "value") -> bool:
+    """Whether ``x`` has NaN entries, which mark missing ``what``s; inf is refused, naming
+    ``name``. One reduction when every entry is finite (the usual case)."""
+    if all_finite(x):
+        return False
+    if bool(torch.isinf(x).any()):
+        raise ValueError(f"{name} contains inf (use NaN to mark a missing {what})")
+    return True
+
+
 def check_finite(x: Tensor, name: str, shape: str | None = None) -> Tensor:
     """``ValueError`` if ``x`` holds NaN or inf; ``shape`` (e.g. ``'(T, ..., m)'``) is quoted."""
     if not all_finite(x):
@@ -385,11 +395,7 @@ def check_measurement(
         raise ValueError(f"y must have shape {want} (batch shape + (m,)), got {tuple(y.shape)}")
     if y.device != like.device:
         raise ValueError(f"y is on {y.device}, the {owner} on {like.device}")
-    if all_finite(y):  # one reduction in the usual case: no NaN, no inf
-        return y.to(like.dtype), False
-    if torch.isinf(y).any():
-        raise ValueError("y contains inf (use NaN to mark a missing measurement)")
-    return y.to(like.dtype), bool(torch.isnan(y).any())
+    return y.to(like.dtype), has_missing(y, "y", "measurement")
 
 
 def check_control(u, control_dim: int, batch_shape, like: Tensor) -> Tensor | None:

@@ -66,6 +66,7 @@ from ..core.validation import (
     check_generator,
     check_measurement,
     check_sequence,
+    has_missing,
 )
 from ._particle_noise import (
     _LOG_2PI,
@@ -793,9 +794,7 @@ class ParticleFilter:
         T = ys.shape[0]
         miss_rows: list[bool] = [False] * T
         miss = None
-        if not all_finite(ys):
-            if bool(torch.isinf(ys).any()):
-                raise ValueError("ys contains inf (use NaN to mark a missing measurement)")
+        if has_missing(ys, "ys", "measurement"):
             miss = torch.isnan(ys).any(-1)  # (T, ...)
             miss_rows = miss.reshape(T, -1).any(-1).tolist()
         if model.control_dim:

@@ -16,7 +16,7 @@ from torch import Tensor, nn
 from ..adapt.noise import MovingWindow, SageHusa
 from ..adapt.strong_tracking import StrongTracking
 from ..core.linalg import tria
-from ..core.validation import all_finite, check_matches
+from ..core.validation import check_matches, has_missing
 from ..filters.gaussian import GaussianFilter, StepInfo
 from ..filters.variants import make_filter
 from .params import ParameterBridge
@@ -311,11 +311,7 @@ def _check_targets(t: Tensor, dtype, device) -> bool:
     observed is a prediction). Returns whether any entry is missing."""
     if t.dtype != dtype or t.device != device:
         check_matches(t, "targets", dtype, device)  # raises
-    if all_finite(t):
-        return False
-    if bool(torch.isinf(t).any()):
-        raise ValueError("targets contains inf (NaN marks a missing target)")
-    return True
+    return has_missing(t, "targets", "target")
 
 
 def _call_closure(closure) -> tuple:

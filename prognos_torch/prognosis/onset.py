@@ -50,7 +50,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.validation import as_tensor
+from ..core.validation import as_tensor, has_missing
 
 __all__ = [
     "Baseline",
@@ -166,8 +166,7 @@ def _series(values, time, name: str = "values") -> tuple[Tensor, Tensor]:
     x = x.to(torch.float64)
     if x.dim() != 1:
         raise ValueError(f"{name} must have shape (T,), got {tuple(x.shape)}")
-    if bool(torch.isinf(x).any()):
-        raise ValueError(f"{name} contains inf (use NaN to mark a missing value)")
+    has_missing(x, name)  # inf refused
     if time is None:
         t = torch.arange(x.shape[0], dtype=torch.float64, device=x.device)
     else:

@@ -76,7 +76,7 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
-from ..core.validation import check_real
+from ..core.validation import check_real, has_missing
 from ..prognosis.learner_trend import fit_learner_trend
 from ..prognosis.onset import (
     Baseline,
@@ -135,8 +135,7 @@ def _as_series(series, time) -> tuple[Tensor, Tensor, Series | None]:
             raise ValueError(f"time must have shape {tuple(x.shape)} (T,), got {tuple(t.shape)}")
         if unit is not None:  # date-times: days since the first, as from a CSV
             src = Series(x, t, pandas_name(series) or "series", "time", unit, start)
-    if bool(torch.isinf(x).any()):
-        raise ValueError("series contains inf (use NaN to mark a missing value)")
+    has_missing(x, "series")  # inf refused
     if not bool(torch.isfinite(t).all()):
         raise ValueError("time must be finite")
     if x.shape[0] > 1 and not bool((t[1:] > t[:-1]).all()):
