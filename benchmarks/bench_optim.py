@@ -41,14 +41,27 @@ def lorenz_data(device=None):
 
 
 def make(filter_name: str, runs: int | None, Xtr, device=None):
-    inits = [
-        ANFIS(3, 2, generator=torch.Generator().manual_seed(s)).to(device).init_premises(Xtr)
-        for s in range(runs or 1)
-    ]
-    model = copy.deepcopy(inits[0])
-    theta0 = ParameterBridge(model).stack(inits) if runs else None
+    """A fresh ANFIS and its Kalman optimiser; run ``s`` starts from the ANFIS of seed ``s``
+    (premises initialised on the CPU copy of ``Xtr``; built once per run count and cached)."""
+    model = copy.deepcopy(_initial(runs or 1, Xtr)[0]).to(device)
+    theta0 = _initial(runs, Xtr)[1].to(device) if runs else None
     opt = KalmanOptimizer(model, filter=filter_name, P0=P0, Q=Q, R=R, runs=runs, theta0=theta0)
     return model, opt
+
+
+_INITS: dict = {}
+
+
+def _initial(runs: int, Xtr):
+    """(ANFIS of seed 0, stacked initial parameters ``(runs, 44)``), on the CPU, cached."""
+    if runs not in _INITS:
+        X = Xtr.cpu()
+        inits = [
+            ANFIS(3, 2, generator=torch.Generator().manual_seed(s)).init_premises(X)
+            for s in range(runs)
+        ]
+        _INITS[runs] = (inits[0], ParameterBridge(inits[0]).stack(inits))
+    return _INITS[runs]
 
 
 def one_pass(filter_name, runs, data, repeats, device=None):

@@ -5,6 +5,7 @@ Usage::
     python benchmarks/bench_particle.py [--steps 500] [--large 100000] [--large-steps 20]
                                         [--repeat 3] [--threads 1] [--profile] [--no-memory]
                                         [--no-peers] [--peers-only] [--cpu-time]
+    python benchmarks/bench_particle.py --device cuda [--device-counts 1000:500 ...]
 
 Prints tables of
 
@@ -28,6 +29,9 @@ Prints tables of
   process, minus the child's footprint before the run);
 * with ``--profile``: where the STPF time goes (engine step, Jacobians, QR, particle side).
 
+``--device cuda`` prints only the throughput of SIR and STPF (batched model) on that device at
+the ``--device-counts`` (particles:steps), the device synchronised before the clock is read,
+beside the same runs on the CPU where they take under a few seconds (``--device-cpu-max``).
 ``--peers-only`` runs the NumPy comparisons alone; ``--cpu-time`` times with the process's CPU
 time (``time.process_time``) instead of the wall clock, which on a shared machine leaves out
 the time the process waits for a core (not the slowdown other jobs cause while it runs).
@@ -62,9 +66,10 @@ from prognos_torch.filters import resampling, sir, stpf
 SQ, SR = 0.05, 0.3
 
 
-def make_model(kind: str) -> StateSpaceModel:
+def make_model(kind: str, device=None) -> StateSpaceModel:
     """The 1-D model written three ways (same dynamics except ``random-walk``)."""
-    cq, cr = torch.tensor([[SQ]], dtype=torch.float64), torch.tensor([[SR]], dtype=torch.float64)
+    cq = torch.tensor([[SQ]], dtype=torch.float64, device=device)
+    cr = torch.tensor([[SR]], dtype=torch.float64, device=device)
     f = lambda x, u, k: x + 0.01 * torch.sin(x)  # noqa: E731
     h = lambda x, u, k: x  # noqa: E731
     if kind == "per-sample":
@@ -247,6 +252,52 @@ def resamplers_vs_numpy(sizes: list[int], repeat: int, calls: int = 20) -> None:
             )
 
 
+def device_rows(device: torch.device, counts: list[tuple[int, int]], repeat: int, cpu_max: float):
+    """Particle-steps per second of SIR and STPF (batched model) on ``device`` and the CPU."""
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else str(device)
+    print(f"\nSIR and STPF, batched model, on {name} (median of {repeat}; CPU beside it)")
+    print(
+        f"{'filter':<6}{'N':>10}{'steps':>7}{'device s':>10}{'p-steps/s':>11}"
+        f"{'CPU s':>9}{'CPU/device':>11}{'|mean diff|':>13}"
+    )
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    skip_cpu: set[str] = set()
+    for N, T in counts:
+        ys_cpu = make_data(T)
+        for name_f in ("SIR", "STPF"):
+            out = {}
+            for dev in (device, torch.device("cpu")):
+                if dev.type == "cpu" and name_f in skip_cpu:
+                    continue
+                model, ys = make_model("batched+jac", dev), ys_cpu.to(dev)
+                b0 = GaussianBelief(
+                    torch.zeros(1, dtype=torch.float64, device=dev),
+                    torch.eye(1, dtype=torch.float64, device=dev),
+                )
+                pf = make_filter(name_f, N)
+
+                def go(pf=pf, model=model, b0=b0, ys=ys, dev=dev):
+                    g = torch.Generator(device=dev).manual_seed(1)
+                    tr = pf.run(model, b0, ys, generator=g, inference=True)
+                    sync()
+                    return tr
+
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    go()  # warm-up (kernels, caches)
+                    med, _ = timed(go, repeat)
+                    out[dev.type] = (med, go().means[:, 0].cpu())
+                if dev.type == "cpu" and med > cpu_max:
+                    skip_cpu.add(name_f)  # larger counts only on the device
+            t_dev, m_dev = out[device.type]
+            row = f"{name_f:<6}{N:>10}{T:>7}{t_dev:>10.4f}{N * T / t_dev:>11.3g}"
+            if "cpu" in out:
+                t_cpu, m_cpu = out["cpu"]
+                diff = float((m_dev - m_cpu).abs().mean())  # different streams: Monte Carlo error
+                row += f"{t_cpu:>9.3f}{t_cpu / t_dev:>11.2f}{diff:>13.2e}"
+            print(row, flush=True)
+
+
 def timed(fn, repeat: int) -> tuple[float, float]:
     times = []
     for _ in range(repeat):
@@ -367,8 +418,22 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--child", nargs=4, metavar=("FILTER", "MODEL", "N", "T"), help=argparse.SUPPRESS
     )
+    parser.add_argument("--device", default="cpu", help="cuda: the device throughput rows only")
+    parser.add_argument(
+        "--device-counts",
+        nargs="+",
+        default=["1000:500", "100000:100", "1000000:100", "10000000:20"],
+        help="particles:steps of the device rows",
+    )
+    parser.add_argument(
+        "--device-cpu-max", type=float, default=3.0, help="seconds above which the CPU stops"
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    if args.device != "cpu":
+        counts = [tuple(int(v) for v in c.split(":")) for c in args.device_counts]
+        device_rows(torch.device(args.device), counts, args.repeat, args.device_cpu_max)
+        return
     global CLOCK
     CLOCK = time.process_time if args.cpu_time else time.perf_counter
     if args.child:

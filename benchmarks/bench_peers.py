@@ -22,8 +22,15 @@ the pass (``History.time`` of :func:`prognos_torch.optim.fit`). Both sides run o
 (``torch.set_num_threads(1)``; XLA's CPU client with one intra-op thread). The test MAE of
 every run must agree to 5 decimals between the library and each peer.
 
-    python benchmarks/bench_peers.py [--repeats 3] [--runs 50] [--cache DIR] [--no-dynamax]
-        [--no-filterpy] [--no-compile] [--filters srukf ekf]
+On a CUDA machine, ``--device cuda`` runs the library's rows on the GPU and dynamax's on JAX's
+GPU backend (``JAX_PLATFORMS=cuda``, no memory preallocation); ``--runs`` takes several counts
+(e.g. ``50 500 2000 10000``); ``--python`` names a Python that already has jax and dynamax
+(no virtual environment is made). The library's pass time then includes its queued kernels
+(``fit`` synchronises the device around each epoch) and dynamax's is blocked on.
+
+    python benchmarks/bench_peers.py [--repeats 3] [--runs 50 ...] [--cache DIR] [--no-dynamax]
+        [--no-filterpy] [--no-compile] [--filters srukf ekf] [--device cpu|cuda] [--python PY]
+        [--no-single]
 """
 
 from __future__ import annotations
@@ -68,12 +75,14 @@ def dynamax_python(cache: Path) -> Path:
 class DynamaxWorker:
     """The worker process: one JSON request per pass, one JSON answer."""
 
-    def __init__(self, py: Path, npz: Path):
+    def __init__(self, py: Path, npz: Path, platform: str = "cpu"):
         env = dict(os.environ)
         env.update(
             OMP_NUM_THREADS="1",
             XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
-            JAX_PLATFORMS="cpu",
+            JAX_PLATFORMS=platform,
+            # on a GPU shared with the library's process: allocate as needed, not 75 % up front
+            XLA_PYTHON_CLIENT_PREALLOCATE="false",
         )
         self.proc = subprocess.Popen(
             [str(py), str(HERE / "_dynamax_worker.py"), str(npz)],
@@ -137,7 +146,7 @@ def library_pass(filt, runs, data, compile=False):
     Xtr, Ytr, Xte, Yte = data
     model, opt = make(filt, runs, Xtr)
     hist = fit(model, opt, (Xtr, Ytr), epochs=1, val=(Xte, Yte), progress=False, compile=compile)
-    return hist.time[0], np.atleast_1d(hist.val["mae"][-1].numpy()), hist.compile_time[0]
+    return hist.time[0], np.atleast_1d(hist.val["mae"][-1].cpu().numpy()), hist.compile_time[0]
 
 
 def prior_floor_pass(runs, data):
@@ -185,7 +194,12 @@ def _floor_record(state, info):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--repeats", type=int, default=3, help="interleaved passes per row (best)")
-    ap.add_argument("--runs", type=int, default=50, help="Monte Carlo runs of the batched rows")
+    ap.add_argument(
+        "--runs", type=int, nargs="+", default=[50], help="Monte Carlo runs of the batched rows"
+    )
+    ap.add_argument("--device", default="cpu", help="the library's device (cpu or cuda)")
+    ap.add_argument("--python", help="a Python with jax and dynamax (else a venv under --cache)")
+    ap.add_argument("--no-single", action="store_true", help="leave out the 1-run rows")
     ap.add_argument("--cache", default=os.path.expanduser("~/.cache/prognos_torch_bench"))
     ap.add_argument("--no-dynamax", action="store_true", help="library and filterpy only")
     ap.add_argument("--no-filterpy", action="store_true")
@@ -206,16 +220,19 @@ def main(argv=None):
     )
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    data = lorenz_data()
-    Xtr, Ytr, Xte, Yte = data
-    model, opt = make("srukf", args.runs, Xtr)
+    device = torch.device(args.device)
+    data = tuple(a.to(device) for a in lorenz_data())
+    Xtr, Ytr, Xte, Yte = (a.cpu() for a in data)
+    model, opt = make("srukf", max(args.runs), Xtr)
     theta0 = opt.theta.numpy()  # (runs, 44): the runs' initial parameters
     S0, SQ = opt._cfg[0].chol_P0.numpy(), opt._cfg[0].chol_Q.numpy()
     P0m, Qm = S0 @ S0.T, SQ @ SQ.T
     Rm = np.array([[R]])
     print(
         f"ANFIS (44 parameters), one pass over {Xtr.shape[0]} Lorenz pairs; P0={P0}, Q={Q}, "
-        f"R={R}; torch {torch.__version__}, 1 thread; load average "
+        f"R={R}; torch {torch.__version__}, 1 thread, device {device}"
+        + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else "")
+        + "; load average "
         + " ".join(f"{x:.2f}" for x in os.getloadavg())
     )
 
@@ -223,7 +240,7 @@ def main(argv=None):
     if not args.no_dynamax:
         cache = Path(args.cache)
         cache.mkdir(parents=True, exist_ok=True)
-        py = dynamax_python(cache)
+        py = Path(args.python) if args.python else dynamax_python(cache)
         npz = cache / "problem.npz"
         np.savez(
             npz,
@@ -236,14 +253,21 @@ def main(argv=None):
             Q=Qm,
             R=Rm,
         )
-        worker = DynamaxWorker(py, npz)
+        worker = DynamaxWorker(py, npz, "cuda" if device.type == "cuda" else "cpu")
 
-    rows = [
-        ("SRUKF vs dynamax UKF, 1 run", "srukf", "ukf", None),
-        ("EKF vs dynamax EKF, 1 run", "ekf", "ekf", None),
-        (f"SRUKF vs dynamax UKF, {args.runs} runs", "srukf", "ukf", args.runs),
-        (f"EKF vs dynamax EKF, {args.runs} runs", "ekf", "ekf", args.runs),
-    ]
+    rows = (
+        []
+        if args.no_single
+        else [
+            ("SRUKF vs dynamax UKF, 1 run", "srukf", "ukf", None),
+            ("EKF vs dynamax EKF, 1 run", "ekf", "ekf", None),
+        ]
+    )
+    for runs in args.runs:
+        rows += [
+            (f"SRUKF vs dynamax UKF, {runs} runs", "srukf", "ukf", runs),
+            (f"EKF vs dynamax EKF, {runs} runs", "ekf", "ekf", runs),
+        ]
     rows = [row for row in rows if row[1] in args.filters]
     modes = [False] if args.no_compile else [False, True]
     print(
@@ -301,7 +325,7 @@ def main(argv=None):
         lib_t = {m: [] for m in modes}
         lib_mae = dict.fromkeys(modes)
         for _ in range(args.repeats):
-            t, mae_fp = filterpy_pass(tuple(a.numpy() for a in data), theta0[0], P0m, Qm, Rm)
+            t, mae_fp = filterpy_pass(tuple(a.cpu().numpy() for a in data), theta0[0], P0m, Qm, Rm)
             fp_t.append(t)
             for m in modes:
                 t, lib_mae[m], _ = library_pass("srukf", None, data, compile=m)
