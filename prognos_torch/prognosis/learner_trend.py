@@ -46,6 +46,7 @@ import torch
 from torch import Tensor, nn
 
 from ..core.belief import GaussianBelief
+from ..core.random import standard_normal
 from ..learners import ELM
 from ..optim import KalmanOptimizer
 from .trends import Passage, TrendFit
@@ -180,34 +181,34 @@ class LearnerTrendFit:
         t_origin = float(lf.t[i])
         if grid.dim() != 1 or grid.numel() < 1 or not bool(grid[0] > t_origin):
             raise ValueError("grid must be (J,) increasing times after the origin")
-        dt = torch.float64
+        dt, dev = torch.float64, lf.z.device
         pb = self.parameter_belief(i)
-        eb = torch.randn(n_paths, pb.mean.shape[-1], generator=generator, dtype=dt)
+        eb = standard_normal((n_paths, pb.mean.shape[-1]), generator, dt, dev)
         theta = pb.mean + eb @ pb.chol.mT  # (N, P): sampled from the optimiser's belief
         J = grid.shape[0]
         dts = torch.diff(torch.cat([grid.new_tensor([t_origin]), grid]))  # (J,)
         qv = self.Q.to(dt)  # (P,) random walk of theta per median observation step
         ql = float(lf.noise.level)
         walk = torch.zeros_like(theta)
-        brown = torch.zeros(n_paths, dtype=dt)
-        first = torch.full((n_paths,), J, dtype=torch.int64)
-        diverged = torch.zeros(n_paths, dtype=torch.bool)
+        brown = torch.zeros(n_paths, dtype=dt, device=dev)
+        first = torch.full((n_paths,), J, dtype=torch.int64, device=dev)
+        diverged = torch.zeros(n_paths, dtype=torch.bool, device=dev)
         kept = []
         j0 = 0
         with torch.no_grad():
             while j0 < J and bool((first == J).any()):
                 j1 = min(J, j0 + 64)
                 d = dts[j0:j1]
-                w = torch.randn(n_paths, j1 - j0, theta.shape[-1], generator=generator, dtype=dt)
+                w = standard_normal((n_paths, j1 - j0, theta.shape[-1]), generator, dt, dev)
                 w = walk[:, None] + torch.cumsum(w * (qv * d[:, None] / self.dt_data).sqrt(), 1)
-                b = torch.randn(n_paths, j1 - j0, generator=generator, dtype=dt)
+                b = standard_normal((n_paths, j1 - j0), generator, dt, dev)
                 b = brown[:, None] + torch.cumsum(b * (ql * d).sqrt(), 1)
                 F = self.module.features(self.tau(grid[j0:j1]))  # (c, P)
                 zc = ((theta[:, None, :] + w) * F[None]).sum(-1) + b  # (N, c)
                 bad = ~torch.isfinite(zc)
                 diverged |= bad.any(1) & (first == J)
                 zc = torch.where(bad, torch.full_like(zc, -math.inf), zc)
-                step = torch.arange(j0, j1)
+                step = torch.arange(j0, j1, device=dev)
                 f = torch.where(zc >= zt, step, torch.full_like(step, J)).amin(1)
                 first = torch.where(first == J, f, first)
                 if keep > 0:
@@ -217,7 +218,7 @@ class LearnerTrendFit:
         gpad = torch.cat([grid, grid.new_tensor([math.inf])])
         times = gpad[first]
         if zt == -math.inf:
-            times = torch.full((n_paths,), float(grid[0]), dtype=dt)
+            times = torch.full((n_paths,), float(grid[0]), dtype=dt, device=dev)
         paths = None
         if keep > 0:
             z = torch.cat(kept, 1)
@@ -265,13 +266,14 @@ def fit_learner_trend(
     t_on = float(t[0])
     scale = max(float(t[-1]) - t_on, 1e-12)
     gen = torch.Generator().manual_seed(int(seed))
-    module = TimeELM(n_hidden, gen)
+    module = TimeELM(n_hidden, gen).to(z.device)  # features drawn on the CPU, then moved
     with torch.no_grad():  # prior mean of c_0: the first value, so a change of units (a shift
         module.c[0, 0] = zz[0]  # of z = log(y - phi)) shifts g and leaves the RUL unchanged
     rise = max(float(zz.max() - zz.min()), 1e-6)
     sd = max(float(zz.std(correction=1)) if zz.numel() > 1 else 0.0, 1e-6)
-    P0 = {"c": torch.tensor([(10 * sd) ** 2, (3 * rise) ** 2], dtype=torch.float64)[:, None],
-          "elm.beta": torch.full((n_hidden, 1), rise**2 / (n_hidden / 4.0), dtype=torch.float64)}  # fmt: skip
+    f64 = dict(dtype=torch.float64, device=z.device)
+    P0 = {"c": torch.tensor([(10 * sd) ** 2, (3 * rise) ** 2], **f64)[:, None],
+          "elm.beta": torch.full((n_hidden, 1), rise**2 / (n_hidden / 4.0), **f64)}  # fmt: skip
     P0_flat = torch.cat([P0["c"].flatten(), P0["elm.beta"].flatten()])
     nz = level_fit.noise
     R = float(nz.meas) + float(level_fit.a[ok].median()) + float(nz.wander)
@@ -280,11 +282,11 @@ def fit_learner_trend(
         raise ValueError(f"drift must be a number >= 0, got {drift!r}")
     q_c, q_b = drift * R / idx.numel(), drift * R / (idx.numel() * n_hidden / 4.0)
     Q = [q_c, q_c] + [q_b] * n_hidden
-    opt = KalmanOptimizer(module, filter="ekf", P0=P0_flat, Q=torch.tensor(Q), R=R)
+    opt = KalmanOptimizer(module, filter="ekf", P0=P0_flat, Q=torch.tensor(Q, **f64), R=R)
     tau = (t[idx] - t_on) / scale
     X, Y = tau[:, None], zz[:, None]
     wanted = sorted({int(i) % n for i in snapshots} | {n - 1})
-    cuts = {w: int(torch.searchsorted(idx, torch.tensor(w), right=True)) for w in wanted}
+    cuts = {w: int(torch.searchsorted(idx, idx.new_tensor(w), right=True)) for w in wanted}
     snaps: dict[int, GaussianBelief] = {w: opt.belief for w, c in cuts.items() if c == 0}
     stops = sorted({c for c in cuts.values() if c > 0})
     size = max(1, math.ceil(idx.numel() / max_steps))
@@ -311,6 +313,6 @@ def fit_learner_trend(
         snapshots=snaps,
         trace=torch.tensor(traces, dtype=torch.float64),
         seen=torch.tensor(seen, dtype=torch.int64),
-        Q=torch.tensor(Q, dtype=torch.float64),
+        Q=torch.tensor(Q, **f64),
         dt_data=float(dts[dts > 0].median()) if bool((dts > 0).any()) else 1.0,
     )

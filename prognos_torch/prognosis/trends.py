@@ -55,6 +55,7 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
+from ..core.random import standard_normal
 from ..filters import GaussianFilter, make_filter, stekf
 from ..filters import run as run_filter
 
@@ -326,7 +327,7 @@ def simulate_first_passage(
     """
     B, J = means.shape[0], ds.shape[0]
     dt, dev = means.dtype, means.device
-    e = torch.randn(B, n_paths, 3, generator=generator, dtype=dt).to(dev)
+    e = standard_normal((B, n_paths, 3), generator, dt, dev)
     x = means[:, None, :] + e @ chols.mT  # (B, N, 3)
     first = torch.full((B, n_paths), J, dtype=torch.int64, device=dev)
     if z_level == -math.inf:
@@ -341,7 +342,7 @@ def simulate_first_passage(
         d = ds[j0:j1]
         nb = TrendNoise(*(col(v) for v in noise._fields()))
         rho, SQ = trend_transition(d[None], nb)  # (B, c), (B, c, 3, 3)
-        w = torch.randn(B, n_paths, j1 - j0, 3, generator=generator, dtype=dt).to(dev)
+        w = standard_normal((B, n_paths, j1 - j0, 3), generator, dt, dev)
         w = (SQ[:, None] @ w.unsqueeze(-1)).squeeze(-1)  # (B, N, c, 3)
         slope = x[..., 1:2] + torch.cumsum(w[..., 1], -1)  # beta after each step
         before = torch.cat([x[..., 1:2], slope[..., :-1]], -1)
@@ -630,9 +631,10 @@ def fit_trends(
         if int((~torch.isnan(z)).sum()) < 3:
             continue
         grid = noise[shape] if noise and shape in noise else noise_grid(z, s, a)
-        grid = TrendNoise(*(v.reshape(-1) for v in grid._fields()))
+        # given noise levels and priors join the data's device (values unchanged)
+        grid = TrendNoise(*(v.reshape(-1).to(z.device) for v in grid._fields()))
         if prior and shape in prior:
-            m0, S0 = prior[shape].mean, prior[shape].chol
+            m0, S0 = prior[shape].mean.to(z.device), prior[shape].chol.to(z.device)
         else:
             m0, S0 = _prior(z, s)
         per.append((shape, z, s, a, grid, m0, S0))
