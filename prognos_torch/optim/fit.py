@@ -330,7 +330,9 @@ def fit(
     try:
         for epoch in range(1, epochs + 1):
             if shuffle:
-                order = torch.randperm(N, generator=generator).to(X.device)
+                # drawn where the generator lives (a CPU or a CUDA stream), used on X's device
+                order = torch.randperm(N, generator=generator, device=generator.device)
+                order = order.to(X.device)
             else:
                 order = torch.arange(N, device=X.device)
             module.train()
@@ -364,7 +366,7 @@ def fit(
                 elif missing and not bool((~torch.isnan(yb)).any()):
                     # no observed target: nothing to learn from, no step (a zero gradient
                     # would still move a momentum optimiser); its loss is NaN, left out
-                    loss = torch.tensor(math.nan, dtype=torch.float64)
+                    loss = torch.tensor(math.nan, dtype=torch.float64, device=X.device)
                 else:
 
                     def closure(xb=xb, yb=yb):
@@ -375,7 +377,7 @@ def fit(
 
                     loss = optimizer.step(closure)
                     if loss is None:  # an optimiser whose step does not return the loss
-                        loss = torch.tensor(float("nan"))
+                        loss = torch.tensor(math.nan, dtype=torch.float64, device=X.device)
                 losses.append(loss.detach().to(torch.float64))
                 hist.steps += 1
                 if bar is not None:
