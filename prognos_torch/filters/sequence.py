@@ -178,23 +178,30 @@ def _ordinary(obj):
 
 
 _COMPILED: dict = {}
+
+
 #: Inductor's C++ wrapper: the compiled loop calls its kernels from C++ rather than Python,
 #: which is most of the gain for steps of many small operations (EKF on paper 003's ANFIS,
 #: 497 steps: 0.118 s with the Python wrapper, 0.072 s with the C++ one, eager 0.43-0.52 s;
 #: compile 26 s and 39 s on the busy 2-core machine). ``decompose_mm_pass``: a matrix
 #: product with one row (a vector times a matrix: the learner on one sample, ``H S``) becomes
 #: a reduction that fuses with its neighbours instead of a BLAS call; the EKF step on paper
-#: 003's ANFIS goes from 7 BLAS calls and 7 fused kernels to 2 and 4
-_COMPILE_OPTIONS = {
-    "options": {"cpp_wrapper": True, "post_grad_fusion_options": {"decompose_mm_pass": {}}}
-}
+#: 003's ANFIS goes from 7 BLAS calls and 7 fused kernels to 2 and 4. On CUDA the C++
+#: wrapper cannot generate the scan's loop (torch 2.11: an assertion in its while-loop
+#: code generation), so the GPU gets the Python wrapper.
+def _compile_options(device: torch.device) -> dict:
+    options: dict = {"post_grad_fusion_options": {"decompose_mm_pass": {}}}
+    if device.type == "cpu":
+        options["cpp_wrapper"] = True
+    return {"options": options}
 
 
 def _compiled_scan(step, state, ys: Tensor, us: Tensor | None, record):
     """:func:`scan` with ``compile=True`` (see there)."""
     if not isinstance(state, tuple) or not all(isinstance(t, Tensor) for t in state):
         raise TypeError("with compile=True, state must be a tuple of tensors")
-    key = (step, record)
+    device = state[0].device if state else ys.device
+    key = (step, record, device.type)
     fn = _COMPILED.get(key)
     if fn is None:
         try:
@@ -216,7 +223,7 @@ def _compiled_scan(step, state, ys: Tensor, us: Tensor | None, record):
         def run(carry, ys, us):
             return _hop_scan(body, carry, (ys, us))
 
-        fn = torch.compile(run, fullgraph=True, **_COMPILE_OPTIONS)
+        fn = torch.compile(run, fullgraph=True, **_compile_options(device))
         if len(_COMPILED) > 16:
             _COMPILED.clear()
         _COMPILED[key] = fn
