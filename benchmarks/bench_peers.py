@@ -144,7 +144,7 @@ def filterpy_pass(data, theta0, P0m, Qm, Rm):
 def library_pass(filt, runs, data, compile=False):
     """Time of one pass (compile time apart), test MAE per run, compile time."""
     Xtr, Ytr, Xte, Yte = data
-    model, opt = make(filt, runs, Xtr)
+    model, opt = make(filt, runs, Xtr, Xtr.device)
     hist = fit(model, opt, (Xtr, Ytr), epochs=1, val=(Xte, Yte), progress=False, compile=compile)
     return hist.time[0], np.atleast_1d(hist.val["mae"][-1].cpu().numpy()), hist.compile_time[0]
 
