@@ -18,6 +18,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from ..metrics import alpha_bounds, lambda_index, lambda_time
+from ._arrays import as_numpy
 
 __all__ = [
     "plot_prediction",
@@ -33,9 +34,7 @@ PathLike = str | os.PathLike
 
 
 def _np(x, name: str, ndim: int | None = 1) -> np.ndarray:
-    if hasattr(x, "detach"):
-        x = x.detach().to("cpu").double().numpy()
-    arr = np.asarray(x, dtype=np.float64)
+    arr = as_numpy(x)
     if ndim is not None and arr.ndim != ndim:
         raise ValueError(f"{name} must be {ndim}-D, got shape {arr.shape}")
     return arr

@@ -14,6 +14,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from ._arrays import as_numpy
 from .figures import PathLike, _save
 
 __all__ = ["HeatmapPanel", "draw_heatmap", "plot_heatmaps"]
@@ -42,7 +43,7 @@ class HeatmapPanel:
 
 
 def _checked(panel: HeatmapPanel) -> tuple[np.ndarray, list[list[str]]]:
-    v = np.asarray(panel.values, dtype=np.float64)
+    v = as_numpy(panel.values)
     shape = (len(panel.rows), len(panel.cols))
     if v.shape != shape:
         raise ValueError(f"values must have shape {shape} (rows, cols), got {v.shape}")

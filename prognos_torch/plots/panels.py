@@ -16,15 +16,15 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from ._arrays import as_numpy
+
 __all__ = ["plot_panels"]
 
 PathLike = str | os.PathLike
 
 
 def _arr(x, name: str) -> np.ndarray:
-    if hasattr(x, "detach"):
-        x = x.detach().to("cpu").double().numpy()
-    a = np.asarray(x, dtype=np.float64)
+    a = as_numpy(x)
     if a.ndim == 1:
         a = a[:, None]
     if a.ndim != 2:

@@ -21,15 +21,12 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from ..io import atomic_write
+from ._arrays import as_numpy
 
 if TYPE_CHECKING:  # annotations only: the workflow imports the plots, not the reverse
     from ..workflow.predict import RULResult
 
 __all__ = ["plot_prognosis", "plot_rul_trajectory"]
-
-
-def _np(x) -> np.ndarray:
-    return x.detach().to("cpu").double().numpy()
 
 
 def _write(fig: Figure, path: str | os.PathLike | None) -> Figure:
@@ -73,7 +70,7 @@ def plot_prognosis(
         FigureCanvasAgg(fig)
         ax, bx = fig.add_subplot(2, 1, 1), fig.add_subplot(2, 1, 2)
     h = result.history
-    th, yh = _np(h.t), _np(h.values)
+    th, yh = as_numpy(h.t), as_numpy(h.values)
     t0 = th[0]
     on = result.onset
     if on is not None and on.detected:
@@ -86,7 +83,7 @@ def plot_prognosis(
     t_end = result.t_last + (s["q95"] if s["q95"] is not None else result.bound)
     t_end = max(t_end, result.t_last + 0.05 * (result.t_last - t0))
     if truth is not None:
-        tt, yt = _np(truth[0]), _np(truth[1])
+        tt, yt = as_numpy(truth[0]), as_numpy(truth[1])
         sel = (tt > result.t_last) & (tt <= t_end)
         ax.plot(tt[sel], yt[sel], ".", ms=2, color="0.65", label="what followed")
     ylo, yhi = float(np.min(yh[keep])), float(np.max(yh[keep]))
@@ -97,7 +94,7 @@ def plot_prognosis(
         m = tf <= t_end
         # paths far off the axes (an exponential path can reach 1e300) are clipped near them:
         # huge coordinates make the Agg renderer allocate without bound
-        P = np.clip(_np(result.paths)[:, m], lo_t - 10 * pad, hi_t + 10 * pad)
+        P = np.clip(as_numpy(result.paths)[:, m], lo_t - 10 * pad, hi_t + 10 * pad)
         if P.shape[1]:
             lo, med, hi = np.quantile(P, [0.05, 0.5, 0.95], axis=0)
             ax.fill_between(tf[m], lo, hi, color="C1", alpha=0.2, label="paths 5-95 %")
@@ -116,7 +113,7 @@ def plot_prognosis(
         return ax.figure
     d = result.distribution
     if result.status == "ok":
-        sup, pmf = _np(d.support), _np(d.pmf)
+        sup, pmf = as_numpy(d.support), as_numpy(d.pmf)
         upto = (s["q95"] if s["q95"] is not None else result.bound) * 1.5
         m = sup <= upto
         width = max(result.dt, upto / 200.0)
@@ -159,8 +156,8 @@ def plot_rul_trajectory(
     FigureCanvasAgg(fig)
     for k, pan in enumerate(panels):
         ax = fig.add_subplot(nrows, ncols, k + 1)
-        tt = np.asarray(pan["times"], dtype=float)
-        tr = np.asarray(pan["true"], dtype=float)
+        tt = as_numpy(pan["times"])
+        tr = as_numpy(pan["true"])
         t_eol = float(pan["t_eol"])
         grid = np.linspace(tt.min() - 0.05 * (t_eol - tt.min()), t_eol, 50)
         r = t_eol - grid
@@ -169,14 +166,14 @@ def plot_rul_trajectory(
         ax.plot(grid, r, color="k", lw=1.0, label="true RUL")
         top = 2.2 * float(tr.max())
         for j, (name, m) in enumerate(pan["methods"].items()):
-            p = np.asarray(m["pred"], dtype=float)
+            p = as_numpy(m["pred"])
             shown = np.where(np.isfinite(p), np.minimum(p, top), top)
             dx = (j - 0.5 * (len(pan["methods"]) - 1)) * 0.01 * (t_eol - tt.min())
             ax.plot(tt + dx, shown, "o-" if j == 0 else "s--", ms=4, lw=0.8, color=f"C{j}",
                     label=name)  # fmt: skip
             if m.get("lo") is not None:
-                lo = np.minimum(np.nan_to_num(np.asarray(m["lo"], float), nan=top, posinf=top), top)
-                hi = np.minimum(np.nan_to_num(np.asarray(m["hi"], float), nan=top, posinf=top), top)
+                lo = np.minimum(np.nan_to_num(as_numpy(m["lo"]), nan=top, posinf=top), top)
+                hi = np.minimum(np.nan_to_num(as_numpy(m["hi"]), nan=top, posinf=top), top)
                 ax.vlines(tt + dx, lo, hi, color=f"C{j}", lw=2.0, alpha=0.35)
         ax.set_ylim(0, top * 1.02)
         ax.set_title(pan["title"], fontsize=9)

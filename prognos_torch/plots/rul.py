@@ -12,6 +12,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from ..metrics import alpha_bounds
+from ._arrays import as_numpy
 from .figures import PathLike, _new, _np, _same_len, _save
 
 __all__ = ["plot_rul_band", "draw_paths", "plot_paths", "weighted_quantiles"]
@@ -69,7 +70,7 @@ def plot_rul_band(
 def weighted_quantiles(samples, weights, qs: Sequence[float]) -> np.ndarray:
     """Per column of ``samples`` ``(N, H)`` the weighted quantiles ``qs``: ``(len(qs), H)``
     (the smallest sample whose cumulative weight reaches ``q``)."""
-    samples, w = np.asarray(samples, dtype=np.float64), np.asarray(weights, dtype=np.float64)
+    samples, w = as_numpy(samples), as_numpy(weights)
     order = np.argsort(samples, axis=0)
     s = np.take_along_axis(samples, order, axis=0)
     cw = np.cumsum(w[order], axis=0)

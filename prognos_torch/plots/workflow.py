@@ -17,6 +17,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from ..io import atomic_write
+from ._arrays import as_numpy
 from .rul import draw_paths
 
 if TYPE_CHECKING:  # annotations only: the workflow imports this module, not the reverse
@@ -24,10 +25,6 @@ if TYPE_CHECKING:  # annotations only: the workflow imports this module, not the
     from ..workflow.predict import ForecastResult, RULResult
 
 __all__ = ["plot_forecast", "plot_rul", "time_label"]
-
-
-def _np(x) -> np.ndarray:
-    return x.detach().to("cpu").double().numpy()
 
 
 def time_label(series: Series) -> str:
@@ -51,7 +48,7 @@ def _history_tail(series: Series, horizon: int, history: int | None) -> tuple:
     n = len(series) if history is None else min(len(series), history)
     if history is None:
         n = min(len(series), max(4 * horizon, 200))
-    return _np(series.t)[-n:], _np(series.values)[-n:]
+    return as_numpy(series.t)[-n:], as_numpy(series.values)[-n:]
 
 
 def plot_forecast(
@@ -76,17 +73,24 @@ def plot_forecast(
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
     th, xh = _history_tail(result.history, result.horizon, history)
-    tf = _np(result.time)
+    tf = as_numpy(result.time)
     ax.plot(th, xh, color="0.25", lw=1.0, label="observed")
     if truth is not None:
-        tt, xt = _np(truth.t), _np(truth.values)
+        tt, xt = as_numpy(truth.t), as_numpy(truth.values)
         sel = (tt > th[-1]) & (tt <= tf[-1] + 0.25 * (tf[-1] - th[-1]))
         ax.plot(tt[sel], xt[sel], color="k", lw=1.0, ls=":", label="observed after origin")
     pct = f"{100 * result.level:g} %"
     ax.fill_between(
-        tf, _np(result.lower), _np(result.upper), color="C0", alpha=0.25, label=f"{pct} band"
+        tf,
+        as_numpy(result.lower),
+        as_numpy(result.upper),
+        color="C0",
+        alpha=0.25,
+        label=f"{pct} band",
     )
-    ax.plot(tf, _np(result.mean), color="C0", lw=1.5, label=f"forecast ({result.filter.upper()})")
+    ax.plot(
+        tf, as_numpy(result.mean), color="C0", lw=1.5, label=f"forecast ({result.filter.upper()})"
+    )
     ax.axvline(th[-1], color="0.6", lw=0.8, ls="--")
     ax.set_xlabel(time_label(result.history))
     ax.set_ylabel(result.history.name)
@@ -118,7 +122,7 @@ def plot_rul(
     ax.set_title(title or f"RUL at {result.t_last:g} ({result.filter.upper()})")
 
     d = result.distribution
-    support, pmf = _np(d.support), _np(d.pmf)
+    support, pmf = as_numpy(d.support), as_numpy(d.pmf)
     bx.bar(support, pmf, width=result.dt, color="C0", alpha=0.7, label="RUL pmf")
     s = result.summary()
     if s["median"] is not None:
