@@ -765,3 +765,35 @@ def test_ros_elm_batched_over_runs_matches_cpu():
         _same(sg.K[c], sr.K[c], f"K[{c}]")
     _same(fg, fr, "forecast")
     assert fr.shape == (5, R, C) and float(fr.std(1).min()) > 0  # the runs differ
+
+
+# ============================================================= figures from device tensors
+def test_figures_take_device_tensors(tmp_path):
+    """The plots take tensors on any device (their inputs are copied to the CPU): the weighted
+    quantiles of device samples equal the CPU's, and a heatmap, an RUL trajectory chart and
+    a paths chart draw from device tensors."""
+    from prognos_torch.plots import (
+        HeatmapPanel,
+        plot_heatmaps,
+        plot_paths,
+        plot_rul_trajectory,
+        weighted_quantiles,
+    )
+
+    g = _gen(5)
+    samples = torch.randn(200, 4, generator=g, dtype=F64)
+    w = torch.rand(200, 1, generator=g, dtype=F64).expand(200, 4)
+    w = w / w.sum(0)
+    qs = (0.05, 0.5, 0.95)
+    ref = weighted_quantiles(samples, w, qs)
+    got = weighted_quantiles(_dev(samples), _dev(w), qs)
+    assert (got == ref).all()
+    values = _dev(torch.tensor([[1.0, math.nan], [0.5, 2.0]], dtype=F64))
+    plot_heatmaps(tmp_path / "h.png", [HeatmapPanel(values, ["a", "b"], ["x", "y"])])
+    times, true = _dev(torch.tensor([1.0, 2.0, 3.0])), _dev(torch.tensor([3.0, 2.0, 1.0]))
+    pred = {"pred": _dev(torch.tensor([2.5, 2.2, math.inf])), "lo": None, "hi": None}
+    panel = {"title": "s", "times": times, "true": true, "t_eol": 4.0, "methods": {"m": pred}}
+    plot_rul_trajectory(tmp_path / "r.png", [panel])
+    paths = _dev(torch.linspace(0.0, 2.0, 10, dtype=F64).expand(5, 10))
+    plot_paths(tmp_path / "p.png", _dev(torch.arange(10.0, dtype=F64)), paths, threshold=1.5)
+    assert all((tmp_path / f).stat().st_size > 0 for f in ("h.png", "r.png", "p.png"))
