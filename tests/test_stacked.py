@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch.func import jacrev
 
-from prognos_torch.learners import ANFIS, ELM
+from prognos_torch.learners import ANFIS, ELM, LSSVR
 from prognos_torch.optim import (
     KalmanOptimizer,
     ParameterBridge,
@@ -197,6 +197,22 @@ def test_stacked_forecaster_equals_one_forecaster_per_run():
     assert view.initialized and got.shape == (n, R, C)
     with pytest.raises(ValueError, match="initialised"):
         StackedForecaster.from_forecasters(ref)
+
+
+def test_dtype_and_device_moves_carry_the_base_buffers_along():
+    """``.float()`` / ``.to(device)`` move the base's buffers that forward uses (an LS-SVR's
+    support vectors are no stacked parameter) with the stack; the caller's base is untouched."""
+    X = _x(20, 3)
+    mods = [LSSVR(sigma=0.5 + 0.1 * r, C=10.0).fit(X, X.sum(-1, keepdim=True)) for r in range(2)]
+    st = StackedLearner.from_modules(mods)
+    want = torch.stack([m(X) for m in mods])
+    st32 = st.float()
+    got = st32(X.float().expand(2, 20, 3))
+    assert got.dtype == torch.float32
+    torch.testing.assert_close(got.double(), want, rtol=1e-4, atol=1e-5)
+    base = ELM(3, 6, generator=torch.Generator().manual_seed(0))
+    st = StackedLearner.from_theta(base, ParameterBridge(base).flatten().expand(2, -1)).float()
+    assert base.a.dtype == F64 and st.base.a.dtype == torch.float32  # a copy moved
 
 
 def test_bad_arguments():

@@ -197,6 +197,14 @@ class StackedLearner(nn.Module):
     def base(self) -> nn.Module:
         return self._base[0]
 
+    def _apply(self, fn, recurse: bool = True):
+        # .to(device), .double(), ...: the base is no submodule (its parameters stay out of
+        # ours), yet forward uses its buffers (an LS-SVR's support vectors), so a copy of it
+        # goes along; the caller's module is left as it was
+        super()._apply(fn, recurse)
+        self._base = (copy.deepcopy(self._base[0])._apply(fn),)
+        return self
+
     def parameter_sets(self) -> dict[str, Tensor]:
         """``{name: (R, *shape)}``: the per-run values under the base's parameter names."""
         return {name: getattr(self, attr) for attr, name in self._names.items()}
