@@ -81,15 +81,19 @@ class MeasurementForecaster:
         activation: str = "sigmoid",
         generator: torch.Generator | None = None,
         dtype: torch.dtype = torch.float64,
+        device: torch.device | str | None = None,
     ) -> MeasurementForecaster:
         """``n_channels`` ROS-ELMs with the paper's set-up (paper 000 Sec. 6: ``p = 3``,
         ``L = 50``, ``lambda = 1e-8``, sigmoid, ``a ~ U[-1, 1]``, ``b ~ U[0, 1]``); the hidden
-        layers are drawn from ``generator`` (``None``: seeded with 0)."""
+        layers are drawn from ``generator`` (``None``: seeded with 0) and the ELMs moved to
+        ``device`` (that of the measurements they will see; ``None``: where they were drawn)."""
         n_channels = check_pos_int(n_channels, "n_channels")
         if generator is None:
             generator = torch.Generator().manual_seed(0)
         elms = [
-            ELM(p, n_hidden, 1, activation=activation, generator=generator, dtype=dtype)
+            ELM(p, n_hidden, 1, activation=activation, generator=generator, dtype=dtype).to(
+                device
+            )
             for _ in range(n_channels)
         ]
         return cls(elms, p, lam=lam, online=True)

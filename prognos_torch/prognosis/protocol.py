@@ -92,11 +92,13 @@ def known_threshold_protocol(
     t_eol = float(t[i_eol])
     base = healthy_baseline(y[: i_eol + 1], t[: i_eol + 1], fraction=0.3)
     on = ksigma_onset(y[: i_eol + 1], t[: i_eol + 1], baseline=base)
-    empty = torch.empty(0, dtype=torch.float64)
+    empty = torch.empty(0, dtype=torch.float64, device=t.device)
     if not on.detected:
         return ProtocolCase(t, y, thr, t_eol, i_eol, base, None, None, empty, empty, False,
                             "no onset before end of life")  # fmt: skip
-    times = torch.tensor([on.time + f * (t_eol - on.time) for f in fractions], dtype=torch.float64)
+    times = torch.tensor(
+        [on.time + f * (t_eol - on.time) for f in fractions], dtype=torch.float64, device=t.device
+    )
     valid, reason = True, ""
     if i_eol - on.index < 10 or not t_eol > on.time:
         valid, reason = False, f"onset only {i_eol - on.index} samples before end of life"
