@@ -48,16 +48,25 @@ from prognos_torch.filters import (
 )
 from prognos_torch.fleet import exponential_trend_rul, pad_batch, read_fleet_table, synthetic_fleet
 from prognos_torch.fleet.trend import RUL_COLUMNS
-from prognos_torch.learners import ANFIS, ELM, ros_elm_forecast, ros_elm_init, ros_elm_update
+from prognos_torch.learners import (
+    ANFIS,
+    ELM,
+    LSSVR,
+    ros_elm_forecast,
+    ros_elm_init,
+    ros_elm_update,
+)
 from prognos_torch.optim import (
     KalmanOptimizer,
     ParameterBridge,
+    StackedLearner,
     em_linear_gaussian,
     fit,
     fit_likelihood,
     from_log_cholesky,
 )
 from prognos_torch.prognosis import (
+    MeasurementForecaster,
     fit_learner_trend,
     fit_trends,
     gaussian_paths,
@@ -797,3 +806,52 @@ def test_figures_take_device_tensors(tmp_path):
     paths = _dev(torch.linspace(0.0, 2.0, 10, dtype=F64).expand(5, 10))
     plot_paths(tmp_path / "p.png", _dev(torch.arange(10.0, dtype=F64)), paths, threshold=1.5)
     assert all((tmp_path / f).stat().st_size > 0 for f in ("h.png", "r.png", "p.png"))
+
+
+# ============================================================= stacked learners, forecasters
+def test_stacked_lssvr_moves_to_the_device_with_its_support_vectors():
+    """``StackedLearner.to(device)`` carries the base's buffers (the LS-SVR's support vectors,
+    no stacked parameter) along: the stack on the device gives the CPU stack's outputs."""
+    X = torch.rand(20, 3, generator=_gen(4), dtype=F64)
+    mods = [LSSVR(sigma=0.5 + 0.1 * r, C=10.0).fit(X, X.sum(-1, keepdim=True)) for r in range(2)]
+    st = StackedLearner.from_modules(mods)
+    xr = X.expand(2, 20, 3)
+    _same(copy.deepcopy(st).to(DEVICE)(_dev(xr)).detach(), st(xr).detach(), "stacked LS-SVR")
+
+
+def test_measurement_forecaster_on_the_device():
+    """``MeasurementForecaster.ros_elm(device=...)``: ROS-ELMs drawn from a CPU generator and
+    moved; initialise, update and forecast on device measurements give the CPU's numbers. ELMs
+    on another device than the measurements are refused by name."""
+    t = torch.arange(40, dtype=F64)
+    z = torch.stack([torch.sin(0.2 * t), 0.5 * torch.cos(0.1 * t)], -1)  # (T, C)
+    out = []
+    for dev in ("cpu", DEVICE):
+        fc = MeasurementForecaster.ros_elm(2, n_hidden=12, generator=_gen(9), device=dev)
+        fc.initialize(z[:20].to(dev))
+        for k in range(20, 30):
+            fc.update(z[k].to(dev))
+        out.append(fc.forecast(4))
+    _same(out[1], out[0], "forecast")
+    if DEVICE.type != "cpu":
+        fc = MeasurementForecaster.ros_elm(2, n_hidden=12, generator=_gen(9))  # on the CPU
+        with pytest.raises(ValueError, match=r"elms\[0\] is on cpu"):
+            fc.initialize(_dev(z[:20]))
+
+
+def test_known_threshold_protocol_on_the_device():
+    """The RUL protocol (threshold, end of life, onset, prediction times, true RUL) of a
+    synthetic run to failure given on the device: the CPU's numbers, its tensors on the
+    device."""
+    from prognos_torch.prognosis.protocol import known_threshold_protocol
+    from prognos_torch.systems.run_to_failure import simulate_run_to_failure
+
+    r = simulate_run_to_failure("hump", _gen(2), life=(30.0, 30.0), gaps=False)
+    ref = known_threshold_protocol(r.t, r.y)
+    got = known_threshold_protocol(_dev(r.t), _dev(r.y))
+    assert ref.valid and got.valid
+    assert (got.threshold, got.t_eol, got.i_eol, got.t_onset, got.i_onset) == (
+        ref.threshold, ref.t_eol, ref.i_eol, ref.t_onset, ref.i_onset
+    )  # fmt: skip
+    _same(got.times, ref.times, "prediction times")
+    _same(got.true_rul, ref.true_rul, "true RUL")
