@@ -31,6 +31,7 @@ from dataclasses import replace
 
 import pytest
 import torch
+from test_likelihood import two_state_model  # the oscillator of the likelihood tests
 
 from prognos_torch.core import GaussianBelief, StateSpaceModel, linear_gaussian_model
 from prognos_torch.datasets.windows import embed
@@ -63,7 +64,6 @@ from prognos_torch.optim import (
     em_linear_gaussian,
     fit,
     fit_likelihood,
-    from_log_cholesky,
 )
 from prognos_torch.prognosis import (
     MeasurementForecaster,
@@ -430,19 +430,6 @@ def test_compiled_kalman_optimizer_fit_matches_eager_cpu():
 
 
 # ============================================================= 6. parameter learning
-def two_state_model(p):
-    """tests/test_likelihood.py's oscillator: parameter ``a`` of f, ``c`` of h, full Q and R."""
-    a, c = p["a"], p["c"]
-
-    def f(x, u, k):
-        return torch.stack([x[0] + 0.1 * x[1], x[1] - 0.1 * (a * torch.sin(x[0]) + 0.3 * x[1])])
-
-    def h(x, u, k):
-        return torch.stack([torch.tanh(c * x[0]), x[1]])
-
-    return StateSpaceModel(
-        f, h, 2, 2, chol_Q=from_log_cholesky(p["lq"]), chol_R=from_log_cholesky(p["lr"])
-    )
 
 
 def test_fit_likelihood_matches_cpu():
