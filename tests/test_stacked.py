@@ -213,6 +213,8 @@ def test_dtype_and_device_moves_carry_the_base_buffers_along():
     base = ELM(3, 6, generator=torch.Generator().manual_seed(0))
     st = StackedLearner.from_theta(base, ParameterBridge(base).flatten().expand(2, -1)).float()
     assert base.a.dtype == F64 and st.base.a.dtype == torch.float32  # a copy moved
+    same = st.base
+    assert st.to(torch.float32).base is same  # nothing to move: no copy
 
 
 def test_bad_arguments():

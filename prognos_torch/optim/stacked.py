@@ -199,10 +199,21 @@ class StackedLearner(nn.Module):
 
     def _apply(self, fn, recurse: bool = True):
         # .to(device), .double(), ...: the base is no submodule (its parameters stay out of
-        # ours), yet forward uses its buffers (an LS-SVR's support vectors), so a copy of it
-        # goes along; the caller's module is left as it was
+        # ours), yet forward uses its buffers (an LS-SVR's support vectors), so it goes along
+        # as a copy whose tensors are the converted ones (the caller's module, and any stack
+        # sharing it through select(), keep theirs; nothing is copied twice)
         super()._apply(fn, recurse)
-        self._base = (copy.deepcopy(self._base[0])._apply(fn),)
+        base = self._base[0]
+        memo: dict[int, Tensor] = {}
+        for t in list(base.parameters()) + list(base.buffers()):
+            new = fn(t.detach())
+            if new.dtype != t.dtype or new.device != t.device or new.data_ptr() != t.data_ptr():
+                is_param = isinstance(t, nn.Parameter)
+                memo[id(t)] = nn.Parameter(new, t.requires_grad) if is_param else new
+        if memo:  # something moved (a no-op .to() keeps the base as it is)
+            for t in list(base.parameters()) + list(base.buffers()):
+                memo.setdefault(id(t), t)  # unmoved tensors are shared, not copied
+            self._base = (copy.deepcopy(base, memo),)
         return self
 
     def parameter_sets(self) -> dict[str, Tensor]:
