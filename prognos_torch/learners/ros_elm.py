@@ -85,7 +85,7 @@ def ros_elm_init(elms: Sequence[nn.Module], z0: Tensor, p: int, lam: float) -> R
     check_finite(z0, "z0", "(N0, ..., C)")
     check_nonneg(lam, "lam", numbers_only=True)
     for c, elm in enumerate(elms):
-        dev = learner_dtype_device(elm)[1]
+        dev = elm.a.device  # the hidden layer's (Eq. 48), as _hidden uses it
         if dev != z0.device:
             raise ValueError(
                 f"elms[{c}] is on {dev}, z0 on {z0.device}: move the ELMs (.to(device)) or "
