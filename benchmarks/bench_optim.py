@@ -53,15 +53,17 @@ _INITS: dict = {}
 
 
 def _initial(runs: int, Xtr):
-    """(ANFIS of seed 0, stacked initial parameters ``(runs, 44)``), on the CPU, cached."""
-    if runs not in _INITS:
-        X = Xtr.cpu()
+    """(ANFIS of seed 0, stacked initial parameters ``(runs, 44)``), on the CPU, cached per
+    run count and training inputs."""
+    X = Xtr.cpu()
+    key = (runs, tuple(X.shape), hash(X.numpy().tobytes()))
+    if key not in _INITS:
         inits = [
             ANFIS(3, 2, generator=torch.Generator().manual_seed(s)).init_premises(X)
             for s in range(runs)
         ]
-        _INITS[runs] = (inits[0], ParameterBridge(inits[0]).stack(inits))
-    return _INITS[runs]
+        _INITS[key] = (inits[0], ParameterBridge(inits[0]).stack(inits))
+    return _INITS[key]
 
 
 def one_pass(filter_name, runs, data, repeats, device=None):

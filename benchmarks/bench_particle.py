@@ -31,7 +31,8 @@ Prints tables of
 
 ``--device cuda`` prints only the throughput of SIR and STPF (batched model) on that device at
 the ``--device-counts`` (particles:steps), the device synchronised before the clock is read,
-beside the same runs on the CPU where they take under a few seconds (``--device-cpu-max``).
+beside the same runs on the CPU where they take under a few seconds (``--device-cpu-max``),
+timed by the wall clock (``--cpu-time`` does not apply).
 ``--peers-only`` runs the NumPy comparisons alone; ``--cpu-time`` times with the process's CPU
 time (``time.process_time``) instead of the wall clock, which on a shared machine leaves out
 the time the process waits for a core (not the slowdown other jobs cause while it runs).

@@ -160,7 +160,7 @@ def prior_floor_pass(runs, data):
     from prognos_torch.filters.gaussian import _chol_prior, deferred_fallbacks
 
     Xtr, Ytr, _, _ = data
-    _, opt = make("ekf", runs, Xtr)
+    _, opt = make("ekf", runs, Xtr, Xtr.device)
     s = opt.state[next(iter(opt.state))]
     chol_Q = opt._cfg[0].chol_Q
     diag_Q = diagonal_noise(chol_Q)
