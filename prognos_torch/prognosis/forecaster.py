@@ -91,9 +91,7 @@ class MeasurementForecaster:
         if generator is None:
             generator = torch.Generator().manual_seed(0)
         elms = [
-            ELM(p, n_hidden, 1, activation=activation, generator=generator, dtype=dtype).to(
-                device
-            )
+            ELM(p, n_hidden, 1, activation=activation, generator=generator, dtype=dtype).to(device)
             for _ in range(n_channels)
         ]
         return cls(elms, p, lam=lam, online=True)
