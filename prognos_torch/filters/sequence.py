@@ -180,16 +180,19 @@ def _ordinary(obj):
 _COMPILED: dict = {}
 
 
-#: Inductor's C++ wrapper: the compiled loop calls its kernels from C++ rather than Python,
-#: which is most of the gain for steps of many small operations (EKF on paper 003's ANFIS,
-#: 497 steps: 0.118 s with the Python wrapper, 0.072 s with the C++ one, eager 0.43-0.52 s;
-#: compile 26 s and 39 s on the busy 2-core machine). ``decompose_mm_pass``: a matrix
-#: product with one row (a vector times a matrix: the learner on one sample, ``H S``) becomes
-#: a reduction that fuses with its neighbours instead of a BLAS call; the EKF step on paper
-#: 003's ANFIS goes from 7 BLAS calls and 7 fused kernels to 2 and 4. On CUDA the C++
-#: wrapper cannot generate the scan's loop (torch 2.11: an assertion in its while-loop
-#: code generation), so the GPU gets the Python wrapper.
 def _compile_options(device: torch.device) -> dict:
+    """Inductor's options for the compiled loop on ``device``.
+
+    Its C++ wrapper calls the loop's kernels from C++ rather than Python, which is most of the
+    gain for steps of many small operations (EKF on paper 003's ANFIS, 497 steps: 0.118 s with
+    the Python wrapper, 0.072 s with the C++ one, eager 0.43-0.52 s; compile 26 s and 39 s on
+    the busy 2-core machine). On CUDA the C++ wrapper cannot generate the scan's loop (torch
+    2.11: an assertion in its while-loop code generation), so the GPU gets the Python wrapper.
+    ``decompose_mm_pass``: a matrix product with one row (a vector times a matrix: the learner
+    on one sample, ``H S``) becomes a reduction that fuses with its neighbours instead of a
+    BLAS call; the EKF step on paper 003's ANFIS goes from 7 BLAS calls and 7 fused kernels to
+    2 and 4.
+    """
     options: dict = {"post_grad_fusion_options": {"decompose_mm_pass": {}}}
     if device.type == "cpu":
         options["cpp_wrapper"] = True
