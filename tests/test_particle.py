@@ -348,6 +348,53 @@ def test_numpy_and_torch_lookups_agree(monkeypatch):
         assert torch.equal(a, rs._lookup(cdf, u)) and a.dtype == torch.int64
 
 
+def test_systematic_by_counts_gives_the_search_indices():
+    """From ``_COUNT_MIN`` particles a CPU systematic resampling counts offspring instead of
+    searching: the same ancestors as the look-up, on peaked, uniform (every ``N cdf_i - U``
+    near an integer) and zero-weight rows, batches, and on ``U`` chosen to put the points
+    exactly on, one ulp below and one ulp above cdf values (the rounding corrections)."""
+    import prognos_torch.filters.resampling as rs
+
+    def searched(cdf, U):
+        N = cdf.shape[-1]
+        u = (torch.arange(N, dtype=cdf.dtype) + U) / N
+        return rs._lookup(cdf, u.clamp_max(1.0 - torch.finfo(cdf.dtype).eps))
+
+    g = gen(21)
+    N = 5000
+    peaked = torch.softmax(
+        -0.5 * ((3.0 * torch.randn(N, generator=g, dtype=torch.float64) - 1) / 0.3) ** 2, -1
+    )
+    zeros = torch.rand(N, generator=g, dtype=torch.float64)
+    zeros[::3] = 0.0
+    rows = [peaked, torch.full((N,), 1.0 / N, dtype=torch.float64), zeros / zeros.sum(),
+            torch.rand(2, 3, N, generator=g, dtype=torch.float64)]  # fmt: skip
+    fixed = 0
+    for w in rows:
+        cdf = rs._cdf(w / w.sum(-1, keepdim=True))
+        Us = [torch.rand(*cdf.shape[:-1], 1, generator=g, dtype=torch.float64) for _ in range(5)]
+        # points on a cdf value: U = N cdf_i - j for a middle particle, and its neighbours
+        i = N // 2
+        on = (cdf[..., i : i + 1] * N) % 1.0
+        Us += [
+            on,
+            torch.nextafter(on, torch.zeros_like(on)),
+            torch.nextafter(on, torch.ones_like(on)),
+        ]
+        Us.append(torch.zeros_like(Us[0]))
+        for U in Us:
+            got = rs._systematic_by_counts(cdf, U)
+            assert got.dtype == torch.int64 and torch.equal(got, searched(cdf, U))
+            x = cdf * N - U
+            fixed += int(((torch.ceil(x) - x) < 1e-9).sum())  # near-integer cases exercised
+    assert fixed > N  # the uniform row and the chosen U put many points on the edge
+    # the public function takes that path and draws as before (one uniform per run)
+    w = torch.rand(3, N, generator=g, dtype=torch.float64)
+    got = systematic(w.log(), gen(4))
+    U = torch.rand(3, 1, generator=gen(4), dtype=torch.float64)
+    assert torch.equal(got, searched(rs._cdf(w / w.sum(-1, keepdim=True)), U))
+
+
 # ---------------------------------------------------------------------- resamplers
 def _stratified_var(w):
     """Exact offspring variance of stratified resampling: sum over strata of p (1 - p)."""

@@ -17,7 +17,9 @@ copy of particle ``ancestors[b, j]``. All schemes are unbiased, ``E[#offspring o
 
 All draws are inverse-CDF look-ups (``torch.searchsorted``; NumPy's on CPU from
 ``_NUMPY_SEARCH_MIN`` particles, one call per run) on the normalised cumulative weights, batched
-over the leading dimensions: no Python loop over particles.
+over the leading dimensions: no Python loop over particles. Systematic resampling on the CPU
+from ``_COUNT_MIN`` particles counts each particle's offspring instead (the same indices, in
+O(N)).
 """
 
 from __future__ import annotations
@@ -138,11 +140,64 @@ def _stratified(w: Tensor, generator: torch.Generator) -> Tensor:
     return _lookup(_cdf(w), u.clamp_max(1.0 - torch.finfo(w.dtype).eps))
 
 
+#: From this many particles a CPU systematic resampling counts offspring (O(N): a histogram
+#: and a cumulative sum) instead of searching (O(N log N)). One thread, a peaked likelihood,
+#: counts / search (with the points): 35 / 25 us at 1,000, 40 / 60 us at 2,000, 65 / 166 us
+#: at 10^4, 0.71 / 2.9 ms at 10^5. The same indices. (Counting stratified draws needs a gather
+#: of the points and a mask for the cdf's ends; it gained little over the search at 10^4 and
+#: lost at 10^5, so stratified resampling searches.)
+_COUNT_MIN = 2048
+
+
 def _systematic(w: Tensor, generator: torch.Generator) -> Tensor:
     N = w.shape[-1]
-    j = _arange(N, w.dtype, w.device)
-    u = (j + _uniform(w.shape[:-1] + (1,), generator, w)) / N
+    U = _uniform(w.shape[:-1] + (1,), generator, w)
+    if w.device.type == "cpu" and N >= _COUNT_MIN:
+        return _systematic_by_counts(_cdf(w), U)
+    u = (_arange(N, w.dtype, w.device) + U) / N
     return _lookup(_cdf(w), u.clamp_max(1.0 - torch.finfo(w.dtype).eps))
+
+
+def _near_integer(x: Tensor, k: Tensor) -> bool:
+    """Whether some ``x - k`` (each in ``[0, 1)``) lies within rounding of 0 or 1: O(N eps) for
+    ``N cdf - U`` and for the points ``u_j``, with a margin."""
+    tol = 16.0 * x.shape[-1] * torch.finfo(x.dtype).eps
+    lo, hi = torch.aminmax(x - k)
+    return bool((lo < tol) | (hi > 1.0 - tol))
+
+
+def _systematic_by_counts(cdf: Tensor, U: Tensor) -> Tensor:
+    """The look-up's ancestors at the points ``u_j = min((j + U) / N, 1 - eps)``, counted.
+
+    ``K_i = #{j : u_j < cdf_i} = ceil(N cdf_i - U)`` (clamped to ``[0, N]``): the offspring of
+    particles ``0..i``. Where ``N cdf_i - U`` lies within rounding of an integer, ``K_i`` is
+    corrected by comparing the points themselves, computed as the look-up computes them, so
+    the indices are the look-up's. ``cdf`` ``(..., N)``, ``U`` ``(..., 1)``.
+    """
+    N = cdf.shape[-1]
+    x = cdf * N - U
+    K = torch.ceil(x)
+    near = _near_integer(K, x)  # K - x in [0, 1)
+    K = K.clamp_(0.0, float(N))
+    if near:  # rare: the exact comparisons u_{K-1} >= cdf_i and u_K < cdf_i
+        top = 1.0 - torch.finfo(cdf.dtype).eps
+        K = K - ((K > 0) & (((K - 1.0 + U) / N).clamp_max(top) >= cdf)).to(K.dtype)
+        K = K + ((K < N) & (((K + U) / N).clamp_max(top) < cdf)).to(K.dtype)
+    return _ancestors_from_counts(K.to(torch.int64))
+
+
+def _ancestors_from_counts(K: Tensor) -> Tensor:
+    """``ancestor_j = #{i : K_i <= j}`` from the cumulative offspring counts ``K`` ``(..., N)``
+    (non-decreasing, ``K_{N-1} = N``): a histogram of ``K`` and its cumulative sum."""
+    N = K.shape[-1]
+    bs = K.shape[:-1]
+    B = K.numel() // N
+    if bs:  # one histogram of N + 1 bins per run
+        K = K + (_arange(B, torch.int64, K.device) * (N + 1)).reshape(*bs, 1)
+    k = K.reshape(-1)
+    hist = torch.zeros(B * (N + 1), dtype=torch.int64, device=k.device)
+    hist.scatter_add_(0, k, k.new_ones(1).expand(k.numel()))
+    return torch.cumsum(hist.reshape(*bs, N + 1)[..., :N], dim=-1)
 
 
 def _sorted_uniforms(n: Tensor, m: int, generator: torch.Generator, like: Tensor) -> Tensor:
