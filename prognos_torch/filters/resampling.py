@@ -158,11 +158,11 @@ def _systematic(w: Tensor, generator: torch.Generator) -> Tensor:
     return _lookup(_cdf(w), u.clamp_max(1.0 - torch.finfo(w.dtype).eps))
 
 
-def _near_integer(x: Tensor, k: Tensor) -> bool:
-    """Whether some ``x - k`` (each in ``[0, 1)``) lies within rounding of 0 or 1: O(N eps) for
-    ``N cdf - U`` and for the points ``u_j``, with a margin."""
+def _near_integer(K: Tensor, x: Tensor) -> bool:
+    """Whether some ``K - x`` (``K = ceil(x)``, so each in ``[0, 1)``) lies within rounding of 0
+    or 1: O(N eps) for ``x = N cdf - U`` and for the points ``u_j``, with a margin."""
     tol = 16.0 * x.shape[-1] * torch.finfo(x.dtype).eps
-    lo, hi = torch.aminmax(x - k)
+    lo, hi = torch.aminmax(K - x)
     return bool((lo < tol) | (hi > 1.0 - tol))
 
 
@@ -177,7 +177,7 @@ def _systematic_by_counts(cdf: Tensor, U: Tensor) -> Tensor:
     N = cdf.shape[-1]
     x = cdf * N - U
     K = torch.ceil(x)
-    near = _near_integer(K, x)  # K - x in [0, 1)
+    near = _near_integer(K, x)
     K = K.clamp_(0.0, float(N))
     if near:  # rare: the exact comparisons u_{K-1} >= cdf_i and u_K < cdf_i
         top = 1.0 - torch.finfo(cdf.dtype).eps
@@ -188,7 +188,8 @@ def _systematic_by_counts(cdf: Tensor, U: Tensor) -> Tensor:
 
 def _ancestors_from_counts(K: Tensor) -> Tensor:
     """``ancestor_j = #{i : K_i <= j}`` from the cumulative offspring counts ``K`` ``(..., N)``
-    (non-decreasing, ``K_{N-1} = N``): a histogram of ``K`` and its cumulative sum."""
+    (non-decreasing, ``K_{N-1} <= N``; slots from ``K_{N-1}`` on get ``N``): a histogram of
+    ``K`` and its cumulative sum."""
     N = K.shape[-1]
     bs = K.shape[:-1]
     B = K.numel() // N
@@ -225,11 +226,9 @@ def _residual(w: Tensor, generator: torch.Generator) -> Tensor:
     det = torch.floor(Nw)
     counts = det.to(torch.int64)
     R = N - counts.sum(-1)  # (...), residual draws per run (floors sum to at most N)
-    # slot j < D of a run: the particle whose cumulative count first exceeds j, by one
-    # repeat_interleave over all runs; each run's residual slots first hold the pad value N
-    vals = _arange(N + 1, torch.int64, w.device).expand(*bs, N + 1)
-    ext = torch.cat([counts, R.unsqueeze(-1)], dim=-1)
-    out = torch.repeat_interleave(vals.reshape(-1), ext.reshape(-1)).reshape(w.shape)
+    # slot j < D of a run: the particle whose cumulative count first exceeds j; each run's
+    # residual slots first hold the pad value N
+    out = _ancestors_from_counts(torch.cumsum(counts, dim=-1))
     r_max = int(R.max())
     if r_max == 0:
         return out

@@ -727,9 +727,10 @@ class KalmanOptimizer(torch.optim.Optimizer):
     def _check_partial(self, y: Tensor) -> None:
         """A robust filter (paper 004's bound) updates with whole measurement vectors only: a
         mini-batch with some targets missing would be skipped whole, so it is refused."""
+        if all(cfg.filter.robust is None for cfg in self._cfg):
+            return
         nan = torch.isnan(y)
-        partial = bool((nan.any(-1) & ~nan.all(-1)).any())
-        if partial and any(cfg.filter.robust is not None for cfg in self._cfg):
+        if bool((nan.any(-1) & ~nan.all(-1)).any()):
             raise ValueError(
                 "targets contain NaN (missing) beside observed ones, and the robust filter "
                 "updates with whole mini-batches only (the engine's robust bound): it would "
