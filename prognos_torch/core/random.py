@@ -2,8 +2,17 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
+
+#: from this many float64 draws on the CPU the vectorised transform of :func:`_randn_cpu_f64`
+#: is faster than ``torch.randn``'s per-element loop (the two cross near 2,000-4,000 draws on
+#: the 2-core benchmark machine; ``benchmarks/bench_particle.py``)
+_VECTOR_MIN = 4096
+
+_TWO_PI = 2.0 * math.pi
 
 
 def standard_normal(
@@ -12,12 +21,47 @@ def standard_normal(
     dtype: torch.dtype,
     device: torch.device | str,
 ) -> Tensor:
-    """Standard normal draws of ``shape`` on ``device``.
+    """Standard normal draws of ``shape`` on ``device``: ``torch.randn``'s draws.
 
     They are drawn on the generator's own device and then moved, so a CPU generator gives the
     same draws whatever device the computation runs on, and a CUDA generator draws on its GPU
     (``torch.randn`` refuses a generator of another device). ``generator=None`` draws from the
-    global stream of ``device``.
+    global stream of ``device``. Float64 draws on the CPU from :data:`_VECTOR_MIN` values on
+    come from :func:`_randn_cpu_f64`: ``torch.randn``'s uniforms and transform, vectorised (the
+    same numbers to an ulp or two, the generator left in the same state).
     """
-    where = device if generator is None else generator.device
+    where = torch.device(device if generator is None else generator.device)
+    if dtype == torch.float64 and where.type == "cpu" and math.prod(shape) >= _VECTOR_MIN:
+        return _randn_cpu_f64(math.prod(shape), generator).view(shape).to(device)
     return torch.randn(shape, generator=generator, dtype=dtype, device=where).to(device)
+
+
+def _box_muller_16(u: Tensor, out: Tensor) -> None:
+    """Blocks of 16 uniforms ``u`` ``(B, 16)`` to 16 normals each, into ``out`` ``(B, 16)``:
+    ``r = sqrt(-2 log(1 - u_j))``, ``z_j = r cos(2 pi u_{j+8})``, ``z_{j+8} = r sin(2 pi u_{j+8})``
+    for ``j < 8`` (Box & Muller 1958, in torch's block layout)."""
+    r = torch.rsub(u[:, :8], 1.0).log_().mul_(-2.0).sqrt_()
+    theta = u[:, 8:] * _TWO_PI
+    torch.mul(r, torch.cos(theta), out=out[:, :8])
+    torch.mul(r, theta.sin_(), out=out[:, 8:])
+
+
+def _randn_cpu_f64(n: int, generator: torch.Generator | None) -> Tensor:
+    """``torch.randn(n, dtype=torch.float64, generator=generator)`` on the CPU, ``n >= 16``.
+
+    ``torch.randn`` there draws ``n`` uniforms in order and turns each block of 16 into 16
+    normals by :func:`_box_muller_16`, one element at a time; when 16 does not divide ``n`` it
+    redoes the last 16 outputs from 16 further uniforms. Here the same uniforms, drawn by
+    ``torch.rand`` in the same order, go through the same transform on whole blocks. The
+    vectorised ``log``, ``cos`` and ``sin`` round differently from the C library's in about one
+    draw in a hundred (by an ulp or two: ``tests/test_core_random.py`` compares the two), and
+    the generator ends where ``torch.randn`` leaves it.
+    """
+    tail = n % 16
+    u = torch.rand(n + (16 if tail else 0), generator=generator, dtype=torch.float64)
+    z = torch.empty(n, dtype=torch.float64)
+    m = n - tail
+    _box_muller_16(u[:m].view(-1, 16), z[:m].view(-1, 16))
+    if tail:
+        _box_muller_16(u[n:].view(1, 16), z[n - 16 :].view(1, 16))
+    return z

@@ -101,7 +101,10 @@ def _gauss_logpdf(e: Tensor, S: Tensor, k: Tensor | None = None, inv_d: Tensor |
         k = _log_norm_const(S)
     if inv_d is not None:
         z = e * inv_d
-        return -0.5 * (k + _sum_last(z * z))
+        if z.shape[-1] == 1:  # -k/2 - z^2/2 in one pass
+            z = z[..., 0]
+            return torch.addcmul(-0.5 * k, z, z, value=-0.5)
+        return -0.5 * (k + (z * z).sum(-1))
     z = torch.linalg.solve_triangular(S, e.mT, upper=False)  # (..., d, N)
     return -0.5 * (k + (z * z).sum(-2))
 

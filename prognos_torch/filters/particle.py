@@ -60,6 +60,7 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief, check_belief
 from ..core.model import StateSpaceModel
+from ..core.random import standard_normal
 from ..core.validation import (
     all_finite,
     check_control,
@@ -96,6 +97,25 @@ __all__ = [
 # Tensors of the engine's FilterState have the batch dims leading, except the moving-window
 # noise buffers, which carry the window dim first (prognos_torch.adapt.noise.MovingWindow).
 ENGINE_LEADING_DIMS: dict[str, int] = {"buf_Q": 1, "buf_R": 1, "buf_valid": 1}
+
+
+#: from this many particle values the step's finite test sums each part instead of
+#: concatenating them first
+_SUM_PARTS_MIN = 8192
+
+
+def _weighted_moments_1d(W: Tensor, x: Tensor) -> tuple[Tensor, Tensor]:
+    """Weighted mean ``(..., 1)`` and variance ``(..., 1, 1)`` of one state ``x`` ``(..., N)``
+    under normalised weights ``W`` ``(..., N)`` (paper 002 STPF step 5)."""
+    if W.dim() == 1:
+        m = torch.dot(W, x)
+        d = x - m
+        v = torch.dot(W, d * d)
+    else:
+        m = (W * x).sum(-1)
+        d = x - m.unsqueeze(-1)
+        v = (W * d * d).sum(-1)
+    return m.unsqueeze(-1), v[..., None, None]
 
 
 class WeightCollapseWarning(RuntimeWarning):
@@ -356,7 +376,7 @@ class ParticleFilter:
         mean, chol = belief.mean, belief.chol
         check_generator(generator, mean)
         bs, n, N = belief.batch_shape, model.state_dim, self.num_particles
-        eps = torch.randn(*bs, N, n, generator=generator, dtype=mean.dtype, device=mean.device)
+        eps = standard_normal((*bs, N, n), generator, mean.dtype, mean.device)
         x0 = mean.unsqueeze(-2) + eps @ chol.mT
         lw = torch.full((*bs, N), -math.log(N), dtype=mean.dtype, device=mean.device)
         fs = None
@@ -440,9 +460,7 @@ class ParticleFilter:
         u = check_control(u, model.control_dim, bs, x_prev)
         u_p = None if u is None else u if u.dim() == 1 else u.unsqueeze(-2)
         pn = _noise(model, k, bs, x_prev)
-        eps = torch.randn(
-            x_prev.shape, generator=generator, dtype=x_prev.dtype, device=x_prev.device
-        )
+        eps = standard_normal(x_prev.shape, generator, x_prev.dtype, x_prev.device)
         _, x = self._transition_sample(model, x_prev, u_p, k, pn, eps)
         fs = state.proposal
         if fs is not None:
@@ -614,7 +632,7 @@ class ParticleFilter:
         if pn is None:
             pn = _noise(model, k, bs, x_prev, self.proposal is not None)
 
-        eps = torch.randn(x_prev.shape, generator=generator, dtype=dt, device=dev)
+        eps = standard_normal(x_prev.shape, generator, dt, dev)
         checks: list[Tensor] | None = None
         if self.proposal is None:
             fallback = None
@@ -639,8 +657,11 @@ class ParticleFilter:
             parts = [inc, ll, lam_prop]
         else:
             parts = [x, inc, ll, lam_prop, *(checks or ())]
-        flat = [t if t.dim() == 1 else t.reshape(-1) for t in parts]
-        finite = math.isfinite(float(torch.cat(flat).sum()))
+        if x.numel() < _SUM_PARTS_MIN:  # one concatenation and one sum
+            total = torch.cat([t if t.dim() == 1 else t.reshape(-1) for t in parts]).sum()
+        else:  # the sum of each part (a concatenation would copy them)
+            total = torch.stack([t.sum() for t in parts]).sum()
+        finite = math.isfinite(float(total))
         collapsed = None
         if not finite and self.proposal is not None and checks is not None:
             # some proposal may be invalid: test each one, with fallbacks (same engine step)
@@ -679,20 +700,22 @@ class ParticleFilter:
         # estimates (STPF step 5); zero-weight particles may be non-finite: mask them
         W = lw.exp()
         xs = x if finite else torch.where((W > 0)[..., None], x, torch.zeros_like(x))
-        # (one run: a vector-matrix product, the same numbers as the batched row product)
-        if W.dim() == 1:
-            mean = W @ xs
-            d = xs - mean
+        if xs.shape[-1] == 1:
+            # one state: weighted sums (a matrix product over N is several times slower)
+            mean, cov = _weighted_moments_1d(W, xs[..., 0])
         else:
-            mean = (W.unsqueeze(-2) @ xs).squeeze(-2)
-            d = xs - mean.unsqueeze(-2)
-        cov = (d * W.unsqueeze(-1)).mT @ d
-        if cov.shape[-1] > 1:  # (a 1 x 1 covariance is symmetric as it stands)
+            if W.dim() == 1:  # (one run: a vector-matrix product)
+                mean = W @ xs
+                d = xs - mean
+            else:
+                mean = (W.unsqueeze(-2) @ xs).squeeze(-2)
+                d = xs - mean.unsqueeze(-2)
+            cov = (d * W.unsqueeze(-1)).mT @ d
             cov = 0.5 * (cov + cov.mT)
         # effective sample size (sum W)^2 / sum W^2 of the normalised weights (sum W = 1 up to
-        # rounding): one product and two sums instead of the two log-sum-exps of ess()
+        # rounding): two sums instead of the two log-sum-exps of ess()
         sw = W.sum(-1)
-        n_eff = sw * sw / (W * W).sum(-1)
+        n_eff = sw * sw / (torch.dot(W, W) if W.dim() == 1 else (W * W).sum(-1))
         if lam_prop is None:
             lam = setup.unit
         elif finite:
