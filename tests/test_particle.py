@@ -30,6 +30,7 @@ from prognos_torch.filters import (
     upf,
 )
 from prognos_torch.filters.particle import (
+    ParticleState,
     ProposalFallbackWarning,
     WeightCollapseWarning,
     gather_particles,
@@ -604,6 +605,43 @@ def test_weight_collapse_by_underflow():
     with pytest.warns(WeightCollapseWarning):
         tr = sir(100).run(model, GaussianBelief(t([0.0]), t([[1.0]])), ys, generator=gen(0))
     assert bool(torch.isfinite(tr.means).all()) and bool(tr.collapsed[3])
+
+
+def test_ruled_out_and_non_finite_particles_get_zero_weight_in_one_step():
+    """A particle the measurement rules out (log-likelihood -inf) and one that left the reals
+    (x = inf with a finite h) get weight zero; the other weights are the exact Bayes update."""
+    x_prev = t([[0.5], [1.0], [2.0], [3.0], [-1.0]])
+    lw_prev = torch.log(t([0.1, 0.2, 0.3, 0.2, 0.2]))
+    for f, h, y, ruled_out in (
+        # f: -1 -> 0, where log 0 = -inf: ruled out by any y (every particle finite)
+        (lambda x, u, k: x.clamp_min(0.0), lambda x, u, k: torch.log(x), 0.3, [4]),
+        # f: 3 -> inf, where tanh(inf) = 1 is finite: a particle that left the reals
+        (
+            lambda x, u, k: torch.where(x > 2.5, math.inf, x),
+            lambda x, u, k: torch.tanh(x),
+            0.8,
+            [3],
+        ),
+    ):
+        model = StateSpaceModel(
+            f=f, h=h, state_dim=1, obs_dim=1, chol_Q=t([[0.0]]), chol_R=t([[0.4]]), batched=True
+        )
+        state = ParticleState(x_prev.clone(), lw_prev.clone(), None)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # no collapse: the other particles carry the weight
+            _, info = sir(5, resample_threshold=0.0).step(model, state, t([y]), generator=gen(0))
+        x = f(x_prev, None, 1)
+        keep = [i for i in range(5) if i not in ruled_out]
+        e = (y - h(x[keep], None, 1)[:, 0]) / 0.4
+        lw = lw_prev[keep] - 0.5 * e * e
+        w = torch.softmax(lw, 0)
+        assert torch.isneginf(info.log_weights[ruled_out]).all()
+        torch.testing.assert_close(info.log_weights[keep], torch.log(w), rtol=0, atol=1e-14)
+        torch.testing.assert_close(info.mean, (w @ x[keep]), rtol=0, atol=1e-14)
+        m = w @ x[keep]
+        torch.testing.assert_close(
+            info.cov, (w @ (x[keep] - m) ** 2).reshape(1, 1), rtol=0, atol=1e-14
+        )
 
 
 def test_invalid_particles_get_zero_weight_and_invalid_proposals_fall_back():

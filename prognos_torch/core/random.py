@@ -32,8 +32,10 @@ def standard_normal(
     """
     where = torch.device(device if generator is None else generator.device)
     if dtype == torch.float64 and where.type == "cpu" and math.prod(shape) >= _VECTOR_MIN:
-        return _randn_cpu_f64(math.prod(shape), generator).view(shape).to(device)
-    return torch.randn(shape, generator=generator, dtype=dtype, device=where).to(device)
+        z = _randn_cpu_f64(math.prod(shape), generator).view(shape)
+    else:
+        z = torch.randn(shape, generator=generator, dtype=dtype, device=where)
+    return z if generator is None or z.device == torch.device(device) else z.to(device)
 
 
 def _box_muller_16(u: Tensor, out: Tensor) -> None:

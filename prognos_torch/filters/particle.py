@@ -440,7 +440,8 @@ class ParticleFilter:
         hx = model.observe(x, u_p, k)
         if pn.r is not None:
             hx = hx + pn.r
-        return _gauss_logpdf(y.unsqueeze(-2) - hx, pn.noise.chol_R, pn.kR, pn.inv_dR)
+        e = (y if y.dim() == 1 else y.unsqueeze(-2)) - hx  # (one run: y broadcasts as it is)
+        return _gauss_logpdf(e, pn.noise.chol_R, pn.kR, pn.inv_dR)
 
     def predict(
         self,
@@ -648,19 +649,25 @@ class ParticleFilter:
         if any_missing:
             inc = torch.where(missing[..., None], torch.zeros_like(inc), inc)
         lw_un = lw_prev + inc
-        ll = torch.logsumexp(lw_un, -1)  # log sum_i W_{k-1}^i w_inc^i ~ log p(y_k | y_{1:k-1})
+        # log sum_i W_{k-1}^i w_inc^i ~ log p(y_k | y_{1:k-1}): torch.logsumexp's arithmetic
+        # without its guard for infinite maxima (those give NaN here and take the exact path)
+        mx = lw_un.amax(-1, keepdim=True)
+        ll = mx.squeeze(-1) + (lw_un - mx).exp_().sum(-1).log_()
         # one host read: particles, increments, fading factors and the likelihood all finite
         # (a finite sum has finite terms; an overflowing one takes the exact path below)
         if lam_prop is None:
-            parts = [x, inc, ll]
-        elif checks == []:  # (x is covered by inc, see _propose_gaussian)
-            parts = [inc, ll, lam_prop]
+            # a NaN or +inf increment makes the likelihood NaN; a -inf one (a particle the
+            # measurement rules out) is handled by the fast path as by the exact one
+            total = x.sum() + (ll if ll.dim() == 0 else ll.sum())
         else:
-            parts = [x, inc, ll, lam_prop, *(checks or ())]
-        if x.numel() < _SUM_PARTS_MIN:  # one concatenation and one sum
-            total = torch.cat([t if t.dim() == 1 else t.reshape(-1) for t in parts]).sum()
-        else:  # the sum of each part (a concatenation would copy them)
-            total = torch.stack([t.sum() for t in parts]).sum()
+            if checks == []:  # (x is covered by inc, see _propose_gaussian)
+                parts = [inc, ll, lam_prop]
+            else:
+                parts = [x, inc, ll, lam_prop, *(checks or ())]
+            if x.numel() < _SUM_PARTS_MIN:  # one concatenation and one sum
+                total = torch.cat([t if t.dim() == 1 else t.reshape(-1) for t in parts]).sum()
+            else:  # the sum of each part (a concatenation would copy them)
+                total = torch.stack([t.sum() for t in parts]).sum()
         finite = math.isfinite(float(total))
         collapsed = None
         if not finite and self.proposal is not None and checks is not None:
