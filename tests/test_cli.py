@@ -3,6 +3,7 @@
 import json
 
 import pytest
+import torch
 
 from prognos_torch.cli import main
 from prognos_torch.studies import Study, StudyConfig, StudyResult, format_table, write_outputs
@@ -33,6 +34,9 @@ def test_write_outputs_files(tmp_path):
     assert (tmp_path / "results.csv").read_text().splitlines() == ["run,method,MAE", "0,A,1.0"]
     meta = json.loads((tmp_path / "run.json").read_text())
     assert meta["study"] == "toy" and "torch" in meta["versions"] and "machine" in meta
+    # the CPU and its vector instruction set, which decide the rounding of a run
+    assert meta["machine"]["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    assert "cpu" in meta["machine"]
 
 
 @pytest.mark.parametrize(

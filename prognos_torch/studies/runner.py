@@ -74,10 +74,25 @@ def _versions() -> dict:
     }
 
 
+def _cpu_model() -> str | None:
+    """The CPU's model name (from ``/proc/cpuinfo`` on Linux): with the vector instruction set
+    it decides how BLAS and the vectorised kernels round, which particle filters amplify."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return None
+
+
 def _machine() -> dict:
     return {
         "platform": platform.platform(),
         "processor": platform.processor() or platform.machine(),
+        "cpu": _cpu_model(),
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
         "cpu_count": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
         "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
