@@ -104,6 +104,12 @@ ENGINE_LEADING_DIMS: dict[str, int] = {"buf_Q": 1, "buf_R": 1, "buf_valid": 1}
 _SUM_PARTS_MIN = 8192
 
 
+def _host_float(t: Tensor) -> float:
+    """A one-element tensor read on the host for a decision (no gradient flows through it, and
+    autograd's warning about a scalar read of a differentiable tensor does not apply)."""
+    return float(t.detach() if t.requires_grad else t)
+
+
 def _weighted_moments_1d(W: Tensor, x: Tensor) -> tuple[Tensor, Tensor]:
     """Weighted mean ``(..., 1)`` and variance ``(..., 1, 1)`` of one state ``x`` ``(..., N)``
     under normalised weights ``W`` ``(..., N)`` (paper 002 STPF step 5)."""
@@ -668,7 +674,7 @@ class ParticleFilter:
                 total = torch.cat([t if t.dim() == 1 else t.reshape(-1) for t in parts]).sum()
             else:  # the sum of each part (a concatenation would copy them)
                 total = torch.stack([t.sum() for t in parts]).sum()
-        finite = math.isfinite(float(total))
+        finite = math.isfinite(_host_float(total))
         collapsed = None
         if not finite and self.proposal is not None and checks is not None:
             # some proposal may be invalid: test each one, with fallbacks (same engine step)
@@ -735,7 +741,7 @@ class ParticleFilter:
         x_w, lw_w = x, lw
         # resampling (STPF step 6): particles, weights and every per-particle Gaussian
         if n_eff.dim() == 0:  # one run: one host read, no comparison and count on tensors
-            n_do = int(float(n_eff) < self.resample_threshold * N)
+            n_do = int(_host_float(n_eff) < self.resample_threshold * N)
             do = setup.yes_flag if n_do else setup.no_flag
         else:
             do = n_eff < self.resample_threshold * N
