@@ -58,3 +58,13 @@ def test_large_draws_from_the_global_stream_and_successive_calls():
     a = torch.cat([standard_normal((4100,), g, torch.float64, "cpu") for _ in range(3)])
     b = torch.cat([torch.randn(4100, generator=h, dtype=torch.float64) for _ in range(3)])
     _ulp_close(a, b)
+
+
+def test_large_cpu_draws_ignore_a_default_device():
+    want = standard_normal((5000,), torch.Generator().manual_seed(8), torch.float64, "cpu")
+    torch.set_default_device("meta")
+    try:
+        got = standard_normal((5000,), torch.Generator().manual_seed(8), torch.float64, "cpu")
+    finally:
+        torch.set_default_device(None)
+    assert got.device.type == "cpu" and torch.equal(got, want)

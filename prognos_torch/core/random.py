@@ -60,8 +60,9 @@ def _randn_cpu_f64(n: int, generator: torch.Generator | None) -> Tensor:
     the generator ends where ``torch.randn`` leaves it.
     """
     tail = n % 16
-    u = torch.rand(n + (16 if tail else 0), generator=generator, dtype=torch.float64)
-    z = torch.empty(n, dtype=torch.float64)
+    cpu = torch.device("cpu")
+    u = torch.rand(n + (16 if tail else 0), generator=generator, dtype=torch.float64, device=cpu)
+    z = torch.empty(n, dtype=torch.float64, device=cpu)
     m = n - tail
     _box_muller_16(u[:m].view(-1, 16), z[:m].view(-1, 16))
     if tail:
