@@ -775,3 +775,33 @@ def test_sir_log_likelihood_gradient_matches_finite_differences_without_warnings
     h = 1e-6
     fd = (loglik(t([0.5 + h])) - loglik(t([0.5 - h]))) / (2 * h)
     torch.testing.assert_close(grad, fd.reshape(1), rtol=1e-7, atol=0)
+
+
+def test_one_state_variance_ignores_a_zero_weight_particle_far_out():
+    """A particle so far out that (x - mean)^2 overflows, with weight zero (ruled out by the
+    measurement, or underflowed), adds nothing to the variance, batched or not."""
+    x_prev = t([[0.5], [1.0], [2.0], [1.5], [1e160]])
+    lw_prev = torch.log(t([0.2, 0.2, 0.2, 0.2, 0.2]))
+    model = StateSpaceModel(
+        f=None,
+        h=lambda x, u, k: x,
+        state_dim=1,
+        obs_dim=1,
+        chol_Q=t([[0.0]]),
+        chol_R=t([[0.4]]),
+        batched=True,
+    )
+    keep = [0, 1, 2, 3]
+    e = (1.2 - x_prev[keep, 0]) / 0.4
+    w = torch.softmax(lw_prev[keep] - 0.5 * e * e, 0)
+    m = w @ x_prev[keep, 0]
+    want = (w @ (x_prev[keep, 0] - m) ** 2).reshape(1, 1)
+    pf = sir(5, resample_threshold=0.0)
+    for B in (None, 2):
+        xp, lp, y = x_prev, lw_prev, t([1.2])
+        if B:
+            xp, lp, y = xp.expand(B, 5, 1), lp.expand(B, 5), y.expand(B, 1)
+        state = ParticleState(xp.clone(), lp.clone(), None)
+        _, info = pf.step(model, state, y, generator=gen(0))
+        got = info.cov if B is None else info.cov[1]
+        torch.testing.assert_close(got, want, rtol=1e-14, atol=0)

@@ -28,7 +28,7 @@ def standard_normal(
     (``torch.randn`` refuses a generator of another device). ``generator=None`` draws from the
     global stream of ``device``. Float64 draws on the CPU from :data:`_VECTOR_MIN` values on
     come from :func:`_randn_cpu_f64`: ``torch.randn``'s uniforms and transform, vectorised (the
-    same numbers to an ulp or two, the generator left in the same state).
+    same numbers to a few ulps, at most 3 measured, the generator left in the same state).
     """
     where = torch.device(device if generator is None else generator.device)
     if dtype == torch.float64 and where.type == "cpu" and math.prod(shape) >= _VECTOR_MIN:
@@ -56,7 +56,8 @@ def _randn_cpu_f64(n: int, generator: torch.Generator | None) -> Tensor:
     redoes the last 16 outputs from 16 further uniforms. Here the same uniforms, drawn by
     ``torch.rand`` in the same order, go through the same transform on whole blocks. The
     vectorised ``log``, ``cos`` and ``sin`` round differently from the C library's in about one
-    draw in a hundred (by an ulp or two: ``tests/test_core_random.py`` compares the two), and
+    draw in a hundred (by at most 3 ulps measured; ``tests/test_core_random.py`` compares the
+    two), and
     the generator ends where ``torch.randn`` leaves it.
     """
     tail = n % 16

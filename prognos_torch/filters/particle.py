@@ -116,11 +116,12 @@ def _weighted_moments_1d(W: Tensor, x: Tensor) -> tuple[Tensor, Tensor]:
     if W.dim() == 1:
         m = torch.dot(W, x)
         d = x - m
-        v = torch.dot(W, d * d)
+        # (weight first: a zero-weight particle far out gives 0, not 0 * inf)
+        v = torch.dot(W * d, d)
     else:
         m = (W * x).sum(-1)
         d = x - m.unsqueeze(-1)
-        v = (W * d * d).sum(-1)
+        v = (W * d * d).sum(-1)  # (left to right: weight first)
     return m.unsqueeze(-1), v[..., None, None]
 
 
