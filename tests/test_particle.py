@@ -607,6 +607,25 @@ def test_weight_collapse_by_underflow():
     assert bool(torch.isfinite(tr.means).all()) and bool(tr.collapsed[3])
 
 
+def _one_sir_step(f, h, x_prev, lw_prev, y):
+    """One SIR step without resampling from the particles ``x_prev`` ``(..., 5, 1)`` with
+    log-weights ``lw_prev``, a noise-free transition ``f`` and ``y = h(x) + N(0, 0.4^2)``."""
+    model = StateSpaceModel(
+        f=f, h=h, state_dim=1, obs_dim=1, chol_Q=t([[0.0]]), chol_R=t([[0.4]]), batched=True
+    )
+    state = ParticleState(x_prev.clone(), lw_prev.clone(), None)
+    return sir(5, resample_threshold=0.0).step(model, state, y, generator=gen(0))[1]
+
+
+def _exact_bayes_1d(x, lw_prev, y, h):
+    """The weights, mean and variance ``(1, 1)`` of the exact update of the particles ``x``
+    ``(K, 1)`` with log-weights ``lw_prev`` ``(K,)`` by ``y = h(x) + N(0, 0.4^2)``."""
+    e = (y - h(x, None, 1)[:, 0]) / 0.4
+    w = torch.softmax(lw_prev - 0.5 * e * e, 0)
+    m = w @ x[:, 0]
+    return w, m.reshape(1), (w @ (x[:, 0] - m) ** 2).reshape(1, 1)
+
+
 def test_ruled_out_and_non_finite_particles_get_zero_weight_in_one_step():
     """A particle the measurement rules out (log-likelihood -inf) and one that left the reals
     (x = inf with a finite h) get weight zero; the other weights are the exact Bayes update."""
@@ -623,25 +642,15 @@ def test_ruled_out_and_non_finite_particles_get_zero_weight_in_one_step():
             [3],
         ),
     ):
-        model = StateSpaceModel(
-            f=f, h=h, state_dim=1, obs_dim=1, chol_Q=t([[0.0]]), chol_R=t([[0.4]]), batched=True
-        )
-        state = ParticleState(x_prev.clone(), lw_prev.clone(), None)
         with warnings.catch_warnings():
             warnings.simplefilter("error")  # no collapse: the other particles carry the weight
-            _, info = sir(5, resample_threshold=0.0).step(model, state, t([y]), generator=gen(0))
-        x = f(x_prev, None, 1)
+            info = _one_sir_step(f, h, x_prev, lw_prev, t([y]))
         keep = [i for i in range(5) if i not in ruled_out]
-        e = (y - h(x[keep], None, 1)[:, 0]) / 0.4
-        lw = lw_prev[keep] - 0.5 * e * e
-        w = torch.softmax(lw, 0)
+        w, m, var = _exact_bayes_1d(f(x_prev, None, 1)[keep], lw_prev[keep], y, h)
         assert torch.isneginf(info.log_weights[ruled_out]).all()
         torch.testing.assert_close(info.log_weights[keep], torch.log(w), rtol=0, atol=1e-14)
-        torch.testing.assert_close(info.mean, (w @ x[keep]), rtol=0, atol=1e-14)
-        m = w @ x[keep]
-        torch.testing.assert_close(
-            info.cov, (w @ (x[keep] - m) ** 2).reshape(1, 1), rtol=0, atol=1e-14
-        )
+        torch.testing.assert_close(info.mean, m, rtol=0, atol=1e-14)
+        torch.testing.assert_close(info.cov, var, rtol=0, atol=1e-14)
 
 
 def test_invalid_particles_get_zero_weight_and_invalid_proposals_fall_back():
@@ -782,26 +791,12 @@ def test_one_state_variance_ignores_a_zero_weight_particle_far_out():
     measurement, or underflowed), adds nothing to the variance, batched or not."""
     x_prev = t([[0.5], [1.0], [2.0], [1.5], [1e160]])
     lw_prev = torch.log(t([0.2, 0.2, 0.2, 0.2, 0.2]))
-    model = StateSpaceModel(
-        f=None,
-        h=lambda x, u, k: x,
-        state_dim=1,
-        obs_dim=1,
-        chol_Q=t([[0.0]]),
-        chol_R=t([[0.4]]),
-        batched=True,
-    )
-    keep = [0, 1, 2, 3]
-    e = (1.2 - x_prev[keep, 0]) / 0.4
-    w = torch.softmax(lw_prev[keep] - 0.5 * e * e, 0)
-    m = w @ x_prev[keep, 0]
-    want = (w @ (x_prev[keep, 0] - m) ** 2).reshape(1, 1)
-    pf = sir(5, resample_threshold=0.0)
+    h = lambda x, u, k: x  # noqa: E731
+    _, _, want = _exact_bayes_1d(x_prev[:4], lw_prev[:4], 1.2, h)
     for B in (None, 2):
         xp, lp, y = x_prev, lw_prev, t([1.2])
         if B:
             xp, lp, y = xp.expand(B, 5, 1), lp.expand(B, 5), y.expand(B, 1)
-        state = ParticleState(xp.clone(), lp.clone(), None)
-        _, info = pf.step(model, state, y, generator=gen(0))
+        info = _one_sir_step(None, h, xp, lp, y)
         got = info.cov if B is None else info.cov[1]
         torch.testing.assert_close(got, want, rtol=1e-14, atol=0)

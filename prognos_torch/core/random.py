@@ -31,8 +31,9 @@ def standard_normal(
     same numbers to a few ulps, at most 3 measured, the generator left in the same state).
     """
     where = torch.device(device if generator is None else generator.device)
-    if dtype == torch.float64 and where.type == "cpu" and math.prod(shape) >= _VECTOR_MIN:
-        z = _randn_cpu_f64(math.prod(shape), generator).view(shape)
+    n = math.prod(shape)
+    if dtype == torch.float64 and where.type == "cpu" and n >= _VECTOR_MIN:
+        z = _randn_cpu_f64(n, generator).view(shape)
     else:
         z = torch.randn(shape, generator=generator, dtype=dtype, device=where)
     return z if generator is None or z.device == torch.device(device) else z.to(device)
@@ -57,8 +58,7 @@ def _randn_cpu_f64(n: int, generator: torch.Generator | None) -> Tensor:
     ``torch.rand`` in the same order, go through the same transform on whole blocks. The
     vectorised ``log``, ``cos`` and ``sin`` round differently from the C library's in about one
     draw in a hundred (by at most 3 ulps measured; ``tests/test_core_random.py`` compares the
-    two), and
-    the generator ends where ``torch.randn`` leaves it.
+    two), and the generator ends where ``torch.randn`` leaves it.
     """
     tail = n % 16
     cpu = torch.device("cpu")
