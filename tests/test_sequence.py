@@ -233,3 +233,31 @@ def test_by_default_a_run_keeps_autograd_for_parameters_used_only_later():
     for _ in range(2):  # the second pass rebuilds S S^T: nothing cached with a spent graph
         run(sckf(prior="cholesky"), m3, b0, ys).log_likelihoods.nansum().backward()
     assert SQ.grad is not None and bool(torch.isfinite(SQ.grad).all())
+
+
+def test_compiled_scans_of_many_steps_do_not_share_the_recompile_limit():
+    """Each compiled step has its own entry: more distinct steps than dynamo's recompile limit
+    per code object still compile (fullgraph=True fails hard past it), and each equals its
+    eager loop. Also: a scan without controls compiles."""
+    import torch._dynamo
+
+    ys = torch.linspace(0.0, 1.0, 6, dtype=F64).reshape(6, 1)
+
+    def make(op):
+        def step(s, y, u, k):
+            new = (op(s[0]) + y.sum(),)
+            return new, new[0].clone()  # (the scan forbids outputs that alias the carry)
+
+        return step
+
+    ops = [torch.sin, torch.cos, torch.tanh, torch.atan, torch.sigmoid, torch.erf]
+    ops += [torch.asinh, torch.log1p, torch.sqrt, torch.abs, torch.neg, torch.special.erfc]
+
+    record = lambda s, info: {"x": info}  # noqa: E731
+    assert len(ops) > torch._dynamo.config.recompile_limit
+    for op in ops:
+        step = make(op)
+        state = (torch.ones((), dtype=F64),)
+        got = scan(step, state, ys, record=record, compile=True)[1]["x"]
+        ref = scan(step, state, ys, record=record)[1]["x"]
+        torch.testing.assert_close(got, ref, rtol=1e-12, atol=0.0)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import time
+import types
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any, TypeVar
 
@@ -199,12 +200,14 @@ def _compile_options(device: torch.device) -> dict:
     return {"options": options}
 
 
-def _compiled_scan(step, state, ys: Tensor, us: Tensor | None, record):
-    """:func:`scan` with ``compile=True`` (see there)."""
+def _compiled_scan(step, state, ys: Tensor, us: Tensor | None, record, dynamic: bool | None = None):
+    """:func:`scan` with ``compile=True`` (see there). ``dynamic``: ``torch.compile``'s;
+    ``False`` compiles each new set of shapes on its own (torch 2.13's dynamic-shape recompile
+    can round a float constant of the step, e.g. ``-log N``, to float32)."""
     if not isinstance(state, tuple) or not all(isinstance(t, Tensor) for t in state):
         raise TypeError("with compile=True, state must be a tuple of tensors")
     device = state[0].device if state else ys.device
-    key = (step, record, device.type)
+    key = (step, record, device.type, dynamic)
     fn = _COMPILED.get(key)
     if fn is None:
         try:
@@ -216,7 +219,7 @@ def _compiled_scan(step, state, ys: Tensor, us: Tensor | None, record):
             ) from err
 
         def body(carry, xs):
-            y, u = xs
+            y, u = xs if len(xs) == 2 else (xs[0], None)
             new, info = step(tuple(carry), y, u, None)
             row = dict(record(new, info))
             # the carried tensors keep the layout they came with (the scan requires it)
@@ -224,9 +227,15 @@ def _compiled_scan(step, state, ys: Tensor, us: Tensor | None, record):
             return new, row
 
         def run(carry, ys, us):
-            return _hop_scan(body, carry, (ys, us))
+            # (the scan's inputs are tensors only: without controls it scans ys alone)
+            return _hop_scan(body, carry, (ys,) if us is None else (ys, us))
 
-        fn = torch.compile(run, fullgraph=True, **_compile_options(device))
+        # a code object of its own: dynamo keeps at most torch._dynamo.config.recompile_limit
+        # compiled entries per code object, and every cached step would otherwise share one
+        run = types.FunctionType(
+            run.__code__.replace(), run.__globals__, run.__name__, None, run.__closure__
+        )
+        fn = torch.compile(run, fullgraph=True, dynamic=dynamic, **_compile_options(device))
         if len(_COMPILED) > 16:
             _COMPILED.clear()
         _COMPILED[key] = fn
