@@ -264,6 +264,17 @@ def test_run_in_segments_matches_cpu(name):
     _same(got.final.belief.chol, ref.final.belief.chol, "final chol")
 
 
+def _skip_without_triton() -> None:
+    """``torch.compile`` on CUDA generates Triton kernels."""
+    if DEVICE.type == "cuda":
+        try:
+            from torch.utils._triton import has_triton
+        except ImportError:  # (a torch without the helper: let the compile decide)
+            has_triton = None
+        if has_triton is not None and not has_triton():
+            pytest.skip("torch.compile on CUDA needs Triton")
+
+
 # ============================================================= 4. particle filters
 # Monte Carlo tolerances. The device draws its own random stream, so the particle filters are
 # compared with the exact Kalman filter (the engine's EKF on a linear-Gaussian model) through
@@ -291,7 +302,7 @@ def linear_gaussian(device) -> StateSpaceModel:
     return linear_gaussian_model(F, H, LQ, LR, q=q, r=r)
 
 
-def linear_gaussian_data():
+def linear_gaussian_data(gaps: bool = True):
     g = _gen(5)
     model = linear_gaussian("cpu")
     b0 = GaussianBelief(
@@ -306,8 +317,9 @@ def linear_gaussian_data():
         y = model.observe(x, None, t + 1) + model.r
         ys.append(y + torch.randn(PF_RUNS, 1, generator=g, dtype=F64) @ model.chol_R.mT)
     ys = torch.stack(ys)
-    ys[6, 0] = math.nan  # run 0 missing at step 7
-    ys[10] = math.nan  # both runs missing at step 11
+    if gaps:
+        ys[6, 0] = math.nan  # run 0 missing at step 7
+        ys[10] = math.nan  # both runs missing at step 11
     return b0, ys
 
 
@@ -325,6 +337,12 @@ def test_particle_filter_on_device_matches_the_exact_kalman_filter(name):
     assert tr.final.particles.shape == (PF_RUNS, N_PARTICLES, 2)
     _same(tr.missing, torch.isnan(ys).any(-1), "missing")
     assert not bool(tr.collapsed.any()) and int(tr.prior_fallback.sum()) == 0
+    _near_the_kalman_filter(tr, ref, name)
+    assert bool((tr.log_likelihoods.cpu()[torch.isnan(ys).any(-1)] == 0).all())
+
+
+def _near_the_kalman_filter(tr, ref, name: str) -> None:
+    """The particle means and spreads within Monte Carlo error of the exact filter's (z)."""
     means, stds, ess = tr.means.cpu(), tr.stds.cpu(), tr.ess.cpu()
     assert float(ess.min()) > 100.0  # (the STPF's smallest over 130 CPU seeds: 469)
     ref_std = torch.diagonal(ref.covs, dim1=-2, dim2=-1).sqrt()
@@ -335,7 +353,23 @@ def test_particle_filter_on_device_matches_the_exact_kalman_filter(name):
     ):
         big, rms = float(z.abs().max()), float(z.square().mean().sqrt())
         assert big <= Z_MAX and rms <= Z_RMS, f"{name} {what}: max |z| {big:.2f}, rms {rms:.2f}"
-    assert bool((tr.log_likelihoods.cpu()[torch.isnan(ys).any(-1)] == 0).all())
+
+
+def test_compiled_sir_on_device_matches_the_exact_kalman_filter():
+    """``sir().run(compile=True)`` on the device (on CUDA: inductor and Triton; its own random
+    stream) within Monte Carlo error of the exact filter, as the eager filters above (complete
+    measurements: the compiled pass takes no missing ones)."""
+    _skip_without_triton()
+    b0, ys = linear_gaussian_data(gaps=False)
+    ref = run(ekf(), linear_gaussian("cpu"), b0, ys)
+    pf = make_particle_filter("sir", num_particles=N_PARTICLES)
+    tr = pf.run(
+        linear_gaussian(DEVICE), _dev(b0), _dev(ys), generator=_gen(3, DEVICE), compile=True
+    )
+    for key in ("means", "covs", "ess", "log_likelihoods", "resampled"):
+        assert getattr(tr, key).device.type == DEVICE.type, key
+    assert tr.final.particles.device.type == DEVICE.type
+    _near_the_kalman_filter(tr, ref, "compiled sir")
 
 
 # ============================================================= 5. the optimiser face
@@ -410,13 +444,7 @@ def test_kalman_optimizer_fit_matches_cpu(filt, runs, per_run):
 def test_compiled_kalman_optimizer_fit_matches_eager_cpu():
     """``fit(compile=True)`` on the device (on CUDA: inductor and Triton) against the eager CPU
     fit: the compiled pass equals the eager steps to rounding (tests/test_compiled_steps.py)."""
-    if DEVICE.type == "cuda":
-        try:
-            from torch.utils._triton import has_triton
-        except ImportError:  # (a torch without the helper: let the compile decide)
-            has_triton = None
-        if has_triton is not None and not has_triton():
-            pytest.skip("torch.compile on CUDA needs Triton")
+    _skip_without_triton()
     X, Y = anfis_data(T=25)
     Y[9, 0] = 0.5  # the compiled pass takes complete targets
     model_c, ref = anfis_optimizer("srukf", "cpu", None)

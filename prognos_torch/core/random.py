@@ -49,6 +49,20 @@ def _box_muller_16(u: Tensor, out: Tensor) -> None:
     torch.mul(r, theta.sin_(), out=out[:, 8:])
 
 
+def box_muller(u: Tensor) -> Tensor:
+    """Normals from uniforms ``u`` ``(..., 16)`` in ``[0, 1)``, 16 per block: the transform of
+    :func:`_box_muller_16` (torch's, Box & Muller 1958) as a pure function, for traced code.
+
+    ``u`` ``(..., 16)`` -> ``(..., 16)``: ``r = sqrt(-2 log(1 - u_j))``, ``z_j = r cos(2 pi
+    u_{j+8})``, ``z_{j+8} = r sin(2 pi u_{j+8})`` for ``j < 8``.
+    """
+    if u.shape[-1] != 16:
+        raise ValueError(f"u must have shape (..., 16), got {tuple(u.shape)}")
+    r = torch.sqrt(-2.0 * torch.log(1.0 - u[..., :8]))
+    theta = u[..., 8:] * _TWO_PI
+    return torch.cat([r * torch.cos(theta), r * torch.sin(theta)], dim=-1)
+
+
 def _randn_cpu_f64(n: int, generator: torch.Generator | None) -> Tensor:
     """``torch.randn(n, dtype=torch.float64, generator=generator)`` on the CPU, ``n >= 16``.
 

@@ -53,7 +53,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, fields, is_dataclass, replace
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -69,6 +69,8 @@ from ..core.validation import (
     check_sequence,
     has_missing,
 )
+from ._particle_blocks import _estimates, _log_normaliser
+from ._particle_compiled import check_compilable, compiled_run
 from ._particle_noise import (
     _LOG_2PI,
     _constant_noise,
@@ -79,6 +81,7 @@ from ._particle_noise import (
     _Setup,
     _sum_last,
 )
+from ._particle_trees import gather_particles, where_particles
 from .gaussian import FilterState, GaussianFilter, Taylor
 from .resampling import Resampler, _draw_ancestors, get_resampler
 from .sequence import scan
@@ -94,11 +97,6 @@ __all__ = [
     "where_particles",
 ]
 
-# Tensors of the engine's FilterState have the batch dims leading, except the moving-window
-# noise buffers, which carry the window dim first (prognos_torch.adapt.noise.MovingWindow).
-ENGINE_LEADING_DIMS: dict[str, int] = {"buf_Q": 1, "buf_R": 1, "buf_valid": 1}
-
-
 #: from this many particle values the step's finite test sums each part instead of
 #: concatenating them first
 _SUM_PARTS_MIN = 8192
@@ -110,115 +108,12 @@ def _host_float(t: Tensor) -> float:
     return float(t.detach() if t.requires_grad else t)
 
 
-def _weighted_moments_1d(W: Tensor, x: Tensor) -> tuple[Tensor, Tensor]:
-    """Weighted mean ``(..., 1)`` and variance ``(..., 1, 1)`` of one state ``x`` ``(..., N)``
-    under normalised weights ``W`` ``(..., N)`` (paper 002 STPF step 5)."""
-    if W.dim() == 1:
-        m = torch.dot(W, x)
-        d = x - m
-        # (weight first: a zero-weight particle far out gives 0, not 0 * inf)
-        v = torch.dot(W * d, d)
-    else:
-        m = (W * x).sum(-1)
-        d = x - m.unsqueeze(-1)
-        v = (W * d * d).sum(-1)  # (left to right: weight first)
-    return m.unsqueeze(-1), v[..., None, None]
-
-
 class WeightCollapseWarning(RuntimeWarning):
     """Every particle weight of a run was zero or non-finite; the weights were reset."""
 
 
 class ProposalFallbackWarning(RuntimeWarning):
     """Some per-particle Gaussian proposals were invalid; those particles used the prior."""
-
-
-# ---------------------------------------------------------------------- per-particle trees
-def _particle_view(t: Tensor, v: Tensor, lead: int, nb: int) -> Tensor:
-    """Reshape ``t`` ``(*batch, N)`` so that it lines up with ``v``'s batch+particle dims."""
-    tail = v.dim() - lead - nb - 1
-    return t.reshape((1,) * lead + tuple(t.shape) + (1,) * tail)
-
-
-def _check_leaf(v: Tensor, name: str, lead: int, want: tuple[int, ...]) -> None:
-    got = tuple(v.shape[lead : lead + len(want)])
-    if got != want:
-        raise ValueError(
-            f"{name}: dims {lead}..{lead + len(want) - 1} must be the batch and particle dims "
-            f"{want}, got shape {tuple(v.shape)}"
-        )
-
-
-_INIT_FIELDS: dict[type, tuple[str, ...]] = {}
-
-
-def _init_fields(cls: type) -> tuple[str, ...]:
-    names = _INIT_FIELDS.get(cls)
-    if names is None:
-        names = _INIT_FIELDS[cls] = tuple(f.name for f in fields(cls) if f.init)
-    return names
-
-
-def _tree_map(fn, obj, others, name: str, leading: dict[str, int]):
-    if obj is None:
-        return None
-    if isinstance(obj, Tensor):
-        return fn(obj, others, leading.get(name, 0), name)
-    if is_dataclass(obj) and not isinstance(obj, type):
-        cls = type(obj)
-        kw = {
-            f: _tree_map(fn, getattr(obj, f), [getattr(o, f) for o in others], f, leading)
-            for f in _init_fields(cls)
-        }
-        return cls(**kw)  # (what dataclasses.replace builds, without its field scan)
-    if isinstance(obj, (int, float, bool, str)):
-        return obj
-    raise TypeError(f"{name}: cannot map over particles of a {type(obj).__name__}")
-
-
-def gather_particles(obj, ancestors: Tensor, *, leading: dict[str, int] | None = None):
-    """Select particles ``ancestors`` in every tensor of a (nested) frozen dataclass.
-
-    Args:
-        obj: a tensor, ``None`` or a dataclass of those (e.g. the engine's
-            :class:`~prognos_torch.filters.gaussian.FilterState` with ``GaussianBelief``,
-            ``StrongTrackingState`` and ``NoiseEstimatorState`` inside), whose tensors have the
-            batch dims ``...`` and the particle dim ``N`` leading: ``(..., N, *tail)``.
-        ancestors: ``(..., N)`` int64 indices into the particle dim.
-        leading: field name -> number of extra dims before the batch dims (default
-            :data:`ENGINE_LEADING_DIMS`: the moving-window buffers ``(W, ..., N, ...)``).
-    Returns:
-        The same structure with ``out[..., j, ...] = obj[..., ancestors[..., j], ...]``.
-    """
-    leading = ENGINE_LEADING_DIMS if leading is None else leading
-    want = tuple(ancestors.shape)
-    nb = len(want) - 1
-
-    def fn(v, _others, lead, name):
-        _check_leaf(v, name, lead, want)
-        if lead + nb == 0:  # one run: a row selection (the same values as the gather)
-            return v.index_select(0, ancestors)
-        idx = _particle_view(ancestors, v, lead, nb).expand(v.shape)
-        return torch.gather(v, lead + nb, idx)
-
-    return _tree_map(fn, obj, [], "obj", leading)
-
-
-def where_particles(mask: Tensor, a, b, *, leading: dict[str, int] | None = None):
-    """Per-particle ``torch.where(mask, a, b)`` over two trees of the same structure.
-
-    ``mask``: ``(..., N)`` bool; ``a``, ``b``: as in :func:`gather_particles`.
-    """
-    leading = ENGINE_LEADING_DIMS if leading is None else leading
-    want = tuple(mask.shape)
-    nb = len(want) - 1
-
-    def fn(v, others, lead, name):
-        w = others[0]
-        _check_leaf(v, name, lead, want)
-        return torch.where(_particle_view(mask, v, lead, nb), v, w)
-
-    return _tree_map(fn, a, [b], "a", leading)
 
 
 # ---------------------------------------------------------------------- state and outputs
@@ -656,10 +551,7 @@ class ParticleFilter:
         if any_missing:
             inc = torch.where(missing[..., None], torch.zeros_like(inc), inc)
         lw_un = lw_prev + inc
-        # log sum_i W_{k-1}^i w_inc^i ~ log p(y_k | y_{1:k-1}): torch.logsumexp's arithmetic
-        # without its guard for infinite maxima (those give NaN here and take the exact path)
-        mx = lw_un.amax(-1, keepdim=True)
-        ll = mx.squeeze(-1) + (lw_un - mx).exp_().sum(-1).log_()
+        ll = _log_normaliser(lw_un)  # (infinite maxima give NaN and take the exact path)
         # one host read: particles, increments, fading factors and the likelihood all finite
         # (a finite sum has finite terms; an overflowing one takes the exact path below)
         if lam_prop is None:
@@ -714,22 +606,7 @@ class ParticleFilter:
         # estimates (STPF step 5); zero-weight particles may be non-finite: mask them
         W = lw.exp()
         xs = x if finite else torch.where((W > 0)[..., None], x, torch.zeros_like(x))
-        if xs.shape[-1] == 1:
-            # one state: weighted sums (a matrix product over N is several times slower)
-            mean, cov = _weighted_moments_1d(W, xs[..., 0])
-        else:
-            if W.dim() == 1:  # (one run: a vector-matrix product)
-                mean = W @ xs
-                d = xs - mean
-            else:
-                mean = (W.unsqueeze(-2) @ xs).squeeze(-2)
-                d = xs - mean.unsqueeze(-2)
-            cov = (d * W.unsqueeze(-1)).mT @ d
-            cov = 0.5 * (cov + cov.mT)
-        # effective sample size (sum W)^2 / sum W^2 of the normalised weights (sum W = 1 up to
-        # rounding): two sums instead of the two log-sum-exps of ess()
-        sw = W.sum(-1)
-        n_eff = sw * sw / (torch.dot(W, W) if W.dim() == 1 else (W * W).sum(-1))
+        mean, cov, n_eff = _estimates(W, xs)
         if lam_prop is None:
             lam = setup.unit
         elif finite:
@@ -797,6 +674,7 @@ class ParticleFilter:
         k0: int = 0,
         keep_particles: bool = False,
         inference: bool = False,
+        compile: bool = False,
     ) -> ParticleTrajectory:
         """Filter the measurements ``ys`` ``(T, ..., m)`` (NaN rows: missing).
 
@@ -815,7 +693,27 @@ class ParticleFilter:
         outside forward-mode AD: ``torch.autograd.functional.jacobian`` returns zeros in
         inference mode, and a parameter that the first step does not use would lose its
         gradient. The results are ordinary tensors either way.
+
+        ``compile=True`` runs the bootstrap filter (``proposal=None``, systematic resampling,
+        constant model noise, complete ``ys``, no input requiring a gradient; otherwise a
+        ``ValueError`` names what is missing) as ONE ``torch.compile(fullgraph=True)`` call
+        (:mod:`prognos_torch.filters._particle_compiled`): every step's uniforms drawn before
+        the pass, the normals made inside it, the resampling decision a tensor. Its random
+        stream differs from the eager run's (fed the same draws, the two agree to rounding).
+        ``f`` and ``h`` get ``k=None`` (they must not depend on the step index) and are traced
+        once. The first call for a configuration compiles (seconds; the time is
+        ``prognos_torch.filters.sequence.last_compile_seconds``), later ones reuse the code.
+        A pass that is not all finite (the eager step's exact path) is discarded and the run
+        is redone eagerly from the same generator state. Pays from about 10^3 particles; the
+        results carry no gradient.
         """
+        if not isinstance(compile, bool):
+            raise TypeError(f"compile must be a bool, got {type(compile).__name__}")
+        if compile:  # (before any draw: an error leaves the generator as it was)
+            check_compilable(self, model, ys, us, init)
+        saved = (
+            generator.get_state() if compile and isinstance(generator, torch.Generator) else None
+        )
         if isinstance(init, ParticleState):
             state = init
             self._check_state(model, state)
@@ -844,6 +742,22 @@ class ParticleFilter:
         elif us is not None:
             raise ValueError("us was given but the model has control_dim=0")
         setup = self._setup(model, bs, like, k0 + 1)
+        if compile:
+            out = compiled_run(self, model, state, ys, us, setup.noise, generator, keep_particles)
+            if out is not None:
+                x, lw = out["final"]
+                return ParticleTrajectory(**out["rows"], final=ParticleState(x, lw, None))
+            generator.set_state(saved)  # type: ignore[union-attr]  # not all finite: redo eagerly
+            return self.run(
+                model,
+                init,
+                ys,
+                us,
+                generator=generator,
+                k0=k0,
+                keep_particles=keep_particles,
+                inference=inference,
+            )
 
         def step(s: ParticleState, y: Tensor, u: Tensor | None, k: int):
             t = k - k0 - 1

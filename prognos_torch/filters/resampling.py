@@ -166,18 +166,20 @@ def _near_integer(K: Tensor, x: Tensor) -> bool:
     return bool((lo < tol) | (hi > 1.0 - tol))
 
 
-def _systematic_by_counts(cdf: Tensor, U: Tensor) -> Tensor:
+def _systematic_by_counts(cdf: Tensor, U: Tensor, *, traced: bool = False) -> Tensor:
     """The look-up's ancestors at the points ``u_j = min((j + U) / N, 1 - eps)``, counted.
 
     ``K_i = #{j : u_j < cdf_i} = ceil(N cdf_i - U)`` (clamped to ``[0, N]``): the offspring of
     particles ``0..i``. Where ``N cdf_i - U`` lies within rounding of an integer, ``K_i`` is
     corrected by comparing the points themselves, computed as the look-up computes them, so
-    the indices are the look-up's. ``cdf`` ``(..., N)``, ``U`` ``(..., 1)``.
+    the indices are the look-up's. ``cdf`` ``(..., N)``, ``U`` ``(..., 1)``. ``traced``: the
+    correction is applied everywhere instead of after a host read of whether it is needed
+    (the same indices: away from an integer it changes nothing), for a compiled step.
     """
     N = cdf.shape[-1]
     x = cdf * N - U
     K = torch.ceil(x)
-    near = _near_integer(K, x)
+    near = traced or _near_integer(K, x)
     K = K.clamp_(0.0, float(N))
     if near:  # rare: the exact comparisons u_{K-1} >= cdf_i and u_K < cdf_i
         top = 1.0 - torch.finfo(cdf.dtype).eps

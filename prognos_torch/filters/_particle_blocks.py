@@ -1,0 +1,55 @@
+"""Pure blocks of the bootstrap particle step, shared by the eager step
+(:meth:`prognos_torch.filters.particle.ParticleFilter.step`) and the compiled pass
+(:mod:`prognos_torch.filters._particle_compiled`): the log-normaliser of the weights and the
+weighted estimates. No host reads, so that both trace."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def _weighted_moments_1d(W: Tensor, x: Tensor) -> tuple[Tensor, Tensor]:
+    """Weighted mean ``(..., 1)`` and variance ``(..., 1, 1)`` of one state ``x`` ``(..., N)``
+    under normalised weights ``W`` ``(..., N)`` (paper 002 STPF step 5)."""
+    if W.dim() == 1:
+        m = torch.dot(W, x)
+        d = x - m
+        # (weight first: a zero-weight particle far out gives 0, not 0 * inf)
+        v = torch.dot(W * d, d)
+    else:
+        m = (W * x).sum(-1)
+        d = x - m.unsqueeze(-1)
+        v = (W * d * d).sum(-1)  # (left to right: weight first)
+    return m.unsqueeze(-1), v[..., None, None]
+
+
+def _log_normaliser(lw_un: Tensor) -> Tensor:
+    """``log sum_i exp(lw_un_i)`` over the last dim, ``(...)``: ``log p(y_k | y_{1:k-1})`` from
+    ``lw_un = log W_{k-1}^i + log p(y_k | x_k^i)`` (paper 002 STPF step 4). ``torch.logsumexp``'s
+    arithmetic without its guard for infinite maxima (those give NaN here)."""
+    mx = lw_un.amax(-1, keepdim=True)
+    return mx.squeeze(-1) + (lw_un - mx).exp_().sum(-1).log_()
+
+
+def _estimates(W: Tensor, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Weighted mean ``(..., n)``, covariance ``(..., n, n)`` and effective sample size ``(...)``
+    of finite particles ``x`` ``(..., N, n)`` under normalised weights ``W`` ``(..., N)``
+    (paper 002 STPF steps 5-6)."""
+    if x.shape[-1] == 1:
+        # one state: weighted sums (a matrix product over N is several times slower)
+        mean, cov = _weighted_moments_1d(W, x[..., 0])
+    else:
+        if W.dim() == 1:  # (one run: a vector-matrix product)
+            mean = W @ x
+            d = x - mean
+        else:
+            mean = (W.unsqueeze(-2) @ x).squeeze(-2)
+            d = x - mean.unsqueeze(-2)
+        cov = (d * W.unsqueeze(-1)).mT @ d
+        cov = 0.5 * (cov + cov.mT)
+    # effective sample size (sum W)^2 / sum W^2 of the normalised weights (sum W = 1 up to
+    # rounding): two sums instead of the two log-sum-exps of ess()
+    sw = W.sum(-1)
+    n_eff = sw * sw / (torch.dot(W, W) if W.dim() == 1 else (W * W).sum(-1))
+    return mean, cov, n_eff

@@ -1,0 +1,101 @@
+"""Per-particle trees: gathering and selecting particles together with everything carried per
+particle (the engine's :class:`~prognos_torch.filters.gaussian.FilterState` of a
+Gaussian-proposal filter), re-exported by :mod:`prognos_torch.filters.particle`."""
+
+from __future__ import annotations
+
+from dataclasses import fields, is_dataclass
+
+import torch
+from torch import Tensor
+
+# Tensors of the engine's FilterState have the batch dims leading, except the moving-window
+# noise buffers, which carry the window dim first (prognos_torch.adapt.noise.MovingWindow).
+ENGINE_LEADING_DIMS: dict[str, int] = {"buf_Q": 1, "buf_R": 1, "buf_valid": 1}
+
+
+def _particle_view(t: Tensor, v: Tensor, lead: int, nb: int) -> Tensor:
+    """Reshape ``t`` ``(*batch, N)`` so that it lines up with ``v``'s batch+particle dims."""
+    tail = v.dim() - lead - nb - 1
+    return t.reshape((1,) * lead + tuple(t.shape) + (1,) * tail)
+
+
+def _check_leaf(v: Tensor, name: str, lead: int, want: tuple[int, ...]) -> None:
+    got = tuple(v.shape[lead : lead + len(want)])
+    if got != want:
+        raise ValueError(
+            f"{name}: dims {lead}..{lead + len(want) - 1} must be the batch and particle dims "
+            f"{want}, got shape {tuple(v.shape)}"
+        )
+
+
+_INIT_FIELDS: dict[type, tuple[str, ...]] = {}
+
+
+def _init_fields(cls: type) -> tuple[str, ...]:
+    names = _INIT_FIELDS.get(cls)
+    if names is None:
+        names = _INIT_FIELDS[cls] = tuple(f.name for f in fields(cls) if f.init)
+    return names
+
+
+def _tree_map(fn, obj, others, name: str, leading: dict[str, int]):
+    if obj is None:
+        return None
+    if isinstance(obj, Tensor):
+        return fn(obj, others, leading.get(name, 0), name)
+    if is_dataclass(obj) and not isinstance(obj, type):
+        cls = type(obj)
+        kw = {
+            f: _tree_map(fn, getattr(obj, f), [getattr(o, f) for o in others], f, leading)
+            for f in _init_fields(cls)
+        }
+        return cls(**kw)  # (what dataclasses.replace builds, without its field scan)
+    if isinstance(obj, (int, float, bool, str)):
+        return obj
+    raise TypeError(f"{name}: cannot map over particles of a {type(obj).__name__}")
+
+
+def gather_particles(obj, ancestors: Tensor, *, leading: dict[str, int] | None = None):
+    """Select particles ``ancestors`` in every tensor of a (nested) frozen dataclass.
+
+    Args:
+        obj: a tensor, ``None`` or a dataclass of those (e.g. the engine's
+            :class:`~prognos_torch.filters.gaussian.FilterState` with ``GaussianBelief``,
+            ``StrongTrackingState`` and ``NoiseEstimatorState`` inside), whose tensors have the
+            batch dims ``...`` and the particle dim ``N`` leading: ``(..., N, *tail)``.
+        ancestors: ``(..., N)`` int64 indices into the particle dim.
+        leading: field name -> number of extra dims before the batch dims (default
+            :data:`ENGINE_LEADING_DIMS`: the moving-window buffers ``(W, ..., N, ...)``).
+    Returns:
+        The same structure with ``out[..., j, ...] = obj[..., ancestors[..., j], ...]``.
+    """
+    leading = ENGINE_LEADING_DIMS if leading is None else leading
+    want = tuple(ancestors.shape)
+    nb = len(want) - 1
+
+    def fn(v, _others, lead, name):
+        _check_leaf(v, name, lead, want)
+        if lead + nb == 0:  # one run: a row selection (the same values as the gather)
+            return v.index_select(0, ancestors)
+        idx = _particle_view(ancestors, v, lead, nb).expand(v.shape)
+        return torch.gather(v, lead + nb, idx)
+
+    return _tree_map(fn, obj, [], "obj", leading)
+
+
+def where_particles(mask: Tensor, a, b, *, leading: dict[str, int] | None = None):
+    """Per-particle ``torch.where(mask, a, b)`` over two trees of the same structure.
+
+    ``mask``: ``(..., N)`` bool; ``a``, ``b``: as in :func:`gather_particles`.
+    """
+    leading = ENGINE_LEADING_DIMS if leading is None else leading
+    want = tuple(mask.shape)
+    nb = len(want) - 1
+
+    def fn(v, others, lead, name):
+        w = others[0]
+        _check_leaf(v, name, lead, want)
+        return torch.where(_particle_view(mask, v, lead, nb), v, w)
+
+    return _tree_map(fn, a, [b], "a", leading)
