@@ -14,10 +14,11 @@ Prints tables of
   per-sample ``f``/``h`` (batched by ``vmap``, Jacobians by ``jacfwd``), ``batched=True`` with
   analytic Jacobians, and the random walk ``f=None``, each by default and with
   ``run(..., inference=True)`` (rows marked ``inf``);
-* the library's SIR beside a vectorised NumPy SIR written here (same model, same initial
+* the library's SIR, eager and compiled (``run(..., compile=True)``, its compile time apart),
+  beside a vectorised NumPy SIR written here (same model, same initial
   belief, same systematic resampling at ``N_eff < N / 2``, the same per-step outputs: weighted
   mean and variance, ``N_eff``, log-likelihood increment) at 10^3, 10^4 and 10^5 particles,
-  timed interleaved in this process (library, NumPy, library, ...), with the speed ratio
+  timed interleaved in this process (eager, compiled, NumPy, eager, ...), with the speed ratio
   ``NumPy time / library time`` (>= 1: the library is at least as fast; target >= 1). Both get
   their measurements and model built beforehand and create their generator inside the timed
   call (the library's ``ParticleFilter.run`` includes its input checks and the initial draw);
@@ -201,10 +202,13 @@ def interleaved(fns: list, repeat: int) -> list[float]:
 
 
 def sir_vs_numpy(counts: list[tuple[int, int]], repeat: int) -> None:
-    print("\nSIR: library vs vectorised NumPy (same model, systematic at N_eff < N/2; median s)")
     print(
-        f"{'N':>8}{'steps':>7}{'library s':>11}{'NumPy s':>10}{'ratio':>8}"
-        f"{'lib p-steps/s':>15}{'|mean diff|':>13}"
+        "\nSIR: library (eager, and compiled: run(compile=True)) vs vectorised NumPy (same "
+        "model, systematic at N_eff < N/2; median s; ratio = NumPy / library)"
+    )
+    print(
+        f"{'N':>8}{'steps':>7}{'eager s':>9}{'compiled s':>12}{'NumPy s':>10}{'eager':>7}"
+        f"{'compiled':>10}{'compile s':>11}{'comp p-steps/s':>16}{'|mean diff|':>13}"
     )
     model = make_model("batched+jac")
     b0 = GaussianBelief(torch.zeros(1, dtype=torch.float64), torch.eye(1, dtype=torch.float64))
@@ -216,13 +220,18 @@ def sir_vs_numpy(counts: list[tuple[int, int]], repeat: int) -> None:
         def lib(pf=pf, ys=ys):
             return pf.run(model, b0, ys, generator=torch.Generator().manual_seed(1))
 
+        def comp(pf=pf, ys=ys):
+            return pf.run(model, b0, ys, generator=torch.Generator().manual_seed(1), compile=True)
+
+        comp()  # compiles (time apart)
+        t_compile = prognos_torch.filters.sequence.last_compile_seconds
         peer = lambda N=N, ys_np=ys_np: numpy_sir(ys_np, N)  # noqa: E731
-        t_lib, t_np = interleaved([lib, peer], repeat)
-        # the two filters use different random streams: their means agree to Monte Carlo error
-        diff = float(np.abs(lib().means[:, 0].numpy() - peer()["means"]).mean())
+        t_lib, t_comp, t_np = interleaved([lib, comp, peer], repeat)
+        # the filters use different random streams: their means agree to Monte Carlo error
+        diff = float(np.abs(comp().means[:, 0].numpy() - peer()["means"]).mean())
         print(
-            f"{N:>8}{T:>7}{t_lib:>11.4f}{t_np:>10.4f}{t_np / t_lib:>8.2f}"
-            f"{N * T / t_lib:>15.3g}{diff:>13.2e}"
+            f"{N:>8}{T:>7}{t_lib:>9.4f}{t_comp:>12.4f}{t_np:>10.4f}{t_np / t_lib:>7.2f}"
+            f"{t_np / t_comp:>10.2f}{t_compile:>11.1f}{N * T / t_comp:>16.3g}{diff:>13.2e}"
         )
 
 
