@@ -13,7 +13,8 @@ Prints tables of
   per-sample model, <= 0.2 s with the batched one), for three ways of writing the same model:
   per-sample ``f``/``h`` (batched by ``vmap``, Jacobians by ``jacfwd``), ``batched=True`` with
   analytic Jacobians, and the random walk ``f=None``, each by default and with
-  ``run(..., inference=True)`` (rows marked ``inf``);
+  ``run(..., inference=True)`` (rows marked ``inf``), and the batched one with
+  ``run(..., compile=True)`` (``comp``, its compile time apart);
 * the library's SIR, eager and compiled (``run(..., compile=True)``, its compile time apart),
   beside a vectorised NumPy SIR written here (same model, same initial
   belief, same systematic resampling at ``N_eff < N / 2``, the same per-step outputs: weighted
@@ -105,14 +106,21 @@ def make_filter(name: str, N: int):
     return {"SIR": sir, "STPF": stpf}[name](N)
 
 
-def one_run(name: str, kind: str, N: int, T: int, seed: int = 1, inference: bool = False):
-    model, ys = make_model(kind), make_data(T)
+_MODELS: dict = {}
+
+
+def one_run(
+    name: str, kind: str, N: int, T: int, seed: int = 1, inference: bool = False,
+    compile: bool = False,
+):  # fmt: skip
+    # (one model per form, so that a compiled run reuses its compiled code)
+    model, ys = _MODELS.setdefault(kind, make_model(kind)), make_data(T)
     b0 = GaussianBelief(torch.zeros(1, dtype=torch.float64), torch.eye(1, dtype=torch.float64))
     pf = make_filter(name, N)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         gen = torch.Generator().manual_seed(seed)
-        return pf.run(model, b0, ys, generator=gen, inference=inference)
+        return pf.run(model, b0, ys, generator=gen, inference=inference, compile=compile)
 
 
 # --------------------------------------------------------------------------- NumPy peers
@@ -485,6 +493,16 @@ def main(argv: list[str] | None = None) -> None:
                 f"{label:<18}{med:>6.3f}{best:>9.3f}{1e3 * med / args.steps:>9.2f}"
                 f"{targets[kind]:>8.1f}{ok:>5}"
             )
+    # run(..., compile=True): the filter as one compiled pass (its compile time apart)
+    go = lambda: one_run("STPF", "batched+jac", args.small, args.steps, compile=True)  # noqa: E731
+    go()
+    t_compile = prognos_torch.filters.sequence.last_compile_seconds
+    med, best = timed(go, args.repeat)
+    ok = "yes" if med <= targets["batched+jac"] else "no"
+    print(
+        f"{'batched+jac comp':<18}{med:>6.3f}{best:>9.3f}{1e3 * med / args.steps:>9.2f}"
+        f"{targets['batched+jac']:>8.1f}{ok:>5}   (compile {t_compile:.1f} s apart)"
+    )
 
     if not args.no_peers:
         peers(args)

@@ -11,9 +11,10 @@ import torch
 
 import prognos_torch.filters.particle as particle_mod
 import prognos_torch.filters.resampling as resampling_mod
+import prognos_torch.filters.sequence
 from prognos_torch.core import GaussianBelief, StateSpaceModel, linear_gaussian_model
 from prognos_torch.core.random import _randn_cpu_f64, box_muller
-from prognos_torch.filters import ParticleState, sir, stpf
+from prognos_torch.filters import ParticleState, ekpf, sir, stpf, upf
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -22,7 +23,13 @@ F64 = torch.float64
 
 def _model_1d(batched: bool) -> StateSpaceModel:
     f = lambda x, u, k: x + 0.05 * torch.sin(x)  # noqa: E731
-    h = lambda x, u, k: x  # noqa: E731
+    h = lambda x, u, k: x + 0.1 * x**2  # noqa: E731
+    if batched:  # closed-form Jacobians (the proposal filters' compiled pass needs them)
+        jac_f = lambda x, u, k: (1.0 + 0.05 * torch.cos(x)).unsqueeze(-1)  # noqa: E731
+        jac_h = lambda x, u, k: (1.0 + 0.2 * x).unsqueeze(-1)  # noqa: E731
+    else:  # per sample
+        jac_f = lambda x, u, k: (1.0 + 0.05 * torch.cos(x)).reshape(1, 1)  # noqa: E731
+        jac_h = lambda x, u, k: (1.0 + 0.2 * x).reshape(1, 1)  # noqa: E731
     return StateSpaceModel(
         f=f,
         h=h,
@@ -31,6 +38,8 @@ def _model_1d(batched: bool) -> StateSpaceModel:
         chol_Q=torch.tensor([[0.1]], dtype=F64),
         chol_R=torch.tensor([[0.3]], dtype=F64),
         batched=batched,
+        jac_f=jac_f,
+        jac_h=jac_h,
     )
 
 
@@ -42,9 +51,17 @@ def _model_2d_control() -> StateSpaceModel:
     LQ = torch.tensor([[0.2, 0.0], [0.05, 0.1]], dtype=F64)  # not diagonal: the matrix draw
     LR = torch.tensor([[0.3, 0.0], [0.1, 0.25]], dtype=F64)  # the triangular solve
     q, r = torch.tensor([0.05, -0.02], dtype=F64), torch.tensor([0.1, 0.0], dtype=F64)
+
+    def jac_h(x, u, k):
+        one, zero = torch.ones_like(x[..., 0]), torch.zeros_like(x[..., 0])
+        rows = [torch.stack([one, x[..., 1] / 2], -1), torch.stack([zero, one], -1)]
+        return torch.stack(rows, -2)
+
     return StateSpaceModel(
         f=f,
         h=h,
+        jac_f=lambda x, u, k: A.expand(*x.shape[:-1], 2, 2),
+        jac_h=jac_h,
         state_dim=2,
         obs_dim=2,
         chol_Q=LQ,
@@ -110,15 +127,28 @@ def _compare(a, b, rtol=1e-12, atol=1e-12):
     for name in ("collapsed", "missing"):
         assert torch.equal(getattr(a, name), getattr(b, name))
     assert torch.equal(a.prior_fallback, b.prior_fallback)
-    assert torch.equal(a.fading_factors, b.fading_factors)
+    torch.testing.assert_close(a.fading_factors, b.fading_factors, rtol=rtol, atol=atol)
+    fa, fb = a.final.proposal, b.final.proposal
+    assert (fa is None) == (fb is None)
+    if fa is not None:  # each particle's Gaussian and strong-tracking state
+        torch.testing.assert_close(fa.belief.mean, fb.belief.mean, rtol=rtol, atol=atol)
+        torch.testing.assert_close(fa.belief.chol, fb.belief.chol, rtol=rtol, atol=atol)
+        assert (fa.fading is None) == (fb.fading is None)
+        if fa.fading is not None:
+            torch.testing.assert_close(fa.fading.V, fb.fading.V, rtol=rtol, atol=atol)
+            assert torch.equal(fa.fading.started, fb.fading.started)
+
+
+FACTORIES = {"sir": sir, "ekpf": ekpf, "stpf": stpf}
 
 
 @pytest.mark.parametrize("batched", [True, False])
-def test_compiled_sir_equals_the_eager_sir_fed_the_same_draws_one_run(batched, monkeypatch):
+@pytest.mark.parametrize("name", ["sir", "ekpf", "stpf"])
+def test_compiled_pf_equals_the_eager_pf_fed_the_same_draws_one_run(name, batched, monkeypatch):
     model = _model_1d(batched)
     ys = _data(model, (), 60, None, seed=3)
     ys[30] += 2.0  # a jump: some steps resample, some do not
-    pf = sir(500)  # 500 normals: a partial block of 16
+    pf = FACTORIES[name](500)  # 500 normals: a partial block of 16
     b0 = GaussianBelief(torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64))
     state = pf.init(model, b0, generator=torch.Generator().manual_seed(0))
     ref = _eager_with_the_compiled_draws(pf, model, state, ys, None, 7, monkeypatch)
@@ -143,15 +173,18 @@ def _linear_gaussian_2d() -> StateSpaceModel:
     )  # fmt: skip
 
 
-@pytest.mark.parametrize("which", ["nonlinear, controls", "linear-Gaussian"])
-def test_compiled_sir_equals_the_eager_sir_batched_runs_full_noise(which, monkeypatch):
+@pytest.mark.parametrize(
+    "name, which",
+    [("sir", "nonlinear, controls"), ("sir", "linear-Gaussian"), ("stpf", "nonlinear, controls")],
+)
+def test_compiled_pf_equals_the_eager_pf_batched_runs_full_noise(name, which, monkeypatch):
     control = which == "nonlinear, controls"
     model = _model_2d_control() if control else _linear_gaussian_2d()
     bs, T = (3,), 40
     us = torch.linspace(-1.0, 1.0, T, dtype=F64).reshape(T, 1) if control else None
     ys = _data(model, bs, T, us, seed=4)
     ys[20, 1] += 3.0  # one run jumps: runs resample at different steps
-    pf = sir(300, resample_threshold=0.6)
+    pf = FACTORIES[name](300, resample_threshold=0.6)
     eye = torch.eye(2, dtype=F64)
     b0 = GaussianBelief(torch.zeros(*bs, 2, dtype=F64), 0.5 * eye.expand(*bs, 2, 2))
     state = pf.init(model, b0, generator=torch.Generator().manual_seed(1))
@@ -178,7 +211,9 @@ def test_compiled_run_reuses_its_code_and_draws_from_the_generator():
     b0 = GaussianBelief(torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64))
     pf = sir(200)
     a = pf.run(model, b0, ys, generator=torch.Generator().manual_seed(3), compile=True)
-    b = pf.run(model, b0, ys, generator=torch.Generator().manual_seed(3), compile=True)
+    # an equal configuration (a new filter object) reuses the compiled code
+    b = sir(200).run(model, b0, ys, generator=torch.Generator().manual_seed(3), compile=True)
+    assert prognos_torch.filters.sequence.last_compile_seconds == 0.0
     c = pf.run(model, b0, ys, generator=torch.Generator().manual_seed(4), compile=True)
     assert torch.equal(a.means, b.means) and torch.equal(a.log_likelihoods, b.log_likelihoods)
     assert not torch.equal(a.means, c.means)
@@ -244,8 +279,8 @@ def test_compiled_run_names_what_it_needs():
     ys = _data(model, (), 10, None, seed=1)
     b0 = GaussianBelief(torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64))
     g = torch.Generator().manual_seed(0)
-    with pytest.raises(ValueError, match="proposal=None"):
-        stpf(50).run(model, b0, ys, generator=g, compile=True)
+    with pytest.raises(ValueError, match="EKF proposal"):
+        upf(50).run(model, b0, ys, generator=g, compile=True)
     with pytest.raises(ValueError, match="systematic"):
         sir(50, resampler="multinomial").run(model, b0, ys, generator=g, compile=True)
     noisy = StateSpaceModel(
@@ -273,3 +308,31 @@ def test_compiled_run_names_what_it_needs():
         sir(50).run(model, b0, gappy, generator=g, compile=True)
     assert torch.equal(g.get_state(), state)  # nothing drawn before the error
     assert isinstance(sir(50).init(model, b0, generator=g), ParticleState)
+
+
+def test_a_step_the_scan_operator_refuses_runs_compiled_step_by_step(monkeypatch):
+    """A model whose closures alias (``A.mT`` in ``f``, ``A`` in ``h``): torch's scan operator
+    refuses the traced step, and the pass runs as one compiled call per step, with the same
+    numbers as the eager filter fed the same draws."""
+    import prognos_torch.filters._particle_compiled as pc
+
+    A = torch.tensor([[0.9, 0.2], [0.0, 0.8]], dtype=F64)
+    model = StateSpaceModel(
+        f=lambda x, u, k: x @ A.mT,
+        h=lambda x, u, k: torch.tanh(x @ A),
+        state_dim=2,
+        obs_dim=2,
+        chol_Q=0.2 * torch.eye(2, dtype=F64),
+        chol_R=0.3 * torch.eye(2, dtype=F64),
+        batched=True,
+    )
+    ys = _data(model, (), 30, None, seed=6)
+    pf = sir(200)
+    b0 = GaussianBelief(torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64))
+    state = pf.init(model, b0, generator=torch.Generator().manual_seed(0))
+    before = len(pc._PER_STEP)
+    gen = torch.Generator().manual_seed(5)
+    out = pf.run(model, state, ys, generator=gen, keep_particles=True, compile=True)
+    assert len(pc._PER_STEP) == before + 1
+    ref = _eager_with_the_compiled_draws(pf, model, state, ys, None, 5, monkeypatch)
+    _compare(out, ref)

@@ -1,12 +1,45 @@
-"""Pure blocks of the bootstrap particle step, shared by the eager step
+"""The particle state and the pure blocks of the particle step, shared by the eager step
 (:meth:`prognos_torch.filters.particle.ParticleFilter.step`) and the compiled pass
 (:mod:`prognos_torch.filters._particle_compiled`): the log-normaliser of the weights and the
-weighted estimates. No host reads, so that both trace."""
+weighted estimates. No host reads, so that both trace. :class:`ParticleState` is re-exported
+by :mod:`prognos_torch.filters.particle`."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor
+
+from ._blocks import FilterState
+
+
+@dataclass(frozen=True)
+class ParticleState:
+    """A weighted particle set (batch dims ``...`` leading).
+
+    Attributes:
+        particles: ``(..., N, n)``.
+        log_weights: ``(..., N)``, normalised (``logsumexp`` over ``N`` is 0).
+        proposal: per-particle Gaussian filter state with batch dims ``(..., N)`` (Gaussian-proposal
+            PFs; its ``belief.mean`` equals ``particles``), or ``None`` (bootstrap).
+    """
+
+    particles: Tensor
+    log_weights: Tensor
+    proposal: FilterState | None = None
+
+    @property
+    def num_particles(self) -> int:
+        return self.log_weights.shape[-1]
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        return self.log_weights.shape[:-1]
+
+    @property
+    def weights(self) -> Tensor:
+        return self.log_weights.exp()
 
 
 def _weighted_moments_1d(W: Tensor, x: Tensor) -> tuple[Tensor, Tensor]:

@@ -597,7 +597,8 @@ class GaussianFilter:
                 mom_l.pxz() if mom_l.H is None else None,
                 any_missing=any_missing,
             )
-            if bool((lam > 1).any()):
+            # (traced: always, no host read; lambda = 1 scales by sqrt(1) = 1, the same factor)
+            if torch.compiler.is_compiling() or bool((lam > 1).any()):
                 prior = self._prior(prop, noise.chol_Q, lam, True, noise.diag_Q)  # paper 000 Eq. 36
                 if mom_l.H is not None:  # Taylor: same mean, same h and Jacobian, new factor
                     mom = _Moments(

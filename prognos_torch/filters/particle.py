@@ -69,7 +69,7 @@ from ..core.validation import (
     check_sequence,
     has_missing,
 )
-from ._particle_blocks import _estimates, _log_normaliser
+from ._particle_blocks import ParticleState, _estimates, _log_normaliser
 from ._particle_compiled import check_compilable, compiled_run
 from ._particle_noise import (
     _LOG_2PI,
@@ -82,7 +82,7 @@ from ._particle_noise import (
     _sum_last,
 )
 from ._particle_trees import gather_particles, where_particles
-from .gaussian import FilterState, GaussianFilter, Taylor
+from .gaussian import GaussianFilter, Taylor
 from .resampling import Resampler, _draw_ancestors, get_resampler
 from .sequence import scan
 
@@ -117,34 +117,6 @@ class ProposalFallbackWarning(RuntimeWarning):
 
 
 # ---------------------------------------------------------------------- state and outputs
-@dataclass(frozen=True)
-class ParticleState:
-    """A weighted particle set (batch dims ``...`` leading).
-
-    Attributes:
-        particles: ``(..., N, n)``.
-        log_weights: ``(..., N)``, normalised (``logsumexp`` over ``N`` is 0).
-        proposal: per-particle Gaussian filter state with batch dims ``(..., N)`` (Gaussian-proposal
-            PFs; its ``belief.mean`` equals ``particles``), or ``None`` (bootstrap).
-    """
-
-    particles: Tensor
-    log_weights: Tensor
-    proposal: FilterState | None = None
-
-    @property
-    def num_particles(self) -> int:
-        return self.log_weights.shape[-1]
-
-    @property
-    def batch_shape(self) -> torch.Size:
-        return self.log_weights.shape[:-1]
-
-    @property
-    def weights(self) -> Tensor:
-        return self.log_weights.exp()
-
-
 @dataclass(frozen=True)
 class ParticleStepInfo:
     """Diagnostics of one particle-filter step (batch dims ``...``).
@@ -694,17 +666,19 @@ class ParticleFilter:
         inference mode, and a parameter that the first step does not use would lose its
         gradient. The results are ordinary tensors either way.
 
-        ``compile=True`` runs the bootstrap filter (``proposal=None``, systematic resampling,
-        constant model noise, complete ``ys``, no input requiring a gradient; otherwise a
-        ``ValueError`` names what is missing) as ONE ``torch.compile(fullgraph=True)`` call
-        (:mod:`prognos_torch.filters._particle_compiled`): every step's uniforms drawn before
-        the pass, the normals made inside it, the resampling decision a tensor. Its random
-        stream differs from the eager run's (fed the same draws, the two agree to rounding).
-        ``f`` and ``h`` get ``k=None`` (they must not depend on the step index) and are traced
-        once. The first call for a configuration compiles (seconds; the time is
-        ``prognos_torch.filters.sequence.last_compile_seconds``), later ones reuse the code.
-        A pass that is not all finite (the eager step's exact path) is discarded and the run
-        is redone eagerly from the same generator state. Pays from about 10^3 particles; the
+        ``compile=True`` runs the bootstrap filter, the EKPF or the STPF (an EKF proposal
+        without noise estimator or robust bound, with the model's closed-form ``jac_f`` and
+        ``jac_h``), with systematic resampling, constant model noise, complete ``ys`` and no
+        input requiring a gradient (otherwise a ``ValueError`` names what is missing), as ONE
+        ``torch.compile(fullgraph=True)`` call (:mod:`prognos_torch.filters._particle_compiled`):
+        every step's uniforms drawn before the pass, the normals made inside it, the resampling
+        decision a tensor. Its random stream differs from the eager run's (fed the same draws,
+        the two agree to rounding). ``f``, ``h`` and the Jacobians get ``k=None`` (they must
+        not depend on the step index) and are traced once. The first call for a configuration
+        compiles (seconds; the time is ``prognos_torch.filters.sequence.last_compile_seconds``),
+        later ones with an equal filter, the same model and the same shapes reuse the code. A
+        pass that is not all finite (the eager step's exact path) is discarded and the run is
+        redone eagerly from the same generator state. Pays from about 10^3 particles; the
         results carry no gradient.
         """
         if not isinstance(compile, bool):
@@ -743,10 +717,9 @@ class ParticleFilter:
             raise ValueError("us was given but the model has control_dim=0")
         setup = self._setup(model, bs, like, k0 + 1)
         if compile:
-            out = compiled_run(self, model, state, ys, us, setup.noise, generator, keep_particles)
+            out = compiled_run(self, model, state, ys, us, setup, generator, keep_particles)
             if out is not None:
-                x, lw = out["final"]
-                return ParticleTrajectory(**out["rows"], final=ParticleState(x, lw, None))
+                return ParticleTrajectory(**out["rows"], final=ParticleState(*out["final"]))
             generator.set_state(saved)  # type: ignore[union-attr]  # not all finite: redo eagerly
             return self.run(
                 model,
