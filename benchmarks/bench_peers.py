@@ -64,7 +64,7 @@ def dynamax_python(cache: Path) -> Path:
     ok = env / ".installed"
     if not ok.exists():
         print(f"creating {env} (jax, jaxlib, dynamax from the package index) ...", flush=True)
-        venv.create(env, with_pip=True)
+        venv.create(env, with_pip=True, clear=True)  # (a half-made one from a failed try)
         subprocess.run(
             [str(py), "-m", "pip", "install", "-q", "jax", "jaxlib", "dynamax"], check=True
         )
