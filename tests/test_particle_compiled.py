@@ -14,7 +14,7 @@ import prognos_torch.filters.resampling as resampling_mod
 import prognos_torch.filters.sequence
 from prognos_torch.core import GaussianBelief, StateSpaceModel, linear_gaussian_model
 from prognos_torch.core.random import _randn_cpu_f64, box_muller
-from prognos_torch.filters import ParticleState, ekpf, sir, stpf, upf
+from prognos_torch.filters import ParticleState, ekf, ekpf, sir, stpf, upf
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -281,6 +281,14 @@ def test_compiled_run_names_what_it_needs():
     g = torch.Generator().manual_seed(0)
     with pytest.raises(ValueError, match="EKF proposal"):
         upf(50).run(model, b0, ys, generator=g, compile=True)
+    with pytest.raises(ValueError, match="square-root EKF"):
+        ekpf(50, proposal=ekf(sqrt=False)).run(model, b0, ys, generator=g, compile=True)
+    uses_k = StateSpaceModel(
+        f=lambda x, u, k: x * (k + 1), h=model.h, state_dim=1, obs_dim=1, batched=True,
+        chol_Q=model.chol_Q, chol_R=model.chol_R,
+    )  # fmt: skip
+    with pytest.raises(RuntimeError, match="could not compile"):
+        sir(50).run(uses_k, b0, ys, generator=g, compile=True)
     with pytest.raises(ValueError, match="systematic"):
         sir(50, resampler="multinomial").run(model, b0, ys, generator=g, compile=True)
     noisy = StateSpaceModel(
@@ -336,3 +344,44 @@ def test_a_step_the_scan_operator_refuses_runs_compiled_step_by_step(monkeypatch
     assert len(pc._PER_STEP) == before + 1
     ref = _eager_with_the_compiled_draws(pf, model, state, ys, None, 5, monkeypatch)
     _compare(out, ref)
+
+
+def test_compiled_code_is_not_reused_across_dtypes(monkeypatch):
+    """A float32 run between two float64 runs of the same filter and model: each gets its own
+    compiled step (the noise constants in the dtype of its particles), and the float64 pass
+    equals the eager filter fed the same draws."""
+    model = _model_1d(True)
+    ys = _data(model, (), 25, None, seed=8)
+    pf = sir(160)
+    b64 = GaussianBelief(torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64))
+    b32 = GaussianBelief(torch.zeros(1), torch.eye(1))
+    s32 = pf.init(model, b32, generator=torch.Generator().manual_seed(0))
+    g32 = torch.Generator().manual_seed(2)
+    out32 = pf.run(model, s32, ys.float(), generator=g32, keep_particles=True, compile=True)
+    assert out32.means.dtype == torch.float32 and out32.final.particles.dtype == torch.float32
+    s64 = pf.init(model, b64, generator=torch.Generator().manual_seed(0))
+    gen = torch.Generator().manual_seed(2)
+    out = pf.run(model, s64, ys, generator=gen, keep_particles=True, compile=True)
+    ref = _eager_with_the_compiled_draws(pf, model, s64, ys, None, 2, monkeypatch)
+    _compare(out, ref)
+
+
+def test_compiled_sir_runs_a_one_state_linear_model():
+    """``x @ F.mT`` with a 1 x 1 ``F``: the loop code of inductor's C++ wrapper (torch 2.13)
+    corrupts the heap on it, so the whole-pass scan runs with the Python wrapper. Checked
+    against the exact Kalman likelihood within Monte Carlo error."""
+    F, H = torch.tensor([[0.9]], dtype=F64), torch.tensor([[1.0]], dtype=F64)
+    model = StateSpaceModel(
+        f=lambda x, u, k: x @ F.mT,
+        h=lambda x, u, k: x @ H.mT,
+        state_dim=1,
+        obs_dim=1,
+        chol_Q=torch.tensor([[0.5]], dtype=F64),
+        chol_R=torch.tensor([[0.4]], dtype=F64),
+        batched=True,
+    )
+    ys = _data(model, (), 30, None, seed=4)
+    b0 = GaussianBelief(torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64))
+    out = sir(5000).run(model, b0, ys, generator=torch.Generator().manual_seed(1), compile=True)
+    ref = sir(5000).run(model, b0, ys, generator=torch.Generator().manual_seed(1))
+    assert abs(float(out.log_likelihood) - float(ref.log_likelihood)) < 0.5

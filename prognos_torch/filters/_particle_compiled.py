@@ -64,11 +64,14 @@ def check_compilable(pf, model, ys: Tensor, us: Tensor | None, init) -> None:
     why = None
     prop = pf.proposal
     if prop is not None and (
-        not isinstance(prop.rule, Taylor) or prop.noise is not None or prop.robust is not None
+        not isinstance(prop.rule, Taylor)
+        or not prop.sqrt
+        or prop.noise is not None
+        or prop.robust is not None
     ):
         why = (
-            "the bootstrap filter (sir()) or an EKF proposal without noise estimator or robust "
-            "bound (ekpf(), stpf())"
+            "the bootstrap filter (sir()) or a square-root EKF proposal without noise estimator "
+            "or robust bound (ekpf(), stpf())"
         )
     elif prop is not None and (
         model.jac_h is None or (model.f is not None and model.jac_f is None)
@@ -176,6 +179,11 @@ def compiled_run(
     return {"rows": rows, "final": (x, lw, _proposal_state(x, tuple(final[2:])))}
 
 
+#: inductor's C++ wrapper for the whole-pass scan on the CPU. Off: in torch 2.13 its loop
+#: code corrupts the heap (the process aborts) for a step with a matrix product by a 1 x 1
+#: transposed tensor (``x @ F.mT`` of a one-state linear model); the Python wrapper runs it.
+CPP_WRAPPER = False
+
 #: steps whose whole-pass trace failed (they run as one compiled call per step)
 _PER_STEP: dict = {}
 
@@ -186,21 +194,34 @@ def _scan_compiled(step, carry: tuple, ys: Tensor, packed: Tensor, record):
     library's :func:`~prognos_torch.filters.scan` over the step compiled alone (one compiled
     call per step, about 60 us each on the CPU). The scan operator refuses inputs that alias
     each other, which a model's closures can give it (a matrix and its transpose, ``A`` in
-    ``h`` and ``A.mT`` in ``f``)."""
+    ``h`` and ``A.mT`` in ``f``). A step that torch cannot compile at all (a model that reads
+    a tensor on the host, branches on its values, or uses ``k``) is a ``RuntimeError`` that
+    says so."""
+    dynamo = torch._dynamo.exc
     fn = _PER_STEP.get(step)
-    if fn is None:
-        try:
-            return _compiled_scan(step, carry, ys, packed, record, dynamic=False)
-        except (torch._dynamo.exc.Unsupported, torch._dynamo.exc.UncapturedHigherOrderOpError):
-            device = carry[0].device
-            compiled = torch.compile(
-                step, fullgraph=True, dynamic=False, **_compile_options(device)
-            )
-            if len(_PER_STEP) > 16:
-                _PER_STEP.clear()
-            # (k = None: a step index would be a new constant, and a new compile, each step)
-            fn = _PER_STEP[step] = lambda s, y, u, k: compiled(s, y, u, None)
-    return scan(fn, carry, ys, packed, record=record)
+    try:
+        if fn is None:
+            try:
+                return _compiled_scan(
+                    step, carry, ys, packed, record, dynamic=False, cpp_wrapper=CPP_WRAPPER
+                )
+            except (dynamo.Unsupported, dynamo.UncapturedHigherOrderOpError):
+                device = carry[0].device
+                compiled = torch.compile(
+                    step, fullgraph=True, dynamic=False, **_compile_options(device)
+                )
+                if len(_PER_STEP) > 16:
+                    _PER_STEP.clear()
+                # (k = None: a step index would be a new constant, and a compile, each step)
+                fn = _PER_STEP[step] = lambda s, y, u, k: compiled(s, y, u, None)
+        return scan(fn, carry, ys, packed, record=record)
+    except dynamo.TorchDynamoException as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else ""
+        raise RuntimeError(
+            "run(compile=True) could not compile this filter's step with this model "
+            f"({type(err).__name__}: {first}); f, h and their Jacobians must be traceable "
+            "tensor code that does not use k; use compile=False"
+        ) from err
 
 
 def _step_functions(
@@ -217,7 +238,9 @@ def _step_functions(
         cfg = (hash(pf), pf)
     except TypeError:  # (a configuration that does not hash: a callable resampler's state)
         cfg = (id(pf), pf)
-    key = (cfg[0], *map(id, raw), versions, bs, N, n, u_shape, n_extra, keep)
+    like = setup.no_flag  # (the particles' device; the noise gives their dtype)
+    dtype = pn.kR.dtype
+    key = (cfg[0], *map(id, raw), versions, bs, N, n, u_shape, n_extra, keep, dtype, like.device)
     hit = _STEPS.get(key)
     if hit is not None and hit[0] == pf and all(a is b for a, b in zip(hit[1], raw)):
         return hit[2], hit[3]

@@ -181,7 +181,7 @@ def _ordinary(obj):
 _COMPILED: dict = {}
 
 
-def _compile_options(device: torch.device) -> dict:
+def _compile_options(device: torch.device, cpp_wrapper: bool = True) -> dict:
     """Inductor's options for the compiled loop on ``device``.
 
     Its C++ wrapper calls the loop's kernels from C++ rather than Python, which is most of the
@@ -195,19 +195,23 @@ def _compile_options(device: torch.device) -> dict:
     2 and 4.
     """
     options: dict = {"post_grad_fusion_options": {"decompose_mm_pass": {}}}
-    if device.type == "cpu":
+    if device.type == "cpu" and cpp_wrapper:
         options["cpp_wrapper"] = True
     return {"options": options}
 
 
-def _compiled_scan(step, state, ys: Tensor, us: Tensor | None, record, dynamic: bool | None = None):
+def _compiled_scan(
+    step, state, ys: Tensor, us: Tensor | None, record, dynamic: bool | None = None,
+    cpp_wrapper: bool = True,
+):  # fmt: skip
     """:func:`scan` with ``compile=True`` (see there). ``dynamic``: ``torch.compile``'s;
     ``False`` compiles each new set of shapes on its own (torch 2.13's dynamic-shape recompile
-    can round a float constant of the step, e.g. ``-log N``, to float32)."""
+    can round a float constant of the step, e.g. ``-log N``, to float32). ``cpp_wrapper``:
+    inductor's C++ wrapper on the CPU (see :func:`_compile_options`)."""
     if not isinstance(state, tuple) or not all(isinstance(t, Tensor) for t in state):
         raise TypeError("with compile=True, state must be a tuple of tensors")
     device = state[0].device if state else ys.device
-    key = (step, record, device.type, dynamic)
+    key = (step, record, device.type, dynamic, cpp_wrapper)
     fn = _COMPILED.get(key)
     if fn is None:
         try:
@@ -235,7 +239,8 @@ def _compiled_scan(step, state, ys: Tensor, us: Tensor | None, record, dynamic: 
         run = types.FunctionType(
             run.__code__.replace(), run.__globals__, run.__name__, None, run.__closure__
         )
-        fn = torch.compile(run, fullgraph=True, dynamic=dynamic, **_compile_options(device))
+        options = _compile_options(device, cpp_wrapper)
+        fn = torch.compile(run, fullgraph=True, dynamic=dynamic, **options)
         if len(_COMPILED) > 16:
             _COMPILED.clear()
         _COMPILED[key] = fn
