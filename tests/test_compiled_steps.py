@@ -96,3 +96,21 @@ def test_compile_refuses_what_it_cannot_trace():
     _, opt = _opt("srukf")
     with pytest.raises(ValueError, match="one row per step"):
         opt.steps(X.unsqueeze(1), Y[:3].unsqueeze(1), compile=True)
+
+
+def test_compiled_steps_of_a_learner_with_a_one_by_one_fixed_matrix():
+    """An ELM with one input and one hidden node holds a 1 x 1 fixed input weight, whose
+    transposed product the C++ wrapper's loop code miscompiles in torch 2.13 (the process
+    aborts); the pass takes the Python wrapper and equals the eager steps."""
+    from prognos_torch.learners import ELM
+
+    g = torch.Generator().manual_seed(0)
+    X = torch.rand(30, 1, 1, generator=g, dtype=torch.float64)
+    Y = torch.sin(3.0 * X.sum(-1, keepdim=True))
+    losses = []
+    for compile in (False, True):
+        model = ELM(1, 1)
+        opt = KalmanOptimizer(model, filter="ekf", P0=1.0, Q=1e-6, R=1e-3)
+        losses.append((opt.steps(X, Y, compile=compile), opt.theta))
+    torch.testing.assert_close(losses[1][0], losses[0][0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(losses[1][1], losses[0][1], rtol=0, atol=1e-12)

@@ -31,7 +31,6 @@ from ..core.model import Noise, diagonal_noise
 from ..core.validation import all_finite, check_finite
 from ..filters import sequence as _sequence
 from ..filters.gaussian import FilterState, Taylor, _sigma_points, deferred_fallbacks
-from ..filters.sequence import scan as _filter_scan
 from ._buffers import tracking_batch_norms
 from ._kalman_common import _state_key
 from ._step_model import _random_walk_model, measurement_noise
@@ -79,8 +78,8 @@ def compiled_steps(opt: Optimizer, inputs: Tensor, targets: Tensor) -> Tensor:
         key = _state_key(0)
         s = opt.state[key]
         with deferred_fallbacks():
-            (mean, chol), rows = _filter_scan(
-                step, (s["mean"], s["chol"]), ys, inputs, record=record, compile=True
+            (mean, chol), rows = _sequence._compiled_scan(
+                step, (s["mean"], s["chol"]), ys, inputs, record, cpp_wrapper=_cpp_safe(opt)
             )
         opt.compile_time = _sequence.last_compile_seconds
         if not bool(torch.isfinite(chol).all() & torch.isfinite(mean).all()):
@@ -104,6 +103,15 @@ def compiled_steps(opt: Optimizer, inputs: Tensor, targets: Tensor) -> Tensor:
     ):
         hook(opt, args, {})
     return rows["loss"]
+
+
+def _cpp_safe(opt: Optimizer) -> bool:
+    """Whether the compiled pass may use inductor's C++ wrapper: not when the learner holds a
+    1 x 1 matrix outside its trained parameters (an ELM with one input and one hidden node),
+    whose transposed product the C++ wrapper's loop code miscompiles in torch 2.13 (the
+    process aborts); the Python wrapper runs it, slower."""
+    fixed = chain(opt.module.buffers(), (p for p in opt.module.parameters() if not p.requires_grad))
+    return not any(t.dim() >= 2 and t.shape[-2:] == (1, 1) for t in fixed)
 
 
 def check_compilable(opt: Optimizer, inputs: Tensor) -> None:
