@@ -39,35 +39,31 @@ def standard_normal(
     return z if generator is None or z.device == torch.device(device) else z.to(device)
 
 
-def _box_muller_16(u: Tensor, out: Tensor) -> None:
-    """Blocks of 16 uniforms ``u`` ``(B, 16)`` to 16 normals each, into ``out`` ``(B, 16)``:
-    ``r = sqrt(-2 log(1 - u_j))``, ``z_j = r cos(2 pi u_{j+8})``, ``z_{j+8} = r sin(2 pi u_{j+8})``
-    for ``j < 8`` (Box & Muller 1958, in torch's block layout)."""
-    r = torch.rsub(u[:, :8], 1.0).log_().mul_(-2.0).sqrt_()
-    theta = u[:, 8:] * _TWO_PI
-    torch.mul(r, torch.cos(theta), out=out[:, :8])
-    torch.mul(r, theta.sin_(), out=out[:, 8:])
+def box_muller(u: Tensor, out: Tensor | None = None) -> Tensor:
+    """Normals from uniforms ``u`` ``(..., 16)`` in ``[0, 1)``, 16 per block (Box & Muller 1958,
+    in torch's block layout): ``r = sqrt(-2 log(1 - u_j))``, ``z_j = r cos(2 pi u_{j+8})``,
+    ``z_{j+8} = r sin(2 pi u_{j+8})`` for ``j < 8``.
 
-
-def box_muller(u: Tensor) -> Tensor:
-    """Normals from uniforms ``u`` ``(..., 16)`` in ``[0, 1)``, 16 per block: the transform of
-    :func:`_box_muller_16` (torch's, Box & Muller 1958) as a pure function, for traced code.
-
-    ``u`` ``(..., 16)`` -> ``(..., 16)``: ``r = sqrt(-2 log(1 - u_j))``, ``z_j = r cos(2 pi
-    u_{j+8})``, ``z_{j+8} = r sin(2 pi u_{j+8})`` for ``j < 8``.
+    Returns ``(..., 16)``; written into ``out`` (the same shape) when given, else a new tensor
+    (the pure form, for traced code).
     """
     if u.shape[-1] != 16:
         raise ValueError(f"u must have shape (..., 16), got {tuple(u.shape)}")
-    r = torch.sqrt(-2.0 * torch.log(1.0 - u[..., :8]))
     theta = u[..., 8:] * _TWO_PI
-    return torch.cat([r * torch.cos(theta), r * torch.sin(theta)], dim=-1)
+    if out is None:  # (out of place: a traced step fuses it without copies)
+        r = torch.sqrt(torch.log(torch.rsub(u[..., :8], 1.0)) * -2.0)
+        return torch.cat([r * torch.cos(theta), r * torch.sin(theta)], dim=-1)
+    r = torch.rsub(u[..., :8], 1.0).log_().mul_(-2.0).sqrt_()  # (the same, in place)
+    torch.mul(r, torch.cos(theta), out=out[..., :8])
+    torch.mul(r, theta.sin_(), out=out[..., 8:])
+    return out
 
 
 def _randn_cpu_f64(n: int, generator: torch.Generator | None) -> Tensor:
     """``torch.randn(n, dtype=torch.float64, generator=generator)`` on the CPU, ``n >= 16``.
 
     ``torch.randn`` there draws ``n`` uniforms in order and turns each block of 16 into 16
-    normals by :func:`_box_muller_16`, one element at a time; when 16 does not divide ``n`` it
+    normals by :func:`box_muller`'s transform, one element at a time; when 16 does not divide ``n`` it
     redoes the last 16 outputs from 16 further uniforms. Here the same uniforms, drawn by
     ``torch.rand`` in the same order, go through the same transform on whole blocks. The
     vectorised ``log``, ``cos`` and ``sin`` round differently from the C library's in about one
@@ -79,7 +75,7 @@ def _randn_cpu_f64(n: int, generator: torch.Generator | None) -> Tensor:
     u = torch.rand(n + (16 if tail else 0), generator=generator, dtype=torch.float64, device=cpu)
     z = torch.empty(n, dtype=torch.float64, device=cpu)
     m = n - tail
-    _box_muller_16(u[:m].view(-1, 16), z[:m].view(-1, 16))
+    box_muller(u[:m].view(-1, 16), z[:m].view(-1, 16))
     if tail:
-        _box_muller_16(u[n:].view(1, 16), z[n - 16 :].view(1, 16))
+        box_muller(u[n:].view(1, 16), z[n - 16 :].view(1, 16))
     return z

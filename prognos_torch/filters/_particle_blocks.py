@@ -6,6 +6,7 @@ by :mod:`prognos_torch.filters.particle`."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -86,3 +87,13 @@ def _estimates(W: Tensor, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     sw = W.sum(-1)
     n_eff = sw * sw / (torch.dot(W, W) if W.dim() == 1 else (W * W).sum(-1))
     return mean, cov, n_eff
+
+
+def _resample_some(do: Tensor, anc: Tensor, lw: Tensor) -> tuple[Tensor, Tensor]:
+    """Ancestors and log-weights when only the runs ``do`` ``(...)`` resample (paper 002 STPF
+    step 6): theirs are ``anc`` ``(..., N)`` and ``-log N``; the other runs keep their own
+    particles and log-weights ``lw`` ``(..., N)``."""
+    N = lw.shape[-1]
+    keep = torch.arange(N, device=anc.device).expand(lw.shape)
+    anc = torch.where(do[..., None], anc, keep)
+    return anc, torch.where(do[..., None], torch.full_like(lw, -math.log(N)), lw)

@@ -44,8 +44,9 @@ from ..core.model import Noise
 from ..core.random import box_muller
 from ..core.validation import all_finite
 from ._blocks import FilterState, Taylor
-from ._particle_blocks import ParticleState, _estimates, _log_normaliser
+from ._particle_blocks import ParticleState, _estimates, _log_normaliser, _resample_some
 from ._particle_noise import _constant_noise, _Setup
+from ._particle_trees import gather_particles
 from .gaussian import deferred_fallbacks
 from .resampling import _arange, _cdf, _systematic_by_counts
 from .sequence import _compile_options, _compiled_scan, scan
@@ -235,12 +236,23 @@ def _step_functions(
     raw = (model, model.q, model.chol_Q, model.r, model.chol_R)
     versions = tuple(getattr(v, "_version", None) for v in raw[1:])
     try:
-        cfg = (hash(pf), pf)
+        cfg = hash(pf)
     except TypeError:  # (a configuration that does not hash: a callable resampler's state)
-        cfg = (id(pf), pf)
-    like = setup.no_flag  # (the particles' device; the noise gives their dtype)
-    dtype = pn.kR.dtype
-    key = (cfg[0], *map(id, raw), versions, bs, N, n, u_shape, n_extra, keep, dtype, like.device)
+        cfg = id(pf)
+    # (the noise is in the particles' dtype and on their device)
+    key = (
+        cfg,
+        *map(id, raw),
+        versions,
+        bs,
+        N,
+        n,
+        u_shape,
+        n_extra,
+        keep,
+        pn.kR.dtype,
+        pn.kR.device,
+    )
     hit = _STEPS.get(key)
     if hit is not None and hit[0] == pf and all(a is b for a, b in zip(hit[1], raw)):
         return hit[2], hit[3]
@@ -248,25 +260,16 @@ def _step_functions(
     log_uniform = -math.log(N)
     P = 0 if u_shape is None else math.prod(u_shape)
     count = math.prod(bs) * N * n
-    lead = len(bs)
-
-    def take(t: Tensor, anc: Tensor) -> Tensor:
-        """The particles ``anc`` of ``t`` ``(..., N, ...)``."""
-        if not bs:
-            return t.index_select(0, anc)
-        idx = anc.reshape(*anc.shape, *(1,) * (t.dim() - lead - 1)).expand(t.shape)
-        return torch.gather(t, lead, idx)
 
     def resample(W: Tensor, U: Tensor, do: Tensor, x: Tensor, lw: Tensor, *extra: Tensor):
         # STPF step 6: systematic resampling of the runs whose N_eff fell below the threshold,
         # the particles with everything they carry
         anc = _systematic_by_counts(_cdf(W), U, traced=True)
         if bs:  # the other runs keep their particles
-            anc = torch.where(do[..., None], anc, torch.arange(N, device=anc.device))
-            lw_r = torch.where(do[..., None], torch.full_like(lw, log_uniform), lw)
+            anc, lw_r = _resample_some(do, anc, lw)
         else:  # (one run resamples: the cond chose this branch)
             lw_r = torch.full_like(lw, log_uniform)
-        return (take(x, anc), lw_r, *(take(t, anc) for t in extra))
+        return (gather_particles(x, anc), lw_r, *(gather_particles(t, anc) for t in extra))
 
     def keep_all(W: Tensor, U: Tensor, do: Tensor, *carry: Tensor):
         return tuple(t.clone() for t in carry)

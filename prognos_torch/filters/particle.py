@@ -69,7 +69,7 @@ from ..core.validation import (
     check_sequence,
     has_missing,
 )
-from ._particle_blocks import ParticleState, _estimates, _log_normaliser
+from ._particle_blocks import ParticleState, _estimates, _log_normaliser, _resample_some
 from ._particle_compiled import check_compilable, compiled_run
 from ._particle_noise import (
     _LOG_2PI,
@@ -599,9 +599,7 @@ class ParticleFilter:
         if n_do:
             anc = self._ancestors(lw, W, generator)
             if n_do < do.numel():
-                keep = torch.arange(N, device=dev).expand(*bs, N)
-                anc = torch.where(do[..., None], anc, keep)
-                lw = torch.where(do[..., None], torch.full_like(lw, -math.log(N)), lw)
+                anc, lw = _resample_some(do, anc, lw)
             else:
                 lw = torch.full_like(lw, -math.log(N))
             if tuple(anc.shape) != tuple(lw.shape):
