@@ -180,9 +180,11 @@ def compiled_run(
     return {"rows": rows, "final": (x, lw, _proposal_state(x, tuple(final[2:])))}
 
 
-#: inductor's C++ wrapper for the whole-pass scan on the CPU. Off: in torch 2.13 its loop
-#: code corrupts the heap (the process aborts) for a step with a matrix product by a 1 x 1
-#: transposed tensor (``x @ F.mT`` of a one-state linear model); the Python wrapper runs it.
+#: inductor's C++ wrapper for the whole-pass scan on the CPU. Off: in torch 2.13 it passes a
+#: loop input that is a view with its base's own layout (``F.mT`` of a model's 1 x 1 ``F``,
+#: ``x @ F.mT`` in a one-state linear model) as a temporary handle that the first iteration
+#: frees, and the process aborts. A model's closures are not visible to a check, so the
+#: particle pass takes the Python wrapper always.
 CPP_WRAPPER = False
 
 #: steps whose whole-pass trace failed (they run as one compiled call per step)
