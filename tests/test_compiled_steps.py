@@ -114,3 +114,31 @@ def test_compiled_steps_of_a_learner_with_a_one_by_one_fixed_matrix():
         losses.append((opt.steps(X, Y, compile=compile), opt.theta))
     torch.testing.assert_close(losses[1][0], losses[0][0], rtol=0, atol=1e-12)
     torch.testing.assert_close(losses[1][1], losses[0][1], rtol=0, atol=1e-12)
+
+
+
+class _Gains(torch.nn.Module):
+    """Two trained weights and a fixed ``(2, 1, 1)`` gain used through ``.mT``: an input of
+    the compiled loop that is a view with its base's layout, as the ELM's 1 x 1 weight is."""
+
+    def __init__(self):
+        super().__init__()
+        self.w = torch.nn.Parameter(torch.tensor([0.5, 0.1], dtype=torch.float64))
+        self.register_buffer("gain", torch.tensor([[[1.5]], [[-0.7]]], dtype=torch.float64))
+
+    def forward(self, x):
+        return (x.unsqueeze(0) * self.gain.mT).sum(0) * self.w[0] + self.w[1]
+
+
+def test_compiled_steps_of_a_learner_with_a_batch_of_one_by_one_fixed_matrices():
+    """Not only a 1 x 1 matrix: a fixed tensor whose last two dimensions are 1 x 1 sends the
+    pass to the Python wrapper too (the C++ wrapper aborts the process on this learner)."""
+    g = torch.Generator().manual_seed(1)
+    X = torch.rand(30, 1, 1, generator=g, dtype=torch.float64)
+    Y = 0.4 * X.sum(-1, keepdim=True) + 0.2
+    losses = []
+    for compile in (False, True):
+        opt = KalmanOptimizer(_Gains(), filter="srukf", P0=1.0, Q=1e-6, R=1e-3)
+        losses.append((opt.steps(X, Y, compile=compile), opt.theta))
+    torch.testing.assert_close(losses[1][0], losses[0][0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(losses[1][1], losses[0][1], rtol=0, atol=1e-12)

@@ -182,9 +182,9 @@ def compiled_run(
 
 #: inductor's C++ wrapper for the whole-pass scan on the CPU. Off: in torch 2.13 it passes a
 #: loop input that is a view with its base's own layout (``F.mT`` of a model's 1 x 1 ``F``,
-#: ``x @ F.mT`` in a one-state linear model) as a temporary handle that the first iteration
-#: frees, and the process aborts. A model's closures are not visible to a check, so the
-#: particle pass takes the Python wrapper always.
+#: ``x @ F.mT`` in a one-state linear model: the attribute is evaluated outside the loop) as a
+#: temporary handle that the first iteration frees, and the process aborts. A model's closures
+#: are not visible to a check, so the particle pass takes the Python wrapper always.
 CPP_WRAPPER = False
 
 #: steps whose whole-pass trace failed (they run as one compiled call per step)

@@ -106,15 +106,16 @@ def compiled_steps(opt: Optimizer, inputs: Tensor, targets: Tensor) -> Tensor:
 
 
 def _cpp_safe(opt: Optimizer) -> bool:
-    """Whether the compiled pass may use inductor's C++ wrapper: not when the learner holds,
-    outside its trained parameters, a tensor with two or more dimensions of size 1 (a 1 x 1
-    matrix: an ELM with one input and one hidden node). In torch 2.13 the C++ wrapper passes a
-    loop input that is a view with its base's own layout (a transpose of such a tensor, ``W.mT``
-    of a 1 x 1 ``W``) as a temporary handle that the first iteration frees, and the process
-    aborts. A tensor built inside ``forward`` is not a loop input and does not trigger it. The
-    Python wrapper runs these learners, slower."""
+    """Whether the compiled pass may use inductor's C++ wrapper: not when the learner holds a
+    fixed tensor (outside its trained parameters) whose last two dimensions are 1 x 1 (an ELM
+    with one input and one hidden node). Its ``.mT`` is evaluated outside the loop and enters
+    it as an input that is a view with its base's own layout; in torch 2.13 the C++ wrapper
+    passes such an input as a temporary handle that the first iteration frees, and the process
+    aborts. A tensor built inside ``forward``, or transposed by a method call
+    (``transpose(0, 1)``), stays inside the loop and does not trigger it. The Python wrapper
+    runs these learners, slower."""
     fixed = chain(opt.module.buffers(), (p for p in opt.module.parameters() if not p.requires_grad))
-    return not any(sum(d == 1 for d in t.shape) >= 2 for t in fixed)
+    return not any(t.dim() >= 2 and t.shape[-2:] == (1, 1) for t in fixed)
 
 
 def check_compilable(opt: Optimizer, inputs: Tensor) -> None:
