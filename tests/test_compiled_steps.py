@@ -116,7 +116,6 @@ def test_compiled_steps_of_a_learner_with_a_one_by_one_fixed_matrix():
     torch.testing.assert_close(losses[1][1], losses[0][1], rtol=0, atol=1e-12)
 
 
-
 class _Gains(torch.nn.Module):
     """Two trained weights and a fixed ``(2, 1, 1)`` gain used through ``.mT``: an input of
     the compiled loop that is a view with its base's layout, as the ELM's 1 x 1 weight is."""

@@ -184,7 +184,8 @@ def compiled_run(
 #: loop input that is a view with its base's own layout (``F.mT`` of a model's 1 x 1 ``F``,
 #: ``x @ F.mT`` in a one-state linear model: the attribute is evaluated outside the loop) as a
 #: temporary handle that the first iteration frees, and the process aborts. A model's closures
-#: are not visible to a check, so the particle pass takes the Python wrapper always.
+#: are not visible to a check, so the whole-pass scan takes the Python wrapper always (the
+#: step compiled alone, where the scan operator refuses it, has no loop and keeps the C++ one).
 CPP_WRAPPER = False
 
 #: steps whose whole-pass trace failed (they run as one compiled call per step)
