@@ -185,7 +185,8 @@ def simulate_to_event(
         step counts; nothing in the result carries a gradient).
 
     Raises:
-        ValueError / TypeError naming the argument and the expected shape.
+        TypeError: an argument of the wrong type, named.
+        ValueError: an argument of the wrong shape or value, named with the expected shape.
     """
     if not isinstance(model, StateSpaceModel):
         raise TypeError(f"model must be a StateSpaceModel, got {type(model)}")
