@@ -1,6 +1,7 @@
 """Data for the prognostic studies: NASA IMS bearing features, LLE, windows and scaling.
 
 * :mod:`.ims`: raw IMS snapshot reader, the shipped feature table, paper 002's health indicator.
+* :mod:`.pronostia`: reader of the PRONOSTIA (FEMTO, IEEE PHM 2012) bearing records (not shipped).
 * :mod:`.lle`: locally linear embedding (Roweis & Saul 2000) with out-of-sample mapping.
 * :mod:`.windows`: time-delay embedding (paper 002, Eq. 9-10), recursive input update
   (Eq. 12-14), min-max scaling, chronological splits, one-step-ahead train/test pairs.
@@ -33,6 +34,13 @@ from prognos_torch.datasets.lle import (
     locally_linear_embedding,
     reconstruction_weights,
 )
+from prognos_torch.datasets.pronostia import (
+    PRONOSTIA_AXES,
+    PRONOSTIA_RECORD_SAMPLES,
+    PronostiaFeatures,
+    find_pronostia_bearings,
+    read_pronostia_bearing,
+)
 from prognos_torch.datasets.windows import (
     MinMaxScaler,
     NormalizedSeries,
@@ -63,6 +71,11 @@ __all__ = [
     "read_snapshot",
     "snapshot_features",
     "snapshot_time",
+    "PRONOSTIA_AXES",
+    "PRONOSTIA_RECORD_SAMPLES",
+    "PronostiaFeatures",
+    "find_pronostia_bearings",
+    "read_pronostia_bearing",
     "LLEFit",
     "knn",
     "lle_cost_matrix",
