@@ -1,8 +1,8 @@
 """The ``prognos`` command line.
 
 prognos study --list
-prognos study NAME [--runs N] [--quick] [--out DIR] [--device cpu|cuda] [--seed S]
-prognos study all [--quick] ...
+prognos study NAME [--runs N] [--quick] [--out DIR] [--device cpu|cuda] [--seed S] [--data DIR]
+prognos study all [--quick] ...   (studies of data the library does not ship need --data)
 prognos fit DATA.csv --column COL [--time-column T] [--learner L] [--optimizer O] --out model.pt
 prognos forecast model.pt DATA.csv --horizon 50 [--plot forecast.png]
 prognos rul model.pt DATA.csv --threshold X [--filter stpf|pf|ekpf|sckf] [--plot rul.png]
@@ -40,6 +40,13 @@ def _add_study(sub) -> None:
     p.add_argument("--out", type=Path, default=Path("results"), help="output folder")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--seed", type=int, default=0, help="base seed")
+    p.add_argument(
+        "--data",
+        type=Path,
+        default=None,
+        help="folder of a local copy of an external dataset, for the studies that read one "
+        "(pronostia-rul: the PRONOSTIA / FEMTO bearing records)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument(
         "--threads",
@@ -61,7 +68,8 @@ def _cmd_study(args) -> int:
         return 2
     if args.list or args.name is None:
         for name, st in studies.items():
-            print(f"{name:20s} paper {st.paper:8s} {st.title}")
+            need = f" (needs --data: {st.needs_data})" if st.needs_data else ""
+            print(f"{name:20s} paper {st.paper:8s} {st.title}{need}")
         return 0 if args.list else 2
     try:
         cfg = StudyConfig(
@@ -71,6 +79,7 @@ def _cmd_study(args) -> int:
             device=args.device,
             seed=args.seed,
             progress=not args.no_progress,
+            data=args.data,
         )
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -78,7 +87,12 @@ def _cmd_study(args) -> int:
     if args.threads < 1:
         print(f"error: --threads must be a positive integer, got {args.threads}", file=sys.stderr)
         return 2
-    names = list(studies) if args.name == "all" else [args.name]
+    if args.name == "all":  # studies of unshipped data run only when their data are given
+        names = [n for n, st in studies.items() if st.needs_data is None or args.data is not None]
+        for n in sorted(set(studies) - set(names)):
+            print(f"[skipped {n}: it reads the {studies[n].needs_data}; give --data DIR]")
+    else:
+        names = [args.name]
     unknown = [n for n in names if n not in studies]
     if unknown:
         print(
@@ -86,13 +100,21 @@ def _cmd_study(args) -> int:
             file=sys.stderr,
         )
         return 2
+    if args.name != "all" and args.data is None and studies[args.name].needs_data:
+        print(f"error: study {args.name!r} reads the {studies[args.name].needs_data}, which is "
+              "not shipped; give the folder of a local copy with --data DIR", file=sys.stderr)  # fmt: skip
+        return 2
     import torch
 
     threads = torch.get_num_threads()
     torch.set_num_threads(args.threads)  # the caller's count is restored afterwards
     try:
         for n in names:
-            _, text = run_study(studies[n], cfg)
+            try:
+                _, text = run_study(studies[n], cfg)
+            except FileNotFoundError as exc:  # a --data folder without the study's data
+                print(f"error: {exc}", file=sys.stderr)
+                return 2
             print(text)
             print(f"[written to {Path(args.out) / n}]")
     finally:

@@ -138,6 +138,7 @@ def write_outputs(
     write_rows_csv(out_dir / "results.csv", result.rows)
     cfg_d = asdict(cfg)
     cfg_d["out"] = str(cfg.out)
+    cfg_d["data"] = None if cfg.data is None else str(cfg.data)
     meta = {
         "study": study.name,
         "paper": study.paper,
@@ -158,6 +159,11 @@ def write_outputs(
 
 def run_study(study: Study, cfg: StudyConfig) -> tuple[StudyResult, str]:
     """Run ``study`` with ``cfg`` and write its outputs to ``cfg.out / study.name``."""
+    if study.needs_data is not None and cfg.data is None:
+        raise ValueError(
+            f"study {study.name!r} reads the {study.needs_data}, which is not shipped: give the "
+            "folder of a local copy (prognos study ... --data DIR, or StudyConfig(data=DIR))"
+        )
     out_dir = Path(cfg.out) / study.name
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()

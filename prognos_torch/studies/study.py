@@ -22,6 +22,7 @@ class StudyConfig:
         device: ``"cpu"`` or ``"cuda"``.
         seed: base seed; run ``i`` uses ``torch.Generator().manual_seed(seed + i)``.
         progress: show progress bars.
+        data: folder of an external dataset, for the studies that read one (``Study.needs_data``).
     """
 
     runs: int | None = None
@@ -30,6 +31,7 @@ class StudyConfig:
     device: str = "cpu"
     seed: int = 0
     progress: bool = True
+    data: Path | None = None
 
     def __post_init__(self):
         if self.runs is not None and (not isinstance(self.runs, int) or self.runs < 1):
@@ -69,10 +71,15 @@ class StudyResult:
 
 @dataclass(frozen=True)
 class Study:
-    """A named study: ``run(cfg, out_dir) -> StudyResult``."""
+    """A named study: ``run(cfg, out_dir) -> StudyResult``.
+
+    ``needs_data`` names the external dataset a study reads from ``StudyConfig.data`` (data the
+    library does not ship); ``None`` for the studies on shipped or simulated data.
+    """
 
     name: str
     paper: str
     title: str
     run: Callable[[StudyConfig, Path], StudyResult]
     default_runs: int = 50
+    needs_data: str | None = None
