@@ -305,6 +305,23 @@ def test_bad_input(kwargs, match):
         prognose(y, time=t, **kwargs)
 
 
+def test_an_excursion_away_from_the_threshold_is_refused_only_when_it_is_as_far():
+    """A healthy level that settles 0.3 below its mean (a bearing's rms after run-in; its 5-value
+    median, of alternating +-0.05, 0.35 below): with the threshold 0.5 above the mean that is a
+    drift (no degradation yet, flagged); with the threshold 0.3 above it the series went further
+    the other way (a wrong side, refused)."""
+    t = torch.arange(400, dtype=F64)
+    y = PHI + 0.05 * (-1.0) ** torch.arange(400, dtype=F64)
+    y = torch.where(t >= 200, y - 0.3 * ((t - 200) / 50).clamp(max=1.0), y)
+    res = prognose(y, PHI + 0.5, time=t)
+    assert res.status == "no degradation detected yet" and res.lower_bound > 0
+    (flag,) = [f for f in res.flags if "left its healthy band below it" in f]
+    assert "moved 0.35 from the healthy mean, the threshold lies 0.5 on the other side" in flag
+    with pytest.raises(ValueError, match=r"moved 0.35 .* lies 0.3 on the other side.*wrong side"):
+        prognose(y, PHI + 0.3, time=t)
+    assert not any("healthy band below" in f for f in prognose(y[:200], PHI + 0.5).flags)
+
+
 def test_a_threshold_reached_before_and_fallen_back_from_is_flagged():
     t, y = _series(noise_after=0.05)
     y = y[:480].clone()

@@ -56,7 +56,11 @@ Pipeline of :func:`prognose` (every step a library function with its own tests):
    mass above 5 %, few observations since onset, a last value beyond the threshold while the
    median is not, a threshold that the median of 5 values reached before and fell back from.
    With ``direction="auto"`` a series that left its healthy band only on the side away from
-   the threshold is refused (a threshold on the wrong side), not reported as healthy.
+   the threshold is refused as a threshold on the wrong side when its 5-value median has moved
+   at least as far from the healthy mean as the threshold lies on the other side (a series
+   that degrades the other way); a smaller excursion (a bearing's rms settling after run-in)
+   is reported as "no degradation detected yet" towards the threshold, with a flag that names
+   the excursion.
 
 Before onset the lower bound is the 5 % quantile of the first passage under a local *linear*
 trend (drift and Brownian level) fitted to the healthy data, or the horizon when even that is
@@ -367,8 +371,9 @@ def prognose(
             ``"linear"`` or ``"elm"`` (:data:`PROGNOSE_METHODS`).
         seed: seeds the path draws and the ELM's random features.
         direction: ``"above"``, ``"below"`` or ``"auto"`` (the side of the baseline the
-            threshold is on; a series that has left its healthy band only on the other side
-            is then refused as a threshold on the wrong side).
+            threshold is on; a series that has left its healthy band only on the other side,
+            by at least the threshold's distance from the healthy mean, is then refused as a
+            threshold on the wrong side; a smaller excursion is flagged).
         at: evaluation time ``>= `` the last observation (default: the last observation).
         baseline: the healthy window as a fraction of the time span, or a
             :class:`~prognos_torch.prognosis.onset.Baseline` (data units). Onset is searched
@@ -459,12 +464,24 @@ def prognose(
     if auto_side and not ons.detected:
         other = "below" if direction == "above" else "above"
         away = detect_onset(x, t, method=onset, baseline=base, direction=other, after=base.t_end)
-        if away.detected:  # the series degrades, but away from the threshold
-            raise ValueError(
-                f"threshold {thr:g} is {direction} the healthy band, but the series left the "
-                f"band {other} it (onset at {away.time:g}, last value {float(x[-1]):.4g}): the "
-                f"threshold looks to be on the wrong side; pass direction={direction!r} to "
-                "predict a crossing on that side regardless"
+        if away.detected:  # the series left the band, away from the threshold
+            # how far the median went the other way, against the threshold's distance
+            low = torch.nan_to_num(medians[away.index :], nan=math.inf).min()
+            gone, dist = sign * base.mean - float(low), thr_o - sign * base.mean
+            if gone >= dist:
+                raise ValueError(
+                    f"threshold {thr:g} is {direction} the healthy band, but the series left "
+                    f"the band {other} it (onset at {away.time:g}, last value "
+                    f"{float(x[-1]):.4g}; its median moved {gone:.4g} from the healthy mean "
+                    f"{base.mean:.4g}, the threshold lies {dist:.4g} on the other side): the "
+                    f"threshold looks to be on the wrong side; pass direction={direction!r} "
+                    "to predict a crossing on that side regardless"
+                )
+            flags.append(
+                f"the series left its healthy band {other} it at {away.time:g}, away from the "
+                f"threshold (its median moved {gone:.4g} from the healthy mean, the threshold "
+                f"lies {dist:.4g} on the other side): read as a drift of the healthy level; if "
+                f"failure is an excursion {other} the band, the threshold is on the wrong side"
             )
     gen = torch.Generator().manual_seed(int(seed))
     span_life = t_last - float(t[0])
@@ -476,9 +493,8 @@ def prognose(
 
     reported = _on_input(ons, keep)
     if not ons.detected:
-        return _no_degradation(
-            t, yo, thr_o, sign, base, reported, gen, t_eval, span_life, dt_data, filter, common
-        )
+        return _no_degradation(t, yo, thr_o, sign, base, reported, gen, t_eval, span_life,
+                               dt_data, filter, flags, common)  # fmt: skip
 
     i0 = ons.index
     t_on, y_on = t[i0:], yo[i0:]
@@ -631,7 +647,9 @@ def _rul_at(
     return _distribution(rul, w, bin_width, bins, t_scale), alive, bins
 
 
-def _no_degradation(t, yo, thr_o, sign, base, ons, gen, t_eval, span_life, dt_data, filt, common):
+def _no_degradation(
+    t, yo, thr_o, sign, base, ons, gen, t_eval, span_life, dt_data, filt, flags, common
+):
     """Before onset: a lower bound from a linear trend on the healthy data (module doc)."""
     n = t.shape[0]
     first = max(0, n - 1000)
@@ -663,8 +681,8 @@ def _no_degradation(t, yo, thr_o, sign, base, ons, gen, t_eval, span_life, dt_da
             "quantile of the first passage under a linear trend of the healthy data, a bound "
             "only while the asset stays healthy (a degradation that starts later can end "
             "sooner)",
-        )
-        + tuple(_baseline_flags(base)),
+            *flags,
+        ),
         lower_bound=bound,
         **common,
     )
