@@ -148,3 +148,35 @@ def test_run_study_refuses_a_study_without_its_data(tmp_path):
     with pytest.raises(ValueError, match="PRONOSTIA .* which is not shipped"):
         run_study(study, StudyConfig(quick=True, out=tmp_path))
     assert not (tmp_path / "pronostia-rul").exists()  # nothing half-written
+
+
+_TINY = """
+from pathlib import Path
+from prognos_torch.studies import Study, StudyResult
+
+def run(cfg, out):
+    return StudyResult(rows=[{{"run": 0, "method": "m", "x": 1.0, "data": str(cfg.data)}}],
+                       metrics=["x"])
+
+STUDY = Study(name="{name}", paper="p", title="t", run=run, default_runs=1, needs_data={need})
+"""
+
+
+def test_study_all_skips_the_studies_of_data_not_given(tmp_path, monkeypatch, capsys):
+    trainers = tmp_path / "trainers"
+    trainers.mkdir()
+    (trainers / "plain.py").write_text(_TINY.format(name="plain", need=None))
+    (trainers / "ext.py").write_text(_TINY.format(name="ext", need='"X records"'))
+    monkeypatch.setenv("PROGNOS_TRAINERS", str(trainers))
+    out = tmp_path / "out"
+    assert main(["study", "all", "--quick", "--out", str(out), "--no-progress"]) == 0
+    assert "[skipped ext: it reads the X records; give --data DIR]" in capsys.readouterr().out
+    assert (out / "plain" / "results.csv").is_file() and not (out / "ext").exists()
+    assert main(["study", "all", "--quick", "--out", str(out), "--data", str(tmp_path),
+                 "--no-progress"]) == 0  # fmt: skip
+    assert str(tmp_path) in (out / "ext" / "results.csv").read_text()
+    capsys.readouterr()
+    assert main(["study", "--list"]) == 0
+    lines = {ln.split()[0]: ln for ln in capsys.readouterr().out.splitlines()}
+    assert lines["ext"].endswith("(needs --data: X records)")
+    assert "needs --data" not in lines["plain"]
