@@ -59,7 +59,8 @@ class PronostiaFeatures:
             platform's 10 s acquisition period (the records' own clock has defects, below).
         clock_mismatch: records whose clock step from the previous record (midnight wraps
             allowed) is not the 10 s per record number that ``hours`` assumes, to within 1 s
-            (``Learning_set/Bearing1_1`` has two records stamped hours off).
+            (in ``Learning_set/Bearing1_1`` two records are stamped hours off, so the steps
+            into them and out of them are listed: ``acc_02121`` to ``acc_02123``).
         values: ``(T, 2, F)`` float64: ``values[record, axis, feature]``, axes
             :data:`PRONOSTIA_AXES`, features :data:`~prognos_torch.datasets.ims.FEATURE_NAMES`.
         files: the record files read, in time order.
