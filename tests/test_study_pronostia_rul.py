@@ -78,6 +78,9 @@ def test_reader_flags_a_wrong_clock_and_refuses_bad_records(tmp_path):
     torch.testing.assert_close(f.hours, torch.arange(4, dtype=torch.float64) * 10 / 3600)
     with pytest.raises(ValueError, match=r"acc_00001\.csv: expected 2560 rows, got 64"):
         read_pronostia_bearing(d)  # the challenge's records have 2,560 rows
+    (d / "acc_00002.csv").write_text("1,2,3,4,5,x\n1,2,3,4,5,6\n")
+    with pytest.raises(ValueError, match=r"acc_00002\.csv: not a numeric record"):
+        read_pronostia_bearing(d, expected_samples=None)
     (d / "acc_00002.csv").write_text("1,2,3,4,5\n1,2,3,4,5\n")
     with pytest.raises(ValueError, match=r"acc_00002\.csv: expected rows of 6 columns"):
         read_pronostia_bearing(d, expected_samples=None)
