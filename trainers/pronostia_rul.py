@@ -3,17 +3,21 @@
 Data: a local copy of the IEEE PHM 2012 challenge records (``--data DIR``; not shipped, see
 :mod:`prognos_torch.datasets.pronostia`): the 17 run-to-failure bearings (``Learning_set``,
 ``Full_Test_Set``), each from the ``rms`` of its horizontal and of its vertical accelerometer
-(one record every 10 s; time in hours). Protocol and methods are those of the ``ims-rul`` study
+(one record every 10 s; time in hours). The protocol is that of the ``ims-rul`` study
 (:mod:`prognos_torch.studies.rul_protocol`): threshold ``0.9 x`` the highest 5-point moving
 median, end of life its first crossing, onset the first of 5 moving medians above mean + 4 std
 of the first 30 % of life, predictions at 20/40/60/80/90 % of [onset, EoL] from the data up to
-each time. No setting of ``prognose`` was chosen on these bearings.
+each time. Methods: those of ``ims-rul`` without the power shape (the worst there) and the
+earlier workflow's ``fit_series + rul(stpf)`` (an ANFIS trained at every point, which is slow
+on series of thousands of records). No setting of ``prognose`` was chosen on these bearings.
 """
 
 from __future__ import annotations
 
 import time
 from pathlib import Path
+
+import torch
 
 from prognos_torch.datasets.pronostia import find_pronostia_bearings, read_pronostia_bearing
 from prognos_torch.plots import plot_rul_trajectory
@@ -43,8 +47,6 @@ def series_cases(root: Path, quick: bool) -> dict:
 
 
 def run(cfg: StudyConfig, out: Path) -> StudyResult:
-    import torch
-
     t_start = time.perf_counter()
     torch.set_num_threads(1)
     cases = series_cases(Path(cfg.data), cfg.quick)
