@@ -82,6 +82,15 @@ _CSV_HEADER = ("timestamp", "channel") + FEATURE_NAMES
 _CACHE_VERSION = 1
 
 
+def _feature_position(feature_names: Sequence[str], name: str) -> int:
+    """Position of ``name`` in ``feature_names``; a ``ValueError`` naming it and the choices."""
+    if name not in feature_names:
+        raise ValueError(
+            f"unknown feature {name!r}; feature must be one of {', '.join(feature_names)}"
+        )
+    return list(feature_names).index(name)
+
+
 class IMSFormatError(ValueError):
     """A raw snapshot file that cannot be parsed; the message names the file and line."""
 
@@ -254,9 +263,7 @@ class IMSFeatures:
         return self.channels.index(channel)
 
     def _feature_index(self, name: str) -> int:
-        if name not in self.feature_names:
-            raise ValueError(f"unknown feature {name!r}; available: {list(self.feature_names)}")
-        return self.feature_names.index(name)
+        return _feature_position(self.feature_names, name)
 
     def channel(self, channel: int) -> Tensor:
         """Features of one 1-based channel, shape (T, F)."""

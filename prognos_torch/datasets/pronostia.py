@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .ims import FEATURE_NAMES, snapshot_features
+from .ims import FEATURE_NAMES, _feature_position, snapshot_features
 
 __all__ = [
     "PRONOSTIA_AXES",
@@ -75,9 +75,7 @@ class PronostiaFeatures:
 
     def feature(self, name: str) -> Tensor:
         """``(T, 2)``: one feature of both axes (horizontal, vertical)."""
-        if name not in FEATURE_NAMES:
-            raise ValueError(f"feature must be one of {', '.join(FEATURE_NAMES)}, got {name!r}")
-        return self.values[:, :, FEATURE_NAMES.index(name)]
+        return self.values[:, :, _feature_position(FEATURE_NAMES, name)]
 
 
 def find_pronostia_bearings(root: str | os.PathLike) -> dict[str, Path]:
