@@ -88,7 +88,7 @@ def _cmd_study(args) -> int:
         print(f"error: --threads must be a positive integer, got {args.threads}", file=sys.stderr)
         return 2
     if args.name == "all":  # studies of unshipped data run only when their data are given
-        names = [n for n, st in studies.items() if st.needs_data is None or args.data is not None]
+        names = [n for n, st in studies.items() if st.missing_data(cfg) is None]
         for n in sorted(set(studies) - set(names)):
             print(f"[skipped {n}: it reads the {studies[n].needs_data}; give --data DIR]")
     else:
@@ -100,9 +100,9 @@ def _cmd_study(args) -> int:
             file=sys.stderr,
         )
         return 2
-    if args.name != "all" and args.data is None and studies[args.name].needs_data:
-        print(f"error: study {args.name!r} reads the {studies[args.name].needs_data}, which is "
-              "not shipped; give the folder of a local copy with --data DIR", file=sys.stderr)  # fmt: skip
+    missing = [m for n in names if (m := studies[n].missing_data(cfg)) is not None]
+    if missing:
+        print(f"error: {missing[0]}", file=sys.stderr)
         return 2
     import torch
 

@@ -159,11 +159,9 @@ def write_outputs(
 
 def run_study(study: Study, cfg: StudyConfig) -> tuple[StudyResult, str]:
     """Run ``study`` with ``cfg`` and write its outputs to ``cfg.out / study.name``."""
-    if study.needs_data is not None and cfg.data is None:
-        raise ValueError(
-            f"study {study.name!r} reads the {study.needs_data}, which is not shipped: give the "
-            "folder of a local copy (prognos study ... --data DIR, or StudyConfig(data=DIR))"
-        )
+    missing = study.missing_data(cfg)
+    if missing is not None:
+        raise ValueError(missing)
     out_dir = Path(cfg.out) / study.name
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()

@@ -83,3 +83,12 @@ class Study:
     run: Callable[[StudyConfig, Path], StudyResult]
     default_runs: int = 50
     needs_data: str | None = None
+
+    def missing_data(self, cfg: StudyConfig) -> str | None:
+        """Why ``cfg`` cannot run this study (its external data not given), or ``None``."""
+        if self.needs_data is None or cfg.data is not None:
+            return None
+        return (
+            f"study {self.name!r} reads the {self.needs_data}, which is not shipped; give the "
+            "folder of a local copy with --data DIR (StudyConfig(data=DIR) in Python)"
+        )
