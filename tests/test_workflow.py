@@ -268,6 +268,31 @@ def test_plots_written(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.png", "r.png"]  # no temp files
 
 
+def test_rul_plots_keep_their_axes_near_the_data_when_paths_overflow(tmp_path):
+    # an exponential path far beyond the threshold can reach 1e300 or inf: the figures draw
+    # it clipped near the data and the threshold, so the axes stay readable
+    from dataclasses import replace
+
+    from prognos_torch.plots import plot_prognosis
+    from prognos_torch.workflow import prognose
+
+    t, x = _series_values(60)
+    s = load_series(x, time=t)
+    model = fit_series(s, "elm", None, 2, holdout=0)
+    r = rul(model, s, 2.0, horizon=20, filter="pf", n_particles=30)
+    tt = torch.linspace(0.0, 10.0, 80, dtype=torch.float64)
+    y = 1.0 + 0.01 * torch.sin(7 * tt) + torch.where(tt > 5, torch.exp(tt - 5) - 1, 0 * tt)
+    p = prognose(y, 150.0, time=tt)
+    for res, draw in ((r, plot_rul), (p, plot_prognosis)):
+        wild = res.paths.clone()
+        wild[0], wild[-1] = math.inf, -1e300
+        fig = draw(tmp_path / "w.png", replace(res, paths=wild))
+        y_seen = np.append(res.history.values.numpy(), res.threshold)
+        lo, hi = y_seen.min(), y_seen.max()
+        ylo, yhi = fig.axes[0].get_ylim()
+        assert lo - 12 * (hi - lo) < ylo <= lo and hi <= yhi < hi + 12 * (hi - lo)
+
+
 # --------------------------------------------------------------------------- model files
 def test_model_file_round_trip_in_a_fresh_process(tmp_path):
     t, x = _series_values(90)

@@ -21,7 +21,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from ..io import atomic_write
-from ._arrays import as_numpy
+from ._arrays import as_numpy, clip_for_drawing
 
 if TYPE_CHECKING:  # annotations only: the workflow imports the plots, not the reverse
     from ..workflow.predict import RULResult
@@ -92,9 +92,7 @@ def plot_prognosis(
     if result.status == "ok":
         tf = result.t_last + result.dt * np.arange(1, result.horizon + 1)
         m = tf <= t_end
-        # paths far off the axes (an exponential path can reach 1e300) are clipped near them:
-        # huge coordinates make the Agg renderer allocate without bound
-        P = np.clip(as_numpy(result.paths)[:, m], lo_t - 10 * pad, hi_t + 10 * pad)
+        P = clip_for_drawing(as_numpy(result.paths)[:, m], lo_t, hi_t)
         if P.shape[1]:
             lo, med, hi = np.quantile(P, [0.05, 0.5, 0.95], axis=0)
             ax.fill_between(tf[m], lo, hi, color="C1", alpha=0.2, label="paths 5-95 %")

@@ -17,7 +17,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from ..io import atomic_write
-from ._arrays import as_numpy
+from ._arrays import as_numpy, clip_for_drawing
 from .rul import draw_paths
 
 if TYPE_CHECKING:  # annotations only: the workflow imports this module, not the reverse
@@ -115,7 +115,10 @@ def plot_rul(
     th, xh = _history_tail(result.history, result.horizon, history)
     tf = result.t_last + result.dt * np.arange(1, result.horizon + 1)
     ax.plot(th, xh, color="0.25", lw=1.0, label="observed")
-    draw_paths(ax, tf, result.paths, result.weights, threshold=result.threshold, n_show=n_paths)
+    seen = np.append(xh[np.isfinite(xh)], result.threshold)  # (NaN: missing values)
+    lo, hi = float(seen.min()), float(seen.max())
+    paths = clip_for_drawing(as_numpy(result.paths), lo, hi)
+    draw_paths(ax, tf, paths, result.weights, threshold=result.threshold, n_show=n_paths)
     ax.set_xlabel(time_label(result.history))
     ax.set_ylabel(result.history.name)
     ax.legend(loc="best", fontsize=8)

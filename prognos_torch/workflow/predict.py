@@ -126,7 +126,9 @@ class RULResult:
         threshold: failure threshold (data units); direction: ``"above"`` or ``"below"``.
         horizon: predicted steps; dt: time per step; time_unit: unit of RUL values.
         t_last: time of the last observation.
-        paths: ``(N, H)`` predicted state paths (data units); weights: ``(N,)``.
+        paths: ``(N, H)`` predicted state paths (data units; a ``prognose`` path of a log
+            shape that runs far past the threshold can overflow to ``inf``: only its crossing
+            time counts, and the figures draw it clipped near the data); weights: ``(N,)``.
         filter: filter name; n_particles: ``N``.
         history: the series.
         status: ``"ok"``, or ``"no degradation detected yet"`` (:func:`~.prognose.prognose`
