@@ -99,7 +99,7 @@ def test_auto_flags_model_doubt_on_linear_wear():
 
 
 def test_one_standard_error_rule_and_crps():
-    from prognos_torch.workflow.prognose import crps_log_time, one_standard_error_choice
+    from prognos_torch.prognosis import crps_log_time, one_standard_error_choice
 
     t = lambda *v: torch.tensor(v, dtype=F64)  # noqa: E731
     # clearly better on every pair: chosen; better on average but noisy: the default stays
@@ -117,6 +117,38 @@ def test_one_standard_error_rule_and_crps():
     # a closed form: samples uniform on two points a < b, CRPS = mean|X-x| - (b-a)/4
     got = float(crps_log_time(t(1.0, math.e), 1.0, 100.0))
     assert got == pytest.approx(0.5 - 0.25)
+
+
+def test_backtest_pairs_and_scores_against_closed_forms():
+    from prognos_torch.prognosis import backtest_scores, crossing_pairs
+    from prognos_torch.prognosis.trends import Passage
+
+    # a noise-free ramp y = t on t = 0..100: the trailing 5-point median is t - 2 from t = 4 on,
+    # so m_0 = 0 and the top is 98; level 49 (f = 0.5) is first reached at t = 51 and 78.4
+    # (f = 0.8) at t = 81; the origins are the last samples at 40 % and 70 % of the way
+    t = torch.arange(101, dtype=F64)
+    pairs = crossing_pairs(t, t.clone(), 0.5)
+    want = [(49.0, 20, 51.0), (49.0, 35, 51.0), (78.4, 32, 81.0), (78.4, 56, 81.0)]
+    assert len(pairs) == 4
+    for (c, i, tc), (c_, i_, tc_) in zip(pairs, want):
+        assert c == pytest.approx(c_, abs=1e-12) and (i, tc) == (i_, tc_)
+    assert crossing_pairs(t, torch.zeros(101, dtype=F64), 0.5) == []  # no rise: no pairs
+
+    class Exact:  # predicts every crossing at ratio x the true duration, for every path
+        def __init__(self, ratio):
+            self.ratio = ratio
+
+        def first_passage(self, i, level, grid, n, gen, keep=0):
+            tc = next(tc for c, j, tc in pairs if c == level and j == i)
+            return Passage(torch.full((n,), float(t[i]) + self.ratio * (tc - float(t[i])), dtype=F64),
+                           None, torch.zeros(n, dtype=torch.bool))  # fmt: skip
+
+    assert torch.allclose(backtest_scores(Exact(1.0), pairs, t, None), torch.zeros(4, dtype=F64))
+    # CRPS of a point mass on the log scale: |log ratio|; censored beyond 10 x counts as 10 x
+    assert torch.allclose(backtest_scores(Exact(2.0), pairs, t, None),
+                          torch.full((4,), math.log(2.0), dtype=F64))  # fmt: skip
+    assert torch.allclose(backtest_scores(Exact(math.inf), pairs, t, None),
+                          torch.full((4,), math.log(10.0), dtype=F64))  # fmt: skip
 
 
 def test_direction_below_mirrors_above():

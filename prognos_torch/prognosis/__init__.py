@@ -18,7 +18,8 @@ fault prediction, and fault probability and remaining-useful-life distributions.
 * :mod:`.trends`: exponential, power-law and linear degradation trends as state-space models
   estimated by the filter engine; :mod:`.learner_trend`: an ELM trend trained online by the
   Kalman optimiser; :mod:`.protocol`: the known-threshold RUL protocol of bearing studies
-  (:func:`last_sample_indices`: prediction times to sample indices).
+  (:func:`last_sample_indices`: prediction times to sample indices); :mod:`.backtest`: trend
+  models judged by the crossing times they predict on a series' own past.
 """
 
 from ..learners.ros_elm import ROSELMState, ros_elm_forecast, ros_elm_init, ros_elm_update
@@ -30,6 +31,12 @@ from .assess import (
     persistence_forecasts,
     predict_threshold_crossings,
     rolling_forecasts,
+)
+from .backtest import (
+    backtest_scores,
+    crossing_pairs,
+    crps_log_time,
+    one_standard_error_choice,
 )
 from .events import EventPrediction, sample_belief, simulate_to_event
 from .fault import (
@@ -140,6 +147,10 @@ __all__ = [
     "strong_tracking_filter",
     "trend_measurement",
     "trend_transition",
+    "backtest_scores",
+    "crossing_pairs",
+    "crps_log_time",
+    "one_standard_error_choice",
     "ThresholdCrossings",
     "aligned_forecasts",
     "first_alarm",

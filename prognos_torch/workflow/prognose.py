@@ -26,7 +26,8 @@ Pipeline of :func:`prognose` (every step a library function with its own tests):
    rate trained online by the Kalman optimiser). Series with more than ``max_points`` values
    since onset are averaged over equal-count blocks first (the baseline noise of a block mean
    is ``sigma_0 / sqrt(count)``).
-4. **Noise choice and the ``auto`` pool.** A backtest on the series' own past: for the levels
+4. **Noise choice and the ``auto`` pool.** A backtest on the series' own past
+   (:mod:`~prognos_torch.prognosis.backtest`): for the levels
    ``m_0 + f (max m - m_0)``, ``f in {0.5, 0.8}``, that the 5-point moving median ``m`` has
    already crossed since onset, each model predicts the crossing from origins at 40 % and 70 %
    of the way from onset to it (posterior at the origin: causal; the noise grid's scale uses
@@ -81,6 +82,12 @@ import torch
 from torch import Tensor
 
 from ..core.validation import check_real, has_missing
+from ..prognosis.backtest import (
+    backtest_scores,
+    crossing_pairs,
+    crps_log_time,
+    one_standard_error_choice,
+)
 from ..prognosis.learner_trend import fit_learner_trend
 from ..prognosis.onset import (
     Baseline,
@@ -88,7 +95,6 @@ from ..prognosis.onset import (
     detect_onset,
     healthy_baseline,
     moving_median,
-    window_end,
 )
 from ..prognosis.rul import RULDistribution
 from ..prognosis.trends import TREND_SHAPES, Passage, fit_trends, path_grid
@@ -111,9 +117,6 @@ AUTO_POOL = ("exponential", "elm")
 #: Fewest observed values ``prognose`` accepts.
 MIN_POINTS = 10
 _K = 4.0  # healthy band and onset limit in baseline standard deviations
-_BACKTEST_LEVELS = (0.5, 0.8)
-_BACKTEST_ORIGINS = (0.4, 0.7)
-_BACKTEST_PATHS = 64
 _MAX_BINS = 20_000
 
 
@@ -206,67 +209,6 @@ def _rul_grid(origin: float, t_last: float, t_eval: float, horizon: float, bin_w
                       path_grid(t_eval, horizon - (t_eval - t_last), bin_width, rel=rel)])  # fmt: skip
 
 
-def _backtest_pairs(t: Tensor, y: Tensor, sigma0: float) -> list[tuple[float, int, float]]:
-    """``(level, origin index, crossing time)`` of the levels already crossed since onset."""
-    m = moving_median(y, 5)
-    m0, top = float(m[0]), float(m.max())
-    pairs = []
-    if top - m0 > sigma0:
-        for f in _BACKTEST_LEVELS:
-            c = m0 + f * (top - m0)
-            k = int(torch.nonzero(m >= c).flatten()[0])
-            t_c = float(t[k])
-            for g in _BACKTEST_ORIGINS:
-                # (an origin on a sample time takes that sample in any clock: the rounding
-                # allowance of window_end)
-                o = window_end(t[0], t[k], g)
-                i = int(torch.searchsorted(t, o, right=True)) - 1
-                if 4 <= i < k and t_c > float(t[i]):
-                    pairs.append((c, i, t_c))
-    return pairs
-
-
-def crps_log_time(times: Tensor, true: float, cap: float) -> Tensor:
-    """CRPS of sampled crossing durations on the log scale, ``(..., N)`` -> ``(...)``.
-
-    ``CRPS = E|X - x| - E|X - X'| / 2`` with ``X = log(min(T, cap))``, ``x = log(true)``
-    (Gneiting & Raftery 2007; the sample form uses the sorted samples). ``inf`` durations
-    (censored) enter as ``cap``.
-    """
-    X = times.clamp(min=1e-300, max=cap).log()
-    x = math.log(true)
-    n = X.shape[-1]
-    Xs = torch.sort(X, -1).values
-    i = torch.arange(1, n + 1, dtype=X.dtype, device=X.device)
-    spread = ((2.0 * i - n - 1.0) * Xs).sum(-1)
-    return (X - x).abs().mean(-1) - spread / (n * n)
-
-
-def _backtest(fits: dict, pairs, t: Tensor, gen: torch.Generator) -> dict[str, Tensor]:
-    """Log-time CRPS per backtest pair, per shape and noise grid point ``(G, P)``."""
-    out = {}
-    for name, fit in fits.items():
-        cols = []
-        for c, i, t_c in pairs:
-            true = t_c - float(t[i])
-            grid = path_grid(float(t[i]), 10.0 * true, true / 20.0, rel=0.05)
-            times = fit.grid_first_passage(i, c, grid, _BACKTEST_PATHS, gen) - float(t[i])
-            cols.append(crps_log_time(times, true, 10.0 * true))
-        out[name] = torch.stack(cols, -1)
-    return out
-
-
-def _backtest_one(fit, pairs, t: Tensor, gen: torch.Generator) -> Tensor:
-    """The same scores ``(P,)`` for one model (the learner)."""
-    cols = []
-    for c, i, t_c in pairs:
-        true = t_c - float(t[i])
-        grid = path_grid(float(t[i]), 10.0 * true, true / 20.0, rel=0.05)
-        times = fit.first_passage(i, c, grid, _BACKTEST_PATHS, gen).times - float(t[i])
-        cols.append(crps_log_time(times, true, 10.0 * true))
-    return torch.stack(cols)
-
-
 def _pooled_passage(fits, level: float, grid: Tensor, n_paths: int, gen) -> Passage:
     """First passages of an equal-weight pool: ``n_paths`` split evenly between the ``fits``
     (the first takes the remainder), 100 kept paths split the same way."""
@@ -283,23 +225,6 @@ def _pooled_passage(fits, level: float, grid: Tensor, n_paths: int, gen) -> Pass
         torch.cat(kept) if kept else None,
         torch.cat([p.diverged for p in parts]),
     )
-
-
-def one_standard_error_choice(per_pair: dict[str, Tensor], default: str, k: float = 1.0) -> str:
-    """The model whose mean backtest score beats ``default``'s by more than ``k`` standard
-    errors of the paired differences, the best of those; otherwise ``default`` (the
-    one-standard-error rule of Breiman et al. 1984 for ``k = 1``: with a handful of backtest
-    pairs, prefer the canonical model unless the evidence against it exceeds its own noise)."""
-    if default not in per_pair:
-        return min(per_pair, key=lambda name: float(per_pair[name].mean()))
-    ref = per_pair[default]
-    best, best_mean = default, float(ref.mean())
-    for name, sc in per_pair.items():
-        d = sc - ref
-        se = float(d.std(correction=1)) / math.sqrt(d.numel()) if d.numel() > 1 else math.inf
-        if float(d.mean()) < -k * se and float(sc.mean()) < best_mean:
-            best, best_mean = name, float(sc.mean())
-    return best
 
 
 def _baseline_flags(base: Baseline) -> list[str]:
@@ -337,6 +262,132 @@ def _flags(fit, level_thr: float, passage, n_since: int, censored: float) -> lis
             f"few data since onset ({n_since} values): the interval rests mostly on the prior"
         )
     return out
+
+
+# ----------------------------------------------------------------------------- steps
+def _side(thr: float, direction: str, base: Baseline) -> str:
+    """``"above"`` or ``"below"``: the side of the healthy band ``mean -+ 4 std`` that the
+    threshold must lie on (``"auto"``: the side it is on; inside the band it is refused)."""
+    lo_band, hi_band = base.mean - _K * base.std, base.mean + _K * base.std
+    if direction == "auto":
+        if lo_band <= thr <= hi_band:
+            raise ValueError(
+                f"threshold {thr:g} lies inside the healthy band [{lo_band:.4g}, {hi_band:.4g}] "
+                f"(baseline mean -+ {_K:g} std): the healthy asset would already count as failed"
+            )
+        direction = "above" if thr > hi_band else "below"
+    elif (direction == "above" and thr <= hi_band) or (direction == "below" and thr >= lo_band):
+        side = "above" if direction == "above" else "below"
+        edge = hi_band if direction == "above" else lo_band
+        raise ValueError(
+            f"threshold {thr:g} is on the wrong side for direction {direction!r}: it must lie "
+            f"{side} the healthy band edge {edge:.4g} (baseline mean {base.mean:.4g}, std "
+            f"{base.std:.4g})"
+        )
+    return direction
+
+
+def _away_from_threshold(
+    x: Tensor, t: Tensor, thr: float, direction: str, base: Baseline, onset: str
+) -> list[str]:
+    """The wrong-side rule of ``direction="auto"`` for a series with no onset towards the
+    threshold: an excursion from the healthy band on the other side, at least as far from the
+    healthy mean as the threshold lies on its side, is refused (the threshold looks to be on the
+    wrong side); a smaller one is returned as a flag (a drift of the healthy level)."""
+    other = "below" if direction == "above" else "above"
+    sign = 1.0 if direction == "above" else -1.0
+    medians = moving_median(sign * x, 5)
+    away = detect_onset(x, t, method=onset, baseline=base, direction=other, after=base.t_end)
+    if away.detected:  # the series left the band, away from the threshold
+        # how far the median went the other way, against the threshold's distance
+        low = torch.nan_to_num(medians[away.index :], nan=math.inf).min()
+        gone, dist = sign * base.mean - float(low), sign * (thr - base.mean)
+        if gone >= dist:
+            raise ValueError(
+                f"threshold {thr:g} is {direction} the healthy band, but the series left "
+                f"the band {other} it (onset at {away.time:g}, last value "
+                f"{float(x[-1]):.4g}; its median moved {gone:.4g} from the healthy mean "
+                f"{base.mean:.4g}, the threshold lies {dist:.4g} on the other side): the "
+                f"threshold looks to be on the wrong side; pass direction={direction!r} "
+                "to predict a crossing on that side regardless"
+            )
+        return [
+            f"the series left its healthy band {other} it at {away.time:g}, away from the "
+            f"threshold (its median moved {gone:.4g} from the healthy mean, the threshold "
+            f"lies {dist:.4g} on the other side): read as a drift of the healthy level; if "
+            f"failure is an excursion {other} the band, the threshold is on the wrong side"
+        ]
+    return []
+
+
+def _trend_models(
+    tb: Tensor, yb: Tensor, phi: float, s0b: float, method: str, filt, seed: int,
+    gen: torch.Generator,
+) -> tuple[dict, dict[str, Tensor], list[tuple[float, int, float]]]:  # fmt: skip
+    """The trend models of ``method`` filtered on the data since onset, each shape with its
+    noise chosen by the backtest (maximum likelihood when no level has been crossed yet), the
+    learner trend beside them, and their backtest scores ``{name: (P,)}`` and pairs."""
+    shapes = (
+        TREND_SHAPES if method == "auto" else ("exponential",) if method == "elm" else (method,)
+    )
+    fits = fit_trends(tb, yb, phi=phi, sigma0=s0b, shapes=shapes, filter=filt)
+    pairs = crossing_pairs(tb, yb, s0b)
+    per_pair: dict[str, Tensor] = {}
+    if pairs:  # noise (and model) chosen by multi-step crossing-time skill on the own past
+        for name, fit in fits.items():
+            sc = backtest_scores(fit, pairs, tb, gen, every_noise=True)
+            g = int(torch.argmin(torch.nan_to_num(sc.mean(-1), nan=math.inf)))
+            fits[name] = fits[name].select(g)
+            per_pair[name] = sc[g]
+    models: dict = {k: v for k, v in fits.items() if method in ("auto", k)}
+    if method in ("auto", "elm") and "exponential" in fits:
+        origins = sorted({i for _, i, _ in pairs})
+        models["elm"] = fit_learner_trend(fits["exponential"], seed=seed, snapshots=tuple(origins))
+        if pairs:
+            per_pair["elm"] = backtest_scores(models["elm"], pairs, tb, gen)
+    return models, per_pair, pairs
+
+
+def _pool(
+    models: dict, per_pair: dict[str, Tensor], n_pairs: int, method: str
+) -> tuple[tuple[str, ...], dict, list[str]]:
+    """The models whose RUL distributions are pooled (:data:`AUTO_POOL` for ``"auto"``), the
+    ``selection`` record, and a "model doubt" flag when another shape's backtest beats the
+    exponential one by more than one standard error."""
+    flags: list[str] = []
+    scores = {k: float(v.mean()) for k, v in per_pair.items()}
+    if not models:
+        raise ValueError(
+            f"the {method!r} model cannot be fitted: fewer than 3 values since onset exceed the "
+            "healthy level by one baseline standard deviation"
+        )
+    pool = tuple(k for k in AUTO_POOL if k in models) if method == "auto" else ()
+    if pool and per_pair:
+        better = one_standard_error_choice(per_pair, "exponential")
+        if better not in pool:
+            flags.append(
+                f"model doubt: the {better} shape predicted the series' own past crossings "
+                "better than the exponential one by more than one standard error; "
+                f"prognose(method={better!r}) gives its RUL"
+            )
+    if not pool:
+        pool = (next(iter(models)),)
+    chosen = "+".join(pool)
+    selection = {
+        "criterion": (
+            "equal-weight pool of the exponential and learner trend models; noise of each "
+            "shape by mean CRPS of the log time to already crossed levels (backtest)"
+            if method == "auto"
+            else "noise by mean CRPS of the log time to already crossed levels (backtest)"
+        )
+        if n_pairs
+        else "noise by maximum likelihood (no level crossed since onset yet)",
+        "pairs": n_pairs,
+        "scores": scores,
+        "chosen": chosen,
+        "pool": pool,
+    }
+    return pool, selection, flags
 
 
 # ----------------------------------------------------------------------------- public
@@ -421,23 +472,8 @@ def prognose(
     if t_eval < t_last:
         raise ValueError(f"at = {t_eval:g} is before the last observation {t_last:g}")
     base = baseline if isinstance(baseline, Baseline) else healthy_baseline(x, t, fraction=baseline)
-    lo_band, hi_band = base.mean - _K * base.std, base.mean + _K * base.std
     auto_side = direction == "auto"
-    if auto_side:
-        if lo_band <= thr <= hi_band:
-            raise ValueError(
-                f"threshold {thr:g} lies inside the healthy band [{lo_band:.4g}, {hi_band:.4g}] "
-                f"(baseline mean -+ {_K:g} std): the healthy asset would already count as failed"
-            )
-        direction = "above" if thr > hi_band else "below"
-    elif (direction == "above" and thr <= hi_band) or (direction == "below" and thr >= lo_band):
-        side = "above" if direction == "above" else "below"
-        edge = hi_band if direction == "above" else lo_band
-        raise ValueError(
-            f"threshold {thr:g} is on the wrong side for direction {direction!r}: it must lie "
-            f"{side} the healthy band edge {edge:.4g} (baseline mean {base.mean:.4g}, std "
-            f"{base.std:.4g})"
-        )
+    direction = _side(thr, direction, base)
     sign = 1.0 if direction == "above" else -1.0
     yo, thr_o = sign * x, sign * thr  # oriented: degradation raises yo
     medians = moving_median(yo, 5)
@@ -462,27 +498,7 @@ def prognose(
         )
     ons = detect_onset(x, t, method=onset, baseline=base, direction=direction, after=base.t_end)
     if auto_side and not ons.detected:
-        other = "below" if direction == "above" else "above"
-        away = detect_onset(x, t, method=onset, baseline=base, direction=other, after=base.t_end)
-        if away.detected:  # the series left the band, away from the threshold
-            # how far the median went the other way, against the threshold's distance
-            low = torch.nan_to_num(medians[away.index :], nan=math.inf).min()
-            gone, dist = sign * base.mean - float(low), thr_o - sign * base.mean
-            if gone >= dist:
-                raise ValueError(
-                    f"threshold {thr:g} is {direction} the healthy band, but the series left "
-                    f"the band {other} it (onset at {away.time:g}, last value "
-                    f"{float(x[-1]):.4g}; its median moved {gone:.4g} from the healthy mean "
-                    f"{base.mean:.4g}, the threshold lies {dist:.4g} on the other side): the "
-                    f"threshold looks to be on the wrong side; pass direction={direction!r} "
-                    "to predict a crossing on that side regardless"
-                )
-            flags.append(
-                f"the series left its healthy band {other} it at {away.time:g}, away from the "
-                f"threshold (its median moved {gone:.4g} from the healthy mean, the threshold "
-                f"lies {dist:.4g} on the other side): read as a drift of the healthy level; if "
-                f"failure is an excursion {other} the band, the threshold is on the wrong side"
-            )
+        flags += _away_from_threshold(x, t, thr, direction, base, onset)
     gen = torch.Generator().manual_seed(int(seed))
     span_life = t_last - float(t[0])
     dt_data = float(torch.diff(t).median())
@@ -500,56 +516,10 @@ def prognose(
     t_on, y_on = t[i0:], yo[i0:]
     noise0 = base.noise if base.noise is not None else base.std
     tb, yb, s0b, block = _blocks(t_on, y_on, noise0, max_points)
-    shapes = (
-        TREND_SHAPES if method == "auto" else ("exponential",) if method == "elm" else (method,)
-    )
-    fits = fit_trends(tb, yb, phi=phi, sigma0=s0b, shapes=shapes, filter=filter)
-    pairs = _backtest_pairs(tb, yb, s0b)
-    per_pair: dict[str, Tensor] = {}
-    if pairs:  # noise (and model) chosen by multi-step crossing-time skill on the own past
-        grid_scores = _backtest(fits, pairs, tb, gen)
-        for name, sc in grid_scores.items():
-            g = int(torch.argmin(torch.nan_to_num(sc.mean(-1), nan=math.inf)))
-            fits[name] = fits[name].select(g)
-            per_pair[name] = sc[g]
-    models: dict = {k: v for k, v in fits.items() if method in ("auto", k)}
-    if method in ("auto", "elm") and "exponential" in fits:
-        origins = sorted({i for _, i, _ in pairs})
-        models["elm"] = fit_learner_trend(fits["exponential"], seed=seed, snapshots=tuple(origins))
-        if pairs:
-            per_pair["elm"] = _backtest_one(models["elm"], pairs, tb, gen)
-    scores = {k: float(v.mean()) for k, v in per_pair.items()}
-    if not models:
-        raise ValueError(
-            f"the {method!r} model cannot be fitted: fewer than 3 values since onset exceed the "
-            "healthy level by one baseline standard deviation"
-        )
-    pool = tuple(k for k in AUTO_POOL if k in models) if method == "auto" else ()
-    if pool and per_pair:
-        doubt = one_standard_error_choice(per_pair, "exponential")
-        if doubt not in pool:
-            flags.append(
-                f"model doubt: the {doubt} shape predicted the series' own past crossings "
-                "better than the exponential one by more than one standard error; "
-                f"prognose(method={doubt!r}) gives its RUL"
-            )
-    if not pool:
-        pool = (next(iter(models)),)
-    chosen = "+".join(pool)
-    selection = {
-        "criterion": (
-            "equal-weight pool of the exponential and learner trend models; noise of each "
-            "shape by mean CRPS of the log time to already crossed levels (backtest)"
-            if method == "auto"
-            else "noise by mean CRPS of the log time to already crossed levels (backtest)"
-        )
-        if pairs
-        else "noise by maximum likelihood (no level crossed since onset yet)",
-        "pairs": len(pairs),
-        "scores": scores,
-        "chosen": chosen,
-        "pool": pool,
-    }
+    models, per_pair, pairs = _trend_models(tb, yb, phi, s0b, method, filter, seed, gen)
+    pool, selection, doubt = _pool(models, per_pair, len(pairs), method)
+    flags += doubt
+    chosen = selection["chosen"]
     fit = models[pool[0]]
     horizon = max(horizon_factor * span_life, 10.0 * (t_last - float(t[i0])), 10 * dt_data)
     horizon += t_eval - t_last
