@@ -68,3 +68,12 @@ def test_headline_table_by_hand():
     assert "| a | 2 | 0.50 | 0.50 | 0.50 | 1 | 0.1 | 0.7 | 0.300 |" in table
     assert "| b | 1 | 1.00 | 1.00 | — | 2 | 0.2 | 0.8 | — |" in table
     assert "| a | 3 |" in headline_table(rows, ["a"], "t")
+    # an infinite prediction (a censored median) has RA -inf: the mean is over the finite ones,
+    # with their count; with none finite there is no mean
+    rows.append(row("b", math.inf, math.inf, 0.0, None, None))
+    assert "| b | 2 | 0.50 | 0.50 | — | 2 | 0.2 | 0.8 (1 of 2 finite) | — |" in headline_table(
+        rows, ["b"], "t"
+    )
+    assert "| c | 1 | 0.00 | 0.00 | — | inf | inf | — | — |" in headline_table(
+        [row("c", math.inf, math.inf, 0.0, None, None)], ["c"], "t"
+    )
