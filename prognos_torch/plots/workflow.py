@@ -107,8 +107,10 @@ def plot_rul(
     n_paths: int = 20,
     title: str | None = None,
 ) -> Figure:
-    """Top: history, predicted paths (5-95 % band, median, a few paths) and the threshold.
-    Bottom: the RUL pmf (paper 002, Fig. 11-12), with the censored mass stated."""
+    """Top: history, predicted paths (5-95 % band, median, a few paths) and the threshold;
+    paths far beyond the data and the threshold (an exponential path can overflow to inf) are
+    drawn clipped near them. Bottom: the RUL pmf (paper 002, Fig. 11-12), with the censored
+    mass stated."""
     fig = Figure(figsize=(7.5, 6.0))
     FigureCanvasAgg(fig)
     ax, bx = fig.add_subplot(2, 1, 1), fig.add_subplot(2, 1, 2)
