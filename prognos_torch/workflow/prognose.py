@@ -288,15 +288,15 @@ def _side(thr: float, direction: str, base: Baseline) -> str:
 
 
 def _away_from_threshold(
-    x: Tensor, t: Tensor, thr: float, direction: str, base: Baseline, onset: str
+    x: Tensor, t: Tensor, medians: Tensor, thr: float, direction: str, base: Baseline, onset: str
 ) -> list[str]:
     """The wrong-side rule of ``direction="auto"`` for a series with no onset towards the
     threshold: an excursion from the healthy band on the other side, at least as far from the
     healthy mean as the threshold lies on its side, is refused (the threshold looks to be on the
-    wrong side); a smaller one is returned as a flag (a drift of the healthy level)."""
+    wrong side); a smaller one is returned as a flag (a drift of the healthy level).
+    ``medians``: ``(T,)`` the 5-point moving medians of the series oriented to ``direction``."""
     other = "below" if direction == "above" else "above"
     sign = 1.0 if direction == "above" else -1.0
-    medians = moving_median(sign * x, 5)
     away = detect_onset(x, t, method=onset, baseline=base, direction=other, after=base.t_end)
     if away.detected:  # the series left the band, away from the threshold
         # how far the median went the other way, against the threshold's distance
@@ -498,7 +498,7 @@ def prognose(
         )
     ons = detect_onset(x, t, method=onset, baseline=base, direction=direction, after=base.t_end)
     if auto_side and not ons.detected:
-        flags += _away_from_threshold(x, t, thr, direction, base, onset)
+        flags += _away_from_threshold(x, t, medians, thr, direction, base, onset)
     gen = torch.Generator().manual_seed(int(seed))
     span_life = t_last - float(t[0])
     dt_data = float(torch.diff(t).median())
