@@ -140,8 +140,9 @@ def _as_series(series, time) -> tuple[Tensor, Tensor, Series | None]:
         t = torch.from_numpy(tv)
         if tuple(t.shape) != tuple(x.shape):
             raise ValueError(f"time must have shape {tuple(x.shape)} (T,), got {tuple(t.shape)}")
-        if unit is not None:  # date-times: days since the first, as from a CSV
-            src = Series(x, t, pandas_name(series) or "series", "time", unit, start)
+        # date-times: days since the first, as from a CSV; numbers: in the unit "time", as
+        # load_series names an array's clock (never "steps", which would misstate the RUL)
+        src = Series(x, t, pandas_name(series) or "series", "time", unit or "time", start)
     has_missing(x, "series")  # inf refused
     if not bool(torch.isfinite(t).all()):
         raise ValueError("time must be finite")
