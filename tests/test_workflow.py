@@ -293,6 +293,28 @@ def test_rul_plots_keep_their_axes_near_the_data_when_paths_overflow(tmp_path):
         assert lo - 12 * (hi - lo) < ylo <= lo and hi <= yhi < hi + 12 * (hi - lo)
 
 
+def test_prognosis_figure_looks_as_far_as_the_bulk_of_the_rul_not_its_tail(tmp_path):
+    # IMS test 1 bearing 3 a day before failure: median RUL 0.17 d, 95 % quantile 16.5 d.
+    # Drawn to the 95 % quantile, the data and the median crossing would sit in the left 1 %
+    from prognos_torch.datasets import load_ims_features
+    from prognos_torch.plots import plot_prognosis
+    from prognos_torch.workflow import prognose
+
+    f = load_ims_features(1)
+    keep = f.days <= 34.06
+    r = prognose(f.feature("rms")[keep, 4], 0.446, time=f.days[keep])
+    s = r.summary()
+    assert r.time_unit == "time"  # numbers given as time= are not "steps"
+    assert s["q95"] > 30 * s["median"]
+    fig = plot_prognosis(tmp_path / "p.png", r)
+    top, pmf = fig.axes
+    t0, t1 = top.get_xlim()
+    shown = r.t_last - t0
+    assert r.t_last + s["median"] < t1 <= r.t_last + max(3 * s["median"], shown) + 1e-9
+    assert top.get_xlabel() == "time"
+    assert s["median"] < pmf.get_xlim()[1] < s["q95"]
+
+
 # --------------------------------------------------------------------------- model files
 def test_model_file_round_trip_in_a_fresh_process(tmp_path):
     t, x = _series_values(90)

@@ -22,6 +22,7 @@ from matplotlib.figure import Figure
 
 from ..io import atomic_write
 from ._arrays import as_numpy, clip_for_drawing
+from .workflow import time_label
 
 if TYPE_CHECKING:  # annotations only: the workflow imports the plots, not the reverse
     from ..workflow.predict import RULResult
@@ -38,10 +39,16 @@ def _write(fig: Figure, path: str | os.PathLike | None) -> Figure:
     return fig
 
 
-def _label(history) -> str:
-    if history.time_unit == "days":
-        return f"days since {history.start}" if history.start else "days"
-    return "step" if history.time_unit == "steps" else history.time_unit
+def _reach(summary: dict, bound: float, shown: float) -> float:
+    """How far past the last observation the figure looks: to the RUL's 95 % quantile (the
+    horizon when more than 5 % is censored), but no further than 3 x the median or the width of
+    the history drawn, whichever is longer. A heavy right tail would otherwise squeeze the data,
+    the median crossing and what followed into the left edge; the pmf panel and its censored
+    mass state the tail."""
+    reach = summary["q95"] if summary["q95"] is not None else bound
+    if summary["median"] is not None:
+        reach = min(reach, max(3.0 * summary["median"], shown))
+    return max(reach, 0.05 * shown)
 
 
 def plot_prognosis(
@@ -80,8 +87,7 @@ def plot_prognosis(
     keep = th >= t0
     ax.plot(th[keep], yh[keep], ".", ms=2, color="0.2", label="observed")
     s = result.summary()
-    t_end = result.t_last + (s["q95"] if s["q95"] is not None else result.bound)
-    t_end = max(t_end, result.t_last + 0.05 * (result.t_last - t0))
+    t_end = result.t_last + _reach(s, result.bound, result.t_last - t0)
     if truth is not None:
         tt, yt = as_numpy(truth[0]), as_numpy(truth[1])
         sel = (tt > result.t_last) & (tt <= t_end)
@@ -102,7 +108,7 @@ def plot_prognosis(
     ax.axhline(result.threshold, color="C3", lw=1.0, ls="--", label="threshold")
     ax.set_xlim(t0, t_end)
     ax.set_ylim(lo_t - pad, hi_t + pad)
-    ax.set_xlabel(_label(h))
+    ax.set_xlabel(time_label(h))
     ax.set_ylabel(h.name)
     ax.legend(loc="upper left", fontsize=7)
     med = "n/a" if s["median"] is None else f"{s['median']:.3g}"
@@ -112,17 +118,20 @@ def plot_prognosis(
     d = result.distribution
     if result.status == "ok":
         sup, pmf = as_numpy(d.support), as_numpy(d.pmf)
-        upto = (s["q95"] if s["q95"] is not None else result.bound) * 1.5
+        upto = 1.5 * _reach(s, result.bound, result.t_last - t0)
         m = sup <= upto
         width = max(result.dt, upto / 200.0)
         edges = np.arange(0.0, upto + width, width)
         hist, _ = np.histogram(sup[m], bins=edges, weights=pmf[m])
         bx.bar(edges[:-1], hist, width=width, align="edge", color="C0", alpha=0.7)
         for q, name in ((s["q05"], "q05"), (s["median"], "median"), (s["q95"], "q95")):
-            if q is not None:
+            if q is not None and q <= upto:
                 bx.axvline(q, color="k", lw=0.8, ls="-" if name == "median" else ":")
-        bx.text(0.98, 0.9, f"P(RUL > {result.bound:.3g}) = {result.censored_mass:.2f}",
-                transform=bx.transAxes, ha="right", fontsize=8)  # fmt: skip
+        bx.set_xlim(0.0, upto)
+        q = [("n/a" if s[k] is None else f"{s[k]:.3g}") for k in ("median", "q05", "q95")]
+        bx.text(0.98, 0.9, f"median {q[0]}, 90 % [{q[1]}, {q[2]}]\n"
+                f"P(RUL > {result.bound:.3g}) = {result.censored_mass:.2f}",
+                transform=bx.transAxes, ha="right", va="top", fontsize=8)  # fmt: skip
     else:
         bx.text(0.5, 0.5, f"{result.status}: RUL > {s['bound']:.3g} {result.time_unit}",
                 transform=bx.transAxes, ha="center")  # fmt: skip
