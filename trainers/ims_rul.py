@@ -60,7 +60,7 @@ def run(cfg: StudyConfig, out: Path) -> StudyResult:
     cases = series_cases(cfg.quick)
     methods = (MAIN, "prognose (exponential)", *RUL_BASELINES[1:]) if cfg.quick else METHODS
     rows, panels, per_series, results = protocol_rows(
-        cases, methods, seed=cfg.seed, every=2 if cfg.quick else 1,
+        cases, methods, seed=cfg.seed, every=2 if cfg.quick else 1, time_unit="days",
         cone_methods=(MAIN, "prognose (exponential)", *RUL_BASELINES),
     )  # fmt: skip
     path_panels = [(n, [p["result"] for p in results[(MAIN, n)]], t, y)

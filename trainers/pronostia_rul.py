@@ -52,7 +52,7 @@ def run(cfg: StudyConfig, out: Path) -> StudyResult:
     cases = series_cases(Path(cfg.data), cfg.quick)
     methods = (MAIN, "prognose (exponential)", *RUL_BASELINES[1:]) if cfg.quick else METHODS
     rows, panels, per_series, _ = protocol_rows(
-        cases, methods, seed=cfg.seed, every=2 if cfg.quick else 1,
+        cases, methods, seed=cfg.seed, every=2 if cfg.quick else 1, time_unit="hours",
         cone_methods=(MAIN, *RUL_BASELINES[1:]),
     )  # fmt: skip
     figs = _figure(out, panels)

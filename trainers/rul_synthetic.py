@@ -35,7 +35,7 @@ def run(cfg: StudyConfig, out: Path) -> StudyResult:
     cases = {name: (r.t, r.y, True) for name, r in records.items()}
     methods = (MAIN, "prognose (exponential)", "exponential LSQ") if cfg.quick else METHODS
     rows, panels, per_series, _ = protocol_rows(
-        cases, methods, seed=cfg.seed, every=2 if cfg.quick else 1,
+        cases, methods, seed=cfg.seed, every=2 if cfg.quick else 1, time_unit="days",
         cone_methods=(MAIN, "prognose (exponential)", "exponential LSQ"),
     )  # fmt: skip
     plot_rul_trajectory(out / "rul_vs_time.png", panels[:: max(1, len(panels) // 8)], alpha=0.3)

@@ -40,8 +40,8 @@ def _inf(v) -> float:
 
 
 def predict_rul(method: str, t: Tensor, y: Tensor, case: ProtocolCase, tp: float,
-                seed: int) -> dict:  # fmt: skip
-    """One prediction at time ``tp`` from the data ``t <= tp``.
+                seed: int, time_unit: str = "time") -> dict:  # fmt: skip
+    """One prediction at time ``tp`` from the data ``t <= tp`` (``t`` in ``time_unit``).
 
     Returns:
         ``{"pred", "lo", "hi", "censored", "model"}`` (median, q05, q95: ``inf`` when censored;
@@ -53,17 +53,17 @@ def predict_rul(method: str, t: Tensor, y: Tensor, case: ProtocolCase, tp: float
     sel = t <= tp
     ts, ys = t[sel], y[sel]
     shift = tp - float(ts[-1])
+    series = Series(ys, ts, "indicator", "t", time_unit)
     if method.startswith("prognose ("):
         kind = method[len("prognose (") : -1]
         filt = "stekf" if "strong tracking" in kind else "ekf"
-        res = prognose(ys, case.threshold, time=ts, method=kind.split(",")[0], at=tp, seed=seed,
+        res = prognose(series, case.threshold, method=kind.split(",")[0], at=tp, seed=seed,
                        filter=filt)  # fmt: skip
         s = res.summary()
         return {"pred": _inf(s["median"]), "lo": _inf(s["q05"]), "hi": _inf(s["q95"]),
                 "censored": s["censored_mass"], "model": res.model or res.status,
                 "result": res}  # fmt: skip
     if method == "fit_series + rul(stpf)":
-        series = Series(ys, ts, "y", "t", "days")
         res = rul(fit_series(series, seed=seed), series, case.threshold, filter="stpf", seed=seed)
         s = res.summary()
         return {"pred": max(_inf(s["median"]) - shift, 0.0), "lo": max(_inf(s["q05"]) - shift, 0.0),
@@ -96,6 +96,7 @@ def protocol_rows(
     seed: int = 0,
     every: int = 1,
     cone_methods=(),
+    time_unit: str = "time",
 ) -> tuple[list[dict], list[dict], list[str], dict]:
     """Predict and score every method at the protocol's points of every series.
 
@@ -105,6 +106,7 @@ def protocol_rows(
         seed: seeds every prediction.
         every: use every ``every``-th prediction time (quick runs).
         cone_methods: methods whose predictions go into the returned panels (figures).
+        time_unit: the unit of every ``t`` (results and figures say it).
 
     Returns:
         ``(rows, panels, per_series, results)``: one row per (method, series, point) with the
@@ -124,7 +126,7 @@ def protocol_rows(
         panel = {"title": f"{name} (EoL {pc.t_eol:.2f})", "times": times, "true": true,
                  "t_eol": pc.t_eol, "methods": {}}  # fmt: skip
         for m in methods:
-            ps = [predict_rul(m, t, y, pc, float(tp), seed) for tp in times]
+            ps = [predict_rul(m, t, y, pc, float(tp), seed, time_unit) for tp in times]
             results[(m, name)] = ps
             pred = torch.tensor([p["pred"] for p in ps], dtype=torch.float64)
             lo = None if ps[0]["lo"] is None else torch.tensor([p["lo"] for p in ps])
