@@ -168,3 +168,34 @@ def test_rul_band_paths_and_weighted_quantiles(tmp_path):
     np.testing.assert_array_equal(q, s[[1, 19, 37]])
     with pytest.raises(ValueError, match="predictions\\['A'\\]"):
         plot_rul_band(tmp_path / "bad.png", times, true, {"A": pred[:3]})
+
+
+def test_figures_reach_their_file_whole_or_not_at_all(tmp_path, monkeypatch):
+    # one writer for every figure: a failure while rendering leaves the old file as it was and
+    # no temporary file behind; study figures create their folder, user-facing ones name it
+    from prognos_torch.plots._arrays import write_png
+
+    t = torch.arange(20.0)
+    target = tmp_path / "pred.png"
+    target.write_bytes(b"old")
+
+    def broken(self, fname, *a, **k):  # a renderer that dies half-way through the PNG
+        if hasattr(fname, "write"):
+            fname.write(b"\x89PNG half")
+        else:
+            with open(fname, "wb") as f:
+                f.write(b"\x89PNG half")
+        raise RuntimeError("renderer failed")
+
+    monkeypatch.setattr(Figure, "savefig", broken)
+    with pytest.raises(RuntimeError, match="renderer failed"):
+        plot_prediction(target, t, t, t + 0.1)
+    assert target.read_bytes() == b"old" and sorted(p.name for p in tmp_path.iterdir()) == [
+        "pred.png"
+    ]
+    monkeypatch.undo()
+    fig = Figure()
+    with pytest.raises(FileNotFoundError, match="output folder does not exist"):
+        write_png(fig, tmp_path / "missing" / "f.png")
+    write_png(fig, tmp_path / "made" / "f.png", make_folder=True)
+    _check_png(fig, tmp_path / "made" / "f.png")

@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from prognos_torch.datasets import health_indicator, load_ims_features
-from prognos_torch.plots import plot_prognosis, plot_rul_trajectory
+from prognos_torch.plots import plot_prognosis_grid, plot_rul_trajectory
 from prognos_torch.studies import Study, StudyConfig, StudyResult
 from prognos_torch.studies.rul_protocol import RUL_BASELINES, headline_table, protocol_rows
 
@@ -63,7 +63,7 @@ def run(cfg: StudyConfig, out: Path) -> StudyResult:
         cases, methods, seed=cfg.seed, every=2 if cfg.quick else 1, time_unit="days",
         cone_methods=(MAIN, "prognose (exponential)", *RUL_BASELINES),
     )  # fmt: skip
-    path_panels = [(n, [p["result"] for p in results[(MAIN, n)]], t, y)
+    path_panels = [(n, [p["result"] for p in results[(MAIN, n)]], (t, y))
                    for n, (t, y, _) in cases.items() if (MAIN, n) in results]  # fmt: skip
     figs = _figures(out, panels, path_panels)
     tables = [headline_table(rows, methods, "test 1, bearings 3 and 4 (rms and health indicator)",
@@ -77,21 +77,8 @@ def run(cfg: StudyConfig, out: Path) -> StudyResult:
 
 
 def _figures(out: Path, panels, path_panels) -> list[str]:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     plot_rul_trajectory(out / "rul_vs_time.png", panels, alpha=0.3)
-    n = len(path_panels)
-    k = max(len(r) for _, r, _, _ in path_panels)
-    fig = Figure(figsize=(3.6 * k, 2.8 * n))
-    FigureCanvasAgg(fig)
-    for i, (name, results, t, y) in enumerate(path_panels):
-        for j, res in enumerate(results):
-            ax = fig.add_subplot(n, k, i * k + j + 1)
-            plot_prognosis(None, res, truth=(t, y), ax=ax, title=f"{name}, t = {res.t_last:.2f}")
-            ax.legend().set_visible(i == 0 and j == 0)
-    fig.tight_layout()
-    fig.savefig(out / "paths.png", dpi=60)
+    plot_prognosis_grid(out / "paths.png", path_panels)
     return ["rul_vs_time.png", "paths.png"]
 
 

@@ -1,7 +1,7 @@
 """Figures: one home for every plot of the library, the studies and the workflow.
 
 Every function draws on a fresh :class:`matplotlib.figure.Figure` (Agg canvas, no pyplot state,
-no window), writes a PNG to ``path`` and returns the figure. Inputs may be tensors (any device)
+no window), writes a PNG to ``path`` atomically (never half-written) and returns the figure. Inputs may be tensors (any device)
 or array-likes.
 
 * :mod:`.figures`: predictions, fading factors, fault probabilities, RUL distributions,
@@ -13,9 +13,9 @@ or array-likes.
 * :mod:`.rul`: predicted RUL over prediction time with the alpha cone (:func:`plot_rul_band`),
   predicted paths against a threshold (:func:`plot_paths`);
 * :mod:`.workflow`: a forecast with its band and an RUL distribution with its paths (the
-  figures of :mod:`prognos_torch.workflow`, written atomically);
+  figures of :mod:`prognos_torch.workflow`);
 * :mod:`.prognosis`: a :func:`~prognos_torch.workflow.prognose` result (paths with the
-  threshold, RUL pmf) and RUL trajectories against the alpha cone.
+  threshold, RUL pmf), a grid of them, and RUL trajectories against the alpha cone.
 """
 
 from .figures import (
@@ -36,7 +36,7 @@ from .lines import (
     plot_prediction_errors,
 )
 from .panels import plot_panels
-from .prognosis import plot_prognosis, plot_rul_trajectory
+from .prognosis import plot_prognosis, plot_prognosis_grid, plot_rul_trajectory
 from .rul import draw_paths, plot_paths, plot_rul_band, weighted_quantiles
 from .workflow import plot_forecast, plot_rul, time_label
 
@@ -65,5 +65,6 @@ __all__ = [
     "plot_rul",
     "time_label",
     "plot_prognosis",
+    "plot_prognosis_grid",
     "plot_rul_trajectory",
 ]

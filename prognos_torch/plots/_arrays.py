@@ -1,9 +1,16 @@
-"""Plot inputs as float64 NumPy arrays."""
+"""Plot inputs as float64 NumPy arrays, and the one way a figure reaches a file."""
 
 from __future__ import annotations
 
+import io
+import os
+from pathlib import Path
+
 import numpy as np
 import torch
+from matplotlib.figure import Figure
+
+from ..io import atomic_write
 
 
 def as_numpy(x) -> np.ndarray:
@@ -21,3 +28,23 @@ def clip_for_drawing(paths: np.ndarray, lo: float, hi: float) -> np.ndarray:
     result's data are not changed."""
     pad = 0.15 * (hi - lo) if hi > lo else 1.0
     return np.clip(paths, lo - 10.0 * pad, hi + 10.0 * pad)
+
+
+def write_png(fig: Figure, path: str | os.PathLike | None, *, make_folder: bool = False,
+              tight: bool = True, dpi: int = 100) -> Figure:  # fmt: skip
+    """Lay ``fig`` out (``tight_layout`` unless ``tight=False``: a figure with its legend
+    placed ``"outside"`` lays itself out) and write it as a PNG (``dpi``) to ``path`` through
+    :func:`~prognos_torch.io.atomic_write`: a reader sees the old file or the whole new one,
+    never a half-written one. ``make_folder`` creates the missing folders of ``path`` (study
+    outputs); otherwise a missing folder is a ``FileNotFoundError`` that names it. ``path=None``
+    writes nothing. Returns ``fig``."""
+    if tight:
+        fig.tight_layout()
+    if path is None:
+        return fig
+    if make_folder:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    atomic_write(path, buf.getvalue())
+    return fig

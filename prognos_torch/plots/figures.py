@@ -11,14 +11,13 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from ..metrics import alpha_bounds, lambda_index, lambda_time
-from ._arrays import as_numpy
+from ._arrays import as_numpy, write_png
 
 __all__ = [
     "plot_prediction",
@@ -59,14 +58,6 @@ def _new(figsize=(7.0, 4.0)) -> tuple[Figure, object]:
     fig = Figure(figsize=figsize)
     FigureCanvasAgg(fig)
     return fig, fig.add_subplot(1, 1, 1)
-
-
-def _save(fig: Figure, path: PathLike) -> Figure:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, format="png", dpi=100)
-    return fig
 
 
 def plot_prediction(
@@ -116,7 +107,7 @@ def plot_prediction(
     ax.set_ylabel(ylabel)
     ax.set_title(title or "Prediction")
     ax.legend(loc="best")
-    return _save(fig, path)
+    return write_png(fig, path, make_folder=True)
 
 
 def plot_fading_factor(path: PathLike, t, lam, *, title: str | None = None) -> Figure:
@@ -135,7 +126,7 @@ def plot_fading_factor(path: PathLike, t, lam, *, title: str | None = None) -> F
     ax.set_ylabel(r"$\lambda_k$")
     ax.set_title(title or "Fading factor")
     ax.legend(loc="best")
-    return _save(fig, path)
+    return write_png(fig, path, make_folder=True)
 
 
 def plot_rul_pdf(
@@ -185,7 +176,7 @@ def plot_rul_pdf(
     ax.set_xlabel("RUL")
     ax.set_ylabel("prediction time")
     ax.set_title(title or "RUL distribution")
-    return _save(fig, path)
+    return write_png(fig, path, make_folder=True)
 
 
 def plot_alpha_lambda(
@@ -240,7 +231,7 @@ def plot_alpha_lambda(
     ax.set_ylabel("RUL")
     ax.set_title(title or r"$\alpha$-$\lambda$ accuracy")
     ax.legend(loc="best")
-    return _save(fig, path)
+    return write_png(fig, path, make_folder=True)
 
 
 def plot_fault_probability(
@@ -268,7 +259,7 @@ def plot_fault_probability(
     ax.set_ylabel("fault probability")
     ax.set_title(title or "Fault probability")
     ax.legend(loc="best")
-    return _save(fig, path)
+    return write_png(fig, path, make_folder=True)
 
 
 def plot_fault_probability_box(
@@ -303,7 +294,7 @@ def plot_fault_probability_box(
     ax.set_xlabel(f"period start (period = {period:g})")
     ax.set_ylabel("fault probability")
     ax.set_title(title or "Fault probability per period")
-    return _save(fig, path)
+    return write_png(fig, path, make_folder=True)
 
 
 def plot_training_curves(
@@ -329,4 +320,4 @@ def plot_training_curves(
     ax.set_ylabel("loss")
     ax.set_title(title or "Training curves")
     ax.legend(loc="best")
-    return _save(fig, path)
+    return write_png(fig, path, make_folder=True)

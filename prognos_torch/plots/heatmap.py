@@ -14,8 +14,8 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ._arrays import as_numpy
-from .figures import PathLike, _save
+from ._arrays import as_numpy, write_png
+from .figures import PathLike
 
 __all__ = ["HeatmapPanel", "draw_heatmap", "plot_heatmaps"]
 
@@ -99,4 +99,4 @@ def plot_heatmaps(
         im = draw_heatmap(ax, panel)
         if panel.colorbar is not None:
             fig.colorbar(im, ax=ax, label=panel.colorbar)
-    return _save(fig, path)
+    return write_png(fig, path, make_folder=True)

@@ -13,7 +13,8 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from .figures import PathLike, _np, _same_len, _save
+from ._arrays import write_png
+from .figures import PathLike, _np, _same_len
 
 __all__ = [
     "LinePanel",
@@ -151,7 +152,7 @@ def plot_line_panels(
             ax.legend(loc=panel.legend, fontsize=8)
     if title:
         fig.suptitle(title, fontsize=10)
-    return _save(fig, path)
+    return write_png(fig, path, make_folder=True)
 
 
 def plot_line_row(

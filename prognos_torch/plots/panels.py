@@ -10,13 +10,12 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ._arrays import as_numpy
+from ._arrays import as_numpy, write_png
 
 __all__ = ["plot_panels"]
 
@@ -116,7 +115,4 @@ def plot_panels(
     fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 6), fontsize=8)
     if title:
         fig.suptitle(title, fontsize=10)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, format="png", dpi=100)
-    return fig
+    return write_png(fig, path, make_folder=True, tight=False)

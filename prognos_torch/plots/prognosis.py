@@ -3,6 +3,7 @@
 * :func:`plot_prognosis`: the data since a little before onset, sample paths with their 5-95 %
   band and median until the threshold, the threshold, the onset, and the RUL pmf beneath with the
   censored mass stated;
+* :func:`plot_prognosis_grid`: those panels for several series and prediction times;
 * :func:`plot_rul_trajectory`: predicted RUL (median and 90 % interval) against the true RUL
   line and the alpha cone ``[(1 - alpha) r*, (1 + alpha) r*]`` (Saxena et al. 2010), one panel
   per series.
@@ -10,7 +11,6 @@
 
 from __future__ import annotations
 
-import io
 import math
 import os
 from collections.abc import Sequence
@@ -20,23 +20,13 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ..io import atomic_write
-from ._arrays import as_numpy, clip_for_drawing
+from ._arrays import as_numpy, clip_for_drawing, write_png
 from .workflow import time_label
 
 if TYPE_CHECKING:  # annotations only: the workflow imports the plots, not the reverse
     from ..workflow.predict import RULResult
 
-__all__ = ["plot_prognosis", "plot_rul_trajectory"]
-
-
-def _write(fig: Figure, path: str | os.PathLike | None) -> Figure:
-    fig.tight_layout()
-    if path is not None:
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=100)
-        atomic_write(path, buf.getvalue())
-    return fig
+__all__ = ["plot_prognosis", "plot_prognosis_grid", "plot_rul_trajectory"]
 
 
 def _reach(summary: dict, bound: float, shown: float) -> float:
@@ -137,7 +127,34 @@ def plot_prognosis(
                 transform=bx.transAxes, ha="center")  # fmt: skip
     bx.set_xlabel(f"RUL ({result.time_unit})")
     bx.set_ylabel("probability")
-    return _write(fig, path)
+    return write_png(fig, path)
+
+
+def plot_prognosis_grid(
+    path: str | os.PathLike | None,
+    rows: Sequence[tuple[str, Sequence[RULResult], tuple]],
+    *,
+    dpi: int = 60,
+) -> Figure:
+    """One row of :func:`plot_prognosis` top panels per series, one panel per prediction time.
+
+    Args:
+        path: PNG file, or ``None``.
+        rows: ``(name, results, truth)`` per series: its ``prognose`` results in time order and
+            the whole series ``(t, y)`` drawn as what followed each prediction.
+        dpi: resolution (the grid is large).
+    """
+    if not rows or not all(len(r[1]) for r in rows):
+        raise ValueError("rows must be a non-empty sequence of (name, results, truth) with results")
+    n, k = len(rows), max(len(r[1]) for r in rows)
+    fig = Figure(figsize=(3.6 * k, 2.8 * n))
+    FigureCanvasAgg(fig)
+    for i, (name, results, truth) in enumerate(rows):
+        for j, res in enumerate(results):
+            ax = fig.add_subplot(n, k, i * k + j + 1)
+            plot_prognosis(None, res, truth=truth, ax=ax, title=f"{name}, t = {res.t_last:.2f}")
+            ax.legend().set_visible(i == 0 and j == 0)
+    return write_png(fig, path, dpi=dpi)
 
 
 def plot_rul_trajectory(
@@ -188,4 +205,4 @@ def plot_rul_trajectory(
         ax.set_ylabel("RUL")
         if k == 0:
             ax.legend(fontsize=6, loc="upper right")
-    return _write(fig, path)
+    return write_png(fig, path)

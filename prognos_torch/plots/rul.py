@@ -12,8 +12,8 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from ..metrics import alpha_bounds
-from ._arrays import as_numpy
-from .figures import PathLike, _new, _np, _same_len, _save
+from ._arrays import as_numpy, write_png
+from .figures import PathLike, _new, _np, _same_len
 
 __all__ = ["plot_rul_band", "draw_paths", "plot_paths", "weighted_quantiles"]
 
@@ -64,7 +64,7 @@ def plot_rul_band(
     ax.set_ylabel(ylabel)
     ax.set_title(title or "Predicted RUL")
     ax.legend(loc="best", fontsize=8)
-    return _save(fig, path)
+    return write_png(fig, path, make_folder=True)
 
 
 def weighted_quantiles(samples, weights, qs: Sequence[float]) -> np.ndarray:
@@ -137,4 +137,4 @@ def plot_paths(
     ax.set_ylabel(ylabel)
     ax.set_title(title or "Predicted paths")
     ax.legend(loc="best", fontsize=8)
-    return _save(fig, path)
+    return write_png(fig, path, make_folder=True)

@@ -8,7 +8,6 @@ call never leaves a partial image behind.
 
 from __future__ import annotations
 
-import io
 import os
 from typing import TYPE_CHECKING
 
@@ -16,8 +15,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ..io import atomic_write
-from ._arrays import as_numpy, clip_for_drawing
+from ._arrays import as_numpy, clip_for_drawing, write_png
 from .rul import draw_paths
 
 if TYPE_CHECKING:  # annotations only: the workflow imports this module, not the reverse
@@ -34,14 +32,6 @@ def time_label(series: Series) -> str:
     if series.time_unit == "steps":
         return "step"
     return series.time_unit
-
-
-def _write(fig: Figure, path: str | os.PathLike) -> Figure:
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
-    atomic_write(path, buf.getvalue())
-    return fig
 
 
 def _history_tail(series: Series, horizon: int, history: int | None) -> tuple:
@@ -96,7 +86,7 @@ def plot_forecast(
     ax.set_ylabel(result.history.name)
     ax.set_title(title or f"{result.horizon}-step forecast of {result.history.name}")
     ax.legend(loc="best", fontsize=8)
-    return _write(fig, path)
+    return write_png(fig, path)
 
 
 def plot_rul(
@@ -156,4 +146,4 @@ def plot_rul(
     bx.set_ylabel("probability")
     if s["median"] is not None or s["mean"] is not None:
         bx.legend(loc="upper left", fontsize=8)
-    return _write(fig, path)
+    return write_png(fig, path)
