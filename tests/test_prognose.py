@@ -306,6 +306,49 @@ def test_extrapolation_is_flagged():
     assert any(f.startswith("extrapolation") for f in res.flags)
 
 
+def test_a_threshold_far_beyond_the_data_in_data_units_is_flagged():
+    # IMS test 2 bearing 1 at 6.18 d (highest rms 0.17): in the log space of the shapes a
+    # threshold of 100 is only about twice the rise seen away, so only the data-unit rule sees
+    # it; the protocol's threshold (0.478) is not flagged
+    from prognos_torch.datasets import load_ims_features
+
+    f = load_ims_features(2)
+    keep = f.days <= 6.181
+    t, y = f.days[keep], f.feature("rms")[keep, 0]
+    far = prognose(y, 100.0, time=t)
+    assert [g for g in far.flags if g.startswith("extrapolation")] == [
+        next(g for g in far.flags if "data units" in g)
+    ]
+    near = prognose(y, 0.4779, time=t)
+    assert not any(g.startswith("extrapolation") for g in near.flags)
+
+
+def test_a_series_back_at_its_healthy_level_is_flagged():
+    # a transient after which the indicator returns to health: the log trends have no
+    # measurement in the healthy values, so their RUL extrapolates the transient
+    g = torch.Generator().manual_seed(0)
+    y = 0.33 + 0.02 * torch.randn(800, generator=g, dtype=F64)
+    y[500:530] += 0.5
+    back = prognose(y, 1.1)
+    assert back.status == "ok" and any(
+        f.startswith("back at the healthy level") for f in back.flags
+    )
+    t, y = _series(noise_after=0.05)
+    assert not any(f.startswith("back at") for f in prognose(y, 3.0, time=t).flags)
+
+
+def test_onset_pending_is_flagged_before_onset():
+    # 3 medians beyond the onset limit are fewer than the 5 in a row that declare onset
+    g = torch.Generator().manual_seed(0)
+    y = 1.0 + 0.05 * torch.randn(600, generator=g, dtype=F64)
+    y[-5:] += 1.0  # the last 3 medians of 5 values are above mean + 4 std
+    res = prognose(y, 3.0)
+    assert res.status == "no degradation detected yet"
+    pending = [f for f in res.flags if f.startswith("onset pending")]
+    assert len(pending) == 1 and "the last 3 median(s)" in pending[0]
+    assert not any(f.startswith("onset pending") for f in prognose(y[:-5], 3.0).flags)
+
+
 def test_series_input():
     t, y = _series()
     s = Series(y, t, name="hi", time_name="t", time_unit="t")

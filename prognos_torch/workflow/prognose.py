@@ -53,9 +53,13 @@ Pipeline of :func:`prognose` (every step a library function with its own tests):
    counted from ``at``, conditioned on the asset still running then (paths that crossed
    before ``at`` are dropped; their mass is reported in ``flags``).
 6. **Guard rails** (``flags``): a threshold far beyond the range seen since onset (more than 3
-   times the rise observed so far, in the model's measurement space), diverging paths, censored
-   mass above 5 %, few observations since onset, a last value beyond the threshold while the
-   median is not, a threshold that the median of 5 values reached before and fell back from.
+   times the rise observed so far in the model's measurement space, or more than 10 times the
+   highest excess over the healthy level in data units), diverging paths, censored mass above
+   5 %, few observations since onset, a last value beyond the threshold while the median is
+   not, a threshold that the median of 5 values reached before and fell back from, a series
+   whose last 5 values are back within one baseline std of the healthy mean (where the log
+   shapes have no measurement), and before onset a run of newest medians beyond the onset
+   limit that is still shorter than the 5 that declare onset ("onset pending").
    With ``direction="auto"`` a series that left its healthy band only on the side away from
    the threshold is refused as a threshold on the wrong side when its 5-value median has moved
    at least as far from the healthy mean as the threshold lies on the other side (a series
@@ -117,6 +121,8 @@ AUTO_POOL = ("exponential", "elm")
 #: Fewest observed values ``prognose`` accepts.
 MIN_POINTS = 10
 _K = 4.0  # healthy band and onset limit in baseline standard deviations
+#: Censored mass above which a result is flagged (its 95 % quantile is then unknown).
+CENSORED_FLAG = 0.05
 _MAX_BINS = 20_000
 
 
@@ -253,7 +259,7 @@ def _flags(fit, level_thr: float, passage, n_since: int, censored: float) -> lis
     div = float(passage.diverged.to(torch.float64).mean())
     if div > 0.01:
         out.append(f"diverging paths: {100 * div:.1f} % of the paths left every sensible range")
-    if censored > 0.05:
+    if censored > CENSORED_FLAG:
         out.append(
             f"censored: {100 * censored:.0f} % of the paths do not reach the threshold within "
             "the horizon"
@@ -263,6 +269,38 @@ def _flags(fit, level_thr: float, passage, n_since: int, censored: float) -> lis
             f"few data since onset ({n_since} values): the interval rests mostly on the prior"
         )
     return out
+
+
+def _beyond_the_data(y_on: Tensor, phi: float, thr_o: float, flags: list[str]) -> list[str]:
+    """The extrapolation flag in data units: a threshold more than 10 x as far above the
+    healthy level as the highest value since onset (in the log space of the shapes the
+    measurement-space rule of :func:`_flags` can miss a threshold 1000 x beyond the data)."""
+    seen = float((y_on - phi).max())
+    if (
+        seen <= 0
+        or (thr_o - phi) <= 10.0 * seen
+        or any(f.startswith("extrapolation") for f in flags)
+    ):
+        return []
+    return [
+        f"extrapolation: the threshold is {(thr_o - phi) / seen:.3g} times as far from the "
+        "healthy level as the highest value since onset (in data units); the RUL rests on the "
+        "model's shape far beyond the data"
+    ]
+
+
+def _onset_pending(medians: Tensor, limit: float, sign: float) -> list[str]:
+    """Before onset: the newest 5-value medians (oriented) above the onset limit, fewer than
+    the 5 in a row that declare onset."""
+    above = (medians >= limit).flip(0).to(torch.int64)
+    run = int(above.cumprod(0).sum())
+    if run == 0:
+        return []
+    return [
+        f"onset pending: the last {run} median(s) of 5 values lie beyond the onset limit "
+        f"{sign * limit:.4g} (healthy mean -+ {_K:g} std); onset is declared after 5 in a row, "
+        "so a degradation may be starting and the bound may not hold"
+    ]
 
 
 # ----------------------------------------------------------------------------- steps
@@ -309,8 +347,9 @@ def _away_from_threshold(
                 f"the band {other} it (onset at {away.time:g}, last value "
                 f"{float(x[-1]):.4g}; its median moved {gone:.4g} from the healthy mean "
                 f"{base.mean:.4g}, the threshold lies {dist:.4g} on the other side): the "
-                f"threshold looks to be on the wrong side; pass direction={direction!r} "
-                "to predict a crossing on that side regardless"
+                f"threshold looks to be on the wrong side; set direction={direction!r} "
+                f"(--direction {direction} on the command line) to predict a crossing on that "
+                "side regardless"
             )
         return [
             f"the series left its healthy band {other} it at {away.time:g}, away from the "
@@ -510,6 +549,7 @@ def prognose(
 
     reported = _on_input(ons, keep)
     if not ons.detected:
+        flags += _onset_pending(medians, sign * base.mean + _K * base.std, sign)
         return _no_degradation(t, yo, thr_o, sign, base, reported, gen, t_eval, span_life,
                                dt_data, filter, flags, common)  # fmt: skip
 
@@ -542,6 +582,13 @@ def prognose(
         )
     censored = float(dist.censored_mass)
     flags += _flags(fit, thr_o, passage, int(t_on.shape[0]), censored)
+    flags += _beyond_the_data(y_on, phi, thr_o, flags)
+    if chosen != "linear" and bool((y_on[-5:] - phi < noise0).all()):
+        flags.append(
+            "back at the healthy level: the last 5 values lie within one baseline std of the "
+            "healthy mean, where the log-shape trends have no measurement; the RUL extrapolates "
+            "the values before them and is doubtful (the degradation may have receded)"
+        )
     if block > 1:
         flags.append(f"{t_on.shape[0]} values since onset were averaged in blocks of {block}")
     paths = _uniform_paths(passage.paths, grid, t_eval, bin_width, bins, sign)
