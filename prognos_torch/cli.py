@@ -307,7 +307,8 @@ def _add_rul(sub) -> None:
     p.add_argument(
         "--direction",
         default="auto",
-        help="above, below or auto (above when the threshold exceeds the last value)",
+        help="above, below or auto (with a model file: above when the threshold exceeds the "
+        "last value; without one: the side of the healthy band the threshold lies on)",
     )
     p.add_argument("--horizon", type=int, default=200, help="steps predicted (default 200)")
     _add_data_options(p)

@@ -43,11 +43,15 @@ def run_prognose(args, series, data_cfg: dict, truth=None) -> str | None:
     """Run ``prognose`` on the loaded series and print the result (and write ``--plot``).
 
     Returns:
-        ``None``, or the sentence for the ``censored RUL:`` line when part of the distribution
-        lies beyond the horizon (the command then exits 3, as ``prognos rul MODEL DATA`` does).
+        ``None``, or the sentence for the ``censored RUL:`` line when more than 5 % of the
+        distribution lies beyond the horizon, so that its 95 % quantile is unknown (the command
+        then exits 3, as ``prognos rul MODEL DATA`` does for any censored mass: its horizon is
+        the user's, while ``prognose`` runs until every path crosses or a horizon long enough
+        for the model, and a few paths beyond it leave every reported quantile intact).
     """
     from .plots import plot_prognosis
     from .workflow import prognose
+    from .workflow.prognose import CENSORED_FLAG
 
     res = prognose(
         series,
@@ -97,7 +101,7 @@ def run_prognose(args, series, data_cfg: dict, truth=None) -> str | None:
         tr = None if truth is None else (truth.t, truth.values)
         plot_prognosis(args.plot, res, truth=tr)
         print(f"figure written to {args.plot}")
-    if res.status == "ok" and res.censored_mass > 0:
+    if res.status == "ok" and res.censored_mass > CENSORED_FLAG:
         return (
             f"{100 * res.censored_mass:.3g} % of the predicted paths do not reach the threshold "
             f"{res.threshold:g} within the horizon of {res.bound:g} {unit}; their RUL exceeds it "
