@@ -427,8 +427,9 @@ def test_block_means_end_at_the_newest_value():
 
 def test_pandas_and_datetime_input_give_the_array_result():
     """A pandas Series is taken by position (a filtered index is no time), a read-only pandas
-    array raises no warning, and date-times (NumPy, pandas, zone-aware, or a Series on a
-    DatetimeIndex) are days since the first: the RUL of the same data in days."""
+    array raises no warning, date-times (NumPy, pandas, zone-aware, or a Series on a
+    DatetimeIndex) are days since the first and durations (timedelta64, a pandas timedelta
+    Series or TimedeltaIndex) are days, not nanoseconds: the RUL of the same data in days."""
     import warnings
 
     import numpy as np
@@ -438,12 +439,16 @@ def test_pandas_and_datetime_input_give_the_array_result():
     n = 480
     ref = prognose(y[:n], 3.0, time=t[:n] / 144.0, method="exponential").summary()  # 10-min steps
     rows = pd.Series(y[:n].numpy(), index=np.arange(n) * 2 + 7, name="rms")  # filtered rows
-    stamps = pd.Timestamp("2004-02-12 10:32:39") + pd.to_timedelta(t[:n].numpy() * 10, unit="min")
+    since = pd.to_timedelta(t[:n].numpy() * 10, unit="min")
+    stamps = pd.Timestamp("2004-02-12 10:32:39") + since
     cases = {
         "datetime64": (rows.to_numpy(), {"time": stamps.to_numpy()}),
         "pandas series": (rows, {"time": pd.Series(stamps)}),
         "zone-aware": (rows, {"time": stamps.tz_localize("Europe/Berlin")}),
         "DatetimeIndex": (pd.Series(rows.to_numpy(), index=stamps, name="rms"), {}),
+        "timedelta64": (rows, {"time": since.to_numpy()}),
+        "timedelta series": (rows, {"time": pd.Series(since)}),
+        "TimedeltaIndex": (pd.Series(rows.to_numpy(), index=since, name="rms"), {}),
     }
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -462,6 +467,8 @@ def test_pandas_and_datetime_input_give_the_array_result():
         prognose(rows, 3.0, time=bad)
     with pytest.raises(TypeError, match="series must be numbers, got date-times"):
         prognose(pd.Series(stamps), 3.0)
+    with pytest.raises(TypeError, match="or durations"):
+        prognose(pd.Series(since), 3.0)
 
 
 def test_explicit_direction_predicts_on_its_side_of_a_series_degrading_the_other_way():

@@ -193,8 +193,8 @@ def array_values(v, name: str) -> np.ndarray:
     (missing). Raises ``TypeError`` naming ``name`` for anything else."""
     if isinstance(v, Tensor):
         return v.detach().to("cpu", torch.float64).numpy().copy()
-    if is_datetime(v):  # (pandas would give nanoseconds since 1970 as numbers)
-        raise TypeError(f"{name} must be numbers, got date-times ({v.dtype})")
+    if is_datetime(v) or is_duration(v):  # (pandas would give nanoseconds as numbers)
+        raise TypeError(f"{name} must be numbers, got date-times or durations ({v.dtype})")
     try:
         to_numpy = getattr(v, "to_numpy", None)
         if to_numpy is not None:  # pandas
@@ -213,10 +213,16 @@ def is_datetime(v) -> bool:
     return getattr(getattr(v, "dtype", None), "kind", None) == "M"
 
 
+def is_duration(v) -> bool:
+    """``v`` holds durations: NumPy ``timedelta64`` or a pandas timedelta Series or Index."""
+    return getattr(getattr(v, "dtype", None), "kind", None) == "m"
+
+
 def datetime_index(v):
-    """The ``DatetimeIndex`` of a pandas Series on one (the series' own time), else ``None``."""
+    """The ``DatetimeIndex`` or ``TimedeltaIndex`` of a pandas Series on one (the series' own
+    time), else ``None``."""
     index = getattr(v, "index", None)
-    return index if is_datetime(index) else None
+    return index if is_datetime(index) or is_duration(index) else None
 
 
 def pandas_name(v) -> str | None:
@@ -229,7 +235,14 @@ def array_times(v, name: str) -> tuple[np.ndarray, str | None, str | None]:
     """Times as float64: numbers as given (unit ``None``: the caller's), or date-times (NumPy
     ``datetime64``, a pandas datetime Series or ``DatetimeIndex``; zone-aware ones in UTC) as
     days since the first, with the unit ``"days"`` and the first as ISO 8601 text, as the CSV
-    reader gives them."""
+    reader gives them; durations (NumPy ``timedelta64``, pandas timedelta) in days, with the
+    unit ``"days"`` and no start (read as plain numbers they would be nanoseconds)."""
+    if is_duration(v):
+        ns = np.asarray(v).astype("timedelta64[ns]")
+        if np.isnat(ns).any():
+            where = _lines([int(i) for i in np.flatnonzero(np.isnat(ns))])
+            raise ValueError(f"{name} has missing durations (NaT) at index {where}")
+        return (ns / np.timedelta64(1, "D")).astype(np.float64), "days", None
     if not is_datetime(v):
         return array_values(v, name), None, None
     if getattr(v.dtype, "tz", None) is not None:  # pandas, zone-aware: to naive UTC
