@@ -313,6 +313,20 @@ def test_prognosis_figure_looks_as_far_as_the_bulk_of_the_rul_not_its_tail(tmp_p
     assert r.t_last + s["median"] < t1 <= r.t_last + max(3 * s["median"], shown) + 1e-9
     assert top.get_xlabel() == "time"
     assert s["median"] < pmf.get_xlim()[1] < s["q95"]
+    assert top.get_title().endswith(f"median RUL {s['median']:.3g} time (exponential+elm)")
+    heights = np.array([b.get_height() for b in pmf.patches])
+    full = np.flatnonzero(heights > 0)
+    assert np.mean(heights[full[0] : full[-1] + 1] == 0) <= 0.1  # no comb of empty bars
+    # before onset the bound is no forecast: the data keep the panel, the title says so
+    g = torch.Generator().manual_seed(0)
+    healthy = prognose(1.0 + 0.05 * torch.randn(2000, generator=g, dtype=torch.float64), 2.0)
+    assert healthy.status == "no degradation detected yet"
+    top = plot_prognosis(tmp_path / "h.png", healthy).axes[0]
+    shown = healthy.t_last - float(healthy.history.t[0])
+    assert top.get_xlim()[1] <= healthy.t_last + 0.25 * shown + 1e-9
+    assert (
+        "no degradation detected yet, RUL > " in top.get_title() and "None" not in top.get_title()
+    )
 
 
 # --------------------------------------------------------------------------- model files

@@ -34,11 +34,31 @@ def _reach(summary: dict, bound: float, shown: float) -> float:
     horizon when more than 5 % is censored), but no further than 3 x the median or the width of
     the history drawn, whichever is longer. A heavy right tail would otherwise squeeze the data,
     the median crossing and what followed into the left edge; the pmf panel and its censored
-    mass state the tail."""
+    mass state the tail. Without an RUL (no degradation yet) the bound is no forecast: the
+    figure looks a quarter of the history drawn ahead, or to the bound when it is nearer."""
+    if summary["status"] != "ok":
+        return max(min(bound, 0.25 * shown), 0.05 * shown)
     reach = summary["q95"] if summary["q95"] is not None else bound
     if summary["median"] is not None:
         reach = min(reach, max(3.0 * summary["median"], shown))
     return max(reach, 0.05 * shown)
+
+
+def _bars(sup: np.ndarray, pmf: np.ndarray, dt: float, upto: float):
+    """Histogram of the RUL pmf for drawing: bars of a whole number of RUL bins (1.5 bins a bar
+    would alternate 1 and 2: a comb), at least ``upto / 200`` wide, widened (doubling, up to
+    ``upto / 20``) while more than a tenth of the bars inside the mass are empty, as where the
+    paths' time grid is coarser than the RUL bins far ahead."""
+    k = max(1, math.ceil(upto / 200.0 / dt))
+    while True:
+        width = k * dt
+        edges = np.arange(0.5 * dt, upto + width, width)
+        hist, _ = np.histogram(sup, bins=edges, weights=pmf)
+        full = np.flatnonzero(hist > 0)
+        inside = hist[full[0] : full[-1] + 1] if full.size else hist
+        if full.size == 0 or np.mean(inside == 0) <= 0.1 or width * 2 > upto / 20.0:
+            return edges, hist
+        k *= 2
 
 
 def plot_prognosis(
@@ -100,9 +120,15 @@ def plot_prognosis(
     ax.set_ylim(lo_t - pad, hi_t + pad)
     ax.set_xlabel(time_label(h))
     ax.set_ylabel(h.name)
-    ax.legend(loc="upper left", fontsize=7)
-    med = "n/a" if s["median"] is None else f"{s['median']:.3g}"
-    ax.set_title(title or f"RUL at {result.t_last:g}: median {med} ({result.model})", fontsize=9)
+    ax.legend(loc="best", fontsize=7)
+    unit = result.time_unit
+    if result.status != "ok":
+        told = f"{result.status}, RUL > {s['bound']:.3g} {unit}"
+    elif s["median"] is None:
+        told = f"median RUL > {result.bound:.3g} {unit} ({result.model})"
+    else:
+        told = f"median RUL {s['median']:.3g} {unit} ({result.model})"
+    ax.set_title(title or f"at t = {result.t_last:g}: {told}", fontsize=9)
     if not own:
         return ax.figure
     d = result.distribution
@@ -110,9 +136,8 @@ def plot_prognosis(
         sup, pmf = as_numpy(d.support), as_numpy(d.pmf)
         upto = 1.5 * _reach(s, result.bound, result.t_last - t0)
         m = sup <= upto
-        width = max(result.dt, upto / 200.0)
-        edges = np.arange(0.0, upto + width, width)
-        hist, _ = np.histogram(sup[m], bins=edges, weights=pmf[m])
+        edges, hist = _bars(sup[m], pmf[m], result.dt, upto)
+        width = edges[1] - edges[0]
         bx.bar(edges[:-1], hist, width=width, align="edge", color="C0", alpha=0.7)
         for q, name in ((s["q05"], "q05"), (s["median"], "median"), (s["q95"], "q95")):
             if q is not None and q <= upto:
@@ -120,12 +145,12 @@ def plot_prognosis(
         bx.set_xlim(0.0, upto)
         q = [("n/a" if s[k] is None else f"{s[k]:.3g}") for k in ("median", "q05", "q95")]
         bx.text(0.98, 0.9, f"median {q[0]}, 90 % [{q[1]}, {q[2]}]\n"
-                f"P(RUL > {result.bound:.3g}) = {result.censored_mass:.2f}",
+                f"P(RUL > {result.bound:.3g} {unit}) = {result.censored_mass:.2f}",
                 transform=bx.transAxes, ha="right", va="top", fontsize=8)  # fmt: skip
     else:
         bx.text(0.5, 0.5, f"{result.status}: RUL > {s['bound']:.3g} {result.time_unit}",
                 transform=bx.transAxes, ha="center")  # fmt: skip
-    bx.set_xlabel(f"RUL ({result.time_unit})")
+    bx.set_xlabel(f"RUL ({unit})")
     bx.set_ylabel("probability")
     return write_png(fig, path)
 
