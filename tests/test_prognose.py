@@ -369,6 +369,7 @@ def test_series_input():
         ({"threshold": 3.0, "at": 10.0}, "before the last observation"),
         ({"threshold": math.nan}, "finite number"),
         ({"threshold": 3.0, "direction": "up"}, "direction"),
+        ({"threshold": 3.0, "learner_hidden": 0}, "learner_hidden must be an int >= 1"),
     ],
 )
 def test_bad_input(kwargs, match):
@@ -534,3 +535,22 @@ def test_cuda_series_gives_the_cpu_result():
     assert torch.allclose(got.rul_samples, ref.rul_samples, equal_nan=True, rtol=0, atol=0)
     s = Series(y[:480].cuda(), t[:480].cuda())
     assert torch.equal(prognose(s, 3.0).rul_samples.isnan(), ref.rul_samples.isnan())
+
+
+def test_learner_hidden_sets_the_learner_trend_width(monkeypatch):
+    # the ELM of the learner trend gets the hidden nodes asked for (default 10)
+    import sys
+
+    module = sys.modules["prognos_torch.workflow.prognose"]
+    seen = []
+    real = module.fit_learner_trend
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs["n_hidden"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(module, "fit_learner_trend", spy)
+    t, y = _series(noise_after=0.05)
+    prognose(y[:480], 3.0, time=t[:480], method="elm")
+    prognose(y[:480], 3.0, time=t[:480], method="elm", learner_hidden=40)
+    assert seen == [10, 40]
