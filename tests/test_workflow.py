@@ -115,6 +115,9 @@ def test_load_series_gaps_fill_and_errors(tmp_path):
     _write_csv(path, ("t", "x"), [(0, 1.0), (2, 2.0), (1, 3.0)])
     with pytest.raises(ValueError, match=r"line 4: time column 't' must be strictly increasing"):
         load_series(path, "x", time_column="t")
+    _write_csv(path, ("t", "ch", "x"), [(0, 1, 1.0), (0, 2, 1.1), (1, 1, 3.0), (1, 2, 3.1)])
+    with pytest.raises(ValueError, match=r"\(0 follows 0\); a repeated time: .* --where COL="):
+        load_series(path, "x", time_column="t")  # a long table: two channels in one file
     with pytest.raises(ValueError, match="fill must be None, 'linear' or 'drop'"):
         load_series(path, "x", fill="spline")
     with pytest.raises(ValueError, match=r"source must be 1-D"):

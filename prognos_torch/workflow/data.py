@@ -448,9 +448,15 @@ def _finish(values, time, name, time_name, unit, start, source, lines=None) -> S
             where = f"line {lines[i + 1]}" if lines is not None else f"index {i + 1}"
             what = f"time column {time_name!r}" if time_name else "time"
             prefix = f"{source}, " if source else ""
+            hint = ""
+            if source and time[i + 1] == time[i]:  # a long table: several series in one file
+                hint = (
+                    "; a repeated time: if the file holds several series, select one with "
+                    "--where COL=VALUE (where={COL: VALUE} in load_series)"
+                )
             raise ValueError(
                 f"{prefix}{where}: {what} must be strictly increasing ({time[i + 1]:g} follows "
-                f"{time[i]:g})"
+                f"{time[i]:g}){hint}"
             )
     return Series(
         values=torch.as_tensor(values, dtype=torch.float64).clone(),
