@@ -470,6 +470,17 @@ def test_pandas_and_datetime_input_give_the_array_result():
         prognose(pd.Series(stamps), 3.0)
     with pytest.raises(TypeError, match="or durations"):
         prognose(pd.Series(since), 3.0)
+    # at as a date-time on a date-time series: the same as the number of days
+    on_index = pd.Series(rows.to_numpy(), index=stamps, name="rms")
+    later = stamps[-1] + pd.Timedelta(hours=6)
+    in_days = float(t[n - 1]) / 144.0 + 0.25
+    ref_at = prognose(y[:n], 3.0, time=t[:n] / 144.0, method="exponential", at=in_days)
+    for at in (later, later.isoformat(), later.to_datetime64()):
+        got = prognose(on_index, 3.0, method="exponential", at=at)
+        assert got.t_last == pytest.approx(in_days, abs=1e-9)
+        assert got.summary()["median"] == pytest.approx(ref_at.summary()["median"], rel=1e-9)
+    with pytest.raises(ValueError, match="at=.* is a date-time but the series' time does not"):
+        prognose(y[:n], 3.0, at=later)
 
 
 def test_explicit_direction_predicts_on_its_side_of_a_series_degrading_the_other_way():

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..core.validation import check_real
 from ..io import sniffed_csv
 
 __all__ = ["Series", "load_series", "parse_where", "FILL_METHODS", "MAX_ABS_VALUE"]
@@ -412,7 +413,7 @@ def load_series(
     if until is not None:
         if tarr is None:
             raise ValueError("until needs a time axis: pass time=...")
-        keep = tarr <= _until_value(until, start)
+        keep = tarr <= time_value(until, start, "until")
         arr, tarr = arr[keep], tarr[keep]
     if last is not None:
         arr = arr[-last:]
@@ -469,35 +470,40 @@ def _finish(values, time, name, time_name, unit, start, source, lines=None) -> S
     )
 
 
-def _until_value(until, start: str | None) -> float:
-    """``until`` as a number on the series' time axis (days since ``start`` for date-times)."""
-    if isinstance(until, bool):
-        raise ValueError(f"until must be a number or an ISO 8601 date-time, got {until!r}")
-    if isinstance(until, (int, float)):
-        if not math.isfinite(until):
-            raise ValueError(f"until must be finite, got {until!r}")
-        return float(until)
-    if isinstance(until, str):
+def time_value(v, start: str | None, name: str) -> float:
+    """A time on a series' axis as a float: a number (Python, NumPy or a 0-dim tensor; text
+    holding a number) as given, or, when the series' time holds date-times (``start`` set), a
+    date-time (ISO 8601 text, NumPy ``datetime64``, a pandas ``Timestamp`` or ``datetime``;
+    zone-aware ones in UTC) as days since ``start``. Refusals are ``ValueError`` naming
+    ``name``."""
+    if isinstance(v, str):
         try:
-            value = float(until)
+            v = float(v)
         except ValueError:
-            value = None
-        if value is not None:
-            if not math.isfinite(value):
-                raise ValueError(f"until must be finite, got {until!r}")
-            return value
-        if start is None:
-            raise ValueError(
-                f"until={until!r} is a date-time but the time column does not hold date-times"
-            )
+            pass
+    stamp = None
+    if isinstance(v, str):
         try:
-            stamp = datetime_ns(until)
+            stamp = datetime_ns(v)
         except ValueError:
             raise ValueError(
-                f"until must be a number or an ISO 8601 date-time, got {until!r}"
+                f"{name} must be a number or an ISO 8601 date-time, got {v!r}"
             ) from None
-        return float((stamp - datetime_ns(start)) / np.timedelta64(1, "D"))
-    raise ValueError(f"until must be a number or an ISO 8601 date-time, got {until!r}")
+    elif isinstance(v, np.datetime64):
+        stamp = v.astype("datetime64[ns]")
+    elif hasattr(v, "isoformat") and hasattr(v, "year"):  # datetime, pandas Timestamp
+        stamp = datetime_ns(v.isoformat())
+    if stamp is None:
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ValueError(f"{name} must be finite, got {v!r}")
+        return check_real(v, name)
+    if start is None:
+        raise ValueError(
+            f"{name}={v!r} is a date-time but the series' time does not hold date-times"
+        )
+    if np.isnat(stamp):
+        raise ValueError(f"{name} is a missing date-time (NaT)")
+    return float((stamp - datetime_ns(start)) / np.timedelta64(1, "D"))
 
 
 def _load_csv(path, column, time_column, where, fill, last, until) -> Series:
@@ -545,7 +551,7 @@ def _load_csv(path, column, time_column, where, fill, last, until) -> Series:
     if until is not None:
         if time is None:
             raise ValueError("until needs a time column (time_column=...)")
-        keep = time <= _until_value(until, start)
+        keep = time <= time_value(until, start, "until")
         if not keep.any():
             raise ValueError(f"{path}: no data rows at or before until={until!r}")
         cells = [c for c, k in zip(cells, keep) if k]

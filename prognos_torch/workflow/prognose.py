@@ -102,7 +102,7 @@ from ..prognosis.onset import (
 )
 from ..prognosis.rul import RULDistribution
 from ..prognosis.trends import TREND_SHAPES, Passage, fit_trends, path_grid
-from .data import Series, array_times, array_values, datetime_index, pandas_name
+from .data import Series, array_times, array_values, datetime_index, pandas_name, time_value
 from .predict import RULResult
 
 __all__ = [
@@ -440,7 +440,7 @@ def prognose(
     method: str = "auto",
     seed: int = 0,
     direction: str = "auto",
-    at: float | None = None,
+    at: float | str | None = None,
     baseline: float | Baseline = 0.3,
     onset: str = "ksigma",
     n_paths: int = 2000,
@@ -472,7 +472,9 @@ def prognose(
             threshold is on; a series that has left its healthy band only on the other side,
             by at least the threshold's distance from the healthy mean, is then refused as a
             threshold on the wrong side; a smaller excursion is flagged).
-        at: evaluation time ``>= `` the last observation (default: the last observation).
+        at: evaluation time ``>=`` the last observation (default: the last observation): a
+            number on the series' time axis, or for a series timed by date-times a date-time
+            (ISO 8601 text, ``datetime64``, pandas ``Timestamp``, ``datetime``).
         baseline: the healthy window as a fraction of the time span, or a
             :class:`~prognos_torch.prognosis.onset.Baseline` (data units). Onset is searched
             after the window's end (``Baseline.t_end``).
@@ -519,7 +521,7 @@ def prognose(
             "(a healthy baseline and a trend)"
         )
     t_last = float(t[-1])
-    t_eval = t_last if at is None else check_real(at, "at")
+    t_eval = t_last if at is None else time_value(at, src.start if src else None, "at")
     if t_eval < t_last:
         raise ValueError(f"at = {t_eval:g} is before the last observation {t_last:g}")
     base = baseline if isinstance(baseline, Baseline) else healthy_baseline(x, t, fraction=baseline)
