@@ -488,7 +488,8 @@ def prognose(
             ``"stekf"`` or :func:`~prognos_torch.prognosis.trends.strong_tracking_filter` add
             strong tracking (paper 000), which widens the posterior after jumps.
         max_points: values since onset above which block means are used.
-        learner_hidden: hidden nodes of the learner trend's ELM (:func:`fit_learner_trend`):
+        learner_hidden: hidden nodes of the learner trend's ELM
+            (:func:`~prognos_torch.prognosis.learner_trend.fit_learner_trend`):
             more average over more random features (40 halve the seeds that flip a point
             between finite and censored, 13 -> 5 of 250, at twice the learner's cost).
 
