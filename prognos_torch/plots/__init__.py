@@ -1,8 +1,8 @@
 """Figures: one home for every plot of the library, the studies and the workflow.
 
 Every function draws on a fresh :class:`matplotlib.figure.Figure` (Agg canvas, no pyplot state,
-no window), writes a PNG to ``path`` atomically (never half-written) and returns the figure. Inputs may be tensors (any device)
-or array-likes.
+no window), writes a PNG to ``path`` atomically (never half-written) and returns the figure.
+Inputs may be tensors (any device) or array-likes.
 
 * :mod:`.figures`: predictions, fading factors, fault probabilities, RUL distributions,
   alpha-lambda charts, training curves;

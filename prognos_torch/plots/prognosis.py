@@ -97,7 +97,8 @@ def plot_prognosis(
     keep = th >= t0
     ax.plot(th[keep], yh[keep], ".", ms=2, color="0.2", label="observed")
     s = result.summary()
-    t_end = result.t_last + _reach(s, result.bound, result.t_last - t0)
+    reach = _reach(s, result.bound, result.t_last - t0)
+    t_end = result.t_last + reach
     if truth is not None:
         tt, yt = as_numpy(truth[0]), as_numpy(truth[1])
         sel = (tt > result.t_last) & (tt <= t_end)
@@ -134,7 +135,7 @@ def plot_prognosis(
     d = result.distribution
     if result.status == "ok":
         sup, pmf = as_numpy(d.support), as_numpy(d.pmf)
-        upto = 1.5 * _reach(s, result.bound, result.t_last - t0)
+        upto = 1.5 * reach
         m = sup <= upto
         edges, hist = _bars(sup[m], pmf[m], result.dt, upto)
         width = edges[1] - edges[0]
@@ -148,7 +149,7 @@ def plot_prognosis(
                 f"P(RUL > {result.bound:.3g} {unit}) = {result.censored_mass:.2f}",
                 transform=bx.transAxes, ha="right", va="top", fontsize=8)  # fmt: skip
     else:
-        bx.text(0.5, 0.5, f"{result.status}: RUL > {s['bound']:.3g} {result.time_unit}",
+        bx.text(0.5, 0.5, f"{result.status}: RUL > {s['bound']:.3g} {unit}",
                 transform=bx.transAxes, ha="center")  # fmt: skip
     bx.set_xlabel(f"RUL ({unit})")
     bx.set_ylabel("probability")
