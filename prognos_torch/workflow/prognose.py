@@ -271,22 +271,34 @@ def _flags(fit, level_thr: float, passage, n_since: int, censored: float) -> lis
     return out
 
 
-def _beyond_the_data(y_on: Tensor, phi: float, thr_o: float, flags: list[str]) -> list[str]:
-    """The extrapolation flag in data units: a threshold more than 10 x as far above the
-    healthy level as the highest value since onset (in the log space of the shapes the
-    measurement-space rule of :func:`_flags` can miss a threshold 1000 x beyond the data)."""
+def _beyond_the_data(
+    y_on: Tensor, phi: float, sigma0: float, thr_o: float, chosen: str, flags: list[str]
+) -> list[str]:
+    """Flags of the data since onset (oriented ``y_on``) that the fits cannot see.
+
+    * The extrapolation flag in data units: a threshold more than 10 x as far above the
+      healthy level as the highest value since onset (in the log space of the shapes the
+      measurement-space rule of :func:`_flags` can miss a threshold 1000 x beyond the data).
+    * Back at the healthy level: the last 5 values within ``sigma0`` of it, where the log
+      shapes have no measurement (``y - phi < sigma0`` is missing), so their RUL extrapolates
+      the values before them.
+    """
+    out = []
     seen = float((y_on - phi).max())
-    if (
-        seen <= 0
-        or (thr_o - phi) <= 10.0 * seen
-        or any(f.startswith("extrapolation") for f in flags)
-    ):
-        return []
-    return [
-        f"extrapolation: the threshold is {(thr_o - phi) / seen:.3g} times as far from the "
-        "healthy level as the highest value since onset (in data units); the RUL rests on the "
-        "model's shape far beyond the data"
-    ]
+    far = seen > 0 and (thr_o - phi) > 10.0 * seen
+    if far and not any(f.startswith("extrapolation") for f in flags):
+        out.append(
+            f"extrapolation: the threshold is {(thr_o - phi) / seen:.3g} times as far from the "
+            "healthy level as the highest value since onset (in data units); the RUL rests on "
+            "the model's shape far beyond the data"
+        )
+    if chosen != "linear" and bool((y_on[-5:] - phi < sigma0).all()):
+        out.append(
+            "back at the healthy level: the last 5 values lie within one baseline std of the "
+            "healthy mean, where the log-shape trends have no measurement; the RUL extrapolates "
+            "the values before them and is doubtful (the degradation may have receded)"
+        )
+    return out
 
 
 def _onset_pending(medians: Tensor, limit: float, sign: float) -> list[str]:
@@ -598,13 +610,7 @@ def prognose(
         )
     censored = float(dist.censored_mass)
     flags += _flags(fit, thr_o, passage, int(t_on.shape[0]), censored)
-    flags += _beyond_the_data(y_on, phi, thr_o, flags)
-    if chosen != "linear" and bool((y_on[-5:] - phi < noise0).all()):
-        flags.append(
-            "back at the healthy level: the last 5 values lie within one baseline std of the "
-            "healthy mean, where the log-shape trends have no measurement; the RUL extrapolates "
-            "the values before them and is doubtful (the degradation may have receded)"
-        )
+    flags += _beyond_the_data(y_on, phi, noise0, thr_o, chosen, flags)
     if block > 1:
         flags.append(f"{t_on.shape[0]} values since onset were averaged in blocks of {block}")
     paths = _uniform_paths(passage.paths, grid, t_eval, bin_width, bins, sign)
