@@ -284,6 +284,8 @@ def _add_rul(sub) -> None:
         "  prognos rul data.csv --column rms --time-column timestamp --threshold 0.45\n"
         "      (no model file: degradation onset, trend models chosen by backtest, RUL paths;\n"
         "       see prognos_torch.workflow.prognose)\n"
+        "  prognos rul data.csv --column rms --time-column timestamp --threshold 0.45 --within 7\n"
+        "      (also P(failure within 7 days), e.g. before the next inspection)\n"
         "  prognos rul datasets/ims/test1_features.csv --column rms --where channel=5 \\\n"
         "      --time-column timestamp --threshold 0.45 --until 2003-11-25T00:00:00\n"
         "  prognos rul model.pt data.csv --threshold 0.8 --plot rul.png\n"
@@ -311,6 +313,13 @@ def _add_rul(sub) -> None:
         "last value; without one: the side of the healthy band the threshold lies on)",
     )
     p.add_argument("--horizon", type=int, default=200, help="steps predicted (default 200)")
+    p.add_argument(
+        "--within",
+        type=float,
+        metavar="SPAN",
+        help="also print P(failure within SPAN), SPAN in the RUL's time unit (an inspection "
+        "interval, say)",
+    )
     _add_data_options(p)
     _add_prediction_options(p, "stpf")
     # None: not given (prognose, without a model file, refuses these; with one, the defaults)
@@ -628,6 +637,9 @@ def _cmd_rul(args) -> int:
         seed=args.seed,
     )
     unit, s = res.time_unit, res.summary()
+    within = [] if args.within is None else [
+        (f"P(failure within {args.within:g} {unit})", res.failure_probability(args.within))
+    ]  # fmt: skip
     cm = res.censored_mass
     mean = s["mean"]
     if mean is None:
@@ -650,6 +662,7 @@ def _cmd_rul(args) -> int:
                 (f"5 % quantile ({unit})", s["q05"]),
                 (f"95 % quantile ({unit})", s["q95"]),
             ]
+            + within
             + (
                 [("observed RUL (" + unit + ")", _observed_rul(res, truth))]
                 if truth is not None

@@ -62,6 +62,8 @@ def run_prognose(args, series, data_cfg: dict, truth=None) -> str | None:
         n_paths=args.paths,
     )
     unit, s = res.time_unit, res.summary()
+    # read before anything is printed: a --within beyond the horizon is refused whole
+    p_within = None if args.within is None else res.failure_probability(args.within)
     where = data_cfg.get("where") or {}
     sel = f" ({', '.join(f'{k}={v}' for k, v in where.items())})" if where else ""
     print(
@@ -87,6 +89,13 @@ def run_prognose(args, series, data_cfg: dict, truth=None) -> str | None:
         ]
     else:
         rows += [(f"lower bound if it stays healthy ({unit})", _fmt(s["bound"]))]
+    if args.within is not None:
+        rows.append(
+            (
+                f"P(failure within {args.within:g} {unit})",
+                f"{p_within:.3f}" if p_within is not None else f"n/a ({res.status})",
+            )
+        )
     if truth is not None:
         obs = observed_rul(truth, res.t_last, res.threshold, res.direction)
         rows.append(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import pytest
 import torch
 
 from prognos_torch.cli import main
@@ -29,6 +30,15 @@ def test_rul_from_the_ims_table_with_until(capsys, tmp_path):
     assert "degradation onset" in out and "33.959" in out
     assert "trend model" in out and "90 % interval" in out and "censored mass" in out
     assert re.search(r"observed RUL \(days\)\s+0\.4392", out)
+    # --within: the planner's probability, the distribution's own P(RUL <= 0.5 d)
+    from prognos_torch.workflow import load_series, prognose
+
+    s = load_series(IMS, "rms", time_column="timestamp", where={"channel": 5},
+                    until="2003-11-25T13:00:00")  # fmt: skip
+    p = prognose(s, 0.45).failure_probability(0.5)
+    assert main(args + ["--within", "0.5"]) == 3
+    got = re.search(r"P\(failure within 0\.5 days\)\s+([0-9.]+)", capsys.readouterr().out)
+    assert got and float(got.group(1)) == pytest.approx(p, abs=5e-4) and 0 < p < 1
     assert (tmp_path / "rul.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -41,6 +51,10 @@ def test_no_degradation_is_said_plainly(capsys, tmp_path):
     out = capsys.readouterr().out
     assert "no degradation detected yet" in out and "lower bound" in out
     assert "median RUL" not in out
+    assert main(["rul", str(path), "--column", "value", "--time-column", "t", "--threshold",
+                 "2", "--within", "10"]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert re.search(r"P\(failure within 10 t\)\s+n/a \(no degradation detected yet\)", out)
 
 
 def test_bad_input_is_one_line_and_exit_2(capsys, tmp_path):

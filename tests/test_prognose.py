@@ -48,6 +48,37 @@ def test_noiseless_exponential_rul_equals_the_closed_form():
     assert s["bound"] >= 2.0 * float(t[-1] - t[0])
 
 
+def test_failure_probability_reads_the_rul_distribution():
+    """P(RUL <= h) from the distribution's cdf equals the count of paths whose RUL bin lies
+    within h (an independent route, over the per-path RULs), is consistent with the summary's
+    quantiles, and brackets the closed-form crossing of the noiseless exponential model."""
+    t, y = _series()
+    res = prognose(y, 3.0, time=t, method="exponential", at=float(t[-1]) + 3.5)
+    s, true = res.summary(), _crossing(3.0) - (float(t[-1]) + 3.5)
+    x = res.rul_samples[~torch.isnan(res.rul_samples)]  # paths alive at ``at``
+    binned = torch.ceil(x / res.dt - 1e-9) * res.dt
+    for h in (0.0, 0.5 * true, 0.95 * true, true, 1.05 * true, 2.0 * true, res.bound):
+        assert res.failure_probability(h) == pytest.approx(
+            float((binned <= h + 1e-9).double().mean()), abs=1e-12
+        )
+    assert (
+        res.failure_probability(s["median"]) >= 0.5 > res.failure_probability(s["median"] - res.dt)
+    )
+    assert res.failure_probability(s["q05"]) >= 0.05
+    assert res.failure_probability(0.7 * true) < 0.05 < 0.95 < res.failure_probability(1.3 * true)
+    with pytest.raises(ValueError, match="within must be >= 0"):
+        res.failure_probability(-1.0)
+    with pytest.raises(ValueError, match="within must be a finite number"):
+        res.failure_probability(float("nan"))
+    # before onset nothing is estimated; beyond the horizon only a lower bound is known
+    flat = prognose(y[:300], 3.0, time=t[:300])
+    assert flat.status != "ok" and flat.failure_probability(5.0) is None
+    cens = prognose(y, 1e6, time=t, method="linear")  # nearly every path censored
+    assert cens.censored_mass > 0.5 and cens.failure_probability(cens.bound) < 0.5
+    with pytest.raises(ValueError, match="beyond the horizon bound"):
+        cens.failure_probability(2.0 * cens.bound)
+
+
 def test_auto_pools_exponential_and_learner_and_reports_the_scores():
     t, y = _series(noise_after=0.05)
     res = prognose(y, 3.0, time=t)

@@ -20,6 +20,7 @@ import torch
 from prognos_torch.cli import main
 from prognos_torch.datasets import default_data_dir
 from prognos_torch.workflow import forecast, load_model, load_series
+from prognos_torch.workflow import rul as rul_fn
 
 IMS = default_data_dir() / "test1_features.csv"
 
@@ -123,6 +124,17 @@ def test_cli_on_the_shipped_ims_table(tmp_path, capsys):
     assert "median RUL (days)" in lines and "observed RUL (days)" in lines
     median = float(lines["median RUL (days)"].split()[-1])
     assert 0 < median <= 150 * 10 / 1440 + 1e-9  # within the horizon (10-minute steps)
+    # --within: P(RUL <= 0.5 d) of the same distribution; beyond the horizon it is refused
+    # before anything is printed when paths are censored
+    series = load_series(IMS, "rms", time_column="timestamp", where={"channel": 5}, until=33.3)
+    ref = rul_fn(load_model(model), series, 0.18, horizon=150, filter="pf", n_particles=100,
+                 filter_steps=20)  # fmt: skip
+    assert main(rul + ["--within", "0.5"]) == 0
+    out = capsys.readouterr().out
+    row = [ln for ln in out.splitlines() if ln.startswith("P(failure within 0.5 days)")]
+    assert row and float(row[0].split()[-1]) == pytest.approx(
+        ref.failure_probability(0.5), rel=1e-3, abs=1e-4
+    )
 
 
 @pytest.mark.parametrize(

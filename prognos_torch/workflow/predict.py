@@ -42,7 +42,7 @@ import torch
 from torch import Tensor
 
 from ..core.belief import GaussianBelief
-from ..core.validation import check_count
+from ..core.validation import check_count, check_real
 from ..filters import make_filter, make_particle_filter
 from ..filters import run as run_filter
 from ..learners import LSSVR
@@ -183,6 +183,39 @@ class RULResult:
     def bound(self) -> float:
         """``horizon * dt``: the censored mass has RUL beyond this."""
         return self.horizon * self.dt
+
+    def failure_probability(self, within: float) -> float | None:
+        """``P(RUL <= within)``: the probability that the threshold is reached within
+        ``within`` time units (``time_unit``) of ``t_last``, the question a maintenance
+        planner asks of the next inspection window.
+
+        Read from the distribution's cdf at its largest support point ``k dt <= within``: the
+        grid on which :meth:`summary`'s quantiles lie, so that ``failure_probability(median)
+        >= 0.5`` and ``failure_probability(q05) >= 0.05`` hold exactly. Censored paths count
+        as not failed; within ``bound`` that is exact.
+
+        Returns:
+            a probability in [0, 1]; ``None`` when no distribution is estimated
+            (``status`` other than ``"ok"``, e.g. before onset: only ``bound`` is known).
+
+        Raises:
+            ValueError: ``within`` is not a finite number >= 0, or lies beyond ``bound`` while
+                mass is censored (there only ``P >= crossing_probability`` is known).
+        """
+        h = check_real(within, "within")
+        if h < 0:
+            raise ValueError(f"within must be >= 0 (a time span in {self.time_unit}), got {h:g}")
+        if self.status != "ok":
+            return None
+        d = self.distribution
+        if h > self.bound and self.censored_mass > 0:
+            raise ValueError(
+                f"within = {h:g} {self.time_unit} lies beyond the horizon bound "
+                f"{self.bound:g} {self.time_unit} while {100 * self.censored_mass:.3g} % of the "
+                f"paths are censored: only P >= {self.crossing_probability:.4g} is known there"
+            )
+        k = min(d.horizon, math.floor(h / d.dt + 1e-9))  # support points dt * (1..k) <= within
+        return 0.0 if k == 0 else min(1.0, max(0.0, float(d.cdf[k - 1])))
 
     def summary(self) -> dict:
         """Mean (Eq. 28, only when nothing is censored), median and the 5/95 % quantiles (a
