@@ -94,28 +94,6 @@ def test_auto_pools_exponential_and_learner_and_reports_the_scores():
     assert lo - 5 <= res.summary()["median"] <= hi + 5
 
 
-def test_pooled_passage_splits_the_paths():
-    from prognos_torch.prognosis.trends import Passage
-    from prognos_torch.workflow.prognose import _pooled_passage
-
-    class Fake:
-        def __init__(self, value):
-            self.value = value
-
-        def first_passage(self, index, level, grid, n, gen, *, keep=0):
-            return Passage(torch.full((n,), self.value, dtype=F64),
-                           torch.full((keep, grid.numel()), self.value, dtype=F64),
-                           torch.zeros(n, dtype=torch.bool))  # fmt: skip
-
-    grid = torch.arange(1.0, 4.0, dtype=F64)
-    p = _pooled_passage([Fake(1.0), Fake(2.0)], 0.0, grid, 2001, None)
-    assert p.times.shape == (2001,) and p.diverged.shape == (2001,)
-    assert int((p.times == 1.0).sum()) == 1001 and int((p.times == 2.0).sum()) == 1000
-    assert p.paths.shape == (100, 3) and float(p.paths[:50].max()) == 1.0
-    one = _pooled_passage([Fake(3.0)], 0.0, grid, 10, None)
-    assert one.paths.shape == (100, 3) and one.times.shape == (10,)
-
-
 def test_auto_flags_model_doubt_on_linear_wear():
     t = torch.arange(800, dtype=F64)
     g = torch.Generator().manual_seed(1)
@@ -401,6 +379,7 @@ def test_series_input():
         ({"threshold": math.nan}, "finite number"),
         ({"threshold": 3.0, "direction": "up"}, "direction"),
         ({"threshold": 3.0, "learner_hidden": 0}, "learner_hidden must be an int >= 1"),
+        ({"threshold": 3.0, "learner_members": 0}, "learner_members must be an int >= 1"),
     ],
 )
 def test_bad_input(kwargs, match):
@@ -579,20 +558,22 @@ def test_cuda_series_gives_the_cpu_result():
     assert torch.equal(prognose(s, 3.0).rul_samples.isnan(), ref.rul_samples.isnan())
 
 
-def test_learner_hidden_sets_the_learner_trend_width(monkeypatch):
-    # the ELM of the learner trend gets the hidden nodes asked for (default 10)
+def test_learner_hidden_and_members_set_the_learner_ensemble(monkeypatch):
+    # the learner trend is an ensemble of 4 ELMs of 10 hidden nodes unless asked otherwise
     import sys
 
     module = sys.modules["prognos_torch.workflow.prognose"]
     seen = []
-    real = module.fit_learner_trend
+    real = module.fit_learner_trends
 
     def spy(*args, **kwargs):
-        seen.append(kwargs["n_hidden"])
+        seen.append((kwargs["n_hidden"], kwargs["members"], kwargs["seed"]))
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(module, "fit_learner_trend", spy)
+    monkeypatch.setattr(module, "fit_learner_trends", spy)
     t, y = _series(noise_after=0.05)
     prognose(y[:480], 3.0, time=t[:480], method="elm")
-    prognose(y[:480], 3.0, time=t[:480], method="elm", learner_hidden=40)
-    assert seen == [10, 40]
+    res = prognose(y[:480], 3.0, time=t[:480], method="elm", learner_hidden=40,
+                   learner_members=2, seed=3)  # fmt: skip
+    assert seen == [(10, 4, 0), (40, 2, 3)]
+    assert res.model == "elm" and res.rul_samples.shape == (2000,)

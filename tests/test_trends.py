@@ -14,6 +14,7 @@ from prognos_torch.filters import ekf, run
 from prognos_torch.prognosis import (
     TrendNoise,
     fit_learner_trend,
+    fit_learner_trends,
     fit_trends,
     local_trend_model,
     path_grid,
@@ -240,6 +241,34 @@ def test_learner_snapshots_follow_the_data_order():
     assert 29 in lt2.snapshots and int(lt2.seen[-1]) == 60
 
 
+def test_learner_ensemble_members_are_the_single_learners_of_their_seeds():
+    """fit_learner_trends: member j is fit_learner_trend with features of seed
+    ``seed * members + j``; the ensemble's paths are the members' paths, an equal share each,
+    drawn in member order from one generator; one member is the single learner itself."""
+    fit = _fixed_learner(60).level_fit
+    kw = dict(max_steps=10_000, snapshots=(29,))
+    grid = path_grid(4.0, 20.0, 0.01, rel=0.005)
+    ens = fit_learner_trends(fit, members=3, seed=2, **kw)
+    singles = [fit_learner_trend(fit, seed=6 + j, **kw) for j in range(3)]
+    for m, one in zip(ens.members, singles):
+        torch.testing.assert_close(m.parameter_belief(29).mean, one.parameter_belief(29).mean,
+                                   rtol=0, atol=0)  # fmt: skip
+    got = ens.first_passage(29, 2.0, grid, 100, torch.Generator().manual_seed(5))
+    g = torch.Generator().manual_seed(5)
+    ref = torch.cat([one.first_passage(29, 2.0, grid, n, g).times
+                     for one, n in zip(singles, (34, 33, 33))])  # fmt: skip
+    torch.testing.assert_close(got.times, ref, rtol=0, atol=0)
+    solo = fit_learner_trends(fit, members=1, seed=4, **kw).first_passage(
+        -1, 2.0, grid, 50, torch.Generator().manual_seed(1)
+    )
+    ref1 = fit_learner_trend(fit, seed=4, **kw).first_passage(
+        -1, 2.0, grid, 50, torch.Generator().manual_seed(1)
+    )
+    torch.testing.assert_close(solo.times, ref1.times, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="members must be an int >= 1"):
+        fit_learner_trends(fit, members=0)
+
+
 def test_bad_input():
     t, y = _degradation(gaps=False)
     with pytest.raises(ValueError, match="shape"):
@@ -253,3 +282,32 @@ def test_bad_input():
     fit = fit_trends(t, y, phi=1.0, sigma0=0.1, filter="ekf")["linear"]
     with pytest.raises(ValueError, match="after the origin"):
         fit.first_passage(-1, 10.0, t[:5], 10, torch.Generator())
+
+
+def test_trend_pool_splits_the_paths_evenly():
+    from prognos_torch.prognosis.trends import Passage, TrendPool
+
+    class Fake:
+        def __init__(self, value):
+            self.value = value
+
+        def first_passage(self, index, level, grid, n, gen, *, keep=0):
+            return Passage(torch.full((n,), self.value, dtype=F64),
+                           torch.full((keep, grid.numel()), self.value, dtype=F64),
+                           torch.zeros(n, dtype=torch.bool))  # fmt: skip
+
+    grid = torch.arange(1.0, 4.0, dtype=F64)
+    p = TrendPool((Fake(1.0), Fake(2.0))).first_passage(-1, 0.0, grid, 2001, None, keep=101)
+    assert p.times.shape == (2001,) and p.diverged.shape == (2001,)
+    assert int((p.times == 1.0).sum()) == 1001 and int((p.times == 2.0).sum()) == 1000
+    assert p.paths.shape == (101, 3) and float(p.paths[:51].max()) == 1.0
+    assert float(p.paths[51:].min()) == 2.0
+    one = TrendPool((Fake(3.0),)).first_passage(-1, 0.0, grid, 10, None, keep=100)
+    assert one.paths.shape == (100, 3) and one.times.shape == (10,)
+    # nested: an ensemble inside a pool gets its half, split again (prognose's auto pool)
+    inner = TrendPool(tuple(Fake(v) for v in (3.0, 4.0, 5.0, 6.0)))
+    nest = TrendPool((Fake(1.0), inner)).first_passage(-1, 0.0, grid, 2000, None, keep=100)
+    counts = [int((nest.times == v).sum()) for v in (1.0, 3.0, 4.0, 5.0, 6.0)]
+    assert counts == [1000, 250, 250, 250, 250] and nest.paths.shape == (100, 3)
+    with pytest.raises(ValueError, match="members must be a non-empty tuple"):
+        TrendPool(())

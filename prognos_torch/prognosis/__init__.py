@@ -47,7 +47,7 @@ from .fault import (
 )
 from .forecaster import MeasurementForecaster
 from .learner_model import learner_transition_model, window_belief
-from .learner_trend import LearnerTrendFit, TimeELM, fit_learner_trend
+from .learner_trend import LearnerTrendFit, TimeELM, fit_learner_trend, fit_learner_trends
 from .onset import (
     ONSET_METHODS,
     Baseline,
@@ -79,6 +79,7 @@ from .trends import (
     Passage,
     TrendFit,
     TrendNoise,
+    TrendPool,
     fit_trends,
     integrated_rw_chol,
     local_trend_model,
@@ -123,6 +124,7 @@ __all__ = [
     "LearnerTrendFit",
     "TimeELM",
     "fit_learner_trend",
+    "fit_learner_trends",
     "ONSET_METHODS",
     "Baseline",
     "Onset",
@@ -137,6 +139,7 @@ __all__ = [
     "TREND_SHAPES",
     "Passage",
     "TrendFit",
+    "TrendPool",
     "TrendNoise",
     "fit_trends",
     "integrated_rw_chol",

@@ -49,9 +49,9 @@ from ..core.belief import GaussianBelief
 from ..core.random import standard_normal
 from ..learners import ELM
 from ..optim import KalmanOptimizer
-from .trends import Passage, TrendFit
+from .trends import Passage, TrendFit, TrendPool
 
-__all__ = ["TimeELM", "LearnerTrendFit", "fit_learner_trend"]
+__all__ = ["TimeELM", "LearnerTrendFit", "fit_learner_trend", "fit_learner_trends"]
 
 
 class TimeELM(nn.Module):
@@ -316,3 +316,43 @@ def fit_learner_trend(
         Q=torch.tensor(Q, **f64),
         dt_data=float(dts[dts > 0].median()) if bool((dts > 0).any()) else 1.0,
     )
+
+
+def fit_learner_trends(
+    level_fit: TrendFit,
+    *,
+    members: int = 4,
+    n_hidden: int = 10,
+    seed: int = 0,
+    snapshots: tuple[int, ...] = (),
+    **kwargs,
+) -> TrendPool:
+    """An equal-weight ensemble of ``members`` learner trends with independent random features.
+
+    An ELM's hidden features are drawn at random and stay fixed, so one learner trend's RUL
+    depends on that draw beyond the Monte Carlo noise of its paths. Pooling ``members`` ELMs,
+    each trained online by its own Kalman optimiser on the same data (:func:`fit_learner_trend`)
+    with the features of seed ``(seed * members + j) mod 2**64``, averages over the draw (a sample of the
+    random-feature prior) instead of betting on one.
+
+    Args:
+        level_fit: an exponential-shape :class:`~prognos_torch.prognosis.trends.TrendFit`.
+        members: ELMs in the ensemble (``1``: ``fit_learner_trend(seed=seed)`` alone).
+        n_hidden, seed, snapshots, kwargs: as :func:`fit_learner_trend`.
+
+    Returns:
+        a :class:`~prognos_torch.prognosis.trends.TrendPool` of :class:`LearnerTrendFit`.
+    """
+    if isinstance(members, bool) or not isinstance(members, int) or members < 1:
+        raise ValueError(f"members must be an int >= 1, got {members!r}")
+    fits = tuple(
+        fit_learner_trend(
+            level_fit,
+            n_hidden=n_hidden,
+            seed=(int(seed) * members + j) % 2**64,
+            snapshots=snapshots,
+            **kwargs,
+        )  # fmt: skip
+        for j in range(members)
+    )
+    return TrendPool(fits)

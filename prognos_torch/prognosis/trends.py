@@ -71,6 +71,7 @@ __all__ = [
     "fit_trends",
     "path_grid",
     "Passage",
+    "TrendPool",
     "simulate_first_passage",
     "STRONG_TRACKING_BETA",
     "strong_tracking_filter",
@@ -386,6 +387,54 @@ class Passage:
     times: Tensor
     paths: Tensor | None
     diverged: Tensor
+
+
+@dataclass(frozen=True)
+class TrendPool:
+    """An equal-weight mixture of trend models: its RUL distribution is the average of theirs.
+
+    :meth:`first_passage` gives each member ``n_paths // k`` paths (the first also the
+    ``n_paths mod k`` left over) and ``keep // k`` kept paths (the first also the remainder),
+    and concatenates them in member order: a sample from the mixture with equal weights
+    ``1 / k`` (to within the remainder). Members are anything with ``first_passage`` of the
+    signature of :meth:`TrendFit.first_passage` (a trend shape, a learner trend, a pool).
+
+    Attributes:
+        members: the ``k >= 1`` pooled models.
+    """
+
+    members: tuple
+
+    def __post_init__(self):
+        if not isinstance(self.members, tuple) or not self.members:
+            raise ValueError("members must be a non-empty tuple of trend models")
+
+    def first_passage(
+        self,
+        index: int,
+        level: float,
+        grid: Tensor,
+        n_paths: int,
+        generator: torch.Generator,
+        *,
+        keep: int = 0,
+    ) -> Passage:
+        """Crossing times of ``level`` by the members' paths from the observation ``index``
+        on ``grid`` ``(J,)``, ``n_paths`` in all (class docstring)."""
+        k = len(self.members)
+        parts = []
+        for j, f in enumerate(self.members):
+            n = n_paths // k + (n_paths % k if j == 0 else 0)
+            kj = keep // k + (keep % k if j == 0 else 0)
+            parts.append(f.first_passage(index, level, grid, n, generator, keep=kj))
+        if k == 1:
+            return parts[0]
+        kept = [p.paths for p in parts if p.paths is not None]
+        return Passage(
+            torch.cat([p.times for p in parts]),
+            torch.cat(kept) if kept else None,
+            torch.cat([p.diverged for p in parts]),
+        )
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,8 @@ Pipeline of :func:`prognose` (every step a library function with its own tests):
 3. **Trend models** on the data since onset (:mod:`~prognos_torch.prognosis.trends`:
    exponential, power law, linear, all filtered at once by the strong-tracking EKF with their
    noise by maximum likelihood; :mod:`~prognos_torch.prognosis.learner_trend`: an ELM growth
-   rate trained online by the Kalman optimiser). Series with more than ``max_points`` values
+   rate trained online by the Kalman optimiser, as an equal-weight ensemble of
+   ``learner_members`` ELMs with independent random features). Series with more than ``max_points`` values
    since onset are averaged over equal-count blocks first (the baseline noise of a block mean
    is ``sigma_0 / sqrt(count)``).
 4. **Noise choice and the ``auto`` pool.** A backtest on the series' own past
@@ -33,8 +34,9 @@ Pipeline of :func:`prognose` (every step a library function with its own tests):
    of the way from onset to it (posterior at the origin: causal; the noise grid's scale uses
    all data). The score is the CRPS of the predicted log time to the crossing (Gneiting &
    Raftery 2007; a proper score, so it rewards calibrated as well as sharp predictions; censored
-   paths count at 10 x the truth). Each shape's noise is the grid point of best mean score (of
-   highest likelihood when no level has been crossed yet). ``method="auto"`` then pools the RUL
+   paths count at 10 x the truth; :data:`BACKTEST_PATHS` paths per prediction). Each shape's
+   noise is the grid point of best mean score (of highest likelihood when no level has been
+   crossed yet). ``method="auto"`` then pools the RUL
    distributions of the exponential model (Gebraeel's) and the learner trend with equal weights
    (:data:`AUTO_POOL`; half the paths each) rather than choosing one: on the synthetic
    run-to-failure families of :mod:`prognos_torch.systems.run_to_failure` (processes that
@@ -92,7 +94,7 @@ from ..prognosis.backtest import (
     crps_log_time,
     one_standard_error_choice,
 )
-from ..prognosis.learner_trend import fit_learner_trend
+from ..prognosis.learner_trend import fit_learner_trends
 from ..prognosis.onset import (
     Baseline,
     Onset,
@@ -101,7 +103,7 @@ from ..prognosis.onset import (
     moving_median,
 )
 from ..prognosis.rul import RULDistribution
-from ..prognosis.trends import TREND_SHAPES, Passage, fit_trends, path_grid
+from ..prognosis.trends import TREND_SHAPES, TrendPool, fit_trends, path_grid
 from .data import Series, array_times, array_values, datetime_index, pandas_name, time_value
 from .predict import RULResult
 
@@ -112,12 +114,17 @@ __all__ = [
     "crps_log_time",
     "one_standard_error_choice",
     "AUTO_POOL",
+    "BACKTEST_PATHS",
 ]
 
 #: Trend models ``prognose`` accepts (``"auto"``: the :data:`AUTO_POOL`, every shape backtested).
 PROGNOSE_METHODS = ("auto", *TREND_SHAPES, "elm")
 #: The trend models whose RUL distributions ``method="auto"`` pools with equal weights.
 AUTO_POOL = ("exponential", "elm")
+#: Paths per backtest prediction. The noise of each shape is the argmin of Monte Carlo scores:
+#: with 64 paths that choice alone moved the exponential model's median by a median factor of
+#: 1.13 across seeds (256: 1.08; docs/RESULTS.md).
+BACKTEST_PATHS = 256
 #: Fewest observed values ``prognose`` accepts.
 MIN_POINTS = 10
 _K = 4.0  # healthy band and onset limit in baseline standard deviations
@@ -214,24 +221,6 @@ def _rul_grid(origin: float, t_last: float, t_eval: float, horizon: float, bin_w
         return path_grid(origin, horizon + (t_last - origin), bin_width, rel=rel)
     return torch.cat([path_grid(origin, t_eval - origin, bin_width, rel=rel),
                       path_grid(t_eval, horizon - (t_eval - t_last), bin_width, rel=rel)])  # fmt: skip
-
-
-def _pooled_passage(fits, level: float, grid: Tensor, n_paths: int, gen) -> Passage:
-    """First passages of an equal-weight pool: ``n_paths`` split evenly between the ``fits``
-    (the first takes the remainder), 100 kept paths split the same way."""
-    k = len(fits)
-    parts = []
-    for j, f in enumerate(fits):
-        n = n_paths // k + (n_paths % k if j == 0 else 0)
-        parts.append(f.first_passage(-1, level, grid, n, gen, keep=100 // k))
-    if k == 1:
-        return parts[0]
-    kept = [p.paths for p in parts if p.paths is not None]
-    return Passage(
-        torch.cat([p.times for p in parts]),
-        torch.cat(kept) if kept else None,
-        torch.cat([p.diverged for p in parts]),
-    )
 
 
 def _baseline_flags(base: Baseline) -> list[str]:
@@ -374,7 +363,7 @@ def _away_from_threshold(
 
 def _trend_models(
     tb: Tensor, yb: Tensor, phi: float, s0b: float, method: str, filt, seed: int,
-    gen: torch.Generator, hidden: int,
+    gen: torch.Generator, hidden: int, members: int,
 ) -> tuple[dict, dict[str, Tensor], list[tuple[float, int, float]]]:  # fmt: skip
     """The trend models of ``method`` filtered on the data since onset, each shape with its
     noise chosen by the backtest (maximum likelihood when no level has been crossed yet), the
@@ -387,17 +376,17 @@ def _trend_models(
     per_pair: dict[str, Tensor] = {}
     if pairs:  # noise (and model) chosen by multi-step crossing-time skill on the own past
         for name, fit in fits.items():
-            sc = backtest_scores(fit, pairs, tb, gen, every_noise=True)
+            sc = backtest_scores(fit, pairs, tb, gen, n_paths=BACKTEST_PATHS, every_noise=True)
             g = int(torch.argmin(torch.nan_to_num(sc.mean(-1), nan=math.inf)))
             fits[name] = fits[name].select(g)
             per_pair[name] = sc[g]
     models: dict = {k: v for k, v in fits.items() if method in ("auto", k)}
     if method in ("auto", "elm") and "exponential" in fits:
         origins = sorted({i for _, i, _ in pairs})
-        models["elm"] = fit_learner_trend(fits["exponential"], n_hidden=hidden, seed=seed,
-                                          snapshots=tuple(origins))  # fmt: skip
+        models["elm"] = fit_learner_trends(fits["exponential"], members=members, n_hidden=hidden,
+                                           seed=seed, snapshots=tuple(origins))  # fmt: skip
         if pairs:
-            per_pair["elm"] = backtest_scores(models["elm"], pairs, tb, gen)
+            per_pair["elm"] = backtest_scores(models["elm"], pairs, tb, gen, n_paths=BACKTEST_PATHS)
     return models, per_pair, pairs
 
 
@@ -460,6 +449,7 @@ def prognose(
     filter="ekf",
     max_points: int = 500,
     learner_hidden: int = 10,
+    learner_members: int = 4,
 ) -> RULResult:
     """RUL distribution of a degradation series for a failure ``threshold`` (module docstring).
 
@@ -474,12 +464,12 @@ def prognose(
             which become days since the first, so that the RUL is in days.
         method: ``"auto"`` (the exponential + elm pool), ``"exponential"``, ``"power"``,
             ``"linear"`` or ``"elm"`` (:data:`PROGNOSE_METHODS`).
-        seed: seeds the path draws and the ELM's random features. The answer depends on it
-            beyond Monte Carlo noise through those features: over the 250 protocol points of
-            the three RUL studies (docs/RESULTS.md) the ``auto`` median moved by a median
-            factor of 1.20 across 3 seeds, and at 13 points it was finite for some seeds and
-            censored for others; pool a few seeds, or raise ``learner_hidden``, for a steadier
-            answer.
+        seed: seeds the path draws, the backtest's draws (which choose each shape's noise)
+            and the ELMs' random features, so the answer moves with it beyond the Monte Carlo
+            noise of the final paths: over the 250 protocol points of the three RUL studies
+            (docs/RESULTS.md) the ``auto`` median moved by a median factor of 1.14 across 3
+            seeds (1.20 with one ELM and 64 backtest paths), and at 7 points it was finite for
+            some seeds and censored for others; pool a few seeds for a steadier answer.
         direction: ``"above"``, ``"below"`` or ``"auto"`` (the side of the baseline the
             threshold is on; a series that has left its healthy band only on the other side,
             by at least the threshold's distance from the healthy mean, is then refused as a
@@ -500,10 +490,11 @@ def prognose(
             ``"stekf"`` or :func:`~prognos_torch.prognosis.trends.strong_tracking_filter` add
             strong tracking (paper 000), which widens the posterior after jumps.
         max_points: values since onset above which block means are used.
-        learner_hidden: hidden nodes of the learner trend's ELM
-            (:func:`~prognos_torch.prognosis.learner_trend.fit_learner_trend`):
-            more average over more random features (40 halve the seeds that flip a point
-            between finite and censored, 13 -> 5 of 250, at twice the learner's cost).
+        learner_hidden: hidden nodes of each ELM of the learner trend
+            (:func:`~prognos_torch.prognosis.learner_trend.fit_learner_trend`).
+        learner_members: ELMs in the learner trend's ensemble
+            (:func:`~prognos_torch.prognosis.learner_trend.fit_learner_trends`), each with its
+            own random features and Kalman optimiser, pooled with equal weights (1: one ELM).
 
     Returns:
         :class:`~prognos_torch.workflow.RULResult` with ``status``, ``onset``, ``model``,
@@ -523,6 +514,7 @@ def prognose(
     n_paths = _check_int(n_paths, "n_paths", 10)
     max_points = _check_int(max_points, "max_points", 20)
     learner_hidden = _check_int(learner_hidden, "learner_hidden", 1)
+    learner_members = _check_int(learner_members, "learner_members", 1)
     horizon_factor = check_real(horizon_factor, "horizon_factor")
     if horizon_factor <= 0:
         raise ValueError(f"horizon_factor must be positive, got {horizon_factor}")
@@ -584,17 +576,21 @@ def prognose(
     noise0 = base.noise if base.noise is not None else base.std
     tb, yb, s0b, block = _blocks(t_on, y_on, noise0, max_points)
     models, per_pair, pairs = _trend_models(
-        tb, yb, phi, s0b, method, filter, seed, gen, learner_hidden
+        tb, yb, phi, s0b, method, filter, seed, gen, learner_hidden, learner_members
     )
     pool, selection, doubt = _pool(models, per_pair, len(pairs), method)
     flags += doubt
     chosen = selection["chosen"]
     fit = models[pool[0]]
+    if isinstance(fit, TrendPool):  # the learner ensemble: its members share one level fit
+        fit = fit.members[0]
     horizon = max(horizon_factor * span_life, 10.0 * (t_last - float(t[i0])), 10 * dt_data)
     horizon += t_eval - t_last
     bin_width = max(dt_data, horizon / _MAX_BINS)
     grid = _rul_grid(float(tb[-1]), t_last, t_eval, horizon, bin_width, 0.02)
-    passage = _pooled_passage([models[k] for k in pool], thr_o, grid, n_paths, gen)
+    passage = TrendPool(tuple(models[k] for k in pool)).first_passage(
+        -1, thr_o, grid, n_paths, gen, keep=100
+    )
     dist, alive, bins = _rul_at(passage.times, t_eval, t_last, horizon, bin_width, grid)
     p_alive = float(alive.to(torch.float64).mean())
     if p_alive < 1.0:
