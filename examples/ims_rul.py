@@ -62,7 +62,7 @@ def main(test: int, bearing: int, out: Path | None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     panel = {"title": series.name, "times": case.times, "true": case.true_rul,
              "t_eol": case.t_eol, "methods": {"prognose": {"pred": preds, "lo": lo, "hi": hi}}}  # fmt: skip
-    plot_rul_trajectory(out / "ims_prognose_rul.png", [panel], ncols=1)
+    plot_rul_trajectory(out / "ims_prognose_rul.png", [panel], ncols=1, time_unit="days")
     print(f"figure: {out / 'ims_prognose_rul.png'} (paths of one result: plots.plot_prognosis)")
 
 

@@ -199,3 +199,23 @@ def test_figures_reach_their_file_whole_or_not_at_all(tmp_path, monkeypatch):
         write_png(fig, tmp_path / "missing" / "f.png")
     write_png(fig, tmp_path / "made" / "f.png", make_folder=True)
     _check_png(fig, tmp_path / "made" / "f.png")
+
+
+def test_rul_trajectory_draws_the_cone_the_truth_and_names_the_unit(tmp_path):
+    from prognos_torch.plots import plot_rul_trajectory
+
+    t = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    panel = {"title": "b3", "times": t, "true": 4.0 - t, "t_eol": 4.0,
+             "methods": {"m": {"pred": [2.5, float("inf"), 1.1], "lo": [2.0, 1.0, 0.5],
+                               "hi": [3.0, float("inf"), 2.0]}}}  # fmt: skip
+    fig = plot_rul_trajectory(tmp_path / "r.png", [panel], ncols=1, time_unit="days")
+    ax = fig.axes[0]
+    assert ax.get_xlabel() == "prediction time (days)" and ax.get_ylabel() == "RUL (days)"
+    # the truth is t_eol - t; an infinite prediction is drawn at the top edge (2.2 x max truth)
+    true_line = [ln for ln in ax.get_lines() if ln.get_label() == "true RUL"][0]
+    x, y = true_line.get_data()
+    np.testing.assert_allclose(y, 4.0 - x)
+    pred = [ln for ln in ax.get_lines() if ln.get_label() == "m"][0].get_ydata()
+    np.testing.assert_allclose(pred, [2.5, 2.2 * 3.0, 1.1])
+    assert (tmp_path / "r.png").read_bytes()[:4] == b"\x89PNG"
+    assert plot_rul_trajectory(None, [panel]).axes[0].get_ylabel() == "RUL"

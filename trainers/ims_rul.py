@@ -77,7 +77,7 @@ def run(cfg: StudyConfig, out: Path) -> StudyResult:
 
 
 def _figures(out: Path, panels, path_panels) -> list[str]:
-    plot_rul_trajectory(out / "rul_vs_time.png", panels, alpha=0.3)
+    plot_rul_trajectory(out / "rul_vs_time.png", panels, alpha=0.3, time_unit="days")
     plot_prognosis_grid(out / "paths.png", path_panels)
     return ["rul_vs_time.png", "paths.png"]
 

@@ -74,7 +74,7 @@ def _axis_table(rows, methods, axis: str) -> str:
 def _figure(out: Path, panels) -> list[str]:
     if not panels:
         return []
-    plot_rul_trajectory(out / "rul_vs_time.png", panels, alpha=0.3, ncols=4)
+    plot_rul_trajectory(out / "rul_vs_time.png", panels, alpha=0.3, ncols=4, time_unit="hours")
     return ["rul_vs_time.png"]
 
 

@@ -38,7 +38,9 @@ def run(cfg: StudyConfig, out: Path) -> StudyResult:
         cases, methods, seed=cfg.seed, every=2 if cfg.quick else 1, time_unit="days",
         cone_methods=(MAIN, "prognose (exponential)", "exponential LSQ"),
     )  # fmt: skip
-    plot_rul_trajectory(out / "rul_vs_time.png", panels[:: max(1, len(panels) // 8)], alpha=0.3)
+    plot_rul_trajectory(
+        out / "rul_vs_time.png", panels[:: max(1, len(panels) // 8)], alpha=0.3, time_unit="days"
+    )
     tables = [headline_table(rows, methods, "all families")]
     for fam in RUN_TO_FAILURE_FAMILIES:
         fam_rows = [r for r in rows if r["series"].split()[0] == fam]

@@ -189,6 +189,7 @@ def plot_rul_trajectory(
     *,
     alpha: float = 0.3,
     ncols: int = 2,
+    time_unit: str | None = None,
 ) -> Figure:
     """Predicted RUL against the truth and the alpha cone, one panel per series.
 
@@ -199,8 +200,10 @@ def plot_rul_trajectory(
             (``inf``/NaN: no finite prediction, drawn at the top edge).
         alpha: cone half-width.
         ncols: panels per row.
+        time_unit: the unit of the times and RULs, for the axis labels (e.g. ``"days"``).
     """
     n = len(panels)
+    unit = f" ({time_unit})" if time_unit else ""
     nrows = max(1, math.ceil(n / ncols))
     fig = Figure(figsize=(5.0 * ncols, 3.6 * nrows))
     FigureCanvasAgg(fig)
@@ -227,8 +230,8 @@ def plot_rul_trajectory(
                 ax.vlines(tt + dx, lo, hi, color=f"C{j}", lw=2.0, alpha=0.35)
         ax.set_ylim(0, top * 1.02)
         ax.set_title(pan["title"], fontsize=9)
-        ax.set_xlabel("prediction time")
-        ax.set_ylabel("RUL")
+        ax.set_xlabel(f"prediction time{unit}")
+        ax.set_ylabel(f"RUL{unit}")
         if k == 0:
             ax.legend(fontsize=6, loc="upper right")
     return write_png(fig, path)
