@@ -23,10 +23,10 @@ def test_rul_from_the_ims_table_with_until(capsys, tmp_path):
     args = ["rul", str(IMS), "--column", "rms", "--where", "channel=5", "--time-column",
             "timestamp", "--threshold", "0.45", "--until", "2003-11-25T13:00:00",
             "--plot", str(tmp_path / "rul.png")]  # fmt: skip
-    assert main(args) == 3  # partly censored: exit 3 with one 'censored RUL:' line
+    assert main(args) == 0  # 1.2 % censored: below the 5 % flag, every quantile known
     cap = capsys.readouterr()
     out = cap.out
-    assert cap.err.startswith("censored RUL: ") and cap.err.count("\n") == 1
+    assert cap.err == "" and re.search(r"censored mass\s+0\.012 \(RUL > ", out)
     assert "degradation onset" in out and "33.959" in out
     assert "trend model" in out and "90 % interval" in out and "censored mass" in out
     assert re.search(r"observed RUL \(days\)\s+0\.4392", out)
@@ -36,10 +36,18 @@ def test_rul_from_the_ims_table_with_until(capsys, tmp_path):
     s = load_series(IMS, "rms", time_column="timestamp", where={"channel": 5},
                     until="2003-11-25T13:00:00")  # fmt: skip
     p = prognose(s, 0.45).failure_probability(0.5)
-    assert main(args + ["--within", "0.5"]) == 3
+    assert main(args + ["--within", "0.5"]) == 0
     got = re.search(r"P\(failure within 0\.5 days\)\s+([0-9.]+)", capsys.readouterr().out)
     assert got and float(got.group(1)) == pytest.approx(p, abs=5e-4) and 0 < p < 1
     assert (tmp_path / "rul.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # 16 days earlier 70 % of the paths are censored: exit 3 with one 'censored RUL:' line
+    # (the report and the figure are still written)
+    early = args[:-3] + ["2003-11-10T00:00:00", "--plot", str(tmp_path / "early.png")]
+    assert main(early) == 3
+    cap = capsys.readouterr()
+    assert cap.err.startswith("censored RUL: ") and cap.err.count("\n") == 1
+    assert re.search(r"median RUL \(days\)\s+n/a", cap.out)
+    assert (tmp_path / "early.png").stat().st_size > 0
 
 
 def test_no_degradation_is_said_plainly(capsys, tmp_path):

@@ -12,7 +12,10 @@ the assets of a shard instead.
 Per asset: the seed is the asset's seed (:func:`~prognos_torch.fleet.trend.asset_seed`), so
 the table does not depend on sharding; an input that ``prognose`` rejects (too few values, a
 threshold already reached or inside the healthy band, ...) is reported in the asset's row
-(flag ``prognose_error`` and the message), never fatal for the fleet. ``prognose``'s own flags
+(flag ``prognose_error`` and the message), never fatal for the fleet. ``p_fail_within_horizon``
+is :meth:`~prognos_torch.workflow.RULResult.failure_probability`; a ``horizon`` beyond
+``prognose``'s own while paths are censored leaves it NaN (flag ``horizon_beyond_prognosis``).
+``prognose``'s own flags
 are sentences; they are summarised as ``prognose_flags`` in ``flags`` and given in full in
 ``message``.
 """
@@ -86,10 +89,10 @@ def prognose_rul(
             out["censored_mass"][b] = r.censored_mass
             if horizon is None:
                 out["p_fail_within_horizon"][b] = 1.0 - r.censored_mass
-            elif r.rul_samples is not None:  # among the paths alive at t_last (NaN: crossed
-                rs = r.rul_samples.to(torch.float64)  # before it; inf: censored)
-                rs = rs[~torch.isnan(rs)]
-                out["p_fail_within_horizon"][b] = float((rs <= float(horizon)).to(rs.dtype).mean())
+            elif float(horizon) <= r.bound or r.censored_mass == 0:
+                out["p_fail_within_horizon"][b] = r.failure_probability(horizon)
+            else:  # beyond prognose's horizon with paths censored: only a lower bound is known
+                f.append("horizon_beyond_prognosis")
         if r.onset is not None and getattr(r.onset, "detected", False):
             out["onset_time"][b] = r.onset.time
         if r.flags:

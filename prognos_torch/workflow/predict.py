@@ -189,10 +189,13 @@ class RULResult:
         ``within`` time units (``time_unit``) of ``t_last``, the question a maintenance
         planner asks of the next inspection window.
 
-        Read from the distribution's cdf at its largest support point ``k dt <= within``: the
-        grid on which :meth:`summary`'s quantiles lie, so that ``failure_probability(median)
-        >= 0.5`` and ``failure_probability(q05) >= 0.05`` hold exactly. Censored paths count
-        as not failed; within ``bound`` that is exact.
+        From the per-path RULs where the result carries them (``rul_samples``, :func:`~.prognose.
+        prognose`: the exact crossing times, among the paths still running at ``t_last``),
+        otherwise from the distribution's pmf (its RULs lie on the grid ``dt * k``, exact for
+        :func:`rul`'s step-wise paths). The quantiles of :meth:`summary` are upper bin edges of
+        the same RULs, so ``failure_probability(median) >= 0.5`` and
+        ``failure_probability(q05) >= 0.05`` hold. Censored paths count as not failed; within
+        ``bound`` that is exact.
 
         Returns:
             a probability in [0, 1]; ``None`` when no distribution is estimated
@@ -207,13 +210,16 @@ class RULResult:
             raise ValueError(f"within must be >= 0 (a time span in {self.time_unit}), got {h:g}")
         if self.status != "ok":
             return None
-        d = self.distribution
         if h > self.bound and self.censored_mass > 0:
             raise ValueError(
                 f"within = {h:g} {self.time_unit} lies beyond the horizon bound "
                 f"{self.bound:g} {self.time_unit} while {100 * self.censored_mass:.3g} % of the "
                 f"paths are censored: only P >= {self.crossing_probability:.4g} is known there"
             )
+        if self.rul_samples is not None:
+            x = self.rul_samples[~torch.isnan(self.rul_samples)]  # NaN: crossed before t_last
+            return float((x <= h).to(torch.float64).mean()) if x.numel() else None
+        d = self.distribution
         k = min(d.horizon, math.floor(h / d.dt + 1e-9))  # support points dt * (1..k) <= within
         return 0.0 if k == 0 else min(1.0, max(0.0, float(d.cdf[k - 1])))
 
