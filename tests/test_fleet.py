@@ -463,6 +463,14 @@ def test_prognose_method_counts_the_rul_from_the_last_row_and_checks_the_horizon
                 fleet_rul(sf.table, sf.threshold, method=method, horizon=bad)
     ok = fleet_rul(sf.table, sf.threshold, horizon=np.int64(30), samples=100)
     _assert_same(ok, fleet_rul(sf.table, sf.threshold, horizon=30.0, samples=100))
+    # beyond prognose's own horizon with censored paths: unknown (NaN and a flag), not the
+    # fraction of paths that crossed read as a probability
+    far = 2.0 * r.bound
+    res = fleet_rul({"asset": [a] * len(t), "t": t, "value": y}, 10.0 * sf.threshold,
+                    method="prognose", n_paths=200, horizon=far)  # fmt: skip
+    row = res.row(a)
+    assert row["censored_mass"] > 0.1 and math.isnan(row["p_fail_within_horizon"])
+    assert "horizon_beyond_prognosis" in row["flags"].split(";")
 
 
 def test_asset_ids_duplicate_columns_and_date_times(tmp_path):
