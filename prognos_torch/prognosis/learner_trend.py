@@ -332,8 +332,8 @@ def fit_learner_trends(
     An ELM's hidden features are drawn at random and stay fixed, so one learner trend's RUL
     depends on that draw beyond the Monte Carlo noise of its paths. Pooling ``members`` ELMs,
     each trained online by its own Kalman optimiser on the same data (:func:`fit_learner_trend`)
-    with the features of seed ``(seed * members + j) mod 2**64``, averages over the draw (a sample of the
-    random-feature prior) instead of betting on one.
+    with the features of seed ``(seed * members + j) mod 2**64``, averages over the draw (a
+    sample of the random-feature prior) instead of betting on one.
 
     Args:
         level_fit: an exponential-shape :class:`~prognos_torch.prognosis.trends.TrendFit`.
@@ -352,7 +352,7 @@ def fit_learner_trends(
             seed=(int(seed) * members + j) % 2**64,
             snapshots=snapshots,
             **kwargs,
-        )  # fmt: skip
+        )
         for j in range(members)
     )
     return TrendPool(fits)

@@ -189,10 +189,10 @@ class RULResult:
         ``within`` time units (``time_unit``) of ``t_last``, the question a maintenance
         planner asks of the next inspection window.
 
-        From the per-path RULs where the result carries them (``rul_samples``, :func:`~.prognose.
-        prognose`: the exact crossing times, among the paths still running at ``t_last``),
-        otherwise from the distribution's pmf (its RULs lie on the grid ``dt * k``, exact for
-        :func:`rul`'s step-wise paths). The quantiles of :meth:`summary` are upper bin edges of
+        From the per-path RULs where the result carries them (``rul_samples`` of
+        :func:`~prognos_torch.workflow.prognose`: the exact crossing times, among the paths
+        still running at ``t_last``), otherwise from the distribution's pmf (its RULs lie on the
+        grid ``dt * k``, exact for the step-wise paths of :func:`rul`). The quantiles of :meth:`summary` are upper bin edges of
         the same RULs, so ``failure_probability(median) >= 0.5`` and
         ``failure_probability(q05) >= 0.05`` hold. Censored paths count as not failed; within
         ``bound`` that is exact.

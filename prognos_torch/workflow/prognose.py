@@ -24,9 +24,9 @@ Pipeline of :func:`prognose` (every step a library function with its own tests):
    exponential, power law, linear, all filtered at once by the strong-tracking EKF with their
    noise by maximum likelihood; :mod:`~prognos_torch.prognosis.learner_trend`: an ELM growth
    rate trained online by the Kalman optimiser, as an equal-weight ensemble of
-   ``learner_members`` ELMs with independent random features). Series with more than ``max_points`` values
-   since onset are averaged over equal-count blocks first (the baseline noise of a block mean
-   is ``sigma_0 / sqrt(count)``).
+   ``learner_members`` ELMs with independent random features). Series with more than
+   ``max_points`` values since onset are averaged over equal-count blocks first (the baseline
+   noise of a block mean is ``sigma_0 / sqrt(count)``).
 4. **Noise choice and the ``auto`` pool.** A backtest on the series' own past
    (:mod:`~prognos_torch.prognosis.backtest`): for the levels
    ``m_0 + f (max m - m_0)``, ``f in {0.5, 0.8}``, that the 5-point moving median ``m`` has
@@ -36,9 +36,9 @@ Pipeline of :func:`prognose` (every step a library function with its own tests):
    Raftery 2007; a proper score, so it rewards calibrated as well as sharp predictions; censored
    paths count at 10 x the truth; :data:`BACKTEST_PATHS` paths per prediction). Each shape's
    noise is the grid point of best mean score (of highest likelihood when no level has been
-   crossed yet). ``method="auto"`` then pools the RUL
-   distributions of the exponential model (Gebraeel's) and the learner trend with equal weights
-   (:data:`AUTO_POOL`; half the paths each) rather than choosing one: on the synthetic
+   crossed yet). ``method="auto"`` then pools the RUL distributions of the exponential model
+   (Gebraeel's) and the learner trend with equal weights (:data:`AUTO_POOL`; half the paths
+   each) rather than choosing one: on the synthetic
    run-to-failure families of :mod:`prognos_torch.systems.run_to_failure` (processes that
    neither model contains) switching to the shape with the best backtest lowered the share of
    predictions within +-30 % and the 90 % coverage, while the pool tied the exponential model
