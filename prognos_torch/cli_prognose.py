@@ -63,7 +63,10 @@ def run_prognose(args, series, data_cfg: dict, truth=None) -> str | None:
     )
     unit, s = res.time_unit, res.summary()
     # read before anything is printed: a --within beyond the horizon is refused whole
-    p_within = None if args.within is None else res.failure_probability(args.within)
+    try:
+        p_within = None if args.within is None else res.failure_probability(args.within)
+    except ValueError as exc:
+        raise ValueError(f"--within: {exc}") from None
     where = data_cfg.get("where") or {}
     sel = f" ({', '.join(f'{k}={v}' for k, v in where.items())})" if where else ""
     print(

@@ -48,6 +48,10 @@ def test_rul_from_the_ims_table_with_until(capsys, tmp_path):
     assert cap.err.startswith("censored RUL: ") and cap.err.count("\n") == 1
     assert re.search(r"median RUL \(days\)\s+n/a", cap.out)
     assert (tmp_path / "early.png").stat().st_size > 0
+    # a span beyond that censored horizon: one error line, nothing printed
+    assert main(early + ["--within", "500"]) == 2
+    cap = capsys.readouterr()
+    assert cap.out == "" and cap.err.startswith("error: --within: within = 500 days lies beyond")
 
 
 def test_no_degradation_is_said_plainly(capsys, tmp_path):

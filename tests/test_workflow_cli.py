@@ -132,6 +132,12 @@ def test_cli_on_the_shipped_ims_table(tmp_path, capsys):
     assert main(rul + ["--within", "0.5"]) == 0
     out = capsys.readouterr().out
     row = [ln for ln in out.splitlines() if ln.startswith("P(failure within 0.5 days)")]
+    far = ["rul", str(model), str(IMS), "--until", "33.3", "--threshold", "0.3", "--filter",
+           "pf", "--particles", "100", "--horizon", "50", "--within", "5"]  # fmt: skip
+    assert main(far) == 2  # every path censored within 50 steps (0.35 d): P(5 d) is unknown
+    err = capsys.readouterr()
+    assert err.out == "" and err.err.startswith("error: --within: within = 5 days lies beyond")
+    assert err.err.rstrip().endswith("(raise --horizon to look further)")
     assert row and float(row[0].split()[-1]) == pytest.approx(
         ref.failure_probability(0.5), rel=1e-3, abs=1e-4
     )
