@@ -19,7 +19,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from .cli_prognose import fmt_time
+from .cli_prognose import fmt_time, within_probability
 
 __all__ = ["main", "build_parser"]
 
@@ -637,14 +637,10 @@ def _cmd_rul(args) -> int:
         seed=args.seed,
     )
     unit, s = res.time_unit, res.summary()
-    within = []
-    if args.within is not None:  # read before anything is printed
-        try:
-            p_within = res.failure_probability(args.within)
-        except ValueError as exc:
-            hint = " (raise --horizon to look further)" if "horizon bound" in str(exc) else ""
-            raise ValueError(f"--within: {exc}{hint}") from None
-        within = [(f"P(failure within {args.within:g} {unit})", p_within)]
+    within = [] if args.within is None else [(
+        f"P(failure within {args.within:g} {unit})",
+        within_probability(res, args.within, " (raise --horizon to look further)"),
+    )]  # fmt: skip
     cm = res.censored_mass
     mean = s["mean"]
     if mean is None:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["run_prognose", "observed_rul", "fmt_time"]
+__all__ = ["run_prognose", "observed_rul", "fmt_time", "within_probability"]
 
 
 def fmt_time(v: float) -> str:
@@ -24,6 +24,16 @@ def _fmt(v, digits: int = 4) -> str:
     if isinstance(v, float):
         return "inf" if math.isinf(v) else f"{v:.{digits}g}"
     return str(v)
+
+
+def within_probability(res, within: float, hint: str = "") -> float | None:
+    """``res.failure_probability(within)`` for ``--within``, read before anything is printed;
+    a refusal names the option and, for a span beyond the horizon, ends with ``hint``."""
+    try:
+        return res.failure_probability(within)
+    except ValueError as exc:
+        beyond = hint if within > res.bound else ""
+        raise ValueError(f"--within: {exc}{beyond}") from None
 
 
 def observed_rul(truth, t_eval: float, threshold: float, direction: str) -> float | None:
@@ -62,11 +72,7 @@ def run_prognose(args, series, data_cfg: dict, truth=None) -> str | None:
         n_paths=args.paths,
     )
     unit, s = res.time_unit, res.summary()
-    # read before anything is printed: a --within beyond the horizon is refused whole
-    try:
-        p_within = None if args.within is None else res.failure_probability(args.within)
-    except ValueError as exc:
-        raise ValueError(f"--within: {exc}") from None
+    p_within = None if args.within is None else within_probability(res, args.within)
     where = data_cfg.get("where") or {}
     sel = f" ({', '.join(f'{k}={v}' for k, v in where.items())})" if where else ""
     print(
