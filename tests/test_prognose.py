@@ -79,6 +79,37 @@ def test_failure_probability_reads_the_rul_distribution():
         cens.failure_probability(2.0 * cens.bound)
 
 
+def test_quantiles_are_the_exact_crossing_times_not_bin_edges():
+    """``quantile`` (and the summary) reads the per-path RULs: the ``ceil(q N)``-th smallest,
+    so that ``P(RUL <= Q(q)) >= q > P(RUL < Q(q))``. The binned distribution's quantile is the
+    upper edge of a bin: with the evaluation time half a step after the last observation every
+    crossing time lies half a bin below its edge, and the bin edge reads late by that half."""
+    t, y = _series(noise_after=0.05)
+    res = prognose(y, 3.0, time=t, method="exponential", at=float(t[-1]) + 3.5)
+    x = res.rul_samples[~torch.isnan(res.rul_samples)].sort().values
+    assert torch.isfinite(x).all() and res.censored_mass == 0.0
+    qs = (0.05, 0.25, 0.5, 0.95)
+    exact = res.quantile(qs)
+    binned = res.distribution.quantile(qs)
+    for q, v, b in zip(qs, exact.tolist(), binned.tolist()):
+        assert v == float(x[math.ceil(q * x.numel()) - 1])
+        assert res.failure_probability(v) >= q > res.failure_probability(v - 1e-9)
+        assert b - v == pytest.approx(0.5 * res.dt, abs=1e-9)
+    s = res.summary()
+    assert (s["q05"], s["median"], s["q95"]) == tuple(exact[[0, 2, 3]].tolist())
+    assert s["mean"] == pytest.approx(float(x.mean()), rel=1e-12)
+    assert float(res.quantile(0.5)) == s["median"]
+    # censored mass is the upper tail; nothing estimated before onset; q outside (0, 1]
+    cens = prognose(y, 1e6, time=t, method="linear")
+    assert cens.censored_mass > 0.5 and math.isnan(float(cens.quantile(0.9)))
+    assert cens.summary()["q95"] is None and cens.summary()["mean"] is None
+    flat = prognose(y[:300], 3.0, time=t[:300])
+    assert flat.status != "ok" and bool(torch.isnan(flat.quantile([0.05, 0.5])).all())
+    for bad in (0.0, 1.5, float("nan"), [[0.5]]):
+        with pytest.raises(ValueError, match="q must"):
+            res.quantile(bad)
+
+
 def test_auto_pools_exponential_and_learner_and_reports_the_scores():
     t, y = _series(noise_after=0.05)
     res = prognose(y, 3.0, time=t)

@@ -15,20 +15,20 @@ from _study_helpers import quick_fixture, read_rows
 quick_out = quick_fixture("rul-synthetic")
 METHODS = ("prognose (auto)", "prognose (exponential)", "exponential LSQ")
 
-# Quick mode: one record per family, the 20/60/90 % points; prognose medians lie on the
-# 10-minute grid (multiples of 1/144 d), the baseline is a closed form.
+# Quick mode: one record per family, the 20/60/90 % points; prognose medians are exact per-path
+# crossing times (RULResult.quantile), the baseline is a closed form.
 QUICK_PRED_RUL = {
-    ("prognose (auto)", "shocks 0"): [1.1875, 0.5486111111, 0.1180555556],
-    ("prognose (exponential)", "shocks 0"): [1.1875, 0.5486111111, 0.1458333333],
+    ("prognose (auto)", "shocks 0"): [1.185272372, 0.5475344667, 0.1180555556],
+    ("prognose (exponential)", "shocks 0"): [1.185272372, 0.5475344667, 0.1458333333],
     ("exponential LSQ", "shocks 0"): [1.1447349313, 0.360948877, 0.0],
-    ("prognose (auto)", "paris 0"): [2.5625, 0.7986111111, 0.2083333333],
-    ("prognose (exponential)", "paris 0"): [2.1041666667, 0.8125, 0.1944444444],
+    ("prognose (auto)", "paris 0"): [2.5616455, 0.7920987729, 0.2069444444],
+    ("prognose (exponential)", "paris 0"): [2.100692982, 0.8080518595, 0.1930555556],
     ("exponential LSQ", "paris 0"): [1.895521328, 0.9501385423, 0.2828814746],
-    ("prognose (auto)", "two_phase 0"): [6.3819444444, 1.2083333333, 0.5694444444],
-    ("prognose (exponential)", "two_phase 0"): [10.8888888889, 0.75, 0.3680555556],
+    ("prognose (auto)", "two_phase 0"): [6.378788612, 1.204811153, 0.5668770814],
+    ("prognose (exponential)", "two_phase 0"): [10.88884981, 0.7474808223, 0.3656972222],
     ("exponential LSQ", "two_phase 0"): [math.inf, 0.8917023371, 0.199662916],
-    ("prognose (auto)", "hump 0"): [0.3333333333, 1.0277777778, 0.2152777778],
-    ("prognose (exponential)", "hump 0"): [0.375, 2.2291666667, 0.4097222222],
+    ("prognose (auto)", "hump 0"): [0.3291666667, 1.026295373, 0.2138888889],
+    ("prognose (exponential)", "hump 0"): [0.3716778333, 2.228138343, 0.4054372851],
     ("exponential LSQ", "hump 0"): [0.7011203188, 1.794311744, 0.6106250937],
 }
 

@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 import os
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -192,10 +193,10 @@ class RULResult:
         From the per-path RULs where the result carries them (``rul_samples`` of
         :func:`~prognos_torch.workflow.prognose`: the exact crossing times, among the paths
         still running at ``t_last``), otherwise from the distribution's pmf (its RULs lie on the
-        grid ``dt * k``, exact for the step-wise paths of :func:`rul`). The quantiles of :meth:`summary` are upper bin edges of
-        the same RULs, so ``failure_probability(median) >= 0.5`` and
-        ``failure_probability(q05) >= 0.05`` hold. Censored paths count as not failed; within
-        ``bound`` that is exact.
+        grid ``dt * k``, exact for the step-wise paths of :func:`rul`), the same RULs that
+        :meth:`quantile` reads, so ``failure_probability(quantile(q)) >= q`` holds (the
+        median, q05 and q95 of :meth:`summary` included). Censored paths count as not failed;
+        within ``bound`` that is exact.
 
         Returns:
             a probability in [0, 1]; ``None`` when no distribution is estimated
@@ -223,8 +224,47 @@ class RULResult:
         k = min(d.horizon, math.floor(h / d.dt + 1e-9))  # support points dt * (1..k) <= within
         return 0.0 if k == 0 else min(1.0, max(0.0, float(d.cdf[k - 1])))
 
+    def quantile(self, q: float | Sequence[float]) -> Tensor:
+        """Lower quantiles of the RUL, ``Q(q) = min{l : P(RUL <= l) >= q}``, ``q`` in (0, 1].
+
+        From the per-path RULs where the result carries them (``rul_samples`` of
+        :func:`~prognos_torch.workflow.prognose`: the exact crossing times of the equally
+        weighted paths still running at ``t_last``, ``Q(q)`` the ``ceil(q N)``-th smallest of
+        the ``N``), otherwise :meth:`RULDistribution.quantile
+        <prognos_torch.prognosis.rul.RULDistribution.quantile>` (the upper edges ``dt * k`` of
+        the bins, exact for the step-wise paths of :func:`rul`; for crossing times in
+        continuous time they would read up to one ``dt`` late, which matters most when the RUL
+        is a few steps). Censored mass is the upper tail: a quantile beyond ``bound`` is NaN.
+
+        Args:
+            q: a probability or a sequence of them.
+
+        Returns:
+            ``()`` for a scalar ``q``, else ``(Q,)`` (time units; NaN: beyond ``bound``, or no
+            distribution estimated, ``status`` other than ``"ok"``).
+        """
+        qs = torch.as_tensor(q, dtype=torch.float64)
+        if qs.dim() > 1 or qs.numel() == 0 or bool(torch.isnan(qs).any()):
+            raise ValueError(f"q must be a probability or a 1-D sequence of them, got {q!r}")
+        if not bool(((qs > 0) & (qs <= 1)).all()):
+            raise ValueError(f"q must lie in (0, 1], got {q!r}")
+        if self.status != "ok":
+            return torch.full(qs.shape, math.nan, dtype=torch.float64)
+        if self.rul_samples is None:
+            return self.distribution.quantile(qs).to("cpu", torch.float64)
+        x = self.rul_samples[~torch.isnan(self.rul_samples)].to("cpu", torch.float64)
+        if x.numel() == 0:
+            return torch.full(qs.shape, math.nan, dtype=torch.float64)
+        x = torch.where(x <= self.bound, x, math.inf).sort().values  # beyond bound: censored
+        n = x.numel()
+        # the ceil(q N)-th smallest; the 1e-12 keeps q N = k exact under rounding
+        k = torch.ceil(qs * n - 1e-12).clamp(1, n).to(torch.int64) - 1
+        v = x[k]
+        return torch.where(torch.isfinite(v), v, math.nan)
+
     def summary(self) -> dict:
-        """Mean (Eq. 28, only when nothing is censored), median and the 5/95 % quantiles (a
+        """Mean (Eq. 28, only when nothing is censored), median and the 5/95 % quantiles
+        (:meth:`quantile`; from the exact per-path RULs where the result carries them; a
         value beyond the horizon is ``None``), ``censored_mass``, ``bound`` (the RUL exceeds it
         for the censored mass; before onset, the lower bound), ``status``, ``model``,
         ``onset_time`` and ``flags``. Before onset the median and quantiles are ``None``."""
@@ -234,9 +274,14 @@ class RULResult:
             x = float(x)
             return None if math.isnan(x) else x
 
-        q = d.quantile([0.05, 0.5, 0.95])
+        q = self.quantile([0.05, 0.5, 0.95])
+        mean = d.expectation
+        if self.rul_samples is not None:  # the exact crossing times, as for the quantiles
+            x = self.rul_samples[~torch.isnan(self.rul_samples)]
+            whole = x.numel() > 0 and bool((x <= self.bound).all())
+            mean = x.mean() if whole else math.nan
         out = {
-            "mean": val(d.expectation),
+            "mean": val(mean),
             "median": val(q[1]),
             "q05": val(q[0]),
             "q95": val(q[2]),
