@@ -32,13 +32,15 @@ The predictive spread of the level grows like ``q_L h + q_b h^3 / 3`` with the h
 is what keeps RUL intervals honest far from the data.
 
 :func:`fit_trends` filters every shape at once with ONE call of :func:`~prognos_torch.filters.run`
-(shapes and a grid of ``(q_L, q_b, r)`` are batch dimensions of the belief) with the
-strong-tracking EKF (:func:`~prognos_torch.filters.stekf`, SFEKF, paper 000 Eq. 7-12; on this
-linear model its statistical and Taylor linearisations coincide, so it equals the STSCKF), whose
-fading factor inflates the prior after the jumps that bearings show. The noise of each shape is
-the grid point of highest filter log-likelihood (maximum likelihood over the grid; the grid is
-scaled by the data's own increments, so it has no dimensional constants). Without fading
-(``filter="ekf"``/``"sckf"``) the filter is an exact Kalman filter (tested to 1e-10).
+(shapes and a grid of ``(q_L, q_b, r)`` are batch dimensions of the belief). By default
+(``filter="ekf"``, or ``"sckf"``) the filter is an exact Kalman filter on this linear model
+(tested to 1e-10); ``filter="stekf"`` (or :func:`strong_tracking_filter`) is the strong-tracking
+EKF (:func:`~prognos_torch.filters.stekf`, SFEKF, paper 000 Eq. 7-12; on this linear model its
+statistical and Taylor linearisations coincide, so it equals the STSCKF), whose fading factor
+inflates the prior after the jumps that bearings show. The noise of each shape is the grid point
+of highest filter log-likelihood (maximum likelihood over the grid; the grid is scaled by the
+data's own increments, so it has no dimensional constants); :func:`~prognos_torch.workflow.prognose`
+chooses it by a backtest instead where the series has crossed levels to backtest on.
 
 :meth:`TrendFit.first_passage` samples the posterior at an origin from its square-root
 covariance and simulates the exact discretisation forward (the same ``Q_k``) until every path

@@ -21,8 +21,9 @@ Pipeline of :func:`prognose` (every step a library function with its own tests):
    healthy: a run-in transient in it is no onset). Before onset the answer is *"no degradation
    detected yet"*: no median or interval is reported, only a lower bound (below).
 3. **Trend models** on the data since onset (:mod:`~prognos_torch.prognosis.trends`:
-   exponential, power law, linear, all filtered at once by the strong-tracking EKF with their
-   noise by maximum likelihood; :mod:`~prognos_torch.prognosis.learner_trend`: an ELM growth
+   exponential, power law, linear, all filtered at once by the engine, by default with the
+   exact Kalman filter (``filter="stekf"``: strong tracking), over a grid of noise levels;
+   :mod:`~prognos_torch.prognosis.learner_trend`: an ELM growth
    rate trained online by the Kalman optimiser, as an equal-weight ensemble of
    ``learner_members`` ELMs with independent random features). Series with more than
    ``max_points`` values since onset are averaged over equal-count blocks first (the baseline
