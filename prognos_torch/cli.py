@@ -229,7 +229,13 @@ def _add_prediction_options(p, default_filter: str) -> None:
     g.add_argument(
         "--filter",
         default=default_filter,
-        help=f"sckf, stsckf, ukf, ekf, pf, ekpf, stpf, upf (default {default_filter})",
+        help=f"sckf, stsckf, ukf, ekf, pf, ekpf, stpf, upf (default {default_filter})"
+        + (
+            "; without a model file, the filter of prognose's trend models: ekf (default), "
+            "stekf (strong tracking), or several joined by + (ekf+stekf) to pool their RULs"
+            if default_filter == "stpf"
+            else ""
+        ),
     )
     g.add_argument(
         "--filter-steps",
@@ -286,6 +292,8 @@ def _add_rul(sub) -> None:
         "       see prognos_torch.workflow.prognose)\n"
         "  prognos rul data.csv --column rms --time-column timestamp --threshold 0.45 --within 7\n"
         "      (also P(failure within 7 days), e.g. before the next inspection)\n"
+        "  prognos rul data.csv --column rms --time-column timestamp --threshold 0.45 \\\n"
+        "      --filter ekf+stekf   (pooled with strong tracking: wider, for sudden surges)\n"
         "  prognos rul datasets/ims/test1_features.csv --column rms --where channel=5 \\\n"
         "      --time-column timestamp --threshold 0.45 --until 2003-11-25T00:00:00\n"
         "  prognos rul model.pt data.csv --threshold 0.8 --plot rul.png\n"
@@ -326,7 +334,8 @@ def _add_rul(sub) -> None:
     p.set_defaults(func=_cmd_rul, **{k: None for k in _MODEL_RUL_DEFAULTS})
 
 
-#: the options of ``prognos rul MODEL DATA`` that ``prognos rul DATA`` (prognose) does not use
+#: the options of ``prognos rul MODEL DATA`` and their defaults there; ``prognos rul DATA``
+#: (prognose) refuses all but ``--filter``, which names its trend models' filters (default ekf)
 _MODEL_RUL_DEFAULTS = {"horizon": 200, "filter": "stpf", "filter_steps": 100, "particles": 500}
 
 
@@ -605,13 +614,15 @@ def _cmd_rul(args) -> int:
         from .cli_prognose import run_prognose
 
         given = [
-            f"--{k.replace('_', '-')}" for k in _MODEL_RUL_DEFAULTS if getattr(args, k) is not None
+            f"--{k.replace('_', '-')}"
+            for k in _MODEL_RUL_DEFAULTS
+            if k != "filter" and getattr(args, k) is not None
         ]
         if given:
             raise ValueError(
                 f"{', '.join(given)} apply with a model file (prognos rul MODEL DATA.csv); "
-                "without one, prognose sets its horizon from the observed life and filters its "
-                "trend models itself (--paths, --method, --seed, --direction apply)"
+                "without one, prognose sets its horizon from the observed life and the number "
+                "of paths itself (--paths, --method, --filter, --seed, --direction apply)"
             )
         args.data = args.model
         _check_out_folder(args.plot, "--plot")

@@ -61,12 +61,18 @@ def run_prognose(args, series, data_cfg: dict, truth=None) -> str | None:
     """
     from .plots import plot_prognosis
     from .workflow import prognose
-    from .workflow.prognose import CENSORED_FLAG
+    from .workflow.prognose import CENSORED_FLAG, _filters
 
+    filt = "ekf" if args.filter is None else args.filter
+    try:
+        _filters(filt)
+    except ValueError as exc:
+        raise ValueError(f"--filter: {exc}") from None
     res = prognose(
         series,
         args.threshold,
         method=args.method,
+        filter=filt,
         seed=0 if args.seed is None else args.seed,
         direction=args.direction,
         n_paths=args.paths,

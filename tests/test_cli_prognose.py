@@ -79,6 +79,32 @@ def test_bad_input_is_one_line_and_exit_2(capsys, tmp_path):
     assert main(["rul", str(path), "--column", "value", "--threshold", "2", "--method",
                  "cubic"]) == 2  # fmt: skip
     assert "method must be one of" in capsys.readouterr().err
+    # --filter names prognose's trend filters here; the model path's filters are refused
+    assert main(["rul", str(path), "--column", "value", "--threshold", "2", "--filter",
+                 "stpf"]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert (
+        err.startswith("error: --filter: filter must name Gaussian filters")
+        and err.count("\n") == 1
+    )
+    assert main(["rul", str(path), "--column", "value", "--threshold", "2", "--horizon",
+                 "50"]) == 2  # fmt: skip
+    assert "--horizon apply with a model file" in capsys.readouterr().err
+
+
+def test_filter_pools_strong_tracking_from_the_command_line(capsys):
+    args = ["rul", str(IMS), "--column", "rms", "--where", "channel=5", "--time-column",
+            "timestamp", "--threshold", "0.45", "--until", "2003-11-25T13:00:00"]  # fmt: skip
+    assert main(args + ["--filter", "ekf+stekf"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"trend model\s+exponential\+elm \(EKF\) \+ exponential\+elm \(STEKF\)", out)
+    from prognos_torch.workflow import load_series, prognose
+
+    s = load_series(IMS, "rms", time_column="timestamp", where={"channel": 5},
+                    until="2003-11-25T13:00:00")  # fmt: skip
+    med = prognose(s, 0.45, filter="ekf+stekf").summary()["median"]
+    got = re.search(r"median RUL \(days\)\s+([0-9.]+)", out)
+    assert got and float(got.group(1)) == pytest.approx(med, rel=1e-3)
 
 
 def test_epoch_times_and_small_censored_masses_are_printed_in_full(capsys, tmp_path):

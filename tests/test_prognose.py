@@ -125,6 +125,34 @@ def test_auto_pools_exponential_and_learner_and_reports_the_scores():
     assert lo - 5 <= res.summary()["median"] <= hi + 5
 
 
+def test_several_filters_pool_the_models_fitted_under_each():
+    """``filter="ekf+stekf"``: each filter's models, noise choice included, are exactly those of
+    a call with that filter alone (the same backtest scores), and their RUL distributions are
+    pooled with equal weights (the pooled median lies between the two). The series jumps
+    during its rise, so that strong tracking fires."""
+    t, y = _series(noise_after=0.05)
+    y = torch.where(t >= 470, PHI + 1.8 * (y - PHI), y)
+    one = {f: prognose(y, 3.0, time=t, filter=f) for f in ("ekf", "stekf")}
+    both = prognose(y, 3.0, time=t, filter="ekf+stekf")
+    assert both.model == "exponential+elm (EKF) + exponential+elm (STEKF)"
+    assert both.filter == "EKF+STEKF" and one["ekf"].filter == "EKF"
+    by = both.selection["by_filter"]
+    assert by["EKF"]["scores"] == one["ekf"].selection["scores"]
+    assert by["STEKF"]["scores"] == one["stekf"].selection["scores"]
+    assert by["EKF"]["scores"] != by["STEKF"]["scores"]  # strong tracking moved the fits
+    med = sorted(r.summary()["median"] for r in one.values())
+    assert med[0] - 2 <= both.summary()["median"] <= med[1] + 2
+    # the tuple form is the same call; one filter in a tuple is that filter
+    tup = prognose(y, 3.0, time=t, filter=("ekf", "stekf"))
+    assert torch.equal(tup.rul_samples, both.rul_samples)
+    assert torch.equal(prognose(y, 3.0, time=t, filter=("ekf",)).rul_samples,
+                       one["ekf"].rul_samples)  # fmt: skip
+    for bad, msg in (("ekf+ekf", "twice"), ("stpf", "Gaussian filters"), ((), "filter must"),
+                     (3, "filter must"), (("ekf", 3), "names or GaussianFilters")):  # fmt: skip
+        with pytest.raises(ValueError, match=msg):
+            prognose(y, 3.0, time=t, filter=bad)
+
+
 def test_auto_flags_model_doubt_on_linear_wear():
     t = torch.arange(800, dtype=F64)
     g = torch.Generator().manual_seed(1)
