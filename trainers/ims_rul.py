@@ -27,7 +27,8 @@ from prognos_torch.studies.rul_protocol import RUL_BASELINES, headline_table, pr
 
 MAIN = "prognose (auto)"
 METHODS = (MAIN, "prognose (exponential)", "prognose (power)", "prognose (linear)",
-           "prognose (elm)", "prognose (auto, strong tracking)", *RUL_BASELINES)  # fmt: skip
+           "prognose (elm)", "prognose (auto, strong tracking)", "prognose (auto, ekf+stekf pool)",
+           *RUL_BASELINES)  # fmt: skip
 METRICS = ["in_cone_0.2", "in_cone_0.3", "covered", "abs_error", "rel_error", "censored",
            "crps_log"]  # fmt: skip
 

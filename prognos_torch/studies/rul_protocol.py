@@ -9,7 +9,8 @@ absolute and relative errors, the mean relative accuracy and, for methods with R
 the mean CRPS of the log RUL, censored at 10 x the truth).
 
 Methods: ``"prognose (<method>)"`` for every :data:`~prognos_torch.workflow.PROGNOSE_METHODS`
-entry (``", strong tracking"`` appended: the strong-tracking EKF), and the baselines
+entry (``", strong tracking"`` appended: the strong-tracking EKF; ``", ekf+stekf pool"``: the
+models of both filters pooled, ``prognose(filter="ekf+stekf")``), and the baselines
 ``"fit_series + rul(stpf)"`` (the workflow's learner forecaster and strong-tracking particle
 filter), ``"linear slope"`` and ``"exponential LSQ"``
 (:mod:`prognos_torch.prognosis.protocol`).
@@ -57,6 +58,7 @@ def predict_rul(method: str, t: Tensor, y: Tensor, case: ProtocolCase, tp: float
     if method.startswith("prognose ("):
         kind = method[len("prognose (") : -1]
         filt = "stekf" if "strong tracking" in kind else "ekf"
+        filt = "ekf+stekf" if "ekf+stekf pool" in kind else filt
         res = prognose(series, case.threshold, method=kind.split(",")[0], at=tp, seed=seed,
                        filter=filt)  # fmt: skip
         s = res.summary()
