@@ -10,7 +10,8 @@ process (it imports ``torch.optim``'s compiler machinery once, through the Kalma
 the learner trend), then ``--repeat`` calls of ``prognose(method="auto")`` (onset, three trend
 shapes x 27 noise settings in one filter run, the online ELM, the backtest, 2,000 RUL paths)
 interleaved with the same number of calls of the workflow's previous route on the same data,
-``fit_series(learner="elm") + rul(filter="stpf")``, as the peer measured in the same run.
+``fit_series(learner="elm") + rul(filter="stpf")``, as the peer measured in the same run, and of
+``prognose(filter="ekf+stekf")`` (the models fitted under both filters and pooled).
 """
 
 from __future__ import annotations
@@ -46,11 +47,14 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.perf_counter()
     res = prognose(s, thr)
     first = time.perf_counter() - t0
-    ours, peer = [], []
+    ours, peer, pool = [], [], []
     for _ in range(args.repeat):
         t0 = time.perf_counter()
         res = prognose(s, thr)
         ours.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        prognose(s, thr, filter="ekf+stekf")
+        pool.append(time.perf_counter() - t0)
         t0 = time.perf_counter()
         rul(fit_series(s, learner="elm"), s, thr, filter="stpf")
         peer.append(time.perf_counter() - t0)
@@ -60,6 +64,7 @@ def main(argv: list[str] | None = None) -> None:
     print("| call | median s | best s |\n|---|---|---|")
     print(f"| prognose, first call in the process | {first:.2f} | |")
     print(f"| prognose(method='auto') | {statistics.median(ours):.2f} | {min(ours):.2f} |")
+    print(f"| prognose(filter='ekf+stekf') | {statistics.median(pool):.2f} | {min(pool):.2f} |")
     print(f"| fit_series(elm) + rul(stpf) (peer) | {statistics.median(peer):.2f} | "
           f"{min(peer):.2f} |")  # fmt: skip
     print(
