@@ -128,3 +128,18 @@ def test_last_sample_indices_by_hand():
     assert last_sample_indices(t, [0.5 - 1e-12], tol=0.0) == [1]
     with pytest.raises(ValueError, match="t must"):
         last_sample_indices(t[None], times)
+
+
+def test_predict_rul_names_select_the_filters():
+    """The study's method names map to prognose's filters: ``", strong tracking"`` the
+    strong-tracking EKF, ``", ekf+stekf pool"`` both filters pooled."""
+    from prognos_torch.studies.rul_protocol import predict_rul
+
+    f = load_ims_features(1)
+    t, y = f.days, f.feature("rms")[:, 4]
+    pc = known_threshold_protocol(t, y)
+    tp = float(pc.times[2])
+    got = {m: predict_rul(f"prognose ({m})", t, y, pc, tp, 0, "days")["result"].filter
+           for m in ("auto", "auto, strong tracking", "auto, ekf+stekf pool")}  # fmt: skip
+    assert got == {"auto": "EKF", "auto, strong tracking": "STEKF",
+                   "auto, ekf+stekf pool": "EKF+STEKF"}  # fmt: skip
