@@ -621,8 +621,8 @@ def _cmd_rul(args) -> int:
         if given:
             raise ValueError(
                 f"{', '.join(given)} apply with a model file (prognos rul MODEL DATA.csv); "
-                "without one, prognose sets its horizon from the observed life and the number "
-                "of paths itself (--paths, --method, --filter, --seed, --direction apply)"
+                "without one, prognose sets its horizon from the observed life and filters "
+                "every value since onset (--paths, --method, --filter, --seed, --direction apply)"
             )
         args.data = args.model
         _check_out_folder(args.plot, "--plot")
