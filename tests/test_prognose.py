@@ -140,6 +140,11 @@ def test_several_filters_pool_the_models_fitted_under_each():
     assert by["EKF"]["scores"] == one["ekf"].selection["scores"]
     assert by["STEKF"]["scores"] == one["stekf"].selection["scores"]
     assert by["EKF"]["scores"] != by["STEKF"]["scores"]  # strong tracking moved the fits
+    # the learner trend alone: each run is named by the filter of the fit it learns from
+    elm = prognose(y, 3.0, time=t, method="elm", filter="ekf+stekf")
+    assert elm.model == "elm (EKF) + elm (STEKF)" and set(elm.selection["by_filter"]) == {
+        "EKF", "STEKF"}  # fmt: skip
+    assert elm.filter == "EKF+STEKF"
     med = sorted(r.summary()["median"] for r in one.values())
     assert med[0] - 2 <= both.summary()["median"] <= med[1] + 2
     # the tuple form is the same call; one filter in a tuple is that filter

@@ -200,6 +200,13 @@ def _level_fit(models: dict, pool: tuple[str, ...]):
     return fit.members[0] if isinstance(fit, TrendPool) else fit
 
 
+def _filter_label(models: dict, pool: tuple[str, ...]) -> str:
+    """The name of the filter a run's models were fitted under (for the learner trend, that of
+    the exponential fit it learns from)."""
+    fit = _level_fit(models, pool)
+    return getattr(fit, "filter", None) or fit.level_fit.filter
+
+
 def _check_int(v, name: str, lo: int) -> int:
     if isinstance(v, bool) or not isinstance(v, int) or v < lo:
         raise ValueError(f"{name} must be an int >= {lo}, got {v!r}")
@@ -633,7 +640,7 @@ def prognose(
         flags += [f for f in doubt if f not in flags]
     fit = _level_fit(models, pool)
     pooled = tuple(m[k] for m, pl, _, _ in runs for k in pl)
-    names = [getattr(_level_fit(m, pl), "filter", "ekf (Kalman optimiser)") for m, pl, _, _ in runs]
+    names = [_filter_label(m, pl) for m, pl, _, _ in runs]
     chosen = selection["chosen"]
     if len(runs) > 1:  # the pools of every filter, with equal weights
         chosen = " + ".join(f"{sel['chosen']} ({n})" for (_, _, sel, _), n in zip(runs, names))
@@ -670,7 +677,9 @@ def prognose(
         t_last=t_eval,
         paths=paths,
         weights=torch.full((paths.shape[0],), 1.0 / paths.shape[0], dtype=torch.float64),
-        filter="+".join(names),
+        filter=getattr(fit, "filter", "ekf (Kalman optimiser)")
+        if len(runs) == 1
+        else "+".join(names),
         n_particles=n_paths,
         status="ok",
         onset=reported,
