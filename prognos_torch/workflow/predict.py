@@ -185,6 +185,13 @@ class RULResult:
         """``horizon * dt``: the censored mass has RUL beyond this."""
         return self.horizon * self.dt
 
+    def _alive_ruls(self) -> Tensor | None:
+        """The per-path RULs of the paths still running at ``t_last`` (``rul_samples`` without
+        its NaN, the paths that crossed before; ``inf``: censored), or ``None``."""
+        if self.rul_samples is None:
+            return None
+        return self.rul_samples[~torch.isnan(self.rul_samples)]
+
     def failure_probability(self, within: float) -> float | None:
         """``P(RUL <= within)``: the probability that the threshold is reached within
         ``within`` time units (``time_unit``) of ``t_last``, the question a maintenance
@@ -217,8 +224,8 @@ class RULResult:
                 f"{self.bound:g} {self.time_unit} while {100 * self.censored_mass:.3g} % of the "
                 f"paths are censored: only P >= {self.crossing_probability:.4g} is known there"
             )
-        if self.rul_samples is not None:
-            x = self.rul_samples[~torch.isnan(self.rul_samples)]  # NaN: crossed before t_last
+        x = self._alive_ruls()
+        if x is not None:
             return float((x <= h).to(torch.float64).mean()) if x.numel() else None
         d = self.distribution
         k = min(d.horizon, math.floor(h / d.dt + 1e-9))  # support points dt * (1..k) <= within
@@ -250,9 +257,10 @@ class RULResult:
             raise ValueError(f"q must lie in (0, 1], got {q!r}")
         if self.status != "ok":
             return torch.full(qs.shape, math.nan, dtype=torch.float64)
-        if self.rul_samples is None:
+        x = self._alive_ruls()
+        if x is None:
             return self.distribution.quantile(qs).to("cpu", torch.float64)
-        x = self.rul_samples[~torch.isnan(self.rul_samples)].to("cpu", torch.float64)
+        x = x.to("cpu", torch.float64)
         if x.numel() == 0:
             return torch.full(qs.shape, math.nan, dtype=torch.float64)
         x = torch.where(x <= self.bound, x, math.inf).sort().values  # beyond bound: censored
@@ -276,8 +284,8 @@ class RULResult:
 
         q = self.quantile([0.05, 0.5, 0.95])
         mean = d.expectation
-        if self.rul_samples is not None:  # the exact crossing times, as for the quantiles
-            x = self.rul_samples[~torch.isnan(self.rul_samples)]
+        x = self._alive_ruls()
+        if x is not None:  # the exact crossing times, as for the quantiles
             whole = x.numel() > 0 and bool((x <= self.bound).all())
             mean = x.mean() if whole else math.nan
         out = {
