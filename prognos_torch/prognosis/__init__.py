@@ -19,7 +19,8 @@ fault prediction, and fault probability and remaining-useful-life distributions.
   estimated by the filter engine; :mod:`.learner_trend`: an ELM trend trained online by the
   Kalman optimiser; :mod:`.protocol`: the known-threshold RUL protocol of bearing studies
   (:func:`last_sample_indices`: prediction times to sample indices); :mod:`.backtest`: trend
-  models judged by the crossing times they predict on a series' own past.
+  models judged by the crossing times they predict on a series' own past; :mod:`.conformal`:
+  RUL intervals calibrated on assets that ran to failure (split-conformal, CQR).
 """
 
 from ..learners.ros_elm import ROSELMState, ros_elm_forecast, ros_elm_init, ros_elm_update
@@ -37,6 +38,13 @@ from .backtest import (
     crossing_pairs,
     crps_log_time,
     one_standard_error_choice,
+)
+from .conformal import (
+    RULCalibration,
+    calibrate_intervals,
+    conformal_margin,
+    interval_scores,
+    leave_one_group_out,
 )
 from .events import EventPrediction, sample_belief, simulate_to_event
 from .fault import (
@@ -161,4 +169,9 @@ __all__ = [
     "persistence_forecasts",
     "predict_threshold_crossings",
     "rolling_forecasts",
+    "RULCalibration",
+    "calibrate_intervals",
+    "conformal_margin",
+    "interval_scores",
+    "leave_one_group_out",
 ]

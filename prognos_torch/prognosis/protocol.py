@@ -54,7 +54,8 @@ class ProtocolCase:
 
     Attributes:
         t, y: ``(T,)`` times and values (as given, NaN-free).
-        threshold: ``0.9 x max`` moving median; t_eol, i_eol: end of life (first crossing).
+        threshold: ``0.9 x max`` moving median (or the known one given); t_eol, i_eol: end of
+            life (first crossing; ``inf`` and ``T`` when the threshold is never reached).
         baseline: statistics of the first 30 % of life.
         t_onset, i_onset: protocol onset (``None`` if none before EoL).
         times: ``(P,)`` prediction times; true_rul: ``(P,)`` ``t_eol - times``.
@@ -77,9 +78,17 @@ class ProtocolCase:
 
 
 def known_threshold_protocol(
-    t: Tensor, y: Tensor, *, fractions: tuple[float, ...] = PROTOCOL_FRACTIONS
+    t: Tensor,
+    y: Tensor,
+    *,
+    fractions: tuple[float, ...] = PROTOCOL_FRACTIONS,
+    threshold: float | None = None,
 ) -> ProtocolCase:
-    """Threshold, end of life, onset and prediction times of a series (module docstring)."""
+    """Threshold, end of life, onset and prediction times of a series (module docstring).
+
+    ``threshold``: a known failure level of a rising indicator instead of ``0.9 x`` the highest
+    moving median; a series whose moving median never reaches it is not usable.
+    """
     t = torch.as_tensor(t, dtype=torch.float64)
     y = torch.as_tensor(y, dtype=torch.float64)
     if t.dim() != 1 or t.shape != y.shape or t.shape[0] < 20:
@@ -87,7 +96,17 @@ def known_threshold_protocol(
     if bool(torch.isnan(y).any()):
         raise ValueError("y contains NaN; drop missing values first")
     m = moving_median(y, 5)
-    thr = 0.9 * float(m.max())
+    if threshold is not None:
+        if isinstance(threshold, bool) or not isinstance(threshold, (int, float)):
+            raise TypeError(f"threshold must be a real number or None, got {threshold!r}")
+        if not math.isfinite(threshold):
+            raise ValueError(f"threshold must be finite, got {threshold!r}")
+    thr = 0.9 * float(m.max()) if threshold is None else float(threshold)
+    if not bool((m >= thr).any()):
+        empty = torch.empty(0, dtype=torch.float64, device=t.device)
+        base = healthy_baseline(y, t, fraction=0.3)
+        return ProtocolCase(t, y, thr, math.inf, t.shape[0], base, None, None, empty, empty,
+                            False, f"the moving median never reaches the threshold {thr:g}")  # fmt: skip
     i_eol = int(torch.nonzero(m >= thr).flatten()[0])
     t_eol = float(t[i_eol])
     base = healthy_baseline(y[: i_eol + 1], t[: i_eol + 1], fraction=0.3)

@@ -15,11 +15,14 @@
 Modules, each importing only those before it: :mod:`.data` (:func:`load_series`),
 :mod:`.fitted` (:class:`FittedModel`, a plain record), :mod:`.predict` (:func:`forecast`,
 :func:`rul`), :mod:`.model` (:func:`fit_series`, learners and optimisers by name), :mod:`.store`
-(:func:`save_model`, :func:`load_model` on :mod:`prognos_torch.io`); the figures
+(:func:`save_model`, :func:`load_model` on :mod:`prognos_torch.io`), :mod:`.prognose`
+(:func:`prognose`, from a series to a RUL), :mod:`.calibrate` (:func:`calibrate_rul`, its
+intervals calibrated on assets that ran to failure); the figures
 (:func:`plot_forecast`, :func:`plot_rul`) live in :mod:`prognos_torch.plots`. The
 ``prognos fit | forecast | rul`` commands are thin wrappers around these functions.
 """
 
+from .calibrate import calibrate_rul
 from .data import FILL_METHODS, Series, load_series, parse_where
 from .extrapolation import ExtrapolationWarning
 from .fitted import FittedModel
@@ -61,6 +64,7 @@ __all__ = [
     "plot_rul",
     "prognose",
     "PROGNOSE_METHODS",
+    "calibrate_rul",
     "ExtrapolationWarning",
 ]
 

@@ -1,0 +1,131 @@
+"""Calibrate :func:`~prognos_torch.workflow.prognose`'s 90 % intervals on assets that ran to failure.
+
+::
+
+    from prognos_torch.workflow import calibrate_rul, prognose
+
+    cal, points = calibrate_rul({"b1": s1, "b2": s2, "b3": s3})   # failed assets, same type
+    r = prognose(s_new, threshold=thr)
+    print(cal.summary(r)["calibrated"])                          # {"q05", "q95", "margin", ...}
+
+Each history is replayed under the known-threshold protocol
+(:func:`~prognos_torch.prognosis.protocol.known_threshold_protocol`; or a known ``threshold``):
+``prognose`` predicts at 20/40/60/80/90 % of [onset, end of life] from the data up to each time,
+and the intervals and true RULs of all points give the split-conformal margin
+(:mod:`prognos_torch.prognosis.conformal`; CQR on the log RUL, Romano et al. 2019). The
+guarantee holds for a new asset exchangeable with the histories: the same kind of asset, the
+same indicator and the same ``prognose`` settings (pass them as keyword arguments here and use
+them for the new asset).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import torch
+
+from ..prognosis.conformal import RULCalibration, conformal_margin, interval_scores
+from ..prognosis.protocol import PROTOCOL_FRACTIONS, known_threshold_protocol
+from .data import Series
+from .prognose import _as_series, prognose
+
+__all__ = ["calibrate_rul"]
+
+
+def calibrate_rul(
+    histories,
+    *,
+    threshold: float | None = None,
+    coverage: float = 0.9,
+    fractions: tuple[float, ...] = PROTOCOL_FRACTIONS,
+    seed: int = 0,
+    **prognose_kwargs,
+) -> tuple[RULCalibration, list[dict]]:
+    """Conformal calibration of ``prognose``'s 90 % interval on run-to-failure histories.
+
+    Args:
+        histories: run-to-failure series of assets like the one to be predicted: a mapping
+            ``{name: series}`` or a sequence, each a :class:`~prognos_torch.workflow.Series`
+            or a pair ``(t, y)`` of ``(T,)`` times and values (NaN: missing, dropped). Each
+            must end at or after its failure.
+        threshold: the known failure level (rising indicator); ``None``: each history's own
+            ``0.9 x`` its highest 5-point moving median (the bearing studies' protocol).
+        coverage: the target coverage of the calibrated interval, in (0, 1).
+        fractions: prediction times as fractions of [onset, end of life].
+        seed: passed to every ``prognose`` call.
+        **prognose_kwargs: further ``prognose`` settings (``method``, ``filter``, ...); use the
+            same for the asset the calibration will serve.
+
+    Returns:
+        ``(calibration, points)``: the :class:`~prognos_torch.prognosis.conformal.RULCalibration`
+        and one dict per prediction point (``name, t, true_rul, q05, q95, status, score``;
+        points before onset or refused by ``prognose`` are listed with their status or error
+        and left out of the calibration).
+
+    Raises:
+        ValueError: ``histories`` empty or malformed, or no history gives a usable point.
+    """
+    items = _items(histories)
+    if "at" in prognose_kwargs or "time" in prognose_kwargs:
+        raise ValueError("calibrate_rul sets at= and time= itself: do not pass them")
+    points = []
+    for name, (t, y) in items:
+        try:
+            pc = known_threshold_protocol(t, y, fractions=fractions, threshold=threshold)
+        except ValueError as exc:
+            raise ValueError(f"histories[{name!r}]: {exc}") from None
+        if not pc.valid:
+            points.append({"name": name, "status": f"protocol not usable: {pc.reason}"})
+            continue
+        for tp, true in zip(pc.times.tolist(), pc.true_rul.tolist()):
+            sel = t <= tp
+            row = {"name": name, "t": tp, "true_rul": true, "q05": math.nan, "q95": math.nan}
+            try:
+                r = prognose(y[sel], pc.threshold, time=t[sel], at=tp, seed=seed,
+                             **prognose_kwargs)  # fmt: skip
+            except ValueError as exc:
+                points.append(dict(row, status=f"error: {exc}"))
+                continue
+            s = r.summary()
+            if s["status"] == "ok" and true > 0:
+                row["q05"] = s["q05"] if s["q05"] is not None else s["bound"]
+                row["q95"] = math.inf if s["q95"] is None else s["q95"]
+            points.append(dict(row, status=s["status"]))
+    usable = [p for p in points if not math.isnan(p.get("q05", math.nan))]
+    if not usable:
+        raise ValueError(
+            "histories gave no prediction point with an interval (no onset before failure, "
+            "or every prediction refused): nothing to calibrate on"
+        )
+    col = lambda k: torch.tensor([p[k] for p in usable], dtype=torch.float64)  # noqa: E731
+    scores = interval_scores(col("q05"), col("q95"), col("true_rul"))
+    for p, e in zip(usable, scores.tolist()):
+        p["score"] = e
+    cal = RULCalibration(conformal_margin(scores, coverage), float(coverage), len(usable))
+    return cal, points
+
+
+def _items(histories) -> list[tuple[str, tuple[torch.Tensor, torch.Tensor]]]:
+    if isinstance(histories, Mapping):
+        pairs = list(histories.items())
+    elif isinstance(histories, (list, tuple)):
+        pairs = [(str(i), h) for i, h in enumerate(histories)]
+    else:
+        raise TypeError(
+            f"histories must be a mapping or a sequence of Series or (t, y) pairs, got "
+            f"{type(histories).__name__}"
+        )
+    if not pairs:
+        raise ValueError("histories is empty: give at least one run-to-failure series")
+    out = []
+    for name, h in pairs:
+        if isinstance(h, Series):
+            y, t, _ = _as_series(h, None)
+        elif isinstance(h, (tuple, list)) and len(h) == 2:
+            y, t, _ = _as_series(h[1], h[0])
+        else:
+            raise TypeError(f"histories[{name!r}] must be a Series or a pair (t, y), got {h!r:.80}")
+        keep = ~torch.isnan(y)
+        out.append((str(name), (t[keep], y[keep])))
+    return out

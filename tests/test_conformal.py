@@ -1,0 +1,182 @@
+"""Split-conformal RUL intervals (CQR on the log RUL): the rank rule, the finite-sample coverage
+guarantee by Monte Carlo against its exact bounds, leave-one-group-out, the protocol replay of
+``calibrate_rul`` and bad input."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from prognos_torch.prognosis.conformal import (
+    RULCalibration,
+    calibrate_intervals,
+    conformal_margin,
+    interval_scores,
+    leave_one_group_out,
+)
+from prognos_torch.prognosis.protocol import known_threshold_protocol
+from prognos_torch.systems import run_to_failure_set
+from prognos_torch.workflow import calibrate_rul, prognose
+
+T = lambda *v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
+
+
+def test_scores_are_the_log_factor_by_which_the_truth_misses():
+    e = interval_scores(
+        T(1.0, 2.0, 0.5, 1.0), T(4.0, math.inf, 1.0, 2.0), T(0.5, 3.0, 2.0, math.nan)
+    )
+    assert e[0].item() == pytest.approx(math.log(2.0))  # below: log(1 / 0.5)
+    assert e[1].item() == pytest.approx(math.log(2.0 / 3.0))  # inside, open upper end
+    assert e[2].item() == pytest.approx(math.log(2.0))  # above: log(2 / 1)
+    assert math.isnan(e[3].item())
+
+
+def test_margin_is_the_ceil_n_plus_one_c_th_smallest_score():
+    s = torch.arange(1.0, 10.0, dtype=torch.float64)[torch.randperm(9)]  # 1..9 shuffled
+    assert conformal_margin(s, 0.9) == 9.0  # ceil(10 * 0.9) = 9
+    assert conformal_margin(s, 0.5) == 5.0  # ceil(5) = 5
+    assert conformal_margin(s[:8], 0.9) == math.inf  # ceil(9 * 0.9) = 9 > 8 points
+    assert conformal_margin(torch.cat([s, T(math.nan)]), 0.5) == 5.0  # NaN left out
+
+
+@pytest.mark.parametrize("half_width, bias", [(0.3, 0.0), (2.5, 0.0), (0.8, 1.0)])
+def test_coverage_lies_within_the_finite_sample_bounds(half_width, bias):
+    # exchangeable points: log RUL = mu + z, z ~ N(0, 1); the model's interval exp(mu + bias +-
+    # half_width) is too narrow, too wide or off-centre. After calibration on n points the
+    # coverage of a new point, averaged over calibration sets, lies in [c, c + 1 / (n + 1)]
+    # (Romano et al. 2019, Theorems 1 and 2). Coverage given Q is exact (normal CDF), so the only
+    # Monte Carlo error is over R calibration sets: sd <= 0.035 / sqrt(R).
+    g = torch.Generator().manual_seed(7)
+    n, R, c = 44, 3000, 0.9  # (n + 1) c = 40.5: the rank rule ceil((n + 1) c) = 41, not 40
+    normal = torch.distributions.Normal(0.0, 1.0)
+    cov = torch.empty(R, dtype=torch.float64)
+    for r in range(R):
+        mu = 3.0 * torch.rand(n, generator=g, dtype=torch.float64)
+        y = mu + torch.randn(n, generator=g, dtype=torch.float64)
+        lo, hi = (mu + bias - half_width).exp(), (mu + bias + half_width).exp()
+        q = calibrate_intervals(lo, hi, y.exp(), c).margin
+        w = half_width + q  # new interval: log r in mu + bias +- w
+        cov[r] = (normal.cdf(T(bias + w)) - normal.cdf(T(bias - w))).clamp(min=0.0).item()
+    tol = 4 * 0.035 / math.sqrt(R)
+    assert c - tol <= cov.mean().item() <= c + 1.0 / (n + 1) + tol
+
+
+def test_leave_one_group_out_is_calibration_on_the_other_groups():
+    g = torch.Generator().manual_seed(1)
+    lo = torch.rand(12, generator=g, dtype=torch.float64) + 0.5
+    hi = lo * 2.0
+    hi[3] = math.inf
+    tr = torch.rand(12, generator=g, dtype=torch.float64) * 3 + 0.1
+    lo[5] = math.nan  # a point without an interval
+    groups = ["a"] * 4 + ["b"] * 4 + ["c"] * 4
+    new_lo, new_hi, margin = leave_one_group_out(lo, hi, tr, groups, 0.8)
+    for k in range(3):
+        mine = slice(4 * k, 4 * k + 4)
+        other = torch.ones(12, dtype=torch.bool)
+        other[mine] = False
+        cal = calibrate_intervals(lo[other], hi[other], tr[other], 0.8)
+        a, b = cal.interval(lo[mine], hi[mine])
+        torch.testing.assert_close(new_lo[mine], a, equal_nan=True, rtol=0, atol=0)
+        torch.testing.assert_close(new_hi[mine], b, equal_nan=True, rtol=0, atol=0)
+        ok = ~torch.isnan(lo[mine])
+        assert bool((margin[mine][ok] == cal.margin).all())
+    assert math.isnan(margin[5].item()) and math.isnan(new_lo[5].item())
+    assert new_hi[3].item() == math.inf
+
+
+def test_interval_keeps_open_ends_and_an_infinite_margin_opens_both():
+    cal = RULCalibration(math.log(2.0), 0.9, 10)
+    lo, hi = cal.interval(T(1.0, 0.0, math.nan), T(3.0, math.inf, 1.0))
+    assert lo.tolist()[:2] == [0.5, 0.0] and math.isnan(lo[2].item())
+    assert hi.tolist() == [6.0, math.inf, 2.0]
+    a, b = cal.interval(1.0, 3.0)
+    assert a.dim() == 0 and (a.item(), b.item()) == (0.5, 6.0)
+    lo, hi = RULCalibration(math.inf, 0.9, 3).interval(T(1.0, 0.0), T(2.0, 0.0))
+    assert lo.tolist() == [0.0, 0.0] and hi.tolist() == [math.inf, math.inf]
+
+
+@pytest.mark.parametrize(
+    "args, match",
+    [
+        ((T(1.0, 2.0), T(2.0), T(1.0, 1.0)), r"same shape \(n,\).*upper \(1,\)"),
+        ((T(2.0), T(1.0), T(1.0)), "upper must be >= lower"),
+        ((T(-1.0), T(1.0), T(1.0)), "lower must be finite and >= 0"),
+        ((T(math.inf), T(math.inf), T(1.0)), "lower must be finite"),
+        ((T(1.0), T(2.0), T(0.0)), "truth must be finite and > 0"),
+        ((torch.ones(2, 2), torch.ones(2, 2), torch.ones(2, 2)), r"lower must have shape \(n,\)"),
+    ],
+)
+def test_bad_intervals_are_refused_by_name(args, match):
+    with pytest.raises(ValueError, match=match):
+        interval_scores(*args)
+
+
+def test_bad_coverage_and_empty_scores_are_refused():
+    with pytest.raises(ValueError, match=r"coverage must lie in \(0, 1\)"):
+        conformal_margin(T(1.0), 1.0)
+    with pytest.raises(TypeError, match="coverage must be a float"):
+        conformal_margin(T(1.0), True)
+    with pytest.raises(ValueError, match="no non-NaN entry"):
+        conformal_margin(T(math.nan), 0.9)
+    with pytest.raises(ValueError, match="groups must have 2 labels"):
+        leave_one_group_out(T(1.0, 1.0), T(2.0, 2.0), T(1.0, 1.0), ["a"])
+
+
+def test_protocol_with_a_known_threshold():
+    t = torch.arange(200, dtype=torch.float64)
+    y = torch.ones(200, dtype=torch.float64)
+    y[120:] = 1.0 + 0.05 * torch.arange(80, dtype=torch.float64)
+    y += 0.01 * torch.randn(200, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    pc = known_threshold_protocol(t, y, threshold=3.0)
+    m = torch.tensor([float(y[max(0, i - 4) : i + 1].median()) for i in range(200)])
+    assert pc.valid and pc.threshold == 3.0 and pc.i_eol == int(torch.nonzero(m >= 3.0)[0])
+    never = known_threshold_protocol(t, y, threshold=100.0)
+    assert not never.valid and "never reaches the threshold 100" in never.reason
+    with pytest.raises(TypeError, match="threshold must be a real number"):
+        known_threshold_protocol(t, y, threshold="3")
+
+
+def _histories():
+    cases = run_to_failure_set(1, seed=3)
+    return {n: (r.t, r.y) for n, r in list(cases.items())[:3]}
+
+
+def test_calibrate_rul_replays_the_protocol_through_prognose():
+    hist = _histories()
+    cal, points = calibrate_rul(hist, method="exponential", fractions=(0.5, 0.9), n_paths=400)
+    usable = [p for p in points if "score" in p]
+    assert cal.n == len(usable) >= 4 and cal.coverage == 0.9
+    # every point is prognose at that time from the data up to it, with the protocol threshold
+    p = usable[0]
+    t, y = hist[p["name"]]
+    pc = known_threshold_protocol(t, y, fractions=(0.5, 0.9))
+    r = prognose(y[t <= p["t"]], pc.threshold, time=t[t <= p["t"]], at=p["t"], seed=0,
+                 method="exponential", n_paths=400)  # fmt: skip
+    s = r.summary()
+    assert (p["q05"], p["true_rul"]) == (s["q05"], pc.t_eol - p["t"])
+    q = conformal_margin(interval_scores(*(torch.tensor([u[k] for u in usable]) for k in
+                                           ("q05", "q95", "true_rul"))), 0.9)  # fmt: skip
+    assert cal.margin == q
+    out = cal.summary(r)["calibrated"]
+    if math.isfinite(q):
+        assert out["q05"] == pytest.approx(s["q05"] * math.exp(-q))
+    assert (out["margin"], out["n"]) == (q, cal.n)
+
+
+def test_calibrate_rul_refuses_bad_histories():
+    with pytest.raises(ValueError, match="histories is empty"):
+        calibrate_rul({})
+    with pytest.raises(TypeError, match="histories must be a mapping or a sequence"):
+        calibrate_rul(torch.ones(5))
+    with pytest.raises(TypeError, match=r"histories\['a'\] must be a Series or a pair"):
+        calibrate_rul({"a": torch.ones(30)})
+    with pytest.raises(ValueError, match="sets at= and time= itself"):
+        calibrate_rul(_histories(), at=3.0)
+    flat = (torch.arange(50.0, dtype=torch.float64), torch.ones(50, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"histories\['0'\]: the series is constant"):
+        calibrate_rul([flat], threshold=2.0)
+    noise = torch.randn(50, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    with pytest.raises(ValueError, match="no prediction point with an interval"):
+        calibrate_rul([(flat[0], 1.0 + 0.01 * noise)], threshold=2.0)
