@@ -180,3 +180,32 @@ def test_calibrate_rul_refuses_bad_histories():
     noise = torch.randn(50, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     with pytest.raises(ValueError, match="no prediction point with an interval"):
         calibrate_rul([(flat[0], 1.0 + 0.01 * noise)], threshold=2.0)
+
+
+def test_study_rows_are_calibrated_on_the_other_assets():
+    from prognos_torch.studies.rul_protocol import conformal_rows
+
+    rows = []
+    for k, (s, lo, hi, true) in enumerate(
+        [
+            ("A h", 1.0, 2.0, 3.0),
+            ("A v", 1.0, math.inf, 0.5),
+            ("B h", 2.0, 4.0, 3.0),
+            ("B v", math.inf, math.inf, 1.0),
+            ("C h", 0.5, 1.0, 2.0),
+        ]  # fmt: skip
+    ):
+        rows.append({"run": k, "method": "m", "series": s, "q05": lo, "q95": hi, "true_rul": true,
+                     "covered": float(lo <= true <= hi), "crps_log": 0.1})  # fmt: skip
+    rows.append(dict(rows[0], run=5, method="other"))
+    out = conformal_rows(rows, "m", lambda name: name.split()[0], coverage=0.5)
+    assert [r["method"] for r in out] == ["m + conformal"] * 5
+    assert [r["run"] for r in out] == [6, 7, 8, 9, 10]
+    lo = T(1.0, 1.0, 2.0, math.nan, 0.5)
+    new_lo, new_hi, _ = leave_one_group_out(lo, T(2.0, math.inf, 4.0, math.nan, 1.0),
+                                            T(3.0, 0.5, 3.0, 1.0, 2.0), list("AABBC"), 0.5)  # fmt: skip
+    for i in (0, 1, 2, 4):
+        assert (out[i]["q05"], out[i]["q95"]) == (new_lo[i].item(), new_hi[i].item())
+        assert out[i]["covered"] == float(out[i]["q05"] <= out[i]["true_rul"] <= out[i]["q95"])
+        assert out[i]["crps_log"] is None
+    assert (out[3]["q05"], out[3]["covered"]) == (math.inf, 0.0)  # no interval: as it was

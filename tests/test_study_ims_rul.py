@@ -21,7 +21,8 @@ from prognos_torch.prognosis.protocol import (
 )
 
 quick_out = quick_fixture("ims-rul")
-METHODS = ("prognose (auto)", "prognose (exponential)", "linear slope", "exponential LSQ")
+METHODS = ("prognose (auto)", "prognose (exponential)", "linear slope", "exponential LSQ",
+           "prognose (auto) + conformal")  # fmt: skip
 
 
 def test_protocol_on_bearing_3():
@@ -59,7 +60,7 @@ def test_quick_outputs(quick_out):
         assert (quick_out / name).stat().st_size > 0
     rows = read_rows(quick_out)
     assert {r["method"] for r in rows} == set(METHODS)
-    assert len(rows) == 4 * 2 * 3  # methods x series x points
+    assert len(rows) == 5 * 2 * 3  # methods x series x points
     table = (quick_out / "table.md").read_text()
     assert "alpha-lambda 0.3" in table and "Nothing was fitted to these bearings" in table
 
@@ -93,6 +94,8 @@ def test_quick_headline_numbers(quick_out):
     got: dict = {}
     for r in rows:
         got.setdefault((r["method"], r["series"]), []).append(float(r["pred_rul"]))
+    for series in ("T1 B3 rms", "T1 B4 hi"):  # calibrated intervals around the same medians
+        assert got.pop(("prognose (auto) + conformal", series)) == got[("prognose (auto)", series)]
     assert set(got) == set(QUICK_PRED_RUL)
     for k, ref in QUICK_PRED_RUL.items():
         assert got[k] == pytest.approx(ref, rel=1e-6, abs=1e-12), k

@@ -13,7 +13,8 @@ import pytest
 from _study_helpers import quick_fixture, read_rows
 
 quick_out = quick_fixture("rul-synthetic")
-METHODS = ("prognose (auto)", "prognose (exponential)", "exponential LSQ")
+METHODS = ("prognose (auto)", "prognose (exponential)", "exponential LSQ",
+           "prognose (auto) + conformal")  # fmt: skip
 
 # Quick mode: one record per family, the 20/60/90 % points; prognose medians are exact per-path
 # crossing times (RULResult.quantile), the baseline is a closed form.
@@ -42,13 +43,20 @@ def test_quick_outputs_and_headline_numbers(quick_out):
     for r in rows:
         got.setdefault((r["method"], r["series"]), []).append(float(r["pred_rul"]))
         assert float(r["true_rul"]) > 0
+    for m, series in list(got):  # calibrated intervals around the same medians
+        if m.endswith("+ conformal"):
+            assert got.pop((m, series)) == got[("prognose (auto)", series)]
     assert set(got) == set(QUICK_PRED_RUL)
     for k, ref in QUICK_PRED_RUL.items():
         assert got[k] == pytest.approx(ref, rel=1e-6, abs=1e-12), k
     # every prognose row carries a finite log-time CRPS and a 90 % interval
     for r in rows:
         if r["method"].startswith("prognose"):
-            assert math.isfinite(float(r["crps_log"])) and r["covered"] in ("0.0", "1.0")
+            assert r["covered"] in ("0.0", "1.0")
+            crps = r["crps_log"]  # the calibrated interval has no distribution to score
+            assert (
+                crps in ("", "None") if "conformal" in r["method"] else math.isfinite(float(crps))
+            )
     table = (quick_out / "table.md").read_text()
     assert "family: paris" in table and "mean log-time CRPS" in table
 

@@ -23,9 +23,15 @@ import torch
 from prognos_torch.datasets import health_indicator, load_ims_features
 from prognos_torch.plots import plot_prognosis_grid, plot_rul_trajectory
 from prognos_torch.studies import Study, StudyConfig, StudyResult
-from prognos_torch.studies.rul_protocol import RUL_BASELINES, headline_table, protocol_rows
+from prognos_torch.studies.rul_protocol import (
+    RUL_BASELINES,
+    conformal_rows,
+    headline_table,
+    protocol_rows,
+)
 
 MAIN = "prognose (auto)"
+CONFORMAL = f"{MAIN} + conformal"
 METHODS = (MAIN, "prognose (exponential)", "prognose (power)", "prognose (linear)",
            "prognose (elm)", "prognose (auto, strong tracking)", "prognose (auto, ekf+stekf pool)",
            *RUL_BASELINES)  # fmt: skip
@@ -64,6 +70,9 @@ def run(cfg: StudyConfig, out: Path) -> StudyResult:
         cases, methods, seed=cfg.seed, every=2 if cfg.quick else 1, time_unit="days",
         cone_methods=(MAIN, "prognose (exponential)", *RUL_BASELINES),
     )  # fmt: skip
+    # the 90 % intervals of auto calibrated on the other bearings' points
+    rows += conformal_rows(rows, MAIN, lambda name: " ".join(name.split()[:2]))
+    methods = (MAIN, CONFORMAL, *methods[1:])
     path_panels = [(n, [p["result"] for p in results[(MAIN, n)]], (t, y))
                    for n, (t, y, _) in cases.items() if (MAIN, n) in results]  # fmt: skip
     figs = _figures(out, panels, path_panels)

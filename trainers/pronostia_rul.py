@@ -22,9 +22,15 @@ import torch
 from prognos_torch.datasets.pronostia import find_pronostia_bearings, read_pronostia_bearing
 from prognos_torch.plots import plot_rul_trajectory
 from prognos_torch.studies import Study, StudyConfig, StudyResult
-from prognos_torch.studies.rul_protocol import RUL_BASELINES, headline_table, protocol_rows
+from prognos_torch.studies.rul_protocol import (
+    RUL_BASELINES,
+    conformal_rows,
+    headline_table,
+    protocol_rows,
+)
 
 MAIN = "prognose (auto)"
+CONFORMAL = f"{MAIN} + conformal"
 METHODS = (MAIN, "prognose (exponential)", "prognose (elm)", "prognose (linear)",
            "prognose (auto, strong tracking)", "prognose (auto, ekf+stekf pool)",
            *RUL_BASELINES[1:])  # fmt: skip
@@ -56,6 +62,9 @@ def run(cfg: StudyConfig, out: Path) -> StudyResult:
         cases, methods, seed=cfg.seed, every=2 if cfg.quick else 1, time_unit="hours",
         cone_methods=(MAIN, *RUL_BASELINES[1:]),
     )  # fmt: skip
+    # the 90 % intervals of auto calibrated on the other bearings' points
+    rows += conformal_rows(rows, MAIN, lambda name: name.split()[0])
+    methods = (MAIN, CONFORMAL, *methods[1:])
     figs = _figure(out, panels)
     tables = [_axis_table(rows, methods, axis) for axis in ("h", "v")]
     tables.append(headline_table(rows, methods, "both axes", held_out=None))

@@ -18,10 +18,11 @@ import torch
 
 from prognos_torch.plots import plot_rul_trajectory
 from prognos_torch.studies import Study, StudyConfig, StudyResult
-from prognos_torch.studies.rul_protocol import headline_table, protocol_rows
+from prognos_torch.studies.rul_protocol import conformal_rows, headline_table, protocol_rows
 from prognos_torch.systems import RUN_TO_FAILURE_FAMILIES, run_to_failure_set
 
 MAIN = "prognose (auto)"
+CONFORMAL = f"{MAIN} + conformal"
 METHODS = (MAIN, "prognose (exponential)", "prognose (elm)", "prognose (power)",
            "prognose (linear)", "linear slope", "exponential LSQ")  # fmt: skip
 METRICS = ["in_cone_0.2", "in_cone_0.3", "covered", "abs_error", "rel_error", "crps_log"]
@@ -38,6 +39,9 @@ def run(cfg: StudyConfig, out: Path) -> StudyResult:
         cases, methods, seed=cfg.seed, every=2 if cfg.quick else 1, time_unit="days",
         cone_methods=(MAIN, "prognose (exponential)", "exponential LSQ"),
     )  # fmt: skip
+    # the 90 % intervals of auto calibrated on the other seriess' points
+    rows += conformal_rows(rows, MAIN, lambda name: name)
+    methods = (MAIN, CONFORMAL, *methods[1:])
     plot_rul_trajectory(
         out / "rul_vs_time.png", panels[:: max(1, len(panels) // 8)], alpha=0.3, time_unit="days"
     )

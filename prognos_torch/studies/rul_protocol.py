@@ -13,7 +13,8 @@ entry (``", strong tracking"`` appended: the strong-tracking EKF; ``", ekf+stekf
 models of both filters pooled, ``prognose(filter="ekf+stekf")``), and the baselines
 ``"fit_series + rul(stpf)"`` (the workflow's learner forecaster and strong-tracking particle
 filter), ``"linear slope"`` and ``"exponential LSQ"``
-(:mod:`prognos_torch.prognosis.protocol`).
+(:mod:`prognos_torch.prognosis.protocol`). :func:`conformal_rows` adds a method's rows with its
+90 % intervals calibrated on the other assets' points (split-conformal, leave one asset out).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import math
 import torch
 from torch import Tensor
 
+from ..prognosis.conformal import leave_one_group_out
 from ..prognosis.protocol import (
     ProtocolCase,
     exponential_lsq_rul,
@@ -31,7 +33,7 @@ from ..prognosis.protocol import (
     rul_scores,
 )
 
-__all__ = ["RUL_BASELINES", "predict_rul", "protocol_rows", "headline_table"]
+__all__ = ["RUL_BASELINES", "predict_rul", "protocol_rows", "conformal_rows", "headline_table"]
 
 RUL_BASELINES = ("fit_series + rul(stpf)", "linear slope", "exponential LSQ")
 
@@ -150,6 +152,44 @@ def protocol_rows(
                 panel["methods"][m] = {"pred": pred, "lo": lo, "hi": hi}
         panels.append(panel)
     return rows, panels, per_series, results
+
+
+def conformal_rows(rows: list[dict], method: str, asset, coverage: float = 0.9) -> list[dict]:
+    """``method``'s rows again, as ``"<method> + conformal"``, each 90 % interval calibrated on
+    the points of every other asset (:func:`~prognos_torch.prognosis.conformal.leave_one_group_out`,
+    CQR on the log RUL): what a user with those assets' run-to-failure histories would get
+    from :func:`~prognos_torch.workflow.calibrate_rul`.
+
+    Args:
+        rows: from :func:`protocol_rows`.
+        method: a method with intervals (a ``prognose`` one).
+        asset: series name -> asset label (series of one asset, such as its two accelerometers,
+            are left out together).
+        coverage: the target coverage.
+
+    Returns:
+        New rows (``run`` numbered on from ``rows``): the prediction and its scores unchanged,
+        ``q05``/``q95``/``covered`` calibrated, ``crps_log`` ``None`` (an interval, no
+        distribution). Points without an interval (before onset) keep their own.
+    """
+    mine = [r for r in rows if r["method"] == method]
+    if not mine:
+        return []
+    lo = torch.tensor([r["q05"] if math.isfinite(r["q05"]) else math.nan for r in mine],
+                      dtype=torch.float64)  # fmt: skip
+    hi = torch.tensor([r["q95"] for r in mine], dtype=torch.float64)
+    hi = torch.where(torch.isnan(lo), lo, hi)
+    true = torch.tensor([r["true_rul"] for r in mine], dtype=torch.float64)
+    new_lo, new_hi, _ = leave_one_group_out(lo, hi, true, [asset(r["series"]) for r in mine],
+                                            coverage)  # fmt: skip
+    out = []
+    for i, r in enumerate(mine):
+        row = dict(r, run=len(rows) + i, method=f"{method} + conformal", crps_log=None)
+        if not math.isnan(float(new_lo[i])):
+            a, b = float(new_lo[i]), float(new_hi[i])
+            row.update(q05=a, q95=b, covered=float(a <= r["true_rul"] <= b))
+        out.append(row)
+    return out
 
 
 def _mean_ra(rel: Tensor) -> str:

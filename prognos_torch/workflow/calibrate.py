@@ -94,9 +94,10 @@ def calibrate_rul(
             points.append(dict(row, status=s["status"]))
     usable = [p for p in points if not math.isnan(p.get("q05", math.nan))]
     if not usable:
+        first = next((p["status"] for p in points if p["status"] not in ("ok",)), "")
         raise ValueError(
             "histories gave no prediction point with an interval (no onset before failure, "
-            "or every prediction refused): nothing to calibrate on"
+            f"or every prediction refused; first: {first}): nothing to calibrate on"
         )
     col = lambda k: torch.tensor([p[k] for p in usable], dtype=torch.float64)  # noqa: E731
     scores = interval_scores(col("q05"), col("q95"), col("true_rul"))
