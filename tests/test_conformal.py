@@ -165,6 +165,25 @@ def test_calibrate_rul_replays_the_protocol_through_prognose():
     assert (out["margin"], out["n"]) == (q, cal.n)
 
 
+def test_calibrate_rul_on_a_falling_indicator_mirrors_the_rising_one():
+    # a capacity that fades to a known level: the protocol runs on -y and prognose below
+    hist = _histories()
+    thr = min(float(known_threshold_protocol(t, y).threshold) for t, y in hist.values())
+    kw = dict(method="exponential", fractions=(0.5, 0.9), n_paths=400)
+    up, p_up = calibrate_rul(hist, threshold=thr, **kw)
+    down, p_down = calibrate_rul({n: (t, -y) for n, (t, y) in hist.items()}, threshold=-thr,
+                                 direction="below", **kw)  # fmt: skip
+    assert up.n == down.n >= 4
+    assert down.margin == pytest.approx(up.margin, rel=1e-8)
+    for a, b in zip(p_up, p_down):
+        assert (a["t"], a["true_rul"]) == (b["t"], b["true_rul"])
+        assert b["q05"] == pytest.approx(a["q05"], rel=1e-8, nan_ok=True)
+    with pytest.raises(ValueError, match="direction='below' needs the known threshold"):
+        calibrate_rul(hist, direction="below")
+    with pytest.raises(ValueError, match="direction must be 'above' or 'below'"):
+        calibrate_rul(hist, direction="auto")
+
+
 def test_calibrate_rul_refuses_bad_histories():
     with pytest.raises(ValueError, match="histories is empty"):
         calibrate_rul({})

@@ -37,6 +37,7 @@ def calibrate_rul(
     histories,
     *,
     threshold: float | None = None,
+    direction: str = "above",
     coverage: float = 0.9,
     fractions: tuple[float, ...] = PROTOCOL_FRACTIONS,
     seed: int = 0,
@@ -49,8 +50,11 @@ def calibrate_rul(
             ``{name: series}`` or a sequence, each a :class:`~prognos_torch.workflow.Series`
             or a pair ``(t, y)`` of ``(T,)`` times and values (NaN: missing, dropped). Each
             must end at or after its failure.
-        threshold: the known failure level (rising indicator); ``None``: each history's own
-            ``0.9 x`` its highest 5-point moving median (the bearing studies' protocol).
+        threshold: the known failure level; ``None``: each history's own ``0.9 x`` its highest
+            5-point moving median (the bearing studies' protocol, for a rising indicator).
+        direction: ``"above"`` (degradation raises the indicator) or ``"below"`` (it lowers
+            it, as a capacity fades; needs ``threshold``): the side the failure lies on, for
+            the protocol (run on ``-y`` and ``-threshold`` when below) and for ``prognose``.
         coverage: the target coverage of the calibrated interval, in (0, 1).
         fractions: prediction times as fractions of [onset, end of life].
         seed: passed to every ``prognose`` call.
@@ -69,10 +73,26 @@ def calibrate_rul(
     items = _items(histories)
     if "at" in prognose_kwargs or "time" in prognose_kwargs:
         raise ValueError("calibrate_rul sets at= and time= itself: do not pass them")
+    if direction not in ("above", "below"):
+        raise ValueError(
+            f"direction must be 'above' or 'below' (the side of failure, known for histories "
+            f"that ran to it), got {direction!r}"
+        )
+    sign = 1.0 if direction == "above" else -1.0
+    if direction == "below" and threshold is None:
+        raise ValueError(
+            "direction='below' needs the known threshold: the protocol's 0.9 x highest moving "
+            "median is defined for a rising indicator only"
+        )
+    if threshold is not None and (
+        isinstance(threshold, bool) or not isinstance(threshold, (int, float))
+    ):
+        raise TypeError(f"threshold must be a real number or None, got {threshold!r}")
     points = []
     for name, (t, y) in items:
         try:
-            pc = known_threshold_protocol(t, y, fractions=fractions, threshold=threshold)
+            pc = known_threshold_protocol(t, sign * y, fractions=fractions,
+                                          threshold=None if threshold is None else sign * threshold)  # fmt: skip
         except ValueError as exc:
             raise ValueError(f"histories[{name!r}]: {exc}") from None
         if not pc.valid:
@@ -82,8 +102,8 @@ def calibrate_rul(
             sel = t <= tp
             row = {"name": name, "t": tp, "true_rul": true, "q05": math.nan, "q95": math.nan}
             try:
-                r = prognose(y[sel], pc.threshold, time=t[sel], at=tp, seed=seed,
-                             **prognose_kwargs)  # fmt: skip
+                r = prognose(y[sel], sign * pc.threshold, time=t[sel], at=tp, seed=seed,
+                             direction=direction, **prognose_kwargs)  # fmt: skip
             except ValueError as exc:
                 points.append(dict(row, status=f"error: {exc}"))
                 continue
@@ -94,7 +114,7 @@ def calibrate_rul(
             points.append(dict(row, status=s["status"]))
     usable = [p for p in points if not math.isnan(p.get("q05", math.nan))]
     if not usable:
-        first = next((p["status"] for p in points if p["status"] not in ("ok",)), "")
+        first = next((f"{p['name']!r}: {p['status']}" for p in points if p["status"] != "ok"), "")
         raise ValueError(
             "histories gave no prediction point with an interval (no onset before failure, "
             f"or every prediction refused; first: {first}): nothing to calibrate on"
