@@ -294,6 +294,9 @@ def _add_rul(sub) -> None:
         "      (also P(failure within 7 days), e.g. before the next inspection)\n"
         "  prognos rul data.csv --column rms --time-column timestamp --threshold 0.45 \\\n"
         "      --filter ekf+stekf   (pooled with strong tracking: wider, for sudden surges)\n"
+        "  prognos rul data.csv --column rms --time-column timestamp --threshold 0.45 \\\n"
+        "      --calibrate failed.csv --calibrate-group bearing\n"
+        "      (the 90 % interval calibrated on assets that ran to failure: split conformal)\n"
         "  prognos rul datasets/ims/test1_features.csv --column rms --where channel=5 \\\n"
         "      --time-column timestamp --threshold 0.45 --until 2003-11-25T00:00:00\n"
         "  prognos rul model.pt data.csv --threshold 0.8 --plot rul.png\n"
@@ -327,6 +330,30 @@ def _add_rul(sub) -> None:
         metavar="SPAN",
         help="also print P(failure within SPAN), SPAN in the RUL's time unit (an inspection "
         "interval, say)",
+    )
+    g = p.add_argument_group("calibration (without a model file)")
+    g.add_argument(
+        "--calibrate",
+        type=Path,
+        metavar="TABLE",
+        help="run-to-failure histories of assets like this one, a long CSV or Parquet table "
+        "(--calibrate-group, --time-column, --column): each is replayed through prognose at "
+        "20/40/60/80/90 %% of [onset, failure], and the 90 %% interval is widened or narrowed "
+        "by the conformal margin of its misses there (prognos_torch.workflow.calibrate_rul)",
+    )
+    g.add_argument(
+        "--calibrate-group",
+        default="asset",
+        metavar="COL",
+        help="asset column of the --calibrate table (default asset)",
+    )
+    g.add_argument(
+        "--calibrate-threshold",
+        choices=("same", "protocol"),
+        default="same",
+        help="failure of a history: the first crossing of --threshold by its 5-point moving "
+        "median (same, default), or of 0.9 x its highest moving median (protocol: the bearing "
+        "studies' rule, for a rising indicator)",
     )
     _add_data_options(p)
     _add_prediction_options(p, "stpf")
@@ -611,7 +638,7 @@ def _cmd_rul(args) -> int:
     from .workflow import rul
 
     if args.data is None:  # prognos rul DATA.csv ...: no model file
-        from .cli_prognose import run_prognose
+        from .cli_prognose import load_histories, run_prognose
 
         given = [
             f"--{k.replace('_', '-')}"
@@ -628,10 +655,16 @@ def _cmd_rul(args) -> int:
         _check_out_folder(args.plot, "--plot")
         series, data_cfg = _series_from_args(args)
         truth = _series_from_args(args, data_cfg, truth=True)[0] if args.until else None
-        censored = run_prognose(args, series, data_cfg, truth)
+        histories = load_histories(args, series)
+        censored = run_prognose(args, series, data_cfg, truth, histories)
         if censored:
             raise _CensoredRUL(censored)
         return 0
+    if args.calibrate is not None:
+        raise ValueError(
+            "--calibrate applies without a model file (prognos rul DATA.csv --column C ...): it "
+            "calibrates prognose's interval"
+        )
     for k, v in _MODEL_RUL_DEFAULTS.items():
         if getattr(args, k) is None:
             setattr(args, k, v)

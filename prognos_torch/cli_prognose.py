@@ -8,7 +8,14 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["run_prognose", "observed_rul", "fmt_time", "within_probability"]
+__all__ = [
+    "run_prognose",
+    "observed_rul",
+    "fmt_time",
+    "within_probability",
+    "load_histories",
+    "calibration_rows",
+]
 
 
 def fmt_time(v: float) -> str:
@@ -49,7 +56,79 @@ def observed_rul(truth, t_eval: float, threshold: float, direction: str) -> floa
     return float(truth.t[idx[0, 0]]) - t_eval
 
 
-def run_prognose(args, series, data_cfg: dict, truth=None) -> str | None:
+def load_histories(args, series) -> dict | None:
+    """The ``--calibrate`` table as ``{asset: (t, y)}`` (``None`` without it), read and checked
+    before anything runs: the same ``--column`` and ``--time-column`` as the series, on the
+    same kind of clock (date-times, or numbers in the series' unit)."""
+    if args.calibrate is None:
+        return None
+    import torch
+
+    from .fleet.table import read_fleet_table
+
+    if args.time_column is None:
+        raise ValueError(
+            "--calibrate needs --time-column: the histories' RULs are read on their clock, "
+            "which must be the series' clock"
+        )
+    try:
+        tab = read_fleet_table(
+            args.calibrate,
+            group_by=args.calibrate_group,
+            column=args.column,
+            time_column=args.time_column,
+        )
+    except ValueError as exc:
+        msg = str(exc).replace("(--group-by)", "(--calibrate-group)")
+        raise ValueError(f"--calibrate: {msg}") from None
+    except FileNotFoundError as exc:
+        raise FileNotFoundError(f"--calibrate: {exc}") from None
+    dates, tab_dates = series.start is not None, tab.time_unit == "days"
+    if dates != tab_dates:
+        kind = lambda d: "date-times" if d else "numbers"  # noqa: E731
+        raise ValueError(
+            f"--calibrate: the time column {args.time_column!r} of {args.calibrate} holds "
+            f"{kind(tab_dates)}, that of {series.source} {kind(dates)}: the RULs would be on "
+            "different clocks"
+        )
+    f64 = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
+    return {a: (f64(t), f64(y)) for a, t, y in zip(tab.assets, tab.times, tab.values)}
+
+
+def _needed(coverage: float) -> int:
+    """The fewest calibration points with a finite conformal margin: ``ceil((n+1) c) <= n``."""
+    n = 1
+    while math.ceil((n + 1) * coverage - 1e-12) > n:
+        n += 1
+    return n
+
+
+def calibration_rows(res, cal, points: list[dict], unit: str) -> tuple[list, list[str]]:
+    """The ``calibrated 90 % interval`` row of ``prognos rul DATA --calibrate`` and its
+    warnings (histories that gave no usable point)."""
+    s = cal.summary(res)["calibrated"]
+    names = list(dict.fromkeys(p["name"] for p in points))
+    used = list(dict.fromkeys(p["name"] for p in points if "score" in p))
+    src = f"{cal.n} points from {len(used)} of {len(names)} histories"
+    if math.isinf(cal.margin):
+        note = f"{src}: too few for {100 * cal.coverage:g} % coverage, which needs {_needed(cal.coverage)}"
+    else:
+        f = math.exp(abs(cal.margin))
+        note = f"split conformal on {src}; ends moved {'out' if cal.margin >= 0 else 'in'} by a factor {f:.3g}"
+    hi = _fmt(s["q95"])
+    row = (f"calibrated 90 % interval ({unit})", f"[{_fmt(s['q05'])}, {hi}] ({note})")
+    warn = []
+    unused = [n for n in names if n not in used]
+    if unused:
+        first = next(p for p in points if p["name"] == unused[0])
+        warn.append(
+            f"--calibrate: {len(unused)} of {len(names)} histories gave no point with an "
+            f"interval (first, {unused[0]!r}: {first['status']})"
+        )
+    return [row], warn
+
+
+def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> str | None:
     """Run ``prognose`` on the loaded series and print the result (and write ``--plot``).
 
     Returns:
@@ -78,6 +157,32 @@ def run_prognose(args, series, data_cfg: dict, truth=None) -> str | None:
         n_paths=args.paths,
     )
     unit, s = res.time_unit, res.summary()
+    cal_rows, cal_warn = [], []
+    if histories is not None and res.status != "ok":
+        cal_rows = [(f"calibrated 90 % interval ({unit})", f"n/a ({res.status})")]
+    elif histories is not None:
+        from .workflow import calibrate_rul
+
+        protocol = args.calibrate_threshold == "protocol"
+        if protocol and res.direction == "below":
+            raise ValueError(
+                "--calibrate-threshold protocol is the bearing studies' rule for a rising "
+                f"indicator, and the threshold {res.threshold:g} lies below: use "
+                "--calibrate-threshold same"
+            )
+        try:
+            cal, points = calibrate_rul(
+                histories,
+                threshold=None if protocol else res.threshold,
+                direction=res.direction,
+                method=args.method,
+                filter=filt,
+                seed=0 if args.seed is None else args.seed,
+                n_paths=args.paths,
+            )
+        except ValueError as exc:
+            raise ValueError(f"--calibrate: {exc}") from None
+        cal_rows, cal_warn = calibration_rows(res, cal, points, unit)
     p_within = None if args.within is None else within_probability(res, args.within)
     where = data_cfg.get("where") or {}
     sel = f" ({', '.join(f'{k}={v}' for k, v in where.items())})" if where else ""
@@ -104,6 +209,7 @@ def run_prognose(args, series, data_cfg: dict, truth=None) -> str | None:
         ]
     else:
         rows += [(f"lower bound if it stays healthy ({unit})", _fmt(s["bound"]))]
+    rows += cal_rows
     if args.within is not None:
         rows.append(
             (
@@ -119,7 +225,7 @@ def run_prognose(args, series, data_cfg: dict, truth=None) -> str | None:
     width = max(len(r[0]) for r in rows)
     for k, v in rows:
         print(f"  {k.ljust(width)}  {v}")
-    for f in res.flags:
+    for f in list(res.flags) + cal_warn:
         print(f"warning: {f}")
     if args.plot is not None:
         tr = None if truth is None else (truth.t, truth.values)

@@ -144,3 +144,65 @@ def test_a_few_censored_paths_do_not_fail_the_command(capsys):
     mass = float(out.split("censored mass")[1].split()[0])
     assert 0 < mass <= 0.05 and code == 0
     assert "90 % interval" in out and "n/a" not in out.split("90 % interval")[1].split("\n")[0]
+
+
+def _history_table(path: Path, records) -> Path:
+    lines = ["unit,t,value"] + [
+        f"{name.replace(' ', '_')},{float(t)!r},{float(y)!r}"
+        for name, r in records
+        for t, y in zip(r.t, r.y)
+    ]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_calibrate_from_a_table_of_failed_assets(capsys, tmp_path):
+    from prognos_torch.prognosis.protocol import known_threshold_protocol
+    from prognos_torch.systems.run_to_failure import run_to_failure_set
+    from prognos_torch.workflow import calibrate_rul, load_series, prognose
+
+    records = list(run_to_failure_set(1, seed=3).items())
+    table = _history_table(tmp_path / "failed.csv", records[1:4])
+    new = records[0][1]
+    path = tmp_path / "new.csv"
+    path.write_text("t,value\n" + "".join(f"{float(t)!r},{float(y)!r}\n" for t, y in
+                                          zip(new.t, new.y)))  # fmt: skip
+    pc = known_threshold_protocol(new.t, new.y)
+    until = float(pc.times[2])
+    args = ["rul", str(path), "--column", "value", "--time-column", "t", "--threshold",
+            repr(pc.threshold), "--until", repr(until), "--method", "exponential", "--paths",
+            "400", "--calibrate", str(table), "--calibrate-group", "unit",
+            "--calibrate-threshold", "protocol"]  # fmt: skip
+    assert main(args) in (0, 3)
+    out = capsys.readouterr().out
+    # the same as calibrate_rul on those histories, applied to prognose's result in Python
+    hist = {n.replace(" ", "_"): (r.t, r.y) for n, r in records[1:4]}
+    cal, points = calibrate_rul(hist, method="exponential", n_paths=400)
+    s = load_series(path, "value", time_column="t", until=until)
+    res = prognose(s, pc.threshold, method="exponential", n_paths=400)
+    c = cal.summary(res)["calibrated"]
+    hi = "n/a" if c["q95"] is None else f"{c['q95']:.4g}"
+    used = len({p["name"] for p in points if "score" in p})
+    assert f"[{c['q05']:.4g}, {hi}] (split conformal on {cal.n} points from {used} of 3" in out
+    # failure at the same threshold: two_phase_0's moving median (at most 0.77) never reaches it
+    assert main(args[:-1] + ["same"]) in (0, 3)
+    out = capsys.readouterr().out
+    assert re.search(r"points from 2 of 3 histories", out)
+    assert "warning: --calibrate: 1 of 3 histories gave no point with an interval (first, " \
+        "'two_phase_0': protocol not usable: the moving median never reaches" in out  # fmt: skip
+    # bad input: named, one line, exit 2, nothing run
+    assert main(args[:-4] + ["--calibrate-group", "bearing"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --calibrate: ") and "(--calibrate-group) column 'bearing'" in err
+    assert err.count("\n") == 1
+    dated = tmp_path / "dated.csv"
+    dated.write_text("unit,t,value\na,2020-01-01T00:00:00,1\na,2020-01-02T00:00:00,2\n")
+    assert main([str(dated) if a == str(table) else a for a in args]) == 2
+    assert "holds date-times, that of" in capsys.readouterr().err
+    no_clock = [a for a in args if a not in ("--time-column", "t", "--until", repr(until))]
+    assert main(no_clock) == 2
+    assert "--calibrate needs --time-column" in capsys.readouterr().err
+    with_model = ["rul", str(tmp_path / "m.pt"), str(path), "--threshold", "1", "--calibrate",
+                  str(table)]  # fmt: skip
+    assert main(with_model) == 2
+    assert "--calibrate applies without a model file" in capsys.readouterr().err
