@@ -2,6 +2,7 @@
 rows (it says so)."""
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -25,6 +26,14 @@ def test_ims_rul_example_prints_the_study_rows(tmp_path):
     # test_study_ims_rul's quick reference: points 1, 3 and 5 of "T1 B3 rms"
     ref = QUICK_PRED_RUL[("prognose (auto)", "T1 B3 rms")]
     assert median[::2] == pytest.approx(ref, abs=1e-3)
+    # the closing line counts what the rows show
+    true = [float(r[1]) for r in rows]
+    ends = [re.search(r"\[\s*([^,]+),\s*([^\]]+)\]", " ".join(r)).groups() for r in rows]
+    lo, hi = ([float(e[k]) for e in ends] for k in (0, 1))
+    cov = sum(a <= t <= b for a, t, b in zip(lo, true, hi))
+    cone = sum(0.7 * t <= m <= 1.3 * t for m, t in zip(median, true))
+    assert f"covers the true RUL at {cov} of 5 points" in proc.stdout
+    assert f"(alpha-lambda cone) at {cone} of 5" in proc.stdout
     assert (tmp_path / "ims_prognose_rul.png").stat().st_size > 0
 
 
