@@ -355,6 +355,20 @@ def _add_rul(sub) -> None:
         "median (same, default), or of 0.9 x its highest moving median (protocol: the bearing "
         "studies' rule, for a rising indicator)",
     )
+    g.add_argument(
+        "--calibration-out",
+        type=Path,
+        metavar="FILE",
+        help="with --calibrate: also write the calibration (its margin and the settings it "
+        "holds for) to this JSON file, for --calibration",
+    )
+    g.add_argument(
+        "--calibration",
+        type=Path,
+        metavar="FILE",
+        help="a calibration written by --calibration-out, instead of --calibrate (refused "
+        "when this run's method, filter, paths, direction or threshold differ from its own)",
+    )
     _add_data_options(p)
     _add_prediction_options(p, "stpf")
     # None: not given (prognose, without a model file, refuses these; with one, the defaults)
@@ -653,6 +667,7 @@ def _cmd_rul(args) -> int:
             )
         args.data = args.model
         _check_out_folder(args.plot, "--plot")
+        _check_out_folder(args.calibration_out, "--calibration-out")
         series, data_cfg = _series_from_args(args)
         truth = _series_from_args(args, data_cfg, truth=True)[0] if args.until else None
         histories = load_histories(args, series)
@@ -660,9 +675,9 @@ def _cmd_rul(args) -> int:
         if censored:
             raise _CensoredRUL(censored)
         return 0
-    if args.calibrate is not None:
+    if args.calibrate is not None or args.calibration is not None:
         raise ValueError(
-            "--calibrate applies without a model file (prognos rul DATA.csv --column C ...): it "
+            "--calibrate and --calibration apply without a model file (prognos rul DATA.csv --column C ...): it "
             "calibrates prognose's interval"
         )
     for k, v in _MODEL_RUL_DEFAULTS.items():

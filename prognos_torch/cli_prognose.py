@@ -14,6 +14,7 @@ __all__ = [
     "fmt_time",
     "within_probability",
     "load_histories",
+    "read_calibration",
     "calibration_rows",
 ]
 
@@ -56,11 +57,41 @@ def observed_rul(truth, t_eval: float, threshold: float, direction: str) -> floa
     return float(truth.t[idx[0, 0]]) - t_eval
 
 
-def load_histories(args, series) -> dict | None:
-    """The ``--calibrate`` table as ``{asset: (t, y)}`` (``None`` without it), read and checked
-    before anything runs: the same ``--column`` and ``--time-column`` as the series, on the
-    same kind of clock (date-times, or numbers in the series' unit)."""
+def read_calibration(path):
+    """The :class:`~prognos_torch.prognosis.RULCalibration` in a ``--calibration-out`` file."""
+    import json
+
+    from .prognosis import RULCalibration
+
+    try:
+        record = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"--calibration: no file {path}") from None
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"--calibration: {path} is not a JSON calibration file ({exc})") from None
+    try:
+        return RULCalibration.from_dict(record)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"--calibration: {path}: {exc}") from None
+
+
+def load_histories(args, series):
+    """The ``--calibrate`` table as ``{asset: (t, y)}``, or the ``--calibration`` file's
+    :class:`~prognos_torch.prognosis.RULCalibration` (``None`` without either), read and
+    checked before anything runs: the same ``--column`` and ``--time-column`` as the series, on
+    the same kind of clock (date-times, or numbers in the series' unit)."""
+    if args.calibration is not None:
+        if args.calibrate is not None:
+            raise ValueError(
+                "--calibrate and --calibration exclude each other: calibrate on histories, or "
+                "read a calibration made earlier"
+            )
+        if args.calibration_out is not None:
+            raise ValueError("--calibration-out writes the calibration that --calibrate makes")
+        return read_calibration(args.calibration)
     if args.calibrate is None:
+        if args.calibration_out is not None:
+            raise ValueError("--calibration-out needs --calibrate TABLE (the histories)")
         return None
     import torch
 
@@ -103,13 +134,35 @@ def _needed(coverage: float) -> int:
     return n
 
 
-def calibration_rows(res, cal, points: list[dict], unit: str) -> tuple[list, list[str]]:
+def _check_settings(cal, path, run: dict) -> None:
+    """Refuse a ``--calibration`` made under other settings than this run's."""
+    st = cal.settings
+    for key, option in (("method", "--method"), ("filter", "--filter"), ("n_paths", "--paths"),
+                        ("direction", "--direction")):  # fmt: skip
+        if key in st and st[key] != run[key]:
+            raise ValueError(
+                f"--calibration: {path} was made with {option} {st[key]}, this run has "
+                f"{run[key]}: the guarantee holds for intervals made the same way (recalibrate "
+                "with --calibrate, or pass the same setting)"
+            )
+    thr = st.get("threshold")
+    if isinstance(thr, (int, float)) and not math.isclose(thr, run["threshold"], rel_tol=1e-9):
+        raise ValueError(
+            f"--calibration: {path} was made with failure at the threshold {thr:g}, this run's is "
+            f"{run['threshold']:g} (a calibration made with --calibrate-threshold protocol "
+            "serves any threshold)"
+        )
+
+
+def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[list, list[str]]:
     """The ``calibrated 90 % interval`` row of ``prognos rul DATA --calibrate`` and its
-    warnings (histories that gave no usable point)."""
+    warnings (histories that gave no usable point); ``points`` ``None``: a calibration read
+    from a file."""
     s = cal.summary(res)["calibrated"]
-    names = list(dict.fromkeys(p["name"] for p in points))
-    used = list(dict.fromkeys(p["name"] for p in points if "score" in p))
-    src = f"{cal.n} points from {len(used)} of {len(names)} histories"
+    names = list(dict.fromkeys(p["name"] for p in points or ()))
+    used = list(dict.fromkeys(p["name"] for p in points or () if "score" in p))
+    src = (f"{cal.n} points from {len(used)} of {len(names)} histories" if points is not None
+           else f"{cal.n} points of the --calibration file")  # fmt: skip
     if math.isinf(cal.margin):
         note = f"{src}: too few for {100 * cal.coverage:g} % coverage, which needs {_needed(cal.coverage)}"
     else:
@@ -126,6 +179,49 @@ def calibration_rows(res, cal, points: list[dict], unit: str) -> tuple[list, lis
             f"interval (first, {unused[0]!r}: {first['status']})"
         )
     return [row], warn
+
+
+def _calibration(args, res, filt, histories) -> tuple[list, list[str], object]:
+    """The calibration rows and warnings of ``run_prognose``, and the calibration that
+    ``--calibrate`` made (``None`` otherwise). With ``--calibration-out`` the histories are
+    replayed even before onset, so that the file is written."""
+    unit = res.time_unit
+    if histories is None:
+        return [], [], None
+    na = [(f"calibrated 90 % interval ({unit})", f"n/a ({res.status})")]
+    if not isinstance(histories, dict):  # --calibration FILE
+        if res.status != "ok":
+            return na, [], None
+        run = {"method": args.method, "filter": filt, "n_paths": args.paths,
+               "direction": res.direction, "threshold": res.threshold}  # fmt: skip
+        _check_settings(histories, args.calibration, run)
+        return (*calibration_rows(res, histories, None, unit), None)
+    if res.status != "ok" and args.calibration_out is None:
+        return na, [], None
+    from .workflow import calibrate_rul
+
+    protocol = args.calibrate_threshold == "protocol"
+    if protocol and res.direction == "below":
+        raise ValueError(
+            "--calibrate-threshold protocol is the bearing studies' rule for a rising "
+            f"indicator, and the threshold {res.threshold:g} lies below: use "
+            "--calibrate-threshold same"
+        )
+    try:
+        cal, points = calibrate_rul(
+            histories,
+            threshold=None if protocol else res.threshold,
+            direction=res.direction,
+            method=args.method,
+            filter=filt,
+            seed=0 if args.seed is None else args.seed,
+            n_paths=args.paths,
+        )
+    except ValueError as exc:
+        raise ValueError(f"--calibrate: {exc}") from None
+    if res.status != "ok":
+        return na, [], cal
+    return (*calibration_rows(res, cal, points, unit), cal)
 
 
 def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> str | None:
@@ -157,33 +253,8 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
         n_paths=args.paths,
     )
     unit, s = res.time_unit, res.summary()
-    cal_rows, cal_warn = [], []
-    if histories is not None and res.status != "ok":
-        cal_rows = [(f"calibrated 90 % interval ({unit})", f"n/a ({res.status})")]
-    elif histories is not None:
-        from .workflow import calibrate_rul
-
-        protocol = args.calibrate_threshold == "protocol"
-        if protocol and res.direction == "below":
-            raise ValueError(
-                "--calibrate-threshold protocol is the bearing studies' rule for a rising "
-                f"indicator, and the threshold {res.threshold:g} lies below: use "
-                "--calibrate-threshold same"
-            )
-        try:
-            cal, points = calibrate_rul(
-                histories,
-                threshold=None if protocol else res.threshold,
-                direction=res.direction,
-                method=args.method,
-                filter=filt,
-                seed=0 if args.seed is None else args.seed,
-                n_paths=args.paths,
-            )
-        except ValueError as exc:
-            raise ValueError(f"--calibrate: {exc}") from None
-        cal_rows, cal_warn = calibration_rows(res, cal, points, unit)
     p_within = None if args.within is None else within_probability(res, args.within)
+    cal_rows, cal_warn, made = _calibration(args, res, filt, histories)
     where = data_cfg.get("where") or {}
     sel = f" ({', '.join(f'{k}={v}' for k, v in where.items())})" if where else ""
     print(
@@ -231,6 +302,11 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
         tr = None if truth is None else (truth.t, truth.values)
         plot_prognosis(args.plot, res, truth=tr)
         print(f"figure written to {args.plot}")
+    if made is not None and args.calibration_out is not None:
+        import json
+
+        args.calibration_out.write_text(json.dumps(made.to_dict(), indent=2) + "\n")
+        print(f"calibration written to {args.calibration_out}")
     if res.status == "ok" and res.censored_mass > CENSORED_FLAG:
         return (
             f"{100 * res.censored_mass:.3g} % of the predicted paths do not reach the threshold "

@@ -173,8 +173,10 @@ def test_calibrate_from_a_table_of_failed_assets(capsys, tmp_path):
             repr(pc.threshold), "--until", repr(until), "--method", "exponential", "--paths",
             "400", "--calibrate", str(table), "--calibrate-group", "unit",
             "--calibrate-threshold", "protocol"]  # fmt: skip
-    assert main(args) in (0, 3)
+    saved = tmp_path / "cal.json"
+    assert main(args + ["--calibration-out", str(saved)]) in (0, 3)
     out = capsys.readouterr().out
+    assert f"calibration written to {saved}" in out
     # the same as calibrate_rul on those histories, applied to prognose's result in Python
     hist = {n.replace(" ", "_"): (r.t, r.y) for n, r in records[1:4]}
     cal, points = calibrate_rul(hist, method="exponential", n_paths=400)
@@ -184,6 +186,21 @@ def test_calibrate_from_a_table_of_failed_assets(capsys, tmp_path):
     hi = "n/a" if c["q95"] is None else f"{c['q95']:.4g}"
     used = len({p["name"] for p in points if "score" in p})
     assert f"[{c['q05']:.4g}, {hi}] (split conformal on {cal.n} points from {used} of 3" in out
+    # the saved calibration gives the same row without the histories, under the same settings
+    row = re.search(r"calibrated 90 % interval \(t\)\s+(\[[^\]]+\])", out).group(1)
+    reuse = args[: args.index("--calibrate")] + ["--calibration", str(saved)]
+    assert main(reuse) in (0, 3)
+    assert f"{row} (split conformal on {cal.n} points of the --calibration file" in \
+        capsys.readouterr().out  # fmt: skip
+    for swap, msg in [(("exponential", "linear"), "was made with --method exponential, this run "
+                       "has linear"), (("400", "300"), "was made with --paths 400")]:  # fmt: skip
+        assert main([swap[1] if a == swap[0] else a for a in reuse]) == 2
+        assert msg in capsys.readouterr().err
+    saved.write_text('{"margin": 0.1, "coverage": 1.5, "n": 3}')
+    assert main(reuse) == 2
+    assert "--calibration: " in (err := capsys.readouterr().err) and "coverage must lie" in err
+    assert main(args + ["--calibration", str(saved)]) == 2
+    assert "--calibrate and --calibration exclude each other" in capsys.readouterr().err
     # failure at the same threshold: two_phase_0's moving median (at most 0.77) never reaches it
     assert main(args[:-1] + ["same"]) in (0, 3)
     out = capsys.readouterr().out
@@ -205,4 +222,4 @@ def test_calibrate_from_a_table_of_failed_assets(capsys, tmp_path):
     with_model = ["rul", str(tmp_path / "m.pt"), str(path), "--threshold", "1", "--calibrate",
                   str(table)]  # fmt: skip
     assert main(with_model) == 2
-    assert "--calibrate applies without a model file" in capsys.readouterr().err
+    assert "--calibrate and --calibration apply without a model file" in capsys.readouterr().err

@@ -124,6 +124,28 @@ def test_bad_coverage_and_empty_scores_are_refused():
         leave_one_group_out(T(1.0, 1.0), T(2.0, 2.0), T(1.0, 1.0), ["a"])
 
 
+def test_calibration_record_round_trips_and_refuses_bad_fields():
+    import json
+
+    for margin in (0.25, -0.1, math.inf):
+        cal = RULCalibration(margin, 0.9, 12, {"method": "auto", "threshold": "protocol"})
+        back = RULCalibration.from_dict(json.loads(json.dumps(cal.to_dict())))
+        assert back == cal
+    ok = {"margin": 0.1, "coverage": 0.9, "n": 5}
+    for bad, match in [
+        ({"coverage": 0.9, "n": 5}, "has no margin"),
+        (dict(ok, margin="0.1"), "margin must be a number or null"),
+        (dict(ok, coverage=1.0), r"coverage must lie in \(0, 1\)"),
+        (dict(ok, n=-1), "n must be a count"),
+        (dict(ok, n=True), "n must be a count"),
+        (dict(ok, settings=[1]), "settings must be a mapping"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            RULCalibration.from_dict(bad)
+    with pytest.raises(TypeError, match="must be a mapping"):
+        RULCalibration.from_dict([0.1, 0.9, 5])
+
+
 def test_protocol_with_a_known_threshold():
     t = torch.arange(200, dtype=torch.float64)
     y = torch.ones(200, dtype=torch.float64)
@@ -148,6 +170,9 @@ def test_calibrate_rul_replays_the_protocol_through_prognose():
     cal, points = calibrate_rul(hist, method="exponential", fractions=(0.5, 0.9), n_paths=400)
     usable = [p for p in points if "score" in p]
     assert cal.n == len(usable) >= 4 and cal.coverage == 0.9
+    st = cal.settings  # the procedure the guarantee is for: prognose's settings, defaults too
+    assert (st["method"], st["n_paths"], st["filter"], st["threshold"]) == \
+        ("exponential", 400, "ekf", "protocol") and st["fractions"] == [0.5, 0.9]  # fmt: skip
     # every point is prognose at that time from the data up to it, with the protocol threshold
     p = usable[0]
     t, y = hist[p["name"]]

@@ -27,8 +27,8 @@ of 0 stays 0.
 from __future__ import annotations
 
 import math
-from collections.abc import Hashable, Sequence
-from dataclasses import dataclass
+from collections.abc import Hashable, Mapping, Sequence
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
@@ -107,11 +107,42 @@ class RULCalibration:
         margin: ``Q`` on the log RUL (module docstring); ``inf``: too few calibration points.
         coverage: the coverage ``c`` it guarantees under exchangeability.
         n: the calibration points it was computed from.
+        settings: how the calibrated intervals were made (for
+            :func:`~prognos_torch.workflow.calibrate_rul`: ``prognose``'s settings, the failure
+            threshold and direction); the guarantee holds for intervals made the same way.
     """
 
     margin: float
     coverage: float
     n: int
+    settings: Mapping = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """A JSON-ready record (``margin`` ``None`` when infinite); :meth:`from_dict` reads it."""
+        inf = math.isinf(self.margin)
+        return {"margin": None if inf else self.margin, "coverage": self.coverage, "n": self.n,
+                "settings": dict(self.settings)}  # fmt: skip
+
+    @classmethod
+    def from_dict(cls, record: Mapping) -> RULCalibration:
+        """The calibration of a :meth:`to_dict` record, checked field by field."""
+        if not isinstance(record, Mapping):
+            raise TypeError(f"a calibration record must be a mapping, got {type(record).__name__}")
+        missing = [k for k in ("margin", "coverage", "n") if k not in record]
+        if missing:
+            raise ValueError(f"the calibration record has no {', '.join(missing)}")
+        m, c, n = record["margin"], record["coverage"], record["n"]
+        real = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
+        if m is not None and not (real(m) and not math.isnan(m)):
+            raise ValueError(f"margin must be a number or null (infinite), got {m!r}")
+        if not (real(c) and 0.0 < c < 1.0):
+            raise ValueError(f"coverage must lie in (0, 1), got {c!r}")
+        if not (isinstance(n, int) and not isinstance(n, bool) and n >= 0):
+            raise ValueError(f"n must be a count >= 0, got {n!r}")
+        settings = record.get("settings") or {}
+        if not isinstance(settings, Mapping):
+            raise ValueError(f"settings must be a mapping, got {settings!r:.80}")
+        return cls(math.inf if m is None else float(m), float(c), n, dict(settings))
 
     def interval(self, lower, upper) -> tuple[Tensor, Tensor]:
         """The calibrated ends ``(lower e^-Q, upper e^Q)``, ``(n,)`` or scalars each (an open

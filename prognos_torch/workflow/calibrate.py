@@ -20,6 +20,7 @@ them for the new asset).
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Mapping
 
@@ -123,8 +124,22 @@ def calibrate_rul(
     scores = interval_scores(col("q05"), col("q95"), col("true_rul"))
     for p, e in zip(usable, scores.tolist()):
         p["score"] = e
-    cal = RULCalibration(conformal_margin(scores, coverage), float(coverage), len(usable))
+    settings = _settings(prognose_kwargs, threshold, direction, fractions, seed)
+    cal = RULCalibration(conformal_margin(scores, coverage), float(coverage), len(usable), settings)
     return cal, points
+
+
+def _settings(kwargs: dict, threshold, direction: str, fractions, seed: int) -> dict:
+    """``prognose``'s settings (its defaults, then ``kwargs``; a value JSON cannot hold as its
+    repr), the failure ``threshold`` (``"protocol"``: each history's own) and ``direction``."""
+    out = {k: p.default for k, p in inspect.signature(prognose).parameters.items()
+           if p.kind is p.KEYWORD_ONLY and k not in ("time", "at", "seed", "direction")}  # fmt: skip
+    out.update(kwargs)
+    plain = (str, int, float, bool, type(None))
+    out = {k: v if isinstance(v, plain) else repr(v) for k, v in out.items()}
+    out.update(threshold="protocol" if threshold is None else float(threshold),
+               direction=direction, fractions=list(fractions), seed=seed)  # fmt: skip
+    return out
 
 
 def _items(histories) -> list[tuple[str, tuple[torch.Tensor, torch.Tensor]]]:
