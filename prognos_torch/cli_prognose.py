@@ -168,8 +168,10 @@ def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[li
     else:
         f = math.exp(abs(cal.margin))
         note = f"split conformal on {src}; ends moved {'out' if cal.margin >= 0 else 'in'} by a factor {f:.3g}"
-    hi = _fmt(s["q95"])
-    row = (f"calibrated 90 % interval ({unit})", f"[{_fmt(s['q05'])}, {hi}] ({note})")
+    text = f"[{_fmt(s['q05'])}, {_fmt(s['q95'])}]"
+    if s["q95"] is not None and s["q05"] > s["q95"]:  # narrowed past its width, as in CQR
+        text = f"empty ({text} narrowed by the margin past its own width)"
+    row = (f"calibrated 90 % interval ({unit})", f"{text} ({note})")
     warn = []
     unused = [n for n in names if n not in used]
     if unused:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 
@@ -223,3 +224,22 @@ def test_calibrate_from_a_table_of_failed_assets(capsys, tmp_path):
                   str(table)]  # fmt: skip
     assert main(with_model) == 2
     assert "--calibrate and --calibration apply without a model file" in capsys.readouterr().err
+
+
+def test_calibration_row_says_empty_and_too_few():
+    from prognos_torch.cli_prognose import calibration_rows
+    from prognos_torch.prognosis import RULCalibration
+
+    class Result:  # the summary of a result with a finite 90 % interval [1, 1.5]
+        def summary(self):
+            return {"status": "ok", "q05": 1.0, "q95": 1.5, "bound": 10.0}
+
+    def row(margin, n):
+        return calibration_rows(Result(), RULCalibration(margin, 0.9, n), None, "h")[0][0][1]
+
+    assert row(0.5, 20).startswith("[0.6065, 2.473] (split conformal on 20 points")
+    assert "ends moved out by a factor 1.65" in row(0.5, 20)
+    # a margin of -0.5 shrinks both ends by e^0.5, past the interval's own width e^0.405
+    assert row(-0.5, 20).startswith("empty ([1.649, 0.9098] narrowed by the margin")
+    # ceil((n + 1) 0.9) <= n first holds at n = 9
+    assert "too few for 90 % coverage, which needs 9" in row(math.inf, 8)
