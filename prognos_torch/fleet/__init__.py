@@ -8,10 +8,13 @@
 * :func:`exponential_trend_rul` - the batched RUL method (onset, exponential trend by the
   engine, posterior sampling per asset); :func:`prognose_rul` - the workflow's ``prognose`` per
   asset (``method="prognose"``);
+* :func:`calibrate_fleet` - the fleet's 90 % intervals calibrated on its failed assets (split
+  conformal, replayed through one ``fleet_rul`` call), applied by ``FleetResult.calibrated``;
 * :func:`synthetic_fleet` - exponential degradation with known failure times, for tests and
   benchmarks.
 """
 
+from .calibrate import calibrate_fleet
 from .per_asset import prognose_rul
 from .run import METHODS, OUTPUT_COLUMNS, FleetResult, fleet_rul, run_shard
 from .synthetic import SyntheticFleet, synthetic_fleet
@@ -35,6 +38,7 @@ __all__ = [
     "SyntheticFleet",
     "TABLE_SUFFIXES",
     "asset_seed",
+    "calibrate_fleet",
     "exponential_trend_rul",
     "fleet_rul",
     "ksigma_onset_batch",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from collections import Counter
@@ -15,6 +16,9 @@ _EPILOG = """examples:
       --out results.parquet
   prognos rul fleet.csv --group-by unit --column rms --time-column hours --threshold 0.9 \\
       --horizon 48 --backend ray --out results.csv
+  prognos rul fleet.csv --group-by unit --threshold 20 --calibrate failed.csv --out results.csv
+      (failed.csv: assets that ran to failure, same columns; adds rul_q05_calibrated and
+       rul_q95_calibrated, the 90 % interval calibrated on them: split conformal)
 
 The table has one row per measurement (asset, time, value); assets may be interleaved, but
 each asset's times must increase. Output: one row per asset with the columns asset, n_rows,
@@ -72,6 +76,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="raise (default) or flag: an asset with a non-numeric value, a duplicate or "
         "unsorted time is set aside with its message instead of stopping the run",
     )
+    p.add_argument(
+        "--calibrate",
+        type=Path,
+        metavar="FAILED",
+        help="a long table (same columns) of assets that ran to failure: each is replayed at "
+        "20/40/60/80/90 %% of [onset, failure] with the same method, and the output gains "
+        "rul_q05_calibrated and rul_q95_calibrated (prognos_torch.fleet.calibrate_fleet)",
+    )
     p.add_argument("--out", type=Path, required=True, help="output .csv or .parquet")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -81,6 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     import torch
 
+    from .calibrate import calibrate_fleet
     from .run import fleet_rul
     from .table import TABLE_SUFFIXES
 
@@ -96,6 +109,32 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--min-rows must be at least 1, got {args.min_rows}")
         ray_init = {"address": args.ray_address} if args.ray_address else None
         t0 = time.perf_counter()
+        method_options = dict(
+            method=args.method,
+            min_rows=args.min_rows,
+            **(
+                {"samples": args.samples, "phi": 0.0 if args.phi is None else args.phi}
+                if args.method == "exponential"
+                else {"n_paths": args.samples}
+            ),
+        )
+        cal = None
+        if args.calibrate is not None:
+            try:
+                cal, points = calibrate_fleet(
+                    args.calibrate,
+                    args.threshold,
+                    group_by=args.group_by,
+                    column=args.column,
+                    time_column=args.time_column,
+                    direction=args.direction,
+                    seed=args.seed,
+                    **method_options,
+                )
+            except FileNotFoundError as exc:
+                raise FileNotFoundError(f"--calibrate: {exc}") from None
+            except ValueError as exc:
+                raise ValueError(f"--calibrate: {exc}") from None
         res = fleet_rul(
             args.table,
             args.threshold,
@@ -110,14 +149,13 @@ def main(argv: list[str] | None = None) -> int:
             on_error=args.on_error,
             progress=not args.no_progress,
             ray_init=ray_init,
-            method=args.method,
-            min_rows=args.min_rows,
-            **(
-                {"samples": args.samples, "phi": 0.0 if args.phi is None else args.phi}
-                if args.method == "exponential"
-                else {"n_paths": args.samples}
-            ),
+            **method_options,
         )
+        if cal is not None:
+            try:
+                res = res.calibrated(cal)
+            except ValueError as exc:
+                raise ValueError(f"--calibrate: {exc}") from None
         res.write(args.out)
     except KeyboardInterrupt:
         print("interrupted: nothing written", file=sys.stderr)
@@ -137,6 +175,16 @@ def main(argv: list[str] | None = None) -> int:
     )
     for flag, c in sorted(counts.items()):
         print(f"  {flag}: {c} asset(s)")
+    if cal is not None:
+        failed = len({a.rsplit("@", 1)[0] for a, st in zip(points["asset"], points["status"])
+                      if st == "ok"})  # fmt: skip
+        how = (
+            f"margin {cal.margin:+.3g} on the log RUL: ends moved "
+            f"{'out' if cal.margin >= 0 else 'in'} by a factor {math.exp(abs(cal.margin)):.3g}"
+            if math.isfinite(cal.margin)
+            else "too few points for 90 % coverage: the calibrated interval is [0, inf)"
+        )
+        print(f"  calibrated on {cal.n} points of {failed} failed assets ({args.calibrate}): {how}")
     bad = [m for m in res.columns["message"] if m]
     for m in bad[:5]:
         print(f"  {m}", file=sys.stderr)

@@ -26,11 +26,13 @@ aside by the table checks (``on_error="flag"``) get a row with NaN results, the 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from ..core.validation import check_real
 from .per_asset import prognose_rul
@@ -89,6 +91,43 @@ class FleetResult:
 
         pd = _needs("pandas")
         return pd.DataFrame(self.columns)
+
+    def calibrated(self, calibration) -> FleetResult:
+        """This result with the columns ``rul_q05_calibrated`` and ``rul_q95_calibrated``: the
+        90 % interval calibrated by a :func:`~prognos_torch.fleet.calibrate_fleet` calibration
+        (:meth:`~prognos_torch.prognosis.RULCalibration.interval`; an open upper end, NaN
+        ``rul_q95`` with more than 5 % censored, stays open as ``inf``; no interval stays NaN).
+
+        Raises:
+            ValueError: the calibration was made with another method, threshold, direction
+                or method option than this result (the guarantee is for intervals made the
+                same way).
+        """
+        st = calibration.settings
+        mine = dict(self.options, method=self.method, threshold=self.threshold,
+                    direction=self.direction, time_unit=self.time_unit)  # fmt: skip
+        for key, value in st.items():
+            if key in ("fractions", "seed", "fleet", "horizon"):
+                continue
+            here = mine.get(key)
+            same = here == value or (
+                isinstance(here, float) and isinstance(value, float) and math.isclose(here, value)
+            )
+            if not same:
+                raise ValueError(
+                    f"the calibration was made with {key}={value!r}, this result has "
+                    f"{key}={here!r}: the guarantee holds for intervals made the same way"
+                )
+        lo = np.asarray(self.columns["rul_q05"], dtype=np.float64)
+        hi = np.asarray(self.columns["rul_q95"], dtype=np.float64)
+        cm = np.asarray(self.columns["censored_mass"], dtype=np.float64)
+        hi = np.where(np.isnan(hi) & ~np.isnan(lo) & (cm > 0.05), np.inf, hi)
+        hi = np.where(np.isnan(lo), np.nan, hi)
+        new_lo, new_hi = calibration.interval(torch.from_numpy(lo), torch.from_numpy(hi))
+        cols = dict(self.columns)
+        cols["rul_q05_calibrated"] = [float(v) for v in new_lo]
+        cols["rul_q95_calibrated"] = [float(v) for v in new_hi]
+        return replace(self, columns=cols)
 
     def write(self, path) -> Path:
         """Write ``.csv`` or ``.parquet`` atomically (no partial file on interruption)."""

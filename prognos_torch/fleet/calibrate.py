@@ -1,0 +1,153 @@
+"""Calibrate a fleet's 90 % RUL intervals on its assets that ran to failure.
+
+A fleet is where failed histories are plentiful. :func:`calibrate_fleet` replays each failed
+asset under the known-threshold protocol (:func:`~prognos_torch.prognosis.protocol.
+known_threshold_protocol`, with the fleet's failure threshold): the asset's rows up to
+20/40/60/80/90 % of [onset, end of life] become one pseudo-asset each, and ALL of them go
+through one :func:`~prognos_torch.fleet.fleet_rul` call, the same RUL method and options as the
+live fleet (batched as any fleet is). Their intervals ``[rul_q05, rul_q95]`` and the true RULs
+give the split-conformal margin (:mod:`prognos_torch.prognosis.conformal`; CQR on the log RUL,
+Romano, Patterson & Candes 2019), and :meth:`FleetResult.calibrated
+<prognos_torch.fleet.FleetResult.calibrated>` applies it to a fleet's result::
+
+    cal, points = calibrate_fleet("failed.parquet", threshold=20.0)
+    live = fleet_rul("fleet.parquet", threshold=20.0).calibrated(cal)
+    live.columns["rul_q05_calibrated"], live.columns["rul_q95_calibrated"]
+
+The RUL of a fleet row counts from the asset's last observation, so the true RUL of a replayed
+point is ``t_EoL - t_last`` (``t_last``: the last observed time up to the prediction time). A
+quantile that lies beyond every sampled crossing (NaN ``rul_q95`` with more than 5 % of the
+mass censored) is an open upper end. The guarantee holds for live assets exchangeable with the
+failed ones: the same population, indicator, threshold and method.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from ..core.validation import check_real
+from ..prognosis.conformal import RULCalibration, conformal_margin, interval_scores
+from ..prognosis.protocol import PROTOCOL_FRACTIONS, known_threshold_protocol
+from .run import fleet_rul
+from .table import FleetTable, read_fleet_table
+
+__all__ = ["calibrate_fleet"]
+
+
+def calibrate_fleet(
+    source,
+    threshold: float,
+    *,
+    group_by: str = "asset",
+    column: str = "value",
+    time_column: str = "t",
+    direction: str = "above",
+    coverage: float = 0.9,
+    fractions: tuple[float, ...] = PROTOCOL_FRACTIONS,
+    seed: int = 0,
+    method: str = "exponential",
+    **options,
+) -> tuple[RULCalibration, dict[str, list]]:
+    """Conformal calibration of :func:`~prognos_torch.fleet.fleet_rul`'s 90 % intervals.
+
+    Args:
+        source: the failed assets: a :class:`~prognos_torch.fleet.FleetTable`, a
+            ``.csv``/``.parquet`` path, a pandas DataFrame or a mapping of columns (as
+            :func:`~prognos_torch.fleet.read_fleet_table`); each asset's rows must reach its
+            failure.
+        threshold: the failure threshold, as for the live fleet.
+        group_by, column, time_column: column names (asset, value, time).
+        direction: ``"above"`` or ``"below"``, as for the live fleet.
+        coverage: the target coverage, in (0, 1).
+        fractions: prediction times as fractions of [onset, end of life].
+        seed, method, **options: ``fleet_rul``'s, to be used again for the live fleet.
+
+    Returns:
+        ``(calibration, points)``: the :class:`~prognos_torch.prognosis.RULCalibration` (its
+        ``settings`` name the method, options, threshold and direction it holds for) and the
+        replayed points as columns ``asset, t_pred, t_last, true_rul, rul_q05, rul_q95, score,
+        status`` (``score`` NaN and ``status`` the reason where a point has no interval).
+
+    Raises:
+        ValueError: bad arguments, or no failed asset gives a point with an interval.
+    """
+    thr = check_real(threshold, "threshold")
+    if direction not in ("above", "below"):
+        raise ValueError(f"direction must be 'above' or 'below', got {direction!r}")
+    sign = 1.0 if direction == "above" else -1.0
+    table = (
+        source
+        if isinstance(source, FleetTable)
+        else read_fleet_table(source, group_by=group_by, column=column, time_column=time_column)
+    )
+    if not table.assets:
+        raise ValueError("the table of failed assets is empty")
+    names, times, values, rows, truth, t_pred, t_last = [], [], [], [], [], [], []
+    skipped: dict[str, str] = {}
+    for a, t, y, r in zip(table.assets, table.times, table.values, table.rows):
+        ok = ~np.isnan(y)
+        if int(ok.sum()) < 20:
+            skipped[a] = f"{int(ok.sum())} observed values, the protocol needs 20"
+            continue
+        pc = known_threshold_protocol(torch.from_numpy(t[ok]), torch.from_numpy(sign * y[ok]),
+                                      fractions=fractions, threshold=sign * thr)  # fmt: skip
+        if not pc.valid:
+            skipped[a] = f"protocol not usable: {pc.reason}"
+            continue
+        for f, tp in zip(fractions, pc.times.tolist()):
+            keep = t <= tp
+            last = float(t[keep & ok][-1])
+            names.append(f"{a}@{f:g}")
+            times.append(t[keep]), values.append(y[keep]), rows.append(r[keep])
+            truth.append(pc.t_eol - last), t_pred.append(tp), t_last.append(last)
+    if not names:
+        first = next(iter(skipped.items()), ("", ""))
+        raise ValueError(
+            f"no failed asset gives a prediction point (first, {first[0]!r}: {first[1]}): "
+            "nothing to calibrate on"
+        )
+    replay = FleetTable(names, times, values, rows, source=f"{table.source} (replayed)",
+                        time_unit=table.time_unit, epoch=table.epoch)  # fmt: skip
+    res = fleet_rul(replay, thr, direction=direction, seed=seed, method=method, **options)
+    col = lambda k: torch.tensor(res.columns[k], dtype=torch.float64)  # noqa: E731
+    lo, hi, cm = col("rul_q05"), col("rul_q95"), col("censored_mass")
+    hi = torch.where(torch.isnan(hi) & ~torch.isnan(lo) & (cm > 0.05), math.inf, hi)
+    true = torch.tensor(truth, dtype=torch.float64)
+    usable = ~torch.isnan(lo) & ~torch.isnan(hi) & (true > 0)
+    status = [
+        "ok" if u else (f or f"no interval (censored mass {c:.3g})")
+        for u, f, c in zip(usable.tolist(), res.columns["flags"], cm.tolist())
+    ]
+    if not bool(usable.any()):
+        raise ValueError(
+            f"no replayed point has an interval (first, {names[0]!r}: {status[0]}): nothing to "
+            "calibrate on"
+        )
+    nan = torch.full_like(lo, math.nan)
+    scores = torch.full_like(lo, math.nan)
+    scores[usable] = interval_scores(lo[usable], hi[usable], true[usable])
+    settings = dict(
+        {k: v if isinstance(v, (str, int, float, bool, type(None))) else repr(v)
+         for k, v in options.items()},  # fmt: skip
+        method=method, threshold=thr, direction=direction, fractions=list(fractions), seed=seed,
+        fleet=True, time_unit=table.time_unit,
+    )  # fmt: skip
+    cal = RULCalibration(conformal_margin(scores[usable], coverage), float(coverage),
+                         int(usable.sum()), settings)  # fmt: skip
+    points = {
+        "asset": names,
+        "t_pred": t_pred,
+        "t_last": t_last,
+        "true_rul": truth,
+        "rul_q05": torch.where(usable, lo, nan).tolist(),
+        "rul_q95": torch.where(usable, hi, nan).tolist(),
+        "score": scores.tolist(),
+        "status": status,
+    }
+    for a, why in skipped.items():
+        for k in points:
+            points[k].append(a if k == "asset" else why if k == "status" else math.nan)
+    return cal, points

@@ -1,0 +1,128 @@
+"""calibrate_fleet: a fleet's intervals calibrated on its failed assets (split conformal)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from prognos_torch.fleet import calibrate_fleet, fleet_rul, synthetic_fleet
+from prognos_torch.prognosis.conformal import conformal_margin
+from prognos_torch.prognosis.protocol import known_threshold_protocol
+
+
+def _failed(n: int, seed: int):
+    """A synthetic fleet observed past every failure (life fraction > 1)."""
+    return synthetic_fleet(n, 300, seed=seed, life_fraction=(1.1, 1.3), healthy_fraction=0.0)
+
+
+def _subset(table: dict, assets) -> dict:
+    keep = np.isin(table["asset"], list(assets))
+    return {k: v[keep] for k, v in table.items()}
+
+
+def test_replayed_points_are_fleet_rows_of_the_truncated_assets():
+    f = _failed(6, seed=4)
+    cal, pts = calibrate_fleet(f.table, 20.0, fractions=(0.5, 0.9))
+    assert pts["asset"][:2] == [f"{f.assets[0]}@0.5", f"{f.assets[0]}@0.9"]
+    # point 2 is fleet_rul on asset 0's rows up to its 90 % protocol time, under that name
+    t, y = (f.table[k][f.table["asset"] == f.assets[0]] for k in ("t", "value"))
+    pc = known_threshold_protocol(torch.from_numpy(t), torch.from_numpy(y), fractions=(0.5, 0.9),
+                                  threshold=20.0)  # fmt: skip
+    keep = t <= float(pc.times[1])
+    alone = fleet_rul({"asset": np.full(int(keep.sum()), pts["asset"][1]), "t": t[keep],
+                       "value": y[keep]}, 20.0).row(pts["asset"][1])  # fmt: skip
+    assert (pts["rul_q05"][1], pts["rul_q95"][1]) == (alone["rul_q05"], alone["rul_q95"])
+    assert pts["true_rul"][1] == pc.t_eol - float(t[keep][-1])
+    # the margin is the conformal quantile of the points' scores
+    scores = torch.tensor([s for s in pts["score"] if not math.isnan(s)], dtype=torch.float64)
+    assert cal.n == scores.numel() == 12 and cal.margin == conformal_margin(scores, 0.9)
+    assert (cal.settings["method"], cal.settings["threshold"]) == ("exponential", 20.0)
+
+
+def test_calibrated_intervals_cover_held_out_failed_assets():
+    # calibrate on 200 failed assets, check on the replayed points of 200 others: the fleet's
+    # own intervals under-cover there (truth above q95), the calibrated ones cover 0.9 within
+    # the Monte-Carlo spread of 200 assets x 5 correlated points
+    f = _failed(400, seed=1)
+    cal, _ = calibrate_fleet(_subset(f.table, f.assets[:200]), 20.0)
+    _, pts = calibrate_fleet(_subset(f.table, f.assets[200:]), 20.0)
+    lo, hi, tr = (
+        torch.tensor(pts[k], dtype=torch.float64) for k in ("rul_q05", "rul_q95", "true_rul")
+    )
+    ok = ~torch.isnan(lo)
+    raw = ((lo <= tr) & (tr <= hi))[ok].double().mean()
+    new_lo, new_hi = cal.interval(lo[ok], hi[ok])
+    covered = ((new_lo <= tr[ok]) & (tr[ok] <= new_hi)).double().mean()
+    assert cal.margin > 0 and float(raw) < 0.8
+    assert 0.84 <= float(covered) <= 0.97
+
+
+def test_fleet_result_calibrated_columns_and_settings_check():
+    f = _failed(40, seed=2)
+    cal, _ = calibrate_fleet(f.table, 20.0)
+    live = synthetic_fleet(30, 300, seed=3)
+    res = fleet_rul(live.table, 20.0)
+    out = res.calibrated(cal)
+    lo = torch.tensor(res.columns["rul_q05"], dtype=torch.float64)
+    hi = torch.tensor(res.columns["rul_q95"], dtype=torch.float64)
+    cm = torch.tensor(res.columns["censored_mass"], dtype=torch.float64)
+    hi = torch.where(torch.isnan(hi) & ~torch.isnan(lo) & (cm > 0.05), math.inf, hi)
+    want_lo, want_hi = cal.interval(lo, hi)
+    got_lo = torch.tensor(out.columns["rul_q05_calibrated"], dtype=torch.float64)
+    got_hi = torch.tensor(out.columns["rul_q95_calibrated"], dtype=torch.float64)
+    assert torch.equal(torch.isnan(got_lo), torch.isnan(lo))
+    ok = ~torch.isnan(lo)
+    assert torch.equal(got_lo[ok], want_lo[ok]) and torch.equal(got_hi[ok], want_hi[ok])
+    assert out.columns["rul_median"] == res.columns["rul_median"]
+    with pytest.raises(ValueError, match="made with threshold=20.0, this result has threshold=25"):
+        fleet_rul(live.table, 25.0).calibrated(cal)
+    with pytest.raises(ValueError, match="this result has samples=500"):
+        cal2, _ = calibrate_fleet(f.table, 20.0, samples=300)
+        fleet_rul(live.table, 20.0, samples=500).calibrated(cal2)
+
+
+def test_bad_failed_tables_are_refused_by_name():
+    with pytest.raises(ValueError, match="direction must be 'above' or 'below'"):
+        calibrate_fleet(_failed(3, 0).table, 20.0, direction="auto")
+    healthy = synthetic_fleet(4, 300, seed=0, healthy_fraction=1.0)
+    with pytest.raises(ValueError, match="no failed asset gives a prediction point .*never "
+                       "reaches the threshold 20"):  # fmt: skip
+        calibrate_fleet(healthy.table, 20.0)
+    short = {"asset": np.array(["a"] * 10), "t": np.arange(10.0), "value": np.ones(10)}
+    with pytest.raises(ValueError, match="10 observed values, the protocol needs 20"):
+        calibrate_fleet(short, 20.0)
+
+
+def test_cli_calibrate_adds_the_calibrated_columns(tmp_path, capsys):
+    from prognos_torch.cli import main
+    from prognos_torch.fleet import read_fleet_table, write_table
+
+    failed = _failed(30, seed=5)
+    live = synthetic_fleet(20, 300, seed=6)
+    write_table(tmp_path / "failed.csv", {k: list(v) for k, v in failed.table.items()})
+    write_table(tmp_path / "live.csv", {k: list(v) for k, v in live.table.items()})
+    out = tmp_path / "res.csv"
+    args = ["rul", str(tmp_path / "live.csv"), "--group-by", "asset", "--threshold", "20",
+            "--calibrate", str(tmp_path / "failed.csv"), "--out", str(out), "--no-progress"]  # fmt: skip
+    assert main(args) == 0
+    cal, _ = calibrate_fleet(read_fleet_table(tmp_path / "failed.csv"), 20.0, samples=1000,
+                             phi=0.0, min_rows=10)  # fmt: skip
+    assert f"calibrated on {cal.n} points of 30 failed assets" in capsys.readouterr().out
+    want = fleet_rul(read_fleet_table(tmp_path / "live.csv"), 20.0, samples=1000, phi=0.0,
+                     min_rows=10).calibrated(cal)  # fmt: skip
+    got = out.read_text().splitlines()
+    head = got[0].split(",")
+    j = head.index("rul_q05_calibrated")
+    first = [float(v) for v in got[1].split(",")[j : j + 2]]
+    assert first == pytest.approx(
+        [want.columns["rul_q05_calibrated"][0], want.columns["rul_q95_calibrated"][0]], rel=1e-12
+    )
+    # a threshold no failed asset reached: one error line, nothing written
+    out.unlink()
+    assert main([a if a != "20" else "2000" for a in args]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --calibrate: no failed asset gives a prediction point")
+    assert not out.exists()
