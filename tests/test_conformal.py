@@ -146,6 +146,42 @@ def test_calibration_record_round_trips_and_refuses_bad_fields():
         RULCalibration.from_dict([0.1, 0.9, 5])
 
 
+def test_bins_of_the_predicted_median_have_their_own_margin():
+    import json
+
+    g = torch.Generator().manual_seed(5)
+    n = 300
+    med = torch.exp(3 * torch.rand(n, generator=g, dtype=torch.float64))
+    med[:10] = math.inf  # censored medians: the top bin
+    lo, hi = torch.where(med.isinf(), 50.0, med / 2), med * 2  # censored: open to the right
+    # the model misses more at short RULs: truth spread grows as the median shrinks
+    spread = 1.5 / (1 + torch.where(med.isinf(), 100.0, med).log())
+    tr = torch.where(med.isinf(), 50.0, med) * torch.exp(spread * torch.randn(n, generator=g,
+                                                                            dtype=torch.float64))  # fmt: skip
+    cal = calibrate_intervals(lo, hi, tr, 0.9, median=med, bins=3)
+    z = torch.where(med.isinf(), math.inf, med.log())
+    order = torch.sort(z).values
+    edges = [0.5 * float(order[c - 1] + order[c]) for c in (100, 200)]
+    assert cal.edges == pytest.approx(tuple(edges), rel=1e-15) and len(cal.margins) == 3
+    scores = interval_scores(lo, hi, tr)
+    for j, sel in enumerate([z < edges[0], (z >= edges[0]) & (z < edges[1]), z >= edges[1]]):
+        assert cal.margins[j] == conformal_margin(scores[sel], 0.9)
+        assert torch.equal(cal.margin_for(med[sel]), torch.full((int(sel.sum()),), cal.margins[j],
+                                                                 dtype=torch.float64))  # fmt: skip
+    assert cal.margins[0] > cal.margins[2]  # short RULs need the wider margin
+    assert cal.margin == conformal_margin(scores, 0.9)
+    a, b = cal.interval(lo[:5], hi[:5], med[:5])
+    q = cal.margin_for(med[:5])
+    assert torch.equal(a, lo[:5] / q.exp()) and torch.equal(b, hi[:5] * q.exp())
+    assert RULCalibration.from_dict(json.loads(json.dumps(cal.to_dict()))) == cal
+    with pytest.raises(ValueError, match="pass median="):
+        cal.interval(lo, hi)
+    with pytest.raises(ValueError, match="bins > 1 needs median="):
+        calibrate_intervals(lo, hi, tr, bins=2)
+    with pytest.raises(ValueError, match="edges must be increasing"):
+        RULCalibration.from_dict(dict(cal.to_dict(), margins=[0.1]))
+
+
 def test_protocol_with_a_known_threshold():
     t = torch.arange(200, dtype=torch.float64)
     y = torch.ones(200, dtype=torch.float64)

@@ -7,7 +7,10 @@ known_threshold_protocol`, with the fleet's failure threshold): the asset's rows
 through one :func:`~prognos_torch.fleet.fleet_rul` call, the same RUL method and options as the
 live fleet (batched as any fleet is). Their intervals ``[rul_q05, rul_q95]`` and the true RULs
 give the split-conformal margin (:mod:`prognos_torch.prognosis.conformal`; CQR on the log RUL,
-Romano, Patterson & Candes 2019), and :meth:`FleetResult.calibrated
+Romano, Patterson & Candes 2019), one per bin of the predicted median RUL where the failed
+assets give enough points (``bins="auto"``: one bin per 100 points, at most 5; Mondrian
+conformal prediction, so that short RULs, where a model's misses differ most, get their own),
+and :meth:`FleetResult.calibrated
 <prognos_torch.fleet.FleetResult.calibrated>` applies it to a fleet's result::
 
     cal, points = calibrate_fleet("failed.parquet", threshold=20.0)
@@ -24,12 +27,13 @@ failed ones: the same population, indicator, threshold and method.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import torch
 
 from ..core.validation import check_real
-from ..prognosis.conformal import RULCalibration, conformal_margin, interval_scores
+from ..prognosis.conformal import RULCalibration, calibrate_intervals, interval_scores
 from ..prognosis.protocol import PROTOCOL_FRACTIONS, known_threshold_protocol
 from .run import fleet_rul
 from .table import FleetTable, read_fleet_table
@@ -46,6 +50,7 @@ def calibrate_fleet(
     time_column: str = "t",
     direction: str = "above",
     coverage: float = 0.9,
+    bins: int | str = "auto",
     fractions: tuple[float, ...] = PROTOCOL_FRACTIONS,
     seed: int = 0,
     method: str = "exponential",
@@ -62,14 +67,17 @@ def calibrate_fleet(
         group_by, column, time_column: column names (asset, value, time).
         direction: ``"above"`` or ``"below"``, as for the live fleet.
         coverage: the target coverage, in (0, 1).
+        bins: bins of the predicted median RUL with a margin each; ``"auto"``: one per 100
+            points with an interval, at most 5 (a rule fixed a priori: 100 points put each
+            bin's 90 % margin at its 10th-largest miss).
         fractions: prediction times as fractions of [onset, end of life].
         seed, method, **options: ``fleet_rul``'s, to be used again for the live fleet.
 
     Returns:
         ``(calibration, points)``: the :class:`~prognos_torch.prognosis.RULCalibration` (its
         ``settings`` name the method, options, threshold and direction it holds for) and the
-        replayed points as columns ``asset, t_pred, t_last, true_rul, rul_q05, rul_q95, score,
-        status`` (``score`` NaN and ``status`` the reason where a point has no interval).
+        replayed points as columns ``asset, t_pred, t_last, true_rul, rul_median, rul_q05,
+        rul_q95, score, status`` (``score`` NaN and ``status`` the reason where a point has no interval).
 
     Raises:
         ValueError: bad arguments, or no failed asset gives a point with an interval.
@@ -113,7 +121,7 @@ def calibrate_fleet(
                         time_unit=table.time_unit, epoch=table.epoch)  # fmt: skip
     res = fleet_rul(replay, thr, direction=direction, seed=seed, method=method, **options)
     col = lambda k: torch.tensor(res.columns[k], dtype=torch.float64)  # noqa: E731
-    lo, hi, cm = col("rul_q05"), col("rul_q95"), col("censored_mass")
+    lo, hi, cm, med = col("rul_q05"), col("rul_q95"), col("censored_mass"), col("rul_median")
     hi = torch.where(torch.isnan(hi) & ~torch.isnan(lo) & (cm > 0.05), math.inf, hi)
     true = torch.tensor(truth, dtype=torch.float64)
     usable = ~torch.isnan(lo) & ~torch.isnan(hi) & (true > 0)
@@ -126,22 +134,27 @@ def calibrate_fleet(
             f"no replayed point has an interval (first, {names[0]!r}: {status[0]}): nothing to "
             "calibrate on"
         )
+    n = int(usable.sum())
+    if bins == "auto":
+        bins = max(1, min(5, n // 100))
     nan = torch.full_like(lo, math.nan)
-    scores = torch.full_like(lo, math.nan)
-    scores[usable] = interval_scores(lo[usable], hi[usable], true[usable])
+    cal = calibrate_intervals(lo[usable], hi[usable], true[usable], coverage,
+                              median=med[usable], bins=bins)  # fmt: skip
     settings = dict(
         {k: v if isinstance(v, (str, int, float, bool, type(None))) else repr(v)
          for k, v in options.items()},  # fmt: skip
         method=method, threshold=thr, direction=direction, fractions=list(fractions), seed=seed,
         fleet=True, time_unit=table.time_unit,
     )  # fmt: skip
-    cal = RULCalibration(conformal_margin(scores[usable], coverage), float(coverage),
-                         int(usable.sum()), settings)  # fmt: skip
+    cal = replace(cal, settings=settings)
+    scores = torch.full_like(lo, math.nan)
+    scores[usable] = interval_scores(lo[usable], hi[usable], true[usable])
     points = {
         "asset": names,
         "t_pred": t_pred,
         "t_last": t_last,
         "true_rul": truth,
+        "rul_median": torch.where(usable, med, nan).tolist(),
         "rul_q05": torch.where(usable, lo, nan).tolist(),
         "rul_q95": torch.where(usable, hi, nan).tolist(),
         "score": scores.tolist(),

@@ -107,7 +107,7 @@ class FleetResult:
         mine = dict(self.options, method=self.method, threshold=self.threshold,
                     direction=self.direction, time_unit=self.time_unit)  # fmt: skip
         for key, value in st.items():
-            if key in ("fractions", "seed", "fleet", "horizon"):
+            if key in ("fractions", "seed", "fleet", "horizon", "bins"):
                 continue
             here = mine.get(key)
             same = here == value or (
@@ -123,7 +123,11 @@ class FleetResult:
         cm = np.asarray(self.columns["censored_mass"], dtype=np.float64)
         hi = np.where(np.isnan(hi) & ~np.isnan(lo) & (cm > 0.05), np.inf, hi)
         hi = np.where(np.isnan(lo), np.nan, hi)
-        new_lo, new_hi = calibration.interval(torch.from_numpy(lo), torch.from_numpy(hi))
+        med = np.asarray(self.columns["rul_median"], dtype=np.float64)
+        med = np.where(np.isnan(med), np.inf, med)  # beyond every crossing: the top bin
+        new_lo, new_hi = calibration.interval(
+            torch.from_numpy(lo), torch.from_numpy(hi), torch.from_numpy(med)
+        )
         cols = dict(self.columns)
         cols["rul_q05_calibrated"] = [float(v) for v in new_lo]
         cols["rul_q95_calibrated"] = [float(v) for v in new_hi]

@@ -22,6 +22,15 @@ an honest check leaves out a whole asset at a time (:func:`leave_one_group_out`)
 
 An open upper end (``hi = inf``: more than 5 % of the paths censored) stays open; a lower end
 of 0 stays 0.
+
+**Bins by the predicted RUL** (Mondrian conformal prediction, Vovk, Gammerman & Shafer 2005,
+Sec. 4.5): one margin for all points is calibrated on average, but a model's misses often
+depend on how far ahead it predicts (a lag between the model's event and the failure
+definition weighs most on a short RUL). With ``bins = B > 1`` the calibration points are cut
+into ``B`` equal-count bins of their predicted median RUL (in log; a censored median in the top
+bin), each bin gets its own ``Q``, and a new point takes the margin of its bin: the guarantee
+then holds within each bin. Every bin needs its own points (``Q`` is ``inf`` below
+``ceil(c / (1 - c))`` of them), so bins are for large calibration sets, a fleet's.
 """
 
 from __future__ import annotations
@@ -110,18 +119,43 @@ class RULCalibration:
         settings: how the calibrated intervals were made (for
             :func:`~prognos_torch.workflow.calibrate_rul`: ``prognose``'s settings, the failure
             threshold and direction); the guarantee holds for intervals made the same way.
+        edges: with bins (module docstring), the ``B - 1`` boundaries between them on the log
+            predicted median RUL; empty: one margin for every point.
+        margins: with bins, the ``B`` margins, lowest median first (``margin`` is then the
+            margin of all points pooled, for reference).
     """
 
     margin: float
     coverage: float
     n: int
     settings: Mapping = field(default_factory=dict)
+    edges: tuple[float, ...] = ()
+    margins: tuple[float, ...] = ()
+
+    def margin_for(self, median=None) -> Tensor:
+        """The margin of each point: ``margin``, or with bins that of the bin of its predicted
+        median RUL ``median`` (``(n,)``; ``inf`` or NaN, a censored median: the top bin)."""
+        if not self.edges:
+            shape = () if median is None else torch.as_tensor(median).shape
+            return torch.full(shape, self.margin, dtype=torch.float64)
+        if median is None:
+            raise ValueError(
+                "this calibration has bins by the predicted median RUL: pass median= (the "
+                "points' median RULs)"
+            )
+        m = torch.as_tensor(median, dtype=torch.float64)
+        z = torch.where(torch.isnan(m) | (m == math.inf), math.inf, m.clamp_min(1e-300).log())
+        idx = torch.searchsorted(torch.tensor(self.edges, dtype=torch.float64), z.reshape(-1))
+        return torch.tensor(self.margins, dtype=torch.float64)[idx].reshape(m.shape)
 
     def to_dict(self) -> dict:
         """A JSON-ready record (``margin`` ``None`` when infinite); :meth:`from_dict` reads it."""
-        inf = math.isinf(self.margin)
-        return {"margin": None if inf else self.margin, "coverage": self.coverage, "n": self.n,
-                "settings": dict(self.settings)}  # fmt: skip
+        num = lambda q: None if math.isinf(q) else q  # noqa: E731
+        out = {"margin": num(self.margin), "coverage": self.coverage, "n": self.n,
+               "settings": dict(self.settings)}  # fmt: skip
+        if self.edges:
+            out.update(edges=list(self.edges), margins=[num(q) for q in self.margins])
+        return out
 
     @classmethod
     def from_dict(cls, record: Mapping) -> RULCalibration:
@@ -142,16 +176,35 @@ class RULCalibration:
         settings = record.get("settings") or {}
         if not isinstance(settings, Mapping):
             raise ValueError(f"settings must be a mapping, got {settings!r:.80}")
-        return cls(math.inf if m is None else float(m), float(c), n, dict(settings))
+        edges, margins = record.get("edges") or [], record.get("margins") or []
+        if not (isinstance(edges, list) and isinstance(margins, list)
+                and all(real(e) and math.isfinite(e) for e in edges)
+                and list(edges) == sorted(edges)
+                and len(margins) == (len(edges) + 1 if edges else 0)
+                and all(q is None or (real(q) and not math.isnan(q)) for q in margins)):  # fmt: skip
+            raise ValueError(
+                "edges must be increasing finite numbers and margins one more numbers or nulls, "
+                f"got edges {edges!r:.80}, margins {margins!r:.80}"
+            )
+        qs = tuple(math.inf if q is None else float(q) for q in margins)
+        return cls(math.inf if m is None else float(m), float(c), n, dict(settings),
+                   tuple(float(e) for e in edges), qs)  # fmt: skip
 
-    def interval(self, lower, upper) -> tuple[Tensor, Tensor]:
+    def interval(self, lower, upper, median=None) -> tuple[Tensor, Tensor]:
         """The calibrated ends ``(lower e^-Q, upper e^Q)``, ``(n,)`` or scalars each (an open
-        upper end stays ``inf``; NaN stays NaN)."""
+        upper end stays ``inf``; NaN stays NaN); ``median``: the predicted median RULs, needed
+        with bins (:meth:`margin_for`)."""
         scalar = torch.as_tensor(lower).dim() == 0 and torch.as_tensor(upper).dim() == 0
         lo, hi = _vectors(torch.as_tensor(lower).reshape(-1), torch.as_tensor(upper).reshape(-1))
-        f = math.exp(self.margin) if self.margin < math.inf else math.inf
-        new_lo = lo / f if f < math.inf else torch.zeros_like(lo).where(~torch.isnan(lo), lo)
-        new_hi = torch.where(hi == 0, hi * 0 if f < math.inf else hi + math.inf, hi * f)
+        med = None if median is None else torch.as_tensor(median, dtype=torch.float64).reshape(-1)
+        if med is not None and med.shape != lo.shape:
+            raise ValueError(f"median must have shape {tuple(lo.shape)}, got {tuple(med.shape)}")
+        q = self.margin_for(med) if self.edges else torch.full_like(lo, self.margin)
+        inf = q == math.inf
+        f = torch.where(inf, 1.0, q.clamp_max(700.0).exp())
+        new_lo = torch.where(inf & ~torch.isnan(lo), 0.0, lo / f)
+        new_hi = torch.where(inf, torch.where(torch.isnan(hi), hi, math.inf), hi * f)
+        new_hi = torch.where((hi == 0) & ~inf, 0.0, new_hi)
         return (new_lo[0], new_hi[0]) if scalar else (new_lo, new_hi)
 
     def summary(self, result) -> dict:
@@ -165,23 +218,64 @@ class RULCalibration:
             return s
         lo = s["q05"] if s["q05"] is not None else s["bound"]
         hi = math.inf if s["q95"] is None else s["q95"]
-        new_lo, new_hi = self.interval(float(lo), float(hi))
+        med = math.inf if s.get("median") is None else s["median"]
+        q = float(self.margin_for(torch.tensor([med], dtype=torch.float64))[0])
+        new_lo, new_hi = self.interval(float(lo), float(hi), torch.tensor(med))
         s["calibrated"] = {
             "q05": float(new_lo),
             "q95": float(new_hi) if math.isfinite(float(new_hi)) else None,
-            "margin": self.margin,
+            "margin": q,
             "coverage": self.coverage,
             "n": self.n,
         }
         return s
 
 
-def calibrate_intervals(lower, upper, truth, coverage: float = 0.9) -> RULCalibration:
+def calibrate_intervals(
+    lower, upper, truth, coverage: float = 0.9, *, median=None, bins: int = 1
+) -> RULCalibration:
     """:class:`RULCalibration` from predicted intervals and true RULs ``(n,)`` each, of assets
-    of the population the calibration will serve (NaN entries are left out)."""
+    of the population the calibration will serve (NaN entries are left out).
+
+    Args:
+        lower, upper, truth: ``(n,)`` as in :func:`interval_scores`.
+        coverage: the target coverage.
+        median: ``(n,)`` predicted median RULs (``inf``: censored), needed for ``bins > 1``.
+        bins: ``B`` equal-count bins of the log median, each with its own margin (module
+            docstring); 1: one margin.
+    """
     scores = interval_scores(lower, upper, truth)
-    n = int((~torch.isnan(scores)).sum())
-    return RULCalibration(conformal_margin(scores, coverage), float(coverage), n)
+    ok = ~torch.isnan(scores)
+    n = int(ok.sum())
+    pooled = conformal_margin(scores, coverage)
+    if isinstance(bins, bool) or not isinstance(bins, int) or bins < 1:
+        raise ValueError(f"bins must be an int >= 1, got {bins!r}")
+    if bins == 1:
+        return RULCalibration(pooled, float(coverage), n)
+    if median is None:
+        raise ValueError("bins > 1 needs median= (the points' predicted median RULs)")
+    m = torch.as_tensor(median, dtype=torch.float64)
+    if m.shape != scores.shape:
+        raise ValueError(f"median must have shape {tuple(scores.shape)}, got {tuple(m.shape)}")
+    if n < bins:
+        raise ValueError(f"bins = {bins} needs at least as many points, got {n}")
+    z = torch.where(torch.isnan(m) | (m == math.inf), math.inf, m.clamp_min(1e-300).log())[ok]
+    order = torch.sort(z).values
+    cuts = [int(round(n * j / bins)) for j in range(1, bins)]
+    # a boundary halfway between neighbours; two equal medians stay in one bin
+    edges = [0.5 * (float(order[c - 1]) + float(order[c])) for c in cuts]
+    edges = [e for e in edges if math.isfinite(e)]
+    if len(set(edges)) < len(edges):
+        edges = sorted(set(edges))
+    idx = torch.searchsorted(torch.tensor(edges, dtype=torch.float64), z)
+    s = scores[ok]
+    margins = tuple(
+        conformal_margin(s[idx == j], coverage) if bool((idx == j).any()) else math.inf
+        for j in range(len(edges) + 1)
+    )
+    if not edges:
+        return RULCalibration(pooled, float(coverage), n)
+    return RULCalibration(pooled, float(coverage), n, {}, tuple(edges), margins)
 
 
 def leave_one_group_out(
