@@ -184,6 +184,12 @@ def main(argv: list[str] | None = None) -> int:
             if math.isfinite(cal.margin)
             else "too few points for 90 % coverage: the calibrated interval is [0, inf)"
         )
+        if cal.margins:
+            how = (
+                f"{len(cal.margins)} bins of the predicted median RUL, margins "
+                + ", ".join(f"{q:+.3g}" for q in cal.margins)
+                + " on the log RUL (shortest RUL first)"
+            )
         print(f"  calibrated on {cal.n} points of {failed} failed assets ({args.calibrate}): {how}")
     bad = [m for m in res.columns["message"] if m]
     for m in bad[:5]:
