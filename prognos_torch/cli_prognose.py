@@ -163,11 +163,11 @@ def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[li
     used = list(dict.fromkeys(p["name"] for p in points or () if "score" in p))
     src = (f"{cal.n} points from {len(used)} of {len(names)} histories" if points is not None
            else f"{cal.n} points of the --calibration file")  # fmt: skip
-    if math.isinf(cal.margin):
+    if math.isinf(s["margin"]):
         note = f"{src}: too few for {100 * cal.coverage:g} % coverage, which needs {_needed(cal.coverage)}"
     else:
-        f = math.exp(abs(cal.margin))
-        note = f"split conformal on {src}; ends moved {'out' if cal.margin >= 0 else 'in'} by a factor {f:.3g}"
+        f = math.exp(abs(s["margin"]))
+        note = f"split conformal on {src}; ends moved {'out' if s['margin'] >= 0 else 'in'} by a factor {f:.3g}"
     text = f"[{_fmt(s['q05'])}, {_fmt(s['q95'])}]"
     if s["q95"] is not None and s["q05"] > s["q95"]:  # narrowed past its width, as in CQR
         text = f"empty ({text} narrowed by the margin past its own width)"
