@@ -870,3 +870,18 @@ def test_known_threshold_protocol_on_the_device():
     )  # fmt: skip
     _same(got.times, ref.times, "prediction times")
     _same(got.true_rul, ref.true_rul, "true RUL")
+
+
+def test_conformal_calibration_on_the_device_matches_cpu():
+    from prognos_torch.prognosis.conformal import calibrate_intervals, interval_scores
+
+    g = torch.Generator().manual_seed(3)
+    med = torch.exp(3 * torch.rand(200, generator=g, dtype=torch.float64))
+    lo, hi = med / 2, med * 2
+    tr = med * torch.exp(0.8 * torch.randn(200, generator=g, dtype=torch.float64))
+    want = calibrate_intervals(lo, hi, tr, median=med, bins=3)
+    got = calibrate_intervals(_dev(lo), _dev(hi), _dev(tr), median=_dev(med), bins=3)
+    assert got == want
+    _same(interval_scores(_dev(lo), _dev(hi), _dev(tr)), interval_scores(lo, hi, tr), "scores")
+    for a, b in zip(got.interval(_dev(lo), _dev(hi), _dev(med)), want.interval(lo, hi, med)):
+        _same(a, b, "calibrated interval")

@@ -136,8 +136,9 @@ class RULCalibration:
         """The margin of each point: ``margin``, or with bins that of the bin of its predicted
         median RUL ``median`` (``(n,)``; ``inf`` or NaN, a censored median: the top bin)."""
         if not self.edges:
-            shape = () if median is None else torch.as_tensor(median).shape
-            return torch.full(shape, self.margin, dtype=torch.float64)
+            m = None if median is None else torch.as_tensor(median)
+            shape, device = ((), None) if m is None else (m.shape, m.device)
+            return torch.full(shape, self.margin, dtype=torch.float64, device=device)
         if median is None:
             raise ValueError(
                 "this calibration has bins by the predicted median RUL: pass median= (the "
@@ -145,8 +146,12 @@ class RULCalibration:
             )
         m = torch.as_tensor(median, dtype=torch.float64)
         z = torch.where(torch.isnan(m) | (m == math.inf), math.inf, m.clamp_min(1e-300).log())
-        idx = torch.searchsorted(torch.tensor(self.edges, dtype=torch.float64), z.reshape(-1))
-        return torch.tensor(self.margins, dtype=torch.float64)[idx].reshape(m.shape)
+        idx = torch.searchsorted(
+            torch.tensor(self.edges, dtype=torch.float64, device=m.device), z.reshape(-1)
+        )
+        return torch.tensor(self.margins, dtype=torch.float64, device=m.device)[idx].reshape(
+            m.shape
+        )
 
     def to_dict(self) -> dict:
         """A JSON-ready record (``margin`` ``None`` when infinite); :meth:`from_dict` reads it."""
@@ -267,7 +272,7 @@ def calibrate_intervals(
     edges = [e for e in edges if math.isfinite(e)]
     if len(set(edges)) < len(edges):
         edges = sorted(set(edges))
-    idx = torch.searchsorted(torch.tensor(edges, dtype=torch.float64), z)
+    idx = torch.searchsorted(torch.tensor(edges, dtype=torch.float64, device=z.device), z)
     s = scores[ok]
     margins = tuple(
         conformal_margin(s[idx == j], coverage) if bool((idx == j).any()) else math.inf
