@@ -118,18 +118,14 @@ def main(argv: list[str] | None = None) -> int:
                 else {"n_paths": args.samples}
             ),
         )
+        # the live fleet and its failed assets are read and predicted alike
+        same = dict(group_by=args.group_by, column=args.column, time_column=args.time_column,
+                    direction=args.direction, seed=args.seed)  # fmt: skip
         cal = None
         if args.calibrate is not None:
             try:
                 cal, points = calibrate_fleet(
-                    args.calibrate,
-                    args.threshold,
-                    group_by=args.group_by,
-                    column=args.column,
-                    time_column=args.time_column,
-                    direction=args.direction,
-                    seed=args.seed,
-                    **method_options,
+                    args.calibrate, args.threshold, **same, **method_options
                 )
             except FileNotFoundError as exc:
                 raise FileNotFoundError(f"--calibrate: {exc}") from None
@@ -138,12 +134,8 @@ def main(argv: list[str] | None = None) -> int:
         res = fleet_rul(
             args.table,
             args.threshold,
-            group_by=args.group_by,
-            column=args.column,
-            time_column=args.time_column,
-            direction=args.direction,
+            **same,
             horizon=args.horizon,
-            seed=args.seed,
             shard_size=args.shard_size,
             backend=args.backend,
             on_error=args.on_error,
