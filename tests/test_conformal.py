@@ -224,6 +224,13 @@ def test_calibrate_rul_replays_the_protocol_through_prognose():
     if math.isfinite(q):
         assert out["q05"] == pytest.approx(s["q05"] * math.exp(-q))
     assert (out["margin"], out["n"]) == (q, cal.n)
+    # bins of the predicted median: the same points, a margin per bin
+    binned, _ = calibrate_rul(hist, method="exponential", fractions=(0.5, 0.9), n_paths=400,
+                              bins=2)  # fmt: skip
+    col = lambda k: torch.tensor([u[k] for u in usable], dtype=torch.float64)  # noqa: E731
+    want = calibrate_intervals(col("q05"), col("q95"), col("true_rul"), median=col("median"),
+                               bins=2)  # fmt: skip
+    assert (binned.edges, binned.margins, binned.margin) == (want.edges, want.margins, q)
 
 
 def test_calibrate_rul_on_a_falling_indicator_mirrors_the_rising_one():

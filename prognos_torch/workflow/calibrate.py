@@ -23,10 +23,11 @@ from __future__ import annotations
 import inspect
 import math
 from collections.abc import Mapping
+from dataclasses import replace
 
 import torch
 
-from ..prognosis.conformal import RULCalibration, conformal_margin, interval_scores
+from ..prognosis.conformal import RULCalibration, calibrate_intervals, interval_scores
 from ..prognosis.protocol import PROTOCOL_FRACTIONS, known_threshold_protocol
 from .data import Series
 from .prognose import _as_series, prognose
@@ -40,6 +41,7 @@ def calibrate_rul(
     threshold: float | None = None,
     direction: str = "above",
     coverage: float = 0.9,
+    bins: int = 1,
     fractions: tuple[float, ...] = PROTOCOL_FRACTIONS,
     seed: int = 0,
     **prognose_kwargs,
@@ -57,6 +59,10 @@ def calibrate_rul(
             it, as a capacity fades; needs ``threshold``): the side the failure lies on, for
             the protocol (run on ``-y`` and ``-threshold`` when below) and for ``prognose``.
         coverage: the target coverage of the calibrated interval, in (0, 1).
+        bins: bins of the predicted median RUL, each with its own margin
+            (:mod:`prognos_torch.prognosis.conformal`); for many histories only: every bin
+            needs ``ceil(c / (1 - c))`` points for a finite margin, and about 100 for a stable
+            one.
         fractions: prediction times as fractions of [onset, end of life].
         seed: passed to every ``prognose`` call.
         **prognose_kwargs: further ``prognose`` settings (``method``, ``filter``, ...); use the
@@ -112,6 +118,7 @@ def calibrate_rul(
             if s["status"] == "ok" and true > 0:
                 row["q05"] = s["q05"] if s["q05"] is not None else s["bound"]
                 row["q95"] = math.inf if s["q95"] is None else s["q95"]
+                row["median"] = math.inf if s["median"] is None else s["median"]
             points.append(dict(row, status=s["status"]))
     usable = [p for p in points if not math.isnan(p.get("q05", math.nan))]
     if not usable:
@@ -125,7 +132,9 @@ def calibrate_rul(
     for p, e in zip(usable, scores.tolist()):
         p["score"] = e
     settings = _settings(prognose_kwargs, threshold, direction, fractions, seed)
-    cal = RULCalibration(conformal_margin(scores, coverage), float(coverage), len(usable), settings)
+    cal = calibrate_intervals(col("q05"), col("q95"), col("true_rul"), coverage,
+                              median=col("median"), bins=bins)  # fmt: skip
+    cal = replace(cal, settings=settings)
     return cal, points
 
 
