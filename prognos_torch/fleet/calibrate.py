@@ -33,9 +33,14 @@ import numpy as np
 import torch
 
 from ..core.validation import check_real
-from ..prognosis.conformal import RULCalibration, calibrate_intervals, interval_scores
+from ..prognosis.conformal import (
+    RULCalibration,
+    calibrate_intervals,
+    interval_scores,
+    record_settings,
+)
 from ..prognosis.protocol import PROTOCOL_FRACTIONS, known_threshold_protocol
-from .run import fleet_rul
+from .run import fleet_rul, interval_columns
 from .table import FleetTable, read_fleet_table
 
 __all__ = ["calibrate_fleet"]
@@ -120,14 +125,13 @@ def calibrate_fleet(
     replay = FleetTable(names, times, values, rows, source=f"{table.source} (replayed)",
                         time_unit=table.time_unit, epoch=table.epoch)  # fmt: skip
     res = fleet_rul(replay, thr, direction=direction, seed=seed, method=method, **options)
-    col = lambda k: torch.tensor(res.columns[k], dtype=torch.float64)  # noqa: E731
-    lo, hi, cm, med = col("rul_q05"), col("rul_q95"), col("censored_mass"), col("rul_median")
-    hi = torch.where(torch.isnan(hi) & ~torch.isnan(lo) & (cm > 0.05), math.inf, hi)
+    lo, hi, med = interval_columns(res.columns)
+    cm = res.columns["censored_mass"]
     true = torch.tensor(truth, dtype=torch.float64)
     usable = ~torch.isnan(lo) & ~torch.isnan(hi) & (true > 0)
     status = [
         "ok" if u else (f or f"no interval (censored mass {c:.3g})")
-        for u, f, c in zip(usable.tolist(), res.columns["flags"], cm.tolist())
+        for u, f, c in zip(usable.tolist(), res.columns["flags"], cm)
     ]
     if not bool(usable.any()):
         raise ValueError(
@@ -141,8 +145,7 @@ def calibrate_fleet(
     cal = calibrate_intervals(lo[usable], hi[usable], true[usable], coverage,
                               median=med[usable], bins=bins)  # fmt: skip
     settings = dict(
-        {k: v if isinstance(v, (str, int, float, bool, type(None))) else repr(v)
-         for k, v in options.items()},  # fmt: skip
+        record_settings(options),
         method=method, threshold=thr, direction=direction, fractions=list(fractions), seed=seed,
         fleet=True, time_unit=table.time_unit,
     )  # fmt: skip

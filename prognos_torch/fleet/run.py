@@ -118,16 +118,8 @@ class FleetResult:
                     f"the calibration was made with {key}={value!r}, this result has "
                     f"{key}={here!r}: the guarantee holds for intervals made the same way"
                 )
-        lo = np.asarray(self.columns["rul_q05"], dtype=np.float64)
-        hi = np.asarray(self.columns["rul_q95"], dtype=np.float64)
-        cm = np.asarray(self.columns["censored_mass"], dtype=np.float64)
-        hi = np.where(np.isnan(hi) & ~np.isnan(lo) & (cm > 0.05), np.inf, hi)
-        hi = np.where(np.isnan(lo), np.nan, hi)
-        med = np.asarray(self.columns["rul_median"], dtype=np.float64)
-        med = np.where(np.isnan(med), np.inf, med)  # beyond every crossing: the top bin
-        new_lo, new_hi = calibration.interval(
-            torch.from_numpy(lo), torch.from_numpy(hi), torch.from_numpy(med)
-        )
+        # (a NaN median, beyond every crossing, falls in the top bin)
+        new_lo, new_hi = calibration.interval(*interval_columns(self.columns))
         cols = dict(self.columns)
         cols["rul_q05_calibrated"] = [float(v) for v in new_lo]
         cols["rul_q95_calibrated"] = [float(v) for v in new_hi]
@@ -136,6 +128,16 @@ class FleetResult:
     def write(self, path) -> Path:
         """Write ``.csv`` or ``.parquet`` atomically (no partial file on interruption)."""
         return write_table(path, self.columns)
+
+
+def interval_columns(columns: Mapping[str, list]) -> tuple[torch.Tensor, ...]:
+    """``(rul_q05, rul_q95, rul_median)`` of a fleet's output columns as ``(A,)`` float64
+    tensors, the interval as calibration reads it: ``rul_q95`` NaN with ``rul_q05`` known and
+    more than 5 % censored is an open upper end (``inf``); no ``rul_q05``, no interval (NaN)."""
+    lo, hi, cm, med = (torch.tensor(columns[k], dtype=torch.float64)
+                       for k in ("rul_q05", "rul_q95", "censored_mass", "rul_median"))  # fmt: skip
+    hi = torch.where(torch.isnan(hi) & ~torch.isnan(lo) & (cm > 0.05), math.inf, hi)
+    return lo, torch.where(torch.isnan(lo), math.nan, hi), med
 
 
 def run_shard(payload: Mapping, method: str, threshold: float, options: Mapping) -> dict:

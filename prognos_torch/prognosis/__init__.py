@@ -45,6 +45,7 @@ from .conformal import (
     conformal_margin,
     interval_scores,
     leave_one_group_out,
+    record_settings,
 )
 from .events import EventPrediction, sample_belief, simulate_to_event
 from .fault import (
@@ -172,6 +173,7 @@ __all__ = [
     "RULCalibration",
     "calibrate_intervals",
     "conformal_margin",
+    "record_settings",
     "interval_scores",
     "leave_one_group_out",
 ]

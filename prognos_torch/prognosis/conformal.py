@@ -48,6 +48,7 @@ __all__ = [
     "RULCalibration",
     "calibrate_intervals",
     "leave_one_group_out",
+    "record_settings",
 ]
 
 
@@ -71,6 +72,20 @@ def _vectors(lower, upper, truth=None) -> tuple[Tensor, ...]:
         if bool((~(tr[~torch.isnan(tr)] > 0)).any()) or bool(torch.isinf(tr).any()):
             raise ValueError("truth must be finite and > 0 (a true RUL; NaN: unknown)")
     return tuple(xs)
+
+
+def _log_median(median: Tensor) -> Tensor:
+    """The log predicted median RUL on which bins are cut; a censored median (``inf`` or NaN)
+    is ``+inf``, the top bin."""
+    m = torch.as_tensor(median, dtype=torch.float64)
+    return torch.where(torch.isnan(m) | (m == math.inf), math.inf, m.clamp_min(1e-300).log())
+
+
+def record_settings(settings: Mapping) -> dict:
+    """``settings`` as a calibration record holds them (:attr:`RULCalibration.settings`): a
+    value JSON holds as it is (text, number, bool, ``None``), any other as its ``repr``."""
+    plain = (str, int, float, bool, type(None))
+    return {k: v if isinstance(v, plain) else repr(v) for k, v in settings.items()}
 
 
 def interval_scores(lower, upper, truth) -> Tensor:
@@ -145,7 +160,7 @@ class RULCalibration:
                 "points' median RULs)"
             )
         m = torch.as_tensor(median, dtype=torch.float64)
-        z = torch.where(torch.isnan(m) | (m == math.inf), math.inf, m.clamp_min(1e-300).log())
+        z = _log_median(m)
         idx = torch.searchsorted(
             torch.tensor(self.edges, dtype=torch.float64, device=m.device), z.reshape(-1)
         )
@@ -264,14 +279,12 @@ def calibrate_intervals(
         raise ValueError(f"median must have shape {tuple(scores.shape)}, got {tuple(m.shape)}")
     if n < bins:
         raise ValueError(f"bins = {bins} needs at least as many points, got {n}")
-    z = torch.where(torch.isnan(m) | (m == math.inf), math.inf, m.clamp_min(1e-300).log())[ok]
+    z = _log_median(m)[ok]
     order = torch.sort(z).values
     cuts = [int(round(n * j / bins)) for j in range(1, bins)]
     # a boundary halfway between neighbours; two equal medians stay in one bin
-    edges = [0.5 * (float(order[c - 1]) + float(order[c])) for c in cuts]
-    edges = [e for e in edges if math.isfinite(e)]
-    if len(set(edges)) < len(edges):
-        edges = sorted(set(edges))
+    mids = (0.5 * (float(order[c - 1]) + float(order[c])) for c in cuts)
+    edges = sorted({e for e in mids if math.isfinite(e)})
     idx = torch.searchsorted(torch.tensor(edges, dtype=torch.float64, device=z.device), z)
     s = scores[ok]
     margins = tuple(

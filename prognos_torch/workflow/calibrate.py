@@ -27,7 +27,12 @@ from dataclasses import replace
 
 import torch
 
-from ..prognosis.conformal import RULCalibration, calibrate_intervals, interval_scores
+from ..prognosis.conformal import (
+    RULCalibration,
+    calibrate_intervals,
+    interval_scores,
+    record_settings,
+)
 from ..prognosis.protocol import PROTOCOL_FRACTIONS, known_threshold_protocol
 from .data import Series
 from .prognose import _as_series, prognose
@@ -143,9 +148,7 @@ def _settings(kwargs: dict, threshold, direction: str, fractions, seed: int) -> 
     repr), the failure ``threshold`` (``"protocol"``: each history's own) and ``direction``."""
     out = {k: p.default for k, p in inspect.signature(prognose).parameters.items()
            if p.kind is p.KEYWORD_ONLY and k not in ("time", "at", "seed", "direction")}  # fmt: skip
-    out.update(kwargs)
-    plain = (str, int, float, bool, type(None))
-    out = {k: v if isinstance(v, plain) else repr(v) for k, v in out.items()}
+    out = record_settings({**out, **kwargs})
     out.update(threshold="protocol" if threshold is None else float(threshold),
                direction=direction, fractions=list(fractions), seed=seed)  # fmt: skip
     return out
