@@ -356,6 +356,14 @@ def _add_rul(sub) -> None:
         "studies' rule, for a rising indicator)",
     )
     g.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        metavar="N",
+        help="with --calibrate: replay the histories in N processes side by side (default 1); "
+        "the calibration is the same",
+    )
+    g.add_argument(
         "--calibration-out",
         type=Path,
         metavar="FILE",
@@ -668,6 +676,8 @@ def _cmd_rul(args) -> int:
         args.data = args.model
         _check_out_folder(args.plot, "--plot")
         _check_out_folder(args.calibration_out, "--calibration-out")
+        if args.workers < 1:
+            raise ValueError(f"--workers must be >= 1 (processes), got {args.workers}")
         series, data_cfg = _series_from_args(args)
         truth = _series_from_args(args, data_cfg, truth=True)[0] if args.until else None
         histories = load_histories(args, series)

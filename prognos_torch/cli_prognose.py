@@ -218,6 +218,7 @@ def _calibration(args, res, filt, histories) -> tuple[list, list[str], object]:
             filter=filt,
             seed=0 if args.seed is None else args.seed,
             n_paths=args.paths,
+            workers=args.workers,
         )
     except ValueError as exc:
         raise ValueError(f"--calibrate: {exc}") from None

@@ -175,10 +175,11 @@ def test_calibrate_from_a_table_of_failed_assets(capsys, tmp_path):
             "400", "--calibrate", str(table), "--calibrate-group", "unit",
             "--calibrate-threshold", "protocol"]  # fmt: skip
     saved = tmp_path / "cal.json"
-    assert main(args + ["--calibration-out", str(saved)]) in (0, 3)
+    assert main(args + ["--calibration-out", str(saved), "--workers", "2"]) in (0, 3)
     out = capsys.readouterr().out
     assert f"calibration written to {saved}" in out
-    # the same as calibrate_rul on those histories, applied to prognose's result in Python
+    # the same as calibrate_rul on those histories (in one process), applied to prognose's
+    # result in Python
     hist = {n.replace(" ", "_"): (r.t, r.y) for n, r in records[1:4]}
     cal, points = calibrate_rul(hist, method="exponential", n_paths=400)
     s = load_series(path, "value", time_column="t", until=until)
@@ -213,6 +214,8 @@ def test_calibrate_from_a_table_of_failed_assets(capsys, tmp_path):
     err = capsys.readouterr().err
     assert err.startswith("error: --calibrate: ") and "(--calibrate-group) column 'bearing'" in err
     assert err.count("\n") == 1
+    assert main(args + ["--workers", "0"]) == 2
+    assert "--workers must be >= 1 (processes), got 0" in capsys.readouterr().err
     dated = tmp_path / "dated.csv"
     dated.write_text("unit,t,value\na,2020-01-01T00:00:00,1\na,2020-01-02T00:00:00,2\n")
     assert main([str(dated) if a == str(table) else a for a in args]) == 2

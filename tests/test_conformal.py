@@ -233,6 +233,22 @@ def test_calibrate_rul_replays_the_protocol_through_prognose():
     assert (binned.edges, binned.margins, binned.margin) == (want.edges, want.margins, q)
 
 
+def test_calibrate_rul_in_worker_processes_equals_the_sequential_run():
+    hist = _histories()
+    kw = dict(method="exponential", fractions=(0.5, 0.9), n_paths=400)
+    one, p_one = calibrate_rul(hist, **kw)
+    two, p_two = calibrate_rul(hist, workers=2, **kw)
+    assert p_two == p_one and two == one
+    # a history the protocol refuses fails the run before any prediction, named
+    flat = (torch.arange(50.0, dtype=torch.float64), torch.ones(50, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"histories\['flat'\]: the series is constant"):
+        calibrate_rul({**hist, "flat": flat}, threshold=2.0, workers=2, **kw)
+    with pytest.raises(TypeError, match="workers must be an int"):
+        calibrate_rul(hist, workers=2.0)
+    with pytest.raises(ValueError, match="workers must be >= 1"):
+        calibrate_rul(hist, workers=0)
+
+
 def test_calibrate_rul_on_a_falling_indicator_mirrors_the_rising_one():
     # a capacity that fades to a known level: the protocol runs on -y and prognose below
     hist = _histories()

@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import inspect
 import math
+import multiprocessing
 from collections.abc import Mapping
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 
 import torch
@@ -49,6 +51,7 @@ def calibrate_rul(
     bins: int = 1,
     fractions: tuple[float, ...] = PROTOCOL_FRACTIONS,
     seed: int = 0,
+    workers: int = 1,
     **prognose_kwargs,
 ) -> tuple[RULCalibration, list[dict]]:
     """Conformal calibration of ``prognose``'s 90 % interval on run-to-failure histories.
@@ -70,6 +73,11 @@ def calibrate_rul(
             one.
         fractions: prediction times as fractions of [onset, end of life].
         seed: passed to every ``prognose`` call.
+        workers: processes that run the ``prognose`` calls side by side (``1``: in this
+            process). Each is a fresh interpreter (``spawn``) with one torch thread, handed
+            prediction points longest series first; the result equals ``workers=1``'s. As for
+            any process pool, a script that calls this at its top level needs the
+            ``if __name__ == "__main__":`` guard.
         **prognose_kwargs: further ``prognose`` settings (``method``, ``filter``, ...); use the
             same for the asset the calibration will serve.
 
@@ -100,11 +108,15 @@ def calibrate_rul(
         isinstance(threshold, bool) or not isinstance(threshold, (int, float))
     ):
         raise TypeError(f"threshold must be a real number or None, got {threshold!r}")
-    points = []
+    if isinstance(workers, bool) or not isinstance(workers, int):
+        raise TypeError(f"workers must be an int (processes), got {workers!r}")
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1 (processes), got {workers}")
+    signed = None if threshold is None else sign * threshold
+    points, pending, tasks = [], [], []
     for name, (t, y) in items:
         try:
-            pc = known_threshold_protocol(t, sign * y, fractions=fractions,
-                                          threshold=None if threshold is None else sign * threshold)  # fmt: skip
+            pc = known_threshold_protocol(t, sign * y, fractions=fractions, threshold=signed)
         except ValueError as exc:
             raise ValueError(f"histories[{name!r}]: {exc}") from None
         if not pc.valid:
@@ -112,19 +124,13 @@ def calibrate_rul(
             continue
         for tp, true in zip(pc.times.tolist(), pc.true_rul.tolist()):
             sel = t <= tp
-            row = {"name": name, "t": tp, "true_rul": true, "q05": math.nan, "q95": math.nan}
-            try:
-                r = prognose(y[sel], sign * pc.threshold, time=t[sel], at=tp, seed=seed,
-                             direction=direction, **prognose_kwargs)  # fmt: skip
-            except ValueError as exc:
-                points.append(dict(row, status=f"error: {exc}"))
-                continue
-            s = r.summary()
-            if s["status"] == "ok" and true > 0:
-                row["q05"] = s["q05"] if s["q05"] is not None else s["bound"]
-                row["q95"] = math.inf if s["q95"] is None else s["q95"]
-                row["median"] = math.inf if s["median"] is None else s["median"]
-            points.append(dict(row, status=s["status"]))
+            pending.append({"name": name, "t": tp, "true_rul": true, "q05": math.nan,
+                            "q95": math.nan})  # fmt: skip
+            points.append(pending[-1])
+            tasks.append((y[sel], t[sel], tp, sign * pc.threshold, true, seed, direction,
+                          prognose_kwargs))  # fmt: skip
+    for row, out in zip(pending, _map(_predict, tasks, workers, [len(a[0]) for a in tasks])):
+        row.update(out)
     usable = [p for p in points if not math.isnan(p.get("q05", math.nan))]
     if not usable:
         first = next((f"{p['name']!r}: {p['status']}" for p in points if p["status"] != "ok"), "")
@@ -141,6 +147,40 @@ def calibrate_rul(
                               median=col("median"), bins=bins)  # fmt: skip
     cal = replace(cal, settings=settings)
     return cal, points
+
+
+def _predict(y, t, at, threshold, true, seed, direction, kwargs) -> dict:
+    """One prediction point: ``prognose`` at time ``at`` from the data ``(t, y)`` up to it; its
+    interval (and median) when it gives one and the true RUL is positive."""
+    try:
+        r = prognose(y, threshold, time=t, at=at, seed=seed, direction=direction, **kwargs)
+    except ValueError as exc:
+        return {"status": f"error: {exc}"}
+    s = r.summary()
+    if s["status"] != "ok" or true <= 0:
+        return {"status": s["status"]}
+    return {"q05": s["q05"] if s["q05"] is not None else s["bound"],
+            "q95": math.inf if s["q95"] is None else s["q95"],
+            "median": math.inf if s["median"] is None else s["median"], "status": "ok"}  # fmt: skip
+
+
+def _map(fn, tasks: list[tuple], workers: int, sizes: list[int]) -> list:
+    """``[fn(*task) for task in tasks]``, in order; over a pool of ``workers`` spawned
+    processes (one torch thread each) when ``workers > 1`` and there is more than one task,
+    the tasks handed out largest ``sizes`` first (so that no long one starts last)."""
+    workers = min(workers, len(tasks))
+    if workers <= 1:
+        return [fn(*task) for task in tasks]
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=torch.set_num_threads,
+                             initargs=(1,)) as pool:  # fmt: skip
+        order = sorted(range(len(tasks)), key=lambda i: -sizes[i])
+        futures = dict(zip(order, (pool.submit(fn, *tasks[i]) for i in order)))
+        try:
+            return [futures[i].result() for i in range(len(tasks))]
+        except BaseException:  # the first failure ends the run: drop the tasks not started
+            pool.shutdown(cancel_futures=True)
+            raise
 
 
 def _settings(kwargs: dict, threshold, direction: str, fractions, seed: int) -> dict:
