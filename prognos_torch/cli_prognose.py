@@ -126,14 +126,6 @@ def load_histories(args, series):
     return {a: (f64(t), f64(y)) for a, t, y in zip(tab.assets, tab.times, tab.values)}
 
 
-def _needed(coverage: float) -> int:
-    """The fewest calibration points with a finite conformal margin: ``ceil((n+1) c) <= n``."""
-    n = 1
-    while math.ceil((n + 1) * coverage - 1e-12) > n:
-        n += 1
-    return n
-
-
 def _check_settings(cal, path, run: dict) -> None:
     """Refuse a ``--calibration`` made under other settings than this run's."""
     st = cal.settings
@@ -158,13 +150,16 @@ def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[li
     """The ``calibrated 90 % interval`` row of ``prognos rul DATA --calibrate`` and its
     warnings (histories that gave no usable point); ``points`` ``None``: a calibration read
     from a file."""
+    from .prognosis.conformal import points_needed
+
     s = cal.summary(res)["calibrated"]
+    needed = points_needed(cal.coverage)
     names = list(dict.fromkeys(p["name"] for p in points or ()))
     used = list(dict.fromkeys(p["name"] for p in points or () if "score" in p))
     src = (f"{cal.n} points from {len(used)} of {len(names)} histories" if points is not None
            else f"{cal.n} points of the --calibration file")  # fmt: skip
     if math.isinf(s["margin"]):
-        note = f"{src}: too few for {100 * cal.coverage:g} % coverage, which needs {_needed(cal.coverage)}"
+        note = f"{src}: too few for {100 * cal.coverage:g} % coverage, which needs {needed}"
     else:
         f = math.exp(abs(s["margin"]))
         note = f"split conformal on {src}; ends moved {'out' if s['margin'] >= 0 else 'in'} by a factor {f:.3g}"
@@ -173,6 +168,13 @@ def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[li
         text = f"empty ({text} narrowed by the margin past its own width)"
     row = (f"calibrated 90 % interval ({unit})", f"{text} ({note})")
     warn = []
+    if points is not None and not math.isinf(s["margin"]) and len(used) < needed:
+        warn.append(
+            f"--calibrate: the points come from {len(used)} histories; a history's points move "
+            f"together, and {100 * cal.coverage:g} % coverage for a new asset is assured from "
+            f"{needed} histories on (one point each): read the calibrated "
+            "interval as an estimate"
+        )
     unused = [n for n in names if n not in used]
     if unused:
         first = next(p for p in points if p["name"] == unused[0])

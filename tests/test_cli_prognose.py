@@ -188,6 +188,9 @@ def test_calibrate_from_a_table_of_failed_assets(capsys, tmp_path):
     hi = "n/a" if c["q95"] is None else f"{c['q95']:.4g}"
     used = len({p["name"] for p in points if "score" in p})
     assert f"[{c['q05']:.4g}, {hi}] (split conformal on {cal.n} points from {used} of 3" in out
+    # fewer histories than a 90 % margin needs at one point each: said, not hidden
+    assert f"warning: --calibrate: the points come from {used} histories; a history's points " \
+        "move together, and 90 % coverage for a new asset is assured from 9 histories" in out  # fmt: skip
     # the saved calibration gives the same row without the histories, under the same settings
     row = re.search(r"calibrated 90 % interval \(t\)\s+(\[[^\]]+\])", out).group(1)
     reuse = args[: args.index("--calibrate")] + ["--calibration", str(saved)]
@@ -246,3 +249,8 @@ def test_calibration_row_says_empty_and_too_few():
     assert row(-0.5, 20).startswith("empty ([1.649, 0.9098] narrowed by the margin")
     # ceil((n + 1) 0.9) <= n first holds at n = 9
     assert "too few for 90 % coverage, which needs 9" in row(math.inf, 8)
+    # points from fewer histories than a finite margin needs at one point each: a warning
+    pts = lambda k: [{"name": f"a{i}", "score": 0.1} for i in range(k) for _ in range(5)]  # noqa: E731
+    cal = RULCalibration(0.5, 0.9, 40)
+    assert "the points come from 8 histories" in calibration_rows(Result(), cal, pts(8), "h")[1][0]
+    assert calibration_rows(Result(), cal, pts(9), "h")[1] == []

@@ -15,6 +15,7 @@ from prognos_torch.prognosis.conformal import (
     conformal_margin,
     interval_scores,
     leave_one_group_out,
+    points_needed,
 )
 from prognos_torch.prognosis.protocol import known_threshold_protocol
 from prognos_torch.systems import run_to_failure_set
@@ -39,6 +40,16 @@ def test_margin_is_the_ceil_n_plus_one_c_th_smallest_score():
     assert conformal_margin(s, 0.5) == 5.0  # ceil(5) = 5
     assert conformal_margin(s[:8], 0.9) == math.inf  # ceil(9 * 0.9) = 9 > 8 points
     assert conformal_margin(torch.cat([s, T(math.nan)]), 0.5) == 5.0  # NaN left out
+    # points_needed: the fewest points with a finite margin, at the margin's own rank rule
+    for c in (0.5, 0.8, 0.9, 0.95, 0.99):
+        k = points_needed(c)
+        scores = torch.arange(1.0, k + 1.0, dtype=torch.float64)
+        assert math.isfinite(conformal_margin(scores, c))
+        if k > 1:  # one point fewer: the rank passes the count
+            assert conformal_margin(scores[:-1], c) == math.inf
+    assert (points_needed(0.9), points_needed(0.95)) == (9, 19)
+    with pytest.raises(ValueError, match="coverage must lie in"):
+        points_needed(1.0)
 
 
 @pytest.mark.parametrize("half_width, bias", [(0.3, 0.0), (2.5, 0.0), (0.8, 1.0)])

@@ -117,7 +117,8 @@ def test_cli_calibrate_adds_the_calibrated_columns(tmp_path, capsys):
     assert main(args) == 0
     cal, _ = calibrate_fleet(read_fleet_table(tmp_path / "failed.csv"), 20.0, samples=1000,
                              phi=0.0, min_rows=10)  # fmt: skip
-    assert f"calibrated on {cal.n} points of 30 failed assets" in capsys.readouterr().out
+    assert f"calibrated on {cal.n} points of 30 failed assets" in (said := capsys.readouterr().out)
+    assert "warning: the points come from" not in said  # 30 >= 9 assets
     want = fleet_rul(read_fleet_table(tmp_path / "live.csv"), 20.0, samples=1000, phi=0.0,
                      min_rows=10).calibrated(cal)  # fmt: skip
     got = out.read_text().splitlines()
@@ -133,3 +134,11 @@ def test_cli_calibrate_adds_the_calibrated_columns(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("error: --calibrate: no failed asset gives a prediction point")
     assert not out.exists()
+    # three failed assets: a finite margin from their points, and a warning that it is loose
+    few = _subset(failed.table, sorted(set(failed.table["asset"]))[:3])
+    write_table(tmp_path / "few.csv", {k: list(v) for k, v in few.items()})
+    assert main([str(tmp_path / "few.csv") if a.endswith("failed.csv") else a for a in args]) == 0
+    said = capsys.readouterr().out
+    assert "points of 3 failed assets" in said and "margin" in said
+    assert "warning: the points come from 3 failed assets; an asset's points move together, " \
+        "and 90 % coverage for a new asset is assured from 9 assets on" in said  # fmt: skip

@@ -45,6 +45,7 @@ from .conformal import (
     conformal_margin,
     interval_scores,
     leave_one_group_out,
+    points_needed,
     record_settings,
 )
 from .events import EventPrediction, sample_belief, simulate_to_event
@@ -176,4 +177,5 @@ __all__ = [
     "record_settings",
     "interval_scores",
     "leave_one_group_out",
+    "points_needed",
 ]

@@ -18,7 +18,8 @@ the new one are exchangeable, ``P(r* in C) >= c`` (their Theorem 1), whatever th
 distinct scores also ``<= c + 1 / (n + 1)``. ``Q < 0`` narrows an interval that covered more
 than asked; one narrower than the factor ``e^{-2Q}`` then comes out empty (``lower > upper``) and
 covers nothing, as in CQR. Points of one asset are not exchangeable with each other's neighbours in time, so
-an honest check leaves out a whole asset at a time (:func:`leave_one_group_out`).
+an honest check leaves out a whole asset at a time (:func:`leave_one_group_out`), and the
+guarantee for a new asset needs :func:`points_needed` assets (9 for 90 %), not only points.
 
 An open upper end (``hi = inf``: more than 5 % of the paths censored) stays open; a lower end
 of 0 stays 0.
@@ -48,6 +49,7 @@ __all__ = [
     "RULCalibration",
     "calibrate_intervals",
     "leave_one_group_out",
+    "points_needed",
     "record_settings",
 ]
 
@@ -119,8 +121,27 @@ def conformal_margin(scores, coverage: float = 0.9) -> float:
     n = s.numel()
     if n == 0:
         raise ValueError("scores has no non-NaN entry: nothing to calibrate on")
-    k = math.ceil((n + 1) * coverage - 1e-9)  # (guard against 0.9 * 10 = 9.000000000000002)
+    k = _rank(n, coverage)
     return math.inf if k > n else float(torch.sort(s).values[k - 1])
+
+
+def _rank(n: int, coverage: float) -> int:
+    return math.ceil((n + 1) * coverage - 1e-9)  # (guard against 0.9 * 10 = 9.000000000000002)
+
+
+def points_needed(coverage: float = 0.9) -> int:
+    """The fewest calibration points with a finite margin at ``coverage``: the smallest ``n``
+    with ``ceil((n + 1) coverage) <= n`` (9 for 0.9, 19 for 0.95). Points of one asset move
+    together, so this is also the number of assets from which the guarantee holds for a new
+    asset when each gives one point."""
+    if isinstance(coverage, bool) or not isinstance(coverage, (int, float)):
+        raise TypeError(f"coverage must be a float in (0, 1), got {coverage!r}")
+    if not 0.0 < coverage < 1.0:
+        raise ValueError(f"coverage must lie in (0, 1), got {coverage!r}")
+    n = max(1, math.floor(coverage / (1.0 - coverage)) - 1)
+    while _rank(n, coverage) > n:
+        n += 1
+    return n
 
 
 @dataclass(frozen=True)
