@@ -146,6 +146,10 @@ def _check_settings(cal, path, run: dict) -> None:
         )
 
 
+def _of(assets: int | None) -> str:
+    return "" if assets is None else f" from {assets} histories"
+
+
 def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[list, list[str]]:
     """The ``calibrated 90 % interval`` row of ``prognos rul DATA --calibrate`` and its
     warnings (histories that gave no usable point); ``points`` ``None``: a calibration read
@@ -157,7 +161,7 @@ def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[li
     names = list(dict.fromkeys(p["name"] for p in points or ()))
     used = list(dict.fromkeys(p["name"] for p in points or () if "score" in p))
     src = (f"{cal.n} points from {len(used)} of {len(names)} histories" if points is not None
-           else f"{cal.n} points of the --calibration file")  # fmt: skip
+           else f"{cal.n} points{_of(cal.assets)} of the --calibration file")  # fmt: skip
     if math.isinf(s["margin"]):
         note = f"{src}: too few for {100 * cal.coverage:g} % coverage, which needs {needed}"
     else:
@@ -168,13 +172,9 @@ def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[li
         text = f"empty ({text} narrowed by the margin past its own width)"
     row = (f"calibrated 90 % interval ({unit})", f"{text} ({note})")
     warn = []
-    if points is not None and not math.isinf(s["margin"]) and len(used) < needed:
-        warn.append(
-            f"--calibrate: the points come from {len(used)} histories; a history's points move "
-            f"together, and {100 * cal.coverage:g} % coverage for a new asset is assured from "
-            f"{needed} histories on (one point each): read the calibrated "
-            "interval as an estimate"
-        )
+    few = cal.warning("histories")
+    if few is not None:
+        warn.append(f"--{'calibrate' if points is not None else 'calibration'}: {few}")
     unused = [n for n in names if n not in used]
     if unused:
         first = next(p for p in points if p["name"] == unused[0])

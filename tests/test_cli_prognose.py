@@ -189,14 +189,15 @@ def test_calibrate_from_a_table_of_failed_assets(capsys, tmp_path):
     used = len({p["name"] for p in points if "score" in p})
     assert f"[{c['q05']:.4g}, {hi}] (split conformal on {cal.n} points from {used} of 3" in out
     # fewer histories than a 90 % margin needs at one point each: said, not hidden
-    assert f"warning: --calibrate: the points come from {used} histories; a history's points " \
+    assert f"warning: --calibrate: the points come from {used} histories; an asset's points " \
         "move together, and 90 % coverage for a new asset is assured from 9 histories" in out  # fmt: skip
     # the saved calibration gives the same row without the histories, under the same settings
     row = re.search(r"calibrated 90 % interval \(t\)\s+(\[[^\]]+\])", out).group(1)
     reuse = args[: args.index("--calibrate")] + ["--calibration", str(saved)]
     assert main(reuse) in (0, 3)
-    assert f"{row} (split conformal on {cal.n} points of the --calibration file" in \
-        capsys.readouterr().out  # fmt: skip
+    assert f"{row} (split conformal on {cal.n} points from {used} histories of the " \
+        "--calibration file" in (out := capsys.readouterr().out)  # fmt: skip
+    assert f"warning: --calibration: the points come from {used} histories" in out
     for swap, msg in [(("exponential", "linear"), "was made with --method exponential, this run "
                        "has linear"), (("400", "300"), "was made with --paths 400")]:  # fmt: skip
         assert main([swap[1] if a == swap[0] else a for a in reuse]) == 2
@@ -250,7 +251,8 @@ def test_calibration_row_says_empty_and_too_few():
     # ceil((n + 1) 0.9) <= n first holds at n = 9
     assert "too few for 90 % coverage, which needs 9" in row(math.inf, 8)
     # points from fewer histories than a finite margin needs at one point each: a warning
-    pts = lambda k: [{"name": f"a{i}", "score": 0.1} for i in range(k) for _ in range(5)]  # noqa: E731
-    cal = RULCalibration(0.5, 0.9, 40)
-    assert "the points come from 8 histories" in calibration_rows(Result(), cal, pts(8), "h")[1][0]
-    assert calibration_rows(Result(), cal, pts(9), "h")[1] == []
+    warn = lambda **kw: calibration_rows(Result(), RULCalibration(0.5, 0.9, 40, **kw), None,  # noqa: E731
+                                         "h")[1]  # fmt: skip
+    assert warn(assets=8) == ["--calibration: " + RULCalibration(0.5, 0.9, 40, assets=8)
+                              .warning("histories")]  # fmt: skip
+    assert warn(assets=9) == warn() == []

@@ -138,8 +138,9 @@ def test_bad_coverage_and_empty_scores_are_refused():
 def test_calibration_record_round_trips_and_refuses_bad_fields():
     import json
 
-    for margin in (0.25, -0.1, math.inf):
-        cal = RULCalibration(margin, 0.9, 12, {"method": "auto", "threshold": "protocol"})
+    for margin, assets in ((0.25, None), (-0.1, 3), (math.inf, 12)):
+        cal = RULCalibration(margin, 0.9, 12, {"method": "auto", "threshold": "protocol"},
+                             assets=assets)  # fmt: skip
         back = RULCalibration.from_dict(json.loads(json.dumps(cal.to_dict())))
         assert back == cal
     ok = {"margin": 0.1, "coverage": 0.9, "n": 5}
@@ -150,11 +151,30 @@ def test_calibration_record_round_trips_and_refuses_bad_fields():
         (dict(ok, n=-1), "n must be a count"),
         (dict(ok, n=True), "n must be a count"),
         (dict(ok, settings=[1]), "settings must be a mapping"),
+        (dict(ok, assets=0), "assets must be a count >= 1 or null"),
+        (dict(ok, assets=2.0), "assets must be a count >= 1 or null"),
     ]:
         with pytest.raises(ValueError, match=match):
             RULCalibration.from_dict(bad)
     with pytest.raises(TypeError, match="must be a mapping"):
         RULCalibration.from_dict([0.1, 0.9, 5])
+
+
+def test_assets_are_counted_among_points_with_an_interval_and_warned_below_the_need():
+    lo, hi = T(1.0, 1.0, 1.0, math.nan, 1.0), T(2.0, 2.0, 2.0, math.nan, 2.0)
+    tr = T(1.5, 3.0, 0.5, 1.0, 1.2)
+    cal = calibrate_intervals(lo, hi, tr, 0.5, groups=["a", "a", "b", "c", "d"])
+    assert (cal.n, cal.assets) == (4, 3)  # "c" has no interval
+    assert calibrate_intervals(lo, hi, tr, 0.5).assets is None
+    with pytest.raises(ValueError, match="groups must be 5 labels"):
+        calibrate_intervals(lo, hi, tr, groups=["a", "b"])
+    # finite margin from 8 assets at 90 %: the warning; 9 assets, an infinite margin or no
+    # record: none
+    few = RULCalibration(0.2, 0.9, 40, assets=8).warning("histories")
+    assert few.startswith("the points come from 8 histories") and "assured from 9 histories" in few
+    assert RULCalibration(0.2, 0.9, 40, assets=9).warning() is None
+    assert RULCalibration(math.inf, 0.9, 8, assets=2).warning() is None
+    assert RULCalibration(0.2, 0.9, 40).warning() is None
 
 
 def test_bins_of_the_predicted_median_have_their_own_margin():
@@ -217,6 +237,7 @@ def test_calibrate_rul_replays_the_protocol_through_prognose():
     cal, points = calibrate_rul(hist, method="exponential", fractions=(0.5, 0.9), n_paths=400)
     usable = [p for p in points if "score" in p]
     assert cal.n == len(usable) >= 4 and cal.coverage == 0.9
+    assert cal.assets == len({p["name"] for p in usable}) >= 2
     st = cal.settings  # the procedure the guarantee is for: prognose's settings, defaults too
     assert (st["method"], st["n_paths"], st["filter"], st["threshold"]) == \
         ("exponential", 400, "ekf", "protocol") and st["fractions"] == [0.5, 0.9]  # fmt: skip
@@ -234,7 +255,9 @@ def test_calibrate_rul_replays_the_protocol_through_prognose():
     out = cal.summary(r)["calibrated"]
     if math.isfinite(q):
         assert out["q05"] == pytest.approx(s["q05"] * math.exp(-q))
-    assert (out["margin"], out["n"]) == (q, cal.n)
+    assert (out["margin"], out["n"], out["assets"]) == (q, cal.n, cal.assets)
+    # 3 histories, 9 needed at 90 %: a warning wherever the margin is finite
+    assert out["warning"] == cal.warning() and (cal.warning() is None) == math.isinf(q)
     # bins of the predicted median: the same points, a margin per bin
     binned, _ = calibrate_rul(hist, method="exponential", fractions=(0.5, 0.9), n_paths=400,
                               bins=2)  # fmt: skip

@@ -142,8 +142,9 @@ def calibrate_fleet(
     if bins == "auto":
         bins = max(1, min(5, n // 100))
     nan = torch.full_like(lo, math.nan)
+    assets = [a.rsplit("@", 1)[0] for a, u in zip(names, usable.tolist()) if u]
     cal = calibrate_intervals(lo[usable], hi[usable], true[usable], coverage,
-                              median=med[usable], bins=bins)  # fmt: skip
+                              median=med[usable], bins=bins, groups=assets)  # fmt: skip
     settings = dict(
         record_settings(options),
         method=method, threshold=thr, direction=direction, fractions=list(fractions), seed=seed,

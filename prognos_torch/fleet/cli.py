@@ -93,7 +93,6 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     import torch
 
-    from ..prognosis.conformal import points_needed
     from .calibrate import calibrate_fleet
     from .run import fleet_rul
     from .table import TABLE_SUFFIXES
@@ -184,13 +183,8 @@ def main(argv: list[str] | None = None) -> int:
                 + " on the log RUL (shortest RUL first)"
             )
         print(f"  calibrated on {cal.n} points of {failed} failed assets ({args.calibrate}): {how}")
-        if math.isfinite(cal.margin) and failed < points_needed(cal.coverage):
-            print(
-                f"  warning: the points come from {failed} failed assets; an asset's points move "
-                f"together, and {100 * cal.coverage:g} % coverage for a new asset is assured "
-                f"from {points_needed(cal.coverage)} assets on (one point each): read the "
-                "calibrated interval as an estimate"
-            )
+        if (few := cal.warning("failed assets")) is not None:
+            print(f"  warning: {few}")
     bad = [m for m in res.columns["message"] if m]
     for m in bad[:5]:
         print(f"  {m}", file=sys.stderr)

@@ -159,6 +159,9 @@ class RULCalibration:
             predicted median RUL; empty: one margin for every point.
         margins: with bins, the ``B`` margins, lowest median first (``margin`` is then the
             margin of all points pooled, for reference).
+        assets: the assets (histories) the points came from; ``None``: not recorded. A new
+            asset's coverage is assured from :func:`points_needed` of them on
+            (:meth:`warning`).
     """
 
     margin: float
@@ -167,6 +170,21 @@ class RULCalibration:
     settings: Mapping = field(default_factory=dict)
     edges: tuple[float, ...] = ()
     margins: tuple[float, ...] = ()
+    assets: int | None = None
+
+    def warning(self, noun: str = "assets") -> str | None:
+        """A sentence when the margin is finite but rests on fewer assets than
+        :func:`points_needed` (a calibration on them is an estimate: an asset's points move
+        together); ``None`` otherwise, or when ``assets`` is not recorded. ``noun`` names the
+        assets (``"histories"``, ``"failed assets"``)."""
+        need = points_needed(self.coverage)
+        if self.assets is None or self.assets >= need or math.isinf(self.margin):
+            return None
+        return (
+            f"the points come from {self.assets} {noun}; an asset's points move together, and "
+            f"{100 * self.coverage:g} % coverage for a new asset is assured from {need} {noun} "
+            "on (one point each): read the calibrated interval as an estimate"
+        )
 
     def margin_for(self, median=None) -> Tensor:
         """The margin of each point: ``margin``, or with bins that of the bin of its predicted
@@ -196,6 +214,8 @@ class RULCalibration:
                "settings": dict(self.settings)}  # fmt: skip
         if self.edges:
             out.update(edges=list(self.edges), margins=[num(q) for q in self.margins])
+        if self.assets is not None:
+            out["assets"] = self.assets
         return out
 
     @classmethod
@@ -227,9 +247,13 @@ class RULCalibration:
                 "edges must be increasing finite numbers and margins one more numbers or nulls, "
                 f"got edges {edges!r:.80}, margins {margins!r:.80}"
             )
+        assets = record.get("assets")
+        if assets is not None and not (isinstance(assets, int) and not isinstance(assets, bool)
+                                       and assets >= 1):  # fmt: skip
+            raise ValueError(f"assets must be a count >= 1 or null, got {assets!r}")
         qs = tuple(math.inf if q is None else float(q) for q in margins)
         return cls(math.inf if m is None else float(m), float(c), n, dict(settings),
-                   tuple(float(e) for e in edges), qs)  # fmt: skip
+                   tuple(float(e) for e in edges), qs, assets)  # fmt: skip
 
     def interval(self, lower, upper, median=None) -> tuple[Tensor, Tensor]:
         """The calibrated ends ``(lower e^-Q, upper e^Q)``, ``(n,)`` or scalars each (an open
@@ -250,7 +274,8 @@ class RULCalibration:
 
     def summary(self, result) -> dict:
         """``result.summary()`` (a :class:`~prognos_torch.workflow.RULResult`) with a
-        ``"calibrated"`` entry ``{"q05", "q95", "margin", "coverage", "n"}``: its 90 % interval
+        ``"calibrated"`` entry ``{"q05", "q95", "margin", "coverage", "n", "assets", "warning"}``
+        (``warning``: :meth:`warning`'s sentence or ``None``): its 90 % interval
         calibrated (``q95`` ``None`` when open). Before onset there is no interval, only a lower
         bound, and the summary comes back unchanged. Where more than 95 % of the paths are
         censored, ``q05`` is beyond the horizon and the horizon ``bound`` stands in for it."""
@@ -268,12 +293,21 @@ class RULCalibration:
             "margin": q,
             "coverage": self.coverage,
             "n": self.n,
+            "assets": self.assets,
+            "warning": self.warning(),
         }
         return s
 
 
 def calibrate_intervals(
-    lower, upper, truth, coverage: float = 0.9, *, median=None, bins: int = 1
+    lower,
+    upper,
+    truth,
+    coverage: float = 0.9,
+    *,
+    median=None,
+    bins: int = 1,
+    groups: Sequence[Hashable] | None = None,
 ) -> RULCalibration:
     """:class:`RULCalibration` from predicted intervals and true RULs ``(n,)`` each, of assets
     of the population the calibration will serve (NaN entries are left out).
@@ -284,15 +318,24 @@ def calibrate_intervals(
         median: ``(n,)`` predicted median RULs (``inf``: censored), needed for ``bins > 1``.
         bins: ``B`` equal-count bins of the log median, each with its own margin (module
             docstring); 1: one margin.
+        groups: ``n`` labels, the asset of each point: recorded as ``assets``, the count of
+            assets among the points with an interval (:meth:`RULCalibration.warning`).
     """
     scores = interval_scores(lower, upper, truth)
     ok = ~torch.isnan(scores)
     n = int(ok.sum())
+    assets = None
+    if groups is not None:
+        if isinstance(groups, (str, bytes)) or len(groups) != scores.shape[0]:
+            raise ValueError(
+                f"groups must be {scores.shape[0]} labels (one per point), got {groups!r:.80}"
+            )
+        assets = len({g for g, k in zip(groups, ok.tolist()) if k})
     pooled = conformal_margin(scores, coverage)
     if isinstance(bins, bool) or not isinstance(bins, int) or bins < 1:
         raise ValueError(f"bins must be an int >= 1, got {bins!r}")
     if bins == 1:
-        return RULCalibration(pooled, float(coverage), n)
+        return RULCalibration(pooled, float(coverage), n, assets=assets)
     if median is None:
         raise ValueError("bins > 1 needs median= (the points' predicted median RULs)")
     m = torch.as_tensor(median, dtype=torch.float64)
@@ -313,8 +356,8 @@ def calibrate_intervals(
         for j in range(len(edges) + 1)
     )
     if not edges:
-        return RULCalibration(pooled, float(coverage), n)
-    return RULCalibration(pooled, float(coverage), n, {}, tuple(edges), margins)
+        return RULCalibration(pooled, float(coverage), n, assets=assets)
+    return RULCalibration(pooled, float(coverage), n, {}, tuple(edges), margins, assets)
 
 
 def leave_one_group_out(

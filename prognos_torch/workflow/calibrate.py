@@ -147,7 +147,8 @@ def calibrate_rul(
         p["score"] = e
     settings = _settings(prognose_kwargs, threshold, direction, fractions, seed)
     cal = calibrate_intervals(col("q05"), col("q95"), col("true_rul"), coverage,
-                              median=col("median"), bins=bins)  # fmt: skip
+                              median=col("median"), bins=bins,
+                              groups=[p["name"] for p in usable])  # fmt: skip
     cal = replace(cal, settings=settings)
     return cal, points
 
