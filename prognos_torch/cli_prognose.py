@@ -241,11 +241,11 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
     """
     from .plots import plot_prognosis
     from .workflow import prognose
-    from .workflow.prognose import CENSORED_FLAG, _filters
+    from .workflow.prognose import CENSORED_FLAG, filter_pool
 
     filt = "ekf" if args.filter is None else args.filter
     try:
-        _filters(filt)
+        filter_pool(filt)
     except ValueError as exc:
         raise ValueError(f"--filter: {exc}") from None
     res = prognose(

@@ -117,6 +117,8 @@ __all__ = [
     "one_standard_error_choice",
     "AUTO_POOL",
     "BACKTEST_PATHS",
+    "CENSORED_FLAG",
+    "filter_pool",
 ]
 
 #: Trend models ``prognose`` accepts (``"auto"``: the :data:`AUTO_POOL`, every shape backtested).
@@ -166,9 +168,11 @@ def _as_series(series, time) -> tuple[Tensor, Tensor, Series | None]:
     return x, t, src
 
 
-def _filters(filter) -> tuple:
-    """``filter`` as a tuple of Gaussian filter names (lower case) or :class:`GaussianFilter` s:
-    one, several joined by ``+`` (``"ekf+stekf"``), or a tuple or list of them."""
+def filter_pool(filter) -> tuple:
+    """``prognose``'s ``filter`` argument as a tuple of Gaussian filter names (lower case) or
+    :class:`GaussianFilter` s: one, several joined by ``+`` (``"ekf+stekf"``), or a tuple or
+    list of them; a ``ValueError`` names what is wrong (the command line checks ``--filter``
+    with it before anything runs)."""
     items = filter.split("+") if isinstance(filter, str) else filter
     items = (items,) if isinstance(items, GaussianFilter) else items
     if not isinstance(items, (tuple, list)) or not items:
@@ -568,7 +572,7 @@ def prognose(
     horizon_factor = check_real(horizon_factor, "horizon_factor")
     if horizon_factor <= 0:
         raise ValueError(f"horizon_factor must be positive, got {horizon_factor}")
-    filters = _filters(filter)
+    filters = filter_pool(filter)
     keep = ~torch.isnan(x)
     x, t = x[keep], t[keep]
     if x.shape[0] < MIN_POINTS:
