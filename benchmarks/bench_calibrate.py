@@ -8,9 +8,9 @@ Usage (one whole process per call; pair the two settings side by side)::
 
 The histories: the first ``--histories`` records of
 :func:`~prognos_torch.systems.run_to_failure_set` (two per family, seed 3), replayed under the
-known-threshold protocol through ``prognose(method="auto")`` at 20/40/60/80/90 % of
-[onset, end of life]. Prints the calibration (points, margin: the same for every ``--workers``)
-and the seconds of the ``calibrate_rul`` call.
+known-threshold protocol through ``prognose(method="auto")`` (``--method``: another of its
+methods) at 20/40/60/80/90 % of [onset, end of life]. Prints the calibration (points, margin:
+the same for every ``--workers``) and the seconds of the ``calibrate_rul`` call.
 """
 
 from __future__ import annotations
@@ -26,11 +26,12 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--histories", type=int, default=6)
     ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--method", default="auto", help="prognose's method (default auto)")
     args = ap.parse_args(argv)
     cases = list(run_to_failure_set(2, seed=3).items())[: args.histories]
     hist = {name: (r.t, r.y) for name, r in cases}
     t0 = time.perf_counter()
-    cal, _ = calibrate_rul(hist, workers=args.workers)
+    cal, _ = calibrate_rul(hist, workers=args.workers, method=args.method)
     took = time.perf_counter() - t0
     print(f"{len(hist)} histories, {cal.n} points, margin {cal.margin!r}, "
           f"workers {args.workers}: {took:.2f} s")  # fmt: skip

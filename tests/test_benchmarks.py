@@ -15,6 +15,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 TINY = {
+    "bench_calibrate.py": ["--histories", "1", "--method", "exponential"],
     "bench_datasets.py": ["--repeat", "1", "--n-files", "2", "--rows", "512", "--channels", "4"],
     "bench_filters.py": ["--steps", "5", "--sizes", "4"],
     "bench_fleet.py": ["--assets", "20", "--steps", "40", "--samples", "50", "--shard-size", "8"],
