@@ -154,15 +154,15 @@ def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[li
     """The ``calibrated 90 % interval`` row of ``prognos rul DATA --calibrate`` and its
     warnings (histories that gave no usable point); ``points`` ``None``: a calibration read
     from a file."""
-    from .prognosis.conformal import points_needed
-
     s = cal.summary(res)["calibrated"]
-    needed = points_needed(cal.coverage)
     names = list(dict.fromkeys(p["name"] for p in points or ()))
     used = list(dict.fromkeys(p["name"] for p in points or () if "score" in p))
     src = (f"{cal.n} points from {len(used)} of {len(names)} histories" if points is not None
            else f"{cal.n} points{_of(cal.assets)} of the --calibration file")  # fmt: skip
     if math.isinf(s["margin"]):
+        from .prognosis.conformal import points_needed
+
+        needed = points_needed(cal.coverage)
         note = f"{src}: too few for {100 * cal.coverage:g} % coverage, which needs {needed}"
     else:
         f = math.exp(abs(s["margin"]))

@@ -124,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         cal = None
         if args.calibrate is not None:
             try:
-                cal, points = calibrate_fleet(
+                cal, _ = calibrate_fleet(
                     args.calibrate, args.threshold, **same, **method_options
                 )
             except FileNotFoundError as exc:
@@ -168,8 +168,6 @@ def main(argv: list[str] | None = None) -> int:
     for flag, c in sorted(counts.items()):
         print(f"  {flag}: {c} asset(s)")
     if cal is not None:
-        failed = len({a.rsplit("@", 1)[0] for a, st in zip(points["asset"], points["status"])
-                      if st == "ok"})  # fmt: skip
         how = (
             f"margin {cal.margin:+.3g} on the log RUL: ends moved "
             f"{'out' if cal.margin >= 0 else 'in'} by a factor {math.exp(abs(cal.margin)):.3g}"
@@ -182,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
                 + ", ".join(f"{q:+.3g}" for q in cal.margins)
                 + " on the log RUL (shortest RUL first)"
             )
-        print(f"  calibrated on {cal.n} points of {failed} failed assets ({args.calibrate}): {how}")
+        print(f"  calibrated on {cal.n} points of {cal.assets} failed assets ({args.calibrate}): {how}")
         if (few := cal.warning("failed assets")) is not None:
             print(f"  warning: {few}")
     bad = [m for m in res.columns["message"] if m]

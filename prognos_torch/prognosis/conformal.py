@@ -110,10 +110,7 @@ def interval_scores(lower, upper, truth) -> Tensor:
 def conformal_margin(scores, coverage: float = 0.9) -> float:
     """``Q``: the ``ceil((n + 1) coverage)``-th smallest of the ``n`` non-NaN ``scores``
     (``inf`` when that rank exceeds ``n``: too few points for the coverage asked)."""
-    if isinstance(coverage, bool) or not isinstance(coverage, (int, float)):
-        raise TypeError(f"coverage must be a float in (0, 1), got {coverage!r}")
-    if not 0.0 < coverage < 1.0:
-        raise ValueError(f"coverage must lie in (0, 1), got {coverage!r}")
+    _check_coverage(coverage)
     s = torch.as_tensor(scores, dtype=torch.float64)
     if s.dim() != 1:
         raise ValueError(f"scores must have shape (n,), got {tuple(s.shape)}")
@@ -125,6 +122,13 @@ def conformal_margin(scores, coverage: float = 0.9) -> float:
     return math.inf if k > n else float(torch.sort(s).values[k - 1])
 
 
+def _check_coverage(coverage) -> None:
+    if isinstance(coverage, bool) or not isinstance(coverage, (int, float)):
+        raise TypeError(f"coverage must be a float in (0, 1), got {coverage!r}")
+    if not 0.0 < coverage < 1.0:
+        raise ValueError(f"coverage must lie in (0, 1), got {coverage!r}")
+
+
 def _rank(n: int, coverage: float) -> int:
     return math.ceil((n + 1) * coverage - 1e-9)  # (guard against 0.9 * 10 = 9.000000000000002)
 
@@ -134,10 +138,7 @@ def points_needed(coverage: float = 0.9) -> int:
     with ``ceil((n + 1) coverage) <= n`` (9 for 0.9, 19 for 0.95). Points of one asset move
     together, so this is also the number of assets from which the guarantee holds for a new
     asset when each gives one point."""
-    if isinstance(coverage, bool) or not isinstance(coverage, (int, float)):
-        raise TypeError(f"coverage must be a float in (0, 1), got {coverage!r}")
-    if not 0.0 < coverage < 1.0:
-        raise ValueError(f"coverage must lie in (0, 1), got {coverage!r}")
+    _check_coverage(coverage)
     n = max(1, math.floor(coverage / (1.0 - coverage)) - 1)
     while _rank(n, coverage) > n:
         n += 1
