@@ -266,11 +266,7 @@ class RULCalibration:
         if med is not None and med.shape != lo.shape:
             raise ValueError(f"median must have shape {tuple(lo.shape)}, got {tuple(med.shape)}")
         q = self.margin_for(med) if self.edges else torch.full_like(lo, self.margin)
-        inf = q == math.inf
-        f = torch.where(inf, 1.0, q.clamp_max(700.0).exp())
-        new_lo = torch.where(inf & ~torch.isnan(lo), 0.0, lo / f)
-        new_hi = torch.where(inf, torch.where(torch.isnan(hi), hi, math.inf), hi * f)
-        new_hi = torch.where((hi == 0) & ~inf, 0.0, new_hi)
+        new_lo, new_hi = _widen(lo, hi, q)
         return (new_lo[0], new_hi[0]) if scalar else (new_lo, new_hi)
 
     def summary(self, result) -> dict:
@@ -286,18 +282,28 @@ class RULCalibration:
         lo = s["q05"] if s["q05"] is not None else s["bound"]
         hi = math.inf if s["q95"] is None else s["q95"]
         med = math.inf if s.get("median") is None else s["median"]
-        q = float(self.margin_for(torch.tensor([med], dtype=torch.float64))[0])
-        new_lo, new_hi = self.interval(float(lo), float(hi), torch.tensor(med))
+        q = self.margin_for(torch.tensor([med], dtype=torch.float64))
+        new_lo, new_hi = (float(v[0]) for v in _widen(*_vectors([float(lo)], [float(hi)]), q))
         s["calibrated"] = {
-            "q05": float(new_lo),
-            "q95": float(new_hi) if math.isfinite(float(new_hi)) else None,
-            "margin": q,
+            "q05": new_lo,
+            "q95": new_hi if math.isfinite(new_hi) else None,
+            "margin": float(q[0]),
             "coverage": self.coverage,
             "n": self.n,
             "assets": self.assets,
             "warning": self.warning(),
         }
         return s
+
+
+def _widen(lo: Tensor, hi: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
+    """``(lo e^-q, hi e^q)``, ``(n,)`` each: ``q = inf`` opens the interval to ``(0, inf)``;
+    an open upper end stays ``inf``, NaN stays NaN, and ``hi = 0`` stays 0."""
+    inf = q == math.inf
+    f = torch.where(inf, 1.0, q.clamp_max(700.0).exp())
+    new_lo = torch.where(inf & ~torch.isnan(lo), 0.0, lo / f)
+    new_hi = torch.where(inf, torch.where(torch.isnan(hi), hi, math.inf), hi * f)
+    return new_lo, torch.where((hi == 0) & ~inf, 0.0, new_hi)
 
 
 def calibrate_intervals(
