@@ -318,6 +318,14 @@ def _add_rul(sub) -> None:
     )
     p.add_argument("--threshold", type=float, required=True, help="failure threshold")
     p.add_argument(
+        "--glitch-limit",
+        type=float,
+        metavar="L",
+        help="without a model file: leave isolated values more than L noise std from their "
+        "neighbours (sensor glitches) out of the healthy window's statistics (default: every "
+        "value counts, and a warning names glitches beyond 20 that widen the band 1.5 times)",
+    )
+    p.add_argument(
         "--direction",
         default="auto",
         help="above, below or auto (with a model file: above when the threshold exceeds the "
@@ -685,6 +693,11 @@ def _cmd_rul(args) -> int:
         if censored:
             raise _CensoredRUL(censored)
         return 0
+    if args.glitch_limit is not None:
+        raise ValueError(
+            "--glitch-limit applies without a model file (prognos rul DATA.csv --column C ...): "
+            "it sets prognose's healthy window"
+        )
     if args.calibrate is not None or args.calibration is not None:
         raise ValueError(
             "--calibrate and --calibration apply without a model file (prognos rul DATA.csv --column C ...): it "

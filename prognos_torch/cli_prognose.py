@@ -130,7 +130,7 @@ def _check_settings(cal, path, run: dict) -> None:
     """Refuse a ``--calibration`` made under other settings than this run's."""
     st = cal.settings
     for key, option in (("method", "--method"), ("filter", "--filter"), ("n_paths", "--paths"),
-                        ("direction", "--direction")):  # fmt: skip
+                        ("direction", "--direction"), ("glitch_limit", "--glitch-limit")):  # fmt: skip
         if key in st and st[key] != run[key]:
             raise ValueError(
                 f"--calibration: {path} was made with {option} {st[key]}, this run has "
@@ -197,7 +197,8 @@ def _calibration(args, res, filt, histories) -> tuple[list, list[str], object]:
         if res.status != "ok":
             return na, [], None
         run = {"method": args.method, "filter": filt, "n_paths": args.paths,
-               "direction": res.direction, "threshold": res.threshold}  # fmt: skip
+               "direction": res.direction, "threshold": res.threshold,
+               "glitch_limit": args.glitch_limit}  # fmt: skip
         _check_settings(histories, args.calibration, run)
         return (*calibration_rows(res, histories, None, unit), None)
     if res.status != "ok" and args.calibration_out is None:
@@ -220,6 +221,7 @@ def _calibration(args, res, filt, histories) -> tuple[list, list[str], object]:
             filter=filt,
             seed=0 if args.seed is None else args.seed,
             n_paths=args.paths,
+            glitch_limit=args.glitch_limit,
             workers=args.workers,
         )
     except ValueError as exc:
@@ -256,6 +258,7 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
         seed=0 if args.seed is None else args.seed,
         direction=args.direction,
         n_paths=args.paths,
+        glitch_limit=args.glitch_limit,
     )
     unit, s = res.time_unit, res.summary()
     p_within = None if args.within is None else within_probability(res, args.within)

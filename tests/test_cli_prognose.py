@@ -256,3 +256,22 @@ def test_calibration_row_says_empty_and_too_few():
     assert warn(assets=8) == ["--calibration: " + RULCalibration(0.5, 0.9, 40, assets=8)
                               .warning("histories")]  # fmt: skip
     assert warn(assets=9) == warn() == []
+
+
+def test_glitch_in_the_healthy_window_warns_and_glitch_limit_leaves_it_out(capsys, tmp_path):
+    g = torch.Generator().manual_seed(0)
+    t = torch.arange(480, dtype=torch.float64)
+    y = 1.0 + 0.05 * torch.randn(480, generator=g, dtype=torch.float64)
+    y[300:] += 0.02 * torch.exp((t[300:] - 300) / 60)
+    y[40] = 3.0
+    path = _csv(tmp_path / "glitch.csv", y)
+    args = ["rul", str(path), "--column", "value", "--time-column", "t", "--threshold", "3"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "no degradation detected yet" in out
+    assert "warning: glitches in the healthy window: 1 isolated value" in out
+    assert main([*args, "--glitch-limit", "20"]) in (0, 3)  # 3: a censored mass
+    out = capsys.readouterr().out
+    assert "warning: glitches left out of the healthy window" in out and "median RUL" in out
+    assert main(["rul", "model.pt", str(path), "--threshold", "3", "--glitch-limit", "20"]) == 2
+    assert "--glitch-limit applies without a model file" in capsys.readouterr().err

@@ -14,6 +14,7 @@ from prognos_torch.prognosis import (
     cusum_onset,
     detect_onset,
     healthy_baseline,
+    isolated_outliers,
     ksigma_false_alarm_rate,
     ksigma_onset,
     moving_median,
@@ -231,3 +232,56 @@ def test_bad_input():
         ksigma_onset(torch.tensor([1.0, math.inf, 2.0, 3.0]))
     with pytest.raises(ValueError, match="at least 3"):
         healthy_baseline(torch.tensor([1.0, 2.0]))
+
+
+def test_isolated_outliers_are_spikes_not_steps_or_ramps():
+    x = torch.cat([torch.zeros(20, dtype=F64), torch.ones(20, dtype=F64)])  # a level shift
+    x = x + 0.01 * torch.arange(40, dtype=F64)  # on a ramp
+    assert not bool(isolated_outliers(x, 0.01, 5.0).any())
+    x[7] += 1.0  # a spike of 100 noise std, and a two-sample burst
+    x[30] -= 1.0
+    x[31] -= 1.0
+    got = isolated_outliers(x, 0.01, 20.0)
+    assert torch.nonzero(got).flatten().tolist() == [7, 30, 31]
+    # by hand at index 7: the median of x[5..9]
+    nb = x[5:10].median()
+    assert bool(isolated_outliers(x, float(x[7] - nb) / 20.01, 20.0)[7])
+    assert not bool(isolated_outliers(x, float(x[7] - nb) / 19.99, 20.0)[7])
+    # NaN: never an outlier, skipped as a neighbour; the ends use the neighbours they have
+    x[8] = math.nan
+    x[0] += 1.0
+    got = isolated_outliers(x, 0.01, 20.0)
+    assert bool(got[7]) and bool(got[0]) and not bool(got[8])
+    with pytest.raises(ValueError, match="scale"):
+        isolated_outliers(x, 0.0, 20.0)
+    with pytest.raises(ValueError, match="limit"):
+        isolated_outliers(x, 0.01, -1.0)
+    with pytest.raises(ValueError, match=r"shape \(T,\)"):
+        isolated_outliers(x.reshape(4, 10), 0.01, 20.0)
+
+
+def test_no_gaussian_value_is_an_isolated_outlier_at_the_documented_limit():
+    """10^5 Gaussian samples: the deviation from the window median has std 0.94 noise std
+    (module docstring), so none lies beyond 8 (a rate below 1e-15 per sample) or 20."""
+    x = torch.randn(100_000, generator=_gen(3), dtype=F64)
+    assert int(isolated_outliers(x, 1.0, 8.0).sum()) == 0
+    assert int(isolated_outliers(x, 1.0, 4.0).sum()) > 0  # the rule does look
+
+
+def test_glitch_limit_leaves_a_glitch_out_of_the_healthy_statistics():
+    g = _gen(4)
+    t = torch.arange(300, dtype=F64)
+    x = 1.0 + 0.05 * torch.randn(300, generator=g, dtype=F64)
+    clean = healthy_baseline(x, t, glitch_limit=20.0)
+    assert clean == healthy_baseline(x, t)  # nothing to leave out: the same statistics
+    assert clean.glitches == ()
+    x[40] = 3.0  # 40 noise std
+    plain = healthy_baseline(x, t)
+    base = healthy_baseline(x, t, glitch_limit=20.0)
+    window = torch.cat([x[:40], x[41:90]])  # the first 30 % of [0, 299] without the glitch
+    assert base.glitches == (40.0,) and base.n == 89 and plain.n == 90
+    assert base.mean == float(window.mean()) and base.std == float(window.std())
+    assert base.median == float(window.median())
+    assert base.noise == plain.noise and plain.std > 3 * base.std
+    with pytest.raises(ValueError, match="glitch_limit"):
+        healthy_baseline(x, t, glitch_limit=0.0)

@@ -28,6 +28,16 @@ baseline of ``n_0`` samples estimates them to a relative ``1 / sqrt(n_0)``, whic
 hundreds of samples of a 30 % window moves ``k`` by a few hundredths. Heavy-tailed baselines
 raise the rate (``tests/test_onset.py`` measures it).
 
+**Glitches in the healthy window** (:func:`isolated_outliers`, ``healthy_baseline(...,
+glitch_limit=L)``): one corrupted sample (a sensor glitch, a bad record) in the window inflates
+``sigma_0`` and with it the band, and can delay the onset by the whole degradation. A value is an
+isolated outlier when it lies more than ``L`` noise standard deviations from the median of the
+centred window of five values around it (the Hampel identifier, Hampel 1974, with the scale
+of :attr:`Baseline.noise`, the short-term noise). A level shift or a ramp has its window median
+on the value's own level and is never one. For Gaussian noise the deviation from the window
+median has std ``0.94`` noise std (10^6 samples), so ``L = 20`` is exceeded with a probability
+below ``1e-60`` per sample: only gross glitches are left out.
+
 **One-sided CUSUM** (:func:`cusum_onset`; Page 1954): on ``z_i = (x_i - mu_0) / sigma_0``,
 ``S_i = max(0, S_{i-1} + z_i - kappa)``, alarm at the first ``S_i > h``; the change point is
 Page's estimate, the sample after the last zero of ``S`` before the alarm. ``S`` is computed in
@@ -58,6 +68,7 @@ __all__ = [
     "ONSET_METHODS",
     "moving_median",
     "healthy_baseline",
+    "isolated_outliers",
     "ksigma_onset",
     "cusum_onset",
     "detect_onset",
@@ -82,6 +93,8 @@ class Baseline:
             wander), or ``None``.
         resolution: the step ``q`` of quantised data when the window is constant and ``std``
             (and ``noise``) are the quantisation noise ``q / sqrt(12)``; else ``None``.
+        glitches: times of the window's values left out of ``mean``, ``std`` and ``median`` as
+            isolated outliers (``healthy_baseline(..., glitch_limit=L)``); empty: none left out.
     """
 
     mean: float
@@ -91,6 +104,7 @@ class Baseline:
     t_end: float
     noise: float | None = None
     resolution: float | None = None
+    glitches: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -219,7 +233,36 @@ def moving_median(values, window: int = 5) -> Tensor:
     return windows.nanmedian(-1).values
 
 
-def healthy_baseline(values, time=None, *, fraction: float = 0.3) -> Baseline:
+def isolated_outliers(values, scale: float, limit: float) -> Tensor:
+    """Values far from their neighbourhood: ``|x_i - median(x_{i-2..i+2})| > limit * scale``
+    (the Hampel identifier over a centred window of 5; at the ends the values that exist, for
+    even counts the lower middle one; NaN values are skipped, and never outliers). A single
+    value or a pair of values off their level is found; a level shift or a ramp, whose window
+    median lies on the value's own level, is not.
+
+    Args:
+        values: ``(T,)``.
+        scale: the noise standard deviation, ``> 0`` (:attr:`Baseline.noise`).
+        limit: ``L``, in units of ``scale``, ``> 0`` (module docstring).
+
+    Returns:
+        ``(T,)`` bool.
+    """
+    x = as_tensor(values, "values").to(torch.float64)
+    if x.dim() != 1:
+        raise ValueError(f"values must have shape (T,), got {tuple(x.shape)}")
+    scale = _check_pos(scale, "scale")
+    limit = _check_pos(limit, "limit")
+    if x.shape[0] < 2:
+        return torch.zeros(x.shape, dtype=torch.bool, device=x.device)
+    pad = torch.full((2,), math.nan, dtype=x.dtype, device=x.device)
+    local = torch.cat([pad, x, pad]).unfold(0, 5, 1).nanmedian(-1).values  # (T,)
+    return (x - local).abs() > limit * scale
+
+
+def healthy_baseline(
+    values, time=None, *, fraction: float = 0.3, glitch_limit: float | None = None
+) -> Baseline:
     """Baseline statistics of the first ``fraction`` of the observed time span.
 
     The window holds the samples with ``t <= t_0 + fraction (t_T - t_0)`` (the first ``fraction``
@@ -229,15 +272,22 @@ def healthy_baseline(values, time=None, *, fraction: float = 0.3) -> Baseline:
     sensor that reports whole degrees), the spread is the quantisation noise ``q / sqrt(12)``
     of a uniform rounding error (Widrow & Kollar 2008) and ``resolution`` is ``q``.
 
+    With ``glitch_limit`` ``L``, the window's isolated outliers (:func:`isolated_outliers`
+    against its short-term noise, module docstring) are left out of the mean, std and median
+    (their times in :attr:`Baseline.glitches`; ``n`` counts the values kept).
+
     Args:
         values: ``(T,)`` indicator (NaN: missing).
         time: ``(T,)`` strictly increasing times, or ``None`` (sample index).
         fraction: in (0, 1].
+        glitch_limit: ``L > 0`` in noise standard deviations, or ``None`` (every value counts).
 
     Returns:
         :class:`Baseline`.
     """
     x, t = _series(values, time)
+    if glitch_limit is not None:
+        glitch_limit = _check_pos(glitch_limit, "glitch_limit")
     if (
         isinstance(fraction, bool)
         or not isinstance(fraction, (int, float))
@@ -255,6 +305,14 @@ def healthy_baseline(values, time=None, *, fraction: float = 0.3) -> Baseline:
             f"the baseline window (first {100 * fraction:g} % of the time span) holds "
             f"{xb.shape[0]} samples; at least 3 are needed"
         )
+    d = torch.diff(xb)
+    noise = float((d - d.median()).abs().median()) * 1.4826 / math.sqrt(2.0)
+    glitches: tuple[float, ...] = ()
+    if glitch_limit is not None and noise > 0:
+        out = isolated_outliers(xb, noise, glitch_limit)
+        if bool(out.any()):
+            glitches = tuple(t[inside][out].tolist())
+            xb = xb[~out]
     std = float(xb.std(correction=1))
     q = None
     if not std > 0:
@@ -272,8 +330,6 @@ def healthy_baseline(values, time=None, *, fraction: float = 0.3) -> Baseline:
                 "noise std, or a longer baseline window"
             )
         std = q / math.sqrt(12.0)  # uniform rounding error of step q
-    d = torch.diff(xb)
-    noise = float((d - d.median()).abs().median()) * 1.4826 / math.sqrt(2.0)
     return Baseline(
         mean=float(xb.mean()),
         std=std,
@@ -282,6 +338,7 @@ def healthy_baseline(values, time=None, *, fraction: float = 0.3) -> Baseline:
         t_end=float(t[inside][-1]),
         noise=noise if noise > 0 else std,
         resolution=q,
+        glitches=glitches,
     )
 
 
