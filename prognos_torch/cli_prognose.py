@@ -217,18 +217,21 @@ def _calibration(args, res, filt, histories) -> tuple[list, list[str], object]:
             histories,
             threshold=None if protocol else res.threshold,
             direction=res.direction,
-            method=args.method,
-            filter=filt,
-            seed=0 if args.seed is None else args.seed,
-            n_paths=args.paths,
-            glitch_limit=args.glitch_limit,
             workers=args.workers,
+            **_prognose_options(args, filt),
         )
     except ValueError as exc:
         raise ValueError(f"--calibrate: {exc}") from None
     if res.status != "ok":
         return na, [], cal
     return (*calibration_rows(res, cal, points, unit), cal)
+
+
+def _prognose_options(args, filt) -> dict:
+    """The ``prognose`` settings of the command line, the same for the series and for the
+    histories that ``--calibrate`` replays (a calibration holds for intervals made alike)."""
+    return {"method": args.method, "filter": filt, "seed": 0 if args.seed is None else args.seed,
+            "n_paths": args.paths, "glitch_limit": args.glitch_limit}  # fmt: skip
 
 
 def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> str | None:
@@ -251,14 +254,7 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
     except ValueError as exc:
         raise ValueError(f"--filter: {exc}") from None
     res = prognose(
-        series,
-        args.threshold,
-        method=args.method,
-        filter=filt,
-        seed=0 if args.seed is None else args.seed,
-        direction=args.direction,
-        n_paths=args.paths,
-        glitch_limit=args.glitch_limit,
+        series, args.threshold, direction=args.direction, **_prognose_options(args, filt)
     )
     unit, s = res.time_unit, res.summary()
     p_within = None if args.within is None else within_probability(res, args.within)
