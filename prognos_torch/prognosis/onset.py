@@ -310,7 +310,7 @@ def healthy_baseline(
     glitches: tuple[float, ...] = ()
     if glitch_limit is not None and noise > 0:
         out = isolated_outliers(xb, noise, glitch_limit)
-        if bool(out.any()):
+        if bool(out.any()) and int((~out).sum()) >= 3:  # (a window of glitches stays as it is)
             glitches = tuple(t[inside][out].tolist())
             xb = xb[~out]
     std = float(xb.std(correction=1))
