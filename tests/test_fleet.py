@@ -516,3 +516,32 @@ def test_cli_refuses_options_it_would_ignore(tmp_path, fleet, capsys):
         err = capsys.readouterr().err
         assert err.startswith("error: ") and text in err
         assert not (tmp_path / "o.csv").exists()
+
+
+def test_glitch_in_baseline_flag_matches_prognose_per_asset():
+    """The fleet's batched glitch screen against ``prognose``'s flag and
+    ``healthy_baseline(glitch_limit=20)`` asset by asset: a clean asset, one glitch of 40 noise
+    std in a window of 120 (widening 3.7), one of 24 in a window of 900 (1.3: not flagged), a
+    pair in a window with missing values, ragged lengths."""
+    from prognos_torch.prognosis.onset import healthy_baseline
+    from prognos_torch.workflow import prognose
+
+    g = np.random.default_rng(5)
+    lengths = (400, 400, 3000, 350)
+    t = [np.arange(n, dtype=float) for n in lengths]
+    v = [1.0 + 0.05 * g.standard_normal(n) for n in lengths]
+    v[1][40] += 2.0
+    v[2][100] += 1.2
+    v[3][[30, 31]] += 3.0
+    v[3][[10, 50]] = np.nan
+    batch = pad_batch(["clean", "glitch", "long", "pair"], t, v)
+    on = ksigma_onset_batch(batch.values, batch.times, batch.lengths, skip_window=True)
+    out = exponential_trend_rul(batch, 3.0, samples=50)
+    for b, name in enumerate(batch.assets):
+        x, tb = torch.from_numpy(v[b]), torch.from_numpy(t[b])
+        plain, screened = healthy_baseline(x, tb), healthy_baseline(x, tb, glitch_limit=20.0)
+        ref = plain.std / screened.std if screened.glitches else 1.0
+        assert float(on.glitch_widening[b]) == pytest.approx(ref, rel=1e-12)
+        flagged = "glitch_in_baseline" in out["flags"][b].split(";")
+        per_series = any(f.startswith("glitches in") for f in prognose(x, 3.0, time=tb).flags)
+        assert flagged == per_series == (name in ("glitch", "pair")), name

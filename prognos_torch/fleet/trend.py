@@ -40,7 +40,10 @@ indicator with ``direction="above"``, say; no RUL), ``threshold_reached``
 (the last observed value is at or beyond the threshold: RUL 0), ``few_degraded_points`` (fewer
 than 3 usable samples after onset: the interval is wide), ``nonpositive_dropped`` (samples with
 ``s (y - phi) <= 0`` after onset were treated as missing), ``far_extrapolation`` (median RUL
-beyond ``extrapolation_limit`` times the observed degradation time: a guard rail).
+beyond ``extrapolation_limit`` times the observed degradation time: a guard rail),
+``glitch_in_baseline`` (isolated values more than ``GLITCH_SCREEN`` = 20 noise std off their
+neighbours in the healthy window widen its std ``GLITCH_WIDENING`` = 1.5 times or more, which can
+delay the onset: ``prognose``'s glitch flag, :mod:`prognos_torch.prognosis.onset`).
 """
 
 from __future__ import annotations
@@ -57,7 +60,7 @@ from ..core import GaussianBelief, StateSpaceModel
 from ..core.validation import check_real
 from ..filters import ekf, run
 from ..filters.gaussian import GaussianFilter
-from ..prognosis.onset import window_end
+from ..prognosis.onset import GLITCH_SCREEN, GLITCH_WIDENING, window_end
 
 __all__ = [
     "PaddedBatch",
@@ -143,6 +146,9 @@ class BatchOnset:
     base_mean: Tensor
     base_std: Tensor
     in_baseline: Tensor  # (B, T) bool: row belongs to the baseline window
+    # std of the window over its std without the isolated outliers beyond GLITCH_SCREEN noise
+    # std (healthy_baseline(..., glitch_limit=GLITCH_SCREEN)); 1 where there are none
+    glitch_widening: Tensor
 
 
 def ksigma_onset_batch(
@@ -197,7 +203,29 @@ def ksigma_onset_batch(
     time = torch.where(found, tc.gather(1, first_c[:, None])[:, 0], torch.full_like(t0, math.nan))
     in_base = torch.zeros_like(obs)
     in_base.scatter_(1, perm, inside)
-    return BatchOnset(index, time, ok, mean, std, in_base)
+    return BatchOnset(index, time, ok, mean, std, in_base, _glitch_widening(xc, inside, std))
+
+
+def _glitch_widening(xc: Tensor, inside: Tensor, std: Tensor) -> Tensor:
+    """``(B,)`` healthy std over the std without the window's isolated outliers beyond
+    :data:`~prognos_torch.prognosis.onset.GLITCH_SCREEN` noise std, as ``healthy_baseline``
+    computes both for one asset (``xc``: observed values first, in time order; ``inside``: the
+    healthy window, a prefix of them)."""
+    nan = torch.full_like(xc, math.nan)
+    xw = torch.where(inside, xc, nan)
+    d = xw[:, 1:] - xw[:, :-1]  # the window's successive differences (NaN outside)
+    mad = (d - d.nanmedian(1, keepdim=True).values).abs().nanmedian(1).values
+    noise = mad * 1.4826 / math.sqrt(2.0)  # Baseline.noise
+    pad = torch.full((xc.shape[0], 2), math.nan, dtype=xc.dtype, device=xc.device)
+    local = torch.cat([pad, xw, pad], 1).unfold(1, 5, 1).nanmedian(-1).values
+    out = inside & ((xw - local).abs() > GLITCH_SCREEN * noise[:, None]) & (noise > 0)[:, None]
+    kept = inside & ~out
+    nk = kept.sum(1)
+    mean = torch.where(kept, xc, 0.0).sum(1) / nk.clamp(min=1)
+    dev = torch.where(kept, xc - mean[:, None], 0.0)
+    std_kept = torch.sqrt((dev * dev).sum(1) / (nk - 1).clamp(min=1))
+    use = out.any(1) & (nk >= 3) & (std_kept > 0)
+    return torch.where(use, std / torch.where(use, std_kept, 1.0), torch.ones_like(std))
 
 
 # --------------------------------------------------------------------------- trend + RUL
@@ -424,6 +452,7 @@ def exponential_trend_rul(
         ("threshold_on_healthy_side", healthy_side),
         ("threshold_reached", reached & enough),
         ("no_onset", enough & base_ok & (on.index < 0) & ~reached),
+        ("glitch_in_baseline", enough & base_ok & (on.glitch_widening >= GLITCH_WIDENING)),
         ("few_degraded_points", has_onset & (n_deg < 3) & ~reached),
         ("nonpositive_dropped", has_onset & nonpos & ~reached),
         ("far_extrapolation", usable & far),

@@ -59,6 +59,8 @@ from .forecaster import MeasurementForecaster
 from .learner_model import learner_transition_model, window_belief
 from .learner_trend import LearnerTrendFit, TimeELM, fit_learner_trend, fit_learner_trends
 from .onset import (
+    GLITCH_SCREEN,
+    GLITCH_WIDENING,
     ONSET_METHODS,
     Baseline,
     Onset,
@@ -136,6 +138,8 @@ __all__ = [
     "TimeELM",
     "fit_learner_trend",
     "fit_learner_trends",
+    "GLITCH_SCREEN",
+    "GLITCH_WIDENING",
     "ONSET_METHODS",
     "Baseline",
     "Onset",

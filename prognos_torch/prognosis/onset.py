@@ -66,6 +66,8 @@ __all__ = [
     "Baseline",
     "Onset",
     "ONSET_METHODS",
+    "GLITCH_SCREEN",
+    "GLITCH_WIDENING",
     "moving_median",
     "healthy_baseline",
     "isolated_outliers",
@@ -77,6 +79,11 @@ __all__ = [
 ]
 
 ONSET_METHODS = ("ksigma", "cusum")
+#: Glitch screen: isolated values more than this many noise std from their window median
+#: (:func:`isolated_outliers`) are reported when, left out, the healthy std falls by a factor of
+#: :data:`GLITCH_WIDENING` or more (``prognose``'s flag, the fleet's ``glitch_in_baseline``).
+GLITCH_SCREEN = 20.0
+GLITCH_WIDENING = 1.5
 
 
 @dataclass(frozen=True)

@@ -101,6 +101,8 @@ from ..prognosis.backtest import (
 )
 from ..prognosis.learner_trend import fit_learner_trends
 from ..prognosis.onset import (
+    GLITCH_SCREEN,
+    GLITCH_WIDENING,
     Baseline,
     Onset,
     detect_onset,
@@ -137,11 +139,6 @@ BACKTEST_PATHS = 256
 #: Fewest observed values ``prognose`` accepts.
 MIN_POINTS = 10
 _K = 4.0  # healthy band and onset limit in baseline standard deviations
-#: Glitch screen of the healthy window when ``glitch_limit`` is not set: isolated values more
-#: than this many noise std from their neighbours (:func:`~prognos_torch.prognosis.onset.
-#: isolated_outliers`) are flagged when they widen the band by :data:`GLITCH_WIDENING` or more.
-GLITCH_SCREEN = 20.0
-GLITCH_WIDENING = 1.5
 #: Censored mass above which a result is flagged (its 95 % quantile is then unknown).
 CENSORED_FLAG = 0.05
 _MAX_BINS = 20_000
