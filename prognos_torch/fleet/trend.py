@@ -60,7 +60,13 @@ from ..core import GaussianBelief, StateSpaceModel
 from ..core.validation import check_real
 from ..filters import ekf, run
 from ..filters.gaussian import GaussianFilter
-from ..prognosis.onset import GLITCH_SCREEN, GLITCH_WIDENING, window_end
+from ..prognosis.onset import (
+    GLITCH_SCREEN,
+    GLITCH_WIDENING,
+    short_term_noise,
+    window_end,
+    window_median_deviation,
+)
 
 __all__ = [
     "PaddedBatch",
@@ -211,14 +217,10 @@ def _glitch_widening(xc: Tensor, inside: Tensor, std: Tensor) -> Tensor:
     :data:`~prognos_torch.prognosis.onset.GLITCH_SCREEN` noise std, as ``healthy_baseline``
     computes both for one asset (``xc``: observed values first, in time order; ``inside``: the
     healthy window, a prefix of them)."""
-    nan = torch.full_like(xc, math.nan)
-    xw = torch.where(inside, xc, nan)
-    d = xw[:, 1:] - xw[:, :-1]  # the window's successive differences (NaN outside)
-    mad = (d - d.nanmedian(1, keepdim=True).values).abs().nanmedian(1).values
-    noise = mad * 1.4826 / math.sqrt(2.0)  # Baseline.noise
-    pad = torch.full((xc.shape[0], 2), math.nan, dtype=xc.dtype, device=xc.device)
-    local = torch.cat([pad, xw, pad], 1).unfold(1, 5, 1).nanmedian(-1).values
-    out = inside & ((xw - local).abs() > GLITCH_SCREEN * noise[:, None]) & (noise > 0)[:, None]
+    xw = torch.where(inside, xc, torch.full_like(xc, math.nan))
+    noise = short_term_noise(xw)  # Baseline.noise of each window
+    dev_w = window_median_deviation(xw)
+    out = inside & (dev_w > GLITCH_SCREEN * noise[:, None]) & (noise > 0)[:, None]
     kept = inside & ~out
     nk = kept.sum(1)
     mean = torch.where(kept, xc, 0.0).sum(1) / nk.clamp(min=1)

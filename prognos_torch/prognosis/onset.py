@@ -262,9 +262,23 @@ def isolated_outliers(values, scale: float, limit: float) -> Tensor:
     limit = _check_pos(limit, "limit")
     if x.shape[0] < 2:
         return torch.zeros(x.shape, dtype=torch.bool, device=x.device)
-    pad = torch.full((2,), math.nan, dtype=x.dtype, device=x.device)
-    local = torch.cat([pad, x, pad]).unfold(0, 5, 1).nanmedian(-1).values  # (T,)
-    return (x - local).abs() > limit * scale
+    return window_median_deviation(x) > limit * scale
+
+
+def window_median_deviation(x: Tensor) -> Tensor:
+    """``|x_i - median(x_{i-2..i+2})|`` along the last dim, ``(..., T)`` (NaN skipped, lower
+    middle for even counts; NaN at NaN values): the statistic of :func:`isolated_outliers`."""
+    pad = torch.full((*x.shape[:-1], 2), math.nan, dtype=x.dtype, device=x.device)
+    local = torch.cat([pad, x, pad], -1).unfold(-1, 5, 1).nanmedian(-1).values
+    return (x - local).abs()
+
+
+def short_term_noise(x: Tensor) -> Tensor:
+    """``1.4826 MAD(diff x) / sqrt(2)`` along the last dim, ``(..., T) -> (...)`` (differences
+    with a NaN end skipped): :attr:`Baseline.noise`."""
+    d = x[..., 1:] - x[..., :-1]
+    mad = (d - d.nanmedian(-1, keepdim=True).values).abs().nanmedian(-1).values
+    return mad * 1.4826 / math.sqrt(2.0)
 
 
 def healthy_baseline(
@@ -312,8 +326,7 @@ def healthy_baseline(
             f"the baseline window (first {100 * fraction:g} % of the time span) holds "
             f"{xb.shape[0]} samples; at least 3 are needed"
         )
-    d = torch.diff(xb)
-    noise = float((d - d.median()).abs().median()) * 1.4826 / math.sqrt(2.0)
+    noise = float(short_term_noise(xb))
     glitches: tuple[float, ...] = ()
     if glitch_limit is not None and noise > 0:
         out = isolated_outliers(xb, noise, glitch_limit)
