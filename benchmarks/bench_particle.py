@@ -209,7 +209,7 @@ def interleaved(fns: list, repeat: int) -> list[float]:
     return [statistics.median(t) for t in times]
 
 
-def sir_vs_numpy(counts: list[tuple[int, int]], repeat: int) -> None:
+def sir_vs_numpy(counts: list[tuple[int, int]], repeat: int, compile: bool = True) -> None:
     print(
         "\nSIR: library (eager, and compiled: run(compile=True)) vs vectorised NumPy (same "
         "model, systematic at N_eff < N/2; median s; ratio = NumPy / library)"
@@ -231,9 +231,17 @@ def sir_vs_numpy(counts: list[tuple[int, int]], repeat: int) -> None:
         def comp(pf=pf, ys=ys):
             return pf.run(model, b0, ys, generator=torch.Generator().manual_seed(1), compile=True)
 
+        peer = lambda N=N, ys_np=ys_np: numpy_sir(ys_np, N)  # noqa: E731
+        if not compile:  # eager only (--no-compile)
+            t_lib, t_np = interleaved([lib, peer], repeat)
+            diff = float(np.abs(lib().means[:, 0].numpy() - peer()["means"]).mean())
+            print(
+                f"{N:>8}{T:>7}{t_lib:>9.4f}{'-':>12}{t_np:>10.4f}{t_np / t_lib:>7.2f}"
+                f"{'-':>10}{'-':>11}{'-':>16}{diff:>13.2e}"
+            )
+            continue
         comp()  # compiles (time apart)
         t_compile = prognos_torch.filters.sequence.last_compile_seconds
-        peer = lambda N=N, ys_np=ys_np: numpy_sir(ys_np, N)  # noqa: E731
         t_lib, t_comp, t_np = interleaved([lib, comp, peer], repeat)
         # the filters use different random streams: their means agree to Monte Carlo error
         diff = float(np.abs(comp().means[:, 0].numpy() - peer()["means"]).mean())
@@ -415,7 +423,7 @@ def peers(args) -> None:
     """SIR and the resamplers beside NumPy at the three particle counts."""
     counts = [(args.small, args.steps), (10 * args.small, args.mid_steps),
               (args.large, args.large_steps)]  # fmt: skip
-    sir_vs_numpy(counts, args.repeat)
+    sir_vs_numpy(counts, args.repeat, compile=not args.no_compile)
     resamplers_vs_numpy([args.small, 10 * args.small, args.large], args.repeat)
 
 
@@ -430,6 +438,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--profile", action="store_true", help="profile the STPF run")
     parser.add_argument("--no-memory", action="store_true", help="skip the memory rows")
     parser.add_argument("--no-peers", action="store_true", help="skip the NumPy comparisons")
+    parser.add_argument(
+        "--no-compile", action="store_true", help="eager rows only (no run(compile=True))"
+    )
     parser.add_argument("--peers-only", action="store_true", help="only the NumPy comparisons")
     parser.add_argument("--cpu-time", action="store_true", help="time with process CPU time")
     parser.add_argument("--mid-steps", type=int, default=100, help="steps of the 10^4 runs")
@@ -494,15 +505,16 @@ def main(argv: list[str] | None = None) -> None:
                 f"{targets[kind]:>8.1f}{ok:>5}"
             )
     # run(..., compile=True): the filter as one compiled pass (its compile time apart)
-    go = lambda: one_run("STPF", "batched+jac", args.small, args.steps, compile=True)  # noqa: E731
-    go()
-    t_compile = prognos_torch.filters.sequence.last_compile_seconds
-    med, best = timed(go, args.repeat)
-    ok = "yes" if med <= targets["batched+jac"] else "no"
-    print(
-        f"{'batched+jac comp':<18}{med:>6.3f}{best:>9.3f}{1e3 * med / args.steps:>9.2f}"
-        f"{targets['batched+jac']:>8.1f}{ok:>5}   (compile {t_compile:.1f} s apart)"
-    )
+    if not args.no_compile:
+        go = lambda: one_run("STPF", "batched+jac", args.small, args.steps, compile=True)  # noqa: E731
+        go()
+        t_compile = prognos_torch.filters.sequence.last_compile_seconds
+        med, best = timed(go, args.repeat)
+        ok = "yes" if med <= targets["batched+jac"] else "no"
+        print(
+            f"{'batched+jac comp':<18}{med:>6.3f}{best:>9.3f}{1e3 * med / args.steps:>9.2f}"
+            f"{targets['batched+jac']:>8.1f}{ok:>5}   (compile {t_compile:.1f} s apart)"
+        )
 
     if not args.no_peers:
         peers(args)

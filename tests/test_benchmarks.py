@@ -35,8 +35,18 @@ TINY = {
         "--repeat",
         "1",
         "--no-memory",
-    ],  # fmt: skip
-    "bench_peers.py": ["--repeats", "1", "--runs", "2", "--no-dynamax", "--filters", "ekf"],
+        "--no-compile",
+    ],  # fmt: skip  (compiled passes: test_particle_compiled.py; a cold compile costs ~20 s)
+    "bench_peers.py": [
+        "--repeats",
+        "1",
+        "--runs",
+        "2",
+        "--no-dynamax",
+        "--filters",
+        "ekf",
+        "--no-single",
+    ],  # fmt: skip  (one compiled fit: the batched row's)
     "bench_prognose.py": ["--rows", "400", "--repeat", "1"],
     "bench_progpy.py": [
         "--samples",
