@@ -232,22 +232,22 @@ def sir_vs_numpy(counts: list[tuple[int, int]], repeat: int, compile: bool = Tru
             return pf.run(model, b0, ys, generator=torch.Generator().manual_seed(1), compile=True)
 
         peer = lambda N=N, ys_np=ys_np: numpy_sir(ys_np, N)  # noqa: E731
-        if not compile:  # eager only (--no-compile)
-            t_lib, t_np = interleaved([lib, peer], repeat)
-            diff = float(np.abs(lib().means[:, 0].numpy() - peer()["means"]).mean())
-            print(
-                f"{N:>8}{T:>7}{t_lib:>9.4f}{'-':>12}{t_np:>10.4f}{t_np / t_lib:>7.2f}"
-                f"{'-':>10}{'-':>11}{'-':>16}{diff:>13.2e}"
-            )
-            continue
-        comp()  # compiles (time apart)
-        t_compile = prognos_torch.filters.sequence.last_compile_seconds
-        t_lib, t_comp, t_np = interleaved([lib, comp, peer], repeat)
+        if compile:
+            comp()  # compiles (time apart)
+            t_compile = prognos_torch.filters.sequence.last_compile_seconds
+        times = interleaved([lib, comp, peer] if compile else [lib, peer], repeat)
+        t_lib, t_np = times[0], times[-1]
         # the filters use different random streams: their means agree to Monte Carlo error
-        diff = float(np.abs(comp().means[:, 0].numpy() - peer()["means"]).mean())
+        ours = (comp if compile else lib)().means[:, 0].numpy()
+        diff = float(np.abs(ours - peer()["means"]).mean())
+        cols = ("-",) * 4  # the compiled columns, empty with --no-compile
+        if compile:
+            t_comp = times[1]
+            cols = (f"{t_comp:.4f}", f"{t_np / t_comp:.2f}", f"{t_compile:.1f}",
+                    f"{N * T / t_comp:.3g}")  # fmt: skip
         print(
-            f"{N:>8}{T:>7}{t_lib:>9.4f}{t_comp:>12.4f}{t_np:>10.4f}{t_np / t_lib:>7.2f}"
-            f"{t_np / t_comp:>10.2f}{t_compile:>11.1f}{N * T / t_comp:>16.3g}{diff:>13.2e}"
+            f"{N:>8}{T:>7}{t_lib:>9.4f}{cols[0]:>12}{t_np:>10.4f}{t_np / t_lib:>7.2f}"
+            f"{cols[1]:>10}{cols[2]:>11}{cols[3]:>16}{diff:>13.2e}"
         )
 
 
