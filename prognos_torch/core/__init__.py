@@ -1,6 +1,8 @@
-"""Core abstractions: state-space models, Gaussian beliefs, square-root linear algebra."""
+"""Core abstractions: state-space models, Gaussian beliefs, square-root linear algebra, and the
+floored ``exp`` of the learners' Gaussian kernels."""
 
 from .belief import GaussianBelief
+from .kernel_exp import EXP_FLOOR, floored_exp
 from .linalg import (
     cho_solve_right,
     chol_downdate,
@@ -25,4 +27,6 @@ __all__ = [
     "cho_solve_right",
     "safe_cholesky",
     "symmetrize",
+    "EXP_FLOOR",
+    "floored_exp",
 ]

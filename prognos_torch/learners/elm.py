@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from prognos_torch.core.kernel_exp import floored_exp
 from prognos_torch.core.validation import (
     as_data,
     as_targets,
@@ -35,7 +36,7 @@ __all__ = ["ELM", "ACTIVATIONS"]
 
 
 def _gaussian(z: Tensor) -> Tensor:
-    return torch.exp(-z * z)
+    return floored_exp(-z * z)  # at least 1e-304 (core.kernel_exp)
 
 
 def _linear(z: Tensor) -> Tensor:

@@ -29,6 +29,7 @@ import math
 import torch
 from torch import Tensor, nn
 
+from ..core.kernel_exp import floored_exp
 from ..core.validation import (
     as_data,
     as_targets,
@@ -107,7 +108,7 @@ def rbf_kernel(X: Tensor, Y: Tensor, sigma: Tensor | float) -> Tensor:
 
     def block(A: Tensor) -> Tensor:
         d2 = ((A.unsqueeze(-2) - Y) ** 2).sum(-1)
-        return torch.exp(-d2 / (2.0 * sigma * sigma))
+        return floored_exp(-d2 / (2.0 * sigma * sigma))  # at least 1e-304 (core.kernel_exp)
 
     return _blocked(block, X, X.element_size() * Y.shape[0] * max(1, Y.shape[-1]))
 

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from ..core.kernel_exp import floored_exp
 from ..core.linalg import tria
 from ..core.validation import as_data, as_targets, check_forward_input, check_pos_int
 from . import lssvr as _lssvr
@@ -56,8 +57,8 @@ def _rbf_cross(X: Tensor, Z: Tensor, sigma: Tensor) -> Tensor:
     c = 1.0 / (2.0 * sigma * sigma)
     logk = X @ ((2.0 * c) * Z.mT) - c * (Z * Z).sum(-1)
     if torch.is_grad_enabled():
-        return torch.exp(logk - c * (X * X).sum(-1, keepdim=True))
-    return logk.sub_(c * (X * X).sum(-1, keepdim=True)).exp_()  # no autograd: in place
+        return floored_exp(logk - c * (X * X).sum(-1, keepdim=True))
+    return floored_exp(logk.sub_(c * (X * X).sum(-1, keepdim=True)))  # no autograd: in place
 
 
 def renyi_support(

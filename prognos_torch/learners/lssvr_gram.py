@@ -35,6 +35,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
+from ..core.kernel_exp import floored_exp
 from ..core.validation import check_forward_input
 from .lssvr import LSSVR, _blocked
 from .selection import MultiStepCV, blocked_multistep_cv
@@ -99,8 +100,9 @@ class LSSVRGram(nn.Module):
         """Kernel values ``phi(P_i, x)`` (Eq. 24), ``(..., n_in) -> (..., M)``."""
         x2 = x.reshape(-1, self.n_in)
         logk = torch.addmm(self.sv_log_norm, x2, self.sv_scaled_t)  # 2c P.x - c|P|^2
-        # - c|x|^2; round-off can leave log phi ~ +1e-16 at x = P_i: harmless, no clamp
-        phi = torch.exp(logk - self.inv_two_sigma2 * (x2 * x2).sum(-1, keepdim=True))
+        # - c|x|^2 in place (the block is fresh); round-off can leave log phi ~ +1e-16 at
+        # x = P_i: harmless. Far from every P_i, exp is floored at 1e-304 (core.kernel_exp)
+        phi = floored_exp(logk.sub_(self.inv_two_sigma2 * (x2 * x2).sum(-1, keepdim=True)))
         return phi.reshape(*x.shape[:-1], phi.shape[-1])
 
     def forward(self, x: Tensor) -> Tensor:
