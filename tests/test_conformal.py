@@ -5,6 +5,8 @@ guarantee by Monte Carlo against its exact bounds, leave-one-group-out, the prot
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -281,6 +283,24 @@ def test_calibrate_rul_in_worker_processes_equals_the_sequential_run():
         calibrate_rul(hist, workers=2.0)
     with pytest.raises(ValueError, match="workers must be >= 1"):
         calibrate_rul(hist, workers=0)
+
+
+def test_calibrate_rul_in_workers_from_an_unguarded_script_says_why_it_failed(tmp_path):
+    # spawned workers import the script again; without the __main__ guard they die at start
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "from prognos_torch.systems import run_to_failure_set\n"
+        "from prognos_torch.workflow import calibrate_rul\n"
+        "cases = run_to_failure_set(1, seed=3)\n"
+        "hist = {n: (r.t, r.y) for n, r in list(cases.items())[:2]}\n"
+        "calibrate_rul(hist, method='exponential', fractions=(0.9,), n_paths=100, workers=2)\n"
+    )
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                         timeout=300, cwd=tmp_path)  # fmt: skip
+    assert out.returncode != 0
+    last = out.stderr.strip().splitlines()[-1]
+    assert last.startswith("RuntimeError: workers=2: a worker process ended abruptly"), last
+    assert 'if __name__ == "__main__":' in last
 
 
 def test_calibrate_rul_on_a_falling_indicator_mirrors_the_rising_one():

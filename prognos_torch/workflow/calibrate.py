@@ -28,6 +28,7 @@ import math
 import multiprocessing
 from collections.abc import Mapping
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import replace
 
 import torch
@@ -80,7 +81,8 @@ def calibrate_rul(
             process). Each is a fresh interpreter (``spawn``) with one torch thread, handed
             prediction points longest series first; the result equals ``workers=1``'s. As for
             any process pool, a script that calls this at its top level needs the
-            ``if __name__ == "__main__":`` guard.
+            ``if __name__ == "__main__":`` guard (without it the workers die at start and a
+            ``RuntimeError`` says so).
         **prognose_kwargs: further ``prognose`` settings (``method``, ``filter``, ...); use the
             same for the asset the calibration will serve.
 
@@ -92,6 +94,8 @@ def calibrate_rul(
 
     Raises:
         ValueError: ``histories`` empty or malformed, or no history gives a usable point.
+        RuntimeError: ``workers > 1`` and a worker process ended abruptly (no ``__main__``
+            guard in the calling script, or a worker killed).
     """
     items = _items(histories)
     if "at" in prognose_kwargs or "time" in prognose_kwargs:
@@ -182,6 +186,15 @@ def _map(fn, tasks: list[tuple], workers: int, sizes: list[int]) -> list:
         futures = dict(zip(order, (pool.submit(fn, *tasks[i]) for i in order)))
         try:
             return [futures[i].result() for i in range(len(tasks))]
+        except BrokenProcessPool as exc:  # a worker died: say the usual cause
+            pool.shutdown(cancel_futures=True)
+            raise RuntimeError(
+                f"workers={workers}: a worker process ended abruptly. Spawned workers import "
+                "the calling script again: a script that calls calibrate_rul at its top level "
+                'needs the guard `if __name__ == "__main__":` around that call (the workers\' '
+                "own error is printed above). Otherwise a worker ran out of memory or was "
+                "killed; workers=1 runs in this process"
+            ) from exc
         except BaseException:  # the first failure ends the run: drop the tasks not started
             pool.shutdown(cancel_futures=True)
             raise
