@@ -1,4 +1,4 @@
-"""core.kernel_exp.floored_exp: exp with its argument floored at EXP_FLOOR, in place where it may be."""
+"""core.kernel_exp.floored_exp: exp with its argument floored per dtype, in place where it may be."""
 
 import warnings
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch.func import jacfwd, jacrev, vmap
 
-from prognos_torch.core.kernel_exp import EXP_FLOOR, floored_exp
+from prognos_torch.core.kernel_exp import EXP_FLOORS, floored_exp
 from prognos_torch.learners import ELM, LSSVR, LSSVRGram
 
 
@@ -15,16 +15,23 @@ def _z():
     return torch.linspace(-2000.0, 5.0, 4001, dtype=torch.float64)
 
 
-def test_equals_exp_above_the_floor_and_exp_of_the_floor_below():
-    z = _z()
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32, torch.bfloat16])
+def test_equals_exp_above_the_floor_and_exp_of_the_floor_below(dtype):
+    z = _z().to(dtype)
     got = floored_exp(z.clone())
-    above = z >= EXP_FLOOR
+    above = z >= EXP_FLOORS[dtype]
     assert torch.equal(got[above], torch.exp(z[above]))  # bit for bit
-    floor = torch.exp(torch.tensor(EXP_FLOOR, dtype=torch.float64))
-    assert bool((got[~above] == floor).all())
-    assert float((got - torch.exp(z)).abs().max()) < 1e-304
-    assert bool((got > 0).all())  # never 0, never subnormal
-    assert bool((got >= torch.finfo(torch.float64).tiny).all())
+    floor = torch.exp(torch.tensor(EXP_FLOORS[dtype], dtype=dtype))
+    assert bool((got[~above] == floor).all()) and bool((~above).any())
+    assert float((got - torch.exp(z)).abs().max()) <= float(floor)
+    assert bool((got >= torch.finfo(dtype).tiny).all())  # never 0, never subnormal
+
+
+def test_a_dtype_without_a_floor_gets_plain_exp():
+    z = torch.linspace(-30.0, 5.0, 71, dtype=torch.float16)
+    assert torch.float16 not in EXP_FLOORS
+    assert torch.equal(floored_exp(z.clone()), torch.exp(z))
+    assert torch.equal(floored_exp(z, out_of_place=True), torch.exp(z))
 
 
 def test_in_place_only_where_allowed():

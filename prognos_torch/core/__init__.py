@@ -2,7 +2,7 @@
 floored ``exp`` of the learners' Gaussian kernels."""
 
 from .belief import GaussianBelief
-from .kernel_exp import EXP_FLOOR, floored_exp
+from .kernel_exp import EXP_FLOORS, floored_exp
 from .linalg import (
     cho_solve_right,
     chol_downdate,
@@ -27,6 +27,6 @@ __all__ = [
     "cho_solve_right",
     "safe_cholesky",
     "symmetrize",
-    "EXP_FLOOR",
+    "EXP_FLOORS",
     "floored_exp",
 ]
