@@ -58,6 +58,7 @@ TINY = {
         "--repeat",
         "1",
     ],  # fmt: skip
+    "bench_jacobian.py": ["--steps", "5", "--batch", "2", "--repeat", "1"],
     "bench_kernel_exp.py": ["--windows", "50", "--batch", "8", "--repeat", "1", "--calls", "1"],
     "bench_long.py": ["--rows", "300", "--learners", "elm"],
     "bench_study_batching.py": ["--runs", "1", "2", "--threads", "1"],

@@ -494,3 +494,49 @@ def test_full_covariance_stukf_with_negative_centre_weight_matches_numpy_and_fil
     assert np.abs(tu.means.numpy() - np.array(ref_m)).max() < 1e-10
     scale = np.abs(ref_P).max(axis=(1, 2))[:, None, None]
     assert (np.abs(tu.covs.numpy() - ref_P) / scale).max() < 1e-9
+
+
+@pytest.mark.parametrize("with_u", [False, True])
+def test_default_jacobians_equal_finite_differences_and_nested_jacfwd(with_u):
+    # a per-sample model without jac_f/jac_h: the engine's one-vmap forward mode
+    from torch.func import jacfwd, vmap
+
+    def f(x, u, k):
+        out = torch.stack([x[0] * x[1], torch.sin(x[2]) + x[0] ** 2, x[1] * torch.exp(-x[2])])
+        return out if u is None else out + u[0] * x
+
+    def h(x, u, k):
+        return torch.stack([x[0] + x[2] ** 3, x[1] * x[2]])
+
+    p = 1 if with_u else 0
+    model = StateSpaceModel(f=f, h=h, state_dim=3, obs_dim=2, chol_Q=torch.eye(3, dtype=torch.float64),
+                            chol_R=torch.eye(2, dtype=torch.float64), control_dim=p)  # fmt: skip
+    g = torch.Generator().manual_seed(4)
+    x = torch.randn(2, 5, 3, dtype=torch.float64, generator=g)  # two leading dims
+    u = torch.randn(5, 1, dtype=torch.float64, generator=g) if with_u else None  # broadcast
+    Jf = model.transition_jacobian(x, u, 0)
+    Jh = model.observation_jacobian(x, u, 0)
+    assert Jf.shape == (2, 5, 3, 3) and Jh.shape == (2, 5, 2, 3)
+    xf = x.reshape(-1, 3)
+    uf = None if u is None else u.expand(2, 5, 1).reshape(-1, 1)
+    for fn, J in ((f, Jf), (h, Jh)):
+        if uf is None:
+            ref = vmap(jacfwd(lambda xi, fn=fn: fn(xi, None, 0)))(xf)
+        else:
+            ref = vmap(jacfwd(lambda xi, ui, fn=fn: fn(xi, ui, 0)))(xf, uf)
+        assert torch.allclose(J.reshape(ref.shape), ref, rtol=1e-15, atol=1e-15)
+        # central differences, step 1e-6: error ~1e-10
+        eps = 1e-6
+        cols = []
+        for j in range(3):
+            e = torch.zeros(3, dtype=torch.float64)
+            e[j] = eps
+            up = torch.stack(
+                [fn(xi + e, None if uf is None else uf[i], 0) for i, xi in enumerate(xf)]
+            )
+            dn = torch.stack(
+                [fn(xi - e, None if uf is None else uf[i], 0) for i, xi in enumerate(xf)]
+            )
+            cols.append((up - dn) / (2 * eps))
+        fd = torch.stack(cols, -1)
+        assert torch.allclose(J.reshape(fd.shape), fd, rtol=1e-7, atol=1e-8)
