@@ -540,3 +540,42 @@ def test_default_jacobians_equal_finite_differences_and_nested_jacfwd(with_u):
             cols.append((up - dn) / (2 * eps))
         fd = torch.stack(cols, -1)
         assert torch.allclose(J.reshape(fd.shape), fd, rtol=1e-7, atol=1e-8)
+
+
+def test_joint_state_parameter_model_batched_equals_per_sample():
+    # paper 000 Eq. 3-4: [f(x, theta); theta]; the batched form skips vmap, same numbers
+    from prognos_torch.core import joint_state_parameter_model
+    from prognos_torch.filters import stsckf
+
+    def f(x, th, u, k):
+        return x + 0.1 * torch.stack([x[..., 1], -th[..., 0] * torch.sin(x[..., 0])], -1) + u
+
+    def h(x, th, u, k):
+        return torch.stack([x[..., 0] + th[..., 1], x[..., 1] ** 2], -1)
+
+    kw = dict(state_dim=2, param_dim=2, obs_dim=2, control_dim=2,
+              chol_Q=0.05 * torch.eye(2, dtype=torch.float64),
+              chol_D=0.01 * torch.eye(2, dtype=torch.float64),
+              chol_R=0.1 * torch.eye(2, dtype=torch.float64))  # fmt: skip
+    per, bat = (
+        joint_state_parameter_model(f, h, **kw),
+        joint_state_parameter_model(f, h, batched=True, **kw),
+    )
+    assert not per.batched and bat.batched
+    g = torch.Generator().manual_seed(5)
+    z = torch.randn(3, 4, 4, dtype=torch.float64, generator=g)
+    u = torch.randn(4, 2, dtype=torch.float64, generator=g)
+    assert torch.allclose(bat.transition(z, u, 0), per.transition(z, u, 0), rtol=1e-15, atol=0)
+    assert torch.equal(bat.transition(z, u, 0)[..., 2:], z[..., 2:])  # theta_k = theta_(k-1)
+    assert torch.allclose(bat.observe(z, u, 0), per.observe(z, u, 0), rtol=1e-15, atol=0)
+    assert torch.allclose(bat.transition_jacobian(z, u, 0), per.transition_jacobian(z, u, 0),
+                          rtol=1e-15, atol=1e-15)  # fmt: skip
+    T = 30
+    ys = torch.randn(T, 4, 2, dtype=torch.float64, generator=g)
+    us = 0.1 * torch.randn(T, 4, 2, dtype=torch.float64, generator=g)
+    b0 = GaussianBelief(torch.zeros(4, 4, dtype=torch.float64),
+                        torch.eye(4, dtype=torch.float64).expand(4, 4, 4).clone())  # fmt: skip
+    for filt in (stsckf(), ekf()):
+        a, b = run(filt, per, b0, ys, us), run(filt, bat, b0, ys, us)
+        assert torch.allclose(a.means, b.means, rtol=0, atol=1e-12)
+        assert torch.allclose(a.chols, b.chols, rtol=0, atol=1e-12)

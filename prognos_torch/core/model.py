@@ -322,6 +322,7 @@ def joint_state_parameter_model(
     q: Tensor | None = None,
     r: Tensor | None = None,
     control_dim: int = 0,
+    batched: bool = False,
 ) -> StateSpaceModel:
     """Augment unknown parameters ``theta`` as random-walk states (paper 000 Eq. 3-4; paper 004 Eq. 12-13).
 
@@ -330,22 +331,25 @@ def joint_state_parameter_model(
     paper's choice when the fault's law of change is unknown.
 
     Args:
-        f: per-sample ``f(x (n,), theta (d,), u, k) -> (n,)``.
-        h: per-sample ``h(x, theta, u, k) -> (m,)``.
+        f: per-sample ``f(x (n,), theta (d,), u, k) -> (n,)``, or with ``batched=True``
+            ``f(x (..., n), theta (..., d), u, k) -> (..., n)``.
+        h: per-sample ``h(x, theta, u, k) -> (m,)`` (batched: ``(..., m)``).
         chol_Q: ``(n, n)`` square root of the state-noise covariance.
         chol_D: ``(d, d)`` square root of the parameter random-walk covariance.
         chol_R: ``(m, m)``.
+        batched: ``f`` and ``h`` accept any leading dimensions; the augmented model is then
+            ``batched=True`` (no ``vmap`` per call).
     Returns:
         A :class:`StateSpaceModel` on the ``n + d`` dimensional augmented state.
     """
     n, d = state_dim, param_dim
 
     def fa(z, u, k):
-        x, th = z[:n], z[n:]
-        return torch.cat([f(x, th, u, k), th])
+        x, th = z[..., :n], z[..., n:]
+        return torch.cat([f(x, th, u, k), th], -1)
 
     def ha(z, u, k):
-        return h(z[:n], z[n:], u, k)
+        return h(z[..., :n], z[..., n:], u, k)
 
     def block(k: int) -> Tensor:
         SQ, SD = _at(chol_Q, k), _at(chol_D, k)
@@ -366,4 +370,5 @@ def joint_state_parameter_model(
         q=qa,
         r=r,
         control_dim=control_dim,
+        batched=batched,
     )

@@ -249,6 +249,7 @@ def cstr_joint_model(
         chol_Q=SQ,
         chol_D=SD,
         chol_R=SR,
+        batched=True,  # the step and the measurement take any leading dimensions
     )
 
 

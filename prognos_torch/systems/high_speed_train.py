@@ -454,6 +454,7 @@ def hst_fault_model(
         chol_D=SD,
         chol_R=chol_R,
         control_dim=p.n_cars if control else 0,
+        batched=True,  # hst_step and hst_measure take any leading dimensions
     )
 
 

@@ -245,6 +245,7 @@ def three_tank_joint_model(
         chol_D=SD,
         chol_R=SR,
         control_dim=2 if control else 0,
+        batched=True,  # the step and the measurement take any leading dimensions
     )
 
 
