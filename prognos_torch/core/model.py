@@ -92,22 +92,28 @@ def _apply(fn: Fn, x: Tensor, u: Tensor | None, k: int, batched: bool) -> Tensor
     return out.reshape(*lead, out.shape[-1])
 
 
-def _jacobian(fn: Fn, x: Tensor, u: Tensor | None, k: int) -> Tensor:
+def _jacobian(fn: Fn, x: Tensor, u: Tensor | None, k: int, batched: bool = False) -> Tensor:
     """Jacobian ``d fn / d x`` at each of the leading-batch points: ``(..., out, n)``.
 
-    Forward mode, one Jacobian-vector product per (point, basis vector) pair under ONE ``vmap``
-    over ``B n`` pairs: the numbers of ``vmap(jacfwd(fn))`` (which nests a ``vmap`` over the
-    basis inside the one over the points) at about 0.6 of its dispatch cost for small ``n``."""
+    Forward mode, one Jacobian-vector product per (point, basis vector) pair: ``B n`` pairs as
+    rows of one batch, pushed through ``fn`` by ONE ``vmap`` (per-sample ``fn``; the numbers of
+    ``vmap(jacfwd(fn))``, which nests a second ``vmap`` over the basis, at about 0.6 of its
+    dispatch cost for small ``n``) or directly (``batched``: ``fn`` takes the rows as they are).
+    """
     lead, n = x.shape[:-1], x.shape[-1]
     xf = x.reshape(-1, n)
     B = xf.shape[0]
     xr = xf.repeat_interleave(n, dim=0)  # point b, n times (a copy: jvp writes its duals)
     vr = torch.eye(n, dtype=x.dtype, device=x.device).repeat(B, 1)
-    if u is None:
-        _, t = vmap(lambda xi, vi: jvp(lambda z: fn(z, None, k), (xi,), (vi,)))(xr, vr)
-    else:
+    ur = None
+    if u is not None:
         uf = torch.broadcast_to(u, lead + u.shape[-1:]).reshape(-1, u.shape[-1])
         ur = uf.repeat_interleave(n, dim=0)
+    if batched:
+        _, t = jvp(lambda z: fn(z, ur, k), (xr,), (vr,))
+    elif ur is None:
+        _, t = vmap(lambda xi, vi: jvp(lambda z: fn(z, None, k), (xi,), (vi,)))(xr, vr)
+    else:
         _, t = vmap(lambda xi, ui, vi: jvp(lambda z: fn(z, ui, k), (xi,), (vi,)))(xr, ur, vr)
     J = t.reshape(B, n, -1).mT  # row b*n + j holds column j of point b's Jacobian
     return J.reshape(*lead, J.shape[-2], n)
@@ -131,9 +137,9 @@ class StateSpaceModel:
         control_dim: ``p`` (0 when the model takes no control).
         batched: ``f``/``h`` already accept arbitrary leading dimensions (skip ``vmap``).
         jac_f, jac_h: optional analytic Jacobians with the same signature, returning
-            ``(n, n)`` / ``(m, n)`` per sample; by default forward-mode autodiff (``jvp``
-            under ``vmap``), exact but 6x slower than analytic Jacobians of a batched model
-            in ``benchmarks/bench_jacobian.py``.
+            ``(n, n)`` / ``(m, n)`` per sample; by default forward-mode autodiff (``jvp``,
+            under ``vmap`` unless ``batched``), exact but 5-8x slower than analytic Jacobians
+            of a batched model in ``benchmarks/bench_jacobian.py``.
         f_into: optional ``f_into(x (..., n), u, k, out (..., n)) -> out``: the batched ``f``
             written into the given tensor ``out`` (any strides, not overlapping ``x``), with
             the same numbers as ``f``. Loops that keep their states in a buffer of their own
@@ -257,13 +263,13 @@ class StateSpaceModel:
             return eye.expand(*x.shape[:-1], self.state_dim, self.state_dim)
         if self.jac_f is not None:
             return _apply_matrix(self.jac_f, x, u, k, self.batched)
-        return _jacobian(self.f, x, u, k)
+        return _jacobian(self.f, x, u, k, self.batched)
 
     def observation_jacobian(self, x: Tensor, u: Tensor | None, k: int) -> Tensor:
         """``dh/dx`` at ``x`` ``(..., n)``: ``(..., m, n)``."""
         if self.jac_h is not None:
             return _apply_matrix(self.jac_h, x, u, k, self.batched)
-        return _jacobian(self.h, x, u, k)
+        return _jacobian(self.h, x, u, k, self.batched)
 
 
 def _apply_matrix(fn: Fn, x: Tensor, u: Tensor | None, k: int, batched: bool) -> Tensor:
