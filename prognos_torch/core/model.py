@@ -111,10 +111,9 @@ def _jacobian(fn: Fn, x: Tensor, u: Tensor | None, k: int, batched: bool = False
         ur = uf.repeat_interleave(n, dim=0)
     if batched:
         _, t = jvp(lambda z: fn(z, ur, k), (xr,), (vr,))
-    elif ur is None:
-        _, t = vmap(lambda xi, vi: jvp(lambda z: fn(z, None, k), (xi,), (vi,)))(xr, vr)
-    else:
-        _, t = vmap(lambda xi, ui, vi: jvp(lambda z: fn(z, ui, k), (xi,), (vi,)))(xr, ur, vr)
+    else:  # u = None is passed through unbatched
+        row = lambda xi, ui, vi: jvp(lambda z: fn(z, ui, k), (xi,), (vi,))  # noqa: E731
+        _, t = vmap(row, in_dims=(0, None if ur is None else 0, 0))(xr, ur, vr)
     J = t.reshape(B, n, -1).mT  # row b*n + j holds column j of point b's Jacobian
     return J.reshape(*lead, J.shape[-2], n)
 

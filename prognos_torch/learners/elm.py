@@ -36,7 +36,7 @@ __all__ = ["ELM", "ACTIVATIONS"]
 
 
 def _gaussian(z: Tensor) -> Tensor:
-    return floored_exp(-z * z)  # at least 1e-304 (core.kernel_exp)
+    return floored_exp(-z * z)  # floored far out, no subnormal results (core.kernel_exp)
 
 
 def _linear(z: Tensor) -> Tensor:

@@ -108,7 +108,7 @@ def rbf_kernel(X: Tensor, Y: Tensor, sigma: Tensor | float) -> Tensor:
 
     def block(A: Tensor) -> Tensor:
         d2 = ((A.unsqueeze(-2) - Y) ** 2).sum(-1)
-        return floored_exp(-d2 / (2.0 * sigma * sigma))  # at least 1e-304 (core.kernel_exp)
+        return floored_exp(-d2 / (2.0 * sigma * sigma))  # floored far out (core.kernel_exp)
 
     return _blocked(block, X, X.element_size() * Y.shape[0] * max(1, Y.shape[-1]))
 

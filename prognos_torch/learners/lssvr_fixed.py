@@ -56,9 +56,8 @@ def _rbf_cross(X: Tensor, Z: Tensor, sigma: Tensor) -> Tensor:
     :class:`~prognos_torch.learners.LSSVRGram`; exact to ``~eps (|x|^2 + |z|^2) / sigma^2``)."""
     c = 1.0 / (2.0 * sigma * sigma)
     logk = X @ ((2.0 * c) * Z.mT) - c * (Z * Z).sum(-1)
-    if torch.is_grad_enabled():
-        return floored_exp(logk - c * (X * X).sum(-1, keepdim=True))
-    return floored_exp(logk.sub_(c * (X * X).sum(-1, keepdim=True)))  # no autograd: in place
+    # logk is fresh: - c|x|^2 in place; floored_exp writes in place unless autograd needs z
+    return floored_exp(logk.sub_(c * (X * X).sum(-1, keepdim=True)))
 
 
 def renyi_support(

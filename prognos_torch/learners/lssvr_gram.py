@@ -101,7 +101,7 @@ class LSSVRGram(nn.Module):
         x2 = x.reshape(-1, self.n_in)
         logk = torch.addmm(self.sv_log_norm, x2, self.sv_scaled_t)  # 2c P.x - c|P|^2
         # - c|x|^2 in place (the block is fresh); round-off can leave log phi ~ +1e-16 at
-        # x = P_i: harmless. Far from every P_i, exp is floored at 1e-304 (core.kernel_exp)
+        # x = P_i: harmless. Far from every P_i, exp is floored (core.kernel_exp)
         phi = floored_exp(logk.sub_(self.inv_two_sigma2 * (x2 * x2).sum(-1, keepdim=True)))
         return phi.reshape(*x.shape[:-1], phi.shape[-1])
 

@@ -186,17 +186,16 @@ def _map(fn, tasks: list[tuple], workers: int, sizes: list[int]) -> list:
         futures = dict(zip(order, (pool.submit(fn, *tasks[i]) for i in order)))
         try:
             return [futures[i].result() for i in range(len(tasks))]
-        except BrokenProcessPool as exc:  # a worker died: say the usual cause
+        except BaseException as exc:  # the first failure ends the run: drop the tasks not started
             pool.shutdown(cancel_futures=True)
-            raise RuntimeError(
-                f"workers={workers}: a worker process ended abruptly. Spawned workers import "
-                "the calling script again: a script that calls calibrate_rul at its top level "
-                'needs the guard `if __name__ == "__main__":` around that call (the workers\' '
-                "own error is printed above). Otherwise a worker ran out of memory or was "
-                "killed; workers=1 runs in this process"
-            ) from exc
-        except BaseException:  # the first failure ends the run: drop the tasks not started
-            pool.shutdown(cancel_futures=True)
+            if isinstance(exc, BrokenProcessPool):  # a worker died: say the usual cause
+                raise RuntimeError(
+                    f"workers={workers}: a worker process ended abruptly. Spawned workers import "
+                    "the calling script again: a script that calls calibrate_rul at its top "
+                    'level needs the guard `if __name__ == "__main__":` around that call (the '
+                    "workers' own error is printed above). Otherwise a worker ran out of memory "
+                    "or was killed; workers=1 runs in this process"
+                ) from exc
             raise
 
 
