@@ -19,7 +19,8 @@ import sys
 import warnings
 from pathlib import Path
 
-from .cli_prognose import fmt_time, within_probability
+from ._text import fmt_time
+from .cli_prognose import within_probability
 
 __all__ = ["main", "build_parser"]
 

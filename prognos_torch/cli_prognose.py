@@ -8,22 +8,16 @@ from __future__ import annotations
 
 import math
 
+from ._text import fmt_time
+
 __all__ = [
     "run_prognose",
     "observed_rul",
-    "fmt_time",
     "within_probability",
     "load_histories",
     "read_calibration",
     "calibration_rows",
 ]
-
-
-def fmt_time(v: float) -> str:
-    """A time on the series' clock with 10 significant digits: Unix seconds (1.7e9) and day
-    counts keep the digits that tell two times apart (``%g`` prints 1700021180 and
-    1700017580 both as 1.70002e+09)."""
-    return f"{v:.10g}"
 
 
 def _fmt(v, digits: int = 4) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 import torch
@@ -453,6 +454,29 @@ def test_bad_input(kwargs, match):
         t = torch.arange(y.shape[0], dtype=F64)
     with pytest.raises(ValueError, match=match):
         prognose(y, time=t, **kwargs)
+
+
+def test_messages_tell_unix_times_and_offset_levels_apart():
+    """On a clock of Unix seconds and with values offset by 64,000 (a sensor bias), errors and
+    flags print times and levels with the digits that tell them apart (``%g`` printed both
+    times below as 1.7e+09 and the band as [6.45e+04, 6.45e+04])."""
+    t, y = _series()
+    t, y = 600.0 * t + 1.7e9, y + 64_000.0
+    late = r"at = 1700000600 is before the last observation 1700329400"
+    with pytest.raises(ValueError, match=late):
+        prognose(y, 64_003.0, time=t, at=1.7e9 + 600.0)
+    with pytest.raises(ValueError) as err:
+        prognose(y, 64_001.05, time=t)
+    thr, lo, hi = (float(v) for v in re.findall(r"[-\d.]+(?=[],\s])", str(err.value))[:3])
+    assert "inside the healthy band" in str(err.value) and lo < thr < hi
+    assert (lo, hi) == pytest.approx((64_000.8, 64_001.2), abs=1e-3)
+    # a series that settles below its healthy band, away from the threshold above it
+    g = torch.arange(400, dtype=F64)
+    z = PHI + 0.05 * (-1.0) ** g
+    z = torch.where(g >= 200, z - 0.3 * ((g - 200) / 50).clamp(max=1.0), z) + 64_000.0
+    res = prognose(z, 64_000.0 + PHI + 0.5, time=600.0 * g + 1.7e9)
+    (flag,) = [f for f in res.flags if "left its healthy band below it" in f]
+    assert re.search(r"below it at 17001\d{5}, away", flag)
 
 
 def test_an_excursion_away_from_the_threshold_is_refused_only_when_it_is_as_far():

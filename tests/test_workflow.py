@@ -115,6 +115,9 @@ def test_load_series_gaps_fill_and_errors(tmp_path):
     _write_csv(path, ("t", "x"), [(0, 1.0), (2, 2.0), (1, 3.0)])
     with pytest.raises(ValueError, match=r"line 4: time column 't' must be strictly increasing"):
         load_series(path, "x", time_column="t")
+    _write_csv(path, ("t", "x"), [(1700021180, 1.0), (1700024780, 2.0), (1700017580, 3.0)])
+    with pytest.raises(ValueError, match=r"increasing \(1700017580 follows 1700024780\)"):
+        load_series(path, "x", time_column="t")  # Unix seconds: %g printed 1.70002e+09 twice
     _write_csv(path, ("t", "ch", "x"), [(0, 1, 1.0), (0, 2, 1.1), (1, 1, 3.0), (1, 2, 3.1)])
     with pytest.raises(ValueError, match=r"\(0 follows 0\); a repeated time: .* --where COL="):
         load_series(path, "x", time_column="t")  # a long table: two channels in one file

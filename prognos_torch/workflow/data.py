@@ -28,6 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._text import fmt_time
 from ..core.validation import check_real
 from ..io import sniffed_csv
 
@@ -456,8 +457,8 @@ def _finish(values, time, name, time_name, unit, start, source, lines=None) -> S
                     "--where COL=VALUE (where={COL: VALUE} in load_series)"
                 )
             raise ValueError(
-                f"{prefix}{where}: {what} must be strictly increasing ({time[i + 1]:g} follows "
-                f"{time[i]:g}){hint}"
+                f"{prefix}{where}: {what} must be strictly increasing ({fmt_time(time[i + 1])} "
+                f"follows {fmt_time(time[i])}){hint}"
             )
     return Series(
         values=torch.as_tensor(values, dtype=torch.float64).clone(),

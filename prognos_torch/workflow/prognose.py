@@ -91,6 +91,7 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
+from .._text import fmt_level, fmt_time
 from ..core.validation import check_real, has_missing
 from ..filters import FILTERS, GaussianFilter
 from ..prognosis.backtest import (
@@ -286,7 +287,7 @@ def _glitch_flags(base: Baseline, screened: Baseline) -> list[str]:
     return [
         f"glitches in the healthy window: {n} isolated value{'s' * (n > 1)} more than "
         f"{GLITCH_SCREEN:g} noise std from {'their' if n > 1 else 'its'} neighbours (first at "
-        f"t = {screened.glitches[0]:g}) widen{'s' * (n == 1)} the healthy band {base.std / screened.std:.1f} "
+        f"t = {fmt_time(screened.glitches[0])}) widen{'s' * (n == 1)} the healthy band {base.std / screened.std:.1f} "
         f"times (std {base.std:.4g}, {screened.std:.4g} without them), which can delay the "
         f"onset; glitch_limit={GLITCH_SCREEN:g} (--glitch-limit) leaves them out"
     ]
@@ -298,7 +299,7 @@ def _baseline_flags(base: Baseline) -> list[str]:
         n = len(base.glitches)
         out.append(
             f"glitches left out of the healthy window: {n} isolated value{'s' * (n > 1)} "
-            f"(first at t = {base.glitches[0]:g})"
+            f"(first at t = {fmt_time(base.glitches[0])})"
         )
     if base.resolution is None:
         return out
@@ -366,17 +367,17 @@ def _beyond_the_data(
     return out
 
 
-def _onset_pending(medians: Tensor, limit: float, sign: float) -> list[str]:
+def _onset_pending(medians: Tensor, limit: float, sign: float, spread: float) -> list[str]:
     """Before onset: the newest 5-value medians (oriented) above the onset limit, fewer than
-    the 5 in a row that declare onset."""
+    the 5 in a row that declare onset (``spread``: the healthy std, for the digits printed)."""
     above = (medians >= limit).flip(0).to(torch.int64)
     run = int(above.cumprod(0).sum())
     if run == 0:
         return []
     return [
         f"onset pending: the last {run} median(s) of 5 values lie beyond the onset limit "
-        f"{sign * limit:.4g} (healthy mean -+ {_K:g} std); onset is declared after 5 in a row, "
-        "so a degradation may be starting and the bound may not hold"
+        f"{fmt_level(sign * limit, spread)} (healthy mean -+ {_K:g} std); onset is declared "
+        "after 5 in a row, so a degradation may be starting and the bound may not hold"
     ]
 
 
@@ -385,10 +386,14 @@ def _side(thr: float, direction: str, base: Baseline) -> str:
     """``"above"`` or ``"below"``: the side of the healthy band ``mean -+ 4 std`` that the
     threshold must lie on (``"auto"``: the side it is on; inside the band it is refused)."""
     lo_band, hi_band = base.mean - _K * base.std, base.mean + _K * base.std
+
+    def lv(v: float) -> str:  # digits that resolve the band
+        return fmt_level(v, base.std)
+
     if direction == "auto":
         if lo_band <= thr <= hi_band:
             raise ValueError(
-                f"threshold {thr:g} lies inside the healthy band [{lo_band:.4g}, {hi_band:.4g}] "
+                f"threshold {lv(thr)} lies inside the healthy band [{lv(lo_band)}, {lv(hi_band)}] "
                 f"(baseline mean -+ {_K:g} std): the healthy asset would already count as failed"
             )
         direction = "above" if thr > hi_band else "below"
@@ -396,8 +401,8 @@ def _side(thr: float, direction: str, base: Baseline) -> str:
         side = "above" if direction == "above" else "below"
         edge = hi_band if direction == "above" else lo_band
         raise ValueError(
-            f"threshold {thr:g} is on the wrong side for direction {direction!r}: it must lie "
-            f"{side} the healthy band edge {edge:.4g} (baseline mean {base.mean:.4g}, std "
+            f"threshold {lv(thr)} is on the wrong side for direction {direction!r}: it must lie "
+            f"{side} the healthy band edge {lv(edge)} (baseline mean {lv(base.mean)}, std "
             f"{base.std:.4g})"
         )
     return direction
@@ -420,16 +425,16 @@ def _away_from_threshold(
         gone, dist = sign * base.mean - float(low), sign * (thr - base.mean)
         if gone >= dist:
             raise ValueError(
-                f"threshold {thr:g} is {direction} the healthy band, but the series left "
-                f"the band {other} it (onset at {away.time:g}, last value "
-                f"{float(x[-1]):.4g}; its median moved {gone:.4g} from the healthy mean "
-                f"{base.mean:.4g}, the threshold lies {dist:.4g} on the other side): the "
+                f"threshold {fmt_level(thr, base.std)} is {direction} the healthy band, but the series "
+                f"left the band {other} it (onset at {fmt_time(away.time)}, last value "
+                f"{fmt_level(float(x[-1]), base.std)}; its median moved {gone:.4g} from the "
+                f"healthy mean {fmt_level(base.mean, base.std)}, the threshold lies {dist:.4g} on the other side): the "
                 f"threshold looks to be on the wrong side; set direction={direction!r} "
                 f"(--direction {direction} on the command line) to predict a crossing on that "
                 "side regardless"
             )
         return [
-            f"the series left its healthy band {other} it at {away.time:g}, away from the "
+            f"the series left its healthy band {other} it at {fmt_time(away.time)}, away from the "
             f"threshold (its median moved {gone:.4g} from the healthy mean, the threshold "
             f"lies {dist:.4g} on the other side): read as a drift of the healthy level; if "
             f"failure is an excursion {other} the band, the threshold is on the wrong side"
@@ -620,7 +625,9 @@ def prognose(
     t_last = float(t[-1])
     t_eval = t_last if at is None else time_value(at, src.start if src else None, "at")
     if t_eval < t_last:
-        raise ValueError(f"at = {t_eval:g} is before the last observation {t_last:g}")
+        raise ValueError(
+            f"at = {fmt_time(t_eval)} is before the last observation {fmt_time(t_last)}"
+        )
     if isinstance(baseline, Baseline):
         if glitch_limit is not None:
             raise ValueError(
@@ -638,8 +645,8 @@ def prognose(
     now = float(medians[-1])
     if now >= thr_o:
         raise ValueError(
-            f"threshold {thr:g} already reached: the median of the last 5 values is "
-            f"{sign * now:.4g} (direction {direction!r}); the RUL is 0"
+            f"threshold {fmt_level(thr, base.std)} already reached: the median of the last 5 "
+            f"values is {fmt_level(sign * now, base.std)} (direction {direction!r}); the RUL is 0"
         )
     flags = _baseline_flags(base)
     if not isinstance(baseline, Baseline) and glitch_limit is None:
@@ -648,7 +655,7 @@ def prognose(
     over = torch.nonzero(medians >= thr_o).flatten()
     if over.numel():  # (the newest median is below it: checked above)
         flags.append(
-            f"the median of 5 values already reached the threshold at {float(t[over[0]]):g} "
+            f"the median of 5 values already reached the threshold at {fmt_time(float(t[over[0]]))} "
             f"and fell back ({over.numel()} such medians): the asset may already count as "
             "failed; the RUL is that of a new crossing"
         )
@@ -670,7 +677,7 @@ def prognose(
 
     reported = _on_input(ons, keep)
     if not ons.detected:
-        flags += _onset_pending(medians, sign * base.mean + _K * base.std, sign)
+        flags += _onset_pending(medians, sign * base.mean + _K * base.std, sign, base.std)
         return _no_degradation(t, yo, thr_o, sign, base, reported, gen, t_eval, span_life,
                                dt_data, filters[0], flags, common)  # fmt: skip
 
@@ -709,11 +716,11 @@ def prognose(
         flags.append(
             f"{int((~alive).sum())} of {alive.numel()} paths ({100 * (1 - p_alive):.2g} %) "
             "crossed before the evaluation time "
-            f"{t_eval:g}; the RUL is conditioned on the asset still running then"
+            f"{fmt_time(t_eval)}; the RUL is conditioned on the asset still running then"
         )
     if p_alive == 0.0:
         raise ValueError(
-            f"every predicted path crossed the threshold before at = {t_eval:g}: the model says "
+            f"every predicted path crossed the threshold before at = {fmt_time(t_eval)}: the model says "
             "the asset has already failed; evaluate at the last observation instead"
         )
     censored = float(dist.censored_mass)
