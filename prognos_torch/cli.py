@@ -168,6 +168,12 @@ def _add_data_options(p) -> None:
     g.add_argument(
         "--fill", metavar="linear|drop", help="handle missing values: interpolate or drop rows"
     )
+    g.add_argument(
+        "--decimal",
+        choices=(".", ","),
+        help="the CSV's decimal mark (default: the model's, else '.'); ',' reads 0,25 as 0.25 "
+        "(tables with a ';' or tab delimiter from European locales)",
+    )
 
 
 def _add_fit(sub) -> None:
@@ -469,6 +475,7 @@ def _series_from_args(args, data_cfg: dict | None = None, *, truth: bool = False
     time_column = args.time_column or cfg.get("time_column")
     where = parse_where(args.where if args.where else cfg.get("where") or None)
     fill = args.fill if args.fill is not None else cfg.get("fill")
+    decimal = args.decimal or cfg.get("decimal") or "."
     series = load_series(
         args.data,
         column,
@@ -477,8 +484,11 @@ def _series_from_args(args, data_cfg: dict | None = None, *, truth: bool = False
         fill=fill,
         last=None if truth else args.last,
         until=None if truth else args.until,
+        decimal=decimal,
     )
     used = {"column": series.name, "time_column": time_column, "where": where, "fill": fill}
+    if decimal != ".":  # model files of point-decimal data stay as they were
+        used["decimal"] = decimal
     return series, used
 
 

@@ -115,6 +115,21 @@ def test_load_series_gaps_fill_and_errors(tmp_path):
     _write_csv(path, ("t", "x"), [(0, 1.0), (2, 2.0), (1, 3.0)])
     with pytest.raises(ValueError, match=r"line 4: time column 't' must be strictly increasing"):
         load_series(path, "x", time_column="t")
+    path.write_text("t;ch;x\n0,5;1;1,25\n1,5;2;9\n2,5;1;2,5\n3,5;1;\n")  # decimal commas
+    eu = load_series(path, "x", time_column="t", where={"ch": "1,0"}, decimal=",", fill="drop")
+    np.testing.assert_array_equal(eu.values.numpy(), [1.25, 2.5])
+    np.testing.assert_array_equal(eu.time.numpy(), [0.5, 2.5])
+    with pytest.raises(ValueError, match=r"line 2: time column 't' value '0,5' is not a number; "
+                       r"a decimal comma\? pass decimal=','"):  # fmt: skip
+        load_series(path, "x", time_column="t")
+    path.write_text("t;x\n1;1,5\n2;1.500\n")  # a point with decimal=',': a thousands mark
+    with pytest.raises(ValueError, match=r"line 3: column 'x' value '1.500' is not a number "
+                       r"with decimal=','"):  # fmt: skip
+        load_series(path, "x", decimal=",")
+    with pytest.raises(ValueError, match="decimal must be '.' or ','"):
+        load_series(path, "x", decimal=";")
+    with pytest.raises(ValueError, match="decimal apply to CSV files"):
+        load_series([1.0, 2.0], decimal=",")
     _write_csv(path, ("t", "x"), [(1700021180, 1.0), (1700024780, 2.0), (1700017580, 3.0)])
     with pytest.raises(ValueError, match=r"increasing \(1700017580 follows 1700024780\)"):
         load_series(path, "x", time_column="t")  # Unix seconds: %g printed 1.70002e+09 twice

@@ -243,6 +243,28 @@ def test_cli_fill_censored_rul_and_help(tmp_path, capsys):
         assert example in capsys.readouterr().out
 
 
+def test_cli_reads_decimal_commas_and_the_model_keeps_the_mark(tmp_path, capsys):
+    """A ';'-delimited table with decimal commas (as European locales write it) gives, with
+    --decimal ',', the forecast of the same table written with points; the model file keeps
+    the mark, so forecast needs no option; without it the error names the option."""
+    point, comma = tmp_path / "point.csv", tmp_path / "comma.csv"
+    _make_csv(point)
+    rows = [r.split(",") for r in point.read_text().splitlines()]
+    comma.write_text("".join(";".join(c.replace(".", ",") for c in r) + "\n" for r in rows))
+    base = ["--column", "vibration", "--time-column", "hours", "--learner", "elm", "-m", "3"]
+    forecasts = []
+    for data, mark in ((point, []), (comma, ["--decimal", ","])):
+        model, fc = tmp_path / f"{data.stem}.pt", tmp_path / f"{data.stem}_fc.csv"
+        assert main(["fit", str(data), *base, *mark, "--out", str(model)]) == 0
+        assert main(["forecast", str(model), str(data), "--horizon", "5", "--csv", str(fc)]) == 0
+        forecasts.append(fc.read_bytes())
+    assert forecasts[0] == forecasts[1]
+    capsys.readouterr()
+    assert main(["fit", str(comma), *base, "--out", str(tmp_path / "x.pt")]) == 2
+    _one_error_line(capsys, "is not a number; a decimal comma? pass decimal=',' (--decimal ,")
+    assert not (tmp_path / "x.pt").exists()
+
+
 def _zoned_csv(path: Path, zone: str) -> Path:
     rows = ["ts,rms"]
     for i in range(60):

@@ -113,22 +113,56 @@ def parse_where(where) -> dict[str, str]:
     return out
 
 
-def _cells_equal(cell: str, value: str) -> bool:
+def _cells_equal(cell: str, value: str, decimal: str = ".") -> bool:
     cell = cell.strip()
     if cell == value:
         return True
     try:
-        return float(cell) == float(value)
+        return float(_number_text(cell, decimal)) == float(_number_text(value, decimal))
     except ValueError:
         return False
 
 
-def _parse_number(cell: str) -> float | None:
+def _number_text(cell: str, decimal: str) -> str:
+    """``cell`` stripped, its decimal comma made a point (``decimal=","``). With a decimal comma
+    a point is refused: it would be a thousands separator there (``1.234,5``), which is not
+    read silently as a decimal point."""
+    text = cell.strip()
+    if decimal == ",":
+        if "." in text:
+            raise ValueError(f"{text!r} has a '.' but decimal=','")
+        text = text.replace(",", ".")
+    return text
+
+
+def _decimal_comma(text: str, decimal: str) -> bool:
+    """Whether ``text``, unreadable with a decimal point, reads as a number with a comma."""
+    if decimal != "." or "," not in text:
+        return False
+    try:
+        float(text.strip().replace(",", "."))
+    except ValueError:
+        return False
+    return True
+
+
+def _not_a_number(where: str, what: str, cell: str, decimal: str) -> ValueError:
+    """The error for an unparsable numeric cell; a hint when it reads as a decimal comma."""
+    text = cell.strip()
+    hint = ""
+    if _decimal_comma(text, decimal):
+        hint = "; a decimal comma? pass decimal=',' (--decimal , on the command line)"
+    elif decimal == "," and "." in text:
+        hint = " with decimal=',' (a '.' there would be a thousands separator)"
+    return ValueError(f"{where}: {what} value {text!r} is not a number{hint}")
+
+
+def _parse_number(cell: str, decimal: str = ".") -> float | None:
     """A float, ``None`` for a missing cell; ``ValueError`` for anything else."""
     text = cell.strip()
     if text.lower() in _MISSING:
         return None
-    value = float(text)  # raises ValueError for non-numbers
+    value = float(_number_text(text, decimal))  # raises ValueError for non-numbers
     if math.isnan(value):
         return None
     return value
@@ -272,16 +306,16 @@ def check_unique_columns(header: Sequence, names: Sequence, source: str) -> None
             )
 
 
-def _parse_time(cells: list[str], lines: list[int], path: str, col: str):
+def _parse_time(cells: list[str], lines: list[int], path: str, col: str, decimal: str = "."):
     """Numbers, or ISO 8601 date-times -> days since the first row."""
     numeric = []
     for cell, line in zip(cells, lines):
         try:
-            numeric.append(float(cell))
+            numeric.append(float(_number_text(cell, decimal)))
         except ValueError:
             if numeric:  # numbers first, then something else
-                raise ValueError(
-                    f"{path}, line {line}: time column {col!r} value {cell!r} is not a number"
+                raise _not_a_number(
+                    f"{path}, line {line}", f"time column {col!r}", cell, decimal
                 ) from None
             break
     else:
@@ -293,6 +327,9 @@ def _parse_time(cells: list[str], lines: list[int], path: str, col: str):
         try:
             stamps.append(datetime_ns(cell))
         except ValueError as exc:
+            if _decimal_comma(cell, decimal):  # a number with a decimal comma, not a date
+                where = f"{path}, line {line}"
+                raise _not_a_number(where, f"time column {col!r}", cell, decimal) from None
             raise ValueError(
                 f"{path}, line {line}: time column {col!r} value {cell!r} is neither a number "
                 f"nor an ISO 8601 date-time in 1678-2262 ({exc})"
@@ -312,7 +349,8 @@ def _fill(values: np.ndarray, time: np.ndarray | None, where: list, fill, lines,
     if fill is None:
         raise ValueError(
             f"{label} has {len(bad)} missing value(s) at {where[0]} {_lines(bad)}; pass "
-            "fill='linear' (interpolate) or fill='drop' (remove those rows)"
+            "fill='linear' (interpolate) or fill='drop' (remove those rows); --fill linear or "
+            "--fill drop on the command line"
         )
     if fill == "drop":
         keep = ~missing
@@ -323,7 +361,7 @@ def _fill(values: np.ndarray, time: np.ndarray | None, where: list, fill, lines,
         end = "start" if missing[0] else "end"
         raise ValueError(
             f"{label} has missing value(s) at the {end} ({where[0]} {_lines(bad)}) that "
-            "cannot be interpolated; use fill='drop'"
+            "cannot be interpolated; use fill='drop' (--fill drop)"
         )
     x = time if time is not None else np.arange(values.shape[0], dtype=np.float64)
     out = values.copy()
@@ -343,6 +381,7 @@ def load_series(
     until: float | str | None = None,
     name: str | None = None,
     time_unit: str | None = None,
+    decimal: str = ".",
 ) -> Series:
     """Load a univariate series from a CSV column or an array.
 
@@ -365,6 +404,10 @@ def load_series(
         until: keep only rows with time ``<= until`` (needs a time): a number in the series'
             time unit (days for date-times, measured from the first row) or an ISO 8601
             date-time. Backtesting: forecast from a past origin and compare with what followed.
+        decimal: the CSV's decimal mark, ``"."`` or ``","`` (``0,25``: tables written with a
+            ``;`` or tab delimiter in many European locales); it applies to the value column,
+            a numeric time column and numeric ``where`` values. With ``","`` a cell holding a
+            point is refused (a thousands separator there, never read as a decimal point).
 
     Returns:
         :class:`Series` (float64 values, time if given).
@@ -377,6 +420,8 @@ def load_series(
     """
     if fill is not None and fill not in FILL_METHODS:
         raise ValueError(f"fill must be None, 'linear' or 'drop', got {fill!r}")
+    if decimal not in (".", ","):
+        raise ValueError(f"decimal must be '.' or ',', got {decimal!r}")
     if last is not None and (isinstance(last, bool) or not isinstance(last, int) or last < 1):
         raise ValueError(f"last must be a positive int, got {last!r}")
     pandas_like = hasattr(source, "to_numpy")
@@ -390,9 +435,11 @@ def load_series(
     if isinstance(source, (str, os.PathLike)):
         if name is not None or time_unit is not None:
             raise ValueError("name and time_unit apply to arrays; a CSV series takes its names")
-        return _load_csv(Path(source), column, time_column, parse_where(where), fill, last, until)
-    if column is not None or time_column is not None or where is not None:
-        raise ValueError("column, time_column and where apply to CSV files, not to arrays")
+        return _load_csv(
+            Path(source), column, time_column, parse_where(where), fill, last, until, decimal
+        )
+    if column is not None or time_column is not None or where is not None or decimal != ".":
+        raise ValueError("column, time_column, where and decimal apply to CSV files, not to arrays")
     for arg, v in (("name", name), ("time_unit", time_unit)):
         if v is not None and (not isinstance(v, str) or not v):
             raise ValueError(f"{arg} must be a non-empty string, got {v!r}")
@@ -507,7 +554,7 @@ def time_value(v, start: str | None, name: str) -> float:
     return float((stamp - datetime_ns(start)) / np.timedelta64(1, "D"))
 
 
-def _load_csv(path, column, time_column, where, fill, last, until) -> Series:
+def _load_csv(path, column, time_column, where, fill, last, until, decimal) -> Series:
     header, rows = _read_csv(path)
     index = {name: j for j, name in enumerate(header)}
     for col, what in [(time_column, "time column")] + [(c, "where column") for c in where]:
@@ -533,7 +580,7 @@ def _load_csv(path, column, time_column, where, fill, last, until) -> Series:
             continue  # blank line
         if len(row) != len(header):
             raise ValueError(f"{path}, line {line}: {len(row)} cells, header has {len(header)}")
-        if not all(_cells_equal(row[k], v) for k, v in wj):
+        if not all(_cells_equal(row[k], v, decimal) for k, v in wj):
             continue
         cells.append(row[j])
         tcells.append(row[jt] if jt is not None else None)
@@ -548,7 +595,7 @@ def _load_csv(path, column, time_column, where, fill, last, until) -> Series:
             raise ValueError(
                 f"{path}: time column {time_column!r} is empty at line(s) {_lines(empty)}"
             )
-        time, unit, start = _parse_time(tcells, lines, str(path), time_column)
+        time, unit, start = _parse_time(tcells, lines, str(path), time_column, decimal)
     if until is not None:
         if time is None:
             raise ValueError("until needs a time column (time_column=...)")
@@ -565,10 +612,10 @@ def _load_csv(path, column, time_column, where, fill, last, until) -> Series:
     values = np.empty(len(cells), dtype=np.float64)
     for i, (cell, line) in enumerate(zip(cells, lines)):
         try:
-            v = _parse_number(cell)
+            v = _parse_number(cell, decimal)
         except ValueError:
-            raise ValueError(
-                f"{path}, line {line}: column {column!r} value {cell.strip()!r} is not a number"
+            raise _not_a_number(
+                f"{path}, line {line}", f"column {column!r}", cell, decimal
             ) from None
         if v is not None and not math.isfinite(v):
             raise ValueError(f"{path}, line {line}: column {column!r} value {cell!r} is infinite")
