@@ -102,6 +102,7 @@ def load_histories(args, series):
             group_by=args.calibrate_group,
             column=args.column,
             time_column=args.time_column,
+            decimal=args.decimal or ".",
         )
     except ValueError as exc:
         msg = str(exc).replace("(--group-by)", "(--calibrate-group)")

@@ -237,6 +237,40 @@ def test_csv_mapping_dataframe_and_parquet_give_the_same_table(tmp_path, fleet):
             np.testing.assert_array_equal(np.array(back[c], dtype=float), ref.columns[c])
 
 
+def test_a_csv_with_decimal_commas_gives_the_same_fleet_with_decimal_comma(tmp_path, fleet):
+    """The fleet table written with ';' and decimal commas reads, with decimal=',', as the
+    same table; without it the error says why; a point there is refused, not read."""
+    cols = {"asset": list(fleet.table["asset"]), "t": list(fleet.table["t"]),
+            "value": list(fleet.table["value"])}  # fmt: skip
+    write_table(tmp_path / "f.csv", cols)
+    rows = (tmp_path / "f.csv").read_text().splitlines()
+    eu = tmp_path / "eu.csv"
+    eu.write_text("".join(r.replace(",", ";").replace(".", ",") + "\n" for r in rows))
+    ref, got = read_fleet_table(tmp_path / "f.csv"), read_fleet_table(eu, decimal=",")
+    assert got.assets == ref.assets and not got.errors
+    for x, y in zip(got.times + got.values, ref.times + ref.values):
+        np.testing.assert_array_equal(x, y)
+    with pytest.raises(ValueError, match=r"is not a number; a decimal comma\? pass decimal=','"):
+        read_fleet_table(eu)
+    lines = eu.read_text().splitlines()
+    head, first = lines[0].split(";"), lines[1].split(";")
+    first[head.index("value")] = "1.500"  # a point where the comma is the decimal mark
+    (tmp_path / "dot.csv").write_text("\n".join([lines[0], ";".join(first), *lines[2:]]) + "\n")
+    with pytest.raises(ValueError, match=r"row 1 \(line 2\): value '1.500' .* is not a number "
+                       r"with decimal=','"):  # fmt: skip
+        read_fleet_table(tmp_path / "dot.csv", decimal=",")
+    flagged = read_fleet_table(tmp_path / "dot.csv", decimal=",", on_error="flag")
+    assert list(flagged.errors) == [ref.assets[0]] and "1.500" in flagged.errors[ref.assets[0]]
+    # the command line: the same result file from either table
+    outs = []
+    for table, mark in ((tmp_path / "f.csv", []), (eu, ["--decimal", ","])):
+        out = tmp_path / f"{table.stem}_rul.csv"
+        argv = ["rul", str(table), "--group-by", "asset", "--threshold", "20", "--samples", "50"]
+        assert cli_main([*argv, *mark, "--no-progress", "--out", str(out)]) == 0
+        outs.append(out.read_bytes())
+    assert outs[0] == outs[1]
+
+
 def read_back(path):
     if path.suffix == ".csv":
         import csv

@@ -59,6 +59,7 @@ def calibrate_fleet(
     fractions: tuple[float, ...] = PROTOCOL_FRACTIONS,
     seed: int = 0,
     method: str = "exponential",
+    decimal: str = ".",
     **options,
 ) -> tuple[RULCalibration, dict[str, list]]:
     """Conformal calibration of :func:`~prognos_torch.fleet.fleet_rul`'s 90 % intervals.
@@ -77,6 +78,7 @@ def calibrate_fleet(
             bin's 90 % margin at its 10th-largest miss).
         fractions: prediction times as fractions of [onset, end of life].
         seed, method, **options: ``fleet_rul``'s, to be used again for the live fleet.
+        decimal: a CSV table's decimal mark, ``"."`` or ``","``.
 
     Returns:
         ``(calibration, points)``: the :class:`~prognos_torch.prognosis.RULCalibration` (its
@@ -94,7 +96,9 @@ def calibrate_fleet(
     table = (
         source
         if isinstance(source, FleetTable)
-        else read_fleet_table(source, group_by=group_by, column=column, time_column=time_column)
+        else read_fleet_table(
+            source, group_by=group_by, column=column, time_column=time_column, decimal=decimal
+        )
     )
     if not table.assets:
         raise ValueError("the table of failed assets is empty")

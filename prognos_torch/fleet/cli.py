@@ -49,6 +49,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--group-by", required=True, help="asset id column")
     p.add_argument("--column", default="value", help="value column (default value)")
     p.add_argument("--time-column", default="t", help="time column (default t)")
+    p.add_argument(
+        "--decimal",
+        choices=(".", ","),
+        default=".",
+        help="decimal mark of CSV tables (default '.'; ',' reads 0,25 as 0.25)",
+    )
     p.add_argument("--threshold", type=float, required=True, help="failure threshold")
     p.add_argument("--direction", default="above", help="above (default) or below")
     p.add_argument(
@@ -121,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         # the live fleet and its failed assets are read and predicted alike
         same = dict(group_by=args.group_by, column=args.column, time_column=args.time_column,
-                    direction=args.direction, seed=args.seed)  # fmt: skip
+                    direction=args.direction, seed=args.seed, decimal=args.decimal)  # fmt: skip
         cal = None
         if args.calibrate is not None:
             try:

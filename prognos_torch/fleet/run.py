@@ -226,6 +226,7 @@ def fleet_rul(
     on_error: str = "raise",
     progress: bool = False,
     ray_init: Mapping | None = None,
+    decimal: str = ".",
     **options,
 ) -> FleetResult:
     """RUL for every asset of a long table (module docstring).
@@ -245,6 +246,8 @@ def fleet_rul(
             :mod:`prognos_torch.fleet.table`); too few rows are always only flagged.
         progress: progress bar over shards.
         ray_init: keyword arguments of ``ray.init`` when Ray is started here.
+        decimal: a CSV table's decimal mark, ``"."`` or ``","``
+            (:func:`~prognos_torch.fleet.read_fleet_table`).
         **options: the method's options (e.g. ``samples``, ``phi``, ``min_rows``).
     Returns:
         :class:`FleetResult`.
@@ -266,7 +269,12 @@ def fleet_rul(
         source
         if isinstance(source, FleetTable)
         else read_fleet_table(
-            source, group_by=group_by, column=column, time_column=time_column, on_error=on_error
+            source,
+            group_by=group_by,
+            column=column,
+            time_column=time_column,
+            on_error=on_error,
+            decimal=decimal,
         )
     )
     opts = dict(options, direction=direction, horizon=horizon)

@@ -13,6 +13,9 @@ after the header; a CSV message also gives the file line, blank lines skipped):
   missing or non-finite times are errors;
 * value: a number; empty cells and ``nan``/``NA``/``null``/``none``/``-`` are missing (NaN);
   anything else (text, ``inf``) is a *non-numeric value*;
+* a CSV read with ``decimal=","`` (``0,25``; ``--decimal ,``) has decimal commas in its value
+  and numeric time cells; a number written with a point there is refused (a thousands
+  separator in those locales), never read as a decimal point;
 * per asset, times must be strictly increasing in table order: an equal time is a *duplicate
   timestamp*, a smaller one *unsorted time*. Assets may be interleaved in the table.
 
@@ -35,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import atomic_write, sniffed_csv
-from ..workflow.data import check_unique_columns, datetime_ns, iso_start
+from ..workflow.data import check_unique_columns, datetime_ns, decimal_hint, iso_start
 
 __all__ = ["FleetTable", "read_fleet_table", "write_table", "TABLE_SUFFIXES"]
 
@@ -231,6 +234,9 @@ def _times(col, where):
             try:
                 stamps[i] = datetime_ns(str(c))
             except ValueError as exc:
+                comma = decimal_hint(str(c), ".")  # a number with a decimal comma?
+                if comma:
+                    raise ValueError(f"{where(i)}: time {c!r} is not a number{comma}") from None
                 raise ValueError(
                     f"{where(i)}: time {c!r} is neither a number nor an ISO 8601 date-time in "
                     f"1678-2262 ({exc}); a time column holds one or the other"
@@ -244,6 +250,32 @@ def _times(col, where):
     return days.astype(np.float64), "days", iso_start(_UNIX_EPOCH)
 
 
+def _comma_values(cells: list[str]) -> tuple[list[str], np.ndarray]:
+    """Value cells with decimal commas made points, and the positions of cells that hold a
+    point (refused: a thousands separator where the comma is the decimal mark)."""
+    dotted = [i for i, c in enumerate(cells) if "." in c]
+    return [c.replace(",", ".") for c in cells], np.asarray(dotted, dtype=np.int64)
+
+
+def _comma_times(cells: list[str], where) -> list[str]:
+    """Time cells with decimal commas made points; date-times are left as they are, and a
+    number written with a point is refused."""
+    out = []
+    for i, c in enumerate(cells):
+        try:
+            float(c)
+        except ValueError:
+            out.append(c.replace(",", ".") if "," in c else c)
+            continue
+        if "." in c:
+            raise ValueError(
+                f"{where(i)}: time {c.strip()!r} is not a number with decimal=',' (a '.' there "
+                "would be a thousands separator)"
+            )
+        out.append(c)
+    return out
+
+
 def read_fleet_table(
     source,
     *,
@@ -251,6 +283,7 @@ def read_fleet_table(
     column: str = "value",
     time_column: str = "t",
     on_error: str = "raise",
+    decimal: str = ".",
 ) -> FleetTable:
     """Read and validate a long table (module docstring) and group it by asset.
 
@@ -259,11 +292,15 @@ def read_fleet_table(
             name to a 1-D array (all of one length).
         group_by, column, time_column: the asset, value and time column names.
         on_error: ``"raise"`` (default) or ``"flag"`` (set the asset aside with its message).
+        decimal: a CSV's decimal mark, ``"."`` (default) or ``","`` (module docstring); Parquet,
+            DataFrames and mappings hold numbers, so it does not apply to them.
     Returns:
         :class:`FleetTable`.
     """
     if on_error not in ("raise", "flag"):
         raise ValueError(f"on_error must be 'raise' or 'flag', got {on_error!r}")
+    if decimal not in (".", ","):
+        raise ValueError(f"decimal must be '.' or ',', got {decimal!r}")
     names = (group_by, time_column, column)
     whats = ("asset (--group-by)", "time (--time-column)", "value (--column)")
     lines = None
@@ -324,8 +361,15 @@ def read_fleet_table(
     )
     names_in_order = list(index)
 
+    written, dotted = cols[2], np.empty(0, dtype=np.int64)
+    if decimal == "," and lines is not None:  # a CSV's commas made points (a point: refused)
+        cols[1] = _comma_times(cols[1], lambda i: where(i, asset[i]))
+        cols[2], dotted = _comma_values(cols[2])
     t, unit, epoch = _times(cols[1], lambda i: where(i, asset[i]))
     v, bad = _numbers(cols[2], "value")
+    if dotted.size:
+        v[dotted] = np.nan
+        bad = np.union1d(bad, dotted)
     errors: dict[str, str] = {}
 
     def fail(i: int, text: str) -> None:
@@ -336,7 +380,8 @@ def read_fleet_table(
         errors.setdefault(a, msg)
 
     for i in bad.tolist():
-        fail(i, f"value {cols[2][i]!r} in column {column!r} is not a number")
+        cell = str(written[i])  # as written in the table
+        fail(i, f"value {cell!r} in column {column!r} is not a number{decimal_hint(cell, decimal)}")
     order = np.argsort(code, kind="stable")
     co, to = code[order], t[order]
     same = co[1:] == co[:-1]

@@ -118,15 +118,15 @@ def _cells_equal(cell: str, value: str, decimal: str = ".") -> bool:
     if cell == value:
         return True
     try:
-        return float(_number_text(cell, decimal)) == float(_number_text(value, decimal))
+        return float(number_text(cell, decimal)) == float(number_text(value, decimal))
     except ValueError:
         return False
 
 
-def _number_text(cell: str, decimal: str) -> str:
+def number_text(cell: str, decimal: str) -> str:
     """``cell`` stripped, its decimal comma made a point (``decimal=","``). With a decimal comma
-    a point is refused: it would be a thousands separator there (``1.234,5``), which is not
-    read silently as a decimal point."""
+    a point is refused (``ValueError``): it would be a thousands separator there (``1.234,5``),
+    which is not read silently as a decimal point."""
     text = cell.strip()
     if decimal == ",":
         if "." in text:
@@ -146,15 +146,22 @@ def _decimal_comma(text: str, decimal: str) -> bool:
     return True
 
 
-def _not_a_number(where: str, what: str, cell: str, decimal: str) -> ValueError:
-    """The error for an unparsable numeric cell; a hint when it reads as a decimal comma."""
+def decimal_hint(cell: str, decimal: str) -> str:
+    """The end of a "... is not a number" message: why, where the decimal mark explains it."""
     text = cell.strip()
-    hint = ""
     if _decimal_comma(text, decimal):
-        hint = "; a decimal comma? pass decimal=',' (--decimal , on the command line)"
-    elif decimal == "," and "." in text:
-        hint = " with decimal=',' (a '.' there would be a thousands separator)"
-    return ValueError(f"{where}: {what} value {text!r} is not a number{hint}")
+        return "; a decimal comma? pass decimal=',' (--decimal , on the command line)"
+    if decimal == "," and "." in text:
+        return " with decimal=',' (a '.' there would be a thousands separator)"
+    return ""
+
+
+def _not_a_number(where: str, what: str, cell: str, decimal: str) -> ValueError:
+    """The error for an unparsable numeric cell."""
+    text = cell.strip()
+    return ValueError(
+        f"{where}: {what} value {text!r} is not a number{decimal_hint(text, decimal)}"
+    )
 
 
 def _parse_number(cell: str, decimal: str = ".") -> float | None:
@@ -162,7 +169,7 @@ def _parse_number(cell: str, decimal: str = ".") -> float | None:
     text = cell.strip()
     if text.lower() in _MISSING:
         return None
-    value = float(_number_text(text, decimal))  # raises ValueError for non-numbers
+    value = float(number_text(text, decimal))  # raises ValueError for non-numbers
     if math.isnan(value):
         return None
     return value
@@ -311,7 +318,7 @@ def _parse_time(cells: list[str], lines: list[int], path: str, col: str, decimal
     numeric = []
     for cell, line in zip(cells, lines):
         try:
-            numeric.append(float(_number_text(cell, decimal)))
+            numeric.append(float(number_text(cell, decimal)))
         except ValueError:
             if numeric:  # numbers first, then something else
                 raise _not_a_number(
