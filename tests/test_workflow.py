@@ -348,6 +348,19 @@ def test_prognosis_figure_looks_as_far_as_the_bulk_of_the_rul_not_its_tail(tmp_p
     assert (
         "no degradation detected yet, RUL > " in top.get_title() and "None" not in top.get_title()
     )
+    # workflow.plot_rul draws a prognose result as plot_prognosis does (before and after
+    # onset); the arguments swapped, or history on such a result, are refused
+    from prognos_torch.workflow import plot_rul
+
+    for res in (r, healthy):
+        plot_prognosis(tmp_path / "a.png", res, n_paths=20)  # plot_rul's n_paths
+        plot_rul(tmp_path / "b.png", res)
+        assert (tmp_path / "a.png").read_bytes() == (tmp_path / "b.png").read_bytes()
+    with pytest.raises(TypeError, match=r"got PosixPath; the call is plot_rul\(path, result\)"):
+        plot_rul(r, tmp_path / "x.png")
+    with pytest.raises(ValueError, match="history applies to rul"):
+        plot_rul(tmp_path / "x.png", r, history=50)
+    assert not (tmp_path / "x.png").exists()
 
 
 # --------------------------------------------------------------------------- model files

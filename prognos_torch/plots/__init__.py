@@ -18,6 +18,7 @@ Inputs may be tensors (any device) or array-likes.
   threshold, RUL pmf), a grid of them, and RUL trajectories against the alpha cone.
 """
 
+from ._arrays import time_label
 from .figures import (
     plot_alpha_lambda,
     plot_fading_factor,
@@ -38,7 +39,7 @@ from .lines import (
 from .panels import plot_panels
 from .prognosis import plot_prognosis, plot_prognosis_grid, plot_rul_trajectory
 from .rul import draw_paths, plot_paths, plot_rul_band, weighted_quantiles
-from .workflow import plot_forecast, plot_rul, time_label
+from .workflow import plot_forecast, plot_rul
 
 __all__ = [
     "plot_prediction",

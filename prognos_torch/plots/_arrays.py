@@ -1,4 +1,5 @@
-"""Plot inputs as float64 NumPy arrays, and the one way a figure reaches a file."""
+"""Plot inputs as float64 NumPy arrays, the label of a series' clock, and the one way a figure
+reaches a file."""
 
 from __future__ import annotations
 
@@ -11,6 +12,15 @@ import torch
 from matplotlib.figure import Figure
 
 from ..io import atomic_write
+
+
+def time_label(series) -> str:
+    """Axis label of a :class:`~prognos_torch.workflow.Series`' time."""
+    if series.time_unit == "days":
+        return f"days since {series.start}" if series.start else "days"
+    if series.time_unit == "steps":
+        return "step"
+    return series.time_unit
 
 
 def as_numpy(x) -> np.ndarray:

@@ -15,23 +15,24 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ._arrays import as_numpy, clip_for_drawing, write_png
+from ._arrays import as_numpy, clip_for_drawing, time_label, write_png
+from .prognosis import plot_prognosis
 from .rul import draw_paths
 
 if TYPE_CHECKING:  # annotations only: the workflow imports this module, not the reverse
     from ..workflow.data import Series
     from ..workflow.predict import ForecastResult, RULResult
 
-__all__ = ["plot_forecast", "plot_rul", "time_label"]
+__all__ = ["plot_forecast", "plot_rul"]
 
 
-def time_label(series: Series) -> str:
-    """Axis label of a series' time."""
-    if series.time_unit == "days":
-        return f"days since {series.start}" if series.start else "days"
-    if series.time_unit == "steps":
-        return "step"
-    return series.time_unit
+def _check_result(result, kind: str, attribute: str, name: str) -> None:
+    """A ``TypeError`` for a result of the wrong kind, e.g. the arguments swapped."""
+    if not hasattr(result, attribute) or not hasattr(result, "history"):
+        raise TypeError(
+            f"result must be a {kind}, got {type(result).__name__}; the call is "
+            f"{name}(path, result): the PNG path comes first"
+        )
 
 
 def _history_tail(series: Series, horizon: int, history: int | None) -> tuple:
@@ -59,6 +60,7 @@ def plot_forecast(
             of the horizon past the forecast's end.
         history: number of past values shown (default ``max(4 H, 200)``).
     """
+    _check_result(result, "ForecastResult", "lower", "plot_forecast")
     fig = Figure(figsize=(7.5, 4.0))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
@@ -100,7 +102,29 @@ def plot_rul(
     """Top: history, predicted paths (5-95 % band, median, a few paths) and the threshold;
     paths far beyond the data and the threshold (an exponential path can overflow to inf) are
     drawn clipped near them. Bottom: the RUL pmf (paper 002, Fig. 11-12), with the censored
-    mass stated."""
+    mass stated.
+
+    A result of :func:`~prognos_torch.workflow.prognose` (it carries an onset) is drawn by
+    :func:`~prognos_torch.plots.plot_prognosis` instead: the data from a little before onset,
+    the paths until the threshold and the pmf on the scale of its RUL (``history`` does not
+    apply there).
+
+    Args:
+        path: PNG file to write.
+        result: :func:`~prognos_torch.workflow.rul` or :func:`~prognos_torch.workflow.prognose`
+            output.
+        history: number of past values shown (``rul`` results; default ``max(4 H, 200)``).
+        n_paths: sample paths drawn.
+        title: figure title.
+    """
+    _check_result(result, "RULResult", "distribution", "plot_rul")
+    if result.onset is not None:  # a prognose result
+        if history is not None:
+            raise ValueError(
+                "history applies to rul() results; a prognose result is drawn from a little "
+                "before its onset (plot_prognosis)"
+            )
+        return plot_prognosis(path, result, n_paths=n_paths, title=title)
     fig = Figure(figsize=(7.5, 6.0))
     FigureCanvasAgg(fig)
     ax, bx = fig.add_subplot(2, 1, 1), fig.add_subplot(2, 1, 2)
