@@ -28,6 +28,14 @@ def _fmt(v, digits: int = 4) -> str:
     return str(v)
 
 
+def _rul_end(v, bound: float) -> str:
+    """A RUL quantile for the report; ``None`` (beyond the horizon: censored paths) reads as
+    ``> bound``, which is what is known of it (``inf`` for an infinite bound)."""
+    if v is not None:
+        return _fmt(v)
+    return "inf" if math.isinf(bound) else f"> {_fmt(bound)}"
+
+
 def within_probability(res, within: float, hint: str = "") -> float | None:
     """``res.failure_probability(within)`` for ``--within``, read before anything is printed;
     a refusal names the option and, for a span beyond the horizon, ends with ``hint``."""
@@ -149,7 +157,8 @@ def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[li
     """The ``calibrated 90 % interval`` row of ``prognos rul DATA --calibrate`` and its
     warnings (histories that gave no usable point); ``points`` ``None``: a calibration read
     from a file."""
-    s = cal.summary(res)["calibrated"]
+    full = cal.summary(res)
+    s = full["calibrated"]
     names = list(dict.fromkeys(p["name"] for p in points or ()))
     used = list(dict.fromkeys(p["name"] for p in points or () if "score" in p))
     src = (f"{cal.n} points from {len(used)} of {len(names)} histories" if points is not None
@@ -162,7 +171,9 @@ def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[li
     else:
         f = math.exp(abs(s["margin"]))
         note = f"split conformal on {src}; ends moved {'out' if s['margin'] >= 0 else 'in'} by a factor {f:.3g}"
-    text = f"[{_fmt(s['q05'])}, {_fmt(s['q95'])}]"
+    # an open end lies beyond the horizon moved by the margin (infinite: no margin yet)
+    beyond = full["bound"] * math.exp(s["margin"]) if math.isfinite(s["margin"]) else math.inf
+    text = f"[{_fmt(s['q05'])}, {_rul_end(s['q95'], beyond)}]"
     if s["q95"] is not None and s["q05"] > s["q95"]:  # narrowed past its width, as in CQR
         text = f"empty ({text} narrowed by the margin past its own width)"
     row = (f"calibrated 90 % interval ({unit})", f"{text} ({note})")
@@ -271,10 +282,11 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
             if scores
             else ""
         )
+        lo, hi = (_rul_end(s[k], s["bound"]) for k in ("q05", "q95"))
         rows += [
             ("trend model", chosen),
-            (f"median RUL ({unit})", _fmt(s["median"])),
-            (f"90 % interval ({unit})", f"[{_fmt(s['q05'])}, {_fmt(s['q95'])}]"),
+            (f"median RUL ({unit})", _rul_end(s["median"], s["bound"])),
+            (f"90 % interval ({unit})", f"[{lo}, {hi}]"),
             ("censored mass", f"{s['censored_mass']:.3f} (RUL > {_fmt(s['bound'])} {unit})"),
         ]
     else:

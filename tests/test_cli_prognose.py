@@ -47,7 +47,10 @@ def test_rul_from_the_ims_table_with_until(capsys, tmp_path):
     assert main(early) == 3
     cap = capsys.readouterr()
     assert cap.err.startswith("censored RUL: ") and cap.err.count("\n") == 1
-    assert re.search(r"median RUL \(days\)\s+n/a", cap.out)
+    # what is known of a median and a 95 % quantile beyond the horizon: that they are
+    bound = re.search(r"censored mass\s+0\.\d+ \(RUL > ([0-9.]+) days\)", cap.out).group(1)
+    assert re.search(rf"median RUL \(days\)\s+> {bound}\n", cap.out)
+    assert re.search(rf"90 % interval \(days\)\s+\[[0-9.]+, > {bound}\]", cap.out)
     assert (tmp_path / "early.png").stat().st_size > 0
     # a span beyond that censored horizon: one error line, nothing printed
     assert main(early + ["--within", "500"]) == 2
@@ -185,7 +188,7 @@ def test_calibrate_from_a_table_of_failed_assets(capsys, tmp_path):
     s = load_series(path, "value", time_column="t", until=until)
     res = prognose(s, pc.threshold, method="exponential", n_paths=400)
     c = cal.summary(res)["calibrated"]
-    hi = "n/a" if c["q95"] is None else f"{c['q95']:.4g}"
+    hi = f"> {res.bound * math.exp(c['margin']):.4g}" if c["q95"] is None else f"{c['q95']:.4g}"
     used = len({p["name"] for p in points if "score" in p})
     assert f"[{c['q05']:.4g}, {hi}] (split conformal on {cal.n} points from {used} of 3" in out
     # fewer histories than a 90 % margin needs at one point each: said, not hidden
