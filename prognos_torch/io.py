@@ -169,9 +169,15 @@ def sniffed_csv(path: Path, *, missing: str, not_a_file: str) -> Iterator:
                 dialect = csv.Sniffer().sniff(sample, delimiters=",;\t")
             except csv.Error:
                 dialect = csv.excel
-            yield csv.reader(handle, dialect)
-    except UnicodeDecodeError:
-        raise ValueError(f"{path}: not a UTF-8 text CSV file") from None
+            # a space after the delimiter is no part of the cell: 'a, "b"' holds a and b
+            yield csv.reader(handle, dialect, skipinitialspace=True)
+    except UnicodeDecodeError as exc:
+        bad = exc.object[exc.start : exc.start + 1]
+        raise ValueError(
+            f"{path}: not a UTF-8 text CSV file (the byte {bad!r} is not valid UTF-8 where it "
+            "stands; Latin-1 or Windows-1252 text?): save it as UTF-8 (in a spreadsheet: "
+            "'CSV UTF-8')"
+        ) from None
     except csv.Error as exc:
         raise ValueError(f"{path}: malformed CSV ({exc})") from None
 

@@ -115,6 +115,12 @@ def test_load_series_gaps_fill_and_errors(tmp_path):
     _write_csv(path, ("t", "x"), [(0, 1.0), (2, 2.0), (1, 3.0)])
     with pytest.raises(ValueError, match=r"line 4: time column 't' must be strictly increasing"):
         load_series(path, "x", time_column="t")
+    path.write_text('"t", "x"\n0, "1.5"\n1, 2.5\n')  # a space after the comma, then a quote
+    np.testing.assert_array_equal(load_series(path, "x", time_column="t").values, [1.5, 2.5])
+    path.write_bytes("t,x_\u00b5m\n0,1.5\n".encode("latin-1"))  # Windows' Latin-1 export
+    with pytest.raises(ValueError, match=r"not a UTF-8 text CSV file \(the byte b'\\xb5' .*"
+                       r"save it as UTF-8"):  # fmt: skip
+        load_series(path)
     path.write_text("t;ch;x\n0,5;1;1,25\n1,5;2;9\n2,5;1;2,5\n3,5;1;\n")  # decimal commas
     eu = load_series(path, "x", time_column="t", where={"ch": "1,0"}, decimal=",", fill="drop")
     np.testing.assert_array_equal(eu.values.numpy(), [1.25, 2.5])
