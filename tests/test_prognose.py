@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import re
 
+import numpy as np
 import pytest
 import torch
 
@@ -479,6 +480,36 @@ def test_messages_tell_unix_times_and_offset_levels_apart():
     assert re.search(r"below it at 17001\d{5}, away", flag)
 
 
+def test_iso_texts_as_time_are_date_times():
+    """Times as ISO 8601 texts (a CSV read without date parsing) give the RUL of the same
+    times as datetime64, zone designators applied; a text that is no date-time is named."""
+    t, y = _series(n=520, noise_after=0.05)
+    stamps = np.datetime64("2024-03-01T00:00:00") + (t.numpy() * 600).astype("timedelta64[s]")
+    ref = prognose(y, 3.0, time=stamps, method="exponential").summary()
+    texts = [str(s) for s in stamps]
+    zoned = [str(s - np.timedelta64(1, "h")) + "-01:00" for s in stamps]  # the same instants
+    for times in (texts, np.array(texts), zoned):
+        got = prognose(y, 3.0, time=times, method="exponential")
+        assert got.time_unit == "days" and got.summary()["median"] == ref["median"]
+    texts[7] = "yesterday"
+    with pytest.raises(ValueError, match=r"time\[7\] = 'yesterday' is not an ISO 8601 date-time"):
+        prognose(y, 3.0, time=texts)
+
+
+@pytest.mark.parametrize("bad", [None, 3.0, "0.5"])
+def test_a_series_or_time_that_is_no_array_is_a_type_error(bad):
+    with pytest.raises(
+        TypeError, match=f"series must be a 1-D array of numbers .* got {type(bad).__name__}"
+    ):
+        prognose(bad, 1.0)
+    if bad is None:
+        return  # (time=None: the position)
+    with pytest.raises(
+        TypeError, match=f"time must be a 1-D array of numbers .* got {type(bad).__name__}"
+    ):
+        prognose(torch.ones(20, dtype=F64), 2.0, time=bad)
+
+
 def test_an_excursion_away_from_the_threshold_is_refused_only_when_it_is_as_far():
     """A healthy level that settles 0.3 below its mean (a bearing's rms after run-in; its 5-value
     median, of alternating +-0.05, 0.35 below): with the threshold 0.5 above the mean that is a
@@ -530,8 +561,6 @@ def test_pandas_and_datetime_input_give_the_array_result():
     DatetimeIndex) are days since the first and durations (timedelta64, a pandas timedelta
     Series or TimedeltaIndex) are days, not nanoseconds: the RUL of the same data in days."""
     import warnings
-
-    import numpy as np
 
     pd = pytest.importorskip("pandas")
     t, y = _series(noise_after=0.05)
@@ -590,7 +619,6 @@ def test_explicit_direction_predicts_on_its_side_of_a_series_degrading_the_other
 def test_threshold_and_at_as_tensor_or_numpy_scalars():
     """A 0-dim tensor or a NumPy scalar is the number it holds (the same RUL to the last bit);
     a bool, a 1-element vector or a string is refused with the argument's name."""
-    import numpy as np
 
     t, y = _series(noise_after=0.05)
     ref = prognose(y[:480], 3.0, time=t[:480], method="exponential", at=480.0)

@@ -18,6 +18,7 @@ names the file, column and line):
 from __future__ import annotations
 
 import math
+import numbers
 import os
 import re
 from collections.abc import Mapping, Sequence
@@ -236,6 +237,11 @@ def array_values(v, name: str) -> np.ndarray:
     (missing). Raises ``TypeError`` naming ``name`` for anything else."""
     if isinstance(v, Tensor):
         return v.detach().to("cpu", torch.float64).numpy().copy()
+    if v is None or isinstance(v, (str, bytes, numbers.Number)):  # (NumPy: a 0-d array)
+        raise TypeError(
+            f"{name} must be a 1-D array of numbers (a tensor, a NumPy array, a pandas Series "
+            f"or a sequence), got {type(v).__name__} {v!r:.40}"
+        )
     if is_datetime(v) or is_duration(v):  # (pandas would give nanoseconds as numbers)
         raise TypeError(f"{name} must be numbers, got date-times or durations ({v.dtype})")
     try:
@@ -274,9 +280,40 @@ def pandas_name(v) -> str | None:
     return name if isinstance(name, str) and name else None
 
 
+def _iso_texts(v, name: str) -> np.ndarray | None:
+    """``datetime64[ns]`` (UTC) of a 1-D sequence of ISO 8601 texts (a list, an object or
+    string array, a pandas Series of text: date-times read from a CSV without parsing), or
+    ``None`` when ``v`` holds something else, numbers written as text included."""
+    if isinstance(v, Tensor):
+        return None
+    to_numpy = getattr(v, "to_numpy", None)
+    try:
+        arr = np.asarray(to_numpy() if to_numpy is not None else v, dtype=object)
+    except (TypeError, ValueError):
+        return None
+    if arr.ndim != 1 or arr.size == 0 or not all(isinstance(c, str) for c in arr.tolist()):
+        return None
+    try:
+        float(arr[0])
+        return None  # numbers as text: read as numbers
+    except ValueError:
+        pass
+    out = np.empty(arr.size, dtype="datetime64[ns]")
+    for i, c in enumerate(arr.tolist()):
+        try:
+            out[i] = datetime_ns(c)
+        except ValueError as exc:
+            raise ValueError(
+                f"{name}[{i}] = {c!r} is not an ISO 8601 date-time in 1678-2262 ({exc}), while "
+                f"{name}[0] = {arr[0]!r} is one"
+            ) from None
+    return out
+
+
 def array_times(v, name: str) -> tuple[np.ndarray, str | None, str | None]:
     """Times as float64: numbers as given (unit ``None``: the caller's), or date-times (NumPy
-    ``datetime64``, a pandas datetime Series or ``DatetimeIndex``; zone-aware ones in UTC) as
+    ``datetime64``, a pandas datetime Series or ``DatetimeIndex``, zone-aware ones in UTC;
+    ISO 8601 texts, with their zone designators applied) as
     days since the first, with the unit ``"days"`` and the first as ISO 8601 text, as the CSV
     reader gives them; durations (NumPy ``timedelta64``, pandas timedelta) in days, with the
     unit ``"days"`` and no start (read as plain numbers they would be nanoseconds)."""
@@ -286,15 +323,18 @@ def array_times(v, name: str) -> tuple[np.ndarray, str | None, str | None]:
             where = _lines([int(i) for i in np.flatnonzero(np.isnat(ns))])
             raise ValueError(f"{name} has missing durations (NaT) at index {where}")
         return (ns / np.timedelta64(1, "D")).astype(np.float64), "days", None
-    if not is_datetime(v):
-        return array_values(v, name), None, None
-    if getattr(v.dtype, "tz", None) is not None:  # pandas, zone-aware: to naive UTC
-        acc = getattr(v, "dt", None)
-        if acc is not None:  # a Series
-            v = acc.tz_convert("UTC").dt.tz_localize(None)
-        else:  # a DatetimeIndex
-            v = v.tz_convert("UTC").tz_localize(None)
-    ns = np.asarray(v).astype("datetime64[ns]")
+    if is_datetime(v):
+        if getattr(v.dtype, "tz", None) is not None:  # pandas, zone-aware: to naive UTC
+            acc = getattr(v, "dt", None)
+            if acc is not None:  # a Series
+                v = acc.tz_convert("UTC").dt.tz_localize(None)
+            else:  # a DatetimeIndex
+                v = v.tz_convert("UTC").tz_localize(None)
+        ns = np.asarray(v).astype("datetime64[ns]")
+    else:
+        ns = _iso_texts(v, name)
+        if ns is None:
+            return array_values(v, name), None, None
     if np.isnat(ns).any():
         where = _lines([int(i) for i in np.flatnonzero(np.isnat(ns))])
         raise ValueError(f"{name} has missing date-times (NaT) at index {where}")
@@ -399,7 +439,8 @@ def load_series(
             besides ``time_column`` and the ``where`` columns.
         time_column: optional time column (CSV): numbers or ISO 8601 date-times.
         time: optional ``(T,)`` time values for an array ``source``: numbers, or date-times
-            (NumPy ``datetime64``, pandas; zone-aware ones in UTC) as days since the first
+            (NumPy ``datetime64``, pandas; zone-aware ones in UTC; ISO 8601 texts, as a CSV
+            read without date parsing holds them) as days since the first
             (``time_unit`` ``"days"``), as from a CSV. A pandas Series on a ``DatetimeIndex``
             takes that index as its time.
         where: rows to keep, e.g. ``{"channel": "5"}`` or ``["channel=5"]`` (CSV).

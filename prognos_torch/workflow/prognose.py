@@ -542,8 +542,8 @@ def prognose(
             time) or a sequence.
         threshold: failure threshold in data units.
         time: ``(T,)`` strictly increasing times for array input (default: the position):
-            numbers, or date-times (NumPy ``datetime64``, pandas; zone-aware ones in UTC),
-            which become days since the first, so that the RUL is in days.
+            numbers, or date-times (NumPy ``datetime64``, pandas; zone-aware ones in UTC; ISO
+            8601 texts), which become days since the first, so that the RUL is in days.
         method: ``"auto"`` (the exponential + elm pool), ``"exponential"``, ``"power"``,
             ``"linear"`` or ``"elm"`` (:data:`PROGNOSE_METHODS`).
         seed: seeds the path draws, the backtest's draws (which choose each shape's noise)
