@@ -14,6 +14,7 @@ import torch
 from prognos_torch.cli import main as cli_main
 from prognos_torch.fleet import (
     METHODS,
+    MISFIT_P,
     OUTPUT_COLUMNS,
     RUL_COLUMNS,
     exponential_trend_rul,
@@ -158,6 +159,98 @@ def test_trend_posterior_equals_exact_bayesian_regression_and_kalman(fleet):
                 np.testing.assert_allclose(m, mb, rtol=1e-8, atol=1e-12)
             checked += 1
         assert checked > 30
+
+
+def _offset_fleet(n_assets, seed):
+    """Assets that rise from a healthy level ``mu`` with additive noise: ``y = mu + noise +
+    theta exp(beta (t - t_on))`` after onset (Gebraeel's model with ``phi = mu``), and the true
+    RUL at the last row (crossing of 1.0 by the noise-free path)."""
+    rng = np.random.default_rng(seed)
+    cols, rul = {"asset": [], "t": [], "value": []}, []
+    for j in range(n_assets):
+        n = int(rng.integers(300, 500))
+        t = np.arange(n, dtype=float)
+        on, mu = rng.uniform(0.35, 0.7) * n, rng.uniform(0.05, 0.2)
+        theta, beta = rng.uniform(0.005, 0.02), rng.uniform(2.0, 4.0) / (n - on)
+        rise = np.where(t >= on, theta * np.exp(beta * (t - on)), 0.0)
+        cols["asset"] += [f"b{j:03d}"] * n
+        cols["t"] += list(t)
+        cols["value"] += list(mu + rng.normal(0.0, 0.05 * mu, n) + rise)
+        rul.append(on + math.log((1.0 - mu) / theta) / beta - (n - 1))
+    return {k: np.asarray(v) for k, v in cols.items()}, np.asarray(rul)
+
+
+def test_baseline_phi_posterior_is_the_weighted_bayesian_regression():
+    """phi="baseline": z = log(y - mu_0) since onset with the delta-method noise sigma_0 / (y -
+    mu_0) per sample (values within sigma_0 of mu_0 missing), prior a ~ N(first usable z, 1):
+    the posterior mean and covariance are those of weighted Bayesian linear regression, and the
+    lack-of-fit p-value is the F test of its weighted residuals."""
+    from scipy.stats import f as f_dist
+
+    table, _ = _offset_fleet(12, seed=3)
+    tab = read_fleet_table(table)
+    batch = pad_batch(tab.assets, tab.times, tab.values, seed=0)
+    out = exponential_trend_rul(batch, 1.0, phi="baseline", samples=10, return_posterior=True)
+    checked = 0
+    for b in range(len(batch)):
+        i0 = int(out["onset_index"][b])
+        if i0 < 0:
+            continue
+        n = int(batch.lengths[b])
+        t, y = batch.times[b, :n].numpy(), batch.values[b, :n].numpy()
+        in_base = t <= t[0] + 0.3 * (t[n - 1] - t[0]) + 1e-12 * max(1.0, abs(t[n - 1]))
+        mu, s0 = y[in_base].mean(), y[in_base].std(ddof=1)
+        d = y[i0:] - mu
+        ok = d >= s0
+        tau = (t[i0:] - t[i0])[ok]
+        z, w = np.log(d[ok]), d[ok] ** 2 / s0**2  # 1 / var(z)
+        H = np.stack([np.ones_like(tau), tau], 1)
+        P0 = np.diag([1.0, 1.0 / np.median(np.diff(t)) ** 2])
+        A = np.linalg.inv(P0) + H.T @ (w[:, None] * H)
+        mb = np.linalg.solve(A, np.linalg.inv(P0) @ np.array([z[0], 0.0]) + H.T @ (w * z))
+        np.testing.assert_allclose(out["posterior_mean"][b].numpy(), mb, rtol=1e-8, atol=1e-12)
+        S = out["posterior_chol"][b].numpy()
+        np.testing.assert_allclose(S @ S.T, np.linalg.inv(A), rtol=1e-7, atol=1e-14)
+        r = z - H @ mb
+        F = (w * r * r).sum() / (z.size - 2)
+        p = f_dist.sf(F, z.size - 2, int(in_base.sum()) - 1)
+        assert float(out["misfit_p"][b]) == pytest.approx(p, rel=1e-6, abs=1e-300)
+        checked += 1
+    assert checked >= 8
+
+
+def test_trend_misfit_flag_holds_its_rate_on_the_model_and_finds_the_wrong_phi():
+    """On data from the model (the synthetic fleet: phi = 0, multiplicative noise) the
+    lack-of-fit p-values are uniform: below 0.05 at about 5 % of the assets, and the flag
+    (p < 1e-3) at about 0.1 %; with phi="baseline", which that data do not follow, it flags
+    nearly every asset."""
+    f = synthetic_fleet(400, 300, seed=1, healthy_fraction=0.0)
+    tab = read_fleet_table(f.table)
+    batch = pad_batch(tab.assets, tab.times, tab.values)
+    right = exponential_trend_rul(batch, f.threshold, samples=10, return_posterior=True)
+    p = right["misfit_p"].numpy()
+    p = p[np.isfinite(p)]
+    assert p.size > 350
+    assert 0.02 <= np.mean(p < 0.05) <= 0.08  # binomial sd 0.011 around 0.05
+    assert np.sum(p < MISFIT_P) <= 3  # expected 0.4
+    assert sum("trend_misfit" in fl for fl in right["flags"]) == np.sum(p < MISFIT_P)
+    wrong = exponential_trend_rul(batch, f.threshold, samples=10, phi="baseline")
+    assert np.mean(["trend_misfit" in fl for fl in wrong["flags"]]) > 0.9
+
+
+def test_an_indicator_with_a_healthy_level_needs_phi_baseline():
+    """Assets rising from a healthy level (Gebraeel's model with phi = that level): phi = 0
+    reads the slow start of log(y) as the trend and predicts late; phi="baseline" recovers the
+    RUL (median relative error 5 times smaller) and no longer errs late."""
+    table, rul = _offset_fleet(60, seed=5)
+    zero = fleet_rul(table, 1.0, samples=400)
+    base = fleet_rul(table, 1.0, samples=400, phi="baseline")
+    med0, medb = np.array(zero.columns["rul_median"]), np.array(base.columns["rul_median"])
+    ok = np.isfinite(med0) & np.isfinite(medb) & (rul > 0)
+    assert ok.sum() > 40
+    err0 = np.median(np.abs(med0[ok] / rul[ok] - 1.0))
+    errb = np.median(np.abs(medb[ok] / rul[ok] - 1.0))
+    assert np.median(med0[ok] / rul[ok]) > 1.3 and errb < err0 / 5
 
 
 def test_noiseless_exponential_rul_is_the_closed_form_crossing():

@@ -20,6 +20,7 @@ from .run import METHODS, OUTPUT_COLUMNS, FleetResult, fleet_rul, run_shard
 from .synthetic import SyntheticFleet, synthetic_fleet
 from .table import TABLE_SUFFIXES, FleetTable, read_fleet_table, write_table
 from .trend import (
+    MISFIT_P,
     RUL_COLUMNS,
     PaddedBatch,
     asset_seed,
@@ -32,6 +33,7 @@ __all__ = [
     "FleetResult",
     "FleetTable",
     "METHODS",
+    "MISFIT_P",
     "OUTPUT_COLUMNS",
     "PaddedBatch",
     "RUL_COLUMNS",

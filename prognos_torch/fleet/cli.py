@@ -27,9 +27,23 @@ message. The file is written atomically at the end: an interrupted run leaves no
 Flags: too_few_rows, no_baseline, no_onset (no degradation detected yet: no RUL number),
 threshold_on_healthy_side (the baseline already lies at or beyond the threshold: check
 --direction), threshold_reached, few_degraded_points, nonpositive_dropped, far_extrapolation,
-glitch_in_baseline (isolated values far off their neighbours widen the healthy band 1.5 times
+trend_misfit (the data since onset leave the exponential trend: its interval is too narrow;
+try --phi baseline or --method prognose), glitch_in_baseline (isolated values far off their neighbours widen the healthy band 1.5 times
 or more, which can delay the onset), bad_input.
 exit status: 0 success, 2 bad input (one line on stderr, nothing written), 130 interrupted."""
+
+
+def _phi(text: str) -> float | str:
+    """``--phi``: a finite number or ``baseline``."""
+    if text == "baseline":
+        return text
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a number or 'baseline', got {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"a finite number or 'baseline', got {text!r}")
+    return v
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -69,7 +83,11 @@ def build_parser() -> argparse.ArgumentParser:
         "per asset: trend models chosen by backtest; slower)",
     )
     p.add_argument(
-        "--phi", type=float, help="offset of the exponential model (default 0; exponential only)"
+        "--phi",
+        type=_phi,
+        help="offset of the exponential model: a number (default 0: growth from near zero) or "
+        "baseline (each asset's healthy mean: an indicator with a healthy level, such as an "
+        "rms); exponential only",
     )
     p.add_argument("--samples", type=int, default=1000, help="posterior draws / paths per asset")
     p.add_argument("--min-rows", type=int, default=10, help="fewer rows: flagged, no RUL")

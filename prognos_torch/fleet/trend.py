@@ -23,6 +23,23 @@ result depends on the other assets of the shard (shard-size invariance; tested t
    filter for this linear model; NaN = missing, so padding and gaps only predict). The prior is
    ``a ~ N(baseline mean of z, prior_std[0]^2)``, ``beta ~ N(0, prior_std[1]^2)`` (default
    ``prior_std[1]``: one log unit per median sampling interval).
+
+   ``phi`` is one number for the fleet (default 0: the indicator grows multiplicatively from
+   near zero, ``y = theta exp(beta tau + eps)``), or ``"baseline"``: each asset's healthy mean
+   ``mu_0``, as :func:`~prognos_torch.workflow.prognose` takes it, for an indicator that rises
+   from a healthy level with additive noise (a bearing's rms). Then ``z``'s noise is the
+   baseline std ``sigma_0`` carried through the logarithm (delta method, per sample:
+   ``sigma_0 / (s (y - mu_0))``), values within ``sigma_0`` of the level are missing, and the
+   prior of ``a`` is centred on the first usable ``z`` since onset. On an indicator with a
+   healthy level ``phi = 0`` reads the early, slow part of the log curve as the trend and
+   predicts late (``docs/RESULTS.md``, fleets).
+4. **Lack of fit** (``trend_misfit``): an F test of the residual variance about the posterior
+   mean line since onset against the model's noise from the healthy window,
+   ``F = (sum_k w_k r_k^2 / (m - 2)) / s_b^2`` on ``(m - 2, n_b - 1)`` degrees of freedom
+   (``w_k`` the inverse of ``z_k``'s noise variance in units of ``s_b^2``: 1, or
+   ``(s (y_k - mu_0))^2`` with ``phi="baseline"``); ``p < MISFIT_P`` = 1e-3 flags the asset.
+   Exact for the default fixed parameters (``drift_std = 0``); the intervals of an asset whose
+   data leave the model are too narrow.
 3. **RUL**: ``samples`` draws of ``[a, beta]`` from the posterior at the asset's last row, each
    from the asset's own generator (seeded by :func:`asset_seed` from the fleet seed and the asset
    id: results do not depend on sharding). Each sampled trend crosses ``log(s (X - phi))`` at
@@ -34,13 +51,14 @@ result depends on the other assets of the shard (shard-size invariance; tested t
    beyond every crossing.
 
 Flags (``;``-separated per asset): ``too_few_rows``, ``no_baseline`` (baseline window with fewer
-than 3 samples, no spread, or non-positive ``s (y - phi)``), ``no_onset``,
+than 3 samples, no spread, or non-positive ``s (y - phi)`` with a fixed ``phi``), ``no_onset``,
 ``threshold_on_healthy_side`` (the baseline mean is at or beyond the threshold: a falling
 indicator with ``direction="above"``, say; no RUL), ``threshold_reached``
 (the last observed value is at or beyond the threshold: RUL 0), ``few_degraded_points`` (fewer
 than 3 usable samples after onset: the interval is wide), ``nonpositive_dropped`` (samples with
-``s (y - phi) <= 0`` after onset were treated as missing), ``far_extrapolation`` (median RUL
+``s (y - phi) <= 0`` after onset were treated as missing; fixed ``phi``), ``far_extrapolation`` (median RUL
 beyond ``extrapolation_limit`` times the observed degradation time: a guard rail),
+``trend_misfit`` (the lack-of-fit test above),
 ``glitch_in_baseline`` (isolated values more than ``GLITCH_SCREEN`` = 20 noise std off their
 neighbours in the healthy window widen its std ``GLITCH_WIDENING`` = 1.5 times or more, which can
 delay the onset: ``prognose``'s glitch flag, :mod:`prognos_torch.prognosis.onset`).
@@ -75,7 +93,12 @@ __all__ = [
     "ksigma_onset_batch",
     "exponential_trend_rul",
     "RUL_COLUMNS",
+    "MISFIT_P",
 ]
+
+#: p-value below which the exponential trend's lack-of-fit test flags an asset
+#: (``trend_misfit``): about 1 asset in 1000 whose data follow the model
+MISFIT_P = 1e-3
 
 #: per-asset numeric outputs of a RUL method, in table order
 RUL_COLUMNS = (
@@ -262,12 +285,32 @@ def _lower_quantile(sorted_rul: Tensor, q: float) -> Tensor:
     return torch.where(torch.isinf(v), torch.full_like(v, math.nan), v)
 
 
+def _lack_of_fit(
+    zs: Tensor, taus: Tensor, weight: Tensor, mean: Tensor, zb_std: Tensor, nzb: Tensor
+) -> Tensor:
+    """p-value ``(B,)`` of the straight line ``z = a + beta tau`` through the log data since
+    onset: ``F = (RSS / (m - 2)) / s_b^2`` against ``F(m - 2, n_b - 1)`` (an F test of the
+    residual variance since onset against the healthy window's, the model's noise), RSS about
+    the posterior mean at the last row (with fixed parameters the Bayesian regression's fit).
+    NaN where ``m < 5`` or the baseline has fewer than 3 samples."""
+    from scipy.stats import f as f_dist
+
+    r = zs - (mean[:, :1] + mean[:, 1:] * taus)
+    ok = ~torch.isnan(r)
+    m = ok.sum(1)
+    rss = torch.where(ok, r * r * weight, 0.0).sum(1)
+    stat = (rss / (m - 2).clamp(min=1)) / (zb_std * zb_std)
+    p = f_dist.sf(stat.cpu().numpy(), (m - 2).cpu().numpy(), (nzb - 1).cpu().numpy())
+    p = torch.as_tensor(p, dtype=zs.dtype, device=zs.device)
+    return torch.where((m >= 5) & (nzb >= 3) & (zb_std > 0), p, torch.nan)
+
+
 def exponential_trend_rul(
     batch: PaddedBatch,
     threshold: float,
     *,
     direction: str = "above",
-    phi: float = 0.0,
+    phi: float | str = 0.0,
     horizon: float | None = None,
     samples: int = 1000,
     min_rows: int = 10,
@@ -287,7 +330,8 @@ def exponential_trend_rul(
         batch: a :class:`PaddedBatch` (one shard).
         threshold: failure threshold ``X`` on the value.
         direction: ``"above"`` (failure when ``y >= X``) or ``"below"``.
-        phi: the model's offset ``phi`` (``s (X - phi)`` must be positive).
+        phi: the model's offset ``phi`` (``s (X - phi)`` must be positive), or
+            ``"baseline"``: each asset's healthy mean (module docstring).
         horizon: time span for ``p_fail_within_horizon`` (``None``: ever).
         samples: posterior draws per asset.
         min_rows: fewer observed rows than this are flagged ``too_few_rows`` (no RUL).
@@ -297,8 +341,9 @@ def exponential_trend_rul(
         extrapolation_limit: guard rail for ``far_extrapolation``.
         filt: the engine configuration (default :func:`~prognos_torch.filters.ekf`).
         return_posterior: also return ``"posterior_mean"`` ``(B, 2)``, ``"posterior_chol"``
-            ``(B, 2, 2)`` (of ``[a, beta]`` at the last row), ``"onset_index"`` ``(B,)`` and
-            ``"log_noise_std"`` ``(B,)`` tensors.
+            ``(B, 2, 2)`` (of ``[a, beta]`` at the last row), ``"onset_index"`` ``(B,)``,
+            ``"log_noise_std"`` ``(B,)`` (NaN with ``phi="baseline"``, whose noise is per
+            sample) and ``"misfit_p"`` ``(B,)`` (the lack-of-fit p-value) tensors.
     Returns:
         ``{column: (B,) float64 numpy array}`` for :data:`RUL_COLUMNS` and ``"flags"`` (list of
         ``;``-separated strings).
@@ -307,9 +352,12 @@ def exponential_trend_rul(
         raise ValueError(f"direction must be 'above' or 'below', got {direction!r}")
     s = 1.0 if direction == "above" else -1.0
     thr = float(threshold)
-    if not math.isfinite(thr) or not math.isfinite(float(phi)):
+    per_asset = isinstance(phi, str)
+    if per_asset and phi != "baseline":
+        raise ValueError(f"phi must be a number or 'baseline', got {phi!r}")
+    if not math.isfinite(thr) or (not per_asset and not math.isfinite(float(phi))):
         raise ValueError(f"threshold and phi must be finite, got {threshold!r}, {phi!r}")
-    if not s * (thr - phi) > 0:
+    if not per_asset and not s * (thr - phi) > 0:
         side = "above" if s > 0 else "below"
         raise ValueError(
             f"threshold {thr:g} must lie {side} phi = {phi:g} for direction {direction!r} "
@@ -319,7 +367,6 @@ def exponential_trend_rul(
         raise ValueError(f"horizon must be a positive finite number or None, got {horizon!r}")
     if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
         raise ValueError(f"samples must be a positive int, got {samples!r}")
-    log_thr = math.log(s * (thr - phi))
     y, t, lengths = batch.values, batch.times, batch.lengths
     B, T = y.shape
     dev, dt = y.device, y.dtype
@@ -344,16 +391,30 @@ def exponential_trend_rul(
         direction=direction,
         skip_window=True,
     )
-    d = s * (y - phi)
-    z = torch.where(obs & (d > 0), torch.log(torch.where(d > 0, d, torch.ones_like(d))), torch.nan)
-    # log-domain baseline: the measurement noise and the prior level of the trend
-    zb_ok = on.in_baseline & ~torch.isnan(z)
-    nzb = zb_ok.sum(1)
-    zb_mean = torch.where(zb_ok, z, 0.0).sum(1) / nzb.clamp(min=1)
-    zb_dev = torch.where(zb_ok, z - zb_mean[:, None], 0.0)
-    zb_std = torch.sqrt((zb_dev * zb_dev).sum(1) / (nzb - 1).clamp(min=1))
-    nonpos_base = (on.in_baseline & obs & (d <= 0)).any(1)
-    base_ok = on.baseline_ok & (nzb >= 3) & (zb_std > 0) & ~nonpos_base
+    if per_asset:  # the healthy level, and its noise carried into log(y - phi) (delta method)
+        phis, sigma0 = on.base_mean[:, None], on.base_std[:, None]
+        d = s * (y - phis)
+        usable_d = d >= sigma0
+    else:
+        phis, sigma0 = torch.full((B, 1), float(phi), dtype=dt, device=dev), None
+        d = s * (y - phis)
+        usable_d = d > 0
+    log_thr = torch.log((s * (thr - phis[:, 0])).clamp(min=torch.finfo(dt).tiny))[:, None]
+    z = torch.where(
+        obs & usable_d, torch.log(torch.where(usable_d, d, torch.ones_like(d))), torch.nan
+    )
+    if per_asset:  # the baseline's noise in data units; z's noise is sigma0 / d per sample
+        nzb = (on.in_baseline & obs).sum(1)
+        zb_mean, zb_std = torch.zeros_like(on.base_mean), on.base_std
+        base_ok = on.baseline_ok & (nzb >= 3) & (zb_std > 0)
+    else:  # log-domain baseline: the measurement noise and the prior level of the trend
+        zb_ok = on.in_baseline & ~torch.isnan(z)
+        nzb = zb_ok.sum(1)
+        zb_mean = torch.where(zb_ok, z, 0.0).sum(1) / nzb.clamp(min=1)
+        zb_dev = torch.where(zb_ok, z - zb_mean[:, None], 0.0)
+        zb_std = torch.sqrt((zb_dev * zb_dev).sum(1) / (nzb - 1).clamp(min=1))
+        nonpos_base = (on.in_baseline & obs & (d <= 0)).any(1)
+        base_ok = on.baseline_ok & (nzb >= 3) & (zb_std > 0) & ~nonpos_base
     enough = n_obs >= min_rows
     has_onset = (on.index >= 0) & base_ok & enough
     # a threshold on the healthy side of the baseline (a falling indicator with direction
@@ -373,6 +434,12 @@ def exponential_trend_rul(
     taus = torch.where(inside, t.gather(1, idx_c) - t_on[:, None], 0.0)
     n_deg = (~torch.isnan(zs)).sum(1)
     nonpos = (inside & obs.gather(1, idx_c) & (d.gather(1, idx_c) <= 0)).any(1)
+    if per_asset:  # (values within sigma0 of the level are missing by design: no flag)
+        nonpos = torch.zeros_like(nonpos)
+        ds = torch.where(inside, d.gather(1, idx_c), torch.nan)
+        weight = torch.where(torch.isnan(zs), 0.0, ds * ds)  # 1 / var(z) in sigma0^2 units
+    else:
+        weight = torch.ones_like(zs)
 
     # prior and noise per asset
     step = torch.diff(t, dim=1)
@@ -384,20 +451,30 @@ def exponential_trend_rul(
     )
     sa = float(prior_std[0])
     sb = (1.0 / med_dt) if prior_std[1] is None else torch.full_like(med_dt, float(prior_std[1]))
-    m0 = torch.stack([torch.where(base_ok, zb_mean, 0.0), torch.zeros_like(zb_mean)], -1)
+    if per_asset:  # prior level: the first usable value since onset (no log-domain baseline)
+        first = (~torch.isnan(zs)).to(torch.int64).argmax(1, keepdim=True)
+        a0 = torch.nan_to_num(zs.gather(1, first)[:, 0], nan=0.0)
+    else:
+        a0 = torch.where(base_ok, zb_mean, 0.0)
+    m0 = torch.stack([a0, torch.zeros_like(a0)], -1)
     S0 = torch.zeros(B, 2, 2, dtype=dt, device=dev)
     S0[:, 0, 0] = sa
     S0[:, 1, 1] = sb
-    sr = torch.where(base_ok, zb_std, 1.0)
-    model = _trend_model(
-        torch.diag(torch.tensor([float(v) for v in drift_std], dtype=dt, device=dev)),
-        sr[:, None, None],
-    )
+    drift = torch.diag(torch.tensor([float(v) for v in drift_std], dtype=dt, device=dev))
+    if per_asset:  # per step: sigma0 / d, the delta method (1 where z is missing)
+        sr_k = torch.where(weight > 0, zb_std[:, None] / weight.clamp(min=1e-300).sqrt(), 1.0)
+        chol_r = sr_k.T[..., None, None].contiguous()  # (Tf, B, 1, 1)
+        model = _trend_model(drift, lambda k: chol_r[k - 1])
+        sr = torch.full_like(zb_std, math.nan)  # (no single log-domain noise)
+    else:
+        sr = torch.where(base_ok, zb_std, 1.0)
+        model = _trend_model(drift, sr[:, None, None])
     tr = run(filt or ekf(), model, GaussianBelief(m0, S0), zs.T[..., None], taus.T[..., None])
     last = (n_fit - 1).clamp(min=0)
     sel = last[None, :, None].expand(1, B, 2)
     mean = tr.means.gather(0, sel)[0]  # (B, 2)
     chol = tr.chols.gather(0, last[None, :, None, None].expand(1, B, 2, 2))[0]
+    misfit_p = _lack_of_fit(zs, taus, weight, mean, zb_std, nzb)
 
     # RUL from posterior samples, each asset with its own generator
     eps = torch.stack(
@@ -458,6 +535,7 @@ def exponential_trend_rul(
         ("few_degraded_points", has_onset & (n_deg < 3) & ~reached),
         ("nonpositive_dropped", has_onset & nonpos & ~reached),
         ("far_extrapolation", usable & far),
+        ("trend_misfit", usable & (misfit_p < MISFIT_P)),
     ]
     masks = [(name, m.cpu().numpy()) for name, m in checks]
     for i in range(B):
@@ -469,5 +547,6 @@ def exponential_trend_rul(
             posterior_chol=chol,
             onset_index=torch.where(has_onset, on.index, -1),
             log_noise_std=sr,
+            misfit_p=misfit_p,
         )
     return res
