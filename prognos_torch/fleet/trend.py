@@ -399,7 +399,10 @@ def exponential_trend_rul(
         phis, sigma0 = torch.full((B, 1), float(phi), dtype=dt, device=dev), None
         d = s * (y - phis)
         usable_d = d > 0
-    log_thr = torch.log((s * (thr - phis[:, 0])).clamp(min=torch.finfo(dt).tiny))[:, None]
+    if per_asset:  # (a threshold on the level's healthy side is flagged below)
+        log_thr = torch.log((s * (thr - phis)).clamp(min=torch.finfo(dt).tiny))
+    else:
+        log_thr = torch.full((B, 1), math.log(s * (thr - phi)), dtype=dt, device=dev)
     z = torch.where(
         obs & usable_d, torch.log(torch.where(usable_d, d, torch.ones_like(d))), torch.nan
     )
