@@ -114,6 +114,16 @@ def test_intervals_cover_the_known_failure_times(fleet):
     assert np.median(np.abs(med[ok] - truth) / truth) < 0.15
 
 
+def _degrading_assets(batch, out):
+    """``(b, onset index, rows, times, values)`` of each asset of ``batch`` with an onset in
+    ``exponential_trend_rul(..., return_posterior=True)``'s output ``out``."""
+    for b in range(len(batch)):
+        i0 = int(out["onset_index"][b])
+        if i0 >= 0:
+            n = int(batch.lengths[b])
+            yield b, i0, n, batch.times[b, :n].numpy(), batch.values[b, :n].numpy()
+
+
 def test_trend_posterior_equals_exact_bayesian_regression_and_kalman(fleet):
     tab = read_fleet_table(fleet.table)
     batch = pad_batch(tab.assets, tab.times, tab.values, seed=0)
@@ -122,13 +132,8 @@ def test_trend_posterior_equals_exact_bayesian_regression_and_kalman(fleet):
             batch, fleet.threshold, samples=10, drift_std=drift, return_posterior=True
         )
         checked = 0
-        for b in range(len(batch)):
-            i0 = int(out["onset_index"][b])
-            if i0 < 0:
-                continue
-            n = int(batch.lengths[b])
-            t = batch.times[b, :n].numpy()
-            z = np.log(batch.values[b, :n].numpy())
+        for b, i0, n, t, y in _degrading_assets(batch, out):
+            z = np.log(y)
             base = np.isfinite(z[:n])  # the filter's inputs after onset
             tau, zz = t[i0:] - t[i0], z[i0:]
             sigma = float(out["log_noise_std"][b])
@@ -192,12 +197,7 @@ def test_baseline_phi_posterior_is_the_weighted_bayesian_regression():
     batch = pad_batch(tab.assets, tab.times, tab.values, seed=0)
     out = exponential_trend_rul(batch, 1.0, phi="baseline", samples=10, return_posterior=True)
     checked = 0
-    for b in range(len(batch)):
-        i0 = int(out["onset_index"][b])
-        if i0 < 0:
-            continue
-        n = int(batch.lengths[b])
-        t, y = batch.times[b, :n].numpy(), batch.values[b, :n].numpy()
+    for b, i0, n, t, y in _degrading_assets(batch, out):
         in_base = t <= t[0] + 0.3 * (t[n - 1] - t[0]) + 1e-12 * max(1.0, abs(t[n - 1]))
         mu, s0 = y[in_base].mean(), y[in_base].std(ddof=1)
         d = y[i0:] - mu
