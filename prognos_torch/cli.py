@@ -521,6 +521,7 @@ def _cmd_fit(args) -> int:
         learner_options=lopts,
         optimizer_options=oopts,
         data=data_cfg,
+        progress=None,  # bars on a terminal only: stderr stays one line per warning otherwise
     )
     cfg = model.config
     span = float(model.scaler.data_max - model.scaler.data_min)

@@ -222,6 +222,23 @@ def test_fit_lssvr_closed_form_equals_numpy_kkt_and_holdout_metrics():
     assert mt["coverage"] == pytest.approx(float(inside))
 
 
+def test_fit_series_shows_progress_only_when_asked(capsys):
+    """progress=True: bars over the embedding candidates and the training on stderr; the
+    default (and None off a terminal, the command line's choice) writes nothing there, and the
+    model is the same either way."""
+    t, x = _series_values(90)
+    s = load_series(x, time=t)
+    quiet = fit_series(s, "anfis", "ekf", holdout=10, seed=4)
+    assert capsys.readouterr().err == ""
+    shown = fit_series(s, "anfis", "ekf", holdout=10, seed=4, progress=True)
+    err = capsys.readouterr().err
+    assert "embedding m" in err and "fit:" in err
+    fit_series(s, "anfis", "ekf", holdout=10, seed=4, progress=None)  # stderr is no terminal
+    assert capsys.readouterr().err == ""
+    for a, b in zip(quiet.learner.parameters(), shown.learner.parameters()):
+        assert torch.equal(a, b)
+
+
 def test_fit_bad_input():
     s = load_series(np.linspace(0, 1, 5))
     with pytest.raises(ValueError, match=r"has 5 values; embedding m=5 needs at least m \+ 1 = 6"):

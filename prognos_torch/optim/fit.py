@@ -207,7 +207,7 @@ def fit(
     early_stopping: int | None = None,
     restore_best: bool = True,
     drop_last: bool = False,
-    progress: bool = True,
+    progress: bool | None = True,
     metrics: Sequence[str | Callable] = ("mae", "rmse"),
     loss_fn: Callable[[Tensor, Tensor], Tensor] | None = None,
     compile: bool = False,
@@ -241,7 +241,7 @@ def fit(
             epoch at the end.
         drop_last: skip the last mini-batch of an epoch if it is smaller than ``batch_size``
             (a Kalman optimiser with a noise estimator or strong tracking needs equal sizes).
-        progress: show a ``tqdm`` progress bar.
+        progress: show a ``tqdm`` progress bar (``None``: only where stderr is a terminal).
         metrics: names in :data:`METRICS` or callables ``(pred, target) -> Tensor``.
         loss_fn: loss of gradient optimisers (default: mean squared error). With missing
             targets a loss_fn must leave them out itself and say so by an attribute
@@ -317,7 +317,8 @@ def fit(
     try:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=epochs * n_batches, disable=not progress, desc="fit", leave=False)
+        off = None if progress is None else not progress
+        bar = tqdm(total=epochs * n_batches, disable=off, desc="fit", leave=False)
     except ImportError:  # pragma: no cover - tqdm is a dependency
         bar = None
 

@@ -191,6 +191,7 @@ def select_embedding(
     candidates,
     *,
     seed: int = 0,
+    progress: bool | None = False,
 ) -> tuple[int, dict[int, float]]:
     """Pick ``m`` by one-step validation RMSE (see the module notes; paper 003 Sec. V-A).
 
@@ -199,6 +200,7 @@ def select_embedding(
         learner: learner name; each candidate is fitted in closed form.
         learner_options: options of :func:`build_learner`.
         candidates: embedding dimensions to try.
+        progress: a ``tqdm`` bar over the candidates (``None``: only on a terminal).
 
     Returns:
         ``(m, {m: validation RMSE})``; every candidate validates on the same targets, the last
@@ -216,7 +218,10 @@ def select_embedding(
     scores: dict[int, float] = {}
     errors: dict[int, str] = {}
     m_max = max(usable)
-    for m in usable:
+    from tqdm.auto import tqdm  # (imported when used, as in optim.fit)
+
+    off = None if progress is None else not progress
+    for m in tqdm(usable, desc="embedding m", disable=off, leave=False):
         # the same validation targets z[split:] for every m; training targets from m_max on
         Xt, Yt = _pairs(z, m, m_max, split)
         Xv, Yv = _pairs(z, m, split, T)
@@ -270,6 +275,7 @@ def _train(
     lopts: dict,
     oopts: dict,
     seed: int,
+    progress: bool | None = False,
 ) -> dict:
     """Train ``net`` in place; returns a small JSON-able record."""
     if optimizer == "closed-form":
@@ -297,11 +303,11 @@ def _train(
                 "m, or fewer rows)"
             )
         opt = KalmanOptimizer(net, **_kalman_options(optimizer, learner, net, oopts))
-        hist = optim_fit(net, opt, (X, Y[:, None]), epochs=epochs, batch_size=1, progress=False)
+        hist = optim_fit(net, opt, (X, Y[:, None]), epochs=epochs, batch_size=1, progress=progress)
     elif optimizer == "adam":
         opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=oopts["lr"])
         hist = optim_fit(
-            net, opt, (X, Y[:, None]), epochs=epochs, batch_size=X.shape[0], progress=False
+            net, opt, (X, Y[:, None]), epochs=epochs, batch_size=X.shape[0], progress=progress
         )
     else:  # lbfgs
         opt = torch.optim.LBFGS(
@@ -311,7 +317,7 @@ def _train(
             line_search_fn="strong_wolfe",
         )
         hist = optim_fit(
-            net, opt, (X, Y[:, None]), epochs=epochs, batch_size=X.shape[0], progress=False
+            net, opt, (X, Y[:, None]), epochs=epochs, batch_size=X.shape[0], progress=progress
         )
     return {"epochs": len(hist.epoch)}
 
@@ -341,6 +347,7 @@ def fit_series(
     learner_options: dict | None = None,
     optimizer_options: dict | None = None,
     data: dict | None = None,
+    progress: bool | None = False,
 ) -> FittedModel:
     """Fit a one-step learner to ``series`` and evaluate it on the held-out tail.
 
@@ -356,6 +363,8 @@ def fit_series(
         optimizer_options: overrides of :data:`OPTIMIZER_DEFAULTS` (e.g. ``{"epochs": 3}``).
         data: how the series was read (column, time column, where, fill), stored so that the
             command line can read the same column again.
+        progress: ``tqdm`` bars on stderr over the embedding candidates and the training
+            (``None``: only where stderr is a terminal; the command line's choice).
 
     Returns:
         :class:`FittedModel`.
@@ -399,7 +408,9 @@ def fit_series(
 
     selection = None
     if m is None:
-        m, scores = select_embedding(z, learner, lopts, M_CANDIDATES[learner], seed=seed)
+        m, scores = select_embedding(
+            z, learner, lopts, M_CANDIDATES[learner], seed=seed, progress=progress
+        )
         selection = {
             "candidates": list(scores),
             "val_rmse": [None if not math.isfinite(v) else v for v in scores.values()],
@@ -408,7 +419,7 @@ def fit_series(
     X, Y = embed(z, m)
     net = build_learner(learner, m, lopts, seed=seed, device=z.device, n_rows=n_train)
     t0 = time.perf_counter()
-    record = _train(learner, optimizer, net, X, Y, lopts, oopts, seed)
+    record = _train(learner, optimizer, net, X, Y, lopts, oopts, seed, progress)
     seconds = time.perf_counter() - t0
     net.eval()
     pred = _predict(net, X)
