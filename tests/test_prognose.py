@@ -494,6 +494,9 @@ def test_iso_texts_as_time_are_date_times():
     texts[7] = "yesterday"
     with pytest.raises(ValueError, match=r"time\[7\] = 'yesterday' is not an ISO 8601 date-time"):
         prognose(y, 3.0, time=texts)
+    texts[7] = None  # a missing cell of a text column (None, NaN) is a missing date-time
+    with pytest.raises(ValueError, match=r"time has missing date-times \(NaT\) at index 7"):
+        prognose(y, 3.0, time=texts)
 
 
 @pytest.mark.parametrize("bad", [None, 3.0, "0.5"])

@@ -291,23 +291,31 @@ def _iso_texts(v, name: str) -> np.ndarray | None:
         arr = np.asarray(to_numpy() if to_numpy is not None else v, dtype=object)
     except (TypeError, ValueError):
         return None
-    if arr.ndim != 1 or arr.size == 0 or not all(isinstance(c, str) for c in arr.tolist()):
+    cells = arr.tolist() if arr.ndim == 1 else []
+    # text, with missing cells (None, NaN, pandas' NA) among it: they become NaT
+    texts = [c for c in cells if isinstance(c, str)]
+    if not texts or any(not isinstance(c, str) and not _missing_cell(c) for c in cells):
         return None
     try:
-        float(arr[0])
+        float(texts[0])
         return None  # numbers as text: read as numbers
     except ValueError:
         pass
-    out = np.empty(arr.size, dtype="datetime64[ns]")
-    for i, c in enumerate(arr.tolist()):
+    out = np.empty(len(cells), dtype="datetime64[ns]")
+    for i, c in enumerate(cells):
         try:
-            out[i] = datetime_ns(c)
+            out[i] = datetime_ns(c if isinstance(c, str) else "")
         except ValueError as exc:
             raise ValueError(
                 f"{name}[{i}] = {c!r} is not an ISO 8601 date-time in 1678-2262 ({exc}), while "
-                f"{name}[0] = {arr[0]!r} is one"
+                f"{texts[0]!r} is one"
             ) from None
     return out
+
+
+def _missing_cell(c) -> bool:
+    """``None``, a float NaN or pandas' ``NA``: a missing cell of a text column."""
+    return c is None or type(c).__name__ == "NAType" or (isinstance(c, float) and math.isnan(c))
 
 
 def array_times(v, name: str) -> tuple[np.ndarray, str | None, str | None]:
