@@ -169,6 +169,12 @@ def _add_data_options(p) -> None:
         "--fill", metavar="linear|drop", help="handle missing values: interpolate or drop rows"
     )
     g.add_argument(
+        "--time-format",
+        metavar="FMT",
+        help="layout of date-times that are not ISO 8601, in strptime codes, e.g. "
+        "'%%d/%%m/%%Y %%H:%%M' (default: the model's, else numbers or ISO 8601)",
+    )
+    g.add_argument(
         "--decimal",
         choices=(".", ","),
         help="the CSV's decimal mark (default: the model's, else '.'); ',' reads 0,25 as 0.25 "
@@ -476,6 +482,7 @@ def _series_from_args(args, data_cfg: dict | None = None, *, truth: bool = False
     where = parse_where(args.where if args.where else cfg.get("where") or None)
     fill = args.fill if args.fill is not None else cfg.get("fill")
     decimal = args.decimal or cfg.get("decimal") or "."
+    time_format = args.time_format or cfg.get("time_format")
     series = load_series(
         args.data,
         column,
@@ -485,10 +492,13 @@ def _series_from_args(args, data_cfg: dict | None = None, *, truth: bool = False
         last=None if truth else args.last,
         until=None if truth else args.until,
         decimal=decimal,
+        time_format=time_format,
     )
     used = {"column": series.name, "time_column": time_column, "where": where, "fill": fill}
     if decimal != ".":  # model files of point-decimal data stay as they were
         used["decimal"] = decimal
+    if time_format is not None:
+        used["time_format"] = time_format
     return series, used
 
 

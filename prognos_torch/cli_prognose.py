@@ -111,6 +111,7 @@ def load_histories(args, series):
             column=args.column,
             time_column=args.time_column,
             decimal=args.decimal or ".",
+            time_format=args.time_format,
         )
     except ValueError as exc:
         msg = str(exc).replace("(--group-by)", "(--calibrate-group)")

@@ -20,6 +20,25 @@ def _csv(path: Path, y: torch.Tensor) -> Path:
     return path
 
 
+def test_day_first_dates_with_time_format_give_the_iso_answer(capsys, tmp_path):
+    """The same readings dated '%d/%m/%Y %H:%M' with --time-format, as ISO 8601: one report."""
+    import numpy as np
+
+    g = torch.Generator().manual_seed(0)
+    y = 1.0 + 0.05 * torch.randn(300, generator=g, dtype=torch.float64)
+    y[200:] += 0.02 * torch.exp(0.04 * torch.arange(100, dtype=torch.float64))
+    stamps = np.datetime64("2024-01-30T00:00") + 10 * np.arange(300).astype("timedelta64[m]")
+    outs = []
+    for name, fmt, extra in (("iso", None, []), ("dmy", "%d/%m/%Y %H:%M", ["--time-format"])):
+        rows = [s.astype(object).strftime(fmt) if fmt else str(s) for s in stamps]
+        path = tmp_path / f"{name}.csv"
+        path.write_text("t,x\n" + "".join(f"{a},{b!r}\n" for a, b in zip(rows, y.tolist())))
+        argv = ["rul", str(path), "--column", "x", "--time-column", "t", "--threshold", "3"]
+        assert main(argv + extra + ([fmt] if fmt else []) + ["--paths", "200"]) in (0, 3)
+        outs.append(capsys.readouterr().out.split("\n", 1)[1])  # (the first line names the file)
+    assert outs[0] == outs[1] and "degradation onset" in outs[0]
+
+
 def test_rul_from_the_ims_table_with_until(capsys, tmp_path):
     args = ["rul", str(IMS), "--column", "rms", "--where", "channel=5", "--time-column",
             "timestamp", "--threshold", "0.45", "--until", "2003-11-25T13:00:00",

@@ -354,6 +354,20 @@ def test_a_csv_with_decimal_commas_gives_the_same_fleet_with_decimal_comma(tmp_p
         read_fleet_table(tmp_path / "dot.csv", decimal=",")
     flagged = read_fleet_table(tmp_path / "dot.csv", decimal=",", on_error="flag")
     assert list(flagged.errors) == [ref.assets[0]] and "1.500" in flagged.errors[ref.assets[0]]
+    # day-first dates in a time_format: the same table as its ISO 8601 dates
+    base = np.datetime64("2024-03-01T00:00")
+    iso = {"asset": ["u"] * 3 + ["v"] * 3, "t": [str(base + np.timedelta64(h, "h")) for h in
+           (0, 1, 2, 0, 2, 5)], "value": [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]}  # fmt: skip
+    dmy = dict(
+        iso, t=[np.datetime64(t).astype(object).strftime("%d/%m/%Y %H:%M") for t in iso["t"]]
+    )
+    write_table(tmp_path / "iso.csv", iso)
+    write_table(tmp_path / "dmy.csv", dmy)
+    a, b = read_fleet_table(tmp_path / "iso.csv"), read_fleet_table(tmp_path / "dmy.csv",
+                                                                  time_format="%d/%m/%Y %H:%M")  # fmt: skip
+    assert a.epoch == b.epoch and all(np.array_equal(x, y) for x, y in zip(a.times, b.times))
+    with pytest.raises(ValueError, match=r"--time-format"):
+        read_fleet_table(tmp_path / "dmy.csv")
     # the command line: the same result file from either table
     outs = []
     for table, mark in ((tmp_path / "f.csv", []), (eu, ["--decimal", ","])):

@@ -121,6 +121,25 @@ def test_load_series_gaps_fill_and_errors(tmp_path):
     with pytest.raises(ValueError, match=r"not a UTF-8 text CSV file \(the byte b'\\xb5' .*"
                        r"save it as UTF-8"):  # fmt: skip
         load_series(path)
+    # day-first dates (a spreadsheet export) with time_format; a %z offset applied
+    path.write_text("t,x\n31/12/2023 23:00,1\n01/01/2024 01:00,2\n01/01/2024 02:30,3\n")
+    dmy = load_series(path, "x", time_column="t", time_format="%d/%m/%Y %H:%M")
+    np.testing.assert_allclose(dmy.time.numpy(), [0.0, 2 / 24, 3.5 / 24], rtol=0, atol=1e-12)
+    assert dmy.time_unit == "days" and dmy.start == "2023-12-31T23:00:00"
+    path.write_text("t,x\n01/01/2024 01:00 +0100,1\n01/01/2024 02:00 +0000,2\n")
+    z = load_series(path, "x", time_column="t", time_format="%d/%m/%Y %H:%M %z")
+    assert z.start == "2024-01-01T00:00:00" and float(z.time[1]) == pytest.approx(2 / 24)
+    with pytest.raises(ValueError, match=r"line 2: time column 't' value '01/01/2024 01:00 \+0100' "
+                       r"does not match time_format '%d/%m/%Y %H:%M'"):  # fmt: skip
+        load_series(path, "x", time_column="t", time_format="%d/%m/%Y %H:%M")
+    with pytest.raises(
+        ValueError, match=r"ISO 8601 date-time .* give time_format \(--time-format\)"
+    ):
+        load_series(path, "x", time_column="t")
+    with pytest.raises(ValueError, match="time_format must be strptime codes"):
+        load_series(path, "x", time_column="t", time_format="dd/mm/yyyy")
+    with pytest.raises(ValueError, match="time_format applies to a time column"):
+        load_series(path, "x", time_format="%d/%m/%Y")
     path.write_text("t;ch;x\n0,5;1;1,25\n1,5;2;9\n2,5;1;2,5\n3,5;1;\n")  # decimal commas
     eu = load_series(path, "x", time_column="t", where={"ch": "1,0"}, decimal=",", fill="drop")
     np.testing.assert_array_equal(eu.values.numpy(), [1.25, 2.5])
@@ -134,7 +153,7 @@ def test_load_series_gaps_fill_and_errors(tmp_path):
         load_series(path, "x", decimal=",")
     with pytest.raises(ValueError, match="decimal must be '.' or ','"):
         load_series(path, "x", decimal=";")
-    with pytest.raises(ValueError, match="decimal apply to CSV files"):
+    with pytest.raises(ValueError, match="decimal and time_format apply to CSV files"):
         load_series([1.0, 2.0], decimal=",")
     _write_csv(path, ("t", "x"), [(1700021180, 1.0), (1700024780, 2.0), (1700017580, 3.0)])
     with pytest.raises(ValueError, match=r"increasing \(1700017580 follows 1700024780\)"):

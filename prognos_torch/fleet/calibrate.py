@@ -60,6 +60,7 @@ def calibrate_fleet(
     seed: int = 0,
     method: str = "exponential",
     decimal: str = ".",
+    time_format: str | None = None,
     **options,
 ) -> tuple[RULCalibration, dict[str, list]]:
     """Conformal calibration of :func:`~prognos_torch.fleet.fleet_rul`'s 90 % intervals.
@@ -78,7 +79,8 @@ def calibrate_fleet(
             bin's 90 % margin at its 10th-largest miss).
         fractions: prediction times as fractions of [onset, end of life].
         seed, method, **options: ``fleet_rul``'s, to be used again for the live fleet.
-        decimal: a CSV table's decimal mark, ``"."`` or ``","``.
+        decimal, time_format: a CSV table's decimal mark and the layout of its date-times
+            (:func:`~prognos_torch.fleet.read_fleet_table`).
 
     Returns:
         ``(calibration, points)``: the :class:`~prognos_torch.prognosis.RULCalibration` (its
@@ -97,7 +99,12 @@ def calibrate_fleet(
         source
         if isinstance(source, FleetTable)
         else read_fleet_table(
-            source, group_by=group_by, column=column, time_column=time_column, decimal=decimal
+            source,
+            group_by=group_by,
+            column=column,
+            time_column=time_column,
+            decimal=decimal,
+            time_format=time_format,
         )
     )
     if not table.assets:

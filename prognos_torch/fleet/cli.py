@@ -69,6 +69,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=".",
         help="decimal mark of CSV tables (default '.'; ',' reads 0,25 as 0.25)",
     )
+    p.add_argument(
+        "--time-format",
+        metavar="FMT",
+        help="layout of date-times that are not ISO 8601, in strptime codes, e.g. "
+        "'%%d/%%m/%%Y %%H:%%M'",
+    )
     p.add_argument("--threshold", type=float, required=True, help="failure threshold")
     p.add_argument("--direction", default="above", help="above (default) or below")
     p.add_argument(
@@ -145,7 +151,8 @@ def main(argv: list[str] | None = None) -> int:
         )
         # the live fleet and its failed assets are read and predicted alike
         same = dict(group_by=args.group_by, column=args.column, time_column=args.time_column,
-                    direction=args.direction, seed=args.seed, decimal=args.decimal)  # fmt: skip
+                    direction=args.direction, seed=args.seed, decimal=args.decimal,
+                    time_format=args.time_format)  # fmt: skip
         cal = None
         if args.calibrate is not None:
             try:

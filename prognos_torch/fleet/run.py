@@ -227,6 +227,7 @@ def fleet_rul(
     progress: bool = False,
     ray_init: Mapping | None = None,
     decimal: str = ".",
+    time_format: str | None = None,
     **options,
 ) -> FleetResult:
     """RUL for every asset of a long table (module docstring).
@@ -246,7 +247,7 @@ def fleet_rul(
             :mod:`prognos_torch.fleet.table`); too few rows are always only flagged.
         progress: progress bar over shards.
         ray_init: keyword arguments of ``ray.init`` when Ray is started here.
-        decimal: a CSV table's decimal mark, ``"."`` or ``","``
+        decimal, time_format: a CSV table's decimal mark and the layout of its date-times
             (:func:`~prognos_torch.fleet.read_fleet_table`).
         **options: the method's options (e.g. ``samples``, ``phi``, ``min_rows``).
     Returns:
@@ -275,6 +276,7 @@ def fleet_rul(
             time_column=time_column,
             on_error=on_error,
             decimal=decimal,
+            time_format=time_format,
         )
     )
     opts = dict(options, direction=direction, horizon=horizon)

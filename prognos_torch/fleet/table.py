@@ -38,7 +38,13 @@ from pathlib import Path
 import numpy as np
 
 from ..io import atomic_write, sniffed_csv
-from ..workflow.data import check_unique_columns, datetime_ns, decimal_hint, iso_start
+from ..workflow.data import (
+    check_unique_columns,
+    datetime_ns,
+    decimal_hint,
+    formatted_ns,
+    iso_start,
+)
 
 __all__ = ["FleetTable", "read_fleet_table", "write_table", "TABLE_SUFFIXES"]
 
@@ -207,10 +213,21 @@ def _numbers(col, what: str):
 _UNIX_EPOCH = np.datetime64("1970-01-01T00:00:00", "ns")
 
 
-def _times(col, where):
-    """Numeric times, or date-times as days since 1970-01-01 UTC; returns (t, unit, epoch)."""
+def _times(col, where, time_format: str | None = None):
+    """Numeric times, or date-times (ISO 8601, or text in ``time_format``) as days since
+    1970-01-01 UTC; returns (t, unit, epoch)."""
     arr = np.asarray(col)
-    if arr.dtype.kind == "M":
+    if time_format is not None and arr.dtype.kind not in "Miuf":
+        cells = arr.tolist()
+        stamps = np.empty(len(cells), dtype="datetime64[ns]")
+        for i, c in enumerate(cells):
+            try:
+                stamps[i] = formatted_ns(str(c), time_format)
+            except ValueError as exc:
+                raise ValueError(
+                    f"{where(i)}: time {c!r} does not match time_format {time_format!r} ({exc})"
+                ) from None
+    elif arr.dtype.kind == "M":
         stamps = arr.astype("datetime64[ns]")
     elif arr.dtype.kind in "iuf":
         t = arr.astype(np.float64)
@@ -239,7 +256,8 @@ def _times(col, where):
                     raise ValueError(f"{where(i)}: time {c!r} is not a number{comma}") from None
                 raise ValueError(
                     f"{where(i)}: time {c!r} is neither a number nor an ISO 8601 date-time in "
-                    f"1678-2262 ({exc}); a time column holds one or the other"
+                    f"1678-2262 ({exc}); a time column holds one or the other (time_format, "
+                    "--time-format, reads another layout of date-times)"
                 ) from None
     nat = np.flatnonzero(np.isnat(stamps))
     if nat.size:
@@ -284,6 +302,7 @@ def read_fleet_table(
     time_column: str = "t",
     on_error: str = "raise",
     decimal: str = ".",
+    time_format: str | None = None,
 ) -> FleetTable:
     """Read and validate a long table (module docstring) and group it by asset.
 
@@ -294,6 +313,9 @@ def read_fleet_table(
         on_error: ``"raise"`` (default) or ``"flag"`` (set the asset aside with its message).
         decimal: a CSV's decimal mark, ``"."`` (default) or ``","`` (module docstring); Parquet,
             DataFrames and mappings hold numbers, so it does not apply to them.
+        time_format: the layout of text date-times that are not ISO 8601, in
+            ``datetime.strptime`` codes (e.g. ``"%d/%m/%Y %H:%M"``; a ``%z`` offset is applied,
+            others are UTC); ``None``: numbers or ISO 8601.
     Returns:
         :class:`FleetTable`.
     """
@@ -365,7 +387,7 @@ def read_fleet_table(
     if decimal == "," and lines is not None:  # a CSV's commas made points (a point: refused)
         cols[1] = _comma_times(cols[1], lambda i: where(i, asset[i]))
         cols[2], dotted = _comma_values(cols[2])
-    t, unit, epoch = _times(cols[1], lambda i: where(i, asset[i]))
+    t, unit, epoch = _times(cols[1], lambda i: where(i, asset[i]), time_format)
     v, bad = _numbers(cols[2], "value")
     if dotted.size:
         v[dotted] = np.nan

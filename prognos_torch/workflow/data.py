@@ -23,6 +23,7 @@ import os
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -361,8 +362,41 @@ def check_unique_columns(header: Sequence, names: Sequence, source: str) -> None
             )
 
 
-def _parse_time(cells: list[str], lines: list[int], path: str, col: str, decimal: str = "."):
-    """Numbers, or ISO 8601 date-times -> days since the first row."""
+def formatted_ns(text: str, fmt: str) -> np.datetime64:
+    """A date-time written in ``fmt`` (``datetime.strptime`` codes) as ``datetime64[ns]`` in
+    UTC: a ``%z`` offset is applied, a time without one is taken as UTC, as ISO 8601 text is."""
+    stamp = datetime.strptime(text.strip(), fmt)
+    if stamp.tzinfo is not None:
+        stamp = stamp.astimezone(timezone.utc).replace(tzinfo=None)
+    out = np.datetime64(stamp, "us")
+    if not (_NS_RANGE[0] <= out < _NS_RANGE[1]):
+        raise ValueError(f"{text!r} lies outside 1678-2262, the range of nanosecond times")
+    return out.astype("datetime64[ns]")
+
+
+def _parse_time(
+    cells: list[str],
+    lines: list[int],
+    path: str,
+    col: str,
+    decimal: str = ".",
+    time_format: str | None = None,
+):
+    """Numbers, ISO 8601 date-times, or date-times in ``time_format`` -> days since the first
+    row."""
+    if time_format is not None:
+        stamps = []
+        for cell, line in zip(cells, lines):
+            try:
+                stamps.append(formatted_ns(cell, time_format))
+            except ValueError as exc:
+                raise ValueError(
+                    f"{path}, line {line}: time column {col!r} value {cell.strip()!r} does not "
+                    f"match time_format {time_format!r} ({exc})"
+                ) from None
+        stamps = np.asarray(stamps)
+        days = (stamps - stamps[0]) / np.timedelta64(1, "D")
+        return days.astype(np.float64), "days", iso_start(stamps[0])
     numeric = []
     for cell, line in zip(cells, lines):
         try:
@@ -387,7 +421,8 @@ def _parse_time(cells: list[str], lines: list[int], path: str, col: str, decimal
                 raise _not_a_number(where, f"time column {col!r}", cell, decimal) from None
             raise ValueError(
                 f"{path}, line {line}: time column {col!r} value {cell!r} is neither a number "
-                f"nor an ISO 8601 date-time in 1678-2262 ({exc})"
+                f"nor an ISO 8601 date-time in 1678-2262 ({exc}); for another layout give "
+                "time_format (--time-format), e.g. '%d/%m/%Y %H:%M'"
             ) from None
         if np.isnat(stamps[-1]):
             raise ValueError(f"{path}, line {line}: time column {col!r} is empty")
@@ -437,6 +472,7 @@ def load_series(
     name: str | None = None,
     time_unit: str | None = None,
     decimal: str = ".",
+    time_format: str | None = None,
 ) -> Series:
     """Load a univariate series from a CSV column or an array.
 
@@ -464,6 +500,9 @@ def load_series(
             ``;`` or tab delimiter in many European locales); it applies to the value column,
             a numeric time column and numeric ``where`` values. With ``","`` a cell holding a
             point is refused (a thousands separator there, never read as a decimal point).
+        time_format: the CSV time column's layout in ``datetime.strptime`` codes (e.g.
+            ``"%d/%m/%Y %H:%M"``) for date-times that are not ISO 8601; a ``%z`` offset is
+            applied, times without one are taken as UTC. ``None``: numbers or ISO 8601.
 
     Returns:
         :class:`Series` (float64 values, time if given).
@@ -478,6 +517,10 @@ def load_series(
         raise ValueError(f"fill must be None, 'linear' or 'drop', got {fill!r}")
     if decimal not in (".", ","):
         raise ValueError(f"decimal must be '.' or ',', got {decimal!r}")
+    if time_format is not None and (not isinstance(time_format, str) or "%" not in time_format):
+        raise ValueError(
+            f"time_format must be strptime codes such as '%d/%m/%Y %H:%M', got {time_format!r}"
+        )
     if last is not None and (isinstance(last, bool) or not isinstance(last, int) or last < 1):
         raise ValueError(f"last must be a positive int, got {last!r}")
     pandas_like = hasattr(source, "to_numpy")
@@ -491,11 +534,14 @@ def load_series(
     if isinstance(source, (str, os.PathLike)):
         if name is not None or time_unit is not None:
             raise ValueError("name and time_unit apply to arrays; a CSV series takes its names")
-        return _load_csv(
-            Path(source), column, time_column, parse_where(where), fill, last, until, decimal
+        if time_format is not None and time_column is None:
+            raise ValueError("time_format applies to a time column: give time_column as well")
+        opts = (fill, last, until, decimal, time_format)
+        return _load_csv(Path(source), column, time_column, parse_where(where), *opts)
+    if any(v is not None for v in (column, time_column, where, time_format)) or decimal != ".":
+        raise ValueError(
+            "column, time_column, where, decimal and time_format apply to CSV files, not to arrays"
         )
-    if column is not None or time_column is not None or where is not None or decimal != ".":
-        raise ValueError("column, time_column, where and decimal apply to CSV files, not to arrays")
     for arg, v in (("name", name), ("time_unit", time_unit)):
         if v is not None and (not isinstance(v, str) or not v):
             raise ValueError(f"{arg} must be a non-empty string, got {v!r}")
@@ -610,7 +656,7 @@ def time_value(v, start: str | None, name: str) -> float:
     return float((stamp - datetime_ns(start)) / np.timedelta64(1, "D"))
 
 
-def _load_csv(path, column, time_column, where, fill, last, until, decimal) -> Series:
+def _load_csv(path, column, time_column, where, fill, last, until, decimal, time_format) -> Series:
     header, rows = _read_csv(path)
     index = {name: j for j, name in enumerate(header)}
     for col, what in [(time_column, "time column")] + [(c, "where column") for c in where]:
@@ -651,7 +697,7 @@ def _load_csv(path, column, time_column, where, fill, last, until, decimal) -> S
             raise ValueError(
                 f"{path}: time column {time_column!r} is empty at line(s) {_lines(empty)}"
             )
-        time, unit, start = _parse_time(tcells, lines, str(path), time_column, decimal)
+        time, unit, start = _parse_time(tcells, lines, str(path), time_column, decimal, time_format)
     if until is not None:
         if time is None:
             raise ValueError("until needs a time column (time_column=...)")
