@@ -319,6 +319,13 @@ def _missing_cell(c) -> bool:
     return c is None or type(c).__name__ == "NAType" or (isinstance(c, float) and math.isnan(c))
 
 
+def _days_since_first(stamps: np.ndarray) -> tuple[np.ndarray, str, str]:
+    """``datetime64[ns]`` stamps as the reader's time axis: float64 days since the first, the
+    unit ``"days"`` and the first as ISO 8601 text (the series' ``start``)."""
+    days = (stamps - stamps[0]) / np.timedelta64(1, "D")
+    return days.astype(np.float64), "days", iso_start(stamps[0])
+
+
 def array_times(v, name: str) -> tuple[np.ndarray, str | None, str | None]:
     """Times as float64: numbers as given (unit ``None``: the caller's), or date-times (NumPy
     ``datetime64``, a pandas datetime Series or ``DatetimeIndex``, zone-aware ones in UTC;
@@ -347,8 +354,7 @@ def array_times(v, name: str) -> tuple[np.ndarray, str | None, str | None]:
     if np.isnat(ns).any():
         where = _lines([int(i) for i in np.flatnonzero(np.isnat(ns))])
         raise ValueError(f"{name} has missing date-times (NaT) at index {where}")
-    days = (ns - ns[0]) / np.timedelta64(1, "D")
-    return days.astype(np.float64), "days", iso_start(ns[0])
+    return _days_since_first(ns)
 
 
 def check_unique_columns(header: Sequence, names: Sequence, source: str) -> None:
@@ -394,9 +400,7 @@ def _parse_time(
                     f"{path}, line {line}: time column {col!r} value {cell.strip()!r} does not "
                     f"match time_format {time_format!r} ({exc})"
                 ) from None
-        stamps = np.asarray(stamps)
-        days = (stamps - stamps[0]) / np.timedelta64(1, "D")
-        return days.astype(np.float64), "days", iso_start(stamps[0])
+        return _days_since_first(np.asarray(stamps))
     numeric = []
     for cell, line in zip(cells, lines):
         try:
@@ -426,9 +430,7 @@ def _parse_time(
             ) from None
         if np.isnat(stamps[-1]):
             raise ValueError(f"{path}, line {line}: time column {col!r} is empty")
-    stamps = np.asarray(stamps)
-    days = (stamps - stamps[0]) / np.timedelta64(1, "D")
-    return days.astype(np.float64), "days", iso_start(stamps[0])
+    return _days_since_first(np.asarray(stamps))
 
 
 def _fill(values: np.ndarray, time: np.ndarray | None, where: list, fill, lines, label: str):
