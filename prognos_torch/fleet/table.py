@@ -44,6 +44,7 @@ from ..workflow.data import (
     decimal_hint,
     formatted_ns,
     iso_start,
+    number_text,
 )
 
 __all__ = ["FleetTable", "read_fleet_table", "write_table", "TABLE_SUFFIXES"]
@@ -269,28 +270,34 @@ def _times(col, where, time_format: str | None = None):
 
 
 def _comma_values(cells: list[str]) -> tuple[list[str], np.ndarray]:
-    """Value cells with decimal commas made points, and the positions of cells that hold a
-    point (refused: a thousands separator where the comma is the decimal mark)."""
-    dotted = [i for i, c in enumerate(cells) if "." in c]
-    return [c.replace(",", ".") for c in cells], np.asarray(dotted, dtype=np.int64)
+    """Value cells read with a decimal comma (:func:`~prognos_torch.workflow.data.number_text`),
+    and the positions of those that hold a point (refused there: a thousands separator)."""
+    out, dotted = [], []
+    for i, c in enumerate(cells):
+        try:
+            out.append(number_text(c, ","))
+        except ValueError:
+            out.append(c)
+            dotted.append(i)
+    return out, np.asarray(dotted, dtype=np.int64)
 
 
 def _comma_times(cells: list[str], where) -> list[str]:
-    """Time cells with decimal commas made points; date-times are left as they are, and a
-    number written with a point is refused."""
+    """Time cells read with a decimal comma; a number written with a point is refused, a
+    date-time with a point (a fraction of a second) is left as it is."""
     out = []
     for i, c in enumerate(cells):
         try:
-            float(c)
-        except ValueError:
-            out.append(c.replace(",", ".") if "," in c else c)
+            out.append(number_text(c, ","))
             continue
-        if "." in c:
-            raise ValueError(
-                f"{where(i)}: time {c.strip()!r} is not a number with decimal=',' (a '.' there "
-                "would be a thousands separator)"
-            )
-        out.append(c)
+        except ValueError:
+            pass
+        try:
+            float(c)
+        except ValueError:  # a date-time
+            out.append(c)
+            continue
+        raise ValueError(f"{where(i)}: time {c.strip()!r} is not a number{decimal_hint(c, ',')}")
     return out
 
 
