@@ -391,17 +391,15 @@ def exponential_trend_rul(
         direction=direction,
         skip_window=True,
     )
-    if per_asset:  # the healthy level, and its noise carried into log(y - phi) (delta method)
-        phis, sigma0 = on.base_mean[:, None], on.base_std[:, None]
+    if per_asset:  # the healthy level; values within its std of it have no usable log
+        phis = on.base_mean[:, None]
         d = s * (y - phis)
-        usable_d = d >= sigma0
-    else:
-        phis, sigma0 = torch.full((B, 1), float(phi), dtype=dt, device=dev), None
-        d = s * (y - phis)
-        usable_d = d > 0
-    if per_asset:  # (a threshold on the level's healthy side is flagged below)
+        usable_d = d >= on.base_std[:, None]
+        # (a threshold on the level's healthy side is flagged below)
         log_thr = torch.log((s * (thr - phis)).clamp(min=torch.finfo(dt).tiny))
     else:
+        d = s * (y - phi)
+        usable_d = d > 0
         log_thr = torch.full((B, 1), math.log(s * (thr - phi)), dtype=dt, device=dev)
     z = torch.where(
         obs & usable_d, torch.log(torch.where(usable_d, d, torch.ones_like(d))), torch.nan
@@ -436,12 +434,12 @@ def exponential_trend_rul(
     zs = torch.where(inside, z.gather(1, idx_c), torch.nan)
     taus = torch.where(inside, t.gather(1, idx_c) - t_on[:, None], 0.0)
     n_deg = (~torch.isnan(zs)).sum(1)
-    nonpos = (inside & obs.gather(1, idx_c) & (d.gather(1, idx_c) <= 0)).any(1)
     if per_asset:  # (values within sigma0 of the level are missing by design: no flag)
-        nonpos = torch.zeros_like(nonpos)
+        nonpos = torch.zeros_like(has_onset)
         ds = torch.where(inside, d.gather(1, idx_c), torch.nan)
         weight = torch.where(torch.isnan(zs), 0.0, ds * ds)  # 1 / var(z) in sigma0^2 units
     else:
+        nonpos = (inside & obs.gather(1, idx_c) & (d.gather(1, idx_c) <= 0)).any(1)
         weight = torch.ones_like(zs)
 
     # prior and noise per asset
