@@ -14,6 +14,16 @@ from matplotlib.figure import Figure
 from ..io import atomic_write
 
 
+def check_result(result, kind: str, attribute: str, name: str, or_none: str = "") -> None:
+    """A ``TypeError`` for a result of the wrong kind (without ``attribute`` or ``history``),
+    e.g. the arguments swapped; ``name`` is the plot function, whose path comes first."""
+    if not hasattr(result, attribute) or not hasattr(result, "history"):
+        raise TypeError(
+            f"result must be a {kind}, got {type(result).__name__}; the call is "
+            f"{name}(path, result): the PNG path {or_none}comes first"
+        )
+
+
 def time_label(series) -> str:
     """Axis label of a :class:`~prognos_torch.workflow.Series`' time."""
     if series.time_unit == "days":

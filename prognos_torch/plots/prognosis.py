@@ -20,7 +20,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ._arrays import as_numpy, clip_for_drawing, time_label, write_png
+from ._arrays import as_numpy, check_result, clip_for_drawing, time_label, write_png
 
 if TYPE_CHECKING:  # annotations only: the workflow imports the plots, not the reverse
     from ..workflow.predict import RULResult
@@ -79,11 +79,7 @@ def plot_prognosis(
         title: figure title.
         ax: draw only the top panel into this matplotlib axis (no file is written).
     """
-    if not hasattr(result, "distribution") or not hasattr(result, "history"):
-        raise TypeError(
-            f"result must be a RULResult from prognose, got {type(result).__name__}; the call "
-            "is plot_prognosis(path, result): the PNG path (or None) comes first"
-        )
+    check_result(result, "RULResult from prognose", "distribution", "plot_prognosis", "(or None) ")
     own = ax is None
     fig = None
     if own:

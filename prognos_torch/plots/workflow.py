@@ -15,7 +15,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ._arrays import as_numpy, clip_for_drawing, time_label, write_png
+from ._arrays import as_numpy, check_result, clip_for_drawing, time_label, write_png
 from .prognosis import plot_prognosis
 from .rul import draw_paths
 
@@ -24,15 +24,6 @@ if TYPE_CHECKING:  # annotations only: the workflow imports this module, not the
     from ..workflow.predict import ForecastResult, RULResult
 
 __all__ = ["plot_forecast", "plot_rul"]
-
-
-def _check_result(result, kind: str, attribute: str, name: str) -> None:
-    """A ``TypeError`` for a result of the wrong kind, e.g. the arguments swapped."""
-    if not hasattr(result, attribute) or not hasattr(result, "history"):
-        raise TypeError(
-            f"result must be a {kind}, got {type(result).__name__}; the call is "
-            f"{name}(path, result): the PNG path comes first"
-        )
 
 
 def _history_tail(series: Series, horizon: int, history: int | None) -> tuple:
@@ -60,7 +51,7 @@ def plot_forecast(
             of the horizon past the forecast's end.
         history: number of past values shown (default ``max(4 H, 200)``).
     """
-    _check_result(result, "ForecastResult", "lower", "plot_forecast")
+    check_result(result, "ForecastResult", "lower", "plot_forecast")
     fig = Figure(figsize=(7.5, 4.0))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
@@ -117,7 +108,7 @@ def plot_rul(
         n_paths: sample paths drawn.
         title: figure title.
     """
-    _check_result(result, "RULResult", "distribution", "plot_rul")
+    check_result(result, "RULResult", "distribution", "plot_rul")
     if result.onset is not None:  # a prognose result
         if history is not None:
             raise ValueError(
