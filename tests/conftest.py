@@ -6,6 +6,10 @@ orders of magnitude. Tests therefore run torch single-threaded, and so do the BL
 that NumPy and SciPy load (OpenBLAS reads its thread count when it is loaded, so the variables
 are set before anything imports numpy): the LLE health indicator's ``scipy.linalg.eigh``
 rounds differently with 2 threads, and the study tests assert its numbers to 1e-6.
+
+The parallelism goes to processes instead: the README's command runs the suite in two
+single-threaded pytest-xdist workers (``-n 2 --dist loadscope``: a module's tests, and so its
+module-scoped quick study, stay in one worker). No test may depend on another having run first.
 """
 
 import os
