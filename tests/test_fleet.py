@@ -433,6 +433,25 @@ def _small_csv(tmp_path, body: str):
     return p
 
 
+def test_time_order_messages_show_the_times_as_written(tmp_path):
+    """A time out of order is reported as the table holds it: an ISO 8601 cell as its text (not
+    the day count it was read as), a number with 10 significant digits (Unix seconds no longer
+    1.70002e+09 alike), all of them where 10 would print two times alike."""
+    p = _small_csv(
+        tmp_path,
+        "a,2024-03-01T10:00:00Z,1\na,2024-03-01T10:00:00Z,2\n"
+        "b,2024-03-01T10:00:00Z,1\nb,2024-02-29T10:00:00Z,1\n",
+    )
+    err = read_fleet_table(p, on_error="flag").errors
+    assert "duplicate timestamp '2024-03-01T10:00:00Z' (also at row 1)" in err["a"]
+    assert "time '2024-02-29T10:00:00Z' comes after '2024-03-01T10:00:00Z' (row 3)" in err["b"]
+    unix = [1700021180.0, 1700017580.0, 0.1 + 0.2, 0.3]
+    table = {"asset": np.array(["u", "u", "v", "v"]), "t": np.array(unix), "value": np.ones(4)}
+    err = read_fleet_table(table, on_error="flag").errors
+    assert "time 1700017580 comes after 1700021180 (row 1)" in err["u"]
+    assert "time 0.3 comes after 0.30000000000000004 (row 3)" in err["v"]
+
+
 def test_bad_input_messages_name_the_asset_and_row(tmp_path):
     good = "".join(f"A,{k},{1 + 0.01 * k}\n" for k in range(12))
     p = tmp_path / "nocol.csv"
@@ -443,10 +462,10 @@ def test_bad_input_messages_name_the_asset_and_row(tmp_path):
     with pytest.raises(ValueError, match=r"asset 'B', row 14 \(line 15\): value 'abc'"):
         fleet_rul(p, 2.0)
     p = _small_csv(tmp_path, good + "B,0,1.0\nB,0,1.1\n")
-    with pytest.raises(ValueError, match=r"asset 'B', row 14 .*duplicate timestamp 0.0"):
+    with pytest.raises(ValueError, match=r"asset 'B', row 14 .*duplicate timestamp '0'"):
         fleet_rul(p, 2.0)
     p = _small_csv(tmp_path, good + "B,5,1.0\nB,3,1.1\n")
-    with pytest.raises(ValueError, match=r"asset 'B', row 14 .*time 3.0 comes after 5.0"):
+    with pytest.raises(ValueError, match=r"asset 'B', row 14 .*time '3' comes after '5'"):
         fleet_rul(p, 2.0)
     p = _small_csv(tmp_path, good + "B,x,1.0\n")
     with pytest.raises(

@@ -161,6 +161,12 @@ def test_load_series_gaps_fill_and_errors(tmp_path):
     _write_csv(path, ("t", "ch", "x"), [(0, 1, 1.0), (0, 2, 1.1), (1, 1, 3.0), (1, 2, 3.1)])
     with pytest.raises(ValueError, match=r"\(0 follows 0\); a repeated time: .* --where COL="):
         load_series(path, "x", time_column="t")  # a long table: two channels in one file
+    # date-times are shown as date-times (in UTC), not as the days since the first they became
+    path.write_text("t,x\n2024-03-01T10:00:00+01:00,1\n2024-03-01T11:00:00Z,2\n"
+                    "2024-03-01T09:00:00.25Z,3\n")  # fmt: skip
+    with pytest.raises(ValueError, match=r"line 4: .* increasing \(2024-03-01T09:00:00.250 "
+                       r"follows 2024-03-01T11:00:00\)"):  # fmt: skip
+        load_series(path, "x", time_column="t")
     with pytest.raises(ValueError, match="fill must be None, 'linear' or 'drop'"):
         load_series(path, "x", fill="spline")
     with pytest.raises(ValueError, match=r"source must be 1-D"):

@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._text import fmt_time
 from ..io import atomic_write, sniffed_csv
 from ..workflow.data import (
     check_unique_columns,
@@ -391,6 +392,7 @@ def read_fleet_table(
     names_in_order = list(index)
 
     written, dotted = cols[2], np.empty(0, dtype=np.int64)
+    written_t = cols[1]  # as written: messages show the time the user wrote, not days
     if decimal == "," and lines is not None:  # a CSV's commas made points (a point: refused)
         cols[1] = _comma_times(cols[1], lambda i: where(i, asset[i]))
         cols[2], dotted = _comma_values(cols[2])
@@ -415,14 +417,25 @@ def read_fleet_table(
     co, to = code[order], t[order]
     same = co[1:] == co[:-1]
     step = to[1:] - to[:-1]
+
+    def shown(i: int, other: int | None = None) -> str:  # a time cell as the table holds it
+        c = written_t[i]
+        if isinstance(c, (str, np.str_)):
+            return repr(str(c).strip())
+        if isinstance(c, np.datetime64) or type(c).__name__ == "Timestamp":
+            return str(c)
+        if other is not None and fmt_time(float(t[i])) == fmt_time(float(t[other])):
+            return repr(float(t[i]))  # all the digits where 10 do not tell the two apart
+        return fmt_time(float(t[i]))
+
     for j in np.flatnonzero(same & (step <= 0)).tolist():
         i_prev, i = int(order[j]), int(order[j + 1])
         if step[j] == 0:
-            fail(i, f"duplicate timestamp {float(to[j + 1])!r} (also at row {i_prev + 1})")
+            fail(i, f"duplicate timestamp {shown(i)} (also at row {i_prev + 1})")
         else:
             fail(
                 i,
-                f"time {float(to[j + 1])!r} comes after {float(to[j])!r} (row {i_prev + 1}): "
+                f"time {shown(i, i_prev)} comes after {shown(i_prev, i)} (row {i_prev + 1}): "
                 "times must "
                 "increase within each asset; sort the table by asset and time",
             )

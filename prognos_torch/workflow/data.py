@@ -580,6 +580,15 @@ def load_series(
     return _finish(arr, tarr, name, None, unit, start, None)
 
 
+def _shown_time(days: float, start: str | None) -> str:
+    """A time for a message: the date-time it was read from (``start`` plus ``days``, to the
+    microsecond) where the series has date-times, else the number (:func:`fmt_time`)."""
+    if start is None:
+        return fmt_time(days)
+    us = np.timedelta64(int(round(float(days) * 86400e6)), "us")
+    return iso_start((datetime_ns(start) + us).astype("datetime64[ns]"))
+
+
 def _finish(values, time, name, time_name, unit, start, source, lines=None) -> Series:
     if values.shape[0] == 0:
         raise ValueError(f"series {name!r} is empty after selecting rows")
@@ -608,8 +617,8 @@ def _finish(values, time, name, time_name, unit, start, source, lines=None) -> S
                     "--where COL=VALUE (where={COL: VALUE} in load_series)"
                 )
             raise ValueError(
-                f"{prefix}{where}: {what} must be strictly increasing ({fmt_time(time[i + 1])} "
-                f"follows {fmt_time(time[i])}){hint}"
+                f"{prefix}{where}: {what} must be strictly increasing "
+                f"({_shown_time(time[i + 1], start)} follows {_shown_time(time[i], start)}){hint}"
             )
     return Series(
         values=torch.as_tensor(values, dtype=torch.float64).clone(),
