@@ -268,13 +268,19 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
     cal_rows, cal_warn, made = _calibration(args, res, filt, histories)
     where = data_cfg.get("where") or {}
     sel = f" ({', '.join(f'{k}={v}' for k, v in where.items())})" if where else ""
+    def when(t: float) -> str:  # a time, and its date where the data has date-times
+        date = series.date(t)
+        return f"{fmt_time(t)} {unit}" + (f" ({date})" if date else "")
+
     print(
-        f"RUL of {series.name!r}{sel} from {series.source} at t = {fmt_time(res.t_last)} {unit}: "
+        f"RUL of {series.name!r}{sel} from {series.source} at t = {when(res.t_last)}: "
         f"threshold {res.threshold:g} ({res.direction})"
     )
-    on = res.onset
-    onset = f"{fmt_time(on.time)} {unit} ({on.method}, baseline mean {on.baseline.mean:.4g}, std " \
-        f"{on.baseline.std:.4g})" if on is not None and on.detected else "not detected"  # fmt: skip
+    on, onset = res.onset, "not detected"
+    if on is not None and on.detected:
+        date = series.date(on.time)
+        onset = f"{fmt_time(on.time)} {unit} ({f'{date}; ' if date else ''}{on.method}, baseline " \
+            f"mean {on.baseline.mean:.4g}, std {on.baseline.std:.4g})"  # fmt: skip
     rows = [("status", res.status), ("degradation onset", onset)]
     if res.status == "ok":
         scores = (res.selection or {}).get("scores") or {}
@@ -290,8 +296,17 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
             (f"90 % interval ({unit})", f"[{lo}, {hi}]"),
             ("censored mass", f"{s['censored_mass']:.3f} (RUL > {_fmt(s['bound'])} {unit})"),
         ]
+        if series.start is not None:  # the dates a planner reads (UTC, to the second)
+            d05, d50, d95 = (res.failure_date(q) for q in (0.05, 0.5, 0.95))
+            after = f"after {series.date(res.t_last + s['bound'])}"
+            rows[-1:-1] = [
+                ("failure date, median", d50 or after),
+                ("failure dates, 90 %", f"[{d05 or after}, {d95 or after}]"),
+            ]
     else:
         rows += [(f"lower bound if it stays healthy ({unit})", _fmt(s["bound"]))]
+        if series.start is not None and s["bound"] is not None:
+            rows.append(("no failure before", series.date(res.t_last + s["bound"]) or "n/a"))
     rows += cal_rows
     if args.within is not None:
         rows.append(

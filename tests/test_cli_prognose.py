@@ -37,6 +37,16 @@ def test_day_first_dates_with_time_format_give_the_iso_answer(capsys, tmp_path):
         assert main(argv + extra + ([fmt] if fmt else []) + ["--paths", "200"]) in (0, 3)
         outs.append(capsys.readouterr().out.split("\n", 1)[1])  # (the first line names the file)
     assert outs[0] == outs[1] and "degradation onset" in outs[0]
+    # the report gives the dates a planner reads beside the day counts (the library's own)
+    from prognos_torch.workflow import load_series, prognose
+
+    res = prognose(load_series(tmp_path / "iso.csv", "x", time_column="t"), 3.0, n_paths=200)
+    want = [res.failure_date(q) for q in (0.05, 0.5, 0.95)]
+    assert want[1] is not None and f"failure date, median  {want[1]}" in outs[0]
+    ends = [w or "after " for w in (want[0], want[2])]
+    assert f"failure dates, 90 %   [{ends[0]}, {ends[1]}" in outs[0]
+    onset = str(stamps[0] + np.timedelta64(round(res.onset.time * 86400), "s"))
+    assert f"days ({onset}; ksigma" in outs[0]
 
 
 def test_rul_from_the_ims_table_with_until(capsys, tmp_path):

@@ -13,6 +13,7 @@ import torch
 
 from prognos_torch.cli import main as cli_main
 from prognos_torch.fleet import (
+    DATE_COLUMNS,
     METHODS,
     MISFIT_P,
     OUTPUT_COLUMNS,
@@ -419,7 +420,8 @@ def read_back(path):
 
         with open(path, newline="") as fh:
             rows = list(csv.DictReader(fh))
-        return {k: [r[k] if k in ("asset", "flags", "message") else float(r[k] or "nan")
+        text = ("asset", "flags", "message", *DATE_COLUMNS)
+        return {k: [r[k] if k in text else float(r[k] or "nan")
                     for r in rows] for k in rows[0]}  # fmt: skip
     import pyarrow.parquet as pq
 
@@ -693,6 +695,22 @@ def test_asset_ids_duplicate_columns_and_date_times(tmp_path):
     zoned = [f"2024-01-01T{(k // 60) + 1:02d}:{k % 60:02d}:00+01:00" for k in range(60)]
     tz = fleet_rul({"asset": ["a"] * 60, "t": np.array(zoned), "value": y}, 3.0, samples=50)
     _assert_same(naive, tz, rtol=0)
+    # date-times: the dates a planner reads, in UTC to the second, beside the day counts
+    assert tuple(naive.columns) == OUTPUT_COLUMNS + DATE_COLUMNS
+    assert tuple(ints.columns) == OUTPUT_COLUMNS  # numeric time: none
+    assert all(naive.columns[c] == tz.columns[c] for c in DATE_COLUMNS)
+    row = naive.row("a")
+    assert row["t_last_date"] == "2024-01-01T00:59:00" and math.isfinite(row["rul_q95"])
+
+    def date_of(days):  # NumPy's own arithmetic from the last stamp
+        return str(np.datetime64(stamps[-1]) + np.timedelta64(round(days * 86400), "s"))
+
+    for q in ("q05", "median", "q95"):
+        assert row[f"failure_date_{q}"] == date_of(row[f"rul_{q}"])
+    assert row["onset_date"] == date_of(row["onset_time"] - row["t_last"])
+    naive.write(tmp_path / "dated.csv")
+    back = read_back(tmp_path / "dated.csv")
+    assert back["failure_date_median"] == [row["failure_date_median"]]
     with pytest.raises(ValueError, match="ISO 8601 date-time in 1678-2262"):
         read_fleet_table(
             {"asset": ["a"] * 60, "t": np.array(["9999-12-31"] + stamps[1:]), "value": y}

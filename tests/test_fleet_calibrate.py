@@ -84,6 +84,18 @@ def test_fleet_result_calibrated_columns_and_settings_check():
     ok = ~torch.isnan(lo)
     assert torch.equal(got_lo[ok], want_lo[ok]) and torch.equal(got_hi[ok], want_hi[ok])
     assert out.columns["rul_median"] == res.columns["rul_median"]
+    assert not any("date" in c for c in out.columns)  # numeric time: no dates
+    # on a date-time axis (days since epoch) the calibrated ends also come as dates
+    from dataclasses import replace
+
+    dated = replace(res, epoch="2024-01-01T00:00:00").calibrated(cal)
+    day0, t_last = np.datetime64("2024-01-01T00:00:00"), np.array(res.columns["t_last"])
+    for end, got in (("q05", got_lo), ("q95", got_hi)):
+        want = [
+            str(day0 + np.timedelta64(round(d * 86400), "s")) if np.isfinite(d) else ""
+            for d in t_last + got.numpy()
+        ]
+        assert dated.columns[f"failure_date_{end}_calibrated"] == want
     with pytest.raises(ValueError, match="made with threshold=20.0, this result has threshold=25"):
         fleet_rul(live.table, 25.0).calibrated(cal)
     with pytest.raises(ValueError, match="this result has samples=500"):

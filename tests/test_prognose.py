@@ -480,6 +480,25 @@ def test_messages_tell_unix_times_and_offset_levels_apart():
     assert re.search(r"below it at 17001\d{5}, away", flag)
 
 
+def test_failure_date_is_the_last_time_plus_the_rul_quantile():
+    """On date-times, failure_date(q) is the date-time of t_last + quantile(q) (UTC, to the
+    second), computed here by NumPy from the first stamp; None on numeric time, for a quantile
+    beyond the horizon and before onset."""
+    t, y = _series(n=520, noise_after=0.05)
+    stamps = np.datetime64("2024-03-01T00:00:00") + (t.numpy() * 600).astype("timedelta64[s]")
+    res = prognose(y, 3.0, time=stamps, method="exponential")
+    assert res.status == "ok"
+    for q in (0.05, 0.5, 0.95):
+        days = res.t_last + float(res.quantile(q))
+        want = stamps[0] + np.timedelta64(round(days * 86400), "s")
+        assert res.failure_date(q) == str(want)
+    assert prognose(y, 3.0, time=t, method="exponential").failure_date(0.5) is None
+    far = prognose(y, 30.0, time=stamps, method="linear")  # every path beyond the horizon
+    assert far.status == "ok" and far.censored_mass > 0.05 and far.failure_date(0.95) is None
+    early = prognose(y[:420], 3.0, time=stamps[:420], method="exponential")
+    assert early.status != "ok" and early.failure_date(0.5) is None
+
+
 def test_iso_texts_as_time_are_date_times():
     """Times as ISO 8601 texts (a CSV read without date parsing) give the RUL of the same
     times as datetime64, zone designators applied; a text that is no date-time is named."""

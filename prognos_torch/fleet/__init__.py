@@ -16,7 +16,7 @@
 
 from .calibrate import calibrate_fleet
 from .per_asset import prognose_rul
-from .run import METHODS, OUTPUT_COLUMNS, FleetResult, fleet_rul, run_shard
+from .run import DATE_COLUMNS, METHODS, OUTPUT_COLUMNS, FleetResult, fleet_rul, run_shard
 from .synthetic import SyntheticFleet, synthetic_fleet
 from .table import TABLE_SUFFIXES, FleetTable, read_fleet_table, write_table
 from .trend import (
@@ -35,6 +35,7 @@ __all__ = [
     "METHODS",
     "MISFIT_P",
     "OUTPUT_COLUMNS",
+    "DATE_COLUMNS",
     "PaddedBatch",
     "RUL_COLUMNS",
     "SyntheticFleet",

@@ -195,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"{n} assets, {with_rul} with a RUL, in {time.perf_counter() - t0:.1f} s "
         f"({args.backend}, shards of {args.shard_size}); written to {args.out}"
-        + (f" (times in{unit} since {res.epoch})" if res.epoch else "")
+        + (f" (times in{unit} since {res.epoch}; dates in the *_date columns)" if res.epoch else "")
     )
     for flag, c in sorted(counts.items()):
         print(f"  {flag}: {c} asset(s)")

@@ -35,17 +35,47 @@ import numpy as np
 import torch
 
 from ..core.validation import check_real
+from ..workflow.data import date_after
 from .per_asset import prognose_rul
 from .table import FleetTable, read_fleet_table, write_table
 from .trend import RUL_COLUMNS, exponential_trend_rul, pad_batch
 
-__all__ = ["FleetResult", "fleet_rul", "METHODS", "OUTPUT_COLUMNS", "run_shard"]
+__all__ = ["FleetResult", "fleet_rul", "METHODS", "OUTPUT_COLUMNS", "DATE_COLUMNS", "run_shard"]
 
 #: RUL methods by name: the batched exponential trend (default) and the per-asset prognose
 METHODS: dict[str, Callable] = {"exponential": exponential_trend_rul, "prognose": prognose_rul}
 
 #: the output table's columns, in order
 OUTPUT_COLUMNS = ("asset",) + RUL_COLUMNS + ("flags", "message")
+
+#: columns added after :data:`OUTPUT_COLUMNS` where the time column holds date-times: ISO 8601
+#: text in UTC, to the second (``""`` where the number is NaN): the last row's and the onset's
+#: date-times, and ``t_last`` plus the RUL quantiles (``failure_date_q95`` empty where that
+#: quantile lies beyond every crossing)
+DATE_COLUMNS = (
+    "t_last_date",
+    "onset_date",
+    "failure_date_q05",
+    "failure_date_median",
+    "failure_date_q95",
+)
+
+
+def _dates(epoch: str, days) -> list[str]:
+    """Days since ``epoch`` as ISO 8601 date-times to the second; ``""`` for NaN."""
+    return ["" if not math.isfinite(d) else date_after(epoch, d, "s") for d in days]
+
+
+def date_columns(columns: Mapping[str, list], epoch: str) -> dict[str, list[str]]:
+    """:data:`DATE_COLUMNS` of a result's columns on a date-time axis (days since ``epoch``)."""
+    t_last = np.asarray(columns["t_last"], dtype=float)
+    out = {
+        "t_last_date": _dates(epoch, t_last),
+        "onset_date": _dates(epoch, np.asarray(columns["onset_time"], dtype=float)),
+    }
+    for q in ("q05", "median", "q95"):
+        out[f"failure_date_{q}"] = _dates(epoch, t_last + np.asarray(columns[f"rul_{q}"], float))
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -54,7 +84,8 @@ class FleetResult:
 
     Attributes:
         columns: ``{name: list}`` for :data:`OUTPUT_COLUMNS` (floats, NaN where no number is
-            given; ``flags`` ``;``-separated; ``message`` the input problem of a set-aside asset).
+            given; ``flags`` ``;``-separated; ``message`` the input problem of a set-aside asset),
+            then :data:`DATE_COLUMNS` where the time column holds date-times.
         threshold, direction, horizon, seed, method, shard_size, backend: the run's settings.
         time_unit, epoch: the time axis (``"days"`` since ``epoch`` for date-time columns).
     """
@@ -123,6 +154,10 @@ class FleetResult:
         cols = dict(self.columns)
         cols["rul_q05_calibrated"] = [float(v) for v in new_lo]
         cols["rul_q95_calibrated"] = [float(v) for v in new_hi]
+        if self.epoch is not None:  # (an open upper end, inf, has no date: "")
+            t_last = np.asarray(cols["t_last"], dtype=float)
+            for end, v in (("q05", new_lo), ("q95", new_hi)):
+                cols[f"failure_date_{end}_calibrated"] = _dates(self.epoch, t_last + v.numpy())
         return replace(self, columns=cols)
 
     def write(self, path) -> Path:
@@ -307,6 +342,8 @@ def fleet_rul(
         cols[c] = [float(v) for v in numeric[c]]
     cols["flags"] = flags
     cols["message"] = message
+    if table.epoch is not None:
+        cols.update(date_columns(cols, table.epoch))
     return FleetResult(
         columns=cols,
         threshold=thr,

@@ -9,8 +9,8 @@ after the header; a CSV message also gives the file line, blank lines skipped):
 * the asset id is text (numbers are read as their text, so ``7`` in a DataFrame and ``"7"`` in a
   CSV are the same asset); an empty id is an error;
 * time: numbers, or ISO 8601 date-times (then days since 1970-01-01T00:00:00 UTC, the same
-  axis for every table, so that the results of shards read apart merge);
-  missing or non-finite times are errors;
+  axis for every table, so that the results of shards read apart merge; the result adds the
+  dates, :data:`~prognos_torch.fleet.DATE_COLUMNS`); missing or non-finite times are errors;
 * value: a number; empty cells and ``nan``/``NA``/``null``/``none``/``-`` are missing (NaN);
   anything else (text, ``inf``) is a *non-numeric value*;
 * a CSV read with ``decimal=","`` (``0,25``; ``--decimal ,``) has decimal commas in its value

@@ -83,6 +83,14 @@ class Series:
             return 1.0
         return float(torch.diff(self.time).median())
 
+    def date(self, t: float, unit: str = "s") -> str | None:
+        """The ISO 8601 date-time (UTC) of time ``t`` on this series' axis, rounded to ``unit``
+        (``"s"``, ``"ms"``, ``"us"``), where the time column holds date-times (:attr:`start`
+        set); ``None`` for numeric time or a non-finite ``t``."""
+        if self.start is None or not math.isfinite(float(t)):
+            return None
+        return date_after(self.start, float(t), unit)
+
     def head(self, n: int) -> Series:
         """The first ``n`` rows (a chronological training part)."""
         return Series(
@@ -580,13 +588,23 @@ def load_series(
     return _finish(arr, tarr, name, None, unit, start, None)
 
 
+_UNIT_NS = {"s": 10**9, "ms": 10**6, "us": 10**3}
+
+
+def date_after(start: str, days: float, unit: str = "us") -> str:
+    """The ISO 8601 date-time ``days`` (finite) after ``start`` (ISO 8601, UTC), rounded to
+    ``unit`` (``"s"``, ``"ms"`` or ``"us"``): seconds where the fraction is zero."""
+    if unit not in _UNIT_NS:
+        raise ValueError(f"unit must be 's', 'ms' or 'us', got {unit!r}")
+    q = _UNIT_NS[unit]
+    ns = int(datetime_ns(start).astype(np.int64)) + round(float(days) * 86400e9)
+    return iso_start(np.datetime64((ns + q // 2) // q * q, "ns"))
+
+
 def _shown_time(days: float, start: str | None) -> str:
-    """A time for a message: the date-time it was read from (``start`` plus ``days``, to the
-    microsecond) where the series has date-times, else the number (:func:`fmt_time`)."""
-    if start is None:
-        return fmt_time(days)
-    us = np.timedelta64(int(round(float(days) * 86400e6)), "us")
-    return iso_start((datetime_ns(start) + us).astype("datetime64[ns]"))
+    """A time for a message: the date-time it was read from (to the microsecond) where the
+    series has date-times, else the number (:func:`fmt_time`)."""
+    return fmt_time(days) if start is None else date_after(start, days)
 
 
 def _finish(values, time, name, time_name, unit, start, source, lines=None) -> Series:

@@ -270,6 +270,15 @@ class RULResult:
         v = x[k]
         return torch.where(torch.isfinite(v), v, math.nan)
 
+    def failure_date(self, q: float = 0.5) -> str | None:
+        """The date-time (ISO 8601, UTC, to the second) by which the threshold is reached with
+        probability ``q``: ``t_last`` plus the RUL quantile :meth:`quantile` ``(q)``, where the
+        series' time column holds date-times (``history.start``). ``None`` for numeric time,
+        before onset (``status`` other than ``"ok"``) or for a quantile beyond ``bound``
+        (censored paths: the date lies after ``history.date(t_last + bound)``)."""
+        rul = float(self.quantile(q))
+        return None if math.isnan(rul) else self.history.date(self.t_last + rul)
+
     def summary(self) -> dict:
         """Mean (Eq. 28, only when nothing is censored), median and the 5/95 % quantiles
         (:meth:`quantile`; from the exact per-path RULs where the result carries them; a
