@@ -753,8 +753,15 @@ def _cmd_rul(args) -> int:
             if cm > 0
             else "n/a"
         )
+    date = series.date(res.t_last)
+    dates = []
+    if series.start is not None:  # the dates a planner reads (UTC, to the second)
+        after = f"after {series.date(res.t_last + res.bound)}"
+        dates = [(f"failure date, {name}", res.failure_date(q) or after)
+                 for name, q in (("median", 0.5), ("5 %", 0.05), ("95 %", 0.95))]  # fmt: skip
     print(
-        f"RUL of {_describe(series, data_cfg)} at t = {fmt_time(res.t_last)} {unit}: threshold "
+        f"RUL of {_describe(series, data_cfg)} at t = {fmt_time(res.t_last)} {unit}"
+        f"{f' ({date})' if date else ''}: threshold "
         f"{res.threshold:g} ({res.direction}), {res.filter.upper()} with {res.n_particles} "
         f"particles, horizon {res.horizon} steps = {res.bound:g} {unit}"
     )
@@ -767,6 +774,7 @@ def _cmd_rul(args) -> int:
                 (f"5 % quantile ({unit})", s["q05"]),
                 (f"95 % quantile ({unit})", s["q95"]),
             ]
+            + dates
             + within
             + (
                 [("observed RUL (" + unit + ")", _observed_rul(res, truth))]

@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import os
 import pickle
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -273,6 +274,26 @@ def _zoned_csv(path: Path, zone: str) -> Path:
         rows.append(f"2024-01-01T{h:02d}:{i % 60:02d}:00{zone},{v}")
     path.write_text("\n".join(rows) + "\n")
     return path
+
+
+def test_cli_rul_from_a_model_prints_failure_dates_on_date_times(tmp_path, capsys):
+    """On a date-time column the model-file report gives the last row's date-time and the
+    failure dates, each the last time plus its RUL quantile (NumPy's arithmetic here)."""
+    data, model = _zoned_csv(tmp_path / "z.csv", "Z"), tmp_path / "m.pt"
+    base = ["--column", "rms", "--time-column", "ts", "--learner", "elm", "-m", "3"]
+    assert main(["fit", str(data), *base, "--out", str(model)]) == 0
+    capsys.readouterr()
+    argv = ["rul", str(model), str(data), "--threshold", "2", "--horizon", "200"]
+    assert main([*argv, "--particles", "200"]) in (0, 3)
+    out = capsys.readouterr().out
+    assert "at t = 0.04097222222 days (2024-01-01T00:59:00): threshold 2" in out
+    last = np.datetime64("2024-01-01T00:59:00")
+    rows = dict(re.findall(r"^(median RUL \(days\)|failure date, median)\s+(\S+)$", out, re.M))
+    assert len(rows) == 2, out
+    want = last + np.timedelta64(round(float(rows["median RUL (days)"]) * 86400), "s")
+    # (the report prints the median to 4 digits: a minute is 7e-4 days)
+    got = np.datetime64(rows["failure date, median"])
+    assert abs((got - want) / np.timedelta64(1, "s")) <= 60
 
 
 def test_cli_rul_with_time_zones_and_warnings_ends(tmp_path):
