@@ -278,10 +278,16 @@ def _zoned_csv(path: Path, zone: str) -> Path:
 
 def test_cli_rul_from_a_model_prints_failure_dates_on_date_times(tmp_path, capsys):
     """On a date-time column the model-file report gives the last row's date-time and the
-    failure dates, each the last time plus its RUL quantile (NumPy's arithmetic here)."""
+    failure dates, each the last time plus its RUL quantile (NumPy's arithmetic here), and the
+    forecast file each step's date-time."""
     data, model = _zoned_csv(tmp_path / "z.csv", "Z"), tmp_path / "m.pt"
     base = ["--column", "rms", "--time-column", "ts", "--learner", "elm", "-m", "3"]
     assert main(["fit", str(data), *base, "--out", str(model)]) == 0
+    fc = tmp_path / "fc.csv"
+    assert main(["forecast", str(model), str(data), "--horizon", "3", "--csv", str(fc)]) == 0
+    rows = list(csv.DictReader(fc.open()))
+    assert [r["date"] for r in rows] == ["2024-01-01T01:00:00", "2024-01-01T01:01:00",
+                                         "2024-01-01T01:02:00"]  # fmt: skip
     capsys.readouterr()
     argv = ["rul", str(model), str(data), "--threshold", "2", "--horizon", "200"]
     assert main([*argv, "--particles", "200"]) in (0, 3)
