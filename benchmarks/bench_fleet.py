@@ -3,7 +3,8 @@
 Usage::
 
     OMP_NUM_THREADS=1 python benchmarks/bench_fleet.py [--assets 10000] [--steps 500]
-        [--samples 1000] [--shard-size 1024] [--ray] [--io] [--json out.json]
+        [--samples 1000] [--shard-size 1024] [--method exponential|prognose] [--ray]
+        [--workers 2] [--io] [--json out.json]
 
 The fleet is :func:`prognos_torch.fleet.synthetic_fleet` (exponential degradation after a
 random onset, random rate, observation ending at 30-90 % of the degradation interval, 5 %
@@ -21,7 +22,10 @@ peak resident memory (``ru_maxrss``) can be stated. Reported against the truth:
 * coverage of the 90 % interval ``[q05, q95]`` and the median relative error.
 
 ``--ray`` also runs the Ray backend on 2 local workers and checks that the table is the same;
-``--io`` times reading the same table from CSV and Parquet.
+``--method prognose`` runs the full ``prognose`` per asset (``--samples`` paths each) instead
+of the batched trend; ``--workers N`` also times ``fleet_rul(..., workers=N)`` (the local backend's spawned processes,
+process start-up included) and checks that the table is the same; ``--io`` times reading the same
+table from CSV and Parquet.
 """
 
 from __future__ import annotations
@@ -48,9 +52,9 @@ def child(args) -> dict:
     sf = synthetic_fleet(args.assets, args.steps, seed=args.seed, ragged=args.ragged)
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     t = time.perf_counter()
-    res = fleet_rul(
-        sf.table, sf.threshold, samples=args.samples, shard_size=args.shard_size, seed=0
-    )
+    draws = {"samples": args.samples} if args.method == "exponential" else {"n_paths": args.samples}
+    res = fleet_rul(sf.table, sf.threshold, method=args.method, shard_size=args.shard_size,
+                    seed=0, **draws)  # fmt: skip
     wall = time.perf_counter() - t
     rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     c = res.columns
@@ -111,6 +115,20 @@ def child(args) -> dict:
             out["ray_same_nan_pattern"] = out.get("ray_same_nan_pattern", True) and same_nan
         out["ray_max_rel_diff"] = diff
         out["ray_same_flags"] = rr.columns["flags"] == c["flags"]
+    if args.workers > 1:  # the local backend's process pool, timed right after the same call
+        t = time.perf_counter()
+        rw = fleet_rul(sf.table, sf.threshold, method=args.method, shard_size=args.shard_size,
+                       seed=0, workers=args.workers, **draws)  # fmt: skip
+        out["workers"] = args.workers
+        out["workers_wall_s"] = time.perf_counter() - t
+        out["workers_speedup"] = wall / out["workers_wall_s"]
+        diff = 0.0
+        for k in ("rul_median", "rul_q05", "rul_q95", "p_fail_within_horizon"):
+            a, b = np.array(c[k]), np.array(rw.columns[k])
+            m = np.isfinite(a) & (a != 0)
+            diff = max(diff, 0.0 if not m.any() else float(np.max(np.abs(a[m] - b[m]) / a[m])))
+        out["workers_max_rel_diff"] = diff
+        out["workers_same_flags"] = rw.columns["flags"] == c["flags"]
     if args.io:
         from prognos_torch.fleet import read_fleet_table, write_table
 
@@ -136,6 +154,8 @@ def main() -> None:
         "--ragged", type=float, default=1.0, help="lengths uniform in [ragged*steps, steps]"
     )
     ap.add_argument("--ray", action="store_true")
+    ap.add_argument("--workers", type=int, default=1, help="also time the local process pool")
+    ap.add_argument("--method", default="exponential", help="exponential or prognose (per asset)")
     ap.add_argument("--io", action="store_true")
     ap.add_argument("--json", default=None)
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)

@@ -591,6 +591,27 @@ def test_ray_backend_equals_local(fleet):
     _assert_same(local, remote)
 
 
+def test_workers_run_the_shards_side_by_side_and_give_the_same_table(fleet):
+    """workers=2: the shards in two spawned processes (cut to one shard per worker at least):
+    the table of the sequential run, to the 1e-12 of another shard size for the batched trend
+    and bit for bit for the per-asset prognose; bad counts and Ray are refused by name."""
+    tab = read_fleet_table(fleet.table)
+    whole = fleet_rul(tab, fleet.threshold, samples=300)
+    par = fleet_rul(tab, fleet.threshold, samples=300, workers=2)
+    assert par.shard_size == 30  # 60 assets, 2 workers: two shards instead of one
+    _assert_same(whole, par)
+    sf = synthetic_fleet(3, 200, seed=2, healthy_fraction=0.0)
+    kw = dict(method="prognose", n_paths=100)
+    a = fleet_rul(sf.table, sf.threshold, shard_size=1, **kw)
+    _assert_same(a, fleet_rul(sf.table, sf.threshold, workers=2, **kw), rtol=0)
+    with pytest.raises(ValueError, match="workers must be >= 1"):
+        fleet_rul(tab, fleet.threshold, workers=0)
+    with pytest.raises(TypeError, match="workers must be an int"):
+        fleet_rul(tab, fleet.threshold, workers=2.0)
+    with pytest.raises(ValueError, match="workers=2 applies to backend='local'"):
+        fleet_rul(tab, fleet.threshold, workers=2, backend="ray")
+
+
 def test_prognose_method_equals_prognose_per_asset_whatever_the_shards():
     from prognos_torch.fleet import asset_seed
     from prognos_torch.workflow import prognose
@@ -724,7 +745,8 @@ def test_cli_refuses_options_it_would_ignore(tmp_path, fleet, capsys):
     base = ["rul", str(tmp_path / "f.csv"), "--group-by", "asset", "--threshold", "20",
             "--out", str(tmp_path / "o.csv"), "--no-progress"]  # fmt: skip
     for extra, text in ((["--method", "prognose", "--phi", "15"], "--phi applies to"),
-                        (["--min-rows", "-3"], "--min-rows must be at least 1")):  # fmt: skip
+                        (["--min-rows", "-3"], "--min-rows must be at least 1"),
+                        (["--workers", "0"], "--workers must be at least 1")):  # fmt: skip
         assert cli_main([*base, *extra]) == 2
         err = capsys.readouterr().err
         assert err.startswith("error: ") and text in err

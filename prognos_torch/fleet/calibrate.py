@@ -61,6 +61,7 @@ def calibrate_fleet(
     method: str = "exponential",
     decimal: str = ".",
     time_format: str | None = None,
+    workers: int = 1,
     **options,
 ) -> tuple[RULCalibration, dict[str, list]]:
     """Conformal calibration of :func:`~prognos_torch.fleet.fleet_rul`'s 90 % intervals.
@@ -81,6 +82,8 @@ def calibrate_fleet(
         seed, method, **options: ``fleet_rul``'s, to be used again for the live fleet.
         decimal, time_format: a CSV table's decimal mark and the layout of its date-times
             (:func:`~prognos_torch.fleet.read_fleet_table`).
+        workers: processes that replay the points (``fleet_rul``'s; not a setting of the
+            calibration: the intervals are the same).
 
     Returns:
         ``(calibration, points)``: the :class:`~prognos_torch.prognosis.RULCalibration` (its
@@ -135,7 +138,8 @@ def calibrate_fleet(
         )
     replay = FleetTable(names, times, values, rows, source=f"{table.source} (replayed)",
                         time_unit=table.time_unit, epoch=table.epoch)  # fmt: skip
-    res = fleet_rul(replay, thr, direction=direction, seed=seed, method=method, **options)
+    res = fleet_rul(replay, thr, direction=direction, seed=seed, method=method, workers=workers,
+                    **options)  # fmt: skip
     lo, hi, med = interval_columns(res.columns)
     cm = res.columns["censored_mass"]
     true = torch.tensor(truth, dtype=torch.float64)

@@ -100,6 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="fleet seed (default 0)")
     p.add_argument("--shard-size", type=int, default=1024, help="assets per engine call")
     p.add_argument("--backend", default="local", help="local (default) or ray")
+    p.add_argument("--workers", type=int, default=1,
+                   help="local backend: processes running shards side by side (default 1)")  # fmt: skip
     p.add_argument("--ray-address", help="Ray cluster address (default: start a local Ray)")
     p.add_argument(
         "--on-error",
@@ -138,6 +140,8 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("--phi applies to --method exponential only")
         if args.min_rows < 1:
             raise ValueError(f"--min-rows must be at least 1, got {args.min_rows}")
+        if args.workers < 1:
+            raise ValueError(f"--workers must be at least 1 (processes), got {args.workers}")
         ray_init = {"address": args.ray_address} if args.ray_address else None
         t0 = time.perf_counter()
         method_options = dict(
@@ -157,8 +161,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.calibrate is not None:
             try:
                 cal, _ = calibrate_fleet(
-                    args.calibrate, args.threshold, **same, **method_options
-                )
+                    args.calibrate, args.threshold, **same, workers=args.workers,
+                    **method_options,
+                )  # fmt: skip
             except FileNotFoundError as exc:
                 raise FileNotFoundError(f"--calibrate: {exc}") from None
             except ValueError as exc:
@@ -170,6 +175,7 @@ def main(argv: list[str] | None = None) -> int:
             horizon=args.horizon,
             shard_size=args.shard_size,
             backend=args.backend,
+            workers=args.workers,
             on_error=args.on_error,
             progress=not args.no_progress,
             ray_init=ray_init,
@@ -194,7 +200,8 @@ def main(argv: list[str] | None = None) -> int:
     unit = f" {res.time_unit}" if res.time_unit else ""
     print(
         f"{n} assets, {with_rul} with a RUL, in {time.perf_counter() - t0:.1f} s "
-        f"({args.backend}, shards of {args.shard_size}); written to {args.out}"
+        f"({args.backend}{f', {args.workers} workers' if args.workers > 1 else ''}, shards of "
+        f"{res.shard_size}); written to {args.out}"
         + (f" (times in{unit} since {res.epoch}; dates in the *_date columns)" if res.epoch else "")
     )
     for flag, c in sorted(counts.items()):

@@ -8,7 +8,7 @@ derived from ``(seed, asset id)``, so the table does not depend on the shard siz
 backend:
 
 * ``backend="local"``: the shards one after the other in this process (progress bar over
-  shards with ``progress=True``);
+  shards with ``progress=True``), or side by side in ``workers`` spawned processes;
 * ``backend="ray"``: one Ray task per shard (``pip install "prognos_torch[ray]"``). An already
   initialised Ray (a cluster, or ``ray.init(...)`` by the caller) is used as is; otherwise a
   local Ray is started with ``ray_init`` options and shut down at the end. The tasks return
@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .._workers import check_workers, process_map
 from ..core.validation import check_real
 from ..workflow.data import date_after
 from .per_asset import prognose_rul
@@ -209,13 +210,11 @@ def _progress(total: int, enabled: bool):
     return tqdm(total=total, disable=not enabled, desc="shards", unit="shard", leave=False)
 
 
-def _run_local(shards, method, threshold, options, progress):
-    out = []
+def _run_local(shards, method, threshold, options, progress, workers: int = 1):
+    tasks = [(payload, method, threshold, dict(options)) for _, payload in shards]
+    sizes = [sum(len(t) for t in payload["times"]) for _, payload in shards]
     with _progress(len(shards), progress) as bar:
-        for _, payload in shards:
-            out.append(run_shard(payload, method, threshold, options))
-            bar.update(1)
-    return out
+        return process_map(run_shard, tasks, workers, sizes, "fleet_rul", lambda: bar.update(1))
 
 
 def _run_ray(shards, method, threshold, options, progress, ray_init):
@@ -263,6 +262,7 @@ def fleet_rul(
     ray_init: Mapping | None = None,
     decimal: str = ".",
     time_format: str | None = None,
+    workers: int = 1,
     **options,
 ) -> FleetResult:
     """RUL for every asset of a long table (module docstring).
@@ -284,6 +284,12 @@ def fleet_rul(
         ray_init: keyword arguments of ``ray.init`` when Ray is started here.
         decimal, time_format: a CSV table's decimal mark and the layout of its date-times
             (:func:`~prognos_torch.fleet.read_fleet_table`).
+        workers: processes for the local backend (``1``: this process). With more, the shards
+            run side by side in spawned processes (one torch thread each), cut smaller where
+            there are fewer shards than workers (the results are the same up to the ~1e-12 of
+            another shard size; the per-asset ``"prognose"`` method's bit for bit). A script
+            that calls ``fleet_rul`` at its top level needs the ``if __name__ ==
+            "__main__":`` guard, as for any spawned process.
         **options: the method's options (e.g. ``samples``, ``phi``, ``min_rows``).
     Returns:
         :class:`FleetResult`.
@@ -296,6 +302,12 @@ def fleet_rul(
         raise ValueError(f"shard_size must be a positive int, got {shard_size!r}")
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise TypeError(f"seed must be an int, got {seed!r}")
+    check_workers(workers)
+    if workers > 1 and backend != "local":
+        raise ValueError(
+            f"workers={workers} applies to backend='local'; Ray places its tasks on its own "
+            "workers (ray_init={'num_cpus': ...})"
+        )
     thr = check_real(threshold, "threshold")
     if horizon is not None:
         horizon = check_real(horizon, "horizon")
@@ -315,9 +327,12 @@ def fleet_rul(
         )
     )
     opts = dict(options, direction=direction, horizon=horizon)
+    if workers > 1:  # at least one shard per worker (as long as there are assets)
+        n_keep = len(table.assets) - len(table.errors)
+        shard_size = max(1, min(shard_size, -(-n_keep // workers)))
     shards = list(_shards(table, shard_size, seed))
     if backend == "local":
-        parts = _run_local(shards, method, thr, opts, progress)
+        parts = _run_local(shards, method, thr, opts, progress, workers)
     else:
         parts = _run_ray(shards, method, thr, opts, progress, ray_init)
 

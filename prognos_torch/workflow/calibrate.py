@@ -25,14 +25,12 @@ from __future__ import annotations
 
 import inspect
 import math
-import multiprocessing
 from collections.abc import Mapping
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import replace
 
 import torch
 
+from .._workers import check_workers, process_map
 from ..prognosis.conformal import (
     RULCalibration,
     calibrate_intervals,
@@ -115,10 +113,7 @@ def calibrate_rul(
         isinstance(threshold, bool) or not isinstance(threshold, (int, float))
     ):
         raise TypeError(f"threshold must be a real number or None, got {threshold!r}")
-    if isinstance(workers, bool) or not isinstance(workers, int):
-        raise TypeError(f"workers must be an int (processes), got {workers!r}")
-    if workers < 1:
-        raise ValueError(f"workers must be >= 1 (processes), got {workers}")
+    check_workers(workers)
     signed = None if threshold is None else sign * threshold
     points, pending, tasks = [], [], []
     for name, (t, y) in items:
@@ -136,7 +131,8 @@ def calibrate_rul(
             points.append(pending[-1])
             tasks.append((y[sel], t[sel], tp, sign * pc.threshold, true, seed, direction,
                           prognose_kwargs))  # fmt: skip
-    for row, out in zip(pending, _map(_predict, tasks, workers, [len(a[0]) for a in tasks])):
+    sizes = [len(a[0]) for a in tasks]
+    for row, out in zip(pending, process_map(_predict, tasks, workers, sizes, "calibrate_rul")):
         row.update(out)
     usable = [p for p in points if not math.isnan(p.get("q05", math.nan))]
     if not usable:
@@ -170,33 +166,6 @@ def _predict(y, t, at, threshold, true, seed, direction, kwargs) -> dict:
     return {"q05": s["q05"] if s["q05"] is not None else s["bound"],
             "q95": math.inf if s["q95"] is None else s["q95"],
             "median": math.inf if s["median"] is None else s["median"], "status": "ok"}  # fmt: skip
-
-
-def _map(fn, tasks: list[tuple], workers: int, sizes: list[int]) -> list:
-    """``[fn(*task) for task in tasks]``, in order; over a pool of ``workers`` spawned
-    processes (one torch thread each) when ``workers > 1`` and there is more than one task,
-    the tasks handed out largest ``sizes`` first (so that no long one starts last)."""
-    workers = min(workers, len(tasks))
-    if workers <= 1:
-        return [fn(*task) for task in tasks]
-    ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=torch.set_num_threads,
-                             initargs=(1,)) as pool:  # fmt: skip
-        order = sorted(range(len(tasks)), key=lambda i: -sizes[i])
-        futures = dict(zip(order, (pool.submit(fn, *tasks[i]) for i in order)))
-        try:
-            return [futures[i].result() for i in range(len(tasks))]
-        except BaseException as exc:  # the first failure ends the run: drop the tasks not started
-            pool.shutdown(cancel_futures=True)
-            if isinstance(exc, BrokenProcessPool):  # a worker died: say the usual cause
-                raise RuntimeError(
-                    f"workers={workers}: a worker process ended abruptly. Spawned workers import "
-                    "the calling script again: a script that calls calibrate_rul at its top "
-                    'level needs the guard `if __name__ == "__main__":` around that call (the '
-                    "workers' own error is printed above). Otherwise a worker ran out of memory "
-                    "or was killed; workers=1 runs in this process"
-                ) from exc
-            raise
 
 
 def _settings(kwargs: dict, threshold, direction: str, fractions, seed: int) -> dict:
