@@ -177,7 +177,13 @@ def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[li
     text = f"[{_fmt(s['q05'])}, {_rul_end(s['q95'], beyond)}]"
     if s["q95"] is not None and s["q05"] > s["q95"]:  # narrowed past its width, as in CQR
         text = f"empty ({text} narrowed by the margin past its own width)"
-    row = (f"calibrated 90 % interval ({unit})", f"{text} ({note})")
+    rows = [(f"calibrated 90 % interval ({unit})", f"{text} ({note})")]
+    hist = res.history
+    if hist.start is not None and s["q05"] is not None and math.isfinite(s["margin"]) \
+            and "empty" not in text:  # fmt: skip
+        hi = (hist.date(res.t_last + s["q95"]) if s["q95"] is not None
+              else f"after {hist.date(res.t_last + beyond)}")  # fmt: skip
+        rows.append(("calibrated failure dates", f"[{hist.date(res.t_last + s['q05'])}, {hi}]"))
     warn = []
     few = cal.warning("histories")
     if few is not None:
@@ -189,7 +195,7 @@ def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[li
             f"--calibrate: {len(unused)} of {len(names)} histories gave no point with an "
             f"interval (first, {unused[0]!r}: {first['status']})"
         )
-    return [row], warn
+    return rows, warn
 
 
 def _calibration(args, res, filt, histories) -> tuple[list, list[str], object]:

@@ -49,6 +49,33 @@ def test_day_first_dates_with_time_format_give_the_iso_answer(capsys, tmp_path):
     assert f"days ({onset}; ksigma" in outs[0]
 
 
+def test_calibrated_interval_on_date_times_comes_with_its_dates():
+    """The calibrated interval's row of a dated series is followed by its dates: the last
+    time plus each calibrated end (NumPy's arithmetic here)."""
+    import numpy as np
+
+    from prognos_torch.cli_prognose import calibration_rows
+    from prognos_torch.prognosis.conformal import calibrate_intervals
+    from prognos_torch.workflow import prognose
+
+    g = torch.Generator().manual_seed(1)
+    y = 1.0 + 0.05 * torch.randn(300, generator=g, dtype=torch.float64)
+    y[200:] += 0.02 * torch.exp(0.04 * torch.arange(100, dtype=torch.float64))
+    stamps = np.datetime64("2024-01-30T00:00") + 10 * np.arange(300).astype("timedelta64[m]")
+    res = prognose(y, 3.0, time=stamps, method="exponential", n_paths=400)
+    lo = torch.linspace(1.0, 2.0, 20, dtype=torch.float64)
+    cal = calibrate_intervals(lo, 2 * lo, lo * torch.linspace(0.8, 2.4, 20, dtype=torch.float64))
+    rows, _ = calibration_rows(res, cal, None, "days")
+    c = cal.summary(res)["calibrated"]
+    assert rows[1][0] == "calibrated failure dates" and c["q95"] is not None
+
+    def date(days):
+        return str(stamps[0].astype("datetime64[s]") + np.timedelta64(round(days * 86400), "s"))
+
+    assert rows[1][1] == f"[{date(res.t_last + c['q05'])}, {date(res.t_last + c['q95'])}]"
+    assert len(calibration_rows(prognose(y, 3.0, method="exponential"), cal, None, "t")[0]) == 1
+
+
 def test_rul_from_the_ims_table_with_until(capsys, tmp_path):
     args = ["rul", str(IMS), "--column", "rms", "--where", "channel=5", "--time-column",
             "timestamp", "--threshold", "0.45", "--until", "2003-11-25T13:00:00",
