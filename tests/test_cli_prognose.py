@@ -295,8 +295,11 @@ def test_calibrate_from_a_table_of_failed_assets(capsys, tmp_path):
 def test_calibration_row_says_empty_and_too_few():
     from prognos_torch.cli_prognose import calibration_rows
     from prognos_torch.prognosis import RULCalibration
+    from prognos_torch.workflow import Series
 
     class Result:  # the summary of a result with a finite 90 % interval [1, 1.5]
+        history, t_last = Series(torch.zeros(3)), 2.0  # (numeric time: no dates)
+
         def summary(self):
             return {"status": "ok", "q05": 1.0, "q95": 1.5, "bound": 10.0}
 
