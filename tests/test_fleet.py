@@ -289,6 +289,99 @@ def test_an_indicator_with_a_healthy_level_needs_phi_baseline():
     assert np.mean((q05 <= rul[ok]) & (rul[ok] <= q95)) >= 0.75  # binomial sd 0.033 at 0.85
 
 
+def _mixed_fleet(n_each: int):
+    """Half the assets rise from a healthy level (phi = that level), half grow from near zero
+    with multiplicative noise (the synthetic fleet, phi = 0, scaled to threshold 1)."""
+    t1, truth1 = _offset_fleet(n_each, seed=7)
+    f = synthetic_fleet(n_each, 300, seed=3, healthy_fraction=0.0)
+    table = {
+        "asset": np.concatenate([t1["asset"], np.char.add("s", f.table["asset"].astype(str))]),
+        "t": np.concatenate([t1["t"], f.table["t"]]),
+        "value": np.concatenate([t1["value"], f.table["value"] / f.threshold]),
+    }
+    return table, np.concatenate([truth1, f.true_rul])
+
+
+def test_phi_auto_takes_per_asset_the_offset_under_which_the_data_are_likelier():
+    """phi="auto" on a fleet of both kinds: the baseline on the assets with a healthy level,
+    0 on those that grow from near zero (each a model with two parameters: the likelier is
+    also the AIC/BIC choice), every column that of the model chosen, and the intervals cover
+    both kinds (0.86 / 0.89 on 150 + 150 assets, where phi = 0 covered 0.00 / 0.90 and the
+    baseline 0.86 / 0.01)."""
+    table, truth = _mixed_fleet(60)
+    kinds = np.r_[np.zeros(60, bool), np.ones(60, bool)]  # True: phi = 0 is the true model
+    auto = fleet_rul(table, 1.0, phi="auto", samples=400)
+    zero = fleet_rul(table, 1.0, phi=0.0, samples=400)
+    base = fleet_rul(table, 1.0, phi="baseline", samples=400)
+    assert tuple(auto.columns) == OUTPUT_COLUMNS + ("phi",) and "phi" not in zero.columns
+    chose_base = np.array(auto.columns["phi"]) != 0
+    assert chose_base[~kinds].mean() >= 0.95 and chose_base[kinds].mean() <= 0.05
+    np.testing.assert_array_equal(
+        np.array(auto.columns["phi"])[chose_base], np.array(base.columns["phi"])[chose_base]
+    )
+    for c in (*RUL_COLUMNS, "flags"):
+        want = [b if cb else z for b, z, cb in zip(base.columns[c], zero.columns[c], chose_base)]
+        assert [str(v) for v in auto.columns[c]] == [str(v) for v in want], c
+    q05, q95 = np.array(auto.columns["rul_q05"]), np.array(auto.columns["rul_q95"])
+    hit = (q05 <= truth) & (truth <= np.where(np.isnan(q95), np.inf, q95))
+    ok = np.isfinite(q05) & (truth > 0)
+    assert hit[ok & ~kinds].mean() >= 0.75 and hit[ok & kinds].mean() >= 0.75
+
+
+def test_phi_auto_on_a_falling_indicator_and_on_the_command_line(tmp_path):
+    """A falling indicator with a positive threshold: phi = 0 cannot reach it (s (X - 0) < 0),
+    so "auto" is the baseline on every asset; the command line's --phi auto writes the phi
+    column."""
+    table, _ = _offset_fleet(8, seed=3)
+    fall = dict(table, value=2.0 - table["value"])  # from about 1.9 down towards 1.0
+    auto = fleet_rul(fall, 1.0, direction="below", phi="auto", samples=50)
+    base = fleet_rul(fall, 1.0, direction="below", phi="baseline", samples=50)
+    for c in (*RUL_COLUMNS, "flags", "phi"):
+        assert [str(v) for v in auto.columns[c]] == [str(v) for v in base.columns[c]], c
+    with pytest.raises(ValueError, match="must lie below phi = 0"):
+        fleet_rul(fall, 1.0, direction="below", samples=50)
+    mixed, _ = _mixed_fleet(4)
+    write_table(tmp_path / "m.csv", {k: list(v) for k, v in mixed.items()})
+    argv = ["rul", str(tmp_path / "m.csv"), "--group-by", "asset", "--threshold", "1",
+            "--phi", "auto", "--samples", "50", "--no-progress", "--out", str(tmp_path / "o.csv")]  # fmt: skip
+    assert cli_main(argv) == 0
+    phi = read_back(tmp_path / "o.csv")["phi"]
+    assert len(phi) == 8 and all(p != 0 for p in phi[:4]) and all(p == 0 for p in phi[4:])
+
+
+def test_phi_auto_likelihoods_are_the_data_scale_densities():
+    """The two log-likelihoods that phi="auto" compares, against SciPy's normal density: phi = 0,
+    log(y) ~ N(a + beta tau, sigma^2) with the Jacobian 1 / y; the baseline, y - mu_0 ~
+    N(exp(a + beta tau), sigma_0^2); over the samples since onset with y > 0."""
+    from scipy.stats import norm
+
+    from prognos_torch.fleet.trend import _data_log_likelihood
+
+    table, _ = _mixed_fleet(6)
+    tab = read_fleet_table(table)
+    batch = pad_batch(tab.assets, tab.times, tab.values, seed=0)
+    for phi, baseline_phi in ((0.0, False), ("baseline", True)):
+        post = exponential_trend_rul(batch, 1.0, phi=phi, samples=10, return_posterior=True)
+        if not baseline_phi:
+            post["phi"] = np.zeros(len(post["flags"]))
+        ll = _data_log_likelihood(batch, post, 1.0, baseline_phi).numpy()
+        checked = 0
+        for b, i0, n, t, y in _degrading_assets(batch, post):
+            tau, yy = t[i0:n] - t[i0], y[i0:n]
+            ok = np.isfinite(yy) & (yy > 0)
+            a, beta = post["posterior_mean"][b].numpy()
+            g = a + beta * tau[ok]
+            if baseline_phi:
+                want = norm.logpdf(yy[ok] - post["phi"][b], np.exp(g),
+                                   float(post["baseline_std"][b])).sum()  # fmt: skip
+            else:
+                sd = float(post["log_noise_std"][b])
+                want = (norm.logpdf(np.log(yy[ok]), g, sd) - np.log(yy[ok])).sum()
+            assert ll[b] == pytest.approx(want, rel=1e-12)
+            checked += 1
+        assert checked >= 8
+
+
 def test_noiseless_exponential_rul_is_the_closed_form_crossing():
     # y = theta exp(beta (t - t_on)) after t_on, a tiny noise keeps the baseline spread positive
     rng = np.random.default_rng(0)

@@ -23,26 +23,27 @@ _EPILOG = """examples:
 The table has one row per measurement (asset, time, value); assets may be interleaved, but
 each asset's times must increase. Output: one row per asset with the columns asset, n_rows,
 t_last, onset_time, rul_median, rul_q05, rul_q95, p_fail_within_horizon, censored_mass, flags,
-message. The file is written atomically at the end: an interrupted run leaves no partial file.
+message (then phi with --phi baseline or auto, and the *_date columns on a date-time column).
+The file is written atomically at the end: an interrupted run leaves no partial file.
 Flags: too_few_rows, no_baseline, no_onset (no degradation detected yet: no RUL number),
 threshold_on_healthy_side (the baseline already lies at or beyond the threshold: check
 --direction), threshold_reached, few_degraded_points, nonpositive_dropped, far_extrapolation,
 trend_misfit (the data since onset leave the exponential trend: its interval is too narrow;
-try --phi baseline or --method prognose), glitch_in_baseline (isolated values far off their
+try --phi auto or --method prognose), glitch_in_baseline (isolated values far off their
 neighbours widen the healthy band 1.5 times or more, which can delay the onset), bad_input.
 exit status: 0 success, 2 bad input (one line on stderr, nothing written), 130 interrupted."""
 
 
 def _phi(text: str) -> float | str:
-    """``--phi``: a finite number or ``baseline``."""
-    if text == "baseline":
+    """``--phi``: a finite number, ``baseline`` or ``auto``."""
+    if text in ("baseline", "auto"):
         return text
     try:
         v = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"a number or 'baseline', got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"a number, 'baseline' or 'auto', got {text!r}") from None
     if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"a finite number or 'baseline', got {text!r}")
+        raise argparse.ArgumentTypeError(f"a finite number, 'baseline' or 'auto', got {text!r}")
     return v
 
 
@@ -91,9 +92,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--phi",
         type=_phi,
-        help="offset of the exponential model: a number (default 0: growth from near zero) or "
+        help="offset of the exponential model: a number (default 0: growth from near zero), "
         "baseline (each asset's healthy mean: an indicator with a healthy level, such as an "
-        "rms); exponential only",
+        "rms) or auto (per asset, the one of 0 and baseline under which the data since onset "
+        "are likelier; a phi column says which); exponential only",
     )
     p.add_argument("--samples", type=int, default=1000, help="posterior draws / paths per asset")
     p.add_argument("--min-rows", type=int, default=10, help="fewer rows: flagged, no RUL")

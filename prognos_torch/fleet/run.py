@@ -49,6 +49,11 @@ METHODS: dict[str, Callable] = {"exponential": exponential_trend_rul, "prognose"
 #: the output table's columns, in order
 OUTPUT_COLUMNS = ("asset",) + RUL_COLUMNS + ("flags", "message")
 
+#: columns added after :data:`OUTPUT_COLUMNS` where the method gives them: ``phi``, the offset
+#: of each asset's exponential trend (``phi="baseline"`` or ``"auto"``: the healthy mean, or 0
+#: where ``"auto"`` chose ``phi = 0``)
+EXTRA_COLUMNS = ("phi",)
+
 #: columns added after :data:`OUTPUT_COLUMNS` where the time column holds date-times: ISO 8601
 #: text in UTC, to the second (``""`` where the number is NaN): the last row's and the onset's
 #: date-times, and ``t_last`` plus the RUL quantiles (``failure_date_q95`` empty where that
@@ -86,7 +91,8 @@ class FleetResult:
     Attributes:
         columns: ``{name: list}`` for :data:`OUTPUT_COLUMNS` (floats, NaN where no number is
             given; ``flags`` ``;``-separated; ``message`` the input problem of a set-aside asset),
-            then :data:`DATE_COLUMNS` where the time column holds date-times.
+            then :data:`EXTRA_COLUMNS` where the method gives them and :data:`DATE_COLUMNS`
+            where the time column holds date-times.
         threshold, direction, horizon, seed, method, shard_size, backend: the run's settings.
         time_unit, epoch: the time axis (``"days"`` since ``epoch`` for date-time columns).
     """
@@ -341,8 +347,10 @@ def fleet_rul(
     numeric = {c: np.full(n, np.nan) for c in RUL_COLUMNS}
     flags = [""] * n
     message = [""] * n
+    extra = [c for c in EXTRA_COLUMNS if parts and c in parts[0]]
+    numeric.update({c: np.full(n, np.nan) for c in extra})
     for (ids, _), part in zip(shards, parts):
-        for c in RUL_COLUMNS:
+        for c in (*RUL_COLUMNS, *extra):
             numeric[c][ids] = part[c]
         for j, i in enumerate(ids):
             flags[i] = part["flags"][j]
@@ -357,6 +365,8 @@ def fleet_rul(
         cols[c] = [float(v) for v in numeric[c]]
     cols["flags"] = flags
     cols["message"] = message
+    for c in extra:
+        cols[c] = [float(v) for v in numeric[c]]
     if table.epoch is not None:
         cols.update(date_columns(cols, table.epoch))
     return FleetResult(

@@ -41,6 +41,13 @@ result depends on the other assets of the shard (shard-size invariance; tested t
    RTS-smoothed means (the iterated extended Kalman smoother). On an indicator with a healthy
    level ``phi = 0`` reads the early, slow part of the log curve as the trend and predicts
    late.
+
+   ``"auto"`` fits both and keeps, per asset, the one under which the samples since onset
+   (those with ``s y > 0``) are likelier on the data scale at the posterior mean:
+   ``log(s y) ~ N(a + beta tau, sigma^2)`` with its Jacobian ``1 / (s y)`` for ``phi = 0``,
+   ``s (y - mu_0) ~ N(exp(a + beta tau), sigma_0^2)`` for the baseline. Both have two
+   parameters and noise fixed by the healthy window, so this is also the AIC and BIC choice.
+   On fleets of both kinds it chose right on every asset (``docs/RESULTS.md``, fleets).
 3. **Lack of fit** (``trend_misfit``): an F test of the residual variance about the posterior
    mean line since onset against the model's noise from the healthy window,
    ``F = (sum_k w_k r_k^2 / (m - 2)) / s_b^2`` on ``(m - 2, n_b - 1)`` degrees of freedom
@@ -339,7 +346,22 @@ def _objective(
 
 #: ``phi="baseline"``: Gauss-Newton iterations at most, step halvings per iteration, and the
 #: step (in posterior std) below which it has converged
-GN_ITERATIONS, GN_HALVINGS, GN_TOLERANCE = 50, 30, 1e-6
+GN_ITERATIONS, GN_HALVINGS, GN_TOLERANCE = 50, 30, 1e-4
+
+
+def _linearised_model(drift: Tensor, ds: Tensor, g: Tensor, sigma0: Tensor):
+    """The trend model with Gauss-Newton's pseudo-measurement noise ``sigma0 / e^g`` per row,
+    and the pseudo-measurements and weights of :func:`_linearised`."""
+    z, w = _linearised(ds, g, sigma0)
+    chol_r = torch.where(w > 0, sigma0[:, None] / w.clamp(min=1e-300).sqrt(), 1.0)
+    chol_r = chol_r.T[..., None, None].contiguous()  # (T, B, 1, 1)
+    return _trend_model(drift, lambda k: chol_r[k - 1]), z, w
+
+
+def _at(rows: Tensor, last: Tensor) -> Tensor:
+    """``rows`` ``(T, B, ...)`` at each asset's row ``last`` ``(B,)``: ``(B, ...)``."""
+    shape = (1, rows.shape[1], *rows.shape[2:])
+    return rows.gather(0, last.reshape(1, -1, *([1] * (rows.dim() - 2))).expand(shape))[0]
 
 
 def _gauss_newton(
@@ -358,53 +380,76 @@ def _gauss_newton(
     by its noise) by Gauss-Newton from ``x`` ``(B, 2)``. Each iteration is one engine run on
     the pseudo-measurements of :func:`_linearised` (the Kalman filter's mean at the last row
     ``last`` ``(B,)`` is the linearised problem's MAP), its step halved until the objective
-    :func:`_objective` does not grow. With a drift (``drift_std`` not 0) the linearisation
-    points are the RTS-smoothed means, one per row (the iterated extended Kalman smoother),
-    and the steps are whole. Returns the mean and Cholesky factor at ``last`` of the run
+    :func:`_objective` does not grow; an asset leaves the iterations once its step is below
+    ``GN_TOLERANCE`` posterior std (or no step lowers its objective: its rounding floor), so
+    that the runs shrink to the assets still moving. With a drift (``drift_std`` not 0):
+    :func:`_iterated_smoother`. Returns the mean and Cholesky factor at ``last`` of the run
     linearised at the optimum (Laplace), and that run's pseudo-measurements and weights
     ``(B, T)`` (for the lack-of-fit test)."""
+    if bool((drift != 0).any()):
+        return _iterated_smoother(filt, drift, prior, ds, taus, last, sigma0, x)
+    B, T = ds.shape
+    lam = 0.5 ** torch.arange(1, GN_HALVINGS + 1, dtype=x.dtype, device=x.device)  # (L,)
+    x, mean = x.clone(), x.clone()
+    chol = torch.zeros(B, 2, 2, dtype=x.dtype, device=x.device)
+    z_all, w_all = torch.full_like(ds, math.nan), torch.zeros_like(ds)
+    act = torch.arange(B, device=x.device)  # the assets still iterating
+    for it in range(GN_ITERATIONS + 1):
+        xa, da, ta, s0, la = x[act], ds[act], taus[act], sigma0[act], last[act]
+        pa = GaussianBelief(prior.mean[act], prior.chol[act])
+        model, z, w = _linearised_model(drift, da, xa[:, :1] + xa[:, 1:] * ta, s0)
+        tr = run(filt, model, pa, z.T[..., None], ta.T[..., None])
+        new, ch = _at(tr.means, la), _at(tr.chols, la)
+        mean[act], chol[act], z_all[act], w_all[act] = new, ch, z, w
+        step = new - xa
+        # converged: every step below GN_TOLERANCE posterior std (the filter's rounding is a
+        # floor under any absolute tolerance: about 1e-9 of a log unit, 1e-6 std at worst)
+        moving = ~(step.abs() <= GN_TOLERANCE * ch.pow(2).sum(-1).sqrt()).all(-1)
+        if it == GN_ITERATIONS or not bool(moving.any()):
+            break
+        # the largest 2^-i step (i = 0 .. GN_HALVINGS) that does not raise the objective:
+        # the whole step first, the halvings only where it raises the objective
+        sd_p, m0 = prior_sd[act], pa.mean
+        j = _objective(da, ta, torch.stack([xa, new], 1), s0, m0, sd_p)  # (A, 2)
+        take = (j[:, 1] <= j[:, 0]).to(x.dtype)
+        up = (take == 0).nonzero()[:, 0]
+        if up.numel():
+            cand = xa[up, None, :] + lam[None, :, None] * step[up, None, :]
+            down = _objective(da[up], ta[up], cand, s0[up], m0[up], sd_p[up]) <= j[up, :1]
+            take[up] = torch.where(down.any(1), lam[down.to(torch.int64).argmax(1)], 0.0)
+            moving[up] &= down.any(1)  # no step lowers the objective: its rounding floor
+        x[act] = xa + take[:, None] * step
+        act = act[moving]
+    return mean, chol, z_all, w_all
+
+
+def _iterated_smoother(
+    filt: GaussianFilter,
+    drift: Tensor,
+    prior: GaussianBelief,
+    ds: Tensor,
+    taus: Tensor,
+    last: Tensor,
+    sigma0: Tensor,
+    x: Tensor,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`_gauss_newton` with a drift: the linearisation points are the RTS-smoothed
+    means, one per row (the iterated extended Kalman smoother), the steps whole, until every
+    step is below ``GN_TOLERANCE`` smoothed std."""
     from ..filters.smooth import smooth
 
     B, T = ds.shape
-    fixed = not bool((drift != 0).any())
-    us = taus.T[..., None]
-    lam = 0.5 ** torch.arange(GN_HALVINGS + 1, dtype=x.dtype, device=x.device)  # (L,)
     path = x[None].expand(T, B, 2)  # linearisation point per row (T, B, 2)
-    stalled = torch.zeros(B, dtype=torch.bool, device=x.device)
     for it in range(GN_ITERATIONS + 1):
         g = path[..., 0].T + path[..., 1].T * taus
-        z, w = _linearised(ds, g, sigma0)
-        chol_r = torch.where(w > 0, sigma0[:, None] / w.clamp(min=1e-300).sqrt(), 1.0)
-        chol_r = chol_r.T[..., None, None].contiguous()  # (T, B, 1, 1)
-        model = _trend_model(drift, lambda k, c=chol_r: c[k - 1])
-        if fixed:
-            tr = run(filt, model, prior, z.T[..., None], us)
-            new = tr.means.gather(0, last[None, :, None].expand(1, B, 2))[0]
-        else:
-            sm = smooth(filt, model, prior, z.T[..., None], us)
-            tr, new = sm, sm.means
-        step = new - (path[0] if fixed else path)
-        # converged: every step below GN_TOLERANCE posterior std (the filter's rounding,
-        # about 1e-9 of a log unit, is a floor under any absolute tolerance)
-        sd = tr.chols.pow(2).sum(-1).sqrt()  # (T, B, 2)
-        sd = sd.gather(0, last[None, :, None].expand(1, B, 2))[0] if fixed else sd
-        small = (step.abs() <= GN_TOLERANCE * sd).all(-1)
-        if it == GN_ITERATIONS or bool((small | stalled).all()):
+        model, z, w = _linearised_model(drift, ds, g, sigma0)
+        sm = smooth(filt, model, prior, z.T[..., None], taus.T[..., None])
+        step = sm.means - path
+        if it == GN_ITERATIONS or bool((step.abs() <= GN_TOLERANCE * sm.chols.pow(2).sum(-1)
+                                        .sqrt()).all()):  # fmt: skip
             break
-        if not fixed:
-            path = new
-            continue
-        # the largest lam * step that does not raise the objective (none if every one does)
-        x = path[0]
-        j0 = _objective(ds, taus, x[:, None, :], sigma0, prior.mean, prior_sd)
-        cand = x[:, None, :] + lam[None, :, None] * step[:, None, :]
-        down = _objective(ds, taus, cand, sigma0, prior.mean, prior_sd) <= j0
-        take = torch.where(down.any(1), lam[down.to(torch.int64).argmax(1)], 0.0)
-        stalled = ~down.any(1)  # no step lowers the objective: its rounding floor
-        path = (x + take[:, None] * step)[None].expand(T, B, 2)
-    mean = tr.means.gather(0, last[None, :, None].expand(1, B, 2))[0]
-    chol = tr.chols.gather(0, last[None, :, None, None].expand(1, B, 2, 2))[0]
-    return mean, chol, z, w
+        path = sm.means
+    return _at(sm.means, last), _at(sm.chols, last), z, w
 
 
 def exponential_trend_rul(
@@ -432,8 +477,10 @@ def exponential_trend_rul(
         batch: a :class:`PaddedBatch` (one shard).
         threshold: failure threshold ``X`` on the value.
         direction: ``"above"`` (failure when ``y >= X``) or ``"below"``.
-        phi: the model's offset ``phi`` (``s (X - phi)`` must be positive), or
-            ``"baseline"``: each asset's healthy mean (module docstring).
+        phi: the model's offset ``phi`` (``s (X - phi)`` must be positive),
+            ``"baseline"``: each asset's healthy mean, or ``"auto"``: per asset the likelier
+            of 0 and the baseline (module docstring). With ``"baseline"`` or ``"auto"`` the
+            result holds ``"phi"`` ``(B,)``, the offset each asset used.
         horizon: time span for ``p_fail_within_horizon`` (``None``: ever).
         samples: posterior draws per asset.
         min_rows: fewer observed rows than this are flagged ``too_few_rows`` (no RUL).
@@ -445,7 +492,8 @@ def exponential_trend_rul(
         return_posterior: also return ``"posterior_mean"`` ``(B, 2)``, ``"posterior_chol"``
             ``(B, 2, 2)`` (of ``[a, beta]`` at the last row), ``"onset_index"`` ``(B,)``,
             ``"log_noise_std"`` ``(B,)`` (NaN with ``phi="baseline"``, whose noise is per
-            sample) and ``"misfit_p"`` ``(B,)`` (the lack-of-fit p-value) tensors.
+            sample), ``"misfit_p"`` ``(B,)`` (the lack-of-fit p-value) and
+            ``"baseline_std"`` ``(B,)`` (the healthy window's std in data units) tensors.
     Returns:
         ``{column: (B,) float64 numpy array}`` for :data:`RUL_COLUMNS` and ``"flags"`` (list of
         ``;``-separated strings).
@@ -455,8 +503,16 @@ def exponential_trend_rul(
     s = 1.0 if direction == "above" else -1.0
     thr = float(threshold)
     per_asset = isinstance(phi, str)
-    if per_asset and phi != "baseline":
-        raise ValueError(f"phi must be a number or 'baseline', got {phi!r}")
+    if per_asset and phi not in ("baseline", "auto"):
+        raise ValueError(f"phi must be a number, 'baseline' or 'auto', got {phi!r}")
+    if phi == "auto":
+        return _auto_phi(
+            batch, thr, s, return_posterior,
+            dict(direction=direction, horizon=horizon, samples=samples, min_rows=min_rows,
+                 baseline=baseline, k=k, window=window, consecutive=consecutive,
+                 drift_std=drift_std, prior_std=prior_std,
+                 extrapolation_limit=extrapolation_limit, filt=filt),
+        )  # fmt: skip
     if not math.isfinite(thr) or (not per_asset and not math.isfinite(float(phi))):
         raise ValueError(f"threshold and phi must be finite, got {threshold!r}, {phi!r}")
     if not per_asset and not s * (thr - phi) > 0:
@@ -659,5 +715,74 @@ def exponential_trend_rul(
             onset_index=torch.where(has_onset, on.index, -1),
             log_noise_std=sr,
             misfit_p=misfit_p,
+            baseline_std=on.base_std,
         )
+    if per_asset:  # the offset each asset's trend used
+        res["phi"] = on.base_mean.cpu().numpy()
     return res
+
+
+def _data_log_likelihood(
+    batch: PaddedBatch, post: dict, s: float, baseline_phi: bool
+) -> Tensor:
+    """Log-likelihood ``(B,)`` of the samples since onset with ``s y > 0`` on the data scale,
+    under the fitted trend at its posterior mean: ``phi = 0`` (``log(s y) ~ N(a + beta tau,
+    sigma^2)``, with the Jacobian ``1 / (s y)``) or ``baseline_phi`` (``s (y - mu_0) ~
+    N(exp(a + beta tau), sigma_0^2)``). NaN where the asset has no onset."""
+    y, t, lengths = batch.values, batch.times, batch.lengths
+    B, T = y.shape
+    cols = torch.arange(T, device=y.device)
+    i0 = post["onset_index"]
+    t_on = t.gather(1, i0.clamp(min=0)[:, None])
+    since = (cols >= i0[:, None]) & (cols < lengths[:, None]) & (i0[:, None] >= 0)
+    ok = since & ~torch.isnan(y) & (s * y > 0)
+    a, b = post["posterior_mean"][:, :1], post["posterior_mean"][:, 1:]
+    g = a + b * (t - t_on)
+    if baseline_phi:
+        sd = post["baseline_std"][:, None]
+        mu = torch.as_tensor(post["phi"], dtype=y.dtype, device=y.device)[:, None]
+        r = (s * (y - mu) - torch.exp(g.clamp(max=700.0))) / sd
+        ll = -0.5 * r * r - torch.log(sd)
+    else:
+        z = torch.log(torch.where(ok, s * y, 1.0))
+        sd = post["log_noise_std"][:, None]
+        r = (z - g) / sd
+        ll = -0.5 * r * r - torch.log(sd) - z
+    total = torch.where(ok, ll, 0.0).sum(1) - 0.5 * math.log(2 * math.pi) * ok.sum(1).to(y.dtype)
+    return torch.where(i0 >= 0, total, torch.nan)
+
+
+def _auto_phi(batch: PaddedBatch, thr: float, s: float, return_posterior: bool, kw: dict):
+    """``phi="auto"``: both offsets fitted, and per asset the one whose fitted trend gives the
+    data since onset the higher likelihood on the data scale (:func:`_data_log_likelihood`;
+    two parameters each, so this is also the AIC and BIC choice). ``phi = 0`` cannot reach a
+    threshold on the wrong side of zero: then the baseline serves every asset."""
+    base = exponential_trend_rul(batch, thr, phi="baseline", return_posterior=True, **kw)
+    if not s * thr > 0:
+        zero = None
+        pick = torch.ones(len(base["flags"]), dtype=torch.bool)
+    else:
+        zero = exponential_trend_rul(batch, thr, phi=0.0, return_posterior=True, **kw)
+        ll0 = _data_log_likelihood(batch, zero, s, False)
+        llb = _data_log_likelihood(batch, base, s, True)
+        # the baseline where it fits better, or where phi = 0 has no usable fit and it has
+        pick = (llb > ll0) | (torch.isnan(ll0) & ~torch.isnan(llb))
+    pick_np = pick.cpu().numpy()
+    if zero is not None:
+        zero["phi"] = np.zeros_like(base["phi"])
+    out: dict[str, object] = {}
+    for key, v in base.items():
+        if zero is None:
+            out[key] = v
+        elif key == "flags":
+            out[key] = [fb if pb else f0 for fb, f0, pb in zip(v, zero[key], pick_np)]
+        elif isinstance(v, np.ndarray):
+            out[key] = np.where(pick_np, v, zero[key])
+        else:  # posterior tensors (B, ...)
+            m = pick.reshape(-1, *([1] * (v.dim() - 1)))
+            out[key] = torch.where(m, v, zero[key])
+    if not return_posterior:
+        for key in ("posterior_mean", "posterior_chol", "onset_index", "log_noise_std",
+                    "misfit_p", "baseline_std"):  # fmt: skip
+            out.pop(key)
+    return out
