@@ -84,6 +84,7 @@ from __future__ import annotations
 import hashlib
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -364,15 +365,23 @@ def _at(rows: Tensor, last: Tensor) -> Tensor:
     return rows.gather(0, last.reshape(1, -1, *([1] * (rows.dim() - 2))).expand(shape))[0]
 
 
+class _DataScale(NamedTuple):
+    """The data of the baseline trend's data-scale fit: ``d = s (y - mu_0)`` since onset and
+    its clock ``tau`` ``(B, T)`` (NaN: missing), each asset's last row ``(B,)`` and healthy
+    std ``sigma0`` ``(B,)``."""
+
+    ds: Tensor
+    taus: Tensor
+    last: Tensor
+    sigma0: Tensor
+
+
 def _gauss_newton(
     filt: GaussianFilter,
     drift: Tensor,
     prior: GaussianBelief,
     prior_sd: Tensor,
-    ds: Tensor,
-    taus: Tensor,
-    last: Tensor,
-    sigma0: Tensor,
+    data: _DataScale,
     x: Tensor,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """MAP of ``[a, beta]`` under ``d_k = exp(a + beta tau_k) + v_k``, ``v_k ~ N(0, sigma0^2)``,
@@ -387,7 +396,8 @@ def _gauss_newton(
     linearised at the optimum (Laplace), and that run's pseudo-measurements and weights
     ``(B, T)`` (for the lack-of-fit test)."""
     if bool((drift != 0).any()):
-        return _iterated_smoother(filt, drift, prior, ds, taus, last, sigma0, x)
+        return _iterated_smoother(filt, drift, prior, data, x)
+    ds, taus, last, sigma0 = data
     B, T = ds.shape
     lam = 0.5 ** torch.arange(1, GN_HALVINGS + 1, dtype=x.dtype, device=x.device)  # (L,)
     x, mean = x.clone(), x.clone()
@@ -424,20 +434,14 @@ def _gauss_newton(
 
 
 def _iterated_smoother(
-    filt: GaussianFilter,
-    drift: Tensor,
-    prior: GaussianBelief,
-    ds: Tensor,
-    taus: Tensor,
-    last: Tensor,
-    sigma0: Tensor,
-    x: Tensor,
+    filt: GaussianFilter, drift: Tensor, prior: GaussianBelief, data: _DataScale, x: Tensor
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """:func:`_gauss_newton` with a drift: the linearisation points are the RTS-smoothed
     means, one per row (the iterated extended Kalman smoother), the steps whole, until every
     step is below ``GN_TOLERANCE`` smoothed std."""
     from ..filters.smooth import smooth
 
+    ds, taus, last, sigma0 = data
     B, T = ds.shape
     path = x[None].expand(T, B, 2)  # linearisation point per row (T, B, 2)
     for it in range(GN_ITERATIONS + 1):
@@ -638,9 +642,8 @@ def exponential_trend_rul(
     if per_asset:  # the log regression above is the start of Gauss-Newton on the data scale
         ds = torch.where(inside & obs.gather(1, idx_c), d.gather(1, idx_c), torch.nan)
         prior_sd = torch.stack([torch.full_like(sb, sa), sb], -1)
-        mean, chol, zs, weight = _gauss_newton(
-            filt, drift, prior, prior_sd, ds, taus, last, zb_std, mean
-        )
+        data = _DataScale(ds, taus, last, zb_std)
+        mean, chol, zs, weight = _gauss_newton(filt, drift, prior, prior_sd, data, mean)
     misfit_p = _lack_of_fit(zs, taus, weight, mean, zb_std, nzb)
 
     # RUL from posterior samples, each asset with its own generator
@@ -722,9 +725,7 @@ def exponential_trend_rul(
     return res
 
 
-def _data_log_likelihood(
-    batch: PaddedBatch, post: dict, s: float, baseline_phi: bool
-) -> Tensor:
+def _data_log_likelihood(batch: PaddedBatch, post: dict, s: float, baseline_phi: bool) -> Tensor:
     """Log-likelihood ``(B,)`` of the samples since onset with ``s y > 0`` on the data scale,
     under the fitted trend at its posterior mean: ``phi = 0`` (``log(s y) ~ N(a + beta tau,
     sigma^2)``, with the Jacobian ``1 / (s y)``) or ``baseline_phi`` (``s (y - mu_0) ~
