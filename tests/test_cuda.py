@@ -753,6 +753,16 @@ def test_fleet_exponential_trend_rul_matches_cpu():
         batch, values=_dev(batch.values), times=_dev(batch.times), lengths=_dev(batch.lengths)
     )
     kw = dict(samples=500, horizon=40.0, drift_std=(0.01, 1e-3), return_posterior=True)
+    import numpy as np
+
+    for phi in ("baseline", "auto"):  # (the data-scale fit, and the choice per asset)
+        a = exponential_trend_rul(batch, sf.threshold, phi=phi, samples=200)
+        b = exponential_trend_rul(on_dev, sf.threshold, phi=phi, samples=200)
+        assert a["flags"] == b["flags"]
+        np.testing.assert_allclose(a["phi"], b["phi"], rtol=1e-12)
+        for c in RUL_COLUMNS:
+            np.testing.assert_allclose(a[c], b[c], rtol=1e-8, equal_nan=True)
+    kw["phi"] = 0.0
     ref = exponential_trend_rul(batch, sf.threshold, **kw)
     got = exponential_trend_rul(on_dev, sf.threshold, **kw)
     assert got["flags"] == ref["flags"]

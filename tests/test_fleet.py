@@ -79,7 +79,9 @@ def test_fleet_equals_the_per_asset_loop_and_does_not_depend_on_the_shard_size(f
 
 def test_output_columns_and_flags(fleet):
     res = fleet_rul(fleet.table, fleet.threshold, samples=300, horizon=50.0)
-    assert tuple(res.columns) == OUTPUT_COLUMNS
+    assert tuple(res.columns) == OUTPUT_COLUMNS + ("phi",)  # (phi="auto": the offset used)
+    fixed = fleet_rul(fleet.table, fleet.threshold, samples=300, horizon=50.0, phi=0.0)
+    assert tuple(fixed.columns) == OUTPUT_COLUMNS
     healthy = [a for a, on in zip(fleet.assets, fleet.onset) if not np.isfinite(on)]
     assert healthy and all("no_onset" in res.row(a)["flags"] for a in healthy)
     for a in healthy:
@@ -130,7 +132,7 @@ def test_trend_posterior_equals_exact_bayesian_regression_and_kalman(fleet):
     batch = pad_batch(tab.assets, tab.times, tab.values, seed=0)
     for drift in ((0.0, 0.0), (0.02, 1e-3)):
         out = exponential_trend_rul(
-            batch, fleet.threshold, samples=10, drift_std=drift, return_posterior=True
+            batch, fleet.threshold, phi=0.0, samples=10, drift_std=drift, return_posterior=True
         )
         checked = 0
         for b, i0, n, t, y in _degrading_assets(batch, out):
@@ -259,7 +261,7 @@ def test_trend_misfit_flag_holds_its_rate_on_the_model_and_finds_the_wrong_phi()
     f = synthetic_fleet(400, 300, seed=1, healthy_fraction=0.0)
     tab = read_fleet_table(f.table)
     batch = pad_batch(tab.assets, tab.times, tab.values)
-    right = exponential_trend_rul(batch, f.threshold, samples=10, return_posterior=True)
+    right = exponential_trend_rul(batch, f.threshold, phi=0.0, samples=10, return_posterior=True)
     p = right["misfit_p"].numpy()
     p = p[np.isfinite(p)]
     assert p.size > 350
@@ -277,7 +279,7 @@ def test_an_indicator_with_a_healthy_level_needs_phi_baseline():
     of 118 assets (seeds 5, 7-10: 0.82-0.89; a regression of log(y - mu_0) that left out the
     values within sigma_0 of the level, selected by their noise, covered 0.66-0.70)."""
     table, rul = _offset_fleet(120, seed=5)
-    zero = fleet_rul(table, 1.0, samples=400)
+    zero = fleet_rul(table, 1.0, samples=400, phi=0.0)
     base = fleet_rul(table, 1.0, samples=400, phi="baseline")
     med0, medb = np.array(zero.columns["rul_median"]), np.array(base.columns["rul_median"])
     ok = np.isfinite(med0) & np.isfinite(medb) & (rul > 0)
@@ -339,7 +341,7 @@ def test_phi_auto_on_a_falling_indicator_and_on_the_command_line(tmp_path):
     for c in (*RUL_COLUMNS, "flags", "phi"):
         assert [str(v) for v in auto.columns[c]] == [str(v) for v in base.columns[c]], c
     with pytest.raises(ValueError, match="must lie below phi = 0"):
-        fleet_rul(fall, 1.0, direction="below", samples=50)
+        fleet_rul(fall, 1.0, direction="below", samples=50, phi=0.0)
     mixed, _ = _mixed_fleet(4)
     write_table(tmp_path / "m.csv", {k: list(v) for k, v in mixed.items()})
     argv = ["rul", str(tmp_path / "m.csv"), "--group-by", "asset", "--threshold", "1",
@@ -663,7 +665,7 @@ def test_cli_writes_csv_and_parquet(tmp_path, fleet, capsys):
         )
         assert code == 0
         back = read_back(tmp_path / name)
-        assert tuple(back) == OUTPUT_COLUMNS and len(back["asset"]) == len(fleet.assets)
+        assert tuple(back) == OUTPUT_COLUMNS + ("phi",) and len(back["asset"]) == len(fleet.assets)
     out = capsys.readouterr().out
     assert "60 assets" in out and "no_onset" in out
     assert cli_main(["rul", str(tmp_path / "f.csv"), "--group-by", "unit", "--threshold", "2",
@@ -810,8 +812,8 @@ def test_asset_ids_duplicate_columns_and_date_times(tmp_path):
     tz = fleet_rul({"asset": ["a"] * 60, "t": np.array(zoned), "value": y}, 3.0, samples=50)
     _assert_same(naive, tz, rtol=0)
     # date-times: the dates a planner reads, in UTC to the second, beside the day counts
-    assert tuple(naive.columns) == OUTPUT_COLUMNS + DATE_COLUMNS
-    assert tuple(ints.columns) == OUTPUT_COLUMNS  # numeric time: none
+    assert tuple(naive.columns) == OUTPUT_COLUMNS + ("phi",) + DATE_COLUMNS
+    assert tuple(ints.columns) == OUTPUT_COLUMNS + ("phi",)  # numeric time: none
     assert all(naive.columns[c] == tz.columns[c] for c in DATE_COLUMNS)
     row = naive.row("a")
     assert row["t_last_date"] == "2024-01-01T00:59:00" and math.isfinite(row["rul_q95"])

@@ -128,10 +128,10 @@ def test_cli_calibrate_adds_the_calibrated_columns(tmp_path, capsys):
             "--calibrate", str(tmp_path / "failed.csv"), "--out", str(out), "--no-progress"]  # fmt: skip
     assert main(args) == 0
     cal, _ = calibrate_fleet(read_fleet_table(tmp_path / "failed.csv"), 20.0, samples=1000,
-                             phi=0.0, min_rows=10)  # fmt: skip
+                             phi="auto", min_rows=10)  # fmt: skip
     assert f"calibrated on {cal.n} points of 30 failed assets" in (said := capsys.readouterr().out)
     assert "warning: the points come from" not in said and cal.assets == 30  # 30 >= 9 assets
-    want = fleet_rul(read_fleet_table(tmp_path / "live.csv"), 20.0, samples=1000, phi=0.0,
+    want = fleet_rul(read_fleet_table(tmp_path / "live.csv"), 20.0, samples=1000, phi="auto",
                      min_rows=10).calibrated(cal)  # fmt: skip
     got = out.read_text().splitlines()
     head = got[0].split(",")

@@ -23,13 +23,13 @@ _EPILOG = """examples:
 The table has one row per measurement (asset, time, value); assets may be interleaved, but
 each asset's times must increase. Output: one row per asset with the columns asset, n_rows,
 t_last, onset_time, rul_median, rul_q05, rul_q95, p_fail_within_horizon, censored_mass, flags,
-message (then phi with --phi baseline or auto, and the *_date columns on a date-time column).
+message, phi (unless --phi is a number), and the *_date columns on a date-time column.
 The file is written atomically at the end: an interrupted run leaves no partial file.
 Flags: too_few_rows, no_baseline, no_onset (no degradation detected yet: no RUL number),
 threshold_on_healthy_side (the baseline already lies at or beyond the threshold: check
 --direction), threshold_reached, few_degraded_points, nonpositive_dropped, far_extrapolation,
 trend_misfit (the data since onset leave the exponential trend: its interval is too narrow;
-try --phi auto or --method prognose), glitch_in_baseline (isolated values far off their
+try --method prognose), glitch_in_baseline (isolated values far off their
 neighbours widen the healthy band 1.5 times or more, which can delay the onset), bad_input.
 exit status: 0 success, 2 bad input (one line on stderr, nothing written), 130 interrupted."""
 
@@ -92,10 +92,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--phi",
         type=_phi,
-        help="offset of the exponential model: a number (default 0: growth from near zero), "
-        "baseline (each asset's healthy mean: an indicator with a healthy level, such as an "
-        "rms) or auto (per asset, the one of 0 and baseline under which the data since onset "
-        "are likelier; a phi column says which); exponential only",
+        help="offset of the exponential model: auto (default: per asset, the one of 0 and "
+        "baseline under which the data since onset are likelier; a phi column says which), a "
+        "number (0: growth from near zero) or baseline (each asset's healthy mean: an "
+        "indicator with a healthy level, such as an rms); exponential only",
     )
     p.add_argument("--samples", type=int, default=1000, help="posterior draws / paths per asset")
     p.add_argument("--min-rows", type=int, default=10, help="fewer rows: flagged, no RUL")
@@ -150,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
             method=args.method,
             min_rows=args.min_rows,
             **(
-                {"samples": args.samples, "phi": 0.0 if args.phi is None else args.phi}
+                {"samples": args.samples, "phi": "auto" if args.phi is None else args.phi}
                 if args.method == "exponential"
                 else {"n_paths": args.samples}
             ),

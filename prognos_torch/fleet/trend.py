@@ -24,8 +24,9 @@ result depends on the other assets of the shard (shard-size invariance; tested t
    ``a ~ N(baseline mean of z, prior_std[0]^2)``, ``beta ~ N(0, prior_std[1]^2)`` (default
    ``prior_std[1]``: one log unit per median sampling interval).
 
-   ``phi`` is one number for the fleet (default 0: the indicator grows multiplicatively from
-   near zero, ``y = theta exp(beta tau + eps)``), or ``"baseline"``: each asset's healthy mean
+   ``phi`` is ``"auto"`` by default (below), one number for the fleet (0: the indicator grows
+   multiplicatively from near zero, ``y = theta exp(beta tau + eps)``), or ``"baseline"``:
+   each asset's healthy mean
    ``mu_0``, as :func:`~prognos_torch.workflow.prognose` takes it, for an indicator that rises
    from a healthy level with additive noise (a bearing's rms): ``d = s (y - mu_0) =
    exp(a + beta tau) + v``, ``v ~ N(0, sigma_0^2)`` with ``sigma_0`` the baseline std, on the
@@ -42,7 +43,8 @@ result depends on the other assets of the shard (shard-size invariance; tested t
    level ``phi = 0`` reads the early, slow part of the log curve as the trend and predicts
    late.
 
-   ``"auto"`` fits both and keeps, per asset, the one under which the samples since onset
+   ``"auto"`` (the default) fits both and keeps, per asset, the one under which the samples
+   since onset
    (those with ``s y > 0``) are likelier on the data scale at the posterior mean:
    ``log(s y) ~ N(a + beta tau, sigma^2)`` with its Jacobian ``1 / (s y)`` for ``phi = 0``,
    ``s (y - mu_0) ~ N(exp(a + beta tau), sigma_0^2)`` for the baseline. Both have two
@@ -461,7 +463,7 @@ def exponential_trend_rul(
     threshold: float,
     *,
     direction: str = "above",
-    phi: float | str = 0.0,
+    phi: float | str = "auto",
     horizon: float | None = None,
     samples: int = 1000,
     min_rows: int = 10,
@@ -481,9 +483,9 @@ def exponential_trend_rul(
         batch: a :class:`PaddedBatch` (one shard).
         threshold: failure threshold ``X`` on the value.
         direction: ``"above"`` (failure when ``y >= X``) or ``"below"``.
-        phi: the model's offset ``phi`` (``s (X - phi)`` must be positive),
-            ``"baseline"``: each asset's healthy mean, or ``"auto"``: per asset the likelier
-            of 0 and the baseline (module docstring). With ``"baseline"`` or ``"auto"`` the
+        phi: ``"auto"`` (default): per asset the likelier of 0 and the baseline (module
+            docstring); a number, the model's offset ``phi`` (``s (X - phi)`` must be
+            positive); or ``"baseline"``: each asset's healthy mean. With ``"baseline"`` or ``"auto"`` the
             result holds ``"phi"`` ``(B,)``, the offset each asset used.
         horizon: time span for ``p_fail_within_horizon`` (``None``: ever).
         samples: posterior draws per asset.
@@ -761,7 +763,7 @@ def _auto_phi(batch: PaddedBatch, thr: float, s: float, return_posterior: bool, 
     base = exponential_trend_rul(batch, thr, phi="baseline", return_posterior=True, **kw)
     if not s * thr > 0:
         zero = None
-        pick = torch.ones(len(base["flags"]), dtype=torch.bool)
+        pick = torch.ones(len(base["flags"]), dtype=torch.bool, device=batch.values.device)
     else:
         zero = exponential_trend_rul(batch, thr, phi=0.0, return_posterior=True, **kw)
         ll0 = _data_log_likelihood(batch, zero, s, False)
