@@ -332,8 +332,8 @@ def test_phi_auto_takes_per_asset_the_offset_under_which_the_data_are_likelier()
 
 def test_phi_auto_on_a_falling_indicator_and_on_the_command_line(tmp_path):
     """A falling indicator with a positive threshold: phi = 0 cannot reach it (s (X - 0) < 0),
-    so "auto" is the baseline on every asset; the command line's --phi auto writes the phi
-    column."""
+    so "auto" is the baseline on every asset; an asset about 0 without onset reads "no_onset"
+    (phi = 0 alone: "no_baseline"); the command line's --phi auto writes the phi column."""
     table, _ = _offset_fleet(8, seed=3)
     fall = dict(table, value=2.0 - table["value"])  # from about 1.9 down towards 1.0
     auto = fleet_rul(fall, 1.0, direction="below", phi="auto", samples=50)
@@ -342,6 +342,12 @@ def test_phi_auto_on_a_falling_indicator_and_on_the_command_line(tmp_path):
         assert [str(v) for v in auto.columns[c]] == [str(v) for v in base.columns[c]], c
     with pytest.raises(ValueError, match="must lie below phi = 0"):
         fleet_rul(fall, 1.0, direction="below", samples=50, phi=0.0)
+    # a healthy indicator about 0: phi = 0 has no baseline (no logarithm), auto says no onset
+    y = np.random.default_rng(0).normal(0.0, 0.05, 200)
+    centred = {"asset": ["c"] * 200, "t": np.arange(200.0), "value": y}
+    assert fleet_rul(centred, 1.0, samples=50, phi=0.0).row("c")["flags"] == "no_baseline"
+    row = fleet_rul(centred, 1.0, samples=50).row("c")
+    assert row["flags"] == "no_onset" and row["phi"] == pytest.approx(y[:60].mean(), abs=1e-12)
     mixed, _ = _mixed_fleet(4)
     write_table(tmp_path / "m.csv", {k: list(v) for k, v in mixed.items()})
     argv = ["rul", str(tmp_path / "m.csv"), "--group-by", "asset", "--threshold", "1",

@@ -768,8 +768,14 @@ def _auto_phi(batch: PaddedBatch, thr: float, s: float, return_posterior: bool, 
         zero = exponential_trend_rul(batch, thr, phi=0.0, return_posterior=True, **kw)
         ll0 = _data_log_likelihood(batch, zero, s, False)
         llb = _data_log_likelihood(batch, base, s, True)
-        # the baseline where it fits better, or where phi = 0 has no usable fit and it has
+        # the baseline where it fits better, or where phi = 0 has no usable fit and it has;
+        # with neither (no onset yet), where only phi = 0 lacks a baseline (values <= 0)
+        dev = batch.values.device
+        no_base = [torch.tensor(["no_baseline" in f.split(";") for f in r["flags"]],
+                                dtype=torch.bool, device=dev) for r in (zero, base)]  # fmt: skip
+        neither = torch.isnan(ll0) & torch.isnan(llb)
         pick = (llb > ll0) | (torch.isnan(ll0) & ~torch.isnan(llb))
+        pick |= neither & no_base[0] & ~no_base[1]
     pick_np = pick.cpu().numpy()
     if zero is not None:
         zero["phi"] = np.zeros_like(base["phi"])
