@@ -330,7 +330,7 @@ def test_phi_auto_takes_per_asset_the_offset_under_which_the_data_are_likelier()
     assert hit[ok & ~kinds].mean() >= 0.75 and hit[ok & kinds].mean() >= 0.75
 
 
-def test_phi_auto_on_a_falling_indicator_and_on_the_command_line(tmp_path):
+def test_phi_auto_on_a_falling_indicator_and_on_the_command_line(tmp_path, capsys):
     """A falling indicator with a positive threshold: phi = 0 cannot reach it (s (X - 0) < 0),
     so "auto" is the baseline on every asset; an asset about 0 without onset reads "no_onset"
     (phi = 0 alone: "no_baseline"); the command line's --phi auto writes the phi column."""
@@ -355,6 +355,8 @@ def test_phi_auto_on_a_falling_indicator_and_on_the_command_line(tmp_path):
     assert cli_main(argv) == 0
     phi = read_back(tmp_path / "o.csv")["phi"]
     assert len(phi) == 8 and all(p != 0 for p in phi[:4]) and all(p == 0 for p in phi[4:])
+    assert "trend offset (--phi auto): the healthy level for 4, 0 for 4 of the 8 with a RUL" \
+        in capsys.readouterr().out  # fmt: skip
 
 
 def test_phi_auto_likelihoods_are_the_data_scale_densities():

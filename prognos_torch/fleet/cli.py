@@ -206,6 +206,11 @@ def main(argv: list[str] | None = None) -> int:
         f"{res.shard_size}); written to {args.out}"
         + (f" (times in{unit} since {res.epoch}; dates in the *_date columns)" if res.epoch else "")
     )
+    if args.phi in (None, "auto") and "phi" in res.columns:  # which offset each trend took
+        rul = [p for p, m in zip(res.columns["phi"], res.columns["rul_median"]) if m == m]
+        level = sum(1 for p in rul if p != 0)
+        print(f"  trend offset (--phi auto): the healthy level for {level}, 0 for "
+              f"{len(rul) - level} of the {len(rul)} with a RUL")  # fmt: skip
     for flag, c in sorted(counts.items()):
         print(f"  {flag}: {c} asset(s)")
     if cal is not None:
