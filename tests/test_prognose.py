@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from prognos_torch.prognosis import healthy_baseline
-from prognos_torch.workflow import RULResult, Series, prognose
+from prognos_torch.workflow import RULResult, Series, load_series, prognose
 
 F64 = torch.float64
 PHI, A, B, ON = 1.0, 0.05, 0.02, 400  # y = PHI + A exp(B (t - ON)) after ON
@@ -497,6 +497,31 @@ def test_failure_date_is_the_last_time_plus_the_rul_quantile():
     assert far.status == "ok" and far.censored_mass > 0.05 and far.failure_date(0.95) is None
     early = prognose(y[:420], 3.0, time=stamps[:420], method="exponential")
     assert early.status != "ok" and early.failure_date(0.5) is None
+
+
+def test_time_texts_in_a_time_format_are_the_same_date_times():
+    """Times as text in another layout (day first; digits only) read with time_format give the
+    RUL of the same times as ISO 8601 texts, through prognose and load_series; a cell that
+    does not match, numbers with a time_format, and a time_format without time are named."""
+    t, y = _series(n=520, noise_after=0.05)
+    stamps = np.datetime64("2024-03-01T00:00:00") + (t.numpy() * 600).astype("timedelta64[s]")
+    ref = prognose(y, 3.0, time=[str(s) for s in stamps], method="exponential").summary()
+    moments = [s.astype("datetime64[s]").astype(object) for s in stamps]
+    for fmt in ("%d/%m/%Y %H:%M:%S", "%Y%m%d%H%M%S"):
+        texts = [m.strftime(fmt) for m in moments]
+        got = prognose(y, 3.0, time=texts, time_format=fmt, method="exponential").summary()
+        assert got["median"] == ref["median"] and got["q05"] == ref["q05"]
+        series = load_series(y.numpy(), time=texts, time_format=fmt)
+        assert series.start == "2024-03-01T00:00:00" and series.time_unit == "days"
+    texts[7] = "7 March"
+    with pytest.raises(ValueError, match=r"time\[7\] = '7 March' does not match time_format"):
+        prognose(y, 3.0, time=texts, time_format="%Y%m%d%H%M%S")
+    with pytest.raises(ValueError, match="time_format applies to date-times written as text"):
+        prognose(y, 3.0, time=t, time_format="%Y")
+    with pytest.raises(ValueError, match="time_format applies to time= given as text"):
+        prognose(y, 3.0, time_format="%Y")
+    with pytest.raises(ValueError, match="time_format applies to a time column or time="):
+        load_series(y.numpy(), time_format="%Y")
 
 
 def test_iso_texts_as_time_are_date_times():

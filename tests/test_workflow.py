@@ -153,7 +153,7 @@ def test_load_series_gaps_fill_and_errors(tmp_path):
         load_series(path, "x", decimal=",")
     with pytest.raises(ValueError, match="decimal must be '.' or ','"):
         load_series(path, "x", decimal=";")
-    with pytest.raises(ValueError, match="decimal and time_format apply to CSV files"):
+    with pytest.raises(ValueError, match="where and decimal apply to CSV files"):
         load_series([1.0, 2.0], decimal=",")
     _write_csv(path, ("t", "x"), [(1700021180, 1.0), (1700024780, 2.0), (1700017580, 3.0)])
     with pytest.raises(ValueError, match=r"increasing \(1700017580 follows 1700024780\)"):

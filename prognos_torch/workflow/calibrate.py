@@ -96,8 +96,11 @@ def calibrate_rul(
             guard in the calling script, or a worker killed).
     """
     items = _items(histories)
-    if "at" in prognose_kwargs or "time" in prognose_kwargs:
-        raise ValueError("calibrate_rul sets at= and time= itself: do not pass them")
+    if {"at", "time", "time_format"} & set(prognose_kwargs):
+        raise ValueError(
+            "calibrate_rul sets at= and time= itself: do not pass them (nor time_format: "
+            "give the histories' times as numbers or date-times)"
+        )
     if direction not in ("above", "below"):
         raise ValueError(
             f"direction must be 'above' or 'below' (the side of failure, known for histories "

@@ -289,10 +289,12 @@ def pandas_name(v) -> str | None:
     return name if isinstance(name, str) and name else None
 
 
-def _iso_texts(v, name: str) -> np.ndarray | None:
+def _iso_texts(v, name: str, time_format: str | None = None) -> np.ndarray | None:
     """``datetime64[ns]`` (UTC) of a 1-D sequence of ISO 8601 texts (a list, an object or
-    string array, a pandas Series of text: date-times read from a CSV without parsing), or
-    ``None`` when ``v`` holds something else, numbers written as text included."""
+    string array, a pandas Series of text: date-times read from a CSV without parsing), or of
+    texts in ``time_format`` (``strptime`` codes, :func:`formatted_ns`), or ``None`` when ``v``
+    holds something else, numbers written as text included (unless ``time_format`` says how
+    to read them)."""
     if isinstance(v, Tensor):
         return None
     to_numpy = getattr(v, "to_numpy", None)
@@ -305,16 +307,24 @@ def _iso_texts(v, name: str) -> np.ndarray | None:
     texts = [c for c in cells if isinstance(c, str)]
     if not texts or any(not isinstance(c, str) and not _missing_cell(c) for c in cells):
         return None
-    try:
-        float(texts[0])
-        return None  # numbers as text: read as numbers
-    except ValueError:
-        pass
+    if time_format is None:
+        try:
+            float(texts[0])
+            return None  # numbers as text: read as numbers
+        except ValueError:
+            pass
     out = np.empty(len(cells), dtype="datetime64[ns]")
     for i, c in enumerate(cells):
         try:
-            out[i] = datetime_ns(c if isinstance(c, str) else "")
+            if time_format is None or not isinstance(c, str):
+                out[i] = datetime_ns(c if isinstance(c, str) else "")
+            else:
+                out[i] = formatted_ns(c, time_format)
         except ValueError as exc:
+            if time_format is not None:
+                raise ValueError(
+                    f"{name}[{i}] = {c!r} does not match time_format {time_format!r} ({exc})"
+                ) from None
             raise ValueError(
                 f"{name}[{i}] = {c!r} is not an ISO 8601 date-time in 1678-2262 ({exc}), while "
                 f"{texts[0]!r} is one"
@@ -334,13 +344,28 @@ def _days_since_first(stamps: np.ndarray) -> tuple[np.ndarray, str, str]:
     return days.astype(np.float64), "days", iso_start(stamps[0])
 
 
-def array_times(v, name: str) -> tuple[np.ndarray, str | None, str | None]:
+def array_times(
+    v, name: str, time_format: str | None = None
+) -> tuple[np.ndarray, str | None, str | None]:
     """Times as float64: numbers as given (unit ``None``: the caller's), or date-times (NumPy
     ``datetime64``, a pandas datetime Series or ``DatetimeIndex``, zone-aware ones in UTC;
     ISO 8601 texts, with their zone designators applied) as
     days since the first, with the unit ``"days"`` and the first as ISO 8601 text, as the CSV
     reader gives them; durations (NumPy ``timedelta64``, pandas timedelta) in days, with the
-    unit ``"days"`` and no start (read as plain numbers they would be nanoseconds)."""
+    unit ``"days"`` and no start (read as plain numbers they would be nanoseconds).
+    ``time_format`` (``strptime`` codes) reads texts in another layout and applies to text
+    only (``ValueError`` otherwise)."""
+    if time_format is not None:
+        ns = _iso_texts(v, name, time_format)
+        if ns is None:
+            raise ValueError(
+                f"time_format applies to date-times written as text; {name} holds "
+                f"{type(v).__name__} of numbers or date-times"
+            )
+        if np.isnat(ns).any():
+            where = _lines([int(i) for i in np.flatnonzero(np.isnat(ns))])
+            raise ValueError(f"{name} has missing date-times (NaT) at index {where}")
+        return _days_since_first(ns)
     if is_duration(v):
         ns = np.asarray(v).astype("timedelta64[ns]")
         if np.isnat(ns).any():
@@ -510,9 +535,10 @@ def load_series(
             ``;`` or tab delimiter in many European locales); it applies to the value column,
             a numeric time column and numeric ``where`` values. With ``","`` a cell holding a
             point is refused (a thousands separator there, never read as a decimal point).
-        time_format: the CSV time column's layout in ``datetime.strptime`` codes (e.g.
-            ``"%d/%m/%Y %H:%M"``) for date-times that are not ISO 8601; a ``%z`` offset is
-            applied, times without one are taken as UTC. ``None``: numbers or ISO 8601.
+        time_format: the layout of the CSV time column, or of an array's ``time`` given as
+            text, in ``datetime.strptime`` codes (e.g. ``"%d/%m/%Y %H:%M"``) for date-times
+            that are not ISO 8601; a ``%z`` offset is applied, times without one are taken as
+            UTC. ``None``: numbers or ISO 8601.
 
     Returns:
         :class:`Series` (float64 values, time if given).
@@ -548,10 +574,10 @@ def load_series(
             raise ValueError("time_format applies to a time column: give time_column as well")
         opts = (fill, last, until, decimal, time_format)
         return _load_csv(Path(source), column, time_column, parse_where(where), *opts)
-    if any(v is not None for v in (column, time_column, where, time_format)) or decimal != ".":
-        raise ValueError(
-            "column, time_column, where, decimal and time_format apply to CSV files, not to arrays"
-        )
+    if any(v is not None for v in (column, time_column, where)) or decimal != ".":
+        raise ValueError("column, time_column, where and decimal apply to CSV files, not to arrays")
+    if time_format is not None and time is None:
+        raise ValueError("time_format applies to a time column or time=: give one as well")
     for arg, v in (("name", name), ("time_unit", time_unit)):
         if v is not None and (not isinstance(v, str) or not v):
             raise ValueError(f"{arg} must be a non-empty string, got {v!r}")
@@ -562,7 +588,7 @@ def load_series(
     if time is None:
         time = datetime_index(source)
     if time is not None:
-        tarr, t_unit, start = array_times(time, "time")
+        tarr, t_unit, start = array_times(time, "time", time_format)
         if t_unit is not None:
             if time_unit not in (None, t_unit):
                 raise ValueError(f"time holds date-times (days since the first); time_unit "

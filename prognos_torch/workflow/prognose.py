@@ -146,8 +146,10 @@ _MAX_BINS = 20_000
 
 
 # ----------------------------------------------------------------------------- inputs
-def _as_series(series, time) -> tuple[Tensor, Tensor, Series | None]:
+def _as_series(series, time, time_format=None) -> tuple[Tensor, Tensor, Series | None]:
     # one series is a few thousand values: computed on the CPU wherever the data live
+    if time_format is not None and time is None:
+        raise ValueError("time_format applies to time= given as text: pass time= as well")
     if isinstance(series, Series):
         if time is not None:
             raise ValueError("time is taken from the Series; do not pass time= as well")
@@ -161,7 +163,7 @@ def _as_series(series, time) -> tuple[Tensor, Tensor, Series | None]:
     if time is None:
         t = torch.arange(x.shape[0], dtype=torch.float64)
     else:
-        tv, unit, start = array_times(time, "time")
+        tv, unit, start = array_times(time, "time", time_format)
         t = torch.from_numpy(tv)
         if tuple(t.shape) != tuple(x.shape):
             raise ValueError(f"time must have shape {tuple(x.shape)} (T,), got {tuple(t.shape)}")
@@ -519,6 +521,7 @@ def prognose(
     threshold: float,
     *,
     time=None,
+    time_format: str | None = None,
     method: str = "auto",
     seed: int = 0,
     direction: str = "auto",
@@ -544,6 +547,9 @@ def prognose(
         time: ``(T,)`` strictly increasing times for array input (default: the position):
             numbers, or date-times (NumPy ``datetime64``, pandas; zone-aware ones in UTC; ISO
             8601 texts), which become days since the first, so that the RUL is in days.
+        time_format: the layout of ``time`` given as text that is not ISO 8601, in
+            ``datetime.strptime`` codes (e.g. ``"%d/%m/%Y %H:%M"``; a ``%z`` offset applied,
+            other times taken as UTC), as :func:`~prognos_torch.workflow.load_series` reads it.
         method: ``"auto"`` (the exponential + elm pool), ``"exponential"``, ``"power"``,
             ``"linear"`` or ``"elm"`` (:data:`PROGNOSE_METHODS`).
         seed: seeds the path draws, the backtest's draws (which choose each shape's noise)
@@ -601,7 +607,7 @@ def prognose(
         ValueError: bad input (too few values, a threshold inside the healthy band or on the
             wrong side of it, a threshold already reached, unknown options).
     """
-    x, t, src = _as_series(series, time)
+    x, t, src = _as_series(series, time, time_format)
     thr = check_real(threshold, "threshold")
     if method not in PROGNOSE_METHODS:
         raise ValueError(f"method must be one of {', '.join(PROGNOSE_METHODS)}, got {method!r}")
