@@ -352,13 +352,20 @@ def _objective(
 GN_ITERATIONS, GN_HALVINGS, GN_TOLERANCE = 50, 30, 1e-4
 
 
+def _weighted_model(drift: Tensor, w: Tensor, sigma0: Tensor) -> StateSpaceModel:
+    """The trend model whose measurement noise is ``sigma0 / sqrt(w)`` per row (``w`` ``(B,
+    T)``, the inverse variance in ``sigma0^2`` units; 1 where ``w = 0``, a missing row): the
+    delta method's ``sigma0 / d`` and Gauss-Newton's ``sigma0 / e^g`` alike."""
+    chol_r = torch.where(w > 0, sigma0[:, None] / w.clamp(min=1e-300).sqrt(), 1.0)
+    chol_r = chol_r.T[..., None, None].contiguous()  # (T, B, 1, 1)
+    return _trend_model(drift, lambda k: chol_r[k - 1])
+
+
 def _linearised_model(drift: Tensor, ds: Tensor, g: Tensor, sigma0: Tensor):
     """The trend model with Gauss-Newton's pseudo-measurement noise ``sigma0 / e^g`` per row,
     and the pseudo-measurements and weights of :func:`_linearised`."""
     z, w = _linearised(ds, g, sigma0)
-    chol_r = torch.where(w > 0, sigma0[:, None] / w.clamp(min=1e-300).sqrt(), 1.0)
-    chol_r = chol_r.T[..., None, None].contiguous()  # (T, B, 1, 1)
-    return _trend_model(drift, lambda k: chol_r[k - 1]), z, w
+    return _weighted_model(drift, w, sigma0), z, w
 
 
 def _at(rows: Tensor, last: Tensor) -> Tensor:
@@ -627,9 +634,7 @@ def exponential_trend_rul(
     S0[:, 1, 1] = sb
     drift = torch.diag(torch.tensor([float(v) for v in drift_std], dtype=dt, device=dev))
     if per_asset:  # per step: sigma0 / d, the delta method (1 where z is missing)
-        sr_k = torch.where(weight > 0, zb_std[:, None] / weight.clamp(min=1e-300).sqrt(), 1.0)
-        chol_r = sr_k.T[..., None, None].contiguous()  # (Tf, B, 1, 1)
-        model = _trend_model(drift, lambda k: chol_r[k - 1])
+        model = _weighted_model(drift, weight, zb_std)
         sr = torch.full_like(zb_std, math.nan)  # (no single log-domain noise)
     else:
         sr = torch.where(base_ok, zb_std, 1.0)
@@ -638,9 +643,7 @@ def exponential_trend_rul(
     prior = GaussianBelief(m0, S0)
     tr = run(filt, model, prior, zs.T[..., None], taus.T[..., None])
     last = (n_fit - 1).clamp(min=0)
-    sel = last[None, :, None].expand(1, B, 2)
-    mean = tr.means.gather(0, sel)[0]  # (B, 2)
-    chol = tr.chols.gather(0, last[None, :, None, None].expand(1, B, 2, 2))[0]
+    mean, chol = _at(tr.means, last), _at(tr.chols, last)  # (B, 2), (B, 2, 2)
     if per_asset:  # the log regression above is the start of Gauss-Newton on the data scale
         ds = torch.where(inside & obs.gather(1, idx_c), d.gather(1, idx_c), torch.nan)
         prior_sd = torch.stack([torch.full_like(sb, sa), sb], -1)
