@@ -43,7 +43,7 @@ from ..workflow.data import (
     check_unique_columns,
     datetime_ns,
     decimal_hint,
-    formatted_ns,
+    formatted_stamps,
     iso_start,
     number_text,
 )
@@ -221,14 +221,8 @@ def _times(col, where, time_format: str | None = None):
     arr = np.asarray(col)
     if time_format is not None and arr.dtype.kind not in "Miuf":
         cells = arr.tolist()
-        stamps = np.empty(len(cells), dtype="datetime64[ns]")
-        for i, c in enumerate(cells):
-            try:
-                stamps[i] = formatted_ns(str(c), time_format)
-            except ValueError as exc:
-                raise ValueError(
-                    f"{where(i)}: time {c!r} does not match time_format {time_format!r} ({exc})"
-                ) from None
+        stamps = formatted_stamps([str(c) for c in cells], time_format,
+                                  lambda i: f"{where(i)}: time {cells[i]!r}")  # fmt: skip
     elif arr.dtype.kind == "M":
         stamps = arr.astype("datetime64[ns]")
     elif arr.dtype.kind in "iuf":

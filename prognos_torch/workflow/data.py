@@ -307,24 +307,21 @@ def _iso_texts(v, name: str, time_format: str | None = None) -> np.ndarray | Non
     texts = [c for c in cells if isinstance(c, str)]
     if not texts or any(not isinstance(c, str) and not _missing_cell(c) for c in cells):
         return None
-    if time_format is None:
-        try:
-            float(texts[0])
-            return None  # numbers as text: read as numbers
-        except ValueError:
-            pass
+    if time_format is not None:  # missing cells NaT, the texts in the caller's layout
+        out = np.full(len(cells), np.datetime64("NaT"), dtype="datetime64[ns]")
+        at = [i for i, c in enumerate(cells) if isinstance(c, str)]
+        out[at] = formatted_stamps(texts, time_format, lambda j: f"{name}[{at[j]}] = {texts[j]!r}")
+        return out
+    try:
+        float(texts[0])
+        return None  # numbers as text: read as numbers
+    except ValueError:
+        pass
     out = np.empty(len(cells), dtype="datetime64[ns]")
     for i, c in enumerate(cells):
         try:
-            if time_format is None or not isinstance(c, str):
-                out[i] = datetime_ns(c if isinstance(c, str) else "")
-            else:
-                out[i] = formatted_ns(c, time_format)
+            out[i] = datetime_ns(c if isinstance(c, str) else "")
         except ValueError as exc:
-            if time_format is not None:
-                raise ValueError(
-                    f"{name}[{i}] = {c!r} does not match time_format {time_format!r} ({exc})"
-                ) from None
             raise ValueError(
                 f"{name}[{i}] = {c!r} is not an ISO 8601 date-time in 1678-2262 ({exc}), while "
                 f"{texts[0]!r} is one"
@@ -362,17 +359,13 @@ def array_times(
                 f"time_format applies to date-times written as text; {name} holds "
                 f"{type(v).__name__} of numbers or date-times"
             )
-        if np.isnat(ns).any():
-            where = _lines([int(i) for i in np.flatnonzero(np.isnat(ns))])
-            raise ValueError(f"{name} has missing date-times (NaT) at index {where}")
-        return _days_since_first(ns)
-    if is_duration(v):
+    elif is_duration(v):
         ns = np.asarray(v).astype("timedelta64[ns]")
         if np.isnat(ns).any():
             where = _lines([int(i) for i in np.flatnonzero(np.isnat(ns))])
             raise ValueError(f"{name} has missing durations (NaT) at index {where}")
         return (ns / np.timedelta64(1, "D")).astype(np.float64), "days", None
-    if is_datetime(v):
+    elif is_datetime(v):
         if getattr(v.dtype, "tz", None) is not None:  # pandas, zone-aware: to naive UTC
             acc = getattr(v, "dt", None)
             if acc is not None:  # a Series
@@ -413,6 +406,19 @@ def formatted_ns(text: str, fmt: str) -> np.datetime64:
     return out.astype("datetime64[ns]")
 
 
+def formatted_stamps(cells: Sequence[str], fmt: str, label) -> np.ndarray:
+    """``datetime64[ns]`` of the texts ``cells`` written in ``fmt`` (:func:`formatted_ns`); a
+    cell that does not match raises ``ValueError`` ``"{label(i)} does not match time_format
+    ..."`` (``label(i)``: where the cell stands and what it holds, in the caller's words)."""
+    out = np.empty(len(cells), dtype="datetime64[ns]")
+    for i, c in enumerate(cells):
+        try:
+            out[i] = formatted_ns(c, fmt)
+        except ValueError as exc:
+            raise ValueError(f"{label(i)} does not match time_format {fmt!r} ({exc})") from None
+    return out
+
+
 def _parse_time(
     cells: list[str],
     lines: list[int],
@@ -424,16 +430,11 @@ def _parse_time(
     """Numbers, ISO 8601 date-times, or date-times in ``time_format`` -> days since the first
     row."""
     if time_format is not None:
-        stamps = []
-        for cell, line in zip(cells, lines):
-            try:
-                stamps.append(formatted_ns(cell, time_format))
-            except ValueError as exc:
-                raise ValueError(
-                    f"{path}, line {line}: time column {col!r} value {cell.strip()!r} does not "
-                    f"match time_format {time_format!r} ({exc})"
-                ) from None
-        return _days_since_first(np.asarray(stamps))
+
+        def label(i: int) -> str:
+            return f"{path}, line {lines[i]}: time column {col!r} value {cells[i].strip()!r}"
+
+        return _days_since_first(formatted_stamps(cells, time_format, label))
     numeric = []
     for cell, line in zip(cells, lines):
         try:
