@@ -20,7 +20,7 @@ import warnings
 from pathlib import Path
 
 from ._text import fmt_time
-from .cli_prognose import within_probability
+from .cli_prognose import at_time, failure_dates, within_probability
 
 __all__ = ["main", "build_parser"]
 
@@ -754,15 +754,11 @@ def _cmd_rul(args) -> int:
             if cm > 0
             else "n/a"
         )
-    date = series.date(res.t_last)
-    dates = []
-    if series.start is not None:  # the dates a planner reads (UTC, to the second)
-        after = f"after {series.date(res.t_last + res.bound)}"
-        dates = [(f"failure date, {name}", res.failure_date(q) or after)
-                 for name, q in (("median", 0.5), ("5 %", 0.05), ("95 %", 0.95))]  # fmt: skip
+    d = failure_dates(res, series, res.bound)  # the dates a planner reads
+    dates = [] if d is None else [("failure date, median", d[1]), ("failure date, 5 %", d[0]),
+                                  ("failure date, 95 %", d[2])]  # fmt: skip
     print(
-        f"RUL of {_describe(series, data_cfg)} at t = {fmt_time(res.t_last)} {unit}"
-        f"{f' ({date})' if date else ''}: threshold "
+        f"RUL of {_describe(series, data_cfg)} at t = {at_time(series, res.t_last, unit)}: threshold "
         f"{res.threshold:g} ({res.direction}), {res.filter.upper()} with {res.n_particles} "
         f"particles, horizon {res.horizon} steps = {res.bound:g} {unit}"
     )

@@ -36,6 +36,21 @@ def _rul_end(v, bound: float) -> str:
     return "inf" if math.isinf(bound) else f"> {_fmt(bound)}"
 
 
+def failure_dates(res, series, bound: float) -> tuple[str, str, str] | None:
+    """The failure dates of the 5 %, 50 % and 95 % RUL quantiles for a report (UTC, to the
+    second), a quantile beyond ``bound`` as ``after`` that date; ``None`` for numeric time."""
+    if series.start is None:
+        return None
+    after = f"after {series.date(res.t_last + bound)}"
+    return tuple(res.failure_date(q) or after for q in (0.05, 0.5, 0.95))
+
+
+def at_time(series, t: float, unit: str) -> str:
+    """A time for a report, and its date-time where the series has date-times."""
+    date = series.date(t)
+    return f"{fmt_time(t)} {unit}" + (f" ({date})" if date else "")
+
+
 def within_probability(res, within: float, hint: str = "") -> float | None:
     """``res.failure_probability(within)`` for ``--within``, read before anything is printed;
     a refusal names the option and, for a span beyond the horizon, ends with ``hint``."""
@@ -274,12 +289,9 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
     cal_rows, cal_warn, made = _calibration(args, res, filt, histories)
     where = data_cfg.get("where") or {}
     sel = f" ({', '.join(f'{k}={v}' for k, v in where.items())})" if where else ""
-    def when(t: float) -> str:  # a time, and its date where the data has date-times
-        date = series.date(t)
-        return f"{fmt_time(t)} {unit}" + (f" ({date})" if date else "")
-
     print(
-        f"RUL of {series.name!r}{sel} from {series.source} at t = {when(res.t_last)}: "
+        f"RUL of {series.name!r}{sel} from {series.source} at t = "
+        f"{at_time(series, res.t_last, unit)}: "
         f"threshold {res.threshold:g} ({res.direction})"
     )
     on, onset = res.onset, "not detected"
@@ -302,12 +314,11 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
             (f"90 % interval ({unit})", f"[{lo}, {hi}]"),
             ("censored mass", f"{s['censored_mass']:.3f} (RUL > {_fmt(s['bound'])} {unit})"),
         ]
-        if series.start is not None:  # the dates a planner reads (UTC, to the second)
-            d05, d50, d95 = (res.failure_date(q) for q in (0.05, 0.5, 0.95))
-            after = f"after {series.date(res.t_last + s['bound'])}"
+        dates = failure_dates(res, series, s["bound"])  # what a planner reads
+        if dates is not None:
             rows[-1:-1] = [
-                ("failure date, median", d50 or after),
-                ("failure dates, 90 %", f"[{d05 or after}, {d95 or after}]"),
+                ("failure date, median", dates[1]),
+                ("failure dates, 90 %", f"[{dates[0]}, {dates[2]}]"),
             ]
     else:
         rows += [(f"lower bound if it stays healthy ({unit})", _fmt(s["bound"]))]
