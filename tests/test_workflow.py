@@ -483,3 +483,47 @@ def test_load_series_date_times_zones_fractions_and_duplicate_columns(tmp_path):
     d.write_text("t,v,v\n" + "".join(f"{k},{k},{2 * k}\n" for k in range(30)))
     with pytest.raises(ValueError, match="'v' appears more than once"):
         load_series(d, column="v", time_column="t")
+
+
+def test_figures_of_a_dated_series_put_dates_on_the_time_axis(tmp_path):
+    # a planner reads dates: the axis keeps days since the first date-time as data, its ticks
+    # fall on round dates and say which, the title gives the prediction's date-time
+    from prognos_torch.plots import plot_prognosis
+    from prognos_torch.workflow import prognose
+    from prognos_torch.workflow.data import date_after
+
+    g = torch.Generator().manual_seed(3)
+    n = 240  # hourly for ten days, wear from day 5
+    days = torch.arange(n, dtype=torch.float64) / 24
+    y = 1.0 + 0.02 * torch.randn(n, generator=g, dtype=torch.float64)
+    y = y + torch.where(days > 5, torch.exp(0.8 * (days - 5)) - 1, torch.zeros(()))
+    stamps = np.datetime64("2004-02-12T10:32:39") + (days.numpy() * 3600 * 24).astype(
+        "timedelta64[s]"
+    )
+    r = prognose(y, 60.0, time=stamps)
+    assert r.status == "ok" and r.history.start == "2004-02-12T10:32:39"
+    fig = plot_prognosis(tmp_path / "p.png", r)
+    top, pmf = fig.axes
+    fig.canvas.draw()
+    assert top.get_xlabel() == "date (UTC)"
+    assert top.get_title().startswith(f"at {r.history.date(r.t_last)}: median RUL")
+    ticks = top.get_xticks()
+    labels = [t.get_text() for t in top.get_xticklabels()]
+    t0, t1 = top.get_xlim()
+    inside = [(v, s) for v, s in zip(ticks, labels) if t0 <= v <= t1]
+    assert len(inside) >= 3
+    for v, text in inside:
+        when = date_after(r.history.start, float(v), "s")
+        assert when.endswith("T00:00:00") or when.endswith(":00:00")  # a round date-time
+        if when.endswith("T00:00:00"):  # a day's tick names its day (or month)
+            assert text in (when[8:10], "Feb", "Mar"), (when, text)
+    assert top.xaxis.get_offset_text().get_text().startswith("2004-")
+    s = r.summary()  # the pmf's legend: a quantile beyond the horizon reads "> bound"
+    q = [f"> {r.bound:.3g}" if s[k] is None else f"{s[k]:.3g}" for k in ("q05", "q95")]
+    assert f"90 % [{q[0]}, {q[1]}]" in pmf.texts[0].get_text()
+    # numeric time keeps its numbers and its name
+    plain = prognose(y, 60.0, time=days)
+    top = plot_prognosis(tmp_path / "q.png", plain).axes[0]
+    top.figure.canvas.draw()
+    assert top.get_xlabel() == "time" and top.get_title().startswith(f"at t = {plain.t_last:g}:")
+    assert float(top.get_xticklabels()[1].get_text().replace("−", "-")) == top.get_xticks()[1]

@@ -18,7 +18,7 @@ Inputs may be tensors (any device) or array-likes.
   threshold, RUL pmf), a grid of them, and RUL trajectories against the alpha cone.
 """
 
-from ._arrays import time_label
+from ._arrays import time_axis, time_label
 from .figures import (
     plot_alpha_lambda,
     plot_fading_factor,
@@ -65,6 +65,7 @@ __all__ = [
     "plot_forecast",
     "plot_rul",
     "time_label",
+    "time_axis",
     "plot_prognosis",
     "plot_prognosis_grid",
     "plot_rul_trajectory",

@@ -1,5 +1,5 @@
-"""Plot inputs as float64 NumPy arrays, the label of a series' clock, and the one way a figure
-reaches a file."""
+"""Plot inputs as float64 NumPy arrays, the axis of a series' clock (dates where it has
+date-times), and the one way a figure reaches a file."""
 
 from __future__ import annotations
 
@@ -7,9 +7,11 @@ import io
 import os
 from pathlib import Path
 
+import matplotlib.dates as mdates
 import numpy as np
 import torch
 from matplotlib.figure import Figure
+from matplotlib.ticker import Formatter, Locator
 
 from ..io import atomic_write
 
@@ -31,6 +33,60 @@ def time_label(series) -> str:
     if series.time_unit == "steps":
         return "step"
     return series.time_unit
+
+
+class _DateTicks(Locator):
+    """Ticks at round dates (matplotlib's ``AutoDateLocator``) on an axis that holds days since
+    ``origin`` (a matplotlib date number): the data keep the series' own clock."""
+
+    def __init__(self, origin: float):
+        self.origin = origin
+        self.dates = mdates.AutoDateLocator()
+
+    def __call__(self):
+        lo, hi = self.axis.get_view_interval()
+        return self.tick_values(lo, hi)
+
+    def tick_values(self, vmin, vmax):
+        at = (mdates.num2date(v + self.origin) for v in (vmin, vmax))
+        return np.asarray(self.dates.tick_values(*at)) - self.origin
+
+
+class _DateLabels(Formatter):
+    """Concise date labels (``ConciseDateFormatter``) of :class:`_DateTicks`' ticks."""
+
+    def __init__(self, ticks: _DateTicks):
+        self.origin = ticks.origin
+        self.dates = mdates.ConciseDateFormatter(ticks.dates)
+
+    def __call__(self, x, pos=None):
+        return self.dates(x + self.origin, pos)
+
+    def format_ticks(self, values):
+        return self.dates.format_ticks(np.asarray(values, dtype=np.float64) + self.origin)
+
+    def get_offset(self):
+        return self.dates.get_offset()
+
+
+def time_axis(ax, series) -> None:
+    """Label ``ax``'s x axis with ``series``' clock. A series with date-times (``start`` set)
+    keeps its days since ``start`` as data and gets ticks at round dates with concise date
+    labels, the year and month beside the axis (label "date (UTC)"); other series get
+    :func:`time_label`."""
+    if series.time_unit == "days" and series.start:
+        ax.set_xlabel("date (UTC)")
+        ticks = _DateTicks(float(mdates.date2num(np.datetime64(series.start))))
+        ax.xaxis.set_major_locator(ticks)
+        ax.xaxis.set_major_formatter(_DateLabels(ticks))
+    else:
+        ax.set_xlabel(time_label(series))
+
+
+def time_text(series, t: float) -> str:
+    """Time ``t`` of ``series`` for a title: its date-time (to the second) where the series has
+    date-times, else ``"t = "`` and the number."""
+    return series.date(t) or f"t = {t:g}"
 
 
 def as_numpy(x) -> np.ndarray:

@@ -20,7 +20,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ._arrays import as_numpy, check_result, clip_for_drawing, time_label, write_png
+from ._arrays import as_numpy, check_result, clip_for_drawing, time_axis, time_text, write_png
 
 if TYPE_CHECKING:  # annotations only: the workflow imports the plots, not the reverse
     from ..workflow.predict import RULResult
@@ -119,7 +119,7 @@ def plot_prognosis(
     ax.axhline(result.threshold, color="C3", lw=1.0, ls="--", label="threshold")
     ax.set_xlim(t0, t_end)
     ax.set_ylim(lo_t - pad, hi_t + pad)
-    ax.set_xlabel(time_label(h))
+    time_axis(ax, h)
     ax.set_ylabel(h.name)
     ax.legend(loc="best", fontsize=7)
     unit = result.time_unit
@@ -129,7 +129,7 @@ def plot_prognosis(
         told = f"median RUL > {result.bound:.3g} {unit} ({result.model})"
     else:
         told = f"median RUL {s['median']:.3g} {unit} ({result.model})"
-    ax.set_title(title or f"at t = {result.t_last:g}: {told}", fontsize=9)
+    ax.set_title(title or f"at {time_text(h, result.t_last)}: {told}", fontsize=9)
     if not own:
         return ax.figure
     d = result.distribution
@@ -144,7 +144,9 @@ def plot_prognosis(
             if q is not None and q <= upto:
                 bx.axvline(q, color="k", lw=0.8, ls="-" if name == "median" else ":")
         bx.set_xlim(0.0, upto)
-        q = [("n/a" if s[k] is None else f"{s[k]:.3g}") for k in ("median", "q05", "q95")]
+        # a quantile beyond the horizon (censored paths) is known only to exceed the bound
+        q = [(f"> {result.bound:.3g}" if s[k] is None else f"{s[k]:.3g}")
+             for k in ("median", "q05", "q95")]  # fmt: skip
         bx.text(0.98, 0.9, f"median {q[0]}, 90 % [{q[1]}, {q[2]}]\n"
                 f"P(RUL > {result.bound:.3g} {unit}) = {result.censored_mass:.2f}",
                 transform=bx.transAxes, ha="right", va="top", fontsize=8)  # fmt: skip
@@ -178,7 +180,8 @@ def plot_prognosis_grid(
     for i, (name, results, truth) in enumerate(rows):
         for j, res in enumerate(results):
             ax = fig.add_subplot(n, k, i * k + j + 1)
-            plot_prognosis(None, res, truth=truth, ax=ax, title=f"{name}, t = {res.t_last:.2f}")
+            at = time_text(res.history, res.t_last)
+            plot_prognosis(None, res, truth=truth, ax=ax, title=f"{name}, {at}")
             ax.legend().set_visible(i == 0 and j == 0)
     return write_png(fig, path, dpi=dpi)
 

@@ -15,7 +15,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ._arrays import as_numpy, check_result, clip_for_drawing, time_label, write_png
+from ._arrays import as_numpy, check_result, clip_for_drawing, time_axis, time_text, write_png
 from .prognosis import plot_prognosis
 from .rul import draw_paths
 
@@ -75,7 +75,7 @@ def plot_forecast(
         tf, as_numpy(result.mean), color="C0", lw=1.5, label=f"forecast ({result.filter.upper()})"
     )
     ax.axvline(th[-1], color="0.6", lw=0.8, ls="--")
-    ax.set_xlabel(time_label(result.history))
+    time_axis(ax, result.history)
     ax.set_ylabel(result.history.name)
     ax.set_title(title or f"{result.horizon}-step forecast of {result.history.name}")
     ax.legend(loc="best", fontsize=8)
@@ -126,10 +126,12 @@ def plot_rul(
     lo, hi = float(seen.min()), float(seen.max())
     paths = clip_for_drawing(as_numpy(result.paths), lo, hi)
     draw_paths(ax, tf, paths, result.weights, threshold=result.threshold, n_show=n_paths)
-    ax.set_xlabel(time_label(result.history))
+    time_axis(ax, result.history)
     ax.set_ylabel(result.history.name)
     ax.legend(loc="best", fontsize=8)
-    ax.set_title(title or f"RUL at {result.t_last:g} ({result.filter.upper()})")
+    ax.set_title(
+        title or f"RUL at {time_text(result.history, result.t_last)} ({result.filter.upper()})"
+    )
 
     d = result.distribution
     support, pmf = as_numpy(d.support), as_numpy(d.pmf)
