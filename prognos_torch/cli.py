@@ -20,7 +20,14 @@ import warnings
 from pathlib import Path
 
 from ._text import fmt_time
-from .cli_prognose import at_time, failure_dates, within_probability
+from .cli_prognose import (
+    at_time,
+    failure_dates,
+    json_record,
+    reporter,
+    within_probability,
+    write_json,
+)
 
 __all__ = ["main", "build_parser"]
 
@@ -310,6 +317,8 @@ def _add_rul(sub) -> None:
         "  prognos rul data.csv --column rms --time-column timestamp --threshold 0.45 \\\n"
         "      --calibrate failed.csv --calibrate-group bearing\n"
         "      (the 90 % interval calibrated on assets that ran to failure: split conformal)\n"
+        "  prognos rul data.csv --column rms --time-column timestamp --threshold 0.45 \\\n"
+        "      --json rul.json   (also the answer as one JSON record; --json - prints it alone)\n"
         "  prognos rul datasets/ims/test1_features.csv --column rms --where channel=5 \\\n"
         "      --time-column timestamp --threshold 0.45 --until 2003-11-25T00:00:00\n"
         "  prognos rul model.pt data.csv --threshold 0.8 --plot rul.png\n"
@@ -351,6 +360,14 @@ def _add_rul(sub) -> None:
         metavar="SPAN",
         help="also print P(failure within SPAN), SPAN in the RUL's time unit (an inspection "
         "interval, say)",
+    )
+    p.add_argument(
+        "--json",
+        metavar="FILE",
+        help="also write the result as one JSON record to FILE (written whole or not at all): "
+        "the data's source, RULResult.to_dict() (status, onset, model, RUL quantiles, censored "
+        "mass and bound, failure dates, flags) and the report's further rows; '-' writes it to "
+        "standard output in place of the report",
     )
     g = p.add_argument_group("calibration (without a model file)")
     g.add_argument(
@@ -690,6 +707,8 @@ def _observed_rul(res, truth) -> str | float:
 def _cmd_rul(args) -> int:
     from .workflow import rul
 
+    if args.json not in (None, "-"):
+        _check_out_folder(Path(args.json), "--json")
     if args.data is None:  # prognos rul DATA.csv ...: no model file
         from .cli_prognose import load_histories, run_prognose
 
@@ -757,12 +776,14 @@ def _cmd_rul(args) -> int:
     d = failure_dates(res, series, res.bound)  # the dates a planner reads
     dates = [] if d is None else [("failure date, median", d[1]), ("failure date, 5 %", d[0]),
                                   ("failure date, 95 %", d[2])]  # fmt: skip
-    print(
+    say = reporter(args)
+    say(
         f"RUL of {_describe(series, data_cfg)} at t = {at_time(series, res.t_last, unit)}: threshold "
         f"{res.threshold:g} ({res.direction}), {res.filter.upper()} with {res.n_particles} "
         f"particles, horizon {res.horizon} steps = {res.bound:g} {unit}"
     )
-    print(
+    obs = None if truth is None else _observed_rul(res, truth)
+    say(
         _table(
             [
                 ("P(threshold reached within horizon)", res.crossing_probability),
@@ -773,11 +794,7 @@ def _cmd_rul(args) -> int:
             ]
             + dates
             + within
-            + (
-                [("observed RUL (" + unit + ")", _observed_rul(res, truth))]
-                if truth is not None
-                else []
-            ),
+            + ([("observed RUL (" + unit + ")", obs)] if truth is not None else []),
             ("quantity", "value"),
         )
     )
@@ -785,7 +802,16 @@ def _cmd_rul(args) -> int:
         from .workflow import plot_rul
 
         plot_rul(args.plot, res)
-        print(f"figure written to {args.plot}")
+        say(f"figure written to {args.plot}")
+    if args.json is not None:
+        extra = {"crossing_probability": res.crossing_probability}
+        if args.within is not None:
+            extra["p_within"] = {"within": args.within, "p": within[0][1]}
+        if truth is not None:
+            extra["observed_rul"] = obs if isinstance(obs, float) else None
+        write_json(args.json, json_record(res, series, data_cfg, **extra))
+        if args.json != "-":
+            say(f"record written to {args.json}")
     if res.fully_censored:
         raise _CensoredRUL(
             f"no predicted path reaches the threshold {res.threshold:g} within the horizon of "

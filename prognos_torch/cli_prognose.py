@@ -12,6 +12,9 @@ from ._text import fmt_time
 
 __all__ = [
     "run_prognose",
+    "json_record",
+    "write_json",
+    "reporter",
     "observed_rul",
     "within_probability",
     "load_histories",
@@ -49,6 +52,51 @@ def at_time(series, t: float, unit: str) -> str:
     """A time for a report, and its date-time where the series has date-times."""
     date = series.date(t)
     return f"{fmt_time(t)} {unit}" + (f" ({date})" if date else "")
+
+
+def _finite(v) -> float | None:
+    return None if v is None or not math.isfinite(float(v)) else float(v)
+
+
+def json_record(res, series, data_cfg: dict, **extra) -> dict:
+    """The ``--json`` record of ``prognos rul``: the series' ``source``, ``column`` and
+    ``where`` selection, then :meth:`~prognos_torch.workflow.RULResult.to_dict`, then the
+    report's further rows given as ``extra`` (``p_within``, ``observed_rul``, ``calibrated``),
+    JSON-safe (a non-finite number is ``None``)."""
+    record = {
+        "source": None if series.source is None else str(series.source),
+        "column": series.name,
+        "where": dict(data_cfg.get("where") or {}),
+    }
+    record.update(res.to_dict())
+    for key, value in extra.items():
+        if isinstance(value, dict):
+            value = {k: _finite(v) if isinstance(v, float) else v for k, v in value.items()}
+        record[key] = _finite(value) if isinstance(value, float) else value
+    return record
+
+
+def write_json(target: str, record: dict) -> None:
+    """``record`` as indented JSON to the file ``target``, whole or not at all
+    (:func:`~prognos_torch.io.atomic_write`), or to standard output for ``"-"``."""
+    import json
+    import sys
+
+    text = json.dumps(record, indent=2, allow_nan=False) + "\n"
+    if target == "-":
+        sys.stdout.write(text)
+        return
+    from .io import atomic_write
+
+    atomic_write(target, text.encode())
+
+
+def reporter(args):
+    """``print`` for the report, or a function that prints nothing where ``--json -`` takes
+    standard output for the record."""
+    if getattr(args, "json", None) == "-":
+        return lambda *a, **k: None
+    return print
 
 
 def within_probability(res, within: float, hint: str = "") -> float | None:
@@ -289,7 +337,8 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
     cal_rows, cal_warn, made = _calibration(args, res, filt, histories)
     where = data_cfg.get("where") or {}
     sel = f" ({', '.join(f'{k}={v}' for k, v in where.items())})" if where else ""
-    print(
+    say = reporter(args)
+    say(
         f"RUL of {series.name!r}{sel} from {series.source} at t = "
         f"{at_time(series, res.t_last, unit)}: "
         f"threshold {res.threshold:g} ({res.direction})"
@@ -332,25 +381,35 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
                 f"{p_within:.3f}" if p_within is not None else f"n/a ({res.status})",
             )
         )
+    obs = None if truth is None else observed_rul(truth, res.t_last, res.threshold, res.direction)
     if truth is not None:
-        obs = observed_rul(truth, res.t_last, res.threshold, res.direction)
         rows.append(
             (f"observed RUL ({unit})", "not reached in the data" if obs is None else _fmt(obs))
         )
     width = max(len(r[0]) for r in rows)
     for k, v in rows:
-        print(f"  {k.ljust(width)}  {v}")
+        say(f"  {k.ljust(width)}  {v}")
     for f in list(res.flags) + cal_warn:
-        print(f"warning: {f}")
+        say(f"warning: {f}")
     if args.plot is not None:
         tr = None if truth is None else (truth.t, truth.values)
         plot_prognosis(args.plot, res, truth=tr)
-        print(f"figure written to {args.plot}")
+        say(f"figure written to {args.plot}")
     if made is not None and args.calibration_out is not None:
-        import json
-
-        args.calibration_out.write_text(json.dumps(made.to_dict(), indent=2) + "\n")
-        print(f"calibration written to {args.calibration_out}")
+        write_json(str(args.calibration_out), made.to_dict())
+        say(f"calibration written to {args.calibration_out}")
+    if args.json is not None:
+        extra = {}
+        if args.within is not None:
+            extra["p_within"] = {"within": args.within, "p": p_within}
+        if truth is not None:
+            extra["observed_rul"] = obs
+        used = made if made is not None else histories
+        if used is not None and not isinstance(used, dict) and res.status == "ok":
+            extra["calibrated"] = dict(used.summary(res)["calibrated"], warnings=cal_warn)
+        write_json(args.json, json_record(res, series, data_cfg, **extra))
+        if args.json != "-":
+            say(f"record written to {args.json}")
     if res.status == "ok" and res.censored_mass > CENSORED_FLAG:
         return (
             f"{100 * res.censored_mass:.3g} % of the predicted paths do not reach the threshold "

@@ -337,3 +337,56 @@ def test_glitch_in_the_healthy_window_warns_and_glitch_limit_leaves_it_out(capsy
     assert "warning: glitches left out of the healthy window" in out and "median RUL" in out
     assert main(["rul", "model.pt", str(path), "--threshold", "3", "--glitch-limit", "20"]) == 2
     assert "--glitch-limit applies without a model file" in capsys.readouterr().err
+
+
+def test_json_record_holds_the_report_and_nothing_is_written_on_bad_input(capsys, tmp_path):
+    """--json FILE: prognose's result as one record (RULResult.to_dict, the selection of the
+    series, P(failure within), the observed RUL); '-' prints the record alone; censored and
+    pre-onset answers are records too; a missing folder is refused before anything runs."""
+    import json
+
+    from prognos_torch.workflow import load_series, prognose
+
+    rec_path = tmp_path / "r.json"
+    args = ["rul", str(IMS), "--column", "rms", "--where", "channel=5", "--time-column",
+            "timestamp", "--threshold", "0.45", "--until", "2003-11-25T13:00:00",
+            "--within", "0.5"]  # fmt: skip
+    assert main(args + ["--json", str(rec_path)]) == 0
+    assert capsys.readouterr().out.rstrip().endswith(f"record written to {rec_path}")
+    rec = json.loads(rec_path.read_text())
+    s = load_series(IMS, "rms", time_column="timestamp", where={"channel": 5},
+                    until="2003-11-25T13:00:00")  # fmt: skip
+    res = prognose(s, 0.45)
+    want = res.to_dict()
+    assert {k: rec[k] for k in want} == want
+    assert rec["where"] == {"channel": "5"} and rec["column"] == "rms"
+    assert rec["p_within"] == {"within": 0.5, "p": res.failure_probability(0.5)}
+    assert rec["observed_rul"] == pytest.approx(0.4392, abs=5e-5)
+    assert rec["onset"]["detected"] and rec["onset"]["date"] == s.date(res.onset.time)
+    assert rec["rul"]["q95"] == res.summary()["q95"] is not None
+    # '-': standard output holds the record and nothing else
+    assert main(args + ["--json", "-"]) == 0
+    assert json.loads(capsys.readouterr().out) == rec
+    # censored: exit 3 and the record, an open end as null with the horizon's date
+    early = args[:-3] + ["2003-11-10T00:00:00", "--json", str(rec_path)]
+    assert main(early) == 3
+    rec = json.loads(rec_path.read_text())
+    assert rec["rul"]["q95"] is None and rec["failure_date"]["q95"] is None
+    assert rec["rul"]["censored_mass"] > 0.05
+    assert rec["failure_date"]["bound"] == s.date(rec["t"] + rec["rul"]["bound"])
+    capsys.readouterr()
+    # a folder that does not exist: one error line, no report, nothing written
+    bad = tmp_path / "no" / "r.json"
+    assert main(args + ["--json", str(bad)]) == 2
+    cap = capsys.readouterr()
+    assert cap.out == "" and cap.err.startswith("error: --json: folder") and not bad.exists()
+    # before onset the record says so and holds the lower bound
+    g = torch.Generator().manual_seed(0)
+    y = 1.0 + 0.05 * torch.randn(400, generator=g, dtype=torch.float64)
+    flat = _csv(tmp_path / "flat.csv", y)
+    assert main(["rul", str(flat), "--column", "value", "--time-column", "t", "--threshold",
+                 "2", "--json", str(rec_path)]) == 0  # fmt: skip
+    rec = json.loads(rec_path.read_text())
+    assert rec["status"] == "no degradation detected yet" and rec["rul"]["median"] is None
+    assert rec["onset"]["detected"] is False and rec["rul"]["bound"] > 0
+    assert rec["date"] is None and rec["failure_date"]["bound"] is None

@@ -521,6 +521,22 @@ def test_figures_of_a_dated_series_put_dates_on_the_time_axis(tmp_path):
     s = r.summary()  # the pmf's legend: a quantile beyond the horizon reads "> bound"
     q = [f"> {r.bound:.3g}" if s[k] is None else f"{s[k]:.3g}" for k in ("q05", "q95")]
     assert f"90 % [{q[0]}, {q[1]}]" in pmf.texts[0].get_text()
+    # the JSON-safe record: the summary's numbers and the dates of its quantiles
+    import json
+
+    rec = json.loads(json.dumps(r.to_dict(), allow_nan=False))
+    assert rec["status"] == "ok" and rec["date"] == date_after(r.history.start, r.t_last, "s")
+    for k in ("mean", "median", "q05", "q95", "censored_mass", "bound"):
+        assert rec["rul"][k] == s[k], k
+    for k, q in (("q05", 0.05), ("median", 0.5), ("q95", 0.95)):
+        v = float(r.quantile(q))
+        want = None if math.isnan(v) else date_after(r.history.start, r.t_last + v, "s")
+        assert rec["failure_date"][k] == want, k
+    assert rec["failure_date"]["bound"] == date_after(r.history.start, r.t_last + r.bound, "s")
+    on = rec["onset"]
+    assert on["detected"] and on["time"] == r.onset.time and on["method"] == "ksigma"
+    assert on["date"] == date_after(r.history.start, r.onset.time, "s")
+    assert on["baseline"]["n"] == r.onset.baseline.n and rec["flags"] == list(r.flags)
     # numeric time keeps its numbers and its name
     plain = prognose(y, 60.0, time=days)
     top = plot_prognosis(tmp_path / "q.png", plain).axes[0]

@@ -337,3 +337,38 @@ def test_cli_rul_without_a_model_refuses_options_it_would_ignore(tmp_path, capsy
         assert main([*base, *extra]) == 2
         err = capsys.readouterr().err
         assert err.startswith("error: ") and named in err and err.count("\n") == 1
+
+
+def test_cli_rul_from_a_model_writes_its_record_as_json(tmp_path, capsys):
+    """--json FILE: the model-file result as one JSON record, the report's numbers (the same
+    run repeated through the library) and the failure dates; '-' gives the record alone."""
+    import json
+
+    from prognos_torch.workflow import ExtrapolationWarning, load_series, rul
+
+    data, model = _zoned_csv(tmp_path / "z.csv", "Z"), tmp_path / "m.pt"
+    base = ["--column", "rms", "--time-column", "ts", "--learner", "elm", "-m", "3"]
+    assert main(["fit", str(data), *base, "--out", str(model)]) == 0
+    rec_path = tmp_path / "r.json"
+    argv = ["rul", str(model), str(data), "--threshold", "2", "--horizon", "200",
+            "--particles", "200", "--within", "0.05"]  # fmt: skip
+    capsys.readouterr()
+    code = main([*argv, "--json", str(rec_path)])
+    out = capsys.readouterr().out
+    assert code in (0, 3) and out.rstrip().endswith(f"record written to {rec_path}")
+    rec = json.loads(rec_path.read_text())
+    with pytest.warns(ExtrapolationWarning) as seen:  # the data left the training range
+        res = rul(load_model(model), load_series(data, "rms", time_column="ts"), 2.0,
+                  horizon=200, filter="stpf", filter_steps=100, n_particles=200)  # fmt: skip
+    assert rec["flags"] == list(res.flags) == [str(seen[0].message)]
+    s = res.summary()
+    assert rec["source"] == str(data) and rec["column"] == "rms" and rec["where"] == {}
+    assert rec["date"] == "2024-01-01T00:59:00" and rec["onset"] is None
+    for k in ("median", "q05", "q95", "mean", "censored_mass", "bound"):
+        assert rec["rul"][k] == s[k], k
+    assert rec["crossing_probability"] == res.crossing_probability
+    assert rec["p_within"] == {"within": 0.05, "p": res.failure_probability(0.05)}
+    assert rec["failure_date"]["median"] == res.failure_date(0.5) is not None
+    # '-': the record alone on standard output, the same record
+    assert main([*argv, "--json", "-"]) == code
+    assert json.loads(capsys.readouterr().out) == rec

@@ -82,17 +82,17 @@ def widen(
     return lower, upper, (std.square() + dist.square()).sqrt()
 
 
-def warn(what: str, dist: float, lo: float, hi: float) -> None:
+def warn(what: str, dist: float, lo: float, hi: float) -> str | None:
     """Issue an :class:`ExtrapolationWarning` when ``dist`` exceeds :data:`WARN_FRACTION` of
-    the span."""
+    the span, and return its sentence (a result's flag); ``None``: no warning."""
     span = hi - lo
     if not dist > WARN_FRACTION * span:
-        return
-    warnings.warn(
+        return None
+    text = (
         f"{what} lies outside the model's training range [{lo:.4g}, {hi:.4g}] by up to "
         f"{dist:.4g} ({100 * dist / span:.0f} % of its span): the learner extrapolates there"
         + (", so the band is widened by that distance" if what.startswith("the forecast") else "")
-        + " (prognos_torch.workflow.extrapolation)",
-        ExtrapolationWarning,
-        stacklevel=3,
+        + " (prognos_torch.workflow.extrapolation)"
     )
+    warnings.warn(text, ExtrapolationWarning, stacklevel=3)
+    return text

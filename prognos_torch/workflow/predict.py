@@ -316,6 +316,67 @@ class RULResult:
         )
         return out
 
+    def to_dict(self) -> dict:
+        """A JSON-safe record of the result, for a planner's system or a log
+        (``json.dumps(r.to_dict(), allow_nan=False)`` holds; a non-finite number is ``None``).
+
+        Keys: ``status``, ``t`` (``t_last``) and its ``date``, ``time_unit``, ``threshold``,
+        ``direction``, ``model``, ``filter``; ``rul``, :meth:`summary`'s ``mean``, ``median``,
+        ``q05``, ``q95``, ``censored_mass`` and ``bound`` (a quantile beyond the horizon,
+        withheld before onset, is ``None``; ``censored_mass`` of them lies beyond ``bound``);
+        ``failure_date``, :meth:`failure_date` at 0.05, 0.5 and 0.95 and ``bound``, the date of
+        ``t + bound`` (``None`` for numeric time); ``onset``, the
+        :class:`~prognos_torch.prognosis.onset.Onset` found (``detected``, ``time``, ``date``,
+        ``alarm_time``, ``method``, ``limit``, ``baseline`` mean, std, noise, n and ``t_end``;
+        ``None`` for a result without one, as :func:`rul`'s); ``flags``.
+        """
+        s = self.summary()
+        date = self.history.date
+        bound = s["bound"]
+
+        def num(v) -> float | None:
+            return None if v is None or not math.isfinite(float(v)) else float(v)
+
+        out = {
+            "status": self.status,
+            "t": num(self.t_last),
+            "date": date(self.t_last),
+            "time_unit": self.time_unit,
+            "threshold": num(self.threshold),
+            "direction": self.direction,
+            "model": self.model,
+            "filter": self.filter,
+            "rul": {k: num(s[k]) for k in ("mean", "median", "q05", "q95", "censored_mass")}
+            | {"bound": num(bound)},
+            "failure_date": {
+                "q05": self.failure_date(0.05),
+                "median": self.failure_date(0.5),
+                "q95": self.failure_date(0.95),
+                "bound": None if num(bound) is None else date(self.t_last + bound),
+            },
+            "onset": None,
+            "flags": list(self.flags),
+        }
+        on = self.onset
+        if on is not None:
+            b = on.baseline
+            out["onset"] = {
+                "detected": bool(on.detected),
+                "time": num(on.time),
+                "date": None if on.time is None else date(on.time),
+                "alarm_time": num(on.alarm_time),
+                "method": on.method,
+                "limit": num(on.limit),
+                "baseline": {
+                    "mean": num(b.mean),
+                    "std": num(b.std),
+                    "noise": num(b.noise),
+                    "n": int(b.n),
+                    "t_end": num(b.t_end),
+                },  # fmt: skip
+            }
+        return out
+
 
 # ----------------------------------------------------------------------------- internals
 def _check_filter(name) -> str:
@@ -506,7 +567,9 @@ def rul(
         filter_steps, n_particles, seed: as :func:`forecast`.
 
     Returns:
-        :class:`RULResult` (RUL in the series' time unit).
+        :class:`RULResult` (RUL in the series' time unit); where the observations it starts
+        from lie outside the model's training range, its ``flags`` hold the sentence of the
+        :class:`~prognos_torch.workflow.ExtrapolationWarning` issued.
 
     Raises:
         ValueError: bad arguments, or a last observed value that already reaches the threshold.
@@ -541,7 +604,7 @@ def rul(
     check_paths_memory(n_particles, horizon, model.m)
     z = _scaled(model, series)
     lo, hi = float(model.scaler.data_min), float(model.scaler.data_max)
-    _extra.warn(
+    flag = _extra.warn(
         "the series the RUL starts from",
         _extra.origin_distance(series.values, model.m, lo, hi),
         lo,
@@ -574,6 +637,7 @@ def rul(
         filter=name,
         n_particles=int(particles.shape[-2]),
         history=series,
+        flags=() if flag is None else (flag,),
     )
 
 
