@@ -197,3 +197,54 @@ def test_cli_out_folder_and_a_csv_given_as_model(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"error: {data} is not a prognos model file: it is neither a safetensors "
                    "file nor a prognos model file of format 1"]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "values, word",
+    [
+        (np.r_[np.zeros(30, bool), np.ones(30, bool)], "booleans"),
+        (torch.ones(60, dtype=torch.bool), "booleans"),
+        ([True] * 60, "booleans"),
+        (np.linspace(1, 2, 60) + 0.5j, "complex"),
+        (torch.linspace(1, 2, 60, dtype=torch.complex128), "complex"),
+    ],
+)
+def test_booleans_and_complex_values_are_refused_not_read(values, word):
+    # read as numbers they would become 0/1 or lose their imaginary part without a word
+    from prognos_torch.workflow import prognose
+
+    with pytest.raises(TypeError, match=rf"^series must be (real )?numbers, got {word}"):
+        prognose(values, 3.0)
+    with pytest.raises(TypeError, match=rf"^source must be (real )?numbers, got {word}"):
+        load_series(values)
+    with pytest.raises(TypeError, match=rf"^time must be (real )?numbers, got {word}"):
+        prognose(np.linspace(1, 2, 60), 3.0, time=values)
+
+
+def test_a_fleet_table_refuses_complex_values_as_it_does_booleans():
+    from prognos_torch.fleet import fleet_rul
+
+    table = {"asset": ["a"] * 40, "t": list(range(40)), "value": [1.0 + 0.5j] * 40}
+    with pytest.raises(ValueError, match="value"):
+        fleet_rul(table, 3.0, group_by="asset", column="value", time_column="t")
+
+
+def test_a_seed_that_is_not_an_int_is_a_type_error_naming_it(tmp_path):
+    from prognos_torch.workflow import calibrate_rul, prognose
+
+    t, x = _values()
+    s = load_series(x, time=t)
+    for bad in ("a", 1.5, True, None):
+        with pytest.raises(TypeError, match=rf"^seed must be an int, got {bad!r}$"):
+            prognose(x, 3.0, seed=bad)
+        with pytest.raises(TypeError, match="^seed must be an int"):
+            fit_series(s, learner="elm", seed=bad)
+        with pytest.raises(TypeError, match="^seed must be an int"):
+            calibrate_rul({"a": (t, x)}, threshold=3.0, seed=bad)
+    model = fit_series(s, learner="elm", m=2, seed=np.int64(3))  # NumPy's ints are seeds
+    assert model.config["seed"] == 3 and isinstance(model.config["seed"], int)
+    for bad in ("a", 2.0):
+        with pytest.raises(TypeError, match="^seed must be an int"):
+            forecast(model, s, 5, seed=bad)
+        with pytest.raises(TypeError, match="^seed must be an int"):
+            rul(model, s, 3.0, seed=bad)

@@ -34,6 +34,7 @@ __all__ = [
     "check_controls",
     "check_index",
     "check_count",
+    "check_seed",
     "check_nonneg",
     "check_scalar",
     "check_real",
@@ -154,6 +155,14 @@ def check_count(value, name: str, minimum: int = 1, *, error: type = TypeError) 
     if value < minimum:
         raise ValueError(f"{name} must be an int >= {minimum}, got {value}")
     return value
+
+
+def check_seed(value, name: str = "seed") -> int:
+    """A seed: a Python or NumPy integer (``bool`` refused) as an ``int``; anything else (text,
+    a float) raises a ``TypeError`` naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):  # (np.bool_ is not)
+        raise TypeError(f"{name} must be an int, got {value!r}")
+    return int(value)
 
 
 def check_nonneg(value, name: str, *, numbers_only: bool = False) -> float:

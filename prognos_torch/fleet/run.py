@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from .._workers import check_workers, process_map
-from ..core.validation import check_real
+from ..core.validation import check_real, check_seed
 from ..workflow.data import date_after
 from .per_asset import prognose_rul
 from .table import FleetTable, read_fleet_table, write_table
@@ -306,8 +306,7 @@ def fleet_rul(
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
     if isinstance(shard_size, bool) or not isinstance(shard_size, int) or shard_size < 1:
         raise ValueError(f"shard_size must be a positive int, got {shard_size!r}")
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise TypeError(f"seed must be an int, got {seed!r}")
+    seed = check_seed(seed)
     check_workers(workers)
     if workers > 1 and backend != "local":
         raise ValueError(

@@ -174,9 +174,9 @@ def _asset_text(col) -> np.ndarray:
 def _numbers(col, what: str):
     """float64 array and the positions of cells that are not numbers (text or inf)."""
     arr = np.asarray(col)
-    if arr.dtype.kind in "iub":
-        if arr.dtype.kind == "b":
-            return np.full(arr.shape, np.nan), np.arange(arr.size)  # booleans are not values
+    if arr.dtype.kind in "iubc":
+        if arr.dtype.kind in "bc":  # booleans and complex numbers are not values
+            return np.full(arr.shape, np.nan), np.arange(arr.size)
         return arr.astype(np.float64), np.empty(0, dtype=np.int64)
     if arr.dtype.kind == "f":
         out = arr.astype(np.float64)

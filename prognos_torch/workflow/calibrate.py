@@ -31,6 +31,7 @@ from dataclasses import replace
 import torch
 
 from .._workers import check_workers, process_map
+from ..core.validation import check_seed
 from ..prognosis.conformal import (
     RULCalibration,
     calibrate_intervals,
@@ -117,6 +118,7 @@ def calibrate_rul(
     ):
         raise TypeError(f"threshold must be a real number or None, got {threshold!r}")
     check_workers(workers)
+    seed = check_seed(seed)
     signed = None if threshold is None else sign * threshold
     points, pending, tasks = [], [], []
     for name, (t, y) in items:

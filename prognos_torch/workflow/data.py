@@ -245,6 +245,7 @@ def array_values(v, name: str) -> np.ndarray:
     A pandas object gives its values by position, not by index label; ``NA`` becomes NaN
     (missing). Raises ``TypeError`` naming ``name`` for anything else."""
     if isinstance(v, Tensor):
+        _real_numbers("b" if v.dtype == torch.bool else "c" if v.dtype.is_complex else "f", name)
         return v.detach().to("cpu", torch.float64).numpy().copy()
     if v is None or isinstance(v, (str, bytes, numbers.Number)):  # (NumPy: a 0-d array)
         raise TypeError(
@@ -253,6 +254,8 @@ def array_values(v, name: str) -> np.ndarray:
         )
     if is_datetime(v) or is_duration(v):  # (pandas would give nanoseconds as numbers)
         raise TypeError(f"{name} must be numbers, got date-times or durations ({v.dtype})")
+    dtype = getattr(v, "dtype", None)
+    _real_numbers(getattr(dtype, "kind", None) if dtype is not None else _kind_of(v), name)
     try:
         to_numpy = getattr(v, "to_numpy", None)
         if to_numpy is not None:  # pandas
@@ -263,6 +266,29 @@ def array_values(v, name: str) -> np.ndarray:
             f"{name} must be a 1-D array of numbers (a tensor, a NumPy array, a pandas Series "
             f"or a sequence), got {type(v).__name__}"
         ) from None
+
+
+def _kind_of(v) -> str | None:
+    """NumPy's dtype kind of a sequence's elements (``None``: not an array of one kind)."""
+    try:
+        return np.asarray(v).dtype.kind
+    except (TypeError, ValueError):
+        return None
+
+
+def _real_numbers(kind: str | None, name: str) -> None:
+    """Refuse booleans and complex values (a ``TypeError`` naming ``name``): read as numbers
+    they would become 0/1, or lose their imaginary part, without a word."""
+    if kind == "b":
+        raise TypeError(
+            f"{name} must be numbers, got booleans; convert them (e.g. .astype(float)) if the "
+            "0/1 values are meant"
+        )
+    if kind == "c":
+        raise TypeError(
+            f"{name} must be real numbers, got complex values (reading them would drop the "
+            "imaginary part); pass the real part or the magnitude"
+        )
 
 
 def is_datetime(v) -> bool:

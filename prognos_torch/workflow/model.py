@@ -52,7 +52,7 @@ import torch
 from torch import Tensor, nn
 
 from ..adapt.noise import SageHusa
-from ..core.validation import all_finite
+from ..core.validation import all_finite, check_seed
 from ..datasets.windows import MinMaxScaler, embed
 from ..learners import ANFIS, ELM, LSSVR
 from ..learners.lssvr_fixed import FixedSizeLSSVR
@@ -374,8 +374,7 @@ def fit_series(
     learner, optimizer = check_names(learner, optimizer)
     lopts = _merge(LEARNER_DEFAULTS[learner], learner_options, f"{learner} learner")
     oopts = _merge(OPTIMIZER_DEFAULTS[optimizer], optimizer_options, f"{optimizer} optimizer")
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise ValueError(f"seed must be an int, got {seed!r}")
+    seed = check_seed(seed)
     T = len(series)
     if m is not None:
         if isinstance(m, bool) or not isinstance(m, int) or m < 1:

@@ -43,7 +43,7 @@ import torch
 from torch import Tensor
 
 from ..core.belief import GaussianBelief
-from ..core.validation import check_count, check_real
+from ..core.validation import check_count, check_real, check_seed
 from ..filters import make_filter, make_particle_filter
 from ..filters import run as run_filter
 from ..learners import LSSVR
@@ -496,7 +496,7 @@ def forecast(
     name = _check_filter(filter)
     if isinstance(level, bool) or not isinstance(level, (int, float)) or not 0 < level < 1:
         raise ValueError(f"level must be a number in (0, 1), got {level!r}")
-    seed = int(model.config.get("seed", 0)) if seed is None else seed
+    seed = int(model.config.get("seed", 0)) if seed is None else check_seed(seed)
     if name not in GAUSSIAN_FILTERS:
         check_paths_memory(n_particles, horizon, model.m)
     z = _scaled(model, series)
@@ -600,7 +600,7 @@ def rul(
             f"the last observed value {last:g} already reaches the threshold {threshold:g} "
             f"(direction {direction!r}); the RUL is 0"
         )
-    seed = int(model.config.get("seed", 0)) if seed is None else seed
+    seed = int(model.config.get("seed", 0)) if seed is None else check_seed(seed)
     check_paths_memory(n_particles, horizon, model.m)
     z = _scaled(model, series)
     lo, hi = float(model.scaler.data_min), float(model.scaler.data_max)

@@ -92,7 +92,7 @@ import torch
 from torch import Tensor
 
 from .._text import fmt_level, fmt_time
-from ..core.validation import check_real, has_missing
+from ..core.validation import check_real, check_seed, has_missing
 from ..filters import FILTERS, GaussianFilter
 from ..prognosis.backtest import (
     backtest_scores,
@@ -613,6 +613,7 @@ def prognose(
         raise ValueError(f"method must be one of {', '.join(PROGNOSE_METHODS)}, got {method!r}")
     if direction not in ("auto", "above", "below"):
         raise ValueError(f"direction must be 'auto', 'above' or 'below', got {direction!r}")
+    seed = check_seed(seed)
     n_paths = _check_int(n_paths, "n_paths", 10)
     max_points = _check_int(max_points, "max_points", 20)
     learner_hidden = _check_int(learner_hidden, "learner_hidden", 1)
@@ -673,7 +674,7 @@ def prognose(
     ons = detect_onset(x, t, method=onset, baseline=base, direction=direction, after=base.t_end)
     if auto_side and not ons.detected:
         flags += _away_from_threshold(x, t, medians, thr, direction, base, onset)
-    gen = torch.Generator().manual_seed(int(seed))
+    gen = torch.Generator().manual_seed(seed)
     span_life = t_last - float(t[0])
     dt_data = float(torch.diff(t).median())
     phi = sign * base.mean
@@ -695,7 +696,7 @@ def prognose(
     for j, filt in enumerate(filters):
         # each filter's noise choice draws from its own stream seeded with ``seed``, so its
         # models are those of prognose(filter=that filter); the final paths continue the first
-        g = gen if j == 0 else torch.Generator().manual_seed(int(seed))
+        g = gen if j == 0 else torch.Generator().manual_seed(seed)
         models, per_pair, pairs = _trend_models(
             tb, yb, phi, s0b, method, filt, seed, g, learner_hidden, learner_members
         )
