@@ -248,3 +248,17 @@ def test_a_seed_that_is_not_an_int_is_a_type_error_naming_it(tmp_path):
             forecast(model, s, 5, seed=bad)
         with pytest.raises(TypeError, match="^seed must be an int"):
             rul(model, s, 3.0, seed=bad)
+
+
+def test_prognose_refuses_values_whose_squares_overflow_as_load_series_does():
+    # they gave "threshold 3e+200 lies inside the healthy band [-inf, inf]"
+    from prognos_torch.workflow import prognose
+
+    t, x = _values()
+    msg = (
+        r"^index 0: value 1.\d+e\+200 of 'series' exceeds 1e\+150 in magnitude; .* divide by 1e200"
+    )
+    with pytest.raises(ValueError, match=msg):
+        prognose(x * 1e200, 3e200)
+    with pytest.raises(ValueError, match=msg):
+        load_series(x * 1e200)

@@ -660,10 +660,12 @@ def _shown_time(days: float, start: str | None) -> str:
     return fmt_time(days) if start is None else date_after(start, days)
 
 
-def _finish(values, time, name, time_name, unit, start, source, lines=None) -> Series:
-    if values.shape[0] == 0:
-        raise ValueError(f"series {name!r} is empty after selecting rows")
-    big = np.abs(values) > MAX_ABS_VALUE
+def check_magnitude(values: np.ndarray, name: str, source=None, lines=None) -> None:
+    """Refuse values beyond :data:`MAX_ABS_VALUE` in magnitude (``ValueError`` naming the
+    first, by its CSV line where ``lines`` are given, else its index): scores, bands and
+    baseline statistics square the data's units, which overflows float64. Infinite values
+    are left to the callers' own message."""
+    big = np.isfinite(values) & (np.abs(values) > MAX_ABS_VALUE)
     if big.any():
         i = int(np.flatnonzero(big)[0])
         where = f"{source}, line {lines[i]}" if lines is not None else f"index {i}"
@@ -672,6 +674,12 @@ def _finish(values, time, name, time_name, unit, start, source, lines=None) -> S
             "forecast scores and bands square the data's units, which overflows float64: "
             f"rescale the values (e.g. divide by 1e{int(math.log10(abs(values[i])))})"
         )
+
+
+def _finish(values, time, name, time_name, unit, start, source, lines=None) -> Series:
+    if values.shape[0] == 0:
+        raise ValueError(f"series {name!r} is empty after selecting rows")
+    check_magnitude(values, name, source, lines)
     if time is not None:
         if not np.isfinite(time).all():
             raise ValueError(f"time of series {name!r} has non-finite values")

@@ -112,7 +112,15 @@ from ..prognosis.onset import (
 )
 from ..prognosis.rul import RULDistribution
 from ..prognosis.trends import TREND_SHAPES, TrendPool, fit_trends, path_grid
-from .data import Series, array_times, array_values, datetime_index, pandas_name, time_value
+from .data import (
+    Series,
+    array_times,
+    array_values,
+    check_magnitude,
+    datetime_index,
+    pandas_name,
+    time_value,
+)
 from .predict import RULResult
 
 __all__ = [
@@ -157,6 +165,7 @@ def _as_series(series, time, time_format=None) -> tuple[Tensor, Tensor, Series |
     x = torch.from_numpy(array_values(series, "series"))
     if x.dim() != 1:
         raise ValueError(f"series must be a Series or have shape (T,), got {tuple(x.shape)}")
+    check_magnitude(x.numpy(), "series")
     if time is None:
         time = datetime_index(series)
     src = None
