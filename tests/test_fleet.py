@@ -467,6 +467,14 @@ def test_csv_mapping_dataframe_and_parquet_give_the_same_table(tmp_path, fleet):
         assert back["asset"] == ref.columns["asset"]
         for c in RUL_COLUMNS:
             np.testing.assert_array_equal(np.array(back[c], dtype=float), ref.columns[c])
+    # a row count is written as an integer ("200", not "200.0"), a parquet int64 column
+    rows = (tmp_path / "r.csv").read_text().splitlines()
+    at = rows[0].split(",").index("n_rows")
+    assert all(r.split(",")[at].isdigit() for r in rows[1:])
+    assert all(type(v) is int for v in ref.columns["n_rows"])
+    import pyarrow.parquet as pq
+
+    assert pq.read_table(tmp_path / "r.parquet").schema.field("n_rows").type == "int64"
 
 
 def test_a_csv_with_decimal_commas_gives_the_same_fleet_with_decimal_comma(tmp_path, fleet):

@@ -360,8 +360,8 @@ def fleet_rul(
             flags[i] = "bad_input"
             message[i] = table.errors[a]
             numeric["n_rows"][i] = len(table.values[i])
-    for c in RUL_COLUMNS:
-        cols[c] = [float(v) for v in numeric[c]]
+    for c in RUL_COLUMNS:  # (a count is an int: 200, not 200.0, in the table)
+        cols[c] = [int(v) if c == "n_rows" else float(v) for v in numeric[c]]
     cols["flags"] = flags
     cols["message"] = message
     for c in extra:
