@@ -6,8 +6,9 @@ Usage::
 
 The series: ``--rows`` values, a healthy phase (noise around 1) for the first two thirds, then
 an exponential rise (to about 3.7) with multiplicative noise; threshold 5. Timed: the first call in the
-process (it imports ``torch.optim``'s compiler machinery once, through the Kalman optimiser of
-the learner trend), then ``--repeat`` calls of ``prognose(method="auto")`` (onset, three trend
+process (its first use of the library's code paths; it imported ``torch._dynamo`` through
+``torch.optim``'s ``add_param_group`` and SymPy through ``torch.broadcast_shapes`` before the
+library avoided both), then ``--repeat`` calls of ``prognose(method="auto")`` (onset, three trend
 shapes x 27 noise settings in one filter run, the online ELM, the backtest, 2,000 RUL paths)
 interleaved with the same number of calls of the workflow's previous route on the same data,
 ``fit_series(learner="elm") + rul(filter="stpf")``, as the peer measured in the same run, and of

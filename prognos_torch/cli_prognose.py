@@ -320,7 +320,6 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
         the user's, while ``prognose`` runs until every path crosses or a horizon long enough
         for the model, and a few paths beyond it leave every reported quantile intact).
     """
-    from .plots import plot_prognosis
     from .workflow import prognose
     from .workflow.prognose import CENSORED_FLAG, filter_pool
 
@@ -392,6 +391,8 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
     for f in list(res.flags) + cal_warn:
         say(f"warning: {f}")
     if args.plot is not None:
+        from .plots import plot_prognosis  # (matplotlib: only for a figure)
+
         tr = None if truth is None else (truth.t, truth.values)
         plot_prognosis(args.plot, res, truth=tr)
         say(f"figure written to {args.plot}")

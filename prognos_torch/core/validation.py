@@ -24,6 +24,7 @@ __all__ = [
     "check_finite",
     "check_chol",
     "check_shape",
+    "broadcast_shape",
     "chol_from_cov",
     "check_pos_int",
     "check_nonneg_int",
@@ -98,6 +99,24 @@ def check_finite(x: Tensor, name: str, shape: str | None = None) -> Tensor:
         where = "" if shape is None else f"; shape {shape}"
         raise ValueError(f"{name} contains non-finite values (NaN or inf){where}")
     return x
+
+
+def broadcast_shape(*shapes: Sequence[int]) -> torch.Size:
+    """The shape that ``shapes`` broadcast to (NumPy's rule, as ``torch.broadcast_shapes``,
+    which imports SymPy through torch's symbolic shapes on its first call: about 0.3 s of a
+    command's start). Raises ``ValueError`` naming the shapes where they do not broadcast."""
+    out: list[int] = []
+    for shape in shapes:
+        shape = tuple(shape)
+        if len(shape) > len(out):
+            out = [1] * (len(shape) - len(out)) + out
+        for i, n in enumerate(shape, start=len(out) - len(shape)):
+            if out[i] == 1:
+                out[i] = n  # (a 1 takes the other size, 0 included)
+            elif n not in (1, out[i]):
+                shown = ", ".join(str(tuple(s)) for s in shapes)
+                raise ValueError(f"shapes {shown} do not broadcast")
+    return torch.Size(out)
 
 
 def check_shape(x: Tensor, name: str, tail: tuple[int, ...], what: str) -> Tensor:

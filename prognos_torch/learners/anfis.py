@@ -46,6 +46,7 @@ from torch import Tensor, nn
 from ..core.validation import (
     as_data,
     as_targets,
+    broadcast_shape,
     check_dtype_arg,
     check_forward_input,
     check_nonneg,
@@ -122,7 +123,7 @@ def _log_membership_grads(
         }
     else:
         raise ValueError(f"mf must be one of {sorted(MEMBERSHIPS)}, got {mf!r}")
-    shape = torch.broadcast_shapes(x.shape, *(p.shape for p in premises))
+    shape = broadcast_shape(x.shape, *(p.shape for p in premises))
     return [grads[k].expand(shape) for k in which]
 
 

@@ -79,6 +79,13 @@ __all__ = [
 #: the group options read when the optimiser is built or loaded (``lr`` is read at each step)
 _FIXED_OPTIONS = ("filter", "P0", "Q", "R", "fading", "noise", "jacobian", "chunk_size")
 
+# torch wraps Optimizer.add_param_group in _disable_dynamo, whose first call imports
+# torch._dynamo (about 1.5 s of a command's start); a parameter group is never added inside a
+# compiled region, so the method is called unwrapped
+_BASE_ADD_PARAM_GROUP = getattr(
+    torch.optim.Optimizer.add_param_group, "__wrapped__", torch.optim.Optimizer.add_param_group
+)
+
 
 def _option_sources(group: dict) -> dict:
     return {k: group[k] for k in _FIXED_OPTIONS if k in group}
@@ -291,7 +298,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         cfg = _configure(
             self.module, {**self.defaults, **group}, f"param_groups[{len(self.param_groups)}]"
         )
-        super().add_param_group(group)
+        _BASE_ADD_PARAM_GROUP(self, group)  # (super().add_param_group, without the import)
         if not self._building:
             i = len(self.param_groups) - 1
             self._cfg.append(cfg)

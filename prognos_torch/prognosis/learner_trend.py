@@ -47,6 +47,7 @@ from torch import Tensor, nn
 
 from ..core.belief import GaussianBelief
 from ..core.random import standard_normal
+from ..core.validation import broadcast_shape
 from ..learners import ELM
 from ..optim import KalmanOptimizer
 from .trends import Passage, TrendFit, TrendPool
@@ -80,7 +81,7 @@ class TimeELM(nn.Module):
         params = params or {}
         c = params.get("c", self.c)
         beta = params.get("elm.beta", self.elm.beta)
-        lead = torch.broadcast_shapes(c.shape[:-2], beta.shape[:-2])
+        lead = broadcast_shape(c.shape[:-2], beta.shape[:-2])
         return torch.cat([c.expand(*lead, 2, 1), beta.expand(*lead, *beta.shape[-2:])], -2)
 
     def forward(self, tau: Tensor) -> Tensor:
