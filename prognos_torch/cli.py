@@ -1,4 +1,4 @@
-"""The ``prognos`` command line.
+"""The prognos command line: fault prediction and remaining useful life from measured series.
 
 prognos study --list
 prognos study NAME [--runs N] [--quick] [--out DIR] [--device cpu|cuda] [--seed S] [--data DIR]
@@ -6,10 +6,10 @@ prognos study all [--quick] ...   (studies of data the library does not ship nee
 prognos fit DATA.csv --column COL [--time-column T] [--learner L] [--optimizer O] --out model.pt
 prognos forecast model.pt DATA.csv --horizon 50 [--plot forecast.png]
 prognos rul model.pt DATA.csv --threshold X [--filter stpf|pf|ekpf|sckf] [--plot rul.png]
-prognos rul DATA.csv --column C [--time-column T] --threshold X [--where COL=V] [--until T]
+prognos rul DATA.csv --column C [--time-column T] --threshold X [--where COL=V] [--until T] [--json F]
 prognos rul FLEET.parquet --group-by asset --column value --time-column t --threshold X --out R.csv
 
-Run ``prognos COMMAND --help`` for the options and examples of each command.
+Run 'prognos COMMAND --help' for the options and examples of each command.
 """
 
 from __future__ import annotations
