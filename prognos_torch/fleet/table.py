@@ -168,7 +168,14 @@ def _asset_text(col) -> np.ndarray:
         return arr.astype(str)
     if arr.dtype.kind == "U":
         return np.char.strip(arr).astype(object)
-    return np.array([_id_text(v) for v in arr.tolist()], dtype=object)
+    cells = arr.tolist()
+    try:  # each distinct id converted once (keyed by type: True and 1 are different ids)
+        known: dict = {}
+        text = [known.get(k) or known.setdefault(k, _id_text(v)) for v in cells
+                for k in ((type(v), v),)]  # fmt: skip
+    except TypeError:  # an unhashable cell
+        text = [_id_text(v) for v in cells]
+    return np.array(text, dtype=object)
 
 
 def _numbers(col, what: str):
