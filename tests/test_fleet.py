@@ -891,3 +891,13 @@ def test_glitch_in_baseline_flag_matches_prognose_per_asset():
         flagged = "glitch_in_baseline" in out["flags"][b].split(";")
         per_series = any(f.startswith("glitches in") for f in prognose(x, 3.0, time=tb).flags)
         assert flagged == per_series == (name in ("glitch", "pair")), name
+
+
+def test_asset_ids_of_an_object_column_are_read_per_cell_and_by_type():
+    # each distinct id is converted once: a cache keyed by value alone would read True as 1
+    from prognos_torch.fleet.table import _asset_text
+
+    col = np.array([True, 1, "1", 1.0, 2.5, None, float("nan"), " b ", True, 1], dtype=object)
+    got = _asset_text(col)
+    assert got.tolist() == ["True", "1", "1", "1", "2.5", "", "", "b", "True", "1"]
+    assert got.dtype == object
