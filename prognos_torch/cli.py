@@ -264,8 +264,30 @@ def _add_prediction_options(p, default_filter: str) -> None:
         help="observations filtered before predicting (default 100)",
     )
     g.add_argument("--particles", type=int, default=500, help="particles (default 500)")
-    g.add_argument("--seed", type=int, help="seed of the particle draws (default: the model's)")
+    rul = default_filter == "stpf"  # (the rul command)
+    g.add_argument(
+        "--seed",
+        type=_seeds if rul else int,
+        help="seed of the particle draws (default: the model's)"
+        + (
+            "; without a model file, prognose's seed (default 0), or several joined by commas "
+            "(0,1,2) to pool the models each seed fits: a steadier answer"
+            if rul
+            else ""
+        ),
+    )
     g.add_argument("--plot", type=Path, help="PNG figure to write")
+
+
+def _seeds(text: str) -> int | tuple[int, ...]:
+    """``--seed`` of ``prognos rul``: an int, or several joined by commas (pooled)."""
+    try:
+        parts = [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected an int or ints joined by commas (0,1,2), got {text!r}"
+        ) from None
+    return parts[0] if len(parts) == 1 else tuple(parts)
 
 
 def _add_forecast(sub) -> None:
@@ -744,6 +766,11 @@ def _cmd_rul(args) -> int:
         raise ValueError(
             "--calibrate and --calibration apply without a model file (prognos rul DATA.csv --column C ...): it "
             "calibrates prognose's interval"
+        )
+    if isinstance(args.seed, tuple):
+        raise ValueError(
+            "--seed: several seeds pool prognose's models (prognos rul DATA.csv --column C "
+            "...); with a model file give one seed for the particle draws"
         )
     for k, v in _MODEL_RUL_DEFAULTS.items():
         if getattr(args, k) is None:

@@ -390,3 +390,24 @@ def test_json_record_holds_the_report_and_nothing_is_written_on_bad_input(capsys
     assert rec["status"] == "no degradation detected yet" and rec["rul"]["median"] is None
     assert rec["onset"]["detected"] is False and rec["rul"]["bound"] > 0
     assert rec["date"] is None and rec["failure_date"]["bound"] is None
+
+
+def test_seed_list_pools_seeds_and_a_model_file_refuses_it(capsys, tmp_path):
+    """--seed 0,1: prognose(seed=(0, 1)), the same record; with a model file one seed only."""
+    import json
+
+    from prognos_torch.workflow import load_series, prognose
+
+    args = ["rul", str(IMS), "--column", "rms", "--where", "channel=5", "--time-column",
+            "timestamp", "--threshold", "0.45", "--until", "2003-11-25T13:00:00",
+            "--json", "-"]  # fmt: skip
+    assert main([*args, "--seed", "0,1"]) == 0
+    rec = json.loads(capsys.readouterr().out)
+    s = load_series(IMS, "rms", time_column="timestamp", where={"channel": 5},
+                    until="2003-11-25T13:00:00")  # fmt: skip
+    want = prognose(s, 0.45, seed=(0, 1)).to_dict()
+    assert {k: rec[k] for k in want} == want
+    assert rec["model"] == "exponential+elm (EKF, seed 0) + exponential+elm (EKF, seed 1)"
+    assert main(["rul", str(tmp_path / "m.pt"), str(IMS), "--threshold", "0.45",
+                 "--seed", "0,1"]) == 2  # fmt: skip
+    assert "with a model file give one seed" in capsys.readouterr().err

@@ -234,6 +234,19 @@ def _histories():
     return {n: (r.t, r.y) for n, r in list(cases.items())[:3]}
 
 
+def test_calibrate_rul_replays_pooled_seeds_as_prognose_pools_them():
+    hist = dict(list(_histories().items())[:1])
+    cal, points = calibrate_rul(hist, method="exponential", fractions=(0.9,), n_paths=200,
+                                seed=(0, 1))  # fmt: skip
+    assert cal.settings["seed"] == [0, 1] and len(points) == 1
+    (p,) = points
+    t, y = hist[p["name"]]
+    pc = known_threshold_protocol(t, y, fractions=(0.9,))
+    r = prognose(y[t <= p["t"]], pc.threshold, time=t[t <= p["t"]], at=p["t"], seed=(0, 1),
+                 method="exponential", n_paths=200)  # fmt: skip
+    assert (p["q05"], p["q95"]) == (r.summary()["q05"], r.summary()["q95"])
+
+
 def test_calibrate_rul_replays_the_protocol_through_prognose():
     hist = _histories()
     cal, points = calibrate_rul(hist, method="exponential", fractions=(0.5, 0.9), n_paths=400)

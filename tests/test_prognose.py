@@ -127,6 +127,35 @@ def test_auto_pools_exponential_and_learner_and_reports_the_scores():
     assert lo - 5 <= res.summary()["median"] <= hi + 5
 
 
+def test_several_seeds_pool_the_models_each_seed_fits():
+    """``seed=(0, 1, 2)``: each seed's models, noise choice and ELMs included, are exactly those
+    of a call with that seed alone (the same backtest scores), they are pooled with equal
+    weights (the pooled median lies within the seeds' range), and one seed in a tuple is that
+    seed; with several filters every filter is run under every seed."""
+    t, y = _series(noise_after=0.05)
+    one = {s: prognose(y, 3.0, time=t, seed=s) for s in (0, 1, 2)}
+    pool = prognose(y, 3.0, time=t, seed=(0, 1, 2))
+    runs = ("EKF, seed 0", "EKF, seed 1", "EKF, seed 2")
+    assert pool.model == " + ".join(f"exponential+elm ({r})" for r in runs)
+    assert pool.filter == "EKF" and tuple(pool.selection["by_run"]) == runs
+    for s, r in zip((0, 1, 2), runs):
+        assert pool.selection["by_run"][r]["scores"] == one[s].selection["scores"]
+    assert one[0].selection["scores"] != one[1].selection["scores"]  # the seeds differ
+    assert pool.rul_samples.numel() == 2000 and pool.onset.time == one[0].onset.time
+    med = sorted(r.summary()["median"] for r in one.values())
+    assert med[0] - 2 <= pool.summary()["median"] <= med[-1] + 2
+    assert torch.equal(prognose(y, 3.0, time=t, seed=[1]).rul_samples, one[1].rul_samples)
+    both = prognose(y, 3.0, time=t, seed=(0, 1), filter="ekf+stekf", method="exponential")
+    assert set(both.selection["by_run"]) == {"EKF, seed 0", "EKF, seed 1", "STEKF, seed 0",
+                                             "STEKF, seed 1"}  # fmt: skip
+    assert both.filter == "EKF+STEKF"
+    for bad, err, msg in (((), ValueError, "non-empty"), ((1, 1), ValueError, "twice"),
+                          ((1, "a"), TypeError, "seed must be an int"),
+                          ((1, 2.0), TypeError, "seed must be an int")):  # fmt: skip
+        with pytest.raises(err, match=msg):
+            prognose(y, 3.0, time=t, seed=bad)
+
+
 def test_several_filters_pool_the_models_fitted_under_each():
     """``filter="ekf+stekf"``: each filter's models, noise choice included, are exactly those of
     a call with that filter alone (the same backtest scores), and their RUL distributions are

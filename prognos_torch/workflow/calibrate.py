@@ -25,13 +25,12 @@ from __future__ import annotations
 
 import inspect
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 
 import torch
 
 from .._workers import check_workers, process_map
-from ..core.validation import check_seed
 from ..prognosis.conformal import (
     RULCalibration,
     calibrate_intervals,
@@ -40,7 +39,7 @@ from ..prognosis.conformal import (
 )
 from ..prognosis.protocol import PROTOCOL_FRACTIONS, known_threshold_protocol
 from .data import Series
-from .prognose import _as_series, prognose
+from .prognose import _as_series, _check_seeds, prognose
 
 __all__ = ["calibrate_rul"]
 
@@ -53,7 +52,7 @@ def calibrate_rul(
     coverage: float = 0.9,
     bins: int = 1,
     fractions: tuple[float, ...] = PROTOCOL_FRACTIONS,
-    seed: int = 0,
+    seed: int | Sequence[int] = 0,
     workers: int = 1,
     **prognose_kwargs,
 ) -> tuple[RULCalibration, list[dict]]:
@@ -75,7 +74,8 @@ def calibrate_rul(
             needs ``ceil(c / (1 - c))`` points for a finite margin, and about 100 for a stable
             one.
         fractions: prediction times as fractions of [onset, end of life].
-        seed: passed to every ``prognose`` call.
+        seed: passed to every ``prognose`` call: one seed, or several pooled (as
+            ``prognose`` takes them).
         workers: processes that run the ``prognose`` calls side by side (``1``: in this
             process). Each is a fresh interpreter (``spawn``) with one torch thread, handed
             prediction points longest series first; the result equals ``workers=1``'s. As for
@@ -118,7 +118,8 @@ def calibrate_rul(
     ):
         raise TypeError(f"threshold must be a real number or None, got {threshold!r}")
     check_workers(workers)
-    seed = check_seed(seed)
+    seeds = _check_seeds(seed)  # (as prognose reads it: one seed, or several pooled)
+    seed = seeds[0] if len(seeds) == 1 else seeds
     signed = None if threshold is None else sign * threshold
     points, pending, tasks = [], [], []
     for name, (t, y) in items:
@@ -173,14 +174,15 @@ def _predict(y, t, at, threshold, true, seed, direction, kwargs) -> dict:
             "median": math.inf if s["median"] is None else s["median"], "status": "ok"}  # fmt: skip
 
 
-def _settings(kwargs: dict, threshold, direction: str, fractions, seed: int) -> dict:
+def _settings(kwargs: dict, threshold, direction: str, fractions, seed) -> dict:
     """``prognose``'s settings (its defaults, then ``kwargs``; a value JSON cannot hold as its
     repr), the failure ``threshold`` (``"protocol"``: each history's own) and ``direction``."""
     out = {k: p.default for k, p in inspect.signature(prognose).parameters.items()
            if p.kind is p.KEYWORD_ONLY and k not in ("time", "at", "seed", "direction")}  # fmt: skip
     out = record_settings({**out, **kwargs})
     out.update(threshold="protocol" if threshold is None else float(threshold),
-               direction=direction, fractions=list(fractions), seed=seed)  # fmt: skip
+               direction=direction, fractions=list(fractions),
+               seed=list(seed) if isinstance(seed, tuple) else seed)  # fmt: skip
     return out
 
 

@@ -86,6 +86,7 @@ units of the data (scale, offset, sign) and of the clock (scale, origin), for ev
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import replace
 
 import torch
@@ -228,6 +229,18 @@ def _filter_label(models: dict, pool: tuple[str, ...]) -> str:
     the exponential fit it learns from)."""
     fit = _level_fit(models, pool)
     return getattr(fit, "filter", None) or fit.level_fit.filter
+
+
+def _check_seeds(seed) -> tuple[int, ...]:
+    """``seed`` as a tuple of distinct ints: one seed, or a non-empty list or tuple of them."""
+    if isinstance(seed, (list, tuple)):
+        if not seed:
+            raise ValueError("seed must be an int or a non-empty sequence of ints, got []")
+        seeds = tuple(check_seed(s) for s in seed)
+        if len(set(seeds)) < len(seeds):
+            raise ValueError(f"seed names a seed twice: {list(seeds)} (pooled seeds must differ)")
+        return seeds
+    return (check_seed(seed),)
 
 
 def _check_int(v, name: str, lo: int) -> int:
@@ -532,7 +545,7 @@ def prognose(
     time=None,
     time_format: str | None = None,
     method: str = "auto",
-    seed: int = 0,
+    seed: int | Sequence[int] = 0,
     direction: str = "auto",
     at: float | str | None = None,
     baseline: float | Baseline = 0.3,
@@ -567,6 +580,10 @@ def prognose(
             (docs/RESULTS.md) the ``auto`` median moved by a median factor of 1.14 across 3
             seeds (1.20 with one ELM and 64 backtest paths), and at 7 points it was finite for
             some seeds and censored for others; pool a few seeds for a steadier answer.
+            A sequence of distinct seeds pools them: the models each seed's call would fit
+            (its noise choice and ELMs) enter the RUL distribution with equal weights, and
+            the paths are drawn with the first seed's generator (``(s,)`` is ``s``; ``model``
+            and ``selection["by_run"]`` name each seed's models).
         direction: ``"above"``, ``"below"`` or ``"auto"`` (the side of the baseline the
             threshold is on; a series that has left its healthy band only on the other side,
             by at least the threshold's distance from the healthy mean, is then refused as a
@@ -622,7 +639,7 @@ def prognose(
         raise ValueError(f"method must be one of {', '.join(PROGNOSE_METHODS)}, got {method!r}")
     if direction not in ("auto", "above", "below"):
         raise ValueError(f"direction must be 'auto', 'above' or 'below', got {direction!r}")
-    seed = check_seed(seed)
+    seeds = _check_seeds(seed)
     n_paths = _check_int(n_paths, "n_paths", 10)
     max_points = _check_int(max_points, "max_points", 20)
     learner_hidden = _check_int(learner_hidden, "learner_hidden", 1)
@@ -683,7 +700,7 @@ def prognose(
     ons = detect_onset(x, t, method=onset, baseline=base, direction=direction, after=base.t_end)
     if auto_side and not ons.detected:
         flags += _away_from_threshold(x, t, medians, thr, direction, base, onset)
-    gen = torch.Generator().manual_seed(seed)
+    gen = torch.Generator().manual_seed(seeds[0])
     span_life = t_last - float(t[0])
     dt_data = float(torch.diff(t).median())
     phi = sign * base.mean
@@ -701,13 +718,15 @@ def prognose(
     t_on, y_on = t[i0:], yo[i0:]
     noise0 = base.noise if base.noise is not None else base.std
     tb, yb, s0b, block = _blocks(t_on, y_on, noise0, max_points)
-    runs = []  # per filter: its models, pool and selection
-    for j, filt in enumerate(filters):
-        # each filter's noise choice draws from its own stream seeded with ``seed``, so its
-        # models are those of prognose(filter=that filter); the final paths continue the first
-        g = gen if j == 0 else torch.Generator().manual_seed(seed)
+    plan = [(filt, s) for filt in filters for s in seeds]
+    runs = []  # per filter and seed: its models, pool and selection
+    for j, (filt, s) in enumerate(plan):
+        # each run's noise choice draws from its own stream seeded with its seed, so its
+        # models are those of prognose(filter=that filter, seed=that seed); the final paths
+        # continue the first run's stream
+        g = gen if j == 0 else torch.Generator().manual_seed(s)
         models, per_pair, pairs = _trend_models(
-            tb, yb, phi, s0b, method, filt, seed, g, learner_hidden, learner_members
+            tb, yb, phi, s0b, method, filt, s, g, learner_hidden, learner_members
         )
         runs.append((models, *_pool(models, per_pair, len(pairs), method)))
     models, pool, selection, _ = runs[0]
@@ -715,12 +734,14 @@ def prognose(
         flags += [f for f in doubt if f not in flags]
     fit = _level_fit(models, pool)
     pooled = tuple(m[k] for m, pl, _, _ in runs for k in pl)
-    names = [_filter_label(m, pl) for m, pl, _, _ in runs]
+    filter_names = [_filter_label(m, pl) for m, pl, _, _ in runs]
+    names = [n + (f", seed {s}" if len(seeds) > 1 else "") for n, (_, s) in zip(filter_names, plan)]
     chosen = selection["chosen"]
-    if len(runs) > 1:  # the pools of every filter, with equal weights
+    if len(runs) > 1:  # the pools of every filter and seed, with equal weights
         chosen = " + ".join(f"{sel['chosen']} ({n})" for (_, _, sel, _), n in zip(runs, names))
+        key = "by_filter" if len(seeds) == 1 else "by_run"
         selection = dict(selection, chosen=chosen,
-                         by_filter={n: sel for (_, _, sel, _), n in zip(runs, names)})  # fmt: skip
+                         **{key: {n: sel for (_, _, sel, _), n in zip(runs, names)}})  # fmt: skip
     horizon = max(horizon_factor * span_life, 10.0 * (t_last - float(t[i0])), 10 * dt_data)
     horizon += t_eval - t_last
     bin_width = max(dt_data, horizon / _MAX_BINS)
@@ -754,7 +775,7 @@ def prognose(
         weights=torch.full((paths.shape[0],), 1.0 / paths.shape[0], dtype=torch.float64),
         filter=getattr(fit, "filter", "ekf (Kalman optimiser)")
         if len(runs) == 1
-        else "+".join(names),
+        else "+".join(dict.fromkeys(filter_names)),
         n_particles=n_paths,
         status="ok",
         onset=reported,
