@@ -250,7 +250,7 @@ def test_a_seed_that_is_not_an_int_is_a_type_error_naming_it(tmp_path):
             rul(model, s, 3.0, seed=bad)
 
 
-def test_prognose_refuses_values_whose_squares_overflow_as_load_series_does():
+def test_prognose_refuses_values_whose_squares_overflow_or_underflow_as_load_series_does():
     # they gave "threshold 3e+200 lies inside the healthy band [-inf, inf]"
     from prognos_torch.workflow import prognose
 
@@ -262,3 +262,11 @@ def test_prognose_refuses_values_whose_squares_overflow_as_load_series_does():
         prognose(x * 1e200, 3e200)
     with pytest.raises(ValueError, match=msg):
         load_series(x * 1e200)
+    # values so small that the squares of their spread underflow: a band of zero width
+    tiny = r"^the values of 'series' are at most 1.\d+e-160 in magnitude, below 1e-150: .* 1e160\)$"
+    with pytest.raises(ValueError, match=tiny):
+        prognose(x * 1e-160, 3e-160)
+    with pytest.raises(ValueError, match=tiny):
+        load_series(x * 1e-160)
+    assert prognose(x * 1e-140, 3e-140).status == prognose(x, 3.0).status  # scale-free above
+    assert float(load_series(np.zeros(5)).values.abs().max()) == 0.0  # zeros: not this error

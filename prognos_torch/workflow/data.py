@@ -663,8 +663,9 @@ def _shown_time(days: float, start: str | None) -> str:
 def check_magnitude(values: np.ndarray, name: str, source=None, lines=None) -> None:
     """Refuse values beyond :data:`MAX_ABS_VALUE` in magnitude (``ValueError`` naming the
     first, by its CSV line where ``lines`` are given, else its index): scores, bands and
-    baseline statistics square the data's units, which overflows float64. Infinite values
-    are left to the callers' own message."""
+    baseline statistics square the data's units, which overflows float64; and values all
+    below ``1 / MAX_ABS_VALUE`` in magnitude (but not all zero), whose squares underflow.
+    Infinite values are left to the callers' own message."""
     big = np.isfinite(values) & (np.abs(values) > MAX_ABS_VALUE)
     if big.any():
         i = int(np.flatnonzero(big)[0])
@@ -673,6 +674,16 @@ def check_magnitude(values: np.ndarray, name: str, source=None, lines=None) -> N
             f"{where}: value {values[i]:g} of {name!r} exceeds {MAX_ABS_VALUE:g} in magnitude; "
             "forecast scores and bands square the data's units, which overflows float64: "
             f"rescale the values (e.g. divide by 1e{int(math.log10(abs(values[i])))})"
+        )
+    finite = np.abs(values[np.isfinite(values)])
+    top = float(finite.max()) if finite.size else 0.0
+    if 0.0 < top < 1.0 / MAX_ABS_VALUE:  # (all zeros: the callers' constant-series message)
+        where = f"{source}: " if source is not None else ""
+        raise ValueError(
+            f"{where}the values of {name!r} are at most {top:g} in magnitude, below "
+            f"{1.0 / MAX_ABS_VALUE:g}: the squares of their spread underflow float64 (a "
+            f"healthy band would read as zero width); rescale the values (e.g. multiply by "
+            f"1e{-int(math.floor(math.log10(top)))})"
         )
 
 
