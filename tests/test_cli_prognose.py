@@ -253,9 +253,16 @@ def test_calibrate_from_a_table_of_failed_assets(capsys, tmp_path):
     # the saved calibration gives the same row without the histories, under the same settings
     row = re.search(r"calibrated 90 % interval \(t\)\s+(\[[^\]]+\])", out).group(1)
     reuse = args[: args.index("--calibrate")] + ["--calibration", str(saved)]
-    assert main(reuse) in (0, 3)
+    assert main(reuse + ["--json", str(tmp_path / "r.json")]) in (0, 3)
     assert f"{row} (split conformal on {cal.n} points from {used} histories of the " \
         "--calibration file" in (out := capsys.readouterr().out)  # fmt: skip
+    # the record holds the calibrated interval of the row and its warning
+    import json
+
+    rec = json.loads((tmp_path / "r.json").read_text())["calibrated"]
+    assert (rec["q05"], rec["q95"], rec["n"]) == (c["q05"], c["q95"], cal.n)
+    assert rec["margin"] == (c["margin"] if math.isfinite(c["margin"]) else None)
+    assert rec["warnings"] and rec["warnings"][0].startswith("--calibration: the points come")
     assert f"warning: --calibration: the points come from {used} histories" in out
     for swap, msg in [(("exponential", "linear"), "was made with --method exponential, this run "
                        "has linear"), (("400", "300"), "was made with --paths 400")]:  # fmt: skip
