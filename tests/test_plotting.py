@@ -219,3 +219,32 @@ def test_rul_trajectory_draws_the_cone_the_truth_and_names_the_unit(tmp_path):
     np.testing.assert_allclose(pred, [2.5, 2.2 * 3.0, 1.1])
     assert (tmp_path / "r.png").read_bytes()[:4] == b"\x89PNG"
     assert plot_rul_trajectory(None, [panel]).axes[0].get_ylabel() == "RUL"
+
+
+def test_a_dated_axis_beyond_the_year_9999_counts_days():
+    # matplotlib's dates end at the year 9999: a horizon of millennia on a dated series drew
+    # nothing but a ValueError; it keeps round day counts since the first date-time instead
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from prognos_torch.plots import time_axis
+    from prognos_torch.workflow import load_series
+
+    start = np.datetime64("2004-02-12T10:32:39")
+    s = load_series(np.arange(10.0), time=start + np.arange(10).astype("timedelta64[D]"))
+    for span, dated in ((3.0, True), (1e3, True), (1e7, False)):
+        fig = Figure()
+        FigureCanvasAgg(fig)
+        ax = fig.add_subplot()
+        ax.plot([0.0, span], [0.0, 1.0])
+        time_axis(ax, s)
+        fig.canvas.draw()
+        labels = [t.get_text() for t in ax.get_xticklabels() if t.get_text()]
+        offset = ax.xaxis.get_offset_text().get_text()
+        if dated:
+            assert not any(x.replace("−", "-").lstrip("-").replace(".", "").isdigit()
+                           and len(x) > 4 for x in labels)  # fmt: skip
+            assert offset != "days since 2004-02-12T10:32:39"
+        else:
+            assert offset == "days since 2004-02-12T10:32:39"
+            values = [float(x.replace("−", "-")) for x in labels]
+            assert values == [float(f"{v:g}") for v in ax.get_xticks()][: len(values)]

@@ -11,7 +11,7 @@ import matplotlib.dates as mdates
 import numpy as np
 import torch
 from matplotlib.figure import Figure
-from matplotlib.ticker import Formatter, Locator
+from matplotlib.ticker import Formatter, Locator, MaxNLocator
 
 from ..io import atomic_write
 
@@ -35,38 +35,61 @@ def time_label(series) -> str:
     return series.time_unit
 
 
+#: matplotlib's date range (years 1-9999) as date numbers: beyond it the axis keeps day counts
+_DATE_RANGE = tuple(float(mdates.date2num(np.datetime64(d))) for d in ("0001-01-02", "9999-12-30"))
+
+
+def _dated(origin: float, lo: float, hi: float) -> bool:
+    return _DATE_RANGE[0] <= origin + min(lo, hi) and origin + max(lo, hi) <= _DATE_RANGE[1]
+
+
 class _DateTicks(Locator):
     """Ticks at round dates (matplotlib's ``AutoDateLocator``) on an axis that holds days since
-    ``origin`` (a matplotlib date number): the data keep the series' own clock."""
+    ``origin`` (a matplotlib date number): the data keep the series' own clock. A view beyond
+    matplotlib's years 1-9999 (a horizon of millennia) gets round day counts instead."""
 
     def __init__(self, origin: float):
         self.origin = origin
         self.dates = mdates.AutoDateLocator()
+        self.numbers = MaxNLocator()
 
     def __call__(self):
         lo, hi = self.axis.get_view_interval()
         return self.tick_values(lo, hi)
 
     def tick_values(self, vmin, vmax):
+        if not _dated(self.origin, vmin, vmax):
+            return self.numbers.tick_values(vmin, vmax)
         at = (mdates.num2date(v + self.origin) for v in (vmin, vmax))
         return np.asarray(self.dates.tick_values(*at)) - self.origin
 
 
 class _DateLabels(Formatter):
-    """Concise date labels (``ConciseDateFormatter``) of :class:`_DateTicks`' ticks."""
+    """Concise date labels (``ConciseDateFormatter``) of :class:`_DateTicks`' ticks; day counts
+    since ``start`` where they leave matplotlib's date range."""
 
-    def __init__(self, ticks: _DateTicks):
+    def __init__(self, ticks: _DateTicks, start: str):
         self.origin = ticks.origin
         self.dates = mdates.ConciseDateFormatter(ticks.dates)
+        self.days = f"days since {start}"
+        self.offset = ""
 
     def __call__(self, x, pos=None):
+        if not _dated(self.origin, x, x):
+            return f"{x:g}"
         return self.dates(x + self.origin, pos)
 
     def format_ticks(self, values):
-        return self.dates.format_ticks(np.asarray(values, dtype=np.float64) + self.origin)
+        v = np.asarray(values, dtype=np.float64)
+        if v.size and not _dated(self.origin, float(v.min()), float(v.max())):
+            self.offset = self.days
+            return [f"{x:g}" for x in v]
+        out = self.dates.format_ticks(v + self.origin)
+        self.offset = self.dates.get_offset()
+        return out
 
     def get_offset(self):
-        return self.dates.get_offset()
+        return self.offset
 
 
 def time_axis(ax, series) -> None:
@@ -78,7 +101,7 @@ def time_axis(ax, series) -> None:
         ax.set_xlabel("date (UTC)")
         ticks = _DateTicks(float(mdates.date2num(np.datetime64(series.start))))
         ax.xaxis.set_major_locator(ticks)
-        ax.xaxis.set_major_formatter(_DateLabels(ticks))
+        ax.xaxis.set_major_formatter(_DateLabels(ticks, series.start))
     else:
         ax.set_xlabel(time_label(series))
 
