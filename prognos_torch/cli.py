@@ -702,7 +702,8 @@ def _cmd_forecast(args) -> int:
         dated = series.start is not None  # a date-time column: each step's date-time too
         lines = ["step,time,mean,lower,upper" + (",date" if dated else "")] + [
             f"{i + 1},{float(fc.time[i])!r},{float(fc.mean[i])!r},{float(fc.lower[i])!r},"
-            f"{float(fc.upper[i])!r}" + (f",{series.date(float(fc.time[i]))}" if dated else "")
+            f"{float(fc.upper[i])!r}"
+            + (f",{series.date(float(fc.time[i])) or ''}" if dated else "")
             for i in range(H)
         ]
         atomic_write(args.csv, ("\n".join(lines) + "\n").encode())

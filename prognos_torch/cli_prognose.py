@@ -44,7 +44,8 @@ def failure_dates(res, series, bound: float) -> tuple[str, str, str] | None:
     second), a quantile beyond ``bound`` as ``after`` that date; ``None`` for numeric time."""
     if series.start is None:
         return None
-    after = f"after {series.date(res.t_last + bound)}"
+    end = series.date(res.t_last + bound)
+    after = f"after {end}" if end else "beyond the date range"
     return tuple(res.failure_date(q) or after for q in (0.05, 0.5, 0.95))
 
 
@@ -244,9 +245,10 @@ def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[li
     hist = res.history
     if hist.start is not None and s["q05"] is not None and math.isfinite(s["margin"]) \
             and "empty" not in text:  # fmt: skip
-        hi = (hist.date(res.t_last + s["q95"]) if s["q95"] is not None
-              else f"after {hist.date(res.t_last + beyond)}")  # fmt: skip
-        rows.append(("calibrated failure dates", f"[{hist.date(res.t_last + s['q05'])}, {hi}]"))
+        shown = lambda t: hist.date(t) or "beyond the date range"  # noqa: E731
+        hi = (shown(res.t_last + s["q95"]) if s["q95"] is not None
+              else f"after {shown(res.t_last + beyond)}")  # fmt: skip
+        rows.append(("calibrated failure dates", f"[{shown(res.t_last + s['q05'])}, {hi}]"))
     warn = []
     few = cal.warning("histories")
     if few is not None:

@@ -543,3 +543,25 @@ def test_figures_of_a_dated_series_put_dates_on_the_time_axis(tmp_path):
     top.figure.canvas.draw()
     assert top.get_xlabel() == "time" and top.get_title().startswith(f"at t = {plain.t_last:g}:")
     assert float(top.get_xticklabels()[1].get_text().replace("−", "-")) == top.get_xticks()[1]
+
+
+def test_dates_far_beyond_2262_are_given_and_beyond_292000_years_are_none():
+    # nanosecond date-times end in 2262: a RUL or horizon of a few centuries raised an
+    # OverflowError in every dated report; the date is held in microseconds now
+    from prognos_torch.fleet.run import _dates
+    from prognos_torch.workflow.data import date_after
+
+    start = "2004-02-12T10:32:39"
+    assert date_after(start, 1e5, "s") == "2277-11-27T10:32:39"  # NumPy's days, below
+    assert np.datetime64(start) + np.timedelta64(100_000, "D") == np.datetime64(
+        "2277-11-27T10:32:39"
+    )
+    assert date_after(start, 1e6, "s") == str(
+        np.datetime64(start, "s") + np.timedelta64(10**6, "D")
+    )
+    assert date_after(start, 1e9, "s") is None and date_after(start, -1e9, "s") is None
+    s = load_series(
+        np.arange(3.0), time=np.datetime64(start) + np.arange(3).astype("timedelta64[D]")
+    )
+    assert s.date(1e6) == date_after(start, 1e6, "s") and s.date(1e9) is None
+    assert _dates(start, [1.0, math.nan, 1e9]) == ["2004-02-13T10:32:39", "", ""]

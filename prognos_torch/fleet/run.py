@@ -68,8 +68,9 @@ DATE_COLUMNS = (
 
 
 def _dates(epoch: str, days) -> list[str]:
-    """Days since ``epoch`` as ISO 8601 date-times to the second; ``""`` for NaN."""
-    return ["" if not math.isfinite(d) else date_after(epoch, d, "s") for d in days]
+    """Days since ``epoch`` as ISO 8601 date-times to the second; ``""`` for NaN (and beyond
+    the years +-292,000)."""
+    return ["" if not math.isfinite(d) else date_after(epoch, d, "s") or "" for d in days]
 
 
 def date_columns(columns: Mapping[str, list], epoch: str) -> dict[str, list[str]]:

@@ -86,7 +86,8 @@ class Series:
     def date(self, t: float, unit: str = "s") -> str | None:
         """The ISO 8601 date-time (UTC) of time ``t`` on this series' axis, rounded to ``unit``
         (``"s"``, ``"ms"``, ``"us"``), where the time column holds date-times (:attr:`start`
-        set); ``None`` for numeric time or a non-finite ``t``."""
+        set); ``None`` for numeric time, a non-finite ``t`` or one beyond the years
+        +-292,000 (:func:`date_after`)."""
         if self.start is None or not math.isfinite(float(t)):
             return None
         return date_after(self.start, float(t), unit)
@@ -644,20 +645,29 @@ def load_series(
 _UNIT_NS = {"s": 10**9, "ms": 10**6, "us": 10**3}
 
 
-def date_after(start: str, days: float, unit: str = "us") -> str:
+#: microseconds that NumPy's ``datetime64[us]`` holds either side of 1970 (about 292,000 years)
+_US_RANGE = 2**63 - 1
+
+
+def date_after(start: str, days: float, unit: str = "us") -> str | None:
     """The ISO 8601 date-time ``days`` (finite) after ``start`` (ISO 8601, UTC), rounded to
-    ``unit`` (``"s"``, ``"ms"`` or ``"us"``): seconds where the fraction is zero."""
+    ``unit`` (``"s"``, ``"ms"`` or ``"us"``): seconds where the fraction is zero. Computed in
+    whole nanoseconds and held in microseconds, so that a RUL far beyond 2262 (the end of
+    nanosecond date-times) still has its date; ``None`` beyond the years +-292,000."""
     if unit not in _UNIT_NS:
         raise ValueError(f"unit must be 's', 'ms' or 'us', got {unit!r}")
     q = _UNIT_NS[unit]
     ns = int(datetime_ns(start).astype(np.int64)) + round(float(days) * 86400e9)
-    return iso_start(np.datetime64((ns + q // 2) // q * q, "ns"))
+    us = (ns + q // 2) // q * q // 1000  # (q is a whole number of microseconds)
+    if abs(us) >= _US_RANGE:
+        return None
+    return iso_start(np.datetime64(us, "us"))
 
 
 def _shown_time(days: float, start: str | None) -> str:
     """A time for a message: the date-time it was read from (to the microsecond) where the
     series has date-times, else the number (:func:`fmt_time`)."""
-    return fmt_time(days) if start is None else date_after(start, days)
+    return (None if start is None else date_after(start, days)) or fmt_time(days)
 
 
 def check_magnitude(values: np.ndarray, name: str, source=None, lines=None) -> None:
