@@ -372,3 +372,26 @@ def test_cli_rul_from_a_model_writes_its_record_as_json(tmp_path, capsys):
     # '-': the record alone on standard output, the same record
     assert main([*argv, "--json", "-"]) == code
     assert json.loads(capsys.readouterr().out) == rec
+
+
+def test_cli_rul_on_monthly_dates_with_a_horizon_of_centuries(tmp_path, capsys):
+    """Monthly readings and --horizon 5000 steps (about 400 years): the report's dates lie
+    beyond 2262, where nanosecond date-times end; it raised an OverflowError."""
+    rng = np.random.default_rng(0)
+    stamps = np.datetime64("2000-01-01") + (np.arange(120) * 30).astype("timedelta64[D]")
+    y = 1 + 0.001 * np.arange(120) + 0.01 * rng.standard_normal(120)
+    data, model = tmp_path / "monthly.csv", tmp_path / "m.pt"
+    data.write_text("t,v\n" + "".join(f"{a},{float(b)!r}\n" for a, b in zip(stamps, y)))
+    assert main(["fit", str(data), "--column", "v", "--time-column", "t", "--learner", "elm",
+                 "--out", str(model)]) == 0  # fmt: skip
+    rec = tmp_path / "r.json"
+    argv = ["rul", str(model), str(data), "--threshold", "1.5", "--horizon", "5000",
+            "--particles", "100", "--json", str(rec)]  # fmt: skip
+    assert main(argv) in (0, 3)
+    out = capsys.readouterr().out
+    assert "failure date, median" in out
+    import json
+
+    bound = json.loads(rec.read_text())["failure_date"]["bound"]
+    want = stamps[-1] + np.timedelta64(5000 * 30, "D")  # dt = 30 days, 5000 steps
+    assert np.datetime64(bound) == want and int(bound[:4]) > 2262
