@@ -1,4 +1,5 @@
-"""Numbers in messages: times and levels printed with the digits that tell them apart.
+"""Numbers in messages and records: times and levels printed with the digits that tell them
+apart, and numbers for JSON.
 
 Errors, flags and the command line print data values through these two functions. ``%g`` keeps
 six significant digits, which merge Unix-second times (1700021180 and 1700017580 both print as
@@ -10,7 +11,7 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["fmt_time", "fmt_level"]
+__all__ = ["fmt_time", "fmt_level", "json_number"]
 
 
 def fmt_time(v: float) -> str:
@@ -26,3 +27,9 @@ def fmt_level(v: float, spread: float, digits: int = 4) -> str:
         return f"{v:.{digits}g}"
     extra = max(0, math.floor(math.log10(abs(v))) - math.floor(math.log10(spread)))
     return f"{v:.{min(digits + extra, 17)}g}"
+
+
+def json_number(v) -> float | None:
+    """``v`` as a float for a JSON record, ``None`` where it is missing or not finite (strict
+    JSON has no NaN or infinity)."""
+    return None if v is None or not math.isfinite(float(v)) else float(v)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 
-from ._text import fmt_time
+from ._text import fmt_time, json_number
 
 __all__ = [
     "run_prognose",
@@ -55,10 +55,6 @@ def at_time(series, t: float, unit: str) -> str:
     return f"{fmt_time(t)} {unit}" + (f" ({date})" if date else "")
 
 
-def _finite(v) -> float | None:
-    return None if v is None or not math.isfinite(float(v)) else float(v)
-
-
 def json_record(res, series, data_cfg: dict, **extra) -> dict:
     """The ``--json`` record of ``prognos rul``: the series' ``source``, ``column`` and
     ``where`` selection, then :meth:`~prognos_torch.workflow.RULResult.to_dict`, then the
@@ -72,8 +68,8 @@ def json_record(res, series, data_cfg: dict, **extra) -> dict:
     record.update(res.to_dict())
     for key, value in extra.items():
         if isinstance(value, dict):
-            value = {k: _finite(v) if isinstance(v, float) else v for k, v in value.items()}
-        record[key] = _finite(value) if isinstance(value, float) else value
+            value = {k: json_number(v) if isinstance(v, float) else v for k, v in value.items()}
+        record[key] = json_number(value) if isinstance(value, float) else value
     return record
 
 

@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .._text import json_number
 from ..core.belief import GaussianBelief
 from ..core.validation import check_count, check_real, check_seed
 from ..filters import make_filter, make_particle_filter
@@ -333,10 +334,7 @@ class RULResult:
         s = self.summary()
         date = self.history.date
         bound = s["bound"]
-
-        def num(v) -> float | None:
-            return None if v is None or not math.isfinite(float(v)) else float(v)
-
+        num = json_number
         out = {
             "status": self.status,
             "t": num(self.t_last),
