@@ -319,7 +319,7 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
         for the model, and a few paths beyond it leave every reported quantile intact).
     """
     from .workflow import prognose
-    from .workflow.prognose import CENSORED_FLAG, filter_pool
+    from .workflow.prognosing import CENSORED_FLAG, filter_pool
 
     filt = "ekf" if args.filter is None else args.filter
     try:

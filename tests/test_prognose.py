@@ -618,7 +618,7 @@ def test_block_means_end_at_the_newest_value():
     """Above max_points values since onset the filter sees block means; the newest block is
     always a full one (a short newest block entered with a full block's noise, so the RUL
     followed the parity of the number of values), the oldest takes the remainder."""
-    from prognos_torch.workflow.prognose import _blocks
+    from prognos_torch.workflow.prognosing import _blocks
 
     g = torch.Generator().manual_seed(0)
     for n in (501, 502, 1003):
@@ -752,9 +752,8 @@ def test_cuda_series_gives_the_cpu_result():
 
 def test_learner_hidden_and_members_set_the_learner_ensemble(monkeypatch):
     # the learner trend is an ensemble of 4 ELMs of 10 hidden nodes unless asked otherwise
-    import sys
+    from prognos_torch.workflow import prognosing as module
 
-    module = sys.modules["prognos_torch.workflow.prognose"]
     seen = []
     real = module.fit_learner_trends
 

@@ -84,7 +84,7 @@ def predict_rul(method: str, t: Tensor, y: Tensor, case: ProtocolCase, tp: float
 
 def _crps(p: dict, true: float) -> float | None:
     """Log-time CRPS of a prediction's RUL samples (censored at 10 x the truth), or ``None``."""
-    from ..workflow.prognose import crps_log_time
+    from ..workflow.prognosing import crps_log_time
 
     res = p.get("result")
     if res is None or res.rul_samples is None or not true > 0:

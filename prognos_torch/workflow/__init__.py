@@ -15,7 +15,7 @@
 Modules, each importing only those before it: :mod:`.data` (:func:`load_series`),
 :mod:`.fitted` (:class:`FittedModel`, a plain record), :mod:`.predict` (:func:`forecast`,
 :func:`rul`), :mod:`.model` (:func:`fit_series`, learners and optimisers by name), :mod:`.store`
-(:func:`save_model`, :func:`load_model` on :mod:`prognos_torch.io`), :mod:`.prognose`
+(:func:`save_model`, :func:`load_model` on :mod:`prognos_torch.io`), :mod:`.prognosing`
 (:func:`prognose`, from a series to a RUL), :mod:`.calibrate` (:func:`calibrate_rul`, its
 intervals calibrated on assets that ran to failure); the figures
 (:func:`plot_forecast`, :func:`plot_rul`) live in :mod:`prognos_torch.plots`. The
@@ -36,7 +36,7 @@ from .model import (
     select_embedding,
 )
 from .predict import FILTER_NAMES, ForecastResult, RULResult, forecast, holdout_metrics, rul
-from .prognose import PROGNOSE_METHODS, prognose
+from .prognosing import PROGNOSE_METHODS, prognose
 from .store import load_model, save_model
 
 __all__ = [

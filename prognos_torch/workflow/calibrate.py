@@ -39,7 +39,7 @@ from ..prognosis.conformal import (
 )
 from ..prognosis.protocol import PROTOCOL_FRACTIONS, known_threshold_protocol
 from .data import Series
-from .prognose import _as_series, _check_seeds, prognose
+from .prognosing import _as_series, _check_seeds, prognose
 
 __all__ = ["calibrate_rul"]
 
