@@ -332,9 +332,15 @@ class RULResult:
         ``None`` for a result without one, as :func:`rul`'s); ``flags``.
         """
         s = self.summary()
-        date = self.history.date
         bound = s["bound"]
         num = json_number
+
+        def date(t) -> str | None:
+            return None if t is None else self.history.date(t)
+
+        def after(rul) -> str | None:  # failure_date(q) from the summary's quantile
+            return None if rul is None else date(self.t_last + rul)
+
         out = {
             "status": self.status,
             "t": num(self.t_last),
@@ -346,12 +352,8 @@ class RULResult:
             "filter": self.filter,
             "rul": {k: num(s[k]) for k in ("mean", "median", "q05", "q95", "censored_mass")}
             | {"bound": num(bound)},
-            "failure_date": {
-                "q05": self.failure_date(0.05),
-                "median": self.failure_date(0.5),
-                "q95": self.failure_date(0.95),
-                "bound": None if num(bound) is None else date(self.t_last + bound),
-            },
+            "failure_date": {k: after(s[k]) for k in ("q05", "median", "q95")}
+            | {"bound": after(num(bound))},
             "onset": None,
             "flags": list(self.flags),
         }
@@ -361,7 +363,7 @@ class RULResult:
             out["onset"] = {
                 "detected": bool(on.detected),
                 "time": num(on.time),
-                "date": None if on.time is None else date(on.time),
+                "date": date(on.time),
                 "alarm_time": num(on.alarm_time),
                 "method": on.method,
                 "limit": num(on.limit),
@@ -371,7 +373,7 @@ class RULResult:
                     "noise": num(b.noise),
                     "n": int(b.n),
                     "t_end": num(b.t_end),
-                },  # fmt: skip
+                },
             }
         return out
 
