@@ -439,10 +439,10 @@ def _cmd_rul(args) -> int:
         seed=args.seed,
     )
     unit, s = res.time_unit, res.summary()
-    within = [] if args.within is None else [(
-        f"P(failure within {args.within:g} {unit})",
-        within_probability(res, args.within, " (raise --horizon to look further)"),
-    )]  # fmt: skip
+    p_within, within = None, []
+    if args.within is not None:
+        p_within = within_probability(res, args.within, " (raise --horizon to look further)")
+        within = [(f"P(failure within {args.within:g} {unit})", p_within)]
     cm = res.censored_mass
     mean = s["mean"]
     if mean is None:
@@ -484,7 +484,7 @@ def _cmd_rul(args) -> int:
     if args.json is not None:
         extra = {"crossing_probability": res.crossing_probability}
         if args.within is not None:
-            extra["p_within"] = {"within": args.within, "p": within[0][1]}
+            extra["p_within"] = {"within": args.within, "p": p_within}
         if truth is not None:
             extra["observed_rul"] = obs if isinstance(obs, float) else None
         write_json(args.json, json_record(res, series, data_cfg, **extra))

@@ -259,24 +259,27 @@ def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[li
     return rows, warn
 
 
-def _calibration(args, res, filt, histories) -> tuple[list, list[str], object]:
-    """The calibration rows and warnings of ``run_prognose``, and the calibration that
-    ``--calibrate`` made (``None`` otherwise). With ``--calibration-out`` the histories are
-    replayed even before onset, so that the file is written."""
+def _calibration(args, res, filt, histories) -> tuple[list, list[str], object, dict | None]:
+    """The calibration rows and warnings of ``run_prognose``, the calibration that
+    ``--calibrate`` made (``None`` otherwise), and the calibrated interval the rows show
+    (``RULCalibration.summary``'s ``"calibrated"``; ``None`` without one). With
+    ``--calibration-out`` the histories are replayed even before onset, so that the file is
+    written."""
     unit = res.time_unit
     if histories is None:
-        return [], [], None
+        return [], [], None, None
     na = [(f"calibrated 90 % interval ({unit})", f"n/a ({res.status})")]
     if not isinstance(histories, dict):  # --calibration FILE
         if res.status != "ok":
-            return na, [], None
+            return na, [], None, None
         run = {"method": args.method, "filter": filt, "n_paths": args.paths,
                "direction": res.direction, "threshold": res.threshold,
                "glitch_limit": args.glitch_limit}  # fmt: skip
         _check_settings(histories, args.calibration, run)
-        return (*calibration_rows(res, histories, None, unit), None)
+        rows, warn = calibration_rows(res, histories, None, unit)
+        return rows, warn, None, histories.summary(res)["calibrated"]
     if res.status != "ok" and args.calibration_out is None:
-        return na, [], None
+        return na, [], None, None
     from .workflow import calibrate_rul
 
     protocol = args.calibrate_threshold == "protocol"
@@ -297,8 +300,9 @@ def _calibration(args, res, filt, histories) -> tuple[list, list[str], object]:
     except ValueError as exc:
         raise ValueError(f"--calibrate: {exc}") from None
     if res.status != "ok":
-        return na, [], cal
-    return (*calibration_rows(res, cal, points, unit), cal)
+        return na, [], cal, None
+    rows, warn = calibration_rows(res, cal, points, unit)
+    return rows, warn, cal, cal.summary(res)["calibrated"]
 
 
 def _prognose_options(args, filt) -> dict:
@@ -331,7 +335,7 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
     )
     unit, s = res.time_unit, res.summary()
     p_within = None if args.within is None else within_probability(res, args.within)
-    cal_rows, cal_warn, made = _calibration(args, res, filt, histories)
+    cal_rows, cal_warn, made, calibrated = _calibration(args, res, filt, histories)
     where = data_cfg.get("where") or {}
     sel = f" ({', '.join(f'{k}={v}' for k, v in where.items())})" if where else ""
     say = reporter(args)
@@ -403,9 +407,8 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
             extra["p_within"] = {"within": args.within, "p": p_within}
         if truth is not None:
             extra["observed_rul"] = obs
-        used = made if made is not None else histories
-        if used is not None and not isinstance(used, dict) and res.status == "ok":
-            extra["calibrated"] = dict(used.summary(res)["calibrated"], warnings=cal_warn)
+        if calibrated is not None:
+            extra["calibrated"] = dict(calibrated, warnings=cal_warn)
         write_json(args.json, json_record(res, series, data_cfg, **extra))
         if args.json != "-":
             say(f"record written to {args.json}")
