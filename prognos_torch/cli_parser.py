@@ -105,11 +105,24 @@ def _add_data_options(p) -> None:
     )
 
 
+def _data_command(sub, name: str, *, help: str, description: str, epilog: str):
+    """A command that reads a series (fit, forecast, rul): its ``description`` wrapped, its
+    ``epilog`` (examples) followed by the data options' help, laid out as written."""
+    return sub.add_parser(
+        name,
+        help=help,
+        description=_wrap(description),
+        epilog=epilog + _DATA_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+
+
 def add_fit(sub, cmd) -> None:
-    p = sub.add_parser(
+    p = _data_command(
+        sub,
         "fit",
         help="fit a one-step forecaster to a CSV column and save it (safe model file)",
-        description=_wrap(
+        description=(
             "Fit a learner (ELM, LS-SVR, ANFIS) to one column of a CSV file: min-max scaling, "
             "embedding dimension chosen by validation error unless --embedding is given, "
             "training by the chosen optimiser, scores on the held-out tail, and a model file "
@@ -124,8 +137,7 @@ def add_fit(sub, cmd) -> None:
         "--out m.pt\n\n"
         "learners and their default optimisers: elm (closed-form ridge), lssvr (closed-form "
         "KKT solve),\n  anfis (ekf, one pass, paper 003 settings). optimisers: closed-form, ekf, "
-        "srukf, imsrukf, adam, lbfgs.\n\n" + _DATA_HELP,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        "srukf, imsrukf, adam, lbfgs.\n\n",
     )
     p.add_argument("data", type=Path, help="CSV file")
     _add_data_options(p)
@@ -207,10 +219,11 @@ def _seeds(text: str) -> int | tuple[int, ...]:
 
 
 def add_forecast(sub, cmd) -> None:
-    p = sub.add_parser(
+    p = _data_command(
+        sub,
         "forecast",
         help="forecast the next steps of a series with an uncertainty band",
-        description=_wrap(
+        description=(
             "Forecast HORIZON steps after the end of the series with a saved model: the "
             "learner as an m-order state-space model (paper 002), a filter over the last "
             "observations, then predict-only steps with a central band."
@@ -219,9 +232,7 @@ def add_forecast(sub, cmd) -> None:
         "  prognos forecast model.pt data.csv --horizon 50 --plot forecast.png\n"
         "  prognos forecast model.pt data.csv --horizon 50 --filter stpf --csv forecast.csv\n"
         "  prognos forecast model.pt data.csv --until 120 --horizon 50 --plot backtest.png\n"
-        "      (forecast from t = 120 and compare with the values observed after it)\n\n"
-        + _DATA_HELP,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        "      (forecast from t = 120 and compare with the values observed after it)\n\n",
     )
     p.add_argument("model", type=Path, help="model file from prognos fit")
     p.add_argument("data", type=Path, help="CSV file")
@@ -234,10 +245,11 @@ def add_forecast(sub, cmd) -> None:
 
 
 def add_rul(sub, cmd) -> None:
-    p = sub.add_parser(
+    p = _data_command(
+        sub,
         "rul",
         help="remaining useful life distribution for a failure threshold",
-        description=_wrap(
+        description=(
             "RUL distribution at the end of the series: a filter over the last observations, "
             "sample paths of the learner's state-space model, and the first passage of each "
             "path through the threshold (paper 002, Eq. 28). Paths that do not reach the "
@@ -262,9 +274,7 @@ def add_rul(sub, cmd) -> None:
         "  prognos rul model.pt data.csv --threshold 0.8 --plot rul.png\n"
         "  prognos rul model.pt data.csv --threshold 0.8 --filter pf --horizon 400\n"
         "  prognos rul fleet.parquet --group-by asset --threshold 20 --out rul.parquet\n"
-        "      (a fleet: one RUL per asset; see prognos rul --group-by ASSET --help)\n\n"
-        + _DATA_HELP,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        "      (a fleet: one RUL per asset; see prognos rul --group-by ASSET --help)\n\n",
     )
     p.add_argument("model", type=Path, help="model file from prognos fit, or the CSV file")
     p.add_argument("data", type=Path, nargs="?", help="CSV file (with a model file)")
