@@ -315,10 +315,13 @@ def _cmd_forecast(args) -> int:
         seed=args.seed,
     )
     H = fc.horizon
-    actual = None
+    actual = actual_t = None
     if truth is not None:
-        after = truth.values[truth.t > series.t[-1]][:H]
+        after, after_t = fc.observed(truth)
         actual = after if after.numel() else None
+        # after a recording gap the rows lie later than their steps: show their own times
+        if actual is not None and fc.row_offset(truth) > 0.5 * series.dt:
+            actual_t = after_t
     show = sorted({int(round(i * (H - 1) / 9)) for i in range(10)}) if H > 10 else range(H)
     header = ("step", f"time ({series.time_unit})", "mean", "lower", "upper")
     rows = []
@@ -327,9 +330,13 @@ def _cmd_forecast(args) -> int:
         row += (float(fc.upper[i]),)
         if actual is not None:
             row += (float(actual[i]) if i < actual.numel() else None,)
+        if actual_t is not None:
+            row += (float(actual_t[i]) if i < actual_t.numel() else None,)
         rows.append(row)
     if actual is not None:
         header += ("actual",)
+    if actual_t is not None:
+        header += ("at time",)
     unit = series.time_unit
     pct = f"{100 * fc.level:g} %"
     print(
@@ -347,6 +354,14 @@ def _cmd_forecast(args) -> int:
             f"against the {n} observed values after t = {fmt_time(float(series.t[-1]))}: RMSE "
             f"{_fmt(float(err))}, band coverage {_fmt(float(inside))}, persistence RMSE "
             f"{_fmt(float(pers))}"
+        )
+    if actual_t is not None:
+        off = fc.row_offset(truth)
+        print(
+            f"the observed rows after t = {fmt_time(float(series.t[-1]))} are not one step "
+            f"({_fmt(series.dt)} {unit}) apart: each is compared with the step of its row, "
+            f"as the learner forecasts row by row (largest offset {_fmt(off)} {unit}, "
+            f"{off / series.dt:.3g} steps)"
         )
     if args.csv is not None:
         dated = series.start is not None  # a date-time column: each step's date-time too

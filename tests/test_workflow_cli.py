@@ -395,3 +395,40 @@ def test_cli_rul_on_monthly_dates_with_a_horizon_of_centuries(tmp_path, capsys):
     bound = json.loads(rec.read_text())["failure_date"]["bound"]
     want = stamps[-1] + np.timedelta64(5000 * 30, "D")  # dt = 30 days, 5000 steps
     assert np.datetime64(bound) == want and int(bound[:4]) > 2262
+
+
+def test_cli_forecast_after_a_recording_gap_shows_the_rows_it_compares(tmp_path, capsys):
+    """The learner forecasts row by row: after a recording gap, row k after the origin is
+    compared with step k although it lies later than ``t_last + k dt``. The table then shows
+    each row's own time and says so; on a regular series it does not."""
+    x = _make_csv(tmp_path / "regular.csv", T=120)
+    gap = tmp_path / "gap.csv"  # the same values, the rows from 100 on 7.5 hours later
+    t = np.arange(120) * 0.5 + np.where(np.arange(120) >= 100, 7.5, 0.0)
+    gap.write_text("hours,vibration\n" + "".join(f"{float(a)!r},{float(b)!r}\n" for a, b in zip(t, x)))
+    model = tmp_path / "m.pt"
+    assert main(["fit", str(gap), "--column", "vibration", "--time-column", "hours", "--until",
+                 "45", "--learner", "elm", "--out", str(model)]) == 0  # fmt: skip
+    capsys.readouterr()
+    png = tmp_path / "fc.png"
+    argv = ["forecast", str(model), str(gap), "--until", "45", "--horizon", "12"]
+    assert main(argv + ["--plot", str(png)]) == 0
+    out = capsys.readouterr().out
+    fc = forecast(load_model(model), load_series(gap, "vibration", time_column="hours",
+                                                 until=45), 12)  # fmt: skip
+    truth = load_series(gap, "vibration", time_column="hours")
+    vals, times = fc.observed(truth)
+    assert torch.equal(vals, torch.tensor(x[91:103]))  # rows 91..102, whatever their times
+    assert torch.equal(times, truth.t[91:103])
+    assert fc.row_offset(truth) == pytest.approx(7.5)  # rows 100.. sit 15 steps late
+    header = next(ln for ln in out.splitlines() if ln.startswith("step"))
+    assert header.rstrip().endswith("actual  at time")
+    rows = [ln.split() for ln in out.splitlines() if ln[:1].isdigit()]
+    assert rows and all(float(r[-1]) == float(times[int(r[0]) - 1]) for r in rows)
+    assert "are not one step (0.5 hours) apart" in out and "15 steps)" in out
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    # the regular series: the rows keep their steps, no extra column, no sentence
+    regular = ["forecast", str(model), str(tmp_path / "regular.csv"), "--until", "45",
+               "--horizon", "12"]  # fmt: skip
+    assert main(regular) == 0
+    out = capsys.readouterr().out
+    assert "at time" not in out and "not one step" not in out and "actual" in out

@@ -48,7 +48,9 @@ def plot_forecast(
         result: :func:`~prognos_torch.workflow.forecast` output.
         truth: optional series with the actual values after the forecast origin (e.g. the full
             series when the forecast was made from its training part); drawn up to a quarter
-            of the horizon past the forecast's end.
+            of the horizon past the forecast's end. Where its rows after the origin are not
+            one step apart (a recording gap), they are also drawn at the steps they are
+            compared with (:meth:`~prognos_torch.workflow.ForecastResult.observed`).
         history: number of past values shown (default ``max(4 H, 200)``).
     """
     check_result(result, "ForecastResult", "lower", "plot_forecast")
@@ -62,6 +64,11 @@ def plot_forecast(
         tt, xt = as_numpy(truth.t), as_numpy(truth.values)
         sel = (tt > th[-1]) & (tt <= tf[-1] + 0.25 * (tf[-1] - th[-1]))
         ax.plot(tt[sel], xt[sel], color="k", lw=1.0, ls=":", label="observed after origin")
+        # the score pairs row k with step k; after a recording gap, show that pairing
+        vals = result.observed(truth)[0]
+        if vals.numel() and result.row_offset(truth) > 0.5 * result.history.dt:
+            ax.plot(tf[: vals.numel()], as_numpy(vals), ls="none", marker=".", ms=3, color="k",
+                    label="the same rows at their steps (after a gap)")  # fmt: skip
     pct = f"{100 * result.level:g} %"
     ax.fill_between(
         tf,

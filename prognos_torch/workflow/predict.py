@@ -117,6 +117,28 @@ class ForecastResult:
     def horizon(self) -> int:
         return int(self.mean.shape[0])
 
+    def observed(self, truth: Series) -> tuple[Tensor, Tensor]:
+        """The values of ``truth`` that the steps are compared with: its first ``n <= H`` rows
+        after the forecast origin, row ``k`` with step ``k``, as the learner forecasts row by
+        row (its windows are rows, whatever their spacing).
+
+        Args:
+            truth: a series that goes on after the origin (the full series of a backtest).
+        Returns:
+            ``(values, times)``, each ``(n,)``. After a recording gap ``times`` lies later
+            than the steps' :attr:`time` ``[:n]``; :meth:`row_offset` measures by how much.
+        """
+        after = truth.t > self.history.t[-1]
+        return truth.values[after][: self.horizon], truth.t[after][: self.horizon]
+
+    def row_offset(self, truth: Series) -> float:
+        """Largest ``|t_row_k - time_k|`` over the rows :meth:`observed` pairs with the steps
+        (0 when the rows keep the series' median step :attr:`Series.dt`; NaN without any)."""
+        times = self.observed(truth)[1]
+        if not times.numel():
+            return math.nan
+        return float((times - self.time[: times.numel()]).abs().max())
+
 
 @dataclass(frozen=True)
 class RULResult:
