@@ -901,3 +901,21 @@ def test_asset_ids_of_an_object_column_are_read_per_cell_and_by_type():
     got = _asset_text(col)
     assert got.tolist() == ["True", "1", "1", "1", "2.5", "", "", "b", "True", "1"]
     assert got.dtype == object
+
+
+def test_an_option_the_method_does_not_take_is_refused_before_the_table_is_read(tmp_path):
+    """A misspelt option was refused by the method itself, after the whole table had been
+    read, naming an internal function; now fleet_rul names it first (the file below does
+    not exist, so reading it would fail otherwise)."""
+    missing = tmp_path / "no_such_fleet.csv"
+    with pytest.raises(TypeError, match=r"fleet_rul got 'sample', not an option of method "
+                       r"'exponential'; its options: .*\bsamples\b"):  # fmt: skip
+        fleet_rul(missing, 20.0, sample=10)
+    with pytest.raises(TypeError, match=r"got 'n_path', not an option of method 'prognose'; "
+                       r"its options: .*\bn_paths\b"):  # fmt: skip
+        fleet_rul(missing, 20.0, method="prognose", n_path=10)
+    # what fleet_rul sets itself is not an option of prognose's
+    with pytest.raises(TypeError, match="got 'at', not an option"):
+        fleet_rul(missing, 20.0, method="prognose", at=3.0)
+    with pytest.raises(FileNotFoundError):
+        fleet_rul(missing, 20.0, method="prognose", n_paths=10, learner_members=2)

@@ -19,6 +19,8 @@ import pytest
 import torch
 
 from prognos_torch.workflow import (
+    ExtrapolationWarning,
+    Series,
     fit_series,
     forecast,
     load_model,
@@ -276,6 +278,68 @@ def test_fit_bad_input():
         fit_series(load_series(np.ones(30)), "elm", None, 2)
     with pytest.raises(ValueError, match=r"unknown elm learner option\(s\) \['n_hiden'\]"):
         fit_series(load_series(np.arange(30.0)), "elm", None, 2, learner_options={"n_hiden": 3})
+
+
+def test_series_converts_numbers_and_refuses_other_shapes_and_fit_refuses_missing_values():
+    x = np.linspace(0.0, 1.0, 30)
+    for v in (x, list(x), torch.tensor(x, dtype=torch.float32)):
+        s = Series(v)
+        assert s.values.dtype == torch.float64 and s.values.shape == (30,)
+    torch.testing.assert_close(Series(torch.tensor(x, dtype=torch.float32)).values,
+                               torch.tensor(x, dtype=torch.float32).double())  # fmt: skip
+    with pytest.raises(ValueError, match=r"Series values must have shape \(T,\), got \(30, 1\)"):
+        Series(torch.tensor(x)[:, None])
+    with pytest.raises(TypeError, match="Series values must be numbers, got booleans"):
+        Series(torch.ones(3, dtype=torch.bool))
+    with pytest.raises(ValueError, match=r"Series time must have the values' shape \(30,\)"):
+        Series(x, torch.arange(29.0))
+    xn = x.copy()
+    xn[[12, 20]] = np.nan
+    with pytest.raises(ValueError, match="has 2 missing or non-finite value.s., the first at row 12"):
+        fit_series(Series(xn), "elm", None, 2)
+
+
+def test_forecast_and_rul_read_nan_as_missing():
+    """NaN is a missing value: the filter predicts over it, a missing value in the window the
+    filter would start from moves the start to the last complete window before it, and a
+    missing last value neither sets the RUL's direction nor hides the extrapolation flag."""
+    g = torch.Generator().manual_seed(0)
+    t = torch.arange(150, dtype=torch.float64)
+    x = 0.5 + 0.01 * t + 0.02 * torch.randn(150, generator=g, dtype=torch.float64)
+    model = fit_series(Series(x), "elm", None, 3)  # the last 20 % lie above the training range
+    xn = x.clone()
+    xn[47] = math.nan  # in the window rows 47-49 that 100 filtered steps start from
+    got = forecast(model, Series(xn), 5)
+    ref = forecast(model, Series(xn), 5, filter_steps=103)  # rows 44-46 start it
+    for k in ("mean", "lower", "upper"):
+        assert torch.equal(getattr(got, k), getattr(ref, k))
+    gone = xn.clone()
+    gone[:149] = math.nan
+    with pytest.raises(ValueError, match="has no 3 consecutive observed values"):
+        forecast(model, Series(gone), 5)
+    xl = x.clone()
+    xl[-1] = math.nan
+    with pytest.warns(ExtrapolationWarning):
+        fc = forecast(model, Series(xl), 5)
+    assert bool(torch.isfinite(fc.lower).all() and torch.isfinite(fc.upper).all())
+    assert bool(torch.isfinite(fc.extrapolation).all())
+    with pytest.warns(ExtrapolationWarning):
+        clean = rul(model, Series(x), 2.5, filter="sckf", n_particles=200)
+    with pytest.warns(ExtrapolationWarning):
+        r = rul(model, Series(xl), 2.5, filter="sckf", n_particles=200)
+    # the missing last value read as a number made the direction "below": every path at
+    # step 1, a certain RUL of one step, and no flag
+    assert r.direction == clean.direction == "above"
+    assert r.flags and r.flags[0].startswith("the series the RUL starts from lies outside")
+    assert r.censored_mass == clean.censored_mass == 1.0
+    with pytest.raises(ValueError, match="already reaches the threshold"):
+        rul(model, Series(xl), float(x[-2]) - 0.01, direction="above")
+    # the threshold is any real scalar, as for prognose
+    for thr in (np.float32(2.5), torch.tensor(2.5)):
+        with pytest.warns(ExtrapolationWarning):
+            assert rul(model, Series(x), thr, filter="sckf", n_particles=200).threshold == 2.5
+    with pytest.raises(ValueError, match="threshold must be a finite number"):
+        rul(model, Series(x), math.inf)
 
 
 # --------------------------------------------------------------------------- scaling, forecast, RUL

@@ -26,6 +26,7 @@ aside by the table checks (``on_error="flag"``) get a row with NaN results, the 
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
@@ -251,6 +252,28 @@ def _run_ray(shards, method, threshold, options, progress, ray_init):
             ray.shutdown()
 
 
+def method_options(method: str) -> set[str] | None:
+    """The names ``fleet_rul(..., **options)`` accepts for ``method``: the keyword options of
+    :data:`METHODS` ``[method]`` (for ``"prognose"`` also those of
+    :func:`~prognos_torch.workflow.prognose`, which its ``**options`` go to), less those
+    ``fleet_rul`` sets itself; ``None`` (any) for a method of its own with ``**options``."""
+    own = {"direction", "horizon", "time", "time_format", "seed", "at"}
+    fns = [METHODS[method]]
+    if METHODS[method] is prognose_rul:
+        from ..workflow import prognose
+
+        fns.append(prognose)
+    elif any(p.kind is inspect.Parameter.VAR_KEYWORD
+             for p in inspect.signature(fns[0]).parameters.values()):  # fmt: skip
+        return None
+    return {
+        p.name
+        for fn in fns
+        for p in inspect.signature(fn).parameters.values()
+        if p.kind is inspect.Parameter.KEYWORD_ONLY and p.name not in own
+    }
+
+
 def fleet_rul(
     source,
     threshold: float,
@@ -303,6 +326,13 @@ def fleet_rul(
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose one of {sorted(METHODS)}")
+    allowed = method_options(method)
+    unknown = [] if allowed is None else sorted(set(options) - allowed)
+    if unknown:  # before the table is read and any worker starts
+        raise TypeError(
+            f"fleet_rul got {', '.join(map(repr, unknown))}, not an option of method "
+            f"{method!r}; its options: {', '.join(sorted(allowed))}"
+        )
     if backend not in ("local", "ray"):
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
     if isinstance(shard_size, bool) or not isinstance(shard_size, int) or shard_size < 1:

@@ -48,7 +48,9 @@ class Series:
     """A univariate series, float64.
 
     Attributes:
-        values: ``(T,)`` float64, finite.
+        values: ``(T,)`` float64; NaN is a missing value (:func:`load_series` refuses, fills or
+            drops them; :func:`~prognos_torch.workflow.prognose`, :func:`forecast` and
+            :func:`rul` read them as missing, :func:`fit_series` refuses them).
         time: ``(T,)`` float64 strictly increasing, or ``None`` (row index).
         name: the value column (or ``"series"`` for an array).
         time_name: the time column, or ``None``.
@@ -65,6 +67,29 @@ class Series:
     time_unit: str = "steps"
     start: str | None = None
     source: str | None = None
+
+    def __post_init__(self) -> None:
+        # a tensor keeps its device; a NumPy array or a sequence becomes a CPU tensor. Only the
+        # dtype is converted (to float64): a wrong shape or booleans are refused, never reshaped
+        for attr in ("values", "time"):
+            v = getattr(self, attr)
+            if v is None and attr == "time":
+                continue
+            name = f"Series {attr}"
+            if isinstance(v, Tensor):
+                _real_numbers("b" if v.dtype == torch.bool else "c" if v.dtype.is_complex
+                              else "f", name)  # fmt: skip
+                v = v.to(torch.float64)
+            else:
+                v = torch.from_numpy(array_values(v, name))
+            if v.dim() != 1:
+                raise ValueError(f"{name} must have shape (T,), got {tuple(v.shape)}")
+            object.__setattr__(self, attr, v)
+        if self.time is not None and self.time.shape != self.values.shape:
+            raise ValueError(
+                f"Series time must have the values' shape {tuple(self.values.shape)} (T,), got "
+                f"{tuple(self.time.shape)}"
+            )
 
     def __len__(self) -> int:
         return int(self.values.shape[0])

@@ -49,7 +49,10 @@ class ExtrapolationWarning(UserWarning):
 
 
 def _outside(values: Tensor, lo: float, hi: float) -> Tensor:
-    return (lo - values).clamp_min(0.0) + (values - hi).clamp_min(0.0)
+    """Distance of each value from ``[lo, hi]``; 0 for a missing one (NaN), which the filter
+    has estimated from its neighbours rather than taken as an input."""
+    d = (lo - values).clamp_min(0.0) + (values - hi).clamp_min(0.0)
+    return torch.where(torch.isnan(values), 0.0, d)
 
 
 def extrapolation_distance(history: Tensor, mean: Tensor, m: int, lo: float, hi: float) -> Tensor:

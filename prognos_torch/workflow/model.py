@@ -371,6 +371,13 @@ def fit_series(
     """
     if not isinstance(series, Series):
         raise TypeError(f"series must be a Series (load_series(...)), got {type(series).__name__}")
+    bad = (~torch.isfinite(series.values)).nonzero()[:, 0]
+    if bad.numel():  # NaN (missing) or inf: a training window needs every value
+        raise ValueError(
+            f"series {series.name!r} has {bad.numel()} missing or non-finite value(s), the "
+            f"first at row {int(bad[0])}: the learner's training windows need every value; fill "
+            "or drop them (load_series(..., fill='linear' or 'drop'), --fill on the command line)"
+        )
     learner, optimizer = check_names(learner, optimizer)
     lopts = _merge(LEARNER_DEFAULTS[learner], learner_options, f"{learner} learner")
     oopts = _merge(OPTIMIZER_DEFAULTS[optimizer], optimizer_options, f"{optimizer} optimizer")

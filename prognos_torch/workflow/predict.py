@@ -448,16 +448,39 @@ def _scaled(model: FittedModel, series: Series) -> Tensor:
             f"series {series.name!r} has {len(series)} values; the model's embedding m={m} "
             f"needs at least m + 1 = {m + 1}"
         )
+    if bool(torch.isinf(series.values).any()):
+        raise ValueError(f"series {series.name!r} values must be finite numbers or NaN (missing)")
+    t = series.t
+    if not bool(torch.isfinite(t).all()) or not bool((t[1:] > t[:-1]).all()):
+        raise ValueError(f"series {series.name!r} time must be finite and strictly increasing")
     dev = next(iter(model.learner.parameters())).device
     return model.scaler.transform(series.values.to(dev))
 
 
-def _filtered(model: FittedModel, z: Tensor, name: str, filter_steps: int, n_particles, seed):
-    """Run the filter over the last ``filter_steps`` values; return ``(kind, result, ssm)``."""
+def _start(z: Tensor, m: int, filter_steps: int, what: str) -> int:
+    """First row of the window the filter starts from: the window of ``m`` values that leaves
+    ``filter_steps`` values to filter, or, where a value in it is missing (NaN), the last
+    complete window before it (the missing values after it are the filter's gaps)."""
+    s0 = z.shape[0] - min(filter_steps, z.shape[0] - m) - m
+    complete = (~torch.isnan(z[: s0 + m]).unfold(0, m, 1).any(-1)).nonzero()[:, 0]
+    if not complete.numel():
+        raise ValueError(
+            f"series {what!r} has no {m} consecutive observed values (NaN is missing) up to row "
+            f"{s0 + m - 1}: the filter starts from one complete window of the model's "
+            f"embedding m = {m}; fill the missing values or filter more steps (filter_steps)"
+        )
+    return int(complete[-1])
+
+
+def _filtered(
+    model: FittedModel, z: Tensor, name: str, filter_steps: int, n_particles, seed, what: str
+):
+    """Run the filter over the last ``filter_steps`` values (more where the window it starts
+    from has a missing value, :func:`_start`); return ``(kind, result, ssm)``."""
     m = model.m
     ssm, r = _transition(model, name)
-    steps = min(filter_steps, z.shape[0] - m)
-    s0 = z.shape[0] - steps - m
+    s0 = _start(z, m, filter_steps, what)
+    steps = z.shape[0] - m - s0
     eye = torch.eye(m, dtype=z.dtype, device=z.device)
     belief = GaussianBelief(z[s0 : s0 + m].clone(), r * eye)
     ys = z[s0 + m :, None]
@@ -499,12 +522,14 @@ def forecast(
 
     Args:
         model: a :class:`FittedModel`.
-        series: the observed series (at least ``m + 1`` values); its end is the forecast origin.
+        series: the observed series (at least ``m + 1`` values; NaN: missing, which the
+            filter predicts over); its end is the forecast origin.
         horizon: number of steps ``H >= 1``.
         level: band probability in (0, 1).
         filter: a Gaussian filter name (``sckf``, ``stsckf``, ``ukf``, ``ekf``, ...) or a particle
             filter (``pf``, ``ekpf``, ``stpf``, ``upf``); see the module notes.
-        filter_steps: observations filtered before predicting (at most ``T - m``).
+        filter_steps: observations filtered before predicting (at most ``T - m``; more where
+            a value of the window the filter would start from is missing).
         n_particles: particles (particle filters).
         seed: particle draws (default: the model's seed).
 
@@ -522,7 +547,7 @@ def forecast(
     if name not in GAUSSIAN_FILTERS:
         check_paths_memory(n_particles, horizon, model.m)
     z = _scaled(model, series)
-    kind, res, ssm = _filtered(model, z, name, filter_steps, n_particles, seed)
+    kind, res, ssm = _filtered(model, z, name, filter_steps, n_particles, seed, series.name)
     inv = model.scaler.inverse_transform
     span = float(model.scaler.data_max - model.scaler.data_min)
     if kind == "gaussian":
@@ -579,7 +604,9 @@ def rul(
 
     Args:
         model: a :class:`FittedModel`.
-        series: the observed series (at least ``m + 1`` values).
+        series: the observed series (at least ``m + 1`` values; NaN: missing, as for
+            :func:`forecast`; the direction and the check that the threshold is not yet
+            reached read the last observed value).
         threshold: failure threshold in data units.
         horizon: predicted steps; paths not crossing by then are censored.
         direction: ``"above"`` (failure when the value reaches ``threshold`` from below),
@@ -601,14 +628,12 @@ def rul(
     filter_steps = check_count(filter_steps, "filter_steps", 0, error=ValueError)
     n_particles = check_count(n_particles, "n_particles", error=ValueError)
     name = _check_filter(filter)
-    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)):
-        raise ValueError(f"threshold must be a number, got {threshold!r}")
-    threshold = float(threshold)
-    if not math.isfinite(threshold):
-        raise ValueError(f"threshold must be finite, got {threshold}")
+    threshold = check_real(threshold, "threshold")
     if direction not in ("auto", "above", "below"):
         raise ValueError(f"direction must be 'auto', 'above' or 'below', got {direction!r}")
-    last = float(series.values[-1]) if isinstance(series, Series) and len(series) else math.nan
+    z = _scaled(model, series)
+    seen = series.values[~torch.isnan(series.values)]  # NaN: missing
+    last = float(seen[-1]) if seen.numel() else math.nan
     if direction == "auto":
         if threshold == last:
             raise ValueError(
@@ -624,7 +649,6 @@ def rul(
         )
     seed = int(model.config.get("seed", 0)) if seed is None else check_seed(seed)
     check_paths_memory(n_particles, horizon, model.m)
-    z = _scaled(model, series)
     lo, hi = float(model.scaler.data_min), float(model.scaler.data_max)
     flag = _extra.warn(
         "the series the RUL starts from",
@@ -632,7 +656,7 @@ def rul(
         lo,
         hi,
     )
-    kind, res, ssm = _filtered(model, z, name, filter_steps, n_particles, seed)
+    kind, res, ssm = _filtered(model, z, name, filter_steps, n_particles, seed, series.name)
     if kind == "gaussian":
         _, state = res
         belief = state.belief if hasattr(state, "belief") else state
