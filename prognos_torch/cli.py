@@ -20,7 +20,14 @@ import warnings
 from pathlib import Path
 
 from ._text import fmt_time
-from .cli_parser import MODEL_RUL_DEFAULTS, add_fit, add_forecast, add_rul, add_study
+from .cli_parser import (
+    MODEL_RUL_DEFAULTS,
+    PROGNOSE_RUL_DEFAULTS,
+    add_fit,
+    add_forecast,
+    add_rul,
+    add_study,
+)
 from .cli_prognose import (
     at_time,
     failure_dates,
@@ -344,6 +351,8 @@ def _cmd_forecast(args) -> int:
         f"{fmt_time(float(series.t[-1]))} {unit}, {fc.filter.upper()}, {pct} band"
     )
     print(_table(rows, header))
+    if len(rows) < H:
+        print(f"({len(rows)} of the {H} steps shown; --csv FILE writes every step)")
     if actual is not None:
         n = actual.numel()
         err = (fc.mean[:n] - actual).square().mean().sqrt()
@@ -365,10 +374,25 @@ def _cmd_forecast(args) -> int:
         )
     if args.csv is not None:
         dated = series.start is not None  # a date-time column: each step's date-time too
-        lines = ["step,time,mean,lower,upper" + (",date" if dated else "")] + [
+        # with --until, the observed row each step is compared with and its own time
+        n_obs = 0 if actual is None else actual.numel()
+
+        def observed(i: int) -> str:
+            if actual is None:
+                return ""
+            if i >= n_obs:
+                return ",,"
+            return f",{float(actual[i])!r},{float(after_t[i])!r}"
+
+        lines = [
+            "step,time,mean,lower,upper"
+            + (",date" if dated else "")
+            + (",actual,actual_time" if actual is not None else "")
+        ] + [
             f"{i + 1},{float(fc.time[i])!r},{float(fc.mean[i])!r},{float(fc.lower[i])!r},"
             f"{float(fc.upper[i])!r}"
             + (f",{series.date(float(fc.time[i])) or ''}" if dated else "")
+            + observed(i)
             for i in range(H)
         ]
         atomic_write(args.csv, ("\n".join(lines) + "\n").encode())
@@ -407,10 +431,14 @@ def _cmd_rul(args) -> int:
         ]
         if given:
             raise ValueError(
-                f"{', '.join(given)} apply with a model file (prognos rul MODEL DATA.csv); "
+                f"{', '.join(given)} {'apply' if len(given) > 1 else 'applies'} with a model "
+                "file (prognos rul MODEL DATA.csv); "
                 "without one, prognose sets its horizon from the observed life and filters "
                 "every value since onset (--paths, --method, --filter, --seed, --direction apply)"
             )
+        for k, v in PROGNOSE_RUL_DEFAULTS.items():
+            if getattr(args, k) is None:
+                setattr(args, k, v)
         args.data = args.model
         _check_out_folder(args.plot, "--plot")
         _check_out_folder(args.calibration_out, "--calibration-out")
@@ -432,6 +460,14 @@ def _cmd_rul(args) -> int:
         raise ValueError(
             "--calibrate and --calibration apply without a model file (prognos rul DATA.csv --column C ...): it "
             "calibrates prognose's interval"
+        )
+    given = [f"--{k}" for k in PROGNOSE_RUL_DEFAULTS if getattr(args, k) is not None]
+    if given:
+        raise ValueError(
+            f"{', '.join(given)} {'apply' if len(given) > 1 else 'applies'} without a model "
+            "file (prognos rul DATA.csv --column C "
+            "...): they choose prognose's trend models and paths; with a model file the "
+            "learner is the model and --particles the paths"
         )
     if isinstance(args.seed, tuple):
         raise ValueError(

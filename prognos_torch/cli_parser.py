@@ -2,7 +2,8 @@
 
 Each ``add_*`` adds one command to the subparsers ``sub`` with ``cmd``, the function that runs
 it (:mod:`prognos_torch.cli`); :data:`MODEL_RUL_DEFAULTS` are the options of ``prognos rul
-MODEL DATA`` that ``prognos rul DATA.csv`` (``prognose``) refuses.
+MODEL DATA`` that ``prognos rul DATA.csv`` (``prognose``) refuses, :data:`PROGNOSE_RUL_DEFAULTS`
+the other way round.
 """
 
 from __future__ import annotations
@@ -10,7 +11,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-__all__ = ["add_study", "add_fit", "add_forecast", "add_rul", "MODEL_RUL_DEFAULTS"]
+__all__ = [
+    "add_study",
+    "add_fit",
+    "add_forecast",
+    "add_rul",
+    "MODEL_RUL_DEFAULTS",
+    "PROGNOSE_RUL_DEFAULTS",
+]
 
 
 def add_study(sub, cmd) -> None:
@@ -238,7 +246,12 @@ def add_forecast(sub, cmd) -> None:
     p.add_argument("data", type=Path, help="CSV file")
     p.add_argument("--horizon", type=int, required=True, help="steps to forecast")
     p.add_argument("--level", type=float, default=0.95, help="band probability (default 0.95)")
-    p.add_argument("--csv", type=Path, help="write every forecast step to this CSV")
+    p.add_argument(
+        "--csv",
+        type=Path,
+        help="write every forecast step to this CSV (step, time, mean, lower, upper; date on "
+        "date-times; with --until the observed value each step is compared with and its time)",
+    )
     _add_data_options(p)
     _add_prediction_options(p, "sckf")
     p.set_defaults(func=cmd)
@@ -280,12 +293,10 @@ def add_rul(sub, cmd) -> None:
     p.add_argument("data", type=Path, nargs="?", help="CSV file (with a model file)")
     p.add_argument(
         "--method",
-        default="auto",
-        help="without a model file: auto (exponential + elm pool), exponential, power, linear, elm",
+        help="without a model file: auto (exponential + elm pool; the default), exponential, "
+        "power, linear, elm",
     )
-    p.add_argument(
-        "--paths", type=int, default=2000, help="without a model file: sample paths (2000)"
-    )
+    p.add_argument("--paths", type=int, help="without a model file: sample paths (2000)")
     p.add_argument("--threshold", type=float, required=True, help="failure threshold")
     p.add_argument(
         "--glitch-limit",
@@ -365,10 +376,14 @@ def add_rul(sub, cmd) -> None:
     )
     _add_data_options(p)
     _add_prediction_options(p, "stpf")
-    # None: not given (prognose, without a model file, refuses these; with one, the defaults)
+    # None: not given (prognose, without a model file, refuses these; with one, the defaults;
+    # and the other way round for PROGNOSE_RUL_DEFAULTS)
     p.set_defaults(func=cmd, **{k: None for k in MODEL_RUL_DEFAULTS})
 
 
 #: the options of ``prognos rul MODEL DATA`` and their defaults there; ``prognos rul DATA``
 #: (prognose) refuses all but ``--filter``, which names its trend models' filters (default ekf)
 MODEL_RUL_DEFAULTS = {"horizon": 200, "filter": "stpf", "filter_steps": 100, "particles": 500}
+#: the options of ``prognos rul DATA`` (prognose) alone and their defaults there; ``prognos rul
+#: MODEL DATA`` refuses them
+PROGNOSE_RUL_DEFAULTS = {"method": "auto", "paths": 2000}

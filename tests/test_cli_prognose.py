@@ -149,7 +149,7 @@ def test_bad_input_is_one_line_and_exit_2(capsys, tmp_path):
     )
     assert main(["rul", str(path), "--column", "value", "--threshold", "2", "--horizon",
                  "50"]) == 2  # fmt: skip
-    assert "--horizon apply with a model file" in capsys.readouterr().err
+    assert "--horizon applies with a model file" in capsys.readouterr().err
 
 
 def test_filter_pools_strong_tracking_from_the_command_line(capsys):

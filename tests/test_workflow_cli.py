@@ -339,6 +339,33 @@ def test_cli_rul_without_a_model_refuses_options_it_would_ignore(tmp_path, capsy
         assert err.startswith("error: ") and named in err and err.count("\n") == 1
 
 
+def test_cli_rul_with_a_model_refuses_prognose_options_and_where_names_a_column_once(
+    tmp_path, capsys
+):
+    """--method and --paths choose prognose's models and paths: with a model file they were
+    ignored without a word. --where twice on one column kept the last value only."""
+    data = tmp_path / "data.csv"
+    _make_csv(data)
+    model = tmp_path / "m.pt"
+    assert main(["fit", str(data), "--column", "vibration", "--time-column", "hours",
+                 "--learner", "elm", "--out", str(model)]) == 0  # fmt: skip
+    capsys.readouterr()
+    base = ["rul", str(model), str(data), "--threshold", "1.6"]
+    for extra, err_text in ((["--paths", "10"], "error: --paths applies without a model file"),
+                            (["--method", "linear", "--paths", "10"],
+                             "error: --method, --paths apply without a model file")):  # fmt: skip
+        assert main([*base, *extra]) == 2
+        cap = capsys.readouterr()
+        assert cap.out == "" and cap.err.startswith(err_text) and cap.err.count("\n") == 1
+    where = ["rul", str(IMS), "--column", "rms", "--time-column", "timestamp", "--threshold",
+             "0.45", "--where", "channel=5", "--where", "channel=6"]  # fmt: skip
+    assert main(where) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: where: column 'channel' is named twice (channel=5, channel=6)")
+    with pytest.raises(ValueError, match="column 'channel' is named twice"):
+        load_series(IMS, "rms", where=["channel=5", "channel=5"])
+
+
 def test_cli_rul_from_a_model_writes_its_record_as_json(tmp_path, capsys):
     """--json FILE: the model-file result as one JSON record, the report's numbers (the same
     run repeated through the library) and the failure dates; '-' gives the record alone."""
@@ -409,9 +436,9 @@ def test_cli_forecast_after_a_recording_gap_shows_the_rows_it_compares(tmp_path,
     assert main(["fit", str(gap), "--column", "vibration", "--time-column", "hours", "--until",
                  "45", "--learner", "elm", "--out", str(model)]) == 0  # fmt: skip
     capsys.readouterr()
-    png = tmp_path / "fc.png"
+    png, fc_csv = tmp_path / "fc.png", tmp_path / "fc.csv"
     argv = ["forecast", str(model), str(gap), "--until", "45", "--horizon", "12"]
-    assert main(argv + ["--plot", str(png)]) == 0
+    assert main(argv + ["--plot", str(png), "--csv", str(fc_csv)]) == 0
     out = capsys.readouterr().out
     fc = forecast(load_model(model), load_series(gap, "vibration", time_column="hours",
                                                  until=45), 12)  # fmt: skip
@@ -425,6 +452,10 @@ def test_cli_forecast_after_a_recording_gap_shows_the_rows_it_compares(tmp_path,
     rows = [ln.split() for ln in out.splitlines() if ln[:1].isdigit()]
     assert rows and all(float(r[-1]) == float(times[int(r[0]) - 1]) for r in rows)
     assert "are not one step (0.5 hours) apart" in out and "15 steps)" in out
+    assert "(10 of the 12 steps shown; --csv FILE writes every step)" in out
+    got = _read_forecast_csv(fc_csv)  # every step with the row it is compared with
+    assert torch.equal(got["actual"], vals) and torch.equal(got["actual_time"], times)
+    assert torch.equal(got["mean"], fc.mean) and torch.equal(got["time"], fc.time)
     assert png.read_bytes()[:4] == b"\x89PNG"
     # the regular series: the rows keep their steps, no extra column, no sentence
     regular = ["forecast", str(model), str(tmp_path / "regular.csv"), "--until", "45",

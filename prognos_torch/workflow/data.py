@@ -145,6 +145,12 @@ def parse_where(where) -> dict[str, str]:
         key, value = item.split("=", 1)
         if not key.strip():
             raise ValueError(f"where: expected COLUMN=VALUE, got {item!r}")
+        if key.strip() in out:  # (the last one would win without a word)
+            raise ValueError(
+                f"where: column {key.strip()!r} is named twice ({key.strip()}={out[key.strip()]}, "
+                f"{item.strip()}): a row holds one value per column, so no row could match both; "
+                "select one value per column (run once per value)"
+            )
         out[key.strip()] = value.strip()
     return out
 
