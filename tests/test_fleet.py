@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 
 import numpy as np
 import pytest
@@ -919,3 +920,12 @@ def test_an_option_the_method_does_not_take_is_refused_before_the_table_is_read(
         fleet_rul(missing, 20.0, method="prognose", at=3.0)
     with pytest.raises(FileNotFoundError):
         fleet_rul(missing, 20.0, method="prognose", n_paths=10, learner_members=2)
+
+
+def test_one_column_in_two_roles_is_refused():
+    """--column t --time-column t read the clock as the indicator without a word."""
+    tab = {"asset": ["a"] * 20, "t": list(range(20)), "value": list(range(20))}
+    for kw, msg in ((dict(column="t"), "time (--time-column) and value (--column)"),
+                    (dict(time_column="asset"), "asset (--group-by) and time (--time-column)")):
+        with pytest.raises(ValueError, match=rf"the {re.escape(msg)} columns must differ"):
+            read_fleet_table(tab, **kw)

@@ -107,6 +107,20 @@ def test_load_series_gaps_fill_and_errors(tmp_path):
     _write_csv(path, ("t", "x"), [(0, ""), (1, 2.0), (2, 3.0)])
     with pytest.raises(ValueError, match="at the start .* cannot be interpolated; use fill='drop'"):
         load_series(path, "x", fill="linear")
+    # only the runs at the ends are named (lines 3 and 8 would interpolate)
+    _write_csv(path, ("t", "x"), [(0, ""), (1, "NA"), (2, ""), (3, 2.0), (4, 3.0), (5, ""),
+                                  (6, 4.0), (7, "nan")])  # fmt: skip
+    with pytest.raises(ValueError, match=r"missing value\(s\) at the start \(line\(s\) 2, 3, 4\) "
+                       r"and the end \(line\(s\) 9\) that cannot be interpolated"):  # fmt: skip
+        load_series(path, "x", fill="linear")
+    _write_csv(path, ("t", "x", "ch"), [(0, 1.0, 1), (1, 2.0, 1)])
+    with pytest.raises(ValueError, match="the value column 't' is also the time column"):
+        load_series(path, "t", time_column="t")
+    with pytest.raises(ValueError, match="the value column 'ch' is also a where column"):
+        load_series(path, "ch", where={"ch": 1})
+    _write_csv(path, ("t", "x"), [(0, ""), (1, "NA")])
+    with pytest.raises(ValueError, match="'x' .*has no value: every one is missing"):
+        load_series(path, "x", fill="linear")
     _write_csv(path, ("t", "x"), [(0, 1.0), (1, "abc"), (2, 3.0)])
     with pytest.raises(ValueError, match=r"line 3: column 'x' value 'abc' is not a number"):
         load_series(path, "x")

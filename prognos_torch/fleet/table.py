@@ -334,6 +334,12 @@ def read_fleet_table(
         raise ValueError(f"decimal must be '.' or ',', got {decimal!r}")
     names = (group_by, time_column, column)
     whats = ("asset (--group-by)", "time (--time-column)", "value (--column)")
+    for i in range(3):
+        for j in range(i + 1, 3):
+            if names[i] == names[j]:  # one column read in two roles
+                raise ValueError(
+                    f"the {whats[i]} and {whats[j]} columns must differ, both are {names[i]!r}"
+                )
     lines = None
     if isinstance(source, (str, Path)):
         path = Path(source)

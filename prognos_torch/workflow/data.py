@@ -541,11 +541,18 @@ def _fill(values: np.ndarray, time: np.ndarray | None, where: list, fill, lines,
         kept_lines = [ln for ln, k in zip(lines, keep) if k]
         return values[keep], None if time is None else time[keep], kept_lines
     # linear interpolation over time (or the index); ends cannot be interpolated
-    if missing[0] or missing[-1]:
-        end = "start" if missing[0] else "end"
+    if missing[0] or missing[-1]:  # name the runs at the ends only (the rest interpolate)
+        observed = np.flatnonzero(~missing)
+        if not observed.size:
+            raise ValueError(f"{label} has no value: every one is missing")
+        ends = []
+        for end, rows in (("start", range(observed[0])), ("end", range(observed[-1] + 1,
+                                                                     len(values)))):  # fmt: skip
+            if len(rows):
+                ends.append(f"the {end} ({where[0]} {_lines([lines[i] for i in rows])})")
         raise ValueError(
-            f"{label} has missing value(s) at the {end} ({where[0]} {_lines(bad)}) that "
-            "cannot be interpolated; use fill='drop' (--fill drop)"
+            f"{label} has missing value(s) at {' and '.join(ends)} that cannot be "
+            "interpolated; use fill='drop' (--fill drop)"
         )
     x = time if time is not None else np.arange(values.shape[0], dtype=np.float64)
     out = values.copy()
@@ -813,6 +820,12 @@ def _load_csv(path, column, time_column, where, fill, last, until, decimal, time
         column = others[0]
     if column not in index:
         raise ValueError(f"{path}: no column {column!r}; columns: {', '.join(header)}")
+    if column == time_column or column in where:
+        role = "the time column" if column == time_column else "a where column"
+        raise ValueError(
+            f"{path}: the value column {column!r} is also {role}; name the indicator to "
+            f"predict (columns: {', '.join(header)})"
+        )
     check_unique_columns(header, [column, time_column, *where], str(path))
     j = index[column]
     jt = index[time_column] if time_column is not None else None
