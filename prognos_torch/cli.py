@@ -211,6 +211,13 @@ def _cmd_fit(args) -> int:
     series, data_cfg = _series_from_args(args)
     oopts = _options(args.optimizer_option, "--optimizer-option")
     if args.epochs is not None:
+        from .workflow.model import check_names
+
+        if check_names(args.learner, args.optimizer)[1] == "closed-form":
+            raise ValueError(
+                "--epochs applies to an iterative optimiser (--optimizer ekf, srukf, imsrukf, "
+                f"adam or lbfgs); {args.learner}'s closed-form solve has none"
+            )
         oopts["epochs"] = args.epochs
     lopts = _options(args.learner_option, "--learner-option")
     if args.max_support is not None:
@@ -557,6 +564,16 @@ def _cmd_rul(args) -> int:
     return 0
 
 
+#: the workflow's argument names and the options that set them: an error about one names both
+_OPTION_OF = {
+    "n_particles": "--particles",
+    "n_paths": "--paths",
+    "horizon": "--horizon",
+    "filter_steps": "--filter-steps",
+    "level": "--level",
+}
+
+
 def _workflow(cmd):
     """Run a workflow command: one-line errors on stderr, exit 2 (bad input) or 3 (censored);
     extrapolation warnings as one ``warning:`` line each."""
@@ -588,6 +605,9 @@ def _workflow(cmd):
             return 3
         except (ValueError, TypeError, OSError, ModelFileError) as exc:
             text = " ".join(str(exc).split()) or type(exc).__name__
+            option = _OPTION_OF.get(text.split(" ", 1)[0])
+            if option is not None:  # a message about an argument names the option that set it
+                text = f"{option}: {text}"
             print(f"error: {text}", file=sys.stderr)
             return 2
         except (MemoryError, RuntimeError) as exc:

@@ -156,6 +156,8 @@ def test_cli_on_the_shipped_ims_table(tmp_path, capsys):
         "unknown_optimizer",
         "pickle_model",
         "missing_out_folder",
+        "option_of_the_wrong_kind",
+        "epochs_of_a_closed_form_solve",
     ],
 )
 def test_cli_bad_input_one_line_error_nothing_written(tmp_path, capsys, case):
@@ -200,6 +202,14 @@ def test_cli_bad_input_one_line_error_nothing_written(tmp_path, capsys, case):
         argv = ["forecast", str(out), str(data), "--horizon", "5", "--plot"]
         argv += [str(tmp_path / "f.png")]
         pattern = "is not a prognos model file: it looks like a Python pickle"
+    elif case == "option_of_the_wrong_kind":  # (it was int()'s own message)
+        _make_csv(data)
+        argv = fit + ["--learner-option", "n_hidden=abc"]
+        pattern = "elm learner option n_hidden must be an int (like 20), got 'abc'"
+    elif case == "epochs_of_a_closed_form_solve":  # (it named an empty list of options)
+        _make_csv(data)
+        argv = fit + ["--epochs", "5"]
+        pattern = "--epochs applies to an iterative optimiser"
     else:
         _make_csv(data)
         argv = [a if a != str(out) else str(tmp_path / "no" / "model.pt") for a in fit]
@@ -463,3 +473,24 @@ def test_cli_forecast_after_a_recording_gap_shows_the_rows_it_compares(tmp_path,
     assert main(regular) == 0
     out = capsys.readouterr().out
     assert "at time" not in out and "not one step" not in out and "actual" in out
+
+
+def test_cli_errors_about_an_argument_name_its_option(tmp_path, capsys):
+    """The workflow's messages name its arguments (n_particles); on the command line they
+    name the option too (--particles)."""
+    data, model = tmp_path / "data.csv", tmp_path / "m.pt"
+    _make_csv(data)
+    assert main(["fit", str(data), "--column", "vibration", "--time-column", "hours",
+                 "--learner", "elm", "--out", str(model)]) == 0  # fmt: skip
+    capsys.readouterr()
+    for extra, text in (
+        (["rul", "--threshold", "3", "--particles", "0"], "--particles: n_particles must be"),
+        (["forecast", "--horizon", "3", "--level", "2"], "--level: level must be a number"),
+        (["forecast", "--horizon", "3", "--filter-steps", "-1"], "--filter-steps: filter_steps"),
+    ):
+        assert main([extra[0], str(model), str(data), *extra[1:]]) == 2
+        _one_error_line(capsys, text)
+    without = ["rul", str(data), "--column", "vibration", "--time-column", "hours",
+               "--threshold", "3", "--paths", "2"]  # fmt: skip
+    assert main(without) == 2
+    _one_error_line(capsys, "--paths: n_paths must be an int >= 10, got 2")

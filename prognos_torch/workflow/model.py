@@ -46,6 +46,7 @@ health indicator (channel 5, [0, 1] scale), against 0.025 and 0.099 for the EKF,
 from __future__ import annotations
 
 import math
+import numbers
 import time
 
 import torch
@@ -124,6 +125,13 @@ def _merge(defaults: dict, given: dict | None, what: str) -> dict:
     unknown = set(given) - set(defaults)
     if unknown:
         raise ValueError(f"unknown {what} option(s) {sorted(unknown)}; known: {sorted(defaults)}")
+    kinds = {int: ("an int", numbers.Integral), float: ("a number", numbers.Real), str: ("a name", str)}
+    for key, v in given.items():  # the kind of value its default has (None, lists: free)
+        kind = kinds.get(type(defaults[key]))
+        if kind is not None and (isinstance(v, bool) or not isinstance(v, kind[1])):
+            raise ValueError(
+                f"{what} option {key} must be {kind[0]} (like {defaults[key]!r}), got {v!r}"
+            )
     out = dict(defaults)
     out.update(given)
     return out
