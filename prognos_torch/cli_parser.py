@@ -64,8 +64,10 @@ _DATA_HELP = """data options (fit; forecast and rul reuse the model's unless giv
 memory: a request whose estimated memory exceeds the budget (environment variable
   PROGNOS_MEMORY_BUDGET, e.g. 2G; default half the physical memory) is refused with exit 2.
 exit status: 0 success; 2 bad input (one 'error:' line on stderr, nothing written); 3 censored
-  RUL (rul: part or all of the distribution lies beyond the horizon, so its mean is withheld;
-  the report and any --plot are written, and one 'censored RUL:' line on stderr says how much).
+  RUL (rul with a model file: part or all of the distribution lies beyond the horizon, so its
+  mean is withheld; without one: more than 5 % of it does, so its 95 % quantile is unknown; a
+  smaller censored mass is reported, exit 0; the report and any --plot are written, and one
+  'censored RUL:' line on stderr says how much).
   A 'warning:' line on stderr (exit 0) flags a forecast that leaves the training range."""
 
 
