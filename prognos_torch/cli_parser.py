@@ -96,7 +96,9 @@ def _add_data_options(p) -> None:
         "--until",
         metavar="T",
         help="use only rows with time <= T (a number in the time unit, or an ISO date-time); "
-        "forecast and rul then also compare with the rows after T (backtesting)",
+        "forecast and rul then also compare with the rows after T (backtesting; rul's observed "
+        "RUL runs to the first later value at the threshold with a model file, to the first "
+        "later 5-point moving median there without one, as prognose's end of life)",
     )
     g.add_argument(
         "--fill", metavar="linear|drop", help="handle missing values: interpolate or drop rows"
