@@ -142,6 +142,8 @@ def _holdout(text: str):
 
 
 def _check_out_folder(path: Path | None, what: str) -> None:
+    """An output file's folder exists and it is no folder itself; a figure (``--plot``) has
+    a figure suffix (:func:`~prognos_torch.io.figure_format`)."""
     if path is None:
         return
     folder = path.parent if str(path.parent) else Path(".")
@@ -149,6 +151,10 @@ def _check_out_folder(path: Path | None, what: str) -> None:
         raise FileNotFoundError(f"{what}: folder {folder} does not exist")
     if path.is_dir():
         raise ValueError(f"{what}: {path} is a folder, expected a file name")
+    if what == "--plot":
+        from .io import figure_format
+
+        figure_format(path, what)
 
 
 def _fmt(v, digits: int = 4) -> str:

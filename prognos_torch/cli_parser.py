@@ -216,7 +216,7 @@ def _add_prediction_options(p, default_filter: str) -> None:
             else ""
         ),
     )
-    g.add_argument("--plot", type=Path, help="PNG figure to write")
+    g.add_argument("--plot", type=Path, help="figure to write (.png, .pdf or .svg)")
 
 
 def _seeds(text: str) -> int | tuple[int, ...]:

@@ -75,6 +75,8 @@ __all__ = [
     "save_model_file",
     "load_model_file",
     "atomic_write",
+    "figure_format",
+    "FIGURE_FORMATS",
     "versions_compatible",
 ]
 
@@ -180,6 +182,22 @@ def sniffed_csv(path: Path, *, missing: str, not_a_file: str) -> Iterator:
         ) from None
     except csv.Error as exc:
         raise ValueError(f"{path}: malformed CSV ({exc})") from None
+
+
+#: Figure file suffixes and the format written (no suffix: PNG).
+FIGURE_FORMATS = {".png": "png", ".pdf": "pdf", ".svg": "svg", "": "png"}
+
+
+def figure_format(path: str | os.PathLike, what: str = "path") -> str:
+    """The format of a figure file from its suffix (:data:`FIGURE_FORMATS`); another suffix
+    is a ``ValueError`` naming ``what`` (a PNG under a ``.jpeg`` name would mislead)."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in FIGURE_FORMATS:
+        raise ValueError(
+            f"{what}: {Path(path).name!r} has the suffix {suffix!r}; figures are written as "
+            ".png, .pdf or .svg"
+        )
+    return FIGURE_FORMATS[suffix]
 
 
 def atomic_write(path: str | os.PathLike, data: bytes) -> None:

@@ -494,3 +494,22 @@ def test_cli_errors_about_an_argument_name_its_option(tmp_path, capsys):
                "--threshold", "3", "--paths", "2"]  # fmt: skip
     assert main(without) == 2
     _one_error_line(capsys, "--paths: n_paths must be an int >= 10, got 2")
+
+
+def test_cli_plot_writes_the_format_its_suffix_names(tmp_path, capsys):
+    """--plot x.pdf wrote PNG bytes under a .pdf name; now .pdf and .svg are written as such
+    and another suffix is refused before anything runs."""
+    data, model = tmp_path / "data.csv", tmp_path / "m.pt"
+    _make_csv(data)
+    assert main(["fit", str(data), "--column", "vibration", "--time-column", "hours",
+                 "--learner", "elm", "--out", str(model)]) == 0  # fmt: skip
+    base = ["forecast", str(model), str(data), "--horizon", "5", "--plot"]
+    for name, magic in (("f.png", b"\x89PNG"), ("f.pdf", b"%PDF"), ("f.svg", b"<?xml")):
+        assert main(base + [str(tmp_path / name)]) == 0
+        assert (tmp_path / name).read_bytes()[: len(magic)] == magic
+    capsys.readouterr()
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert main(base + [str(tmp_path / "f.jpeg")]) == 2
+    _one_error_line(capsys, "--plot: 'f.jpeg' has the suffix '.jpeg'; figures are written as "
+                    ".png, .pdf or .svg")  # fmt: skip
+    assert sorted(p.name for p in tmp_path.iterdir()) == before

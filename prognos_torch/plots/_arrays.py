@@ -13,7 +13,7 @@ import torch
 from matplotlib.figure import Figure
 from matplotlib.ticker import Formatter, Locator, MaxNLocator
 
-from ..io import atomic_write
+from ..io import atomic_write, figure_format
 
 
 def check_result(result, kind: str, attribute: str, name: str, or_none: str = "") -> None:
@@ -132,7 +132,8 @@ def clip_for_drawing(paths: np.ndarray, lo: float, hi: float) -> np.ndarray:
 def write_png(fig: Figure, path: str | os.PathLike | None, *, make_folder: bool = False,
               tight: bool = True, dpi: int = 100) -> Figure:  # fmt: skip
     """Lay ``fig`` out (``tight_layout`` unless ``tight=False``: a figure with its legend
-    placed ``"outside"`` lays itself out) and write it as a PNG (``dpi``) to ``path`` through
+    placed ``"outside"`` lays itself out) and write it as a PNG (``dpi``), or a PDF or SVG by
+    the suffix of ``path`` (:func:`~prognos_torch.io.figure_format`), to ``path`` through
     :func:`~prognos_torch.io.atomic_write`: a reader sees the old file or the whole new one,
     never a half-written one. ``make_folder`` creates the missing folders of ``path`` (study
     outputs); otherwise a missing folder is a ``FileNotFoundError`` that names it. ``path=None``
@@ -141,9 +142,10 @@ def write_png(fig: Figure, path: str | os.PathLike | None, *, make_folder: bool 
         fig.tight_layout()
     if path is None:
         return fig
+    fmt = figure_format(path)
     if make_folder:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
+    fig.savefig(buf, format=fmt, dpi=dpi)
     atomic_write(path, buf.getvalue())
     return fig

@@ -48,7 +48,7 @@ def plot_panels(
     """One panel per component: the truth (black) and each labelled series.
 
     Args:
-        path: PNG file to write (parent folders are created).
+        path: figure file to write (.png, .pdf or .svg; parent folders are created).
         t: ``(T,)`` times.
         series: non-empty mapping ``label -> (T, P)`` (or ``(T,)`` for ``P = 1``) estimates,
             drawn in order (later series on top, the truth last).

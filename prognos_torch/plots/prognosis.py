@@ -72,7 +72,7 @@ def plot_prognosis(
     """Paths with the threshold (top) and the RUL pmf (bottom) of a ``prognose`` result.
 
     Args:
-        path: PNG file to write, or ``None``.
+        path: figure file to write (.png, .pdf or .svg), or ``None``.
         result: a :class:`RULResult` from :func:`~prognos_torch.workflow.prognose`.
         truth: optional ``(t, y)`` tensors of what followed (drawn in grey).
         n_paths: sample paths drawn.
@@ -167,7 +167,7 @@ def plot_prognosis_grid(
     """One row of :func:`plot_prognosis` top panels per series, one panel per prediction time.
 
     Args:
-        path: PNG file, or ``None``.
+        path: figure file (.png, .pdf or .svg), or ``None``.
         rows: ``(name, results, truth)`` per series: its ``prognose`` results in time order and
             the whole series ``(t, y)`` drawn as what followed each prediction.
         dpi: resolution (the grid is large).
@@ -197,7 +197,7 @@ def plot_rul_trajectory(
     """Predicted RUL against the truth and the alpha cone, one panel per series.
 
     Args:
-        path: PNG file, or ``None``.
+        path: figure file (.png, .pdf or .svg), or ``None``.
         panels: dicts with ``title``, ``times`` ``(P,)``, ``true`` ``(P,)``, ``t_eol``, and
             ``methods``: ``{name: {"pred": (P,), "lo": (P,) | None, "hi": (P,) | None}}``
             (``inf``/NaN: no finite prediction, drawn at the top edge).

@@ -44,7 +44,7 @@ def plot_forecast(
     """History, forecast mean and band (and the held-out truth, if given).
 
     Args:
-        path: PNG file to write.
+        path: figure file to write (.png, .pdf or .svg).
         result: :func:`~prognos_torch.workflow.forecast` output.
         truth: optional series with the actual values after the forecast origin (e.g. the full
             series when the forecast was made from its training part); drawn up to a quarter
@@ -108,7 +108,7 @@ def plot_rul(
     apply there).
 
     Args:
-        path: PNG file to write.
+        path: figure file to write (.png, .pdf or .svg).
         result: :func:`~prognos_torch.workflow.rul` or :func:`~prognos_torch.workflow.prognose`
             output.
         history: number of past values shown (``rul`` results; default ``max(4 H, 200)``).
