@@ -101,7 +101,9 @@ def test_rul_exit_codes_are_consistent_and_the_plot_is_written(tmp_path, capsys)
     assert "n/a" not in mean_line
     with pytest.raises(SystemExit):
         main(["rul", "--help"])
-    assert "3 censored\n  RUL (rul: part or all of the distribution" in capsys.readouterr().out
+    assert "3 censored\n  RUL (rul with a model file: part or all of the distribution" in (
+        capsys.readouterr().out
+    )
 
 
 def test_forecast_far_outside_the_training_range_warns_and_widens(tmp_path, capsys):

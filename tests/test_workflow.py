@@ -290,6 +290,12 @@ def test_fit_bad_input():
         fit_series(s, "elm", "sgd")
     with pytest.raises(ValueError, match="constant over its"):
         fit_series(load_series(np.ones(30)), "elm", None, 2)
+    # 160 training values and m = 159: one window, fitted exactly (it was accepted)
+    ramp = load_series(np.sin(np.arange(200) / 7.0))
+    with pytest.raises(ValueError, match=r"160 training values: embedding m=159 leaves 1 "
+                       r"training window\(s\), fewer than the m \+ 1 = 160 .* give m <= 79"):  # fmt: skip
+        fit_series(ramp, "elm", None, 159)
+    assert fit_series(ramp, "elm", None, 79).m == 79  # 81 windows for 80 coefficients
     with pytest.raises(ValueError, match=r"unknown elm learner option\(s\) \['n_hiden'\]"):
         fit_series(load_series(np.arange(30.0)), "elm", None, 2, learner_options={"n_hiden": 3})
 

@@ -408,6 +408,13 @@ def fit_series(
             f"short to train (need at least {max(min_train, 3)}"
             + (f" for m={m})" if m is not None else " to choose m; or give m)")
         )
+    if m is not None and n_train - m < m + 1:  # fewer windows than a linear map's m + 1 terms
+        raise ValueError(
+            f"series {series.name!r} has {n_train} training values: embedding m={m} leaves "
+            f"{n_train - m} training window(s), fewer than the m + 1 = {m + 1} coefficients of "
+            f"even a linear map on them; give m <= {(n_train - 1) // 2} (--embedding) or leave "
+            "it out to have it chosen"
+        )
     train = series.values[:n_train]
     scaler = MinMaxScaler((0.0, 1.0))
     try:
