@@ -516,8 +516,9 @@ def _cmd_rul(args) -> int:
             else "n/a"
         )
     d = failure_dates(res, series, res.bound)  # the dates a planner reads
-    dates = [] if d is None else [("failure date, median", d[1]), ("failure date, 5 %", d[0]),
-                                  ("failure date, 95 %", d[2])]  # fmt: skip
+    dates = [] if d is None else [("failure date, median (UTC)", d[1]),
+                                  ("failure date, 5 % (UTC)", d[0]),
+                                  ("failure date, 95 % (UTC)", d[2])]  # fmt: skip
     say = reporter(args)
     say(
         f"RUL of {_describe(series, data_cfg)} at t = {at_time(series, res.t_last, unit)}: threshold "

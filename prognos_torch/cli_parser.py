@@ -95,7 +95,8 @@ def _add_data_options(p) -> None:
     g.add_argument(
         "--until",
         metavar="T",
-        help="use only rows with time <= T (a number in the time unit, or an ISO date-time); "
+        help="use only rows with time <= T (a number in the time unit, or an ISO date-time; "
+        "one without an offset is UTC, as the reports' dates are); "
         "forecast and rul then also compare with the rows after T (backtesting; rul's observed "
         "RUL runs to the first later value at the threshold with a model file, to the first "
         "later 5-point moving median there without one, as prognose's end of life)",

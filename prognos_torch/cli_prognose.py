@@ -52,7 +52,7 @@ def failure_dates(res, series, bound: float) -> tuple[str, str, str] | None:
 def at_time(series, t: float, unit: str) -> str:
     """A time for a report, and its date-time where the series has date-times."""
     date = series.date(t)
-    return f"{fmt_time(t)} {unit}" + (f" ({date})" if date else "")
+    return f"{fmt_time(t)} {unit}" + (f" ({date} UTC)" if date else "")
 
 
 def json_record(res, series, data_cfg: dict, **extra) -> dict:
@@ -244,7 +244,7 @@ def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[li
         shown = lambda t: hist.date(t) or "beyond the date range"  # noqa: E731
         hi = (shown(res.t_last + s["q95"]) if s["q95"] is not None
               else f"after {shown(res.t_last + beyond)}")  # fmt: skip
-        rows.append(("calibrated failure dates", f"[{shown(res.t_last + s['q05'])}, {hi}]"))
+        rows.append(("calibrated failure dates (UTC)", f"[{shown(res.t_last + s['q05'])}, {hi}]"))
     warn = []
     few = cal.warning("histories")
     if few is not None:
@@ -347,7 +347,7 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
     on, onset = res.onset, "not detected"
     if on is not None and on.detected:
         date = series.date(on.time)
-        onset = f"{fmt_time(on.time)} {unit} ({f'{date}; ' if date else ''}{on.method}, baseline " \
+        onset = f"{fmt_time(on.time)} {unit} ({f'{date} UTC; ' if date else ''}{on.method}, baseline " \
             f"mean {on.baseline.mean:.4g}, std {on.baseline.std:.4g})"  # fmt: skip
     rows = [("status", res.status), ("degradation onset", onset)]
     if res.status == "ok":
@@ -367,13 +367,13 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
         dates = failure_dates(res, series, s["bound"])  # what a planner reads
         if dates is not None:
             rows[-1:-1] = [
-                ("failure date, median", dates[1]),
-                ("failure dates, 90 %", f"[{dates[0]}, {dates[2]}]"),
+                ("failure date, median (UTC)", dates[1]),
+                ("failure dates, 90 % (UTC)", f"[{dates[0]}, {dates[2]}]"),
             ]
     else:
         rows += [(f"lower bound if it stays healthy ({unit})", _fmt(s["bound"]))]
         if series.start is not None and s["bound"] is not None:
-            rows.append(("no failure before", series.date(res.t_last + s["bound"]) or "n/a"))
+            rows.append(("no failure before (UTC)", series.date(res.t_last + s["bound"]) or "n/a"))
     rows += cal_rows
     if args.within is not None:
         rows.append(

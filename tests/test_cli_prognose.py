@@ -42,11 +42,11 @@ def test_day_first_dates_with_time_format_give_the_iso_answer(capsys, tmp_path):
 
     res = prognose(load_series(tmp_path / "iso.csv", "x", time_column="t"), 3.0, n_paths=200)
     want = [res.failure_date(q) for q in (0.05, 0.5, 0.95)]
-    assert want[1] is not None and f"failure date, median  {want[1]}" in outs[0]
+    assert want[1] is not None and f"failure date, median (UTC)  {want[1]}" in outs[0]
     ends = [w or "after " for w in (want[0], want[2])]
-    assert f"failure dates, 90 %   [{ends[0]}, {ends[1]}" in outs[0]
+    assert f"failure dates, 90 % (UTC)   [{ends[0]}, {ends[1]}" in outs[0]
     onset = str(stamps[0] + np.timedelta64(round(res.onset.time * 86400), "s"))
-    assert f"days ({onset}; ksigma" in outs[0]
+    assert f"days ({onset} UTC; ksigma" in outs[0]
 
 
 def test_calibrated_interval_on_date_times_comes_with_its_dates():
@@ -67,7 +67,7 @@ def test_calibrated_interval_on_date_times_comes_with_its_dates():
     cal = calibrate_intervals(lo, 2 * lo, lo * torch.linspace(0.8, 2.4, 20, dtype=torch.float64))
     rows, _ = calibration_rows(res, cal, None, "days")
     c = cal.summary(res)["calibrated"]
-    assert rows[1][0] == "calibrated failure dates" and c["q95"] is not None
+    assert rows[1][0] == "calibrated failure dates (UTC)" and c["q95"] is not None
 
     def date(days):
         return str(stamps[0].astype("datetime64[s]") + np.timedelta64(round(days * 86400), "s"))

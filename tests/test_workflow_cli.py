@@ -302,13 +302,14 @@ def test_cli_rul_from_a_model_prints_failure_dates_on_date_times(tmp_path, capsy
     argv = ["rul", str(model), str(data), "--threshold", "2", "--horizon", "200"]
     assert main([*argv, "--particles", "200"]) in (0, 3)
     out = capsys.readouterr().out
-    assert "at t = 0.04097222222 days (2024-01-01T00:59:00): threshold 2" in out
+    assert "at t = 0.04097222222 days (2024-01-01T00:59:00 UTC): threshold 2" in out
     last = np.datetime64("2024-01-01T00:59:00")
-    rows = dict(re.findall(r"^(median RUL \(days\)|failure date, median)\s+(\S+)$", out, re.M))
+    rows = dict(re.findall(r"^(median RUL \(days\)|failure date, median \(UTC\))\s+(\S+)$", out,
+                           re.M))  # fmt: skip
     assert len(rows) == 2, out
     want = last + np.timedelta64(round(float(rows["median RUL (days)"]) * 86400), "s")
     # (the report prints the median to 4 digits: a minute is 7e-4 days)
-    got = np.datetime64(rows["failure date, median"])
+    got = np.datetime64(rows["failure date, median (UTC)"])
     assert abs((got - want) / np.timedelta64(1, "s")) <= 60
 
 
@@ -401,6 +402,7 @@ def test_cli_rul_from_a_model_writes_its_record_as_json(tmp_path, capsys):
     s = res.summary()
     assert rec["source"] == str(data) and rec["column"] == "rms" and rec["where"] == {}
     assert rec["date"] == "2024-01-01T00:59:00" and rec["onset"] is None
+    assert rec["time_zone"] == "UTC"  # (the file's offsets applied when read)
     for k in ("median", "q05", "q95", "mean", "censored_mass", "bound"):
         assert rec["rul"][k] == s[k], k
     assert rec["crossing_probability"] == res.crossing_probability
@@ -430,6 +432,14 @@ def test_cli_rul_on_monthly_dates_with_a_horizon_of_centuries(tmp_path, capsys):
     import json
 
     bound = json.loads(rec.read_text())["failure_date"]["bound"]
+    assert json.loads(rec.read_text())["time_zone"] == "UTC"
+    rec_num = tmp_path / "n.json"  # numeric time: no dates, no zone
+    numeric = tmp_path / "numeric.csv"
+    numeric.write_text("t,v\n" + "".join(f"{i},{float(b)!r}\n" for i, b in enumerate(y)))
+    assert main(["rul", str(model), str(numeric), "--column", "v", "--time-column", "t",
+                 "--threshold", "1.5", "--particles", "50", "--json", str(rec_num)]) in (0, 3)  # fmt: skip
+    num = json.loads(rec_num.read_text())
+    assert num["time_zone"] is None and num["date"] is None
     want = stamps[-1] + np.timedelta64(5000 * 30, "D")  # dt = 30 days, 5000 steps
     assert np.datetime64(bound) == want and int(bound[:4]) > 2262
 

@@ -343,7 +343,9 @@ class RULResult:
         """A JSON-safe record of the result, for a planner's system or a log
         (``json.dumps(r.to_dict(), allow_nan=False)`` holds; a non-finite number is ``None``).
 
-        Keys: ``status``, ``t`` (``t_last``) and its ``date``, ``time_unit``, ``threshold``,
+        Keys: ``status``, ``t`` (``t_last``) and its ``date``, ``time_zone`` of every date
+        (``"UTC"``: a time column's offsets are applied when it is read; ``None`` for numeric
+        time), ``time_unit``, ``threshold``,
         ``direction``, ``model``, ``filter``; ``rul``, :meth:`summary`'s ``mean``, ``median``,
         ``q05``, ``q95``, ``censored_mass`` and ``bound`` (a quantile beyond the horizon,
         withheld before onset, is ``None``; ``censored_mass`` of them lies beyond ``bound``);
@@ -367,6 +369,7 @@ class RULResult:
             "status": self.status,
             "t": num(self.t_last),
             "date": date(self.t_last),
+            "time_zone": None if self.history.start is None else "UTC",
             "time_unit": self.time_unit,
             "threshold": num(self.threshold),
             "direction": self.direction,
