@@ -210,11 +210,44 @@ def _describe(series, data_cfg: dict) -> str:
     return f"{series.name!r}{sel} from {series.source}"
 
 
+#: A time step longer than this many median steps is a recording gap worth a warning.
+GAP_STEPS = 5.0
+
+
+class RecordingGapWarning(UserWarning):
+    """The rows of a series read by a learner are not evenly spaced (``warning:`` line)."""
+
+
+def _warn_gaps(series) -> None:
+    """One ``warning:`` line on stderr where the rows are not evenly spaced: the learner's
+    windows and the forecast's steps are rows, so each recording gap counts as one step."""
+    import torch
+
+    if series.time is None or len(series) < 3:
+        return
+    dt = torch.diff(series.time)
+    step = float(dt.median())
+    long = (dt > GAP_STEPS * step).nonzero()[:, 0]
+    if not long.numel():
+        return
+    i = int(long[dt[long].argmax()])
+    unit = series.time_unit
+    warnings.warn(
+        f"{long.numel()} recording gap(s) longer than {GAP_STEPS:g} median steps "
+        f"({_fmt(step)} {unit}), the longest {_fmt(float(dt[i]))} {unit} after t = "
+        f"{fmt_time(float(series.time[i]))}: the learner reads rows, so each gap counts as one "
+        "step (prognos rul DATA.csv without a model file uses the times themselves)",
+        RecordingGapWarning,
+        stacklevel=2,
+    )
+
+
 def _cmd_fit(args) -> int:
     from .workflow import fit_series, save_model
 
     _check_out_folder(args.out, "--out")
     series, data_cfg = _series_from_args(args)
+    _warn_gaps(series)
     oopts = _options(args.optimizer_option, "--optimizer-option")
     if args.epochs is not None:
         from .workflow.model import check_names
@@ -312,6 +345,7 @@ def _load_for_prediction(args):
         _check_out_folder(path, what)
     model = load_model(args.model)
     series, data_cfg = _series_from_args(args, model.config.get("data"))
+    _warn_gaps(series)
     # with --until, the rows after the cut are the truth to compare against
     truth = _series_from_args(args, data_cfg, truth=True)[0] if args.until else None
     return model, series, data_cfg, truth
@@ -594,14 +628,19 @@ def _workflow(cmd):
 
         torch.set_num_threads(1)  # tiny matrices: threads only add overhead (see tests/conftest)
         caught: list = []
+        bad_input = (ValueError, TypeError, OSError, ModelFileError)
         try:
             try:
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always", ExtrapolationWarning)
+                    warnings.simplefilter("always", RecordingGapWarning)
                     return cmd(args)
+            except bad_input:
+                caught.clear()  # bad input: its one error: line stands alone on stderr
+                raise
             finally:  # after the recording has ended: showing a warning no longer records it
                 for w in caught:
-                    if issubclass(w.category, ExtrapolationWarning):
+                    if issubclass(w.category, (ExtrapolationWarning, RecordingGapWarning)):
                         print(f"warning: {w.message}", file=sys.stderr)
                     else:
                         warnings.showwarning(
@@ -610,7 +649,7 @@ def _workflow(cmd):
         except _CensoredRUL as exc:
             print(f"censored RUL: {exc}", file=sys.stderr)
             return 3
-        except (ValueError, TypeError, OSError, ModelFileError) as exc:
+        except bad_input as exc:
             text = " ".join(str(exc).split()) or type(exc).__name__
             option = _OPTION_OF.get(text.split(" ", 1)[0])
             if option is not None:  # a message about an argument names the option that set it

@@ -459,7 +459,8 @@ def test_cli_forecast_after_a_recording_gap_shows_the_rows_it_compares(tmp_path,
     png, fc_csv = tmp_path / "fc.png", tmp_path / "fc.csv"
     argv = ["forecast", str(model), str(gap), "--until", "45", "--horizon", "12"]
     assert main(argv + ["--plot", str(png), "--csv", str(fc_csv)]) == 0
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
+    assert err == ""  # the rows read end before the gap; the report's sentence covers the rest
     fc = forecast(load_model(model), load_series(gap, "vibration", time_column="hours",
                                                  until=45), 12)  # fmt: skip
     truth = load_series(gap, "vibration", time_column="hours")
@@ -481,8 +482,19 @@ def test_cli_forecast_after_a_recording_gap_shows_the_rows_it_compares(tmp_path,
     regular = ["forecast", str(model), str(tmp_path / "regular.csv"), "--until", "45",
                "--horizon", "12"]  # fmt: skip
     assert main(regular) == 0
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
     assert "at time" not in out and "not one step" not in out and "actual" in out
+    assert err == ""
+    # rows read across the gap: one warning line (the learner takes the gap as one step)
+    assert main(["forecast", str(model), str(gap), "--horizon", "3"]) == 0
+    assert capsys.readouterr().err == (
+        "warning: 1 recording gap(s) longer than 5 median steps (0.5 hours), the longest 8 "
+        "hours after t = 49.5: the learner reads rows, so each gap counts as one step (prognos "
+        "rul DATA.csv without a model file uses the times themselves)\n"
+    )
+    # bad input: its one error: line alone, the warnings of the run it stopped are dropped
+    assert main(["forecast", str(model), str(gap), "--horizon", "3", "--level", "2"]) == 2
+    _one_error_line(capsys, "--level: level must be a number in (0, 1)")
 
 
 def test_cli_errors_about_an_argument_name_its_option(tmp_path, capsys):
