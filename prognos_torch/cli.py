@@ -625,6 +625,7 @@ def _workflow(cmd):
         from .io import ModelFileError
         from .workflow.extrapolation import ExtrapolationWarning
         from .workflow.memory import allocation_failure
+        from .workflow.predict import ThresholdWarning
 
         torch.set_num_threads(1)  # tiny matrices: threads only add overhead (see tests/conftest)
         caught: list = []
@@ -634,13 +635,15 @@ def _workflow(cmd):
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always", ExtrapolationWarning)
                     warnings.simplefilter("always", RecordingGapWarning)
+                    warnings.simplefilter("always", ThresholdWarning)
                     return cmd(args)
             except bad_input:
                 caught.clear()  # bad input: its one error: line stands alone on stderr
                 raise
             finally:  # after the recording has ended: showing a warning no longer records it
                 for w in caught:
-                    if issubclass(w.category, (ExtrapolationWarning, RecordingGapWarning)):
+                    shown = (ExtrapolationWarning, RecordingGapWarning, ThresholdWarning)
+                    if issubclass(w.category, shown):
                         print(f"warning: {w.message}", file=sys.stderr)
                     else:
                         warnings.showwarning(

@@ -12,6 +12,7 @@ import math
 import subprocess
 import sys
 import textwrap
+import warnings
 from datetime import datetime
 
 import numpy as np
@@ -21,6 +22,7 @@ import torch
 from prognos_torch.workflow import (
     ExtrapolationWarning,
     Series,
+    ThresholdWarning,
     fit_series,
     forecast,
     load_model,
@@ -360,6 +362,31 @@ def test_forecast_and_rul_read_nan_as_missing():
             assert rul(model, Series(x), thr, filter="sckf", n_particles=200).threshold == 2.5
     with pytest.raises(ValueError, match="threshold must be a finite number"):
         rul(model, Series(x), math.inf)
+
+
+def test_rul_warns_when_the_auto_direction_goes_against_the_series():
+    """A rising series with a threshold below its whole history: direction "auto" read
+    "below" from the last value and gave a confident RUL without a word."""
+    t = np.arange(400.0)
+    y = 1 + 0.05 * np.random.default_rng(0).standard_normal(400)
+    y[200:] += np.exp((t[200:] - 200) / 190) - 1
+    model = fit_series(Series(y), "elm", None, 3)
+    kw = dict(filter="sckf", n_particles=50)
+    with pytest.warns(ThresholdWarning, match=r"the threshold 0.5 lies below every observed "
+                      r"value while the series rose \(median of its first tenth 0.99"):  # fmt: skip
+        r = rul(model, Series(y), 0.5, **kw)
+    assert r.direction == "below" and r.flags[-1].startswith("the threshold 0.5 lies below")
+    mirrored = fit_series(Series(-y), "elm", None, 3)
+    with pytest.warns(ThresholdWarning, match="lies above every observed value while the "
+                      "series fell"):  # fmt: skip
+        rul(mirrored, Series(-y), -0.5, **kw)
+    with warnings.catch_warnings():  # meant, or on the side the series moves to: no warning
+        warnings.simplefilter("error", ThresholdWarning)
+        warnings.simplefilter("ignore", ExtrapolationWarning)
+        assert not any("every observed" in f for f in rul(model, Series(y), 0.5,
+                                                           direction="below", **kw).flags)
+        assert not any("every observed" in f for f in rul(mirrored, Series(-y), -3.0,
+                                                           **kw).flags)  # fmt: skip
 
 
 # --------------------------------------------------------------------------- scaling, forecast, RUL

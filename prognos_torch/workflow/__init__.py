@@ -35,7 +35,15 @@ from .model import (
     fit_series,
     select_embedding,
 )
-from .predict import FILTER_NAMES, ForecastResult, RULResult, forecast, holdout_metrics, rul
+from .predict import (
+    FILTER_NAMES,
+    ForecastResult,
+    RULResult,
+    ThresholdWarning,
+    forecast,
+    holdout_metrics,
+    rul,
+)
 from .prognosing import PROGNOSE_METHODS, prognose
 from .store import load_model, save_model
 
@@ -58,6 +66,7 @@ __all__ = [
     "forecast",
     "rul",
     "holdout_metrics",
+    "ThresholdWarning",
     "save_model",
     "load_model",
     "plot_forecast",

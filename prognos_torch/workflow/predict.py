@@ -63,6 +63,7 @@ __all__ = [
     "forecast",
     "rul",
     "holdout_metrics",
+    "ThresholdWarning",
     "FILTER_NAMES",
     "GAUSSIAN_FILTERS",
     "PARTICLE_NAMES",
@@ -625,6 +626,10 @@ def rul(
 
     Raises:
         ValueError: bad arguments, or a last observed value that already reaches the threshold.
+
+    Warns:
+        ThresholdWarning: with ``direction="auto"``, a threshold beyond every observed value on
+            the side the series has moved away from (its sentence is also in ``flags``).
     """
     model = _check_model(model)
     horizon = check_count(horizon, "horizon", error=ValueError)
@@ -637,12 +642,14 @@ def rul(
     z = _scaled(model, series)
     seen = series.values[~torch.isnan(series.values)]  # NaN: missing
     last = float(seen[-1]) if seen.numel() else math.nan
+    side = None
     if direction == "auto":
         if threshold == last:
             raise ValueError(
                 f"threshold {threshold:g} equals the last observed value; the RUL is 0"
             )
         direction = "above" if threshold > last else "below"
+        side = _against_the_trend(seen, threshold, direction)
     elif (direction == "above" and last >= threshold) or (
         direction == "below" and last <= threshold
     ):
@@ -659,6 +666,8 @@ def rul(
         lo,
         hi,
     )
+    if side is not None:
+        warnings.warn(side, ThresholdWarning, stacklevel=2)
     kind, res, ssm = _filtered(model, z, name, filter_steps, n_particles, seed, series.name)
     if kind == "gaussian":
         _, state = res
@@ -686,7 +695,33 @@ def rul(
         filter=name,
         n_particles=int(particles.shape[-2]),
         history=series,
-        flags=() if flag is None else (flag,),
+        flags=tuple(f for f in (flag, side) if f is not None),
+    )
+
+
+class ThresholdWarning(UserWarning):
+    """A threshold whose direction, read from the last value, goes against the series."""
+
+
+def _against_the_trend(seen: Tensor, threshold: float, direction: str) -> str | None:
+    """The sentence of a :class:`ThresholdWarning` where ``direction="auto"`` read a side from
+    the last observed value that the series has moved away from: a threshold beyond every
+    observed value, on the side opposite to the move from the median of the first tenth of
+    ``seen`` to that of the last tenth (a threshold on the healthy side, or in other units).
+    ``None`` otherwise."""
+    n = max(1, seen.numel() // 10)
+    first, last = float(seen[:n].median()), float(seen[-n:].median())
+    if direction == "below" and last > first and threshold < float(seen.min()):
+        moved, beyond = "rose", "below"
+    elif direction == "above" and last < first and threshold > float(seen.max()):
+        moved, beyond = "fell", "above"
+    else:
+        return None
+    return (
+        f"the threshold {threshold:g} lies {beyond} every observed value while the series "
+        f"{moved} (median of its first tenth {first:.4g}, of its last {last:.4g}): direction "
+        f"{direction!r} comes from the last value alone; a threshold on the healthy side, or "
+        f"in other units? Pass direction={direction!r} where it is meant"
     )
 
 
