@@ -929,3 +929,14 @@ def test_one_column_in_two_roles_is_refused():
                     (dict(time_column="asset"), "asset (--group-by) and time (--time-column)")):
         with pytest.raises(ValueError, match=rf"the {re.escape(msg)} columns must differ"):
             read_fleet_table(tab, **kw)
+
+
+def test_one_row_assets_get_their_flag_whatever_the_shards():
+    """A shard holding only one-row assets raised an IndexError (the healthy window's noise
+    and the median step of an empty difference), so the table depended on --shard-size."""
+    tab = {"asset": ["a", "b", "b", "c"], "t": [0.0, 0.0, 1.0, 0.0], "value": [1.0, 1.0, 2.0, 1.0]}
+    for shard_size in (1, 2, 1024):
+        for phi in ("auto", 0.0, "baseline"):
+            res = fleet_rul(tab, 20.0, shard_size=shard_size, phi=phi)
+            assert res.columns["flags"] == ["too_few_rows"] * 3
+    assert fleet_rul(tab, 20.0, shard_size=1, min_rows=1).columns["flags"][0] == "no_baseline"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -101,6 +102,17 @@ def test_fleet_result_calibrated_columns_and_settings_check():
     with pytest.raises(ValueError, match="this result has samples=500"):
         cal2, _ = calibrate_fleet(f.table, 20.0, samples=300)
         fleet_rul(live.table, 20.0, samples=500).calibrated(cal2)
+    # every option is compared with the defaults filled in: a calibration under the defaults
+    # refuses another phi, onset rule or sample count (they passed: only the options the
+    # calibration named were read), and the defaults written out are the defaults
+    for kw, named in ((dict(phi="baseline"), "phi='auto', this result has phi='baseline'"),
+                      (dict(k=1.0), "k=4.0, this result has k=1.0"),
+                      (dict(samples=5), "samples=1000, this result has samples=5")):  # fmt: skip
+        with pytest.raises(ValueError, match=re.escape(named)):
+            fleet_rul(live.table, 20.0, **kw).calibrated(cal)
+    fleet_rul(live.table, 20.0, samples=1000, phi="auto", k=4.0).calibrated(cal)
+    cal3, _ = calibrate_fleet(f.table, 20.0, samples=1000, phi="auto")
+    res.calibrated(cal3)
 
 
 def test_bad_failed_tables_are_refused_by_name():

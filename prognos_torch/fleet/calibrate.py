@@ -37,10 +37,9 @@ from ..prognosis.conformal import (
     RULCalibration,
     calibrate_intervals,
     interval_scores,
-    record_settings,
 )
 from ..prognosis.protocol import PROTOCOL_FRACTIONS, known_threshold_protocol
-from .run import fleet_rul, interval_columns
+from .run import fleet_rul, interval_columns, method_settings
 from .table import FleetTable, read_fleet_table
 
 __all__ = ["calibrate_fleet"]
@@ -161,8 +160,7 @@ def calibrate_fleet(
     cal = calibrate_intervals(lo[usable], hi[usable], true[usable], coverage,
                               median=med[usable], bins=bins, groups=assets)  # fmt: skip
     settings = dict(
-        record_settings(options),
-        method=method, threshold=thr, direction=direction, fractions=list(fractions), seed=seed,
+        method_settings(method, options), threshold=thr, direction=direction, fractions=list(fractions), seed=seed,
         fleet=True, time_unit=table.time_unit,
     )  # fmt: skip
     cal = replace(cal, settings=settings)

@@ -37,6 +37,7 @@ import torch
 
 from .._workers import check_workers, process_map
 from ..core.validation import check_real, check_seed
+from ..prognosis.conformal import record_settings
 from ..workflow.data import date_after
 from .per_asset import prognose_rul
 from .table import FleetTable, read_fleet_table, write_table
@@ -143,13 +144,15 @@ class FleetResult:
                 or method option than this result (the guarantee is for intervals made the
                 same way).
         """
-        st = calibration.settings
-        mine = dict(self.options, method=self.method, threshold=self.threshold,
+        st = dict(calibration.settings)
+        if st.get("method") in METHODS:  # every option compared, the defaults filled in
+            st = {**method_settings(st["method"], {}), **st}
+        mine = dict(method_settings(self.method, self.options), threshold=self.threshold,
                     direction=self.direction, time_unit=self.time_unit)  # fmt: skip
-        for key, value in st.items():
+        for key in sorted(set(st) | set(mine)):
             if key in ("fractions", "seed", "fleet", "horizon", "bins"):
                 continue
-            here = mine.get(key)
+            here, value = mine.get(key), st.get(key)
             same = here == value or (
                 isinstance(here, float) and isinstance(value, float) and math.isclose(here, value)
             )
@@ -252,9 +255,9 @@ def _run_ray(shards, method, threshold, options, progress, ray_init):
             ray.shutdown()
 
 
-def method_options(method: str) -> set[str] | None:
-    """The names ``fleet_rul(..., **options)`` accepts for ``method``: the keyword options of
-    :data:`METHODS` ``[method]`` (for ``"prognose"`` also those of
+def method_defaults(method: str) -> dict[str, object] | None:
+    """The options ``fleet_rul(..., **options)`` accepts for ``method`` and their defaults: the
+    keyword options of :data:`METHODS` ``[method]`` (for ``"prognose"`` also those of
     :func:`~prognos_torch.workflow.prognose`, which its ``**options`` go to), less those
     ``fleet_rul`` sets itself; ``None`` (any) for a method of its own with ``**options``."""
     own = {"direction", "horizon", "time", "time_format", "seed", "at"}
@@ -267,11 +270,27 @@ def method_options(method: str) -> set[str] | None:
              for p in inspect.signature(fns[0]).parameters.values()):  # fmt: skip
         return None
     return {
-        p.name
+        p.name: p.default
         for fn in fns
         for p in inspect.signature(fn).parameters.values()
         if p.kind is inspect.Parameter.KEYWORD_ONLY and p.name not in own
     }
+
+
+def method_options(method: str) -> set[str] | None:
+    """The names of :func:`method_defaults` (``None``: any)."""
+    defaults = method_defaults(method)
+    return None if defaults is None else set(defaults)
+
+
+def method_settings(method: str, options: Mapping) -> dict:
+    """What a fleet RUL is made with, as a calibration records it: ``method`` and every option
+    of it, the defaults filled in (:func:`~prognos_torch.prognosis.conformal.record_settings`
+    form); ``prognose``'s own ``method`` option as ``prognose_method``."""
+    full = {**(method_defaults(method) or {}), **options}
+    if "method" in full:
+        full["prognose_method"] = full.pop("method")
+    return dict(record_settings(full), method=method)
 
 
 def fleet_rul(

@@ -616,11 +616,14 @@ def exponential_trend_rul(
     # prior and noise per asset
     step = torch.diff(t, dim=1)
     step = torch.where(torch.isnan(step), torch.inf, step)
-    med_dt = torch.where(
-        (lengths > 1),
-        step.sort(1).values.gather(1, ((lengths - 2) // 2).clamp(min=0)[:, None])[:, 0],
-        1.0,
-    )
+    if T > 1:
+        med_dt = torch.where(
+            (lengths > 1),
+            step.sort(1).values.gather(1, ((lengths - 2) // 2).clamp(min=0)[:, None])[:, 0],
+            1.0,
+        )
+    else:  # a shard of one-row assets (flagged too_few_rows below)
+        med_dt = torch.ones_like(t[:, 0])
     sa = float(prior_std[0])
     sb = (1.0 / med_dt) if prior_std[1] is None else torch.full_like(med_dt, float(prior_std[1]))
     if per_asset:  # prior level: the first usable value since onset (no log-domain baseline)

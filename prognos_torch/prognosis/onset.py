@@ -275,7 +275,9 @@ def window_median_deviation(x: Tensor) -> Tensor:
 
 def short_term_noise(x: Tensor) -> Tensor:
     """``1.4826 MAD(diff x) / sqrt(2)`` along the last dim, ``(..., T) -> (...)`` (differences
-    with a NaN end skipped): :attr:`Baseline.noise`."""
+    with a NaN end skipped): :attr:`Baseline.noise`; NaN with fewer than 2 values."""
+    if x.shape[-1] < 2:  # no difference (a padded batch of one-row assets)
+        return torch.full(x.shape[:-1], math.nan, dtype=x.dtype, device=x.device)
     d = x[..., 1:] - x[..., :-1]
     mad = (d - d.nanmedian(-1, keepdim=True).values).abs().nanmedian(-1).values
     return mad * 1.4826 / math.sqrt(2.0)
