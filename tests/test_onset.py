@@ -202,6 +202,12 @@ def test_quantised_data_with_a_constant_window():
     stuck = torch.where(t < 250, 20.0, 20.0 + 0.013 * (t - 250) ** 1.5)
     with pytest.raises(ValueError, match="not quantised on a common step"):
         healthy_baseline(stuck, fraction=0.3)
+    # whole units rising by 2 and 3: the step is their common step 1, not the smallest gap 2
+    # (which left 45 off the grid and refused the series as a stuck sensor)
+    rise = torch.cat([torch.full((100,), 40.0, dtype=F64),
+                      (40.0 + 2.5 * torch.arange(1, 21, dtype=F64)).round()])  # fmt: skip
+    assert healthy_baseline(rise, fraction=0.3).resolution == 1.0
+    assert healthy_baseline(0.1 * rise, fraction=0.3).resolution == pytest.approx(0.1)
 
 
 def test_baseline_window_does_not_depend_on_the_clock_origin():

@@ -373,14 +373,30 @@ def window_end(t0: Tensor, t1: Tensor, fraction: float) -> Tensor:
     return t0 + fraction * (t1 - t0) + tol
 
 
+#: Most grid levels a quantised series may span (a 16-bit converter has 65,536).
+MAX_LEVELS = 100_000
+
+
 def _resolution(x: Tensor) -> float | None:
     """The step ``q`` of values that all lie on ``x_0 + k q`` (integer ``k``, to 1e-6 of a
-    step), the smallest gap between distinct values; ``None`` for a single value or values
-    off such a grid."""
+    step): the greatest common step of the gaps between distinct values (Euclid's algorithm,
+    a remainder within 1e-6 of the smallest gap counting as none), so ``40, 42, 45`` are on a
+    step of 1, not of their smallest gap 2; ``None`` for a single value or values on no grid
+    of at most :data:`MAX_LEVELS` levels."""
     u = torch.unique(x)
     if u.shape[0] < 2:
         return None
-    q = float(torch.diff(u).min())
+    gaps = torch.diff(u).tolist()
+    tol = 1e-6 * min(gaps)
+    q = gaps[0]
+    for g in gaps[1:]:
+        a, b = max(q, g), min(q, g)
+        while b > tol:
+            r = math.fmod(a, b)
+            a, b = b, (0.0 if r <= tol or b - r <= tol else r)
+        q = a
+    if (float(u[-1]) - float(u[0])) / q > MAX_LEVELS:
+        return None
     k = (u - u[0]) / q
     return q if bool(((k - k.round()).abs() <= 1e-6).all()) else None
 
