@@ -201,6 +201,14 @@ def _check_settings(cal, path, run: dict) -> None:
                 f"{run[key]}: the guarantee holds for intervals made the same way (recalibrate "
                 "with --calibrate, or pass the same setting)"
             )
+    # pooled seeds pool models (another estimator); which seed drew them does not matter
+    pooled = lambda seed: len(seed) if isinstance(seed, (list, tuple)) else 1  # noqa: E731
+    if "seed" in st and pooled(st["seed"]) != pooled(run["seed"]):
+        raise ValueError(
+            f"--calibration: {path} was made with {pooled(st['seed'])} pooled seed(s) (--seed), "
+            f"this run pools {pooled(run['seed'])}: the guarantee holds for intervals made the "
+            "same way (recalibrate with --calibrate, or pass as many seeds)"
+        )
     thr = st.get("threshold")
     if isinstance(thr, (int, float)) and not math.isclose(thr, run["threshold"], rel_tol=1e-9):
         raise ValueError(
@@ -274,7 +282,7 @@ def _calibration(args, res, filt, histories) -> tuple[list, list[str], object, d
             return na, [], None, None
         run = {"method": args.method, "filter": filt, "n_paths": args.paths,
                "direction": res.direction, "threshold": res.threshold,
-               "glitch_limit": args.glitch_limit}  # fmt: skip
+               "glitch_limit": args.glitch_limit, "seed": args.seed}  # fmt: skip
         _check_settings(histories, args.calibration, run)
         rows, warn = calibration_rows(res, histories, None, unit)
         return rows, warn, None, histories.summary(res)["calibrated"]
@@ -408,7 +416,9 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
         if truth is not None:
             extra["observed_rul"] = obs
         if calibrated is not None:
-            extra["calibrated"] = dict(calibrated, warnings=cal_warn)
+            # the report's warnings (the calibration's own among them, as the report words it)
+            own = {k: v for k, v in calibrated.items() if k != "warning"}
+            extra["calibrated"] = dict(own, warnings=cal_warn)
         write_json(args.json, json_record(res, series, data_cfg, **extra))
         if args.json != "-":
             say(f"record written to {args.json}")

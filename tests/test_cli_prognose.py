@@ -263,11 +263,16 @@ def test_calibrate_from_a_table_of_failed_assets(capsys, tmp_path):
     assert (rec["q05"], rec["q95"], rec["n"]) == (c["q05"], c["q95"], cal.n)
     assert rec["margin"] == (c["margin"] if math.isfinite(c["margin"]) else None)
     assert rec["warnings"] and rec["warnings"][0].startswith("--calibration: the points come")
+    assert "warning" not in rec  # (it held the same sentence once more, unprefixed)
     assert f"warning: --calibration: the points come from {used} histories" in out
     for swap, msg in [(("exponential", "linear"), "was made with --method exponential, this run "
                        "has linear"), (("400", "300"), "was made with --paths 400")]:  # fmt: skip
         assert main([swap[1] if a == swap[0] else a for a in reuse]) == 2
         assert msg in capsys.readouterr().err
+    # pooled seeds are another estimator: refused against a one-seed calibration (another
+    # single seed is the same estimator)
+    assert main(reuse + ["--seed", "0,1"]) == 2
+    assert "was made with 1 pooled seed(s) (--seed), this run pools 2" in capsys.readouterr().err
     saved.write_text('{"margin": 0.1, "coverage": 1.5, "n": 3}')
     assert main(reuse) == 2
     assert "--calibration: " in (err := capsys.readouterr().err) and "coverage must lie" in err

@@ -246,3 +246,20 @@ def test_cli_help_states_the_policy(capsys):
     text = " ".join(capsys.readouterr().out.split())
     assert f"exact up to {FULL_LSSVR_MAX_ROWS} values, else {DEFAULT_SUPPORT} points" in text
     assert "PROGNOS_MEMORY_BUDGET" in text
+
+
+def test_prognose_refuses_paths_beyond_the_budget_before_it_runs(monkeypatch):
+    """n_paths had no bound: 10^9 paths ran until the process was killed for memory."""
+    from prognos_torch.workflow import prognose
+    from prognos_torch.workflow.memory import KERNEL_BLOCK_BYTES, PROGNOSE_VALUES_PER_PATH
+
+    monkeypatch.setenv("PROGNOS_MEMORY_BUDGET", "100M")
+    y = np.r_[np.ones(50), 1.0 + 0.1 * np.arange(1, 51)]
+    with pytest.raises(MemoryBudgetError, match=r"n_paths = 1,000,000,000 sample paths need "
+                       r"about 3.73 TB, more than the memory budget of 100 MB"):  # fmt: skip
+        prognose(y, 20.0, n_paths=10**9)
+    fits = (100 * 2**20 - KERNEL_BLOCK_BYTES) // (8 * PROGNOSE_VALUES_PER_PATH)
+    assert fits > 2000  # the default fits a budget of 100 MB
+    assert prognose(y, 20.0, n_paths=fits, method="linear").status == "ok"
+    with pytest.raises(MemoryBudgetError):
+        prognose(y, 20.0, n_paths=fits + 1, method="linear")

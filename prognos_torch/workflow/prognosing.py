@@ -122,6 +122,7 @@ from .data import (
     pandas_name,
     time_value,
 )
+from .memory import check_prognose_memory
 from .predict import RULResult
 
 __all__ = [
@@ -641,6 +642,7 @@ def prognose(
         raise ValueError(f"direction must be 'auto', 'above' or 'below', got {direction!r}")
     seeds = _check_seeds(seed)
     n_paths = _check_int(n_paths, "n_paths", 10)
+    check_prognose_memory(n_paths)
     max_points = _check_int(max_points, "max_points", 20)
     learner_hidden = _check_int(learner_hidden, "learner_hidden", 1)
     learner_members = _check_int(learner_members, "learner_members", 1)
