@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
+from dataclasses import replace
 
 import pytest
 import torch
@@ -273,6 +274,14 @@ def test_calibrate_rul_replays_the_protocol_through_prognose():
     assert (out["margin"], out["n"], out["assets"]) == (q, cal.n, cal.assets)
     # 3 histories, 9 needed at 90 %: a warning wherever the margin is finite
     assert out["warning"] == cal.warning() and (cal.warning() is None) == math.isinf(q)
+    # a result made another way is refused by name (any threshold serves "protocol")
+    other = prognose(y[t <= p["t"]], pc.threshold, time=t[t <= p["t"]], at=p["t"], seed=0,
+                     method="exponential", n_paths=200)  # fmt: skip
+    with pytest.raises(ValueError, match="made with n_paths=400, this result has n_paths=200"):
+        cal.summary(other)
+    named = replace(cal, settings=dict(cal.settings, threshold=2.5))
+    with pytest.raises(ValueError, match=r"made with threshold=2.5, this result has threshold="):
+        named.summary(r)
     # bins of the predicted median: the same points, a margin per bin
     binned, _ = calibrate_rul(hist, method="exponential", fractions=(0.5, 0.9), n_paths=400,
                               bins=2)  # fmt: skip

@@ -275,10 +275,31 @@ class RULCalibration:
         (``warning``: :meth:`warning`'s sentence or ``None``): its 90 % interval
         calibrated (``q95`` ``None`` when open). Before onset there is no interval, only a lower
         bound, and the summary comes back unchanged. Where more than 95 % of the paths are
-        censored, ``q05`` is beyond the horizon and the horizon ``bound`` stands in for it."""
+        censored, ``q05`` is beyond the horizon and the horizon ``bound`` stands in for it.
+
+        Raises:
+            ValueError: the calibration was made with another threshold (where it names one),
+                direction or number of paths than ``result``: its guarantee holds for intervals
+                made the same way.
+        """
         s = result.summary()
         if s["status"] != "ok":
             return s
+        st = self.settings or {}
+        mine = {"threshold": getattr(result, "threshold", None),
+                "direction": getattr(result, "direction", None),
+                "n_paths": getattr(result, "n_particles", None)}  # fmt: skip
+        for key, here in mine.items():
+            made = st.get(key)  # (threshold "protocol": the histories' own, any threshold)
+            if made is None or here is None or isinstance(made, bool) or made == "protocol":
+                continue
+            same = (math.isclose(made, here, rel_tol=1e-9) if isinstance(made, (int, float))
+                    else made == here)  # fmt: skip
+            if not same:
+                raise ValueError(
+                    f"the calibration was made with {key}={made!r}, this result has "
+                    f"{key}={here!r}: the guarantee holds for intervals made the same way"
+                )
         lo = s["q05"] if s["q05"] is not None else s["bound"]
         hi = math.inf if s["q95"] is None else s["q95"]
         med = math.inf if s.get("median") is None else s["median"]

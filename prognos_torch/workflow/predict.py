@@ -222,8 +222,8 @@ class RULResult:
         planner asks of the next inspection window.
 
         From the per-path RULs where the result carries them (``rul_samples`` of
-        :func:`~prognos_torch.workflow.prognose`: the exact crossing times, among the paths
-        still running at ``t_last``), otherwise from the distribution's pmf (its RULs lie on the
+        :func:`~prognos_torch.workflow.prognose`: each path's own crossing time, among the
+        paths still running at ``t_last``), otherwise from the distribution's pmf (its RULs lie on the
         grid ``dt * k``, exact for the step-wise paths of :func:`rul`), the same RULs that
         :meth:`quantile` reads, so ``failure_probability(quantile(q)) >= q`` holds (the
         median, q05 and q95 of :meth:`summary` included). Censored paths count as not failed;
@@ -259,9 +259,10 @@ class RULResult:
         """Lower quantiles of the RUL, ``Q(q) = min{l : P(RUL <= l) >= q}``, ``q`` in (0, 1].
 
         From the per-path RULs where the result carries them (``rul_samples`` of
-        :func:`~prognos_torch.workflow.prognose`: the exact crossing times of the equally
-        weighted paths still running at ``t_last``, ``Q(q)`` the ``ceil(q N)``-th smallest of
-        the ``N``), otherwise :meth:`RULDistribution.quantile
+        :func:`~prognos_torch.workflow.prognose`: the crossing times of the equally weighted
+        paths still running at ``t_last``, each the first time of its path's grid at or past
+        the threshold, so up to one grid step late (the sampling step, then 1-2 % of the
+        elapsed horizon); ``Q(q)`` the ``ceil(q N)``-th smallest of the ``N``), otherwise :meth:`RULDistribution.quantile
         <prognos_torch.prognosis.rul.RULDistribution.quantile>` (the upper edges ``dt * k`` of
         the bins, exact for the step-wise paths of :func:`rul`; for crossing times in
         continuous time they would read up to one ``dt`` late, which matters most when the RUL
@@ -318,7 +319,7 @@ class RULResult:
         q = self.quantile([0.05, 0.5, 0.95])
         mean = d.expectation
         x = self._alive_ruls()
-        if x is not None:  # the exact crossing times, as for the quantiles
+        if x is not None:  # each path's crossing time, as for the quantiles
             whole = x.numel() > 0 and bool((x <= self.bound).all())
             mean = x.mean() if whole else math.nan
         out = {

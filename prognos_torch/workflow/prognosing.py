@@ -55,7 +55,11 @@ Pipeline of :func:`prognose` (every step a library function with its own tests):
 5. **RUL.** ``n_paths`` sample paths from the chosen model's posterior at the last observation,
    run until every path has crossed or until the horizon ``horizon_factor x`` the observed life
    (at least 10 x the time since onset), never a short fixed cap; paths that do not cross are
-   the censored mass (RUL > ``bound``). With ``at`` later than the last observation the RUL is
+   the censored mass (RUL > ``bound``). Each path's RUL is the first time of the path grid at
+   or past the threshold: steps of ``max(dt, horizon / 20000)``, then steps of 1-2 % of the
+   elapsed horizon (:func:`~prognos_torch.prognosis.trends.path_grid`), so up to one such step
+   late; a RUL of a few sampling steps, or a long history (whose horizon widens the step),
+   reads late by up to that step. With ``at`` later than the last observation the RUL is
    counted from ``at``, conditioned on the asset still running then (paths that crossed
    before ``at`` are dropped; their mass is reported in ``flags``).
 6. **Guard rails** (``flags``): a threshold far beyond the range seen since onset (more than 3
