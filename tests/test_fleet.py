@@ -940,3 +940,35 @@ def test_one_row_assets_get_their_flag_whatever_the_shards():
             res = fleet_rul(tab, 20.0, shard_size=shard_size, phi=phi)
             assert res.columns["flags"] == ["too_few_rows"] * 3
     assert fleet_rul(tab, 20.0, shard_size=1, min_rows=1).columns["flags"][0] == "no_baseline"
+
+
+def test_a_trend_past_the_threshold_the_data_have_not_reached_gives_no_rul():
+    """A decaying indicator (direction below) that the baseline offset's trend overshoots: its
+    fitted value at the last row lay below the threshold the data were three times above, and
+    the asset came out failed for certain (RUL 0, no flag but the misfit). Missing last rows
+    are said, as their crossing is a RUL of 0 counted from the last row."""
+    t = np.arange(200.0)
+    rng = np.random.default_rng(0)
+    decay = np.exp(-0.02 * np.maximum(0, t - 100) + rng.normal(0, 0.01, 200))
+    res = fleet_rul({"asset": ["F"] * 200, "t": t, "value": decay}, 0.05, direction="below")
+    assert "fit_past_threshold" in res.columns["flags"][0].split(";")
+    assert math.isnan(res.columns["rul_median"][0]) and decay[-1] > 2 * 0.05
+    rise = np.exp(0.05 * np.maximum(0, t - 100) + rng.normal(0, 0.01, 200))
+    rise[150:] = np.nan  # the last observed value 11.6 < 20; the trend crosses near t = 160
+    res = fleet_rul({"asset": ["G"] * 200, "t": t, "value": rise}, 20.0)
+    assert res.columns["flags"] == ["last_rows_missing"] and res.columns["rul_median"] == [0.0]
+    whole = fleet_rul({"asset": ["G"] * 150, "t": t[:150], "value": rise[:150]}, 20.0)
+    assert whole.columns["flags"] == [""] and whole.columns["rul_median"][0] > 0
+
+
+def test_prognose_method_reports_a_reached_threshold_as_the_exponential_method_does():
+    """An asset whose last value is beyond the threshold came back from method="prognose" as
+    prognose_error with no RUL (prognose refuses it); the exponential method said
+    threshold_reached with RUL 0. Both say the latter now."""
+    t = np.arange(120.0)
+    y = np.exp(0.05 * np.maximum(0, t - 60) + np.random.default_rng(2).normal(0, 0.01, 120))
+    tab = {"asset": ["X"] * 120, "t": t, "value": y}  # ends at 20, threshold 10
+    for method, kw in (("prognose", {"n_paths": 100}), ("exponential", {})):
+        res = fleet_rul(tab, 10.0, method=method, **kw)
+        assert res.columns["flags"] == ["threshold_reached"], method
+        assert res.columns["rul_median"] == [0.0] and res.columns["p_fail_within_horizon"] == [1.0]

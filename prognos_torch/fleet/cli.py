@@ -29,7 +29,9 @@ Flags: too_few_rows, no_baseline, no_onset (no degradation detected yet: no RUL 
 threshold_on_healthy_side (the baseline already lies at or beyond the threshold: check
 --direction), threshold_reached, few_degraded_points, nonpositive_dropped, far_extrapolation,
 trend_misfit (the data since onset leave the exponential trend: its interval is too narrow;
-try --method prognose), glitch_in_baseline (isolated values far off their
+try --method prognose), fit_past_threshold (the fitted trend has passed the threshold that
+the last value has not: no RUL), last_rows_missing (the RUL counts from the last row, and a
+crossing in the unobserved stretch is a RUL of 0), glitch_in_baseline (isolated values far off their
 neighbours widen the healthy band 1.5 times or more, which can delay the onset), bad_input.
 exit status: 0 success, 2 bad input (one line on stderr, nothing written), 130 interrupted."""
 

@@ -10,9 +10,10 @@ still run in parallel on the Ray backend. The default fleet method,
 the assets of a shard instead.
 
 Per asset: the seed is the asset's seed (:func:`~prognos_torch.fleet.trend.asset_seed`), so
-the table does not depend on sharding; an input that ``prognose`` rejects (too few values, a
-threshold already reached or inside the healthy band, ...) is reported in the asset's row
-(flag ``prognose_error`` and the message), never fatal for the fleet. ``p_fail_within_horizon``
+the table does not depend on sharding; a last observed value at or beyond the threshold is
+``threshold_reached`` with RUL 0, as in the exponential method; an input that ``prognose``
+rejects (too few values, a threshold inside the healthy band, ...) is reported in the asset's
+row (flag ``prognose_error`` and the message), never fatal for the fleet. ``p_fail_within_horizon``
 is :meth:`~prognos_torch.workflow.RULResult.failure_probability`; a ``horizon`` beyond
 ``prognose``'s own while paths are censored leaves it NaN (flag ``horizon_beyond_prognosis``).
 ``prognose``'s own flags
@@ -68,6 +69,16 @@ def prognose_rul(
         out["t_last"][b] = float(t[-1]) if n else math.nan
         if int((~torch.isnan(y)).sum()) < min_rows:
             flags.append("too_few_rows")
+            messages.append("")
+            continue
+        seen = y[~torch.isnan(y)]
+        sign = {"above": 1.0, "below": -1.0}.get(direction)
+        if sign is not None and sign * (float(seen[-1]) - float(threshold)) >= 0:
+            # as the exponential method: failed, RUL 0 (prognose refuses such a series)
+            for col, v in (("rul_median", 0.0), ("rul_q05", 0.0), ("rul_q95", 0.0),
+                           ("p_fail_within_horizon", 1.0), ("censored_mass", 0.0)):  # fmt: skip
+                out[col][b] = v
+            flags.append("threshold_reached")
             messages.append("")
             continue
         try:

@@ -75,7 +75,11 @@ indicator with ``direction="above"``, say; no RUL), ``threshold_reached``
 than 3 usable samples after onset: the interval is wide), ``nonpositive_dropped`` (samples with
 ``s (y - phi) <= 0`` after onset were treated as missing; fixed ``phi``), ``far_extrapolation`` (median RUL
 beyond ``extrapolation_limit`` times the observed degradation time: a guard rail),
-``trend_misfit`` (the lack-of-fit test above),
+``trend_misfit`` (the lack-of-fit test above), ``fit_past_threshold`` (the fitted trend at
+the last observed row lies at or beyond the threshold, which the value there has not reached:
+the model contradicts the data, no RUL), ``last_rows_missing`` (the last rows have no value:
+the RUL counts from ``t_last``, and a crossing the trend puts in the unobserved stretch is a
+RUL of 0),
 ``glitch_in_baseline`` (isolated values more than ``GLITCH_SCREEN`` = 20 noise std off their
 neighbours in the healthy window widen its std ``GLITCH_WIDENING`` = 1.5 times or more, which can
 delay the onset: ``prognose``'s glitch flag, :mod:`prognos_torch.prognosis.onset`).
@@ -681,7 +685,12 @@ def exponential_trend_rul(
     )
 
     nan = torch.full((B,), math.nan, dtype=dt, device=dev)
-    usable = has_onset & ~reached & ~healthy_side
+    # the fitted trend at the last observed row already past the threshold that the value
+    # there has not reached: the model contradicts the data (no RUL rather than a certain 0)
+    t_obs = t.gather(1, last_obs.clamp(min=0)[:, None])[:, 0]
+    g_obs = mean[:, 0] + mean[:, 1] * (t_obs - t_on)
+    past = has_onset & ~reached & ~healthy_side & (g_obs >= log_thr[:, 0])
+    usable = has_onset & ~reached & ~healthy_side & ~past
     out = {
         "n_rows": lengths.to(dt),
         "t_last": t_last,
@@ -713,7 +722,9 @@ def exponential_trend_rul(
         ("few_degraded_points", has_onset & (n_deg < 3) & ~reached),
         ("nonpositive_dropped", has_onset & nonpos & ~reached),
         ("far_extrapolation", usable & far),
-        ("trend_misfit", usable & (misfit_p < MISFIT_P)),
+        ("trend_misfit", (usable | past) & (misfit_p < MISFIT_P)),
+        ("fit_past_threshold", past),
+        ("last_rows_missing", usable & (last_obs < lengths - 1)),
     ]
     masks = [(name, m.cpu().numpy()) for name, m in checks]
     for i in range(B):
