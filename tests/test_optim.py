@@ -525,6 +525,25 @@ def test_weights_written_into_the_module_after_construction_are_continued_from()
 
 
 # --------------------------------------------------------------------------- fit
+def test_fit_refuses_targets_a_gradient_loss_would_broadcast_before_any_step():
+    """(N,) targets against an (N, 1) output: Adam trained a whole epoch on the (B, B) MSE of
+    every pair (torch only warns), then the metrics refused them with the module changed."""
+    X, Y = _linear_data(N=16, d=3, seed=9)
+    lin = nn.Linear(3, 1, dtype=torch.float64)
+    w0 = lin.weight.detach().clone()
+    with pytest.raises(ValueError, match=r"train targets must have shape \(N, \.\.\.\) = "
+                       r"\(N, 1\) as the model output per sample, got \(16,\)"):  # fmt: skip
+        fit(lin, torch.optim.Adam(lin.parameters(), 1e-2), (X, Y[:, 0]), batch_size=4,
+            progress=False)  # fmt: skip
+    assert torch.equal(lin.weight, w0)
+    # the look at the output's shape moves no running statistics
+    net = nn.Sequential(nn.Linear(3, 4), nn.BatchNorm1d(4), nn.Linear(4, 1)).double()
+    before = net[1].running_mean.clone()
+    with pytest.raises(ValueError, match="train targets must have shape"):
+        fit(net, torch.optim.SGD(net.parameters(), 0.1), (X, Y[:, 0]), progress=False)
+    assert torch.equal(net[1].running_mean, before) and net.training
+
+
 def test_fit_lbfgs_and_adam_reach_least_squares():
     X, Y = _linear_data(N=40, d=3, seed=9)
     ref = np.linalg.lstsq(np.c_[X.numpy(), np.ones(40)], Y.numpy(), rcond=None)[0]
@@ -567,7 +586,9 @@ def test_fit_same_order_for_kalman_and_gradient_optimisers():
 
     class Recorder(nn.Linear):
         def forward(self, x):
-            if x.shape[0] < 10:  # mini-batches only (not the evaluation on all 10 samples)
+            # mini-batches only (not the evaluation on all 10 samples, nor fit's look at the
+            # output's shape, in eval mode)
+            if x.shape[0] < 10 and self.training:
                 seen.setdefault(self.tag, []).append(x.detach().clone())
             return super().forward(x)
 

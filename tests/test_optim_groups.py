@@ -394,3 +394,63 @@ def test_closures():
     assert torch.equal(opt.theta, twin.theta)
     hist = fit(elm, opt, (X, Y), epochs=1, batch_size=2, progress=False)
     assert len(hist.train["mae"]) == 1
+
+
+def test_changes_around_the_optimiser_are_adopted_or_refused_never_ignored():
+    """A write through .data is adopted as the mean (it moves no version counter and was lost);
+    a tensor option changed in place, other params, a parameter frozen after the optimiser was
+    built, a state of other runs or of parameters of other shapes are refused (each was
+    ignored, and a reload would have applied it)."""
+    X, Y = _data(N=16)
+
+    def net():
+        torch.manual_seed(1)
+        return nn.Sequential(nn.Linear(3, 4), nn.Tanh(), nn.Linear(4, 1)).double()
+
+    lins, opts = [], []
+    for how in ("data", "no_grad"):  # a write through .data as one under no_grad
+        torch.manual_seed(0)
+        lin = nn.Linear(3, 1).double()
+        opt = KalmanOptimizer(lin, filter="ekf", R=0.1)
+        opt.step(X[:4], Y[:4])
+        if how == "data":
+            lin.bias.data.fill_(5.0)
+        else:
+            with torch.no_grad():
+                lin.bias.fill_(5.0)
+        opt.step(X[4:8], Y[4:8])
+        lins.append(lin)
+        opts.append(opt)
+    assert torch.equal(opts[0].theta, opts[1].theta) and float(lins[0].bias) > 1.0
+
+    q = torch.tensor(0.0, dtype=torch.float64)
+    opt = KalmanOptimizer(net(), filter="ekf", Q=q, R=0.1)
+    opt.step(X[:4], Y[:4])
+    q.fill_(1.0)
+    with pytest.raises(ValueError, match=r"param_groups\[0\]\['Q'\] changed after"):
+        opt.step(X[4:8], Y[4:8])
+    m = net()
+    opt = KalmanOptimizer(m, filter="ekf", R=0.1)
+    opt.param_groups[0]["params"] = list(m[0].parameters())
+    with pytest.raises(ValueError, match=r"param_groups\[0\]\['params'\] changed after"):
+        opt.step(X[:4], Y[:4])
+    m = net()
+    opt = KalmanOptimizer(m, filter="ekf", R=0.1)
+    m[0].weight.requires_grad_(False)
+    with pytest.raises(ValueError, match="frozen or unfrozen .requires_grad. after"):
+        opt.step(X[:4], Y[:4])
+    multi = KalmanOptimizer(nn.Linear(3, 1).double(), filter="ekf", runs=3)
+    multi.step(X[:4], Y[:4])
+    with pytest.raises(ValueError, match="saved with runs=3, this optimiser has runs=None"):
+        KalmanOptimizer(nn.Linear(3, 1).double(), filter="ekf").load_state_dict(
+            multi.state_dict()
+        )
+    opt = KalmanOptimizer(net(), filter="ekf", R=0.1)
+    opt.step(X[:2], Y[:2])
+    other = nn.Sequential(nn.Linear(2, 5), nn.Linear(5, 1)).double()  # 21 values, 4 tensors
+    with pytest.raises(ValueError, match=r"shapes \[\[4, 3\], \[4\], \[1, 4\], \[1\]\], this "
+                       r"optimiser's are \[\[5, 2\]"):  # fmt: skip
+        KalmanOptimizer(other, filter="ekf", R=0.1).load_state_dict(opt.state_dict())
+    same = KalmanOptimizer(net(), filter="ekf", R=0.1)
+    same.load_state_dict(opt.state_dict())
+    assert torch.equal(same.theta, opt.theta) and "shapes" not in same.state["kalman"]

@@ -73,6 +73,7 @@ def ros_elm_init(elms: Sequence[nn.Module], z0: Tensor, p: int, lam: float) -> R
         The :class:`ROSELMState` after ``z0``.
     """
     z0 = check_float_tensor(z0, "z0", "(N0, ..., C)")
+    p = check_pos_int(p, "p")
     C = len(elms)
     if z0.dim() < 2 or z0.shape[-1] != C:
         raise ValueError(
@@ -85,6 +86,11 @@ def ros_elm_init(elms: Sequence[nn.Module], z0: Tensor, p: int, lam: float) -> R
     check_finite(z0, "z0", "(N0, ..., C)")
     check_nonneg(lam, "lam", numbers_only=True)
     for c, elm in enumerate(elms):
+        if getattr(elm, "n_in", p) != p:
+            raise ValueError(
+                f"elms[{c}] has n_in={elm.n_in}, the embedding dimension p={p}: each ELM takes "
+                "the p last values of its channel"
+            )
         dev = elm.a.device  # the hidden layer's (Eq. 48), as _hidden uses it
         if dev != z0.device:
             raise ValueError(

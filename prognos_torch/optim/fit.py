@@ -305,6 +305,20 @@ def fit(
             "compile=False steps update with the observed ones"
         )
 
+    if not kalman and X.shape[0] > 0:  # (the Kalman steps check theirs before updating)
+        was = module.training
+        module.eval()  # (no running statistics moved by this look at the output's shape)
+        try:
+            with torch.no_grad():
+                out = module(X[:1])
+        finally:
+            module.train(was)
+        if tuple(out.shape[1:]) != tuple(Y.shape[1:]):
+            raise ValueError(
+                f"train targets must have shape (N, ...) = (N, {', '.join(map(str, out.shape[1:]))})"
+                f" as the model output per sample, got {tuple(Y.shape)}: a loss would broadcast "
+                "them (an (N,) target against an (N, 1) output compares every pair)"
+            )
     N = X.shape[1 if per_run else 0]  # per-run data: (runs, N, ...)
     n_batches = N // batch_size if drop_last else -(-N // batch_size)
     if n_batches == 0:

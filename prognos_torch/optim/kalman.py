@@ -91,6 +91,15 @@ def _option_sources(group: dict) -> dict:
     return {k: group[k] for k in _FIXED_OPTIONS if k in group}
 
 
+def _group_record(group: dict) -> tuple:
+    """What :meth:`KalmanOptimizer._check_options` compares a group with: copies of its tensor
+    options (an in-place change keeps the object), its parameters and their ``requires_grad``."""
+    tensors = {k: v.detach().clone() for k, v in _option_sources(group).items()
+               if isinstance(v, Tensor)}  # fmt: skip
+    params = tuple(group["params"])
+    return tensors, tuple(map(id, params)), tuple(p.requires_grad for p in params)
+
+
 class KalmanOptimizer(torch.optim.Optimizer):
     """Train a module by Gaussian filtering of its parameters (paper 003 Eq. 44-46).
 
@@ -303,6 +312,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
             i = len(self.param_groups) - 1
             self._cfg.append(cfg)
             self._sources.append(_option_sources(self.param_groups[i]))
+            self._records.append(_group_record(self.param_groups[i]))
             self._union()
             self.state[_state_key(i)] = self._initial_state(i, None)
 
@@ -316,6 +326,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
             for i, g in enumerate(self.param_groups)
         ]
         self._sources = [_option_sources(g) for g in self.param_groups]
+        self._records = [_group_record(g) for g in self.param_groups]
         self._union()
         self._out_shapes: dict[tuple, torch.Size] = {}
         self._inputs: list = [None]
@@ -645,16 +656,33 @@ class KalmanOptimizer(torch.optim.Optimizer):
 
     def _check_options(self) -> None:
         """Options other than ``lr`` are read when the optimiser is built or loaded: a later
-        change in ``param_groups`` is refused rather than ignored (and then applied by a
-        reload, so that a resumed run would differ)."""
-        for i, (g, src) in enumerate(zip(self.param_groups, self._sources)):
+        change in ``param_groups`` (a new value, a tensor changed in place, other
+        ``params``) or a parameter frozen or unfrozen since is refused rather than ignored (and
+        then applied by a reload, so that a resumed run would differ)."""
+        for i, (g, src, rec) in enumerate(zip(self.param_groups, self._sources, self._records)):
+            tensors, ids, grads = rec
             for key, value in src.items():
-                if g.get(key) is not value:
+                if g.get(key) is not value or (
+                    key in tensors and not torch.equal(value.detach(), tensors[key])
+                ):
                     raise ValueError(
                         f"param_groups[{i}][{key!r}] changed after the optimiser was built; "
                         "options other than 'lr' are read when it is built or loaded "
                         "(load_state_dict): build a new optimiser to change them"
                     )
+            params = g["params"]
+            if tuple(map(id, params)) != ids:
+                raise ValueError(
+                    f"param_groups[{i}]['params'] changed after the optimiser was built; its "
+                    "parameters are the filter's state: build a new optimiser (or "
+                    "add_param_group) to train others"
+                )
+            if tuple(p.requires_grad for p in params) != grads:
+                raise ValueError(
+                    f"a parameter of param_groups[{i}] was frozen or unfrozen (requires_grad) "
+                    "after the optimiser was built; its parameters are the filter's state: "
+                    "build a new optimiser over the parameters to train"
+                )
 
     def _adopt_module_writes(self) -> None:
         """Parameters written outside the optimiser since its last step (weights loaded into the
@@ -664,9 +692,8 @@ class KalmanOptimizer(torch.optim.Optimizer):
         if self.runs is not None:
             return
         for i, cfg in enumerate(self._cfg):
+            # by value: a write through .data moves no version counter
             b = cfg.bridge
-            if not b.written_since_assign():
-                continue
             s = self.state[_state_key(i)]
             theta = b.flatten()
             if not torch.equal(theta, s["mean"].to(b.dtype).to(torch.float64)):
@@ -791,6 +818,17 @@ class KalmanOptimizer(torch.optim.Optimizer):
         return torch.stack([self.step(x, t).loss for x, t in zip(inputs, targets)])
 
     # ------------------------------------------------------------------ persistence
+    def state_dict(self) -> dict:
+        """``torch.optim``'s state dict; each group's belief entry also holds the ``shapes`` of
+        its parameters, which :meth:`load_state_dict` compares."""
+        sd = super().state_dict()
+        for i, cfg in enumerate(self._cfg):
+            key = _state_key(i)
+            if key in sd["state"]:  # (a copy: the entry is the live state's dict)
+                shapes = [list(v) for v in cfg.bridge.shapes]
+                sd["state"][key] = dict(sd["state"][key], shapes=shapes)
+        return sd
+
     def load_state_dict(self, state_dict: dict) -> None:
         """Load a :meth:`state_dict`; the beliefs stay float64 (bit-identical resume).
 
@@ -840,12 +878,24 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 self.module, {**g, "params": cur["params"]}, f"state_dict param_groups[{i}]"
             )
             runs, n = g.get("runs"), cfg.bridge.numel
+            if runs != cur.get("runs"):
+                raise ValueError(
+                    f"state_dict was saved with runs={runs!r}, this optimiser has "
+                    f"runs={cur.get('runs')!r} (runs applies to the whole optimiser)"
+                )
+            shapes = kal.get("shapes")
+            if shapes is not None and [list(v) for v in cfg.bridge.shapes] != shapes:
+                raise ValueError(
+                    f"state_dict param_groups[{i}] holds parameters of shapes {shapes}, this "
+                    f"optimiser's are {[list(v) for v in cfg.bridge.shapes]}"
+                )
             want = (n,) if runs is None else (runs, n)
             if tuple(kal["mean"].shape) != want or tuple(kal["chol"].shape) != want + (n,):
                 raise ValueError(
                     f"state_dict belief {key!r} has mean {tuple(kal['mean'].shape)}, chol "
                     f"{tuple(kal['chol'].shape)}; this optimiser needs {want} and {want + (n,)}"
                 )
+            kal.pop("shapes", None)
             st[key] = kal
             cfgs.append(cfg)
         sd["state"] = st
