@@ -318,6 +318,34 @@ def test_shipped_table_bearing_and_feature_selection(test1):
         load_ims_features(1, path=DATA / "missing.csv")
 
 
+def test_ims_table_snapshots_are_in_time_order_however_their_date_times_are_written(tmp_path):
+    """Snapshots were ordered by their text: '2004-02-12 12:02:39' (a space) sorted before
+    every '...T...' stamp, giving negative days; an empty stamp became a NaT snapshot; one
+    instant written two ways passed the duplicate check."""
+    lines = (DATA / "test2_features.csv").read_text().splitlines()
+    head, rows = lines[0], lines[1:41]  # 10 snapshots x 4 channels
+    last = rows[36].split(",")[0]
+    spaced = [r.replace(last, last.replace("T", " ")) for r in rows]
+    path = tmp_path / "t.csv"
+    path.write_text("\n".join([head, *spaced]) + "\n")
+    got = load_ims_features(2, path=path)
+    ref_path = tmp_path / "ref.csv"
+    ref_path.write_text("\n".join([head, *rows]) + "\n")
+    ref = load_ims_features(2, path=ref_path)
+    assert np.array_equal(got.timestamps, ref.timestamps) and bool((np.diff(got.days) > 0).all())
+    torch.testing.assert_close(got.values, ref.values, rtol=0, atol=0, equal_nan=True)
+    twice = [*rows, rows[0].replace("T", " ")]
+    path.write_text("\n".join([head, *twice]) + "\n")
+    with pytest.raises(ValueError, match=r"line 42: duplicate row 2004-02-12T10:32:39 channel 1 "
+                       r"\(written '2004-02-12 10:32:39' here\)"):  # fmt: skip
+        load_ims_features(2, path=path)
+    for bad in ("", "NaT", "12/02/2004"):
+        path.write_text("\n".join([head, *rows, bad + rows[0][len(rows[0].split(",")[0]):]])
+                        + "\n")  # fmt: skip
+        with pytest.raises(ValueError, match=f"line 42: timestamp {bad!r} is not an ISO 8601"):
+            load_ims_features(2, path=path)
+
+
 def test_shipped_tests_2_and_3():
     for test, n in ((2, 984), (3, 6324)):
         f = load_ims_features(test)

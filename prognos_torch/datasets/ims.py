@@ -573,9 +573,8 @@ def load_ims_features(test: int = 1, path: str | os.PathLike | None = None) -> I
         path = default_data_dir() / f"test{test}_features.csv"
         if not path.is_file():
             hint = (
-                "only test 1 is shipped; build other tables with read_raw_features(...).to_csv()"
-                if test != 1
-                else "pass path= to locate the table"
+                "tests 1, 2 and 3 are shipped in datasets/ims; pass path= to locate the table, "
+                "or build one with read_raw_features(...).to_csv()"
             )
             raise FileNotFoundError(f"IMS feature table not found: {path} ({hint})")
     path = Path(path)
@@ -590,10 +589,26 @@ def load_ims_features(test: int = 1, path: str | os.PathLike | None = None) -> I
         if header != _CSV_HEADER:
             raise ValueError(f"{path}: header must be {','.join(_CSV_HEADER)}, got {header}")
         rows = list(reader)
-    stamp_text = sorted({row[0] for row in rows if row})
-    index = {s: i for i, s in enumerate(stamp_text)}
-    values = np.full((len(stamp_text), n_channels, len(FEATURE_NAMES)), np.nan)
-    seen = np.zeros((len(stamp_text), n_channels), dtype=bool)
+    # snapshots in time order, one per instant however its date-time is written ("T" or a
+    # space, an offset): sorting the texts put "2004-02-12 12:02:39" before every "...T..."
+    second: dict[str, int] = {}
+    for line, row in enumerate(rows, start=2):
+        if row and row[0] not in second:
+            try:
+                v = np.datetime64(row[0].strip(), "s")
+            except ValueError:
+                v = np.datetime64("NaT")
+            if np.isnat(v):
+                raise ValueError(
+                    f"{path}, line {line}: timestamp {row[0]!r} is not an ISO 8601 date-time "
+                    "(every row names its snapshot's date-time)"
+                )
+            second[row[0]] = int(v.astype("int64"))
+    order = sorted(set(second.values()))
+    index = {s: i for i, s in enumerate(order)}
+    stamps = np.array(order, dtype="int64").astype("datetime64[s]")
+    values = np.full((len(order), n_channels, len(FEATURE_NAMES)), np.nan)
+    seen = np.zeros((len(order), n_channels), dtype=bool)
     for line, row in enumerate(rows, start=2):
         if not row:
             continue
@@ -608,18 +623,17 @@ def load_ims_features(test: int = 1, path: str | os.PathLike | None = None) -> I
             raise ValueError(
                 f"{path}, line {line}: channel {channel} outside 1..{n_channels} (test {test})"
             )
-        t = index[row[0]]
+        t = index[second[row[0]]]
         if seen[t, channel - 1]:
-            raise ValueError(f"{path}, line {line}: duplicate row {row[0]} channel {channel}")
+            raise ValueError(
+                f"{path}, line {line}: duplicate row {stamps[t]} channel {channel}"
+                + (f" (written {row[0]!r} here)" if row[0] != str(stamps[t]) else "")
+            )
         seen[t, channel - 1] = True
         values[t, channel - 1] = feats
     if not seen.all():
         t, c = np.argwhere(~seen)[0]
-        raise ValueError(f"{path}: no row for {stamp_text[t]} channel {c + 1}")
-    try:
-        stamps = np.array(stamp_text, dtype="datetime64[s]")
-    except ValueError as exc:
-        raise ValueError(f"{path}: bad timestamp ({exc}); expected ISO 8601") from None
+        raise ValueError(f"{path}: no row for {stamps[t]} channel {c + 1}")
     return _build(test, stamps, values, range(1, n_channels + 1))
 
 
