@@ -41,7 +41,7 @@ __all__ = ["main", "build_parser"]
 
 
 def _cmd_study(args) -> int:
-    from .studies import StudyConfig, discover_studies, run_study
+    from .studies import StudyConfig, StudyDataError, discover_studies, run_study
 
     try:
         studies = discover_studies()
@@ -94,7 +94,7 @@ def _cmd_study(args) -> int:
         for n in names:
             try:
                 _, text = run_study(studies[n], cfg)
-            except FileNotFoundError as exc:  # a --data folder without the study's data
+            except (FileNotFoundError, StudyDataError) as exc:  # data that cannot serve it
                 print(f"error: {exc}", file=sys.stderr)
                 return 2
             print(text)

@@ -88,6 +88,25 @@ def test_reader_flags_a_wrong_clock_and_refuses_bad_records(tmp_path):
         find_pronostia_bearings(_empty(tmp_path))
     with pytest.raises(FileNotFoundError, match="is no PRONOSTIA bearing folder"):
         read_pronostia_bearing(tmp_path)
+    # a non-finite sample (the IMS reader refuses them; here a feature became NaN), a record
+    # number written twice, and a Test_set alone (truncated bearings, skipped on purpose)
+    _write_record(d / "acc_00002.csv", 110.0, np.ones((64, 2)))
+    rows = (d / "acc_00003.csv").read_text().splitlines()
+    rows[5] = ",".join(rows[5].split(",")[:5] + ["nan"])
+    (d / "acc_00003.csv").write_text("\n".join(rows) + "\n")
+    with pytest.raises(ValueError, match=r"acc_00003\.csv, row 6, column 6: non-finite value nan"):
+        read_pronostia_bearing(d, expected_samples=None)
+    _write_record(d / "acc_00003.csv", 120.0, np.ones((64, 2)))
+    (d / "acc_3.csv").write_bytes((d / "acc_00003.csv").read_bytes())
+    with pytest.raises(ValueError, match=r"acc_0*3\.csv and acc_0*3\.csv are both record 3"):
+        read_pronostia_bearing(d, expected_samples=None)
+    (d / "acc_3.csv").unlink()
+    truncated = tmp_path / "arch" / "Test_set"
+    _bearing(truncated / "Bearing1_3", 2, start_s=0.0)
+    for where in (truncated, truncated.parent):
+        with pytest.raises(FileNotFoundError, match="but those of Test_set, which stop before "
+                           "failure: give the archive's root, Learning_set or Full_Test_Set"):  # fmt: skip
+            find_pronostia_bearings(where)
 
 
 def _empty(tmp_path):
@@ -183,3 +202,23 @@ def test_study_all_skips_the_studies_of_data_not_given(tmp_path, monkeypatch, ca
     lines = {ln.split()[0]: ln for ln in capsys.readouterr().out.splitlines()}
     assert lines["ext"].endswith("(needs --data: X records)")
     assert "needs --data" not in lines["plain"]
+
+
+def test_study_refuses_short_or_malformed_bearings_in_one_line(tmp_path, capsys):
+    """A bearing of 12 records raised a traceback from inside the protocol (naming neither the
+    bearing nor the 20 records it needs) and left an empty output folder."""
+    root = tmp_path / "arch"
+    _bearing(root / "Learning_set" / "Bearing1_1", 12, start_s=0.0, samples=2560)
+    out = tmp_path / "out"
+    argv = ["study", "pronostia-rul", "--quick", "--data", str(root), "--out", str(out),
+            "--no-progress"]  # fmt: skip
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("error: ")
+    assert "Bearing1_1: 12 records; the protocol needs at least 20" in err
+    assert not (out / "pronostia-rul").exists()
+    other = tmp_path / "arch2"
+    _bearing(other / "Learning_set" / "Bearing1_2", 2, start_s=0.0, samples=64)  # 64 rows
+    assert main([str(other) if a == str(root) else a for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "acc_00001.csv: expected 2560 rows, got 64" in err

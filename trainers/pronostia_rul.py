@@ -21,7 +21,8 @@ import torch
 
 from prognos_torch.datasets.pronostia import find_pronostia_bearings, read_pronostia_bearing
 from prognos_torch.plots import plot_rul_trajectory
-from prognos_torch.studies import Study, StudyConfig, StudyResult
+from prognos_torch.prognosis.protocol import PROTOCOL_MIN_POINTS
+from prognos_torch.studies import Study, StudyConfig, StudyDataError, StudyResult
 from prognos_torch.studies.rul_protocol import (
     RUL_BASELINES,
     conformal_rows,
@@ -46,7 +47,15 @@ def series_cases(root: Path, quick: bool) -> dict:
         folders = dict(list(folders.items())[:QUICK_BEARINGS])
     cases = {}
     for name, folder in folders.items():
-        f = read_pronostia_bearing(folder)
+        try:
+            f = read_pronostia_bearing(folder)
+        except ValueError as exc:  # a malformed record: one error line, not a traceback
+            raise StudyDataError(str(exc)) from None
+        if f.hours.numel() < PROTOCOL_MIN_POINTS:
+            raise StudyDataError(
+                f"{folder}: {f.hours.numel()} records; the protocol needs at least "
+                f"{PROTOCOL_MIN_POINTS} (a run to failure)"
+            )
         rms = f.feature("rms")
         cases[f"{name} h"] = (f.hours, rms[:, 0], True)
         cases[f"{name} v"] = (f.hours, rms[:, 1], True)

@@ -105,8 +105,15 @@ def find_pronostia_bearings(root: str | os.PathLike) -> dict[str, Path]:
             continue
         found[d.name] = d
     if not found:
+        truncated = root.name == "Test_set" or (root / "Test_set").is_dir()
         raise FileNotFoundError(
             f"no PRONOSTIA bearing folder (Bearing<c>_<k> with acc_*.csv records) under {root}"
+            + (
+                " but those of Test_set, which stop before failure: give the archive's root, "
+                "Learning_set or Full_Test_Set"
+                if truncated
+                else ""
+            )
         )
     return dict(sorted(found.items()))
 
@@ -124,6 +131,10 @@ def _read_record(path: Path, expected_samples: int | None) -> np.ndarray:
         )
     if expected_samples is not None and a.shape[0] != expected_samples:
         raise ValueError(f"{path}: expected {expected_samples} rows, got {a.shape[0]}")
+    bad = ~np.isfinite(a)
+    if bad.any():  # (the IMS reader refuses them too: a feature would be NaN or inf)
+        r, c = np.argwhere(bad)[0]
+        raise ValueError(f"{path}, row {r + 1}, column {c + 1}: non-finite value {a[r, c]}")
     return a
 
 
@@ -154,6 +165,9 @@ def read_pronostia_bearing(
     )
     if not records:
         raise FileNotFoundError(f"{folder} holds no acc_NNNNN.csv record")
+    for (k, f), (k2, f2) in zip(records, records[1:]):
+        if k == k2:  # acc_5.csv beside acc_00005.csv: one record number twice
+            raise ValueError(f"{folder}: {f.name} and {f2.name} are both record {k}")
     clock = np.empty(len(records))
     feats = np.empty((len(records), 2, len(FEATURE_NAMES)))
     for i, (_, f) in enumerate(records):

@@ -36,6 +36,7 @@ from ..metrics import prognostic_horizon
 from .onset import Baseline, healthy_baseline, ksigma_onset, moving_median
 
 __all__ = [
+    "PROTOCOL_MIN_POINTS",
     "ProtocolCase",
     "known_threshold_protocol",
     "linear_slope_rul",
@@ -46,6 +47,8 @@ __all__ = [
 ]
 
 PROTOCOL_FRACTIONS = (0.2, 0.4, 0.6, 0.8, 0.9)
+#: Fewest values a series needs for :func:`known_threshold_protocol`.
+PROTOCOL_MIN_POINTS = 20
 
 
 @dataclass(frozen=True)
@@ -91,8 +94,11 @@ def known_threshold_protocol(
     """
     t = torch.as_tensor(t, dtype=torch.float64)
     y = torch.as_tensor(y, dtype=torch.float64)
-    if t.dim() != 1 or t.shape != y.shape or t.shape[0] < 20:
-        raise ValueError(f"t and y must have the same shape (T,), T >= 20, got {tuple(y.shape)}")
+    if t.dim() != 1 or t.shape != y.shape or t.shape[0] < PROTOCOL_MIN_POINTS:
+        raise ValueError(
+            f"t and y must have the same shape (T,), T >= {PROTOCOL_MIN_POINTS}, got "
+            f"{tuple(y.shape)}"
+        )
     if bool(torch.isnan(y).any()):
         raise ValueError("y contains NaN; drop missing values first")
     m = moving_median(y, 5)

@@ -60,6 +60,7 @@ from .rows import method_mean, run_rows, write_rows_csv
 from .runner import (
     Study,
     StudyConfig,
+    StudyDataError,
     StudyResult,
     discover_studies,
     load_trainer,
@@ -93,6 +94,7 @@ from .training import (
 __all__ = [
     "Study",
     "StudyConfig",
+    "StudyDataError",
     "StudyResult",
     "discover_studies",
     "format_table",

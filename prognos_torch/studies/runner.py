@@ -24,6 +24,7 @@ from .tables import format_table
 __all__ = [
     "Study",
     "StudyConfig",
+    "StudyDataError",
     "StudyResult",
     "discover_studies",
     "format_table",
@@ -157,15 +158,27 @@ def write_outputs(
     return text_s
 
 
+class StudyDataError(ValueError):
+    """The data a study was given cannot serve it (a malformed file, too few records); the
+    message names the file or folder. ``prognos study`` prints it as one ``error:`` line."""
+
+
 def run_study(study: Study, cfg: StudyConfig) -> tuple[StudyResult, str]:
-    """Run ``study`` with ``cfg`` and write its outputs to ``cfg.out / study.name``."""
+    """Run ``study`` with ``cfg`` and write its outputs to ``cfg.out / study.name`` (a folder
+    made here and left empty by a failed run is removed again)."""
     missing = study.missing_data(cfg)
     if missing is not None:
         raise ValueError(missing)
     out_dir = Path(cfg.out) / study.name
+    made = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    result = study.run(cfg, out_dir)
+    try:
+        result = study.run(cfg, out_dir)
+    except BaseException:
+        if made and not any(out_dir.iterdir()):
+            out_dir.rmdir()
+        raise
     wall = time.perf_counter() - t0
     text = write_outputs(study, cfg, result, out_dir, wall)
     return result, text
