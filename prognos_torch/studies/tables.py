@@ -99,12 +99,14 @@ def summarize(
 def markdown_table(header: Sequence[str], rows: Iterable[Sequence[object]]) -> str:
     """A markdown table: ``| a | b |`` lines with the ``|---|`` rule after the header.
 
-    Cells are written with ``str``; format numbers before (e.g. with :func:`fmt_value`).
+    Cells are written with ``str`` (a ``|`` in a cell escaped as ``\\|``, so that a method
+    named ``"HI | ELM | none"`` stays one cell); format numbers before (e.g. with
+    :func:`fmt_value`).
     """
-    header = [str(h) for h in header]
+    header = [str(h).replace("|", "\\|") for h in header]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for row in rows:
-        cells = [str(c) for c in row]
+        cells = [str(c).replace("|", "\\|") for c in row]
         if len(cells) != len(header):
             raise ValueError(f"a row has {len(cells)} cells, the header {len(header)}: {cells}")
         lines.append("| " + " | ".join(cells) + " |")
@@ -143,7 +145,9 @@ def sweep_table(
 
 
 def format_table(result: StudyResult) -> str:
-    """Markdown table: one row per method, ``mean ± std`` over runs, paper value beside."""
+    """Markdown table: one row per method, ``mean ± std`` over runs, paper value beside; a mean
+    over the finite values of fewer runs than the method has says so (``(3 of 6 finite)``: an
+    infinite error, a RUL beyond the horizon, is left out of it)."""
     summary = summarize(result.rows, result.metrics)
     methods = list(summary)
     counts = {m: sum(1 for r in result.rows if r["method"] == m) for m in methods}
@@ -160,7 +164,9 @@ def format_table(result: StudyResult) -> str:
         cells = [meth, str(counts[meth])]
         for m in result.metrics:
             st = summary[meth].get(m)
-            cells.append("—" if st is None else f"{fmt_value(st.mean)} ± {fmt_value(st.std)}")
+            given = sum(1 for r in result.rows if r["method"] == meth and r.get(m) is not None)
+            some = "" if st is None or st.n == given else f" ({st.n} of {given} finite)"
+            cells.append("—" if st is None else f"{fmt_value(st.mean)} ± {fmt_value(st.std)}{some}")
             if has_paper[m]:
                 cells.append(fmt_value(result.paper.get(meth, {}).get(m)))
         body.append(cells)
