@@ -58,7 +58,15 @@ def test_format_table_paper_column_only_where_the_paper_has_the_metric():
     )
     lines = format_table(res).splitlines()
     assert lines[0] == "| method | runs | MAE (ours) | MAE (paper) | x (ours) |"
-    assert lines[2] == "| A | 2 | 1.5000 ± 0.7071 | 0.5000 | 1.0000 ± 0.0000 |"
+    # a mean over fewer runs than the method has says so (the NaN run is left out of it)
+    assert lines[2] == "| A | 2 | 1.5000 ± 0.7071 | 0.5000 | 1.0000 ± 0.0000 (1 of 2 finite) |"
+
+
+def test_markdown_table_escapes_a_bar_in_a_cell():
+    """forecaster-matrix's method names ("HI | ELM-closed | none") split each row into more
+    cells than the header named."""
+    text = markdown_table(["method", "runs"], [["HI | ELM | none", 3]])
+    assert text.splitlines()[2] == "| HI \\| ELM \\| none | 3 |"
 
 
 def test_fill_template(tmp_path):
