@@ -85,3 +85,7 @@ def test_headline_table_by_hand():
     assert "| c | 1 | 0.00 | 0.00 | — | inf | inf | — | — |" in headline_table(
         [row("c", math.inf, math.inf, 0.0, None, None)], ["c"], "t"
     )
+    # no qualifying row (a quick run without held-out series): said, not an empty table
+    assert headline_table(rows, ["b"], "held out", held_out=False) == (
+        "**held out**: no points in this run"
+    )

@@ -204,8 +204,10 @@ def _mean_ra(rel: Tensor) -> str:
 
 
 def headline_table(rows: list[dict], methods, title: str, held_out: bool | None = None) -> str:
-    """alpha-lambda, 90 % coverage, the median absolute and relative errors and the mean RA
-    (:func:`_mean_ra`) per method over the rows (``held_out``: only those rows; ``None``: all)."""
+    """alpha-lambda, 90 % coverage, the median absolute and relative errors (``torch.median``:
+    the lower of the two middle values for an even count) and the mean RA
+    (:func:`_mean_ra`) per method over the rows (``held_out``: only those rows; ``None``: all);
+    a title with "no points in this run" where none of the rows qualifies."""
     head = ("| method | points | alpha-lambda 0.2 | alpha-lambda 0.3 | 90 % coverage | "
             "median abs error | median rel error | mean RA | mean log-time CRPS |\n"
             "|---|---|---|---|---|---|---|---|---|")  # fmt: skip
@@ -227,4 +229,6 @@ def headline_table(rows: list[dict], methods, title: str, held_out: bool | None 
         lines.append(f"| {m} | {len(rs)} | {a2:.2f} | {a3:.2f} | {cov_s} | "
                      f"{float(err.median()):.3g} | {float(rel.median()):.3g} | "
                      f"{_mean_ra(rel)} | {crps_s} |")  # fmt: skip
+    if len(lines) == 3:  # (a quick run without the held-out series, say)
+        return f"**{title}**: no points in this run"
     return "\n".join(lines)
