@@ -579,3 +579,49 @@ def test_joint_state_parameter_model_batched_equals_per_sample():
         a, b = run(filt, per, b0, ys, us), run(filt, bat, b0, ys, us)
         assert torch.allclose(a.means, b.means, rtol=0, atol=1e-12)
         assert torch.allclose(a.chols, b.chols, rtol=0, atol=1e-12)
+
+
+def test_model_outputs_noise_and_settings_are_checked_not_broadcast():
+    """A model whose h returned 2 values for obs_dim=1 ran to finite, wrong numbers (EKF, SIR);
+    a NaN noise factor or fading=inf made every mean NaN; StrongTracking(beta=nan) switched
+    itself off; a float32 chol beside a float64 mean failed deep in torch; from_cov symmetrised
+    a non-symmetric matrix without a word."""
+    from prognos_torch.adapt.strong_tracking import StrongTracking
+    from prognos_torch.filters import sir
+
+    F64 = torch.float64
+    one = torch.eye(1, dtype=F64)
+    b = GaussianBelief(torch.zeros(1, dtype=F64), one.clone())
+    ys = torch.ones(3, 1, dtype=F64)
+    wide_h = StateSpaceModel(lambda x, u, k: x, lambda x, u, k: torch.cat([x, 2 * x], -1), 1, 1,
+                             chol_Q=one, chol_R=one)  # fmt: skip
+    for filt in (ekf(), ukf(), sckf()):
+        with pytest.raises(ValueError, match=r"model.h returned \(.*2,?\); it must return "
+                           r"\(\.\.\., obs_dim\) = \(\.\.\., 1\)"):  # fmt: skip
+            run(filt, wide_h, b, ys)
+    with pytest.raises(ValueError, match="model.h returned"):
+        sir(20).run(wide_h, b, ys, generator=torch.Generator().manual_seed(0))
+    short_f = StateSpaceModel(lambda x, u, k: x[..., :1], lambda x, u, k: x, 2, 2,
+                              chol_Q=torch.eye(2, dtype=F64), chol_R=torch.eye(2, dtype=F64))  # fmt: skip
+    b2 = GaussianBelief(torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64))
+    with pytest.raises(ValueError, match=r"model.f returned \(1,\); it must return "
+                       r"\(\.\.\., state_dim\) = \(\.\.\., 2\)"):  # fmt: skip
+        run(ekf(), short_f, b2, torch.ones(3, 2, dtype=F64))
+    nan_R = linear_gaussian_model(one, one, one, torch.full((1, 1), math.nan, dtype=F64))
+    with pytest.raises(ValueError, match="model.chol_R contains non-finite values"):
+        run(ekf(), nan_R, b, ys)
+    with pytest.raises(ValueError, match="a constant fading factor must be a finite number"):
+        ekf(fading=math.inf)
+    for kw in (dict(beta=math.nan), dict(beta=math.inf), dict(max_factor=math.nan),
+               dict(rho=math.nan)):  # fmt: skip
+        with pytest.raises(ValueError):
+            StrongTracking(**kw)
+    with pytest.raises(TypeError, match="init.mean and init.chol must have one floating dtype, "
+                       "got torch.float64 and torch.float32"):  # fmt: skip
+        run(ekf(), linear_gaussian_model(one, one, one, one),
+            GaussianBelief(torch.zeros(1, dtype=F64), torch.eye(1)), ys)  # fmt: skip
+    with pytest.raises(ValueError, match="cov must be symmetric"):
+        GaussianBelief.from_cov(torch.zeros(2, dtype=F64), [[1.0, 0.9], [0.0, 1.0]])
+    # a product A A^T in float32 is symmetric to rounding: taken
+    A = torch.randn(4, 4, generator=torch.Generator().manual_seed(0))
+    GaussianBelief.from_cov(torch.zeros(4), A @ A.mT + torch.eye(4))

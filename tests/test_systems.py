@@ -637,3 +637,21 @@ def test_simulators_on_cuda_match_cpu():
         g = torch.Generator(device="cuda").manual_seed(0)
         noisy = simulate(runs=2, generator=g, device="cuda", **kw)
         assert bool(torch.isfinite(noisy.y).all()) and noisy.y.device.type == "cuda"
+
+
+def test_cstr_in_float32_and_battery_currents_are_checked():
+    """simulate_cstr(dtype=float32) crashed in its steady state's Newton step (float64
+    parameters against a float32 iterate); simulate_battery read NaN currents into NaN
+    outputs (the other simulators refuse them) and a text u with torch's own message."""
+    from prognos_torch.systems import simulate_battery, simulate_cstr
+
+    ref = cstr_steady_state()
+    assert torch.equal(cstr_steady_state(dtype=torch.float32), ref.float())
+    sim = simulate_cstr(5, generator=torch.Generator().manual_seed(0), dtype=torch.float32)
+    assert sim.y.dtype == torch.float32 and bool(torch.isfinite(sim.y).all())
+    g = torch.Generator().manual_seed(0)
+    nan_u = torch.tensor([[1.0], [math.nan], [1.0]], dtype=torch.float64)
+    with pytest.raises(ValueError, match="u contains non-finite values"):
+        simulate_battery(3, generator=g, u=nan_u)
+    with pytest.raises(TypeError, match=r"u must be a tensor or an array of numbers \(T, 1\)"):
+        simulate_battery(3, generator=g, u="abc")

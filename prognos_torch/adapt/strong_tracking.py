@@ -52,9 +52,9 @@ class StrongTracking:
     def __post_init__(self):
         if not 0.0 < self.rho <= 1.0:
             raise ValueError(f"rho must be in (0, 1], got {self.rho}")
-        if self.beta <= 0:
-            raise ValueError(f"beta (weakening factor) must be positive, got {self.beta}")
-        if self.max_factor is not None and self.max_factor < 1:
+        if not self.beta > 0 or self.beta == math.inf:  # (NaN fails every comparison)
+            raise ValueError(f"beta (weakening factor) must be a positive finite number, got {self.beta}")
+        if self.max_factor is not None and not self.max_factor >= 1:
             raise ValueError(f"max_factor must be >= 1, got {self.max_factor}")
 
     def init(self, batch_shape: torch.Size, m: int, dtype, device) -> StrongTrackingState:

@@ -56,6 +56,12 @@ class GaussianBelief:
         """Build from a full covariance ``(..., n, n)`` (Cholesky-factorised once)."""
         mean = torch.as_tensor(mean)
         cov = torch.as_tensor(cov, dtype=mean.dtype, device=mean.device)
+        if not cov.is_floating_point():
+            raise TypeError(f"mean must be a floating tensor, got {mean.dtype}")
+        # symmetric to rounding (a product A A^T), never symmetrised away
+        tol = 1e3 * torch.finfo(cov.dtype).eps * cov.abs().amax()
+        if not bool(((cov - cov.mT).abs() <= tol).all()):
+            raise ValueError("cov must be symmetric positive definite, shape (..., n, n)")
         L, info = torch.linalg.cholesky_ex(0.5 * (cov + cov.mT))
         if bool((info > 0).any()):
             raise ValueError("cov must be symmetric positive definite, shape (..., n, n)")
@@ -101,6 +107,15 @@ class GaussianBelief:
             raise ValueError(
                 f"{name}.chol must have shape {tuple(self.mean.shape) + (n,)} "
                 f"(the batch shape of {name}.mean, then n x n), got {tuple(self.chol.shape)}"
+            )
+        if not self.mean.is_floating_point() or self.chol.dtype != self.mean.dtype:
+            raise TypeError(
+                f"{name}.mean and {name}.chol must have one floating dtype, got "
+                f"{self.mean.dtype} and {self.chol.dtype}"
+            )
+        if self.chol.device != self.mean.device:
+            raise ValueError(
+                f"{name}.mean is on {self.mean.device}, {name}.chol on {self.chol.device}"
             )
         check_finite(self.mean, f"{name}.mean")
         check_chol(self.chol, f"{name}.chol", n)

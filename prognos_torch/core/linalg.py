@@ -1,6 +1,7 @@
 """Square-root linear algebra: ``tria`` via QR, Cholesky rank-one up/downdates, safe Cholesky.
 
-All functions act on the last two dimensions and broadcast over leading batch dimensions.
+All functions act on the last two dimensions, batched over the leading ones; the arguments of
+one call share those leading dimensions (no broadcasting between them).
 Nothing here forms an explicit inverse; triangular factors are applied with solves.
 """
 

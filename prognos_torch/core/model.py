@@ -215,6 +215,9 @@ class StateSpaceModel:
                     f"{name} must have shape {what} with {tail} or batch shape {bs} + {tail}, "
                     f"got {tuple(x.shape)}"
                 )
+            # values (a host sync on an accelerator: there once per constant tensor, below)
+            if x.device.type == "cpu" and not torch.compiler.is_compiling():
+                _check_finite_noise(x, name)
             return x
 
         out = Noise(
@@ -229,6 +232,10 @@ class StateSpaceModel:
             # constant tensors used as they are (no conversion that an in-place change of the
             # original would make stale): remember the check for the next step, with the
             # diagonal of a diagonal Q
+            if out.chol_Q.device.type != "cpu":  # (on the CPU conv checked them)
+                for name, v in zip(("model.q", "model.chol_Q", "model.r", "model.chol_R"), out):
+                    if v is not None:
+                        _check_finite_noise(v, name)
             if not out.chol_Q.requires_grad:  # (a diagonal under autograd would cut its graph)
                 with torch.inference_mode(False), torch.no_grad():
                     out = replace(out, diag_Q=diagonal_noise(out.chol_Q))
@@ -240,7 +247,7 @@ class StateSpaceModel:
         """Noise-free ``f`` on ``x`` of shape ``(..., n)``; returns ``(..., n)``."""
         if self.f is None:
             return x
-        return _apply(self.f, x, u, k, self.batched)
+        return _checked_out(_apply(self.f, x, u, k, self.batched), self.state_dim, "f", "state_dim")
 
     def transition_into(self, x: Tensor, u: Tensor | None, k: int, out: Tensor) -> Tensor:
         """:meth:`transition` of ``x`` ``(..., n)`` written into ``out`` ``(..., n)``; returns ``out``.
@@ -253,7 +260,7 @@ class StateSpaceModel:
 
     def observe(self, x: Tensor, u: Tensor | None, k: int) -> Tensor:
         """Noise-free ``h`` on ``x`` of shape ``(..., n)``; returns ``(..., m)``."""
-        return _apply(self.h, x, u, k, self.batched)
+        return _checked_out(_apply(self.h, x, u, k, self.batched), self.obs_dim, "h", "obs_dim")
 
     def transition_jacobian(self, x: Tensor, u: Tensor | None, k: int) -> Tensor:
         """``df/dx`` at ``x`` ``(..., n)``: ``(..., n, n)`` (identity for the random walk)."""
@@ -269,6 +276,24 @@ class StateSpaceModel:
         if self.jac_h is not None:
             return _apply_matrix(self.jac_h, x, u, k, self.batched)
         return _jacobian(self.h, x, u, k, self.batched)
+
+
+def _check_finite_noise(x: Tensor, name: str) -> None:
+    """A noise mean or square root holds finite numbers (a NaN would make every mean NaN)."""
+    if not bool(torch.isfinite(x).all()):
+        raise ValueError(f"{name} contains non-finite values (NaN or inf)")
+
+
+def _checked_out(out, dim: int, fn: str, field: str) -> Tensor:
+    """``out`` of the model's ``f`` or ``h``, refused unless its last dimension is ``dim`` (a
+    wrong length would broadcast through the filter's arithmetic into finite, wrong numbers)."""
+    if not isinstance(out, Tensor) or out.dim() == 0 or out.shape[-1] != dim:
+        got = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
+        raise ValueError(
+            f"model.{fn} returned {got}; it must return (..., {field}) = (..., {dim}) for each "
+            f"input (..., state_dim)"
+        )
+    return out
 
 
 def _apply_matrix(fn: Fn, x: Tensor, u: Tensor | None, k: int, batched: bool) -> Tensor:

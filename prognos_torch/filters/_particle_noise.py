@@ -58,6 +58,13 @@ def _noise(
     noise = model.checked_noise(k, bs, like, owner="particles")
     if not bool((torch.diagonal(noise.chol_R, dim1=-2, dim2=-1) > 0).all()):
         raise ValueError("model.chol_R must have a positive diagonal (R positive definite)")
+    for name, S in (("chol_R", noise.chol_R), ("chol_Q", noise.chol_Q if density_Q else None)):
+        if S is not None and bool(torch.triu(S, 1).ne(0).any()):  # (the Gaussian filters take
+            raise ValueError(  # any square root; the weights solve with a triangular one)
+                f"model.{name} must be lower triangular for a particle filter, whose weights "
+                f"solve with it (got a square root with entries above the diagonal); pass "
+                f"torch.linalg.cholesky({name[-1]}) or prognos_torch.core.linalg.tria({name})"
+            )
     if density_Q and not bool((torch.diagonal(noise.chol_Q, dim1=-2, dim2=-1) > 0).all()):
         raise ValueError(
             "model.chol_Q must have a positive diagonal for a Gaussian-proposal particle "

@@ -259,8 +259,10 @@ class GaussianFilter:
         if not isinstance(self.rule, (Taylor, SigmaPoints)):
             raise TypeError(f"rule must be Taylor() or a SigmaPoints rule, got {type(self.rule)}")
         if isinstance(self.fading, (int, float)) and not isinstance(self.fading, bool):
-            if not self.fading >= 1.0:
-                raise ValueError(f"a constant fading factor must be >= 1, got {self.fading}")
+            if not 1.0 <= self.fading < float("inf"):
+                raise ValueError(
+                    f"a constant fading factor must be a finite number >= 1, got {self.fading}"
+                )
         elif self.fading is not None and not isinstance(self.fading, StrongTracking):
             raise TypeError("fading must be None, a float >= 1 or StrongTracking")
         if self.robust is not None and not self.redraw:

@@ -66,6 +66,7 @@ from ..core.validation import (
     check_control,
     check_generator,
     check_measurement,
+    check_nonneg_int,
     check_sequence,
     has_missing,
 )
@@ -656,6 +657,11 @@ class ParticleFilter:
         The inputs are checked once for the whole sequence (shapes, devices, finiteness, the
         noise when it is constant); each step is then :meth:`step` without the checks.
 
+        The runs of a batch share ``generator``: resampling draws are taken at the steps where
+        any run resamples, so one run's draws, and its estimates within their Monte Carlo
+        error, change with the other runs' data (the Gaussian filters' runs are independent);
+        filter a run alone where its numbers must not depend on its batch.
+
         ``inference=True`` runs the steps after the first under ``torch.inference_mode()``
         (:func:`~prognos_torch.filters.scan`; the same numbers, about 15 % less time for a
         batched STPF of 1,000 particles) unless the first step's outputs need a gradient. Only
@@ -683,6 +689,7 @@ class ParticleFilter:
             raise TypeError(f"compile must be a bool, got {type(compile).__name__}")
         if compile:  # (before any draw: an error leaves the generator as it was)
             check_compilable(self, model, ys, us, init)
+        check_nonneg_int(k0, "k0")  # (a float k0 reached f, h and the noise as k)
         saved = (
             generator.get_state() if compile and isinstance(generator, torch.Generator) else None
         )

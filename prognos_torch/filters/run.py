@@ -11,7 +11,7 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief, check_belief
 from ..core.model import StateSpaceModel
-from ..core.validation import check_pos_int, check_sequence
+from ..core.validation import check_nonneg_int, check_pos_int, check_sequence
 from .gaussian import FilterState, GaussianFilter, StepInfo, innovation_stats
 from .sequence import scan
 
@@ -84,6 +84,7 @@ def check_filter(filt, name: str = "filter") -> GaussianFilter:
 
 def _start(filt, model, init, k: int) -> FilterState:
     check_filter(filt)
+    check_nonneg_int(k - 1, "k0")  # (a float k0 reached f, h and the noise as k)
     if isinstance(init, FilterState):
         return init
     return filt.init(model, check_belief(init, model.state_dim, "init"), k)

@@ -57,7 +57,13 @@ from ..core.validation import (
     diag_chol,
 )
 from .noise_streams import draw_run_noise
-from .simulation import SimulationResult, initial_state, resolve_generator, simulate_model
+from .simulation import (
+    SimulationResult,
+    initial_state,
+    input_sequence,
+    resolve_generator,
+    simulate_model,
+)
 
 __all__ = [
     "BatteryCircuitParams",
@@ -462,14 +468,7 @@ def simulate_battery(
     X0 = initial_state(p.x0 if x0 is None else x0, 4, runs, dtype, device)
     if u is None:
         u = load_controls(steps=n_steps, dt=dt, dtype=dtype, device=device)
-    U = torch.as_tensor(u, dtype=dtype, device=device)
-    if tuple(U.shape) == (n_steps, 1):
-        U = U.unsqueeze(1).expand(n_steps, runs, 1)
-    elif tuple(U.shape) != (n_steps, runs, 1):
-        raise ValueError(
-            f"u must have shape (T, 1) or (T, runs, 1) = ({n_steps}, {runs}, 1), "
-            f"got {tuple(U.shape)}"
-        )
+    U = input_sequence(u, n_steps, runs, 1, dtype, device)  # (as every simulator: finite)
     model = battery_circuit_model(
         dt,
         params=p,

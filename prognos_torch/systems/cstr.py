@@ -161,16 +161,18 @@ def cstr_steady_state(
     caf = p.C_AF if C_AF is None else float(C_AF)
     if not math.isfinite(caf):
         raise ValueError(f"C_AF must be finite, got {C_AF!r}")
-    x = torch.as_tensor(x_init, dtype=dtype, device=device).clone()
+    # Newton in float64 whatever dtype is asked (the parameters are float64 and a float32
+    # iteration could not reach tol), the answer returned in dtype
+    x = torch.as_tensor(x_init, dtype=torch.float64, device=device).clone()
     if tuple(x.shape) != (2,):
         raise ValueError(f"x_init must have shape (2,), got {tuple(x.shape)}")
-    scale = torch.tensor([1.0, 100.0], dtype=dtype, device=device)
+    scale = torch.tensor([1.0, 100.0], dtype=torch.float64, device=device)
     F = lambda z: cstr_rhs(z, caf, p)  # noqa: E731
     for _ in range(max_iter):
         step = torch.linalg.solve(jacfwd(F)(x), F(x))
         x = x - step
         if bool((step.abs() <= tol * scale).all()):
-            return x
+            return x.to(dtype)
     raise RuntimeError(f"cstr_steady_state did not converge in {max_iter} Newton steps")
 
 

@@ -93,7 +93,13 @@ def input_sequence(u, n_steps: int, runs: int, p: int, dtype, device) -> Tensor 
     if u is None:
         return None
     if not isinstance(u, Tensor):
-        u = torch.as_tensor(u, dtype=dtype, device=device)
+        try:
+            u = torch.as_tensor(u, dtype=dtype, device=device)
+        except (TypeError, ValueError, RuntimeError):
+            raise TypeError(
+                f"u must be a tensor or an array of numbers (T, {p}) or (T, runs, {p}), got "
+                f"{type(u).__name__}"
+            ) from None
     u = u.to(dtype=dtype, device=device)
     if tuple(u.shape) == (n_steps, p):
         u = u.unsqueeze(1).expand(n_steps, runs, p)
