@@ -278,10 +278,14 @@ class StateSpaceModel:
         return _jacobian(self.h, x, u, k, self.batched)
 
 
+class NonFiniteNoiseError(ValueError):
+    """A model's noise mean or square root holds NaN or inf (every estimate would be NaN)."""
+
+
 def _check_finite_noise(x: Tensor, name: str) -> None:
     """A noise mean or square root holds finite numbers (a NaN would make every mean NaN)."""
     if not bool(torch.isfinite(x).all()):
-        raise ValueError(f"{name} contains non-finite values (NaN or inf)")
+        raise NonFiniteNoiseError(f"{name} contains non-finite values (NaN or inf)")
 
 
 def _checked_out(out, dim: int, fn: str, field: str) -> Tensor:

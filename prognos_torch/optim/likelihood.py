@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from ..core.belief import GaussianBelief
-from ..core.model import StateSpaceModel
+from ..core.model import NonFiniteNoiseError, StateSpaceModel
 from ..filters.gaussian import GaussianFilter
 from ..filters.run import run
 
@@ -157,13 +157,31 @@ def fit_likelihood(
         return b
 
     def loglik(p) -> Tensor:
-        return run(filt, build_model(p), get_belief(p), ys, us, k0=k0).log_likelihood
+        try:
+            return run(filt, build_model(p), get_belief(p), ys, us, k0=k0).log_likelihood
+        except NonFiniteNoiseError as exc:  # parameters whose model noise overflowed
+            raise FloatingPointError(
+                f"the log-likelihood became non-finite after {len(trace)} steps: {exc} "
+                "(lower the learning rate or start closer)"
+            ) from None
 
     trace: list[Tensor] = []
     state: dict = {}
 
+    def diverged(p) -> FloatingPointError | None:
+        bad = [n for n, v in p.items() if not bool(torch.isfinite(v).all())]
+        if not bad:
+            return None
+        return FloatingPointError(
+            f"the log-likelihood became non-finite after {len(trace)} steps: the parameters "
+            f"{bad} left the finite numbers (lower the learning rate or start closer)"
+        )
+
     def closure():
         opt.zero_grad()
+        err = diverged(leaves)  # (a model of such parameters is refused by the filter)
+        if err is not None:
+            raise err
         ll = loglik(leaves)
         if not bool(torch.isfinite(ll).all()):
             raise FloatingPointError(
@@ -188,6 +206,9 @@ def fit_likelihood(
                 break
     with torch.no_grad():
         final = {n: p.detach().clone() for n, p in leaves.items()}
+        err = diverged(final)
+        if err is not None:
+            raise err
         ll = loglik(final)
         if not bool(torch.isfinite(ll).all()):
             raise FloatingPointError(f"the log-likelihood became non-finite after {taken} steps")
