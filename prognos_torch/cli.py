@@ -116,6 +116,8 @@ def _options(items, what: str) -> dict:
         if "=" not in item:
             raise ValueError(f"{what}: expected KEY=VALUE, got {item!r}")
         key, text = (v.strip() for v in item.split("=", 1))
+        if key in out:  # (the last one would win without a word)
+            raise ValueError(f"{what}: {key} is given twice ({key}={out[key]!r}, {item.strip()})")
         value: object = text
         if text.lower() in ("true", "false"):
             value = text.lower() == "true"
@@ -216,6 +218,10 @@ GAP_STEPS = 5.0
 
 class RecordingGapWarning(UserWarning):
     """The rows of a series read by a learner are not evenly spaced (``warning:`` line)."""
+
+
+class CapacityWarning(UserWarning):
+    """A learner with more trained coefficients than training windows (``warning:`` line)."""
 
 
 def _warn_gaps(series) -> None:
@@ -333,8 +339,25 @@ def _cmd_fit(args) -> int:
                 ("metric", "value"),
             )
         )
+    # trained coefficients (the LS-SVR has one per window by design, its C regularises them)
+    n_coef = sum(p.numel() for p in model.learner.parameters() if p.requires_grad)
+    windows = n_train - model.m
+    if cfg["learner"] != "lssvr" and n_coef > windows:
+        warnings.warn(
+            f"the {cfg['learner'].upper()} has {n_coef:,} trained coefficients for {windows:,} "
+            "training windows, so it can fit them exactly and its one-step RMSE says little; "
+            "use a smaller --embedding or fewer hidden nodes (n_hidden) or membership "
+            "functions (n_mfs)",
+            CapacityWarning,
+            stacklevel=2,
+        )
     save_model(model, args.out)
     print(f"\nmodel written to {args.out}")
+    if n_hold:  # the file holds the model scored above, not one refitted on every row
+        print(
+            f"(the model is trained on the first {n_train} rows; the {n_hold} held out are "
+            "not in it: --holdout 0 trains on every row)"
+        )
     return 0
 
 
@@ -380,12 +403,12 @@ def _cmd_forecast(args) -> int:
     header = ("step", f"time ({series.time_unit})", "mean", "lower", "upper")
     rows = []
     for i in show:
-        row = (i + 1, float(fc.time[i]), float(fc.mean[i]), float(fc.lower[i]))
+        row = (i + 1, fmt_time(float(fc.time[i])), float(fc.mean[i]), float(fc.lower[i]))
         row += (float(fc.upper[i]),)
         if actual is not None:
             row += (float(actual[i]) if i < actual.numel() else None,)
         if actual_t is not None:
-            row += (float(actual_t[i]) if i < actual_t.numel() else None,)
+            row += (fmt_time(float(actual_t[i])) if i < actual_t.numel() else None,)
         rows.append(row)
     if actual is not None:
         header += ("actual",)
@@ -545,7 +568,7 @@ def _cmd_rul(args) -> int:
     mean = s["mean"]
     if mean is None:
         mean = (
-            f"n/a ({100 * cm:.0f} % of paths do not reach the threshold in the horizon)"
+            f"n/a ({100 * cm:.3g} % of paths do not reach the threshold in the horizon)"
             if cm > 0
             else "n/a"
         )
@@ -641,14 +664,17 @@ def _workflow(cmd):
                 caught.clear()  # bad input: its one error: line stands alone on stderr
                 raise
             finally:  # after the recording has ended: showing a warning no longer records it
-                for w in caught:
-                    shown = (ExtrapolationWarning, RecordingGapWarning, ThresholdWarning)
-                    if issubclass(w.category, shown):
-                        print(f"warning: {w.message}", file=sys.stderr)
-                    else:
+                said = set()  # the library's own: one line each, each sentence once (a
+                for w in caught:  # particle filter's fallback would repeat at every step)
+                    if not w.category.__module__.startswith("prognos_torch"):
                         warnings.showwarning(
                             w.message, w.category, w.filename, w.lineno, w.file, w.line
                         )
+                        continue
+                    text = " ".join(str(w.message).split())
+                    if text not in said:
+                        said.add(text)
+                        print(f"warning: {text}", file=sys.stderr)
         except _CensoredRUL as exc:
             print(f"censored RUL: {exc}", file=sys.stderr)
             return 3

@@ -181,6 +181,8 @@ def check_seed(value, name: str = "seed") -> int:
     a float) raises a ``TypeError`` naming ``name``."""
     if isinstance(value, bool) or not isinstance(value, numbers.Integral):  # (np.bool_ is not)
         raise TypeError(f"{name} must be an int, got {value!r}")
+    if not -(2**63) <= int(value) < 2**64:  # torch.Generator.manual_seed's range
+        raise ValueError(f"{name} must lie in [-2**63, 2**64) (a generator seed), got {value!r}")
     return int(value)
 
 

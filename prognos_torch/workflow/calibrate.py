@@ -37,7 +37,11 @@ from ..prognosis.conformal import (
     interval_scores,
     record_settings,
 )
-from ..prognosis.protocol import PROTOCOL_FRACTIONS, known_threshold_protocol
+from ..prognosis.protocol import (
+    PROTOCOL_FRACTIONS,
+    PROTOCOL_MIN_POINTS,
+    known_threshold_protocol,
+)
 from .data import Series
 from .prognosing import _as_series, _check_seeds, prognose
 
@@ -118,17 +122,38 @@ def calibrate_rul(
     ):
         raise TypeError(f"threshold must be a real number or None, got {threshold!r}")
     check_workers(workers)
+    # checked before the replays (minutes to hours on a real archive), not after them
+    if isinstance(coverage, bool) or not isinstance(coverage, (int, float)) or not (
+        0.0 < coverage < 1.0
+    ):
+        raise ValueError(f"coverage must lie in (0, 1), got {coverage!r}")
+    if isinstance(bins, bool) or not isinstance(bins, int) or bins < 1:
+        raise ValueError(f"bins must be an int >= 1, got {bins!r}")
+    fr = tuple(fractions)
+    if not fr or any(isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 < f < 1
+                     for f in fr) or len(set(fr)) != len(fr):  # fmt: skip
+        raise ValueError(
+            f"fractions must be distinct numbers in (0, 1) of [onset, end of life], got {fr!r}"
+        )
     seeds = _check_seeds(seed)  # (as prognose reads it: one seed, or several pooled)
     seed = seeds[0] if len(seeds) == 1 else seeds
     signed = None if threshold is None else sign * threshold
     points, pending, tasks = [], [], []
     for name, (t, y) in items:
+        if t.shape == y.shape and t.dim() == 1 and t.shape[0] < PROTOCOL_MIN_POINTS:
+            # too short for the protocol: set aside, as a history that never fails is
+            points.append({"name": name, "status": f"{t.shape[0]} values, the protocol needs "
+                           f"{PROTOCOL_MIN_POINTS}"})  # fmt: skip
+            continue
         try:
             pc = known_threshold_protocol(t, sign * y, fractions=fractions, threshold=signed)
         except ValueError as exc:
             raise ValueError(f"histories[{name!r}]: {exc}") from None
         if not pc.valid:
-            points.append({"name": name, "status": f"protocol not usable: {pc.reason}"})
+            reason = pc.reason
+            if sign < 0:  # the protocol ran on -y: say it in the data's own sign
+                reason = reason.replace(f"threshold {signed:g}", f"threshold {threshold:g}")
+            points.append({"name": name, "status": f"protocol not usable: {reason}"})
             continue
         for tp, true in zip(pc.times.tolist(), pc.true_rul.tolist()):
             sel = t <= tp
@@ -200,12 +225,12 @@ def _items(histories) -> list[tuple[str, tuple[torch.Tensor, torch.Tensor]]]:
         raise ValueError("histories is empty: give at least one run-to-failure series")
     out = []
     for name, h in pairs:
-        if isinstance(h, Series):
-            y, t, _ = _as_series(h, None)
-        elif isinstance(h, (tuple, list)) and len(h) == 2:
-            y, t, _ = _as_series(h[1], h[0])
-        else:
+        if not (isinstance(h, Series) or (isinstance(h, (tuple, list)) and len(h) == 2)):
             raise TypeError(f"histories[{name!r}] must be a Series or a pair (t, y), got {h!r:.80}")
+        try:  # (the message names the history)
+            y, t, _ = _as_series(h, None) if isinstance(h, Series) else _as_series(h[1], h[0])
+        except (TypeError, ValueError) as exc:
+            raise type(exc)(f"histories[{name!r}]: {exc}") from None
         keep = ~torch.isnan(y)
         out.append((str(name), (t[keep], y[keep])))
     return out

@@ -135,6 +135,13 @@ def _hint(learner: str) -> str:
             "use --max-support M (a fixed-size LS-SVR on M support points; learner option "
             "max_support), --last N (fewer rows) or --learner elm"
         )
+    if learner == "elm":  # (its hidden layer, n_hidden, sets the memory per row)
+        return "use --last N (fewer rows), a smaller --embedding or fewer hidden nodes (n_hidden)"
+    if learner == "anfis":  # (its rules, n_mfs ** m, set the parameter count)
+        return (
+            "use a smaller --embedding or fewer membership functions (n_mfs): the rules, "
+            "n_mfs ** m, set the parameters; --last N (fewer rows) or --learner elm"
+        )
     return "use --last N (fewer rows), a smaller --embedding, or --learner elm"
 
 

@@ -335,6 +335,8 @@ def _holdout_size(holdout, T: int) -> int:
         raise ValueError(f"holdout must be a fraction in [0, 1) or a count, got {holdout!r}")
     if isinstance(holdout, int):
         n = holdout
+        if n < 0:
+            raise ValueError(f"holdout must be a fraction in [0, 1) or a count >= 0, got {n}")
     elif isinstance(holdout, float) and 0.0 <= holdout < 1.0:
         n = int(round(holdout * T))
     else:

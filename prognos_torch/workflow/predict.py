@@ -79,6 +79,9 @@ FILTER_NAMES = GAUSSIAN_FILTERS + PARTICLE_NAMES
 #: Relative noise on the shifted window elements for Gaussian-proposal particle filters.
 JITTER = 0.3
 _GAUSSIAN_PROPOSAL = ("ekpf", "upf", "stpf")
+#: Fewest particles or sample paths of a forecast band or RUL distribution (one path is a
+#: band of zero width; prognose asks as many).
+MIN_PARTICLES = 10
 #: Longest multi-step forecast scored by :func:`holdout_metrics` (the first steps of a longer
 #: held-out tail; its one-step RMSE uses the whole tail).
 HOLDOUT_FORECAST_STEPS = 1000
@@ -544,7 +547,7 @@ def forecast(
     model = _check_model(model)
     horizon = check_count(horizon, "horizon", error=ValueError)
     filter_steps = check_count(filter_steps, "filter_steps", 0, error=ValueError)
-    n_particles = check_count(n_particles, "n_particles", error=ValueError)
+    n_particles = check_count(n_particles, "n_particles", MIN_PARTICLES, error=ValueError)
     name = _check_filter(filter)
     if isinstance(level, bool) or not isinstance(level, (int, float)) or not 0 < level < 1:
         raise ValueError(f"level must be a number in (0, 1), got {level!r}")
@@ -635,7 +638,7 @@ def rul(
     model = _check_model(model)
     horizon = check_count(horizon, "horizon", error=ValueError)
     filter_steps = check_count(filter_steps, "filter_steps", 0, error=ValueError)
-    n_particles = check_count(n_particles, "n_particles", error=ValueError)
+    n_particles = check_count(n_particles, "n_particles", MIN_PARTICLES, error=ValueError)
     name = _check_filter(filter)
     threshold = check_real(threshold, "threshold")
     if direction not in ("auto", "above", "below"):
@@ -664,6 +667,13 @@ def rul(
     flag = _extra.warn(
         "the series the RUL starts from",
         _extra.origin_distance(series.values, model.m, lo, hi),
+        lo,
+        hi,
+    )
+    # a threshold beyond the training range is reached only where the learner extrapolates
+    thr_flag = _extra.warn(
+        f"the threshold {threshold:g}",
+        float(_extra.origin_distance(torch.tensor([threshold], dtype=torch.float64), 1, lo, hi)),
         lo,
         hi,
     )
@@ -696,7 +706,7 @@ def rul(
         filter=name,
         n_particles=int(particles.shape[-2]),
         history=series,
-        flags=tuple(f for f in (flag, side) if f is not None),
+        flags=tuple(f for f in (flag, thr_flag, side) if f is not None),
     )
 
 

@@ -58,7 +58,12 @@ def load_model(path: str | os.PathLike, *, map_location: str | torch.device = "c
         raise ModelFileError(f"{path}: embedding dimension m={m} in the configuration")
     lopts = _need(cfg, "learner_options", dict, path)
     seed = _need(cfg, "seed", int, path)
-    _need(cfg, "residual_rmse", (int, float), path)
+    rmse = _need(cfg, "residual_rmse", (int, float), path)
+    if not 0 <= rmse < 1e3:  # (in scaled units, [0, 1]: a noise std far beyond it is no fit)
+        raise ModelFileError(
+            f"{path}: configuration entry 'residual_rmse' is {rmse!r}; a fit's residual RMSE "
+            "in scaled units lies in [0, 1e3)"
+        )
     if cfg.get("dtype") != "float64":
         raise ModelFileError(f"{path}: dtype {cfg.get('dtype')!r}; this version writes float64")
     sc = _need(cfg, "scaler", dict, path)
