@@ -159,6 +159,11 @@ def _check_out_folder(path: Path | None, what: str) -> None:
         figure_format(path, what)
 
 
+def _share(p: float) -> str:
+    """A probability as a percentage to 3 digits (0.002: "0.2 %", where ".0f" said 0 %)."""
+    return f"{100 * p:.3g} %"
+
+
 def _fmt(v, digits: int = 4) -> str:
     if v is None:
         return "n/a"
@@ -568,7 +573,7 @@ def _cmd_rul(args) -> int:
     mean = s["mean"]
     if mean is None:
         mean = (
-            f"n/a ({100 * cm:.3g} % of paths do not reach the threshold in the horizon)"
+            f"n/a ({_share(cm)} of paths do not reach the threshold in the horizon)"
             if cm > 0
             else "n/a"
         )

@@ -5,6 +5,7 @@ guarantee by Monte Carlo against its exact bounds, leave-one-group-out, the prot
 from __future__ import annotations
 
 import math
+import re
 import subprocess
 import sys
 from dataclasses import replace
@@ -388,3 +389,34 @@ def test_study_rows_are_calibrated_on_the_other_assets():
         assert out[i]["covered"] == float(out[i]["q05"] <= out[i]["true_rul"] <= out[i]["q95"])
         assert out[i]["crps_log"] is None
     assert (out[3]["q05"], out[3]["covered"]) == (math.inf, 0.0)  # no interval: as it was
+
+
+def test_calibrate_rul_checks_before_its_replays_and_sets_short_histories_aside():
+    """coverage=1.0, bins=0 and fractions outside (0, 1) were refused only after every
+    prognose replay; a 10-value history aborted the run (a history that never fails is set
+    aside); an input error did not name its history; a below-threshold read in -y's sign."""
+    hist = dict(list(_histories().items())[:2])
+    for kw, text in ((dict(coverage=1.0), "coverage must lie in (0, 1)"),
+                     (dict(bins=0), "bins must be an int >= 1"),
+                     (dict(fractions=(0.5, 1.5)), "fractions must be distinct numbers in (0, 1)"),
+                     (dict(fractions=(0.5, 0.5)), "fractions must be distinct")):  # fmt: skip
+        with pytest.raises(ValueError, match=re.escape(text)):
+            calibrate_rul(hist, **kw)
+    t0, y0 = next(iter(hist.values()))
+    short = {**hist, "short": (t0[:10], y0[:10])}
+    cal, points = calibrate_rul(short, method="exponential", fractions=(0.9,), n_paths=100)
+    assert [p["status"] for p in points if p["name"] == "short"] == [
+        "10 values, the protocol needs 20"
+    ]
+    bad_t = t0.clone()
+    bad_t[3] = math.nan
+    with pytest.raises(ValueError, match=r"histories\['bad'\]: time must be finite"):
+        calibrate_rul({"bad": (bad_t, y0)})
+    t = torch.arange(120, dtype=torch.float64)
+    falling = {"f": (t, 2.0 - torch.where(t < 60, 0.0, 0.05 * (t - 60))),
+               "flat": (t, 1.0 + 0.01 * torch.sin(t))}  # fmt: skip
+    _, pts = calibrate_rul(falling, threshold=0.5, direction="below", method="exponential",
+                           fractions=(0.5,), n_paths=100)  # fmt: skip
+    assert [p["status"] for p in pts if p["name"] == "flat"] == [
+        "protocol not usable: the moving median never reaches the threshold 0.5"
+    ]

@@ -308,3 +308,20 @@ def test_paths_and_devices_get_clear_errors(tmp_path):
     with pytest.raises(TypeError, match="map_location"):
         load_model(path, map_location=3)
     assert load_model(path, map_location=torch.device("cpu")).config == model.config
+
+
+def test_a_hand_edited_noise_level_is_refused(tmp_path):
+    """A residual_rmse of -0.5 ran as 0 and 1e200 gave a confident RUL of one step (with the
+    checksum recomputed, the file was valid)."""
+    import numpy as np
+
+    from prognos_torch.io import ModelFileError
+    from prognos_torch.workflow import fit_series, load_model, load_series, save_model
+
+    model = fit_series(load_series(np.sin(np.arange(80) / 5.0)), "elm", None, 3)
+    for bad in (-0.5, 1e200):
+        model.config["residual_rmse"] = bad
+        path = tmp_path / "m.pt"
+        save_model(model, path)
+        with pytest.raises(ModelFileError, match="configuration entry 'residual_rmse' is"):
+            load_model(path)

@@ -535,3 +535,62 @@ def test_cli_plot_writes_the_format_its_suffix_names(tmp_path, capsys):
     _one_error_line(capsys, "--plot: 'f.jpeg' has the suffix '.jpeg'; figures are written as "
                     ".png, .pdf or .svg")  # fmt: skip
     assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_cli_second_pass_refusals_flags_and_report_lines(tmp_path, capsys):
+    """A threshold beyond the training range came with no flag; one particle gave a band of
+    zero width; the forecast table printed 4 digits of the time; 0.2 % censored read 0 %; a
+    repeated option key, a negative holdout or an out-of-range seed were taken or raised
+    torch's message; an over-sized learner was fitted and written without a word."""
+    data, model = tmp_path / "data.csv", tmp_path / "m.pt"
+    _make_csv(data)
+    assert main(["fit", str(data), "--column", "vibration", "--time-column", "hours",
+                 "--learner", "elm", "--out", str(model)]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert "(the model is trained on the first 96 rows; the 24 held out are not in it" in out
+    rul = ["rul", str(model), str(data), "--threshold", "3", "--filter", "sckf", "--json"]
+    assert main(rul + [str(tmp_path / "r.json")]) in (0, 3)
+    err = capsys.readouterr().err
+    assert "warning: the threshold 3 lies outside the model's training range" in err
+    import json
+
+    flags = json.loads((tmp_path / "r.json").read_text())["flags"]
+    assert any(f.startswith("the threshold 3 lies outside") for f in flags)
+    assert main(["forecast", str(model), str(data), "--horizon", "3", "--filter", "pf",
+                 "--particles", "1"]) == 2  # fmt: skip
+    _one_error_line(capsys, "--particles: n_particles must be an int >= 10, got 1")
+    clock = tmp_path / "clock.csv"  # Unix seconds: every step's time kept to the second
+    x = _make_csv(tmp_path / "tmp.csv")
+    clock.write_text("t,v\n" + "".join(f"{1.7e9 + 600 * i:.0f},{float(v)!r}\n"
+                                       for i, v in enumerate(x)))  # fmt: skip
+    cm = tmp_path / "c.pt"
+    assert main(["fit", str(clock), "--column", "v", "--time-column", "t", "--learner", "elm",
+                 "--out", str(cm)]) == 0  # fmt: skip
+    capsys.readouterr()
+    assert main(["forecast", str(cm), str(clock), "--horizon", "2"]) == 0
+    table = capsys.readouterr().out
+    last = 1.7e9 + 600 * 119
+    assert f"1     {last + 600:.0f}" in table and f"2     {last + 1200:.0f}" in table
+    fit = ["fit", str(data), "--column", "vibration", "--time-column", "hours", "--out",
+           str(tmp_path / "x.pt")]  # fmt: skip
+    for extra, text in (
+        (["--learner", "elm", "--learner-option", "n_hidden=3", "--learner-option",
+          "n_hidden=4"], "--learner-option: n_hidden is given twice (n_hidden=3, n_hidden=4)"),
+        (["--learner", "elm", "--holdout", "-1"], "holdout must be a fraction in [0, 1) or a "
+         "count >= 0, got -1"),
+        (["--learner", "elm", "--seed", "99999999999999999999"], "seed must lie in [-2**63, "
+         "2**64)"),
+    ):  # fmt: skip
+        assert main(fit + extra) == 2
+        _one_error_line(capsys, text)
+    assert main(fit + ["--learner", "anfis", "--optimizer", "closed-form", "--embedding",
+                       "8"]) == 0  # fmt: skip
+    err = capsys.readouterr().err
+    assert "warning: the ANFIS has 2,336 trained coefficients for 88 training windows" in err
+
+
+
+def test_cli_censored_share_below_one_percent_is_not_zero():
+    from prognos_torch.cli import _share
+
+    assert [_share(v) for v in (0.002, 0.17, 0.999, 1.0)] == ["0.2 %", "17 %", "99.9 %", "100 %"]
