@@ -225,6 +225,10 @@ class RecordingGapWarning(UserWarning):
     """The rows of a series read by a learner are not evenly spaced (``warning:`` line)."""
 
 
+class LookAheadWarning(UserWarning):
+    """A backtest (``--until``) with a model trained on rows after the cut."""
+
+
 class CapacityWarning(UserWarning):
     """A learner with more trained coefficients than training windows (``warning:`` line)."""
 
@@ -376,6 +380,17 @@ def _load_for_prediction(args):
     _warn_gaps(series)
     # with --until, the rows after the cut are the truth to compare against
     truth = _series_from_args(args, data_cfg, truth=True)[0] if args.until else None
+    info = model.config.get("series") or {}
+    end = info.get("t_train_end")  # (model files from before it was recorded: not checked)
+    if truth is not None and end is not None and info.get("start") == series.start:
+        if end > float(series.t[-1]):
+            warnings.warn(
+                f"the model was trained on rows up to t = {fmt_time(end)}, after the --until "
+                f"cut at t = {fmt_time(float(series.t[-1]))}: the backtest's learner has seen "
+                "the rows it is scored on (fit with the same --until for a fair backtest)",
+                LookAheadWarning,
+                stacklevel=2,
+            )
     return model, series, data_cfg, truth
 
 

@@ -594,3 +594,21 @@ def test_cli_censored_share_below_one_percent_is_not_zero():
     from prognos_torch.cli import _share
 
     assert [_share(v) for v in (0.002, 0.17, 0.999, 1.0)] == ["0.2 %", "17 %", "99.9 %", "100 %"]
+
+
+def test_cli_backtest_with_a_model_trained_past_the_cut_warns(tmp_path, capsys):
+    """--until 40 with a model fitted on every row: its learner had seen the rows it is scored
+    on, and nothing said so."""
+    data = tmp_path / "data.csv"
+    _make_csv(data)
+    fit = ["fit", str(data), "--column", "vibration", "--time-column", "hours", "--learner",
+           "elm", "--holdout", "0"]  # fmt: skip
+    for name, extra in (("all.pt", []), ("cut.pt", ["--until", "40"])):
+        assert main(fit + extra + ["--out", str(tmp_path / name)]) == 0
+    capsys.readouterr()
+    rul = ["rul", "--threshold", "1.6", "--filter", "sckf", "--until", "40"]
+    assert main([rul[0], str(tmp_path / "all.pt"), str(data), *rul[1:]]) in (0, 3)
+    assert ("warning: the model was trained on rows up to t = 59.5, after the --until cut at "
+            "t = 40") in capsys.readouterr().err  # fmt: skip
+    assert main([rul[0], str(tmp_path / "cut.pt"), str(data), *rul[1:]]) in (0, 3)
+    assert "trained on rows up to" not in capsys.readouterr().err

@@ -263,3 +263,15 @@ def test_prognose_refuses_paths_beyond_the_budget_before_it_runs(monkeypatch):
     assert prognose(y, 20.0, n_paths=fits, method="linear").status == "ok"
     with pytest.raises(MemoryBudgetError):
         prognose(y, 20.0, n_paths=fits + 1, method="linear")
+
+
+def test_forecast_refuses_a_horizon_beyond_the_budget_before_it_runs(monkeypatch):
+    """forecast --horizon 1e6 ran for minutes at 1.8 GB and on (rul's paths were bounded)."""
+    from prognos_torch.workflow import fit_series, forecast, load_series
+    from prognos_torch.workflow.memory import FORECAST_VALUES_PER_STEP, KERNEL_BLOCK_BYTES
+
+    model = fit_series(load_series(np.sin(np.arange(80) / 5.0)), "elm", None, 3)
+    monkeypatch.setenv("PROGNOS_MEMORY_BUDGET", "100M")
+    fits = (100 * 2**20 - KERNEL_BLOCK_BYTES) // (8 * FORECAST_VALUES_PER_STEP)
+    with pytest.raises(MemoryBudgetError, match=f"a forecast of {fits + 1:,} steps needs about"):
+        forecast(model, load_series(np.sin(np.arange(80) / 5.0)), fits + 1)

@@ -475,6 +475,8 @@ def fit_series(
             "dt": series.dt,
             "n": T,
             "n_train": n_train,
+            # the last training row's time (a backtest cut before it sees what it predicts)
+            "t_train_end": float(series.t[n_train - 1]),
         },
         "data": dict(data or {}),
         "holdout": {"n": n_hold, "metrics": {}},

@@ -55,7 +55,7 @@ from ..prognosis.rul import RULDistribution, rul_distribution
 from . import extrapolation as _extra
 from .data import Series
 from .fitted import FittedModel
-from .memory import check_paths_memory
+from .memory import check_forecast_memory, check_paths_memory
 
 __all__ = [
     "ForecastResult",
@@ -554,6 +554,8 @@ def forecast(
     seed = int(model.config.get("seed", 0)) if seed is None else check_seed(seed)
     if name not in GAUSSIAN_FILTERS:
         check_paths_memory(n_particles, horizon, model.m)
+    else:
+        check_forecast_memory(horizon)
     z = _scaled(model, series)
     kind, res, ssm = _filtered(model, z, name, filter_steps, n_particles, seed, series.name)
     inv = model.scaler.inverse_transform
