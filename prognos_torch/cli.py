@@ -191,18 +191,32 @@ def _series_from_args(args, data_cfg: dict | None = None, *, truth: bool = False
     where = parse_where(args.where if args.where else cfg.get("where") or None)
     fill = args.fill if args.fill is not None else cfg.get("fill")
     decimal = args.decimal or cfg.get("decimal") or "."
-    time_format = args.time_format or cfg.get("time_format")
-    series = load_series(
-        args.data,
-        column,
-        time_column=time_column,
-        where=where or None,
-        fill=fill,
-        last=None if truth else args.last,
-        until=None if truth else args.until,
-        decimal=decimal,
-        time_format=time_format,
-    )
+    # --time-format '' resets a model file's layout to ISO 8601
+    given_format = getattr(args, "time_format", None)
+    time_format = (given_format if given_format is not None else cfg.get("time_format")) or None
+    inherited = [f"{k}={v!r}" for k, v, mine in (
+        ("decimal", cfg.get("decimal"), args.decimal),
+        ("time_format", cfg.get("time_format"), given_format)) if v and mine is None]  # fmt: skip
+    try:
+        series = load_series(
+            args.data,
+            column,
+            time_column=time_column,
+            where=where or None,
+            fill=fill,
+            last=None if truth else args.last,
+            until=None if truth else args.until,
+            decimal=decimal,
+            time_format=time_format,
+        )
+    except ValueError as exc:
+        if not inherited:
+            raise
+        raise ValueError(
+            f"{exc} ({', '.join(inherited)} {'comes' if len(inherited) == 1 else 'come'} from "
+            "the model file; --decimal . or "
+            "--time-format '' read this file otherwise)"
+        ) from None
     used = {"column": series.name, "time_column": time_column, "where": where, "fill": fill}
     if decimal != ".":  # model files of point-decimal data stay as they were
         used["decimal"] = decimal

@@ -612,3 +612,25 @@ def test_cli_backtest_with_a_model_trained_past_the_cut_warns(tmp_path, capsys):
             "t = 40") in capsys.readouterr().err  # fmt: skip
     assert main([rul[0], str(tmp_path / "cut.pt"), str(data), *rul[1:]]) in (0, 3)
     assert "trained on rows up to" not in capsys.readouterr().err
+
+
+def test_cli_a_model_files_layout_is_named_and_can_be_reset(tmp_path, capsys):
+    """A model fitted with --decimal , and --time-format kept them for every later file; the
+    errors did not say where they came from and --time-format '' could not reset the layout."""
+    rng = np.random.default_rng(1)
+    x = 1.0 + 0.3 * np.sin(np.arange(120) / 4.0) + 0.03 * rng.standard_normal(120)
+    stamps = np.datetime64("2024-01-01T00:00") + (np.arange(120) * 30).astype("timedelta64[m]")
+    dm, iso, model = tmp_path / "dm.csv", tmp_path / "iso.csv", tmp_path / "dm.pt"
+    dm.write_text("t;v\n" + "".join(
+        f"{s.astype(object).strftime('%d/%m/%Y %H:%M')};{str(float(v)).replace('.', ',')}\n"
+        for s, v in zip(stamps, x)))  # fmt: skip
+    iso.write_text("t,v\n" + "".join(f"{s},{float(v)!r}\n" for s, v in zip(stamps, x)))
+    assert main(["fit", str(dm), "--column", "v", "--time-column", "t", "--decimal", ",",
+                 "--time-format", "%d/%m/%Y %H:%M", "--learner", "elm", "--out",
+                 str(model)]) == 0  # fmt: skip
+    capsys.readouterr()
+    fc = ["forecast", str(model), str(iso), "--horizon", "2"]
+    assert main(fc) == 2
+    _one_error_line(capsys, "(decimal=',', time_format='%d/%m/%Y %H:%M' come from the model "
+                    "file; --decimal . or --time-format '' read this file otherwise)")  # fmt: skip
+    assert main(fc + ["--time-format", "", "--decimal", "."]) == 0
