@@ -234,8 +234,9 @@ def test_cli_fill_censored_rul_and_help(tmp_path, capsys):
     assert main(argv) == 3
     captured = capsys.readouterr()
     assert "n/a (100 % of paths do not reach the threshold in the horizon)" in captured.out
-    err = captured.err.strip()
-    assert err.splitlines() == [err] and err.startswith(
+    warned, err = captured.err.strip().splitlines()  # the threshold far beyond the range
+    assert warned.startswith("warning: the threshold 1e+06 lies outside the model's training")
+    assert err.startswith(
         "censored RUL: no predicted path reaches the threshold 1e+06 within the horizon "
         "of 30 steps (15 hours); the RUL exceeds 15 hours"
     )
@@ -398,7 +399,9 @@ def test_cli_rul_from_a_model_writes_its_record_as_json(tmp_path, capsys):
     with pytest.warns(ExtrapolationWarning) as seen:  # the data left the training range
         res = rul(load_model(model), load_series(data, "rms", time_column="ts"), 2.0,
                   horizon=200, filter="stpf", filter_steps=100, n_particles=200)  # fmt: skip
-    assert rec["flags"] == list(res.flags) == [str(seen[0].message)]
+    # the data and the threshold 2 both lie beyond the training range
+    assert rec["flags"] == list(res.flags) == [str(w.message) for w in seen]
+    assert len(seen) == 2 and rec["flags"][1].startswith("the threshold 2 lies outside")
     s = res.summary()
     assert rec["source"] == str(data) and rec["column"] == "rms" and rec["where"] == {}
     assert rec["date"] == "2024-01-01T00:59:00" and rec["onset"] is None

@@ -206,7 +206,7 @@ def test_cli_refuses_over_budget_with_one_line_and_writes_nothing(tmp_path, caps
     # the ELM's hidden layer: 2,400 x 20000 doubles
     args = base + ["--learner", "elm", "--learner-option", "n_hidden=20000"]
     assert main(args) == 2
-    _one_error_line(capsys, "hidden-layer matrix", "--learner elm")
+    _one_error_line(capsys, "hidden-layer matrix", "fewer hidden nodes (n_hidden)")
     assert not out.exists()
     # --max-support only for the LS-SVR
     assert main(base + ["--learner", "elm", "--max-support", "10"]) == 2
