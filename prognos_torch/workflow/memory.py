@@ -160,18 +160,24 @@ def check_fit_memory(learner: str, optimizer: str, n_rows: int, m: int, options:
     return need
 
 
+def _within_budget(need: int, what: str, remedy: str) -> int:
+    """``need`` bytes, or a :class:`MemoryBudgetError` saying that ``what`` ("... need") needs
+    more than the budget, and ``remedy``."""
+    budget = memory_budget()
+    if need > budget:
+        raise MemoryBudgetError(
+            f"{what} about {format_bytes(need)}, more than the memory budget of "
+            f"{format_bytes(budget)} ({ENV_BUDGET}); {remedy}"
+        )
+    return need
+
+
 def check_paths_memory(n_particles: int, horizon: int, m: int) -> int:
     """Raise :class:`MemoryBudgetError` when ``n_particles`` paths of ``horizon`` steps (and
     the filter's per-particle covariances) would exceed the budget; returns the estimate."""
     need = _F64 * n_particles * (6 * horizon + 4 * m * m + 8 * m) + KERNEL_BLOCK_BYTES
-    budget = memory_budget()
-    if need > budget:
-        raise MemoryBudgetError(
-            f"{n_particles:,} particle paths of {horizon:,} steps need about "
-            f"{format_bytes(need)}, more than the memory budget of {format_bytes(budget)} "
-            f"({ENV_BUDGET}); use fewer --particles or a shorter --horizon"
-        )
-    return need
+    return _within_budget(need, f"{n_particles:,} particle paths of {horizon:,} steps need",
+                          "use fewer --particles or a shorter --horizon")  # fmt: skip
 
 
 #: Memory per step of a Gaussian-filter forecast, in float64 values: measured about 7 kB a
@@ -183,13 +189,8 @@ def check_forecast_memory(horizon: int) -> int:
     """Raise :class:`MemoryBudgetError` when a Gaussian-filter forecast of ``horizon`` steps
     would exceed the budget (:data:`FORECAST_VALUES_PER_STEP` each); returns the estimate."""
     need = _F64 * horizon * FORECAST_VALUES_PER_STEP + KERNEL_BLOCK_BYTES
-    budget = memory_budget()
-    if need > budget:
-        raise MemoryBudgetError(
-            f"a forecast of {horizon:,} steps needs about {format_bytes(need)}, more than the "
-            f"memory budget of {format_bytes(budget)} ({ENV_BUDGET}); use a shorter --horizon"
-        )
-    return need
+    return _within_budget(need, f"a forecast of {horizon:,} steps needs",
+                          "use a shorter --horizon")  # fmt: skip
 
 
 #: Memory per ``prognose`` sample path, in float64 values: measured 3.8 kB a path (peak
@@ -201,14 +202,8 @@ def check_prognose_memory(n_paths: int) -> int:
     """Raise :class:`MemoryBudgetError` when ``prognose``'s ``n_paths`` sample paths would
     exceed the budget (:data:`PROGNOSE_VALUES_PER_PATH` each); returns the estimate."""
     need = _F64 * n_paths * PROGNOSE_VALUES_PER_PATH + KERNEL_BLOCK_BYTES
-    budget = memory_budget()
-    if need > budget:
-        raise MemoryBudgetError(
-            f"n_paths = {n_paths:,} sample paths need about {format_bytes(need)}, more than "
-            f"the memory budget of {format_bytes(budget)} ({ENV_BUDGET}); use fewer paths "
-            "(--paths)"
-        )
-    return need
+    return _within_budget(need, f"n_paths = {n_paths:,} sample paths need",
+                          "use fewer paths (--paths)")  # fmt: skip
 
 
 def allocation_failure(exc: BaseException, learner: str) -> str | None:
