@@ -102,7 +102,7 @@ def within_probability(res, within: float, hint: str = "") -> float | None:
     try:
         return res.failure_probability(within)
     except ValueError as exc:
-        beyond = hint if within > res.bound else ""
+        beyond = hint if math.isfinite(within) and within > res.bound else ""
         raise ValueError(f"--within: {exc}{beyond}") from None
 
 

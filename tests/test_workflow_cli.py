@@ -583,6 +583,8 @@ def test_cli_second_pass_refusals_flags_and_report_lines(tmp_path, capsys):
          "count >= 0, got -1"),
         (["--learner", "elm", "--seed", "99999999999999999999"], "seed must lie in [-2**63, "
          "2**64)"),
+        (["--learner", "elm", "--optimizer", "adam", "--optimizer-option", "lr=-1"],
+         "adam optimizer option lr must be a positive number, got -1"),
     ):  # fmt: skip
         assert main(fit + extra) == 2
         _one_error_line(capsys, text)

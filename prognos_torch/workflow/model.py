@@ -312,6 +312,9 @@ def _train(
             )
         opt = KalmanOptimizer(net, **_kalman_options(optimizer, learner, net, oopts))
         hist = optim_fit(net, opt, (X, Y[:, None]), epochs=epochs, batch_size=1, progress=progress)
+    elif not 0 < oopts["lr"] < math.inf:  # (torch said "Invalid learning rate: -1")
+        raise ValueError(f"{optimizer} optimizer option lr must be a positive number, got "
+                         f"{oopts['lr']!r}")  # fmt: skip
     elif optimizer == "adam":
         opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=oopts["lr"])
         hist = optim_fit(
