@@ -638,7 +638,11 @@ def _cmd_rul(args) -> int:
         plot_rul(args.plot, res)
         say(f"figure written to {args.plot}")
     if args.json is not None:
-        extra = {"crossing_probability": res.crossing_probability}
+        extra = {"crossing_probability": res.crossing_probability,
+                 # what made the answer: the model file and the settings it was run with
+                 "model_file": {"path": str(args.model), "learner": model.config.get("learner"),
+                                "m": model.m, "particles": res.n_particles,
+                                "horizon_steps": res.horizon}}  # fmt: skip
         if args.within is not None:
             extra["p_within"] = {"within": args.within, "p": p_within}
         if truth is not None:

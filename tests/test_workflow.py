@@ -617,7 +617,7 @@ def test_figures_of_a_dated_series_put_dates_on_the_time_axis(tmp_path):
     top, pmf = fig.axes
     fig.canvas.draw()
     assert top.get_xlabel() == "date (UTC)"
-    assert top.get_title().startswith(f"at {r.history.date(r.t_last)}: median RUL")
+    assert top.get_title().startswith(f"at {r.history.date(r.t_last)} UTC: median RUL")
     ticks = top.get_xticks()
     labels = [t.get_text() for t in top.get_xticklabels()]
     t0, t1 = top.get_xlim()

@@ -406,6 +406,9 @@ def test_cli_rul_from_a_model_writes_its_record_as_json(tmp_path, capsys):
     assert rec["source"] == str(data) and rec["column"] == "rms" and rec["where"] == {}
     assert rec["date"] == "2024-01-01T00:59:00" and rec["onset"] is None
     assert rec["time_zone"] == "UTC"  # (the file's offsets applied when read)
+    # what made the answer (the record did not name the model file or its settings)
+    assert rec["model_file"] == {"path": str(model), "learner": "elm", "m": 3,
+                                 "particles": 200, "horizon_steps": 200}  # fmt: skip
     for k in ("median", "q05", "q95", "mean", "censored_mass", "bound"):
         assert rec["rul"][k] == s[k], k
     assert rec["crossing_probability"] == res.crossing_probability

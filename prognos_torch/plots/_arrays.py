@@ -107,9 +107,10 @@ def time_axis(ax, series) -> None:
 
 
 def time_text(series, t: float) -> str:
-    """Time ``t`` of ``series`` for a title: its date-time (to the second) where the series has
-    date-times, else ``"t = "`` and the number."""
-    return series.date(t) or f"t = {t:g}"
+    """Time ``t`` of ``series`` for a title: its date-time (to the second, UTC, as the reports
+    give it) where the series has date-times, else ``"t = "`` and the number."""
+    date = series.date(t)
+    return f"{date} UTC" if date else f"t = {t:g}"
 
 
 def as_numpy(x) -> np.ndarray:
