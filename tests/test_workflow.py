@@ -637,6 +637,7 @@ def test_figures_of_a_dated_series_put_dates_on_the_time_axis(tmp_path):
 
     rec = json.loads(json.dumps(r.to_dict(), allow_nan=False))
     assert rec["status"] == "ok" and rec["date"] == date_after(r.history.start, r.t_last, "s")
+    assert rec["filter"] == r.filter.lower() == "ekf"  # as filter= names it (it read "EKF")
     for k in ("mean", "median", "q05", "q95", "censored_mass", "bound"):
         assert rec["rul"][k] == s[k], k
     for k, q in (("q05", 0.05), ("median", 0.5), ("q95", 0.95)):

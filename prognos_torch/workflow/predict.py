@@ -350,8 +350,8 @@ class RULResult:
 
         Keys: ``status``, ``t`` (``t_last``) and its ``date``, ``time_zone`` of every date
         (``"UTC"``: a time column's offsets are applied when it is read; ``None`` for numeric
-        time), ``time_unit``, ``threshold``,
-        ``direction``, ``model``, ``filter``; ``rul``, :meth:`summary`'s ``mean``, ``median``,
+        time), ``time_unit``, ``threshold``, ``direction``, ``model``, ``filter`` (lower case,
+        as ``filter=`` names it); ``rul``, :meth:`summary`'s ``mean``, ``median``,
         ``q05``, ``q95``, ``censored_mass`` and ``bound`` (a quantile beyond the horizon,
         withheld before onset, is ``None``; ``censored_mass`` of them lies beyond ``bound``);
         ``failure_date``, :meth:`failure_date` at 0.05, 0.5 and 0.95 and ``bound``, the date of
@@ -379,7 +379,7 @@ class RULResult:
             "threshold": num(self.threshold),
             "direction": self.direction,
             "model": self.model,
-            "filter": self.filter,
+            "filter": self.filter.lower(),  # (as --filter and filter= name it)
             "rul": {k: num(s[k]) for k in ("mean", "median", "q05", "q95", "censored_mass")}
             | {"bound": num(bound)},
             "failure_date": {k: after(s[k]) for k in ("q05", "median", "q95")}
