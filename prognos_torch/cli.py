@@ -312,6 +312,8 @@ def _cmd_fit(args) -> int:
     if sel is not None:
         c = sel["candidates"]
         how = f"chosen by one-step validation RMSE over m = {c[0]}..{c[-1]}"
+        if sel.get("seconds") is not None:  # (each candidate is a fit: --embedding skips it)
+            how += f" in {sel['seconds']:.2f} s (--embedding M skips the search)"
         scores = "validation RMSE by m: " + ", ".join(
             f"{m}: {_fmt(None if v is None else v * span, 3)}" for m, v in zip(c, sel["val_rmse"])
         )

@@ -434,6 +434,7 @@ def fit_series(
 
     selection = None
     if m is None:
+        t_sel = time.perf_counter()
         m, scores = select_embedding(
             z, learner, lopts, M_CANDIDATES[learner], seed=seed, progress=progress
         )
@@ -441,6 +442,7 @@ def fit_series(
             "candidates": list(scores),
             "val_rmse": [None if not math.isfinite(v) else v for v in scores.values()],
             "criterion": "one-step validation RMSE on the last 20% of the training part",
+            "seconds": time.perf_counter() - t_sel,  # (a fit per candidate: often the most)
         }
     X, Y = embed(z, m)
     net = build_learner(learner, m, lopts, seed=seed, device=z.device, n_rows=n_train)
