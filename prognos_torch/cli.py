@@ -303,10 +303,12 @@ def _cmd_fit(args) -> int:
         optimizer_options=oopts,
         data=data_cfg,
         progress=None,  # bars on a terminal only: stderr stays one line per warning otherwise
+        refit=args.refit,
     )
     cfg = model.config
     span = float(model.scaler.data_max - model.scaler.data_min)
-    n_train, n_hold = cfg["series"]["n_train"], cfg["holdout"]["n"]
+    n_hold = cfg["holdout"]["n"]
+    n_train = cfg["series"]["n"] - n_hold  # (the scored model's; --refit's file has them all)
     sel = cfg["m_selection"]
     how, scores = "given", ""
     if sel is not None:
@@ -366,7 +368,7 @@ def _cmd_fit(args) -> int:
         )
     # trained coefficients (the LS-SVR has one per window by design, its C regularises them)
     n_coef = sum(p.numel() for p in model.learner.parameters() if p.requires_grad)
-    windows = n_train - model.m
+    windows = cfg["series"]["n_train"] - model.m
     if cfg["learner"] != "lssvr" and n_coef > windows:
         warnings.warn(
             f"the {cfg['learner'].upper()} has {n_coef:,} trained coefficients for {windows:,} "
@@ -378,10 +380,14 @@ def _cmd_fit(args) -> int:
         )
     save_model(model, args.out)
     print(f"\nmodel written to {args.out}")
-    if n_hold:  # the file holds the model scored above, not one refitted on every row
+    if n_hold and cfg.get("refit"):
+        print(f"(scored above as trained on the first {n_train} rows; the model written is "
+              f"trained again on all {cfg['series']['n']})")  # fmt: skip
+    elif n_hold:  # the file holds the model scored above, not one refitted on every row
         print(
             f"(the model is trained on the first {n_train} rows; the {n_hold} held out are "
-            "not in it: --holdout 0 trains on every row)"
+            "not in it: --refit trains it again on every row after scoring, --holdout 0 "
+            "trains on every row without a score)"
         )
     return 0
 

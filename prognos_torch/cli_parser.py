@@ -169,6 +169,12 @@ def add_fit(sub, cmd) -> None:
         default="0.2",
         help="final values kept for evaluation: a fraction (0.2) or a count (50); 0 for none",
     )
+    g.add_argument(
+        "--refit",
+        action="store_true",
+        help="after scoring the held-out values, train the model written again on every value "
+        "(the same embedding and options): the model to forecast the latest level with",
+    )
     g.add_argument("--seed", type=int, default=0, help="seed of initialisation and sampling")
     g.add_argument(
         "--max-support",

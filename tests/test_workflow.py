@@ -677,3 +677,20 @@ def test_dates_far_beyond_2262_are_given_and_beyond_292000_years_are_none():
     )
     assert s.date(1e6) == date_after(start, 1e6, "s") and s.date(1e9) is None
     assert _dates(start, [1.0, math.nan, 1e9]) == ["2004-02-13T10:32:39", "", ""]
+
+
+def test_refit_trains_the_written_model_on_every_value_and_keeps_the_scores():
+    """refit=True: the held-out scores of the model of the training part, and the model of
+    every value (the same m, options and seed), which a plain holdout=0 fit equals."""
+    t, x = _series_values(120)
+    s = load_series(x, time=t)
+    scored = fit_series(s, "elm", None, None)
+    full = fit_series(s, "elm", None, None, refit=True)
+    ref = fit_series(s, "elm", None, scored.m, holdout=0)
+    assert full.m == scored.m and full.metrics == scored.metrics and full.config["refit"]
+    assert full.config["series"]["n_train"] == 120 and full.config["m_selection"] is not None
+    for a, b in zip(full.learner.parameters(), ref.learner.parameters()):
+        assert torch.equal(a, b)
+    assert float(full.scaler.data_max) == float(ref.scaler.data_max) == float(x.max())
+    with pytest.raises(TypeError, match="refit must be a bool"):
+        fit_series(s, "elm", None, 3, refit="yes")

@@ -554,6 +554,10 @@ def test_cli_second_pass_refusals_flags_and_report_lines(tmp_path, capsys):
                  "--learner", "elm", "--out", str(model)]) == 0  # fmt: skip
     out = capsys.readouterr().out
     assert "(the model is trained on the first 96 rows; the 24 held out are not in it" in out
+    assert main(["fit", str(data), "--column", "vibration", "--time-column", "hours",
+                 "--learner", "elm", "--refit", "--out", str(tmp_path / "r.pt")]) == 0  # fmt: skip
+    assert ("(scored above as trained on the first 96 rows; the model written is trained again "
+            "on all 120)") in capsys.readouterr().out  # fmt: skip
     rul = ["rul", str(model), str(data), "--threshold", "3", "--filter", "sckf", "--json"]
     assert main(rul + [str(tmp_path / "r.json")]) in (0, 3)
     err = capsys.readouterr().err

@@ -361,6 +361,7 @@ def fit_series(
     optimizer_options: dict | None = None,
     data: dict | None = None,
     progress: bool | None = False,
+    refit: bool = False,
 ) -> FittedModel:
     """Fit a one-step learner to ``series`` and evaluate it on the held-out tail.
 
@@ -378,6 +379,10 @@ def fit_series(
             command line can read the same column again.
         progress: ``tqdm`` bars on stderr over the embedding candidates and the training
             (``None``: only where stderr is a terminal; the command line's choice).
+        refit: after scoring the held-out tail, train the returned model again on every value
+            (the same ``m``, options and seed; its scaler from every value): the model to
+            forecast the latest level with. Its ``metrics`` stay those of the scored model
+            (``config["refit"]`` is ``True``; ``series.n_train`` counts every value).
 
     Returns:
         :class:`FittedModel`.
@@ -395,6 +400,8 @@ def fit_series(
     lopts = _merge(LEARNER_DEFAULTS[learner], learner_options, f"{learner} learner")
     oopts = _merge(OPTIMIZER_DEFAULTS[optimizer], optimizer_options, f"{optimizer} optimizer")
     seed = check_seed(seed)
+    if not isinstance(refit, bool):
+        raise TypeError(f"refit must be a bool, got {refit!r}")
     T = len(series)
     if m is not None:
         if isinstance(m, bool) or not isinstance(m, int) or m < 1:
@@ -497,4 +504,12 @@ def fit_series(
     model = FittedModel(net, scaler, config)
     if n_hold > 0:
         config["holdout"]["metrics"] = holdout_metrics(model, series, n_train)
+    if refit and n_hold > 0:  # the scored model's metrics, every value's model
+        full = fit_series(series, learner, optimizer, m, holdout=0, seed=seed,
+                          learner_options=learner_options, optimizer_options=optimizer_options,
+                          data=data, progress=progress)  # fmt: skip
+        full.config["holdout"] = config["holdout"]
+        full.config["m_selection"] = selection
+        full.config["refit"] = True
+        return full
     return model
