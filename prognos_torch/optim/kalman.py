@@ -87,17 +87,14 @@ _BASE_ADD_PARAM_GROUP = getattr(
 )
 
 
-def _option_sources(group: dict) -> dict:
-    return {k: group[k] for k in _FIXED_OPTIONS if k in group}
-
-
 def _group_record(group: dict) -> tuple:
-    """What :meth:`KalmanOptimizer._check_options` compares a group with: copies of its tensor
-    options (an in-place change keeps the object), its parameters and their ``requires_grad``."""
-    tensors = {k: v.detach().clone() for k, v in _option_sources(group).items()
-               if isinstance(v, Tensor)}  # fmt: skip
+    """What :meth:`KalmanOptimizer._check_options` compares a group with: its fixed options (the
+    objects), copies of the tensor ones (an in-place change keeps the object), its parameters
+    and their ``requires_grad``."""
+    sources = {k: group[k] for k in _FIXED_OPTIONS if k in group}
+    tensors = {k: v.detach().clone() for k, v in sources.items() if isinstance(v, Tensor)}
     params = tuple(group["params"])
-    return tensors, tuple(map(id, params)), tuple(p.requires_grad for p in params)
+    return sources, tensors, tuple(map(id, params)), tuple(p.requires_grad for p in params)
 
 
 class KalmanOptimizer(torch.optim.Optimizer):
@@ -311,7 +308,6 @@ class KalmanOptimizer(torch.optim.Optimizer):
         if not self._building:
             i = len(self.param_groups) - 1
             self._cfg.append(cfg)
-            self._sources.append(_option_sources(self.param_groups[i]))
             self._records.append(_group_record(self.param_groups[i]))
             self._union()
             self.state[_state_key(i)] = self._initial_state(i, None)
@@ -325,7 +321,6 @@ class KalmanOptimizer(torch.optim.Optimizer):
             _configure(self.module, g, f"param_groups[{i}]")
             for i, g in enumerate(self.param_groups)
         ]
-        self._sources = [_option_sources(g) for g in self.param_groups]
         self._records = [_group_record(g) for g in self.param_groups]
         self._union()
         self._out_shapes: dict[tuple, torch.Size] = {}
@@ -659,8 +654,8 @@ class KalmanOptimizer(torch.optim.Optimizer):
         change in ``param_groups`` (a new value, a tensor changed in place, other
         ``params``) or a parameter frozen or unfrozen since is refused rather than ignored (and
         then applied by a reload, so that a resumed run would differ)."""
-        for i, (g, src, rec) in enumerate(zip(self.param_groups, self._sources, self._records)):
-            tensors, ids, grads = rec
+        for i, (g, rec) in enumerate(zip(self.param_groups, self._records)):
+            src, tensors, ids, grads = rec
             for key, value in src.items():
                 if g.get(key) is not value or (
                     key in tensors and not torch.equal(value.detach(), tensors[key])
@@ -698,7 +693,6 @@ class KalmanOptimizer(torch.optim.Optimizer):
             theta = b.flatten()
             if not torch.equal(theta, s["mean"].to(b.dtype).to(torch.float64)):
                 s["mean"] = theta
-            b.mark_seen()
 
     def _before_steps(self) -> None:
         """What a step (or a compiled sequence of steps) checks and adopts first."""

@@ -168,20 +168,8 @@ def fit_likelihood(
     trace: list[Tensor] = []
     state: dict = {}
 
-    def diverged(p) -> FloatingPointError | None:
-        bad = [n for n, v in p.items() if not bool(torch.isfinite(v).all())]
-        if not bad:
-            return None
-        return FloatingPointError(
-            f"the log-likelihood became non-finite after {len(trace)} steps: the parameters "
-            f"{bad} left the finite numbers (lower the learning rate or start closer)"
-        )
-
     def closure():
         opt.zero_grad()
-        err = diverged(leaves)  # (a model of such parameters is refused by the filter)
-        if err is not None:
-            raise err
         ll = loglik(leaves)
         if not bool(torch.isfinite(ll).all()):
             raise FloatingPointError(
@@ -206,9 +194,6 @@ def fit_likelihood(
                 break
     with torch.no_grad():
         final = {n: p.detach().clone() for n, p in leaves.items()}
-        err = diverged(final)
-        if err is not None:
-            raise err
         ll = loglik(final)
         if not bool(torch.isfinite(ll).all()):
             raise FloatingPointError(f"the log-likelihood became non-finite after {taken} steps")

@@ -233,17 +233,6 @@ class ParameterBridge:
         parts = theta.split(self.numels)
         # copy_ casts to the parameter dtype; one fused call for all parameters
         torch._foreach_copy_(self._params, [t.view_as(p) for t, p in zip(parts, self._params)])
-        self._versions = [p._version for p in self._params]
-
-    def written_since_assign(self) -> bool:
-        """Whether a selected parameter was written in place since the last :meth:`assign`
-        (``module.load_state_dict``, a manual edit: its version counter moved)."""
-        seen = getattr(self, "_versions", None)
-        return seen is not None and any(p._version != v for p, v in zip(self._params, seen))
-
-    def mark_seen(self) -> None:
-        """Take the parameters' current version counters as seen."""
-        self._versions = [p._version for p in self._params]
 
     # ------------------------------------------------------------------ the model as g(theta, x)
     def functional(self, theta: Tensor, x: Tensor) -> Tensor:
