@@ -438,8 +438,9 @@ def _cmd_forecast(args) -> int:
     if truth is not None:
         after, after_t = fc.observed(truth)
         actual = after if after.numel() else None
+        off = fc.row_offset(truth)
         # after a recording gap the rows lie later than their steps: show their own times
-        if actual is not None and fc.row_offset(truth) > 0.5 * series.dt:
+        if actual is not None and off > 0.5 * series.dt:
             actual_t = after_t
     show = sorted({int(round(i * (H - 1) / 9)) for i in range(10)}) if H > 10 else range(H)
     header = ("step", f"time ({series.time_unit})", "mean", "lower", "upper")
@@ -477,7 +478,6 @@ def _cmd_forecast(args) -> int:
             f"{_fmt(float(pers))}"
         )
     if actual_t is not None:
-        off = fc.row_offset(truth)
         print(
             f"the observed rows after t = {fmt_time(float(series.t[-1]))} are not one step "
             f"({_fmt(series.dt)} {unit}) apart: each is compared with the step of its row, "

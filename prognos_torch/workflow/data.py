@@ -77,8 +77,7 @@ class Series:
                 continue
             name = f"Series {attr}"
             if isinstance(v, Tensor):
-                _real_numbers("b" if v.dtype == torch.bool else "c" if v.dtype.is_complex
-                              else "f", name)  # fmt: skip
+                _real_numbers(_kind_of(v), name)
                 v = v.to(torch.float64)
             else:
                 v = torch.from_numpy(array_values(v, name))
@@ -277,7 +276,7 @@ def array_values(v, name: str) -> np.ndarray:
     A pandas object gives its values by position, not by index label; ``NA`` becomes NaN
     (missing). Raises ``TypeError`` naming ``name`` for anything else."""
     if isinstance(v, Tensor):
-        _real_numbers("b" if v.dtype == torch.bool else "c" if v.dtype.is_complex else "f", name)
+        _real_numbers(_kind_of(v), name)
         return v.detach().to("cpu", torch.float64).numpy().copy()
     if v is None or isinstance(v, (str, bytes, numbers.Number)):  # (NumPy: a 0-d array)
         raise TypeError(
@@ -301,7 +300,10 @@ def array_values(v, name: str) -> np.ndarray:
 
 
 def _kind_of(v) -> str | None:
-    """NumPy's dtype kind of a sequence's elements (``None``: not an array of one kind)."""
+    """NumPy's dtype kind of a tensor's or a sequence's elements (``"b"``, ``"c"``, ...;
+    ``None``: not an array of one kind)."""
+    if isinstance(v, Tensor):
+        return "b" if v.dtype == torch.bool else "c" if v.dtype.is_complex else "f"
     try:
         return np.asarray(v).dtype.kind
     except (TypeError, ValueError):

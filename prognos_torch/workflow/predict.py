@@ -673,12 +673,8 @@ def rul(
         hi,
     )
     # a threshold beyond the training range is reached only where the learner extrapolates
-    thr_flag = _extra.warn(
-        f"the threshold {threshold:g}",
-        float(_extra.origin_distance(torch.tensor([threshold], dtype=torch.float64), 1, lo, hi)),
-        lo,
-        hi,
-    )
+    beyond = max(lo - threshold, threshold - hi, 0.0)
+    thr_flag = _extra.warn(f"the threshold {threshold:g}", beyond, lo, hi)
     if side is not None:
         warnings.warn(side, ThresholdWarning, stacklevel=2)
     kind, res, ssm = _filtered(model, z, name, filter_steps, n_particles, seed, series.name)
