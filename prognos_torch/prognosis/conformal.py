@@ -129,6 +129,11 @@ def _check_coverage(coverage) -> None:
         raise ValueError(f"coverage must lie in (0, 1), got {coverage!r}")
 
 
+def _check_bins(bins) -> None:
+    if isinstance(bins, bool) or not isinstance(bins, int) or bins < 1:
+        raise ValueError(f"bins must be an int >= 1, got {bins!r}")
+
+
 def _rank(n: int, coverage: float) -> int:
     return math.ceil((n + 1) * coverage - 1e-9)  # (guard against 0.9 * 10 = 9.000000000000002)
 
@@ -360,8 +365,7 @@ def calibrate_intervals(
             )
         assets = len({g for g, k in zip(groups, ok.tolist()) if k})
     pooled = conformal_margin(scores, coverage)
-    if isinstance(bins, bool) or not isinstance(bins, int) or bins < 1:
-        raise ValueError(f"bins must be an int >= 1, got {bins!r}")
+    _check_bins(bins)
     if bins == 1:
         return RULCalibration(pooled, float(coverage), n, assets=assets)
     if median is None:

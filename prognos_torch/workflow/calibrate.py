@@ -33,6 +33,8 @@ import torch
 from .._workers import check_workers, process_map
 from ..prognosis.conformal import (
     RULCalibration,
+    _check_bins,
+    _check_coverage,
     calibrate_intervals,
     interval_scores,
     record_settings,
@@ -123,12 +125,8 @@ def calibrate_rul(
         raise TypeError(f"threshold must be a real number or None, got {threshold!r}")
     check_workers(workers)
     # checked before the replays (minutes to hours on a real archive), not after them
-    if isinstance(coverage, bool) or not isinstance(coverage, (int, float)) or not (
-        0.0 < coverage < 1.0
-    ):
-        raise ValueError(f"coverage must lie in (0, 1), got {coverage!r}")
-    if isinstance(bins, bool) or not isinstance(bins, int) or bins < 1:
-        raise ValueError(f"bins must be an int >= 1, got {bins!r}")
+    _check_coverage(coverage)
+    _check_bins(bins)
     fr = tuple(fractions)
     if not fr or any(isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 < f < 1
                      for f in fr) or len(set(fr)) != len(fr):  # fmt: skip
