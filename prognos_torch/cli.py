@@ -192,11 +192,11 @@ def _series_from_args(args, data_cfg: dict | None = None, *, truth: bool = False
     fill = args.fill if args.fill is not None else cfg.get("fill")
     decimal = args.decimal or cfg.get("decimal") or "."
     # --time-format '' resets a model file's layout to ISO 8601
-    given_format = getattr(args, "time_format", None)
-    time_format = (given_format if given_format is not None else cfg.get("time_format")) or None
+    given = args.time_format
+    time_format = (given if given is not None else cfg.get("time_format")) or None
     inherited = [f"{k}={v!r}" for k, v, mine in (
         ("decimal", cfg.get("decimal"), args.decimal),
-        ("time_format", cfg.get("time_format"), given_format)) if v and mine is None]  # fmt: skip
+        ("time_format", cfg.get("time_format"), given)) if v and mine is None]  # fmt: skip
     try:
         series = load_series(
             args.data,
