@@ -294,6 +294,68 @@ def _configure(module: nn.Module, g: dict, where: str) -> _Group:
     return _Group(bridge, filt, chol_P0, chol_Q, chol_R1, R.dim() == 0)
 
 
+def _checked_state_dict(state_dict, module: nn.Module, param_groups: list[dict], device) -> dict:
+    """A copy of a :meth:`KalmanOptimizer.state_dict` ready for ``torch.optim``'s loader: each
+    group's belief copied to ``device`` and checked (float64, its parameters' shapes, ``runs``,
+    the mean and factor shapes); groups without ``lr`` get ``lr = 1``."""
+    if not isinstance(state_dict, dict) or "param_groups" not in state_dict:
+        raise TypeError("state_dict must be a dict from KalmanOptimizer.state_dict()")
+    sd = dict(state_dict)
+    st = dict(sd.get("state", {}))
+    saved = [dict(g) for g in sd["param_groups"]]
+    if len(saved) != len(param_groups):
+        raise ValueError(
+            f"state_dict has {len(saved)} parameter groups, this optimiser {len(param_groups)}"
+        )
+    for g in saved:
+        g.setdefault("lr", 1.0)
+    sd["param_groups"] = saved
+
+    def conv(v, where):
+        if isinstance(v, Tensor):
+            if v.is_floating_point() and v.dtype != torch.float64:
+                raise ValueError(
+                    f"state_dict {where} has dtype {v.dtype}; the Kalman belief must stay "
+                    "float64 (it was cast, resuming would not be exact)"
+                )
+            return v.detach().to(device=device).clone()
+        if isinstance(v, dict):
+            return {kk: conv(vv, f"{where}[{kk!r}]") for kk, vv in v.items()}
+        return v
+
+    for i, (g, cur) in enumerate(zip(saved, param_groups)):
+        key = _state_key(i)
+        if key not in st:
+            raise ValueError(
+                f"state_dict['state'] has no {key!r} entry (not a KalmanOptimizer state"
+                f"{'' if i == 0 else f' with {i + 1} parameter groups'})"
+            )
+        kal = conv(st[key], f"['state'][{key!r}]")
+        cfg = _configure(module, {**g, "params": cur["params"]}, f"state_dict param_groups[{i}]")
+        runs, n = g.get("runs"), cfg.bridge.numel
+        if runs != cur.get("runs"):
+            raise ValueError(
+                f"state_dict was saved with runs={runs!r}, this optimiser has "
+                f"runs={cur.get('runs')!r} (runs applies to the whole optimiser)"
+            )
+        shapes = kal.get("shapes")
+        if shapes is not None and [list(v) for v in cfg.bridge.shapes] != shapes:
+            raise ValueError(
+                f"state_dict param_groups[{i}] holds parameters of shapes {shapes}, this "
+                f"optimiser's are {[list(v) for v in cfg.bridge.shapes]}"
+            )
+        want = (n,) if runs is None else (runs, n)
+        if tuple(kal["mean"].shape) != want or tuple(kal["chol"].shape) != want + (n,):
+            raise ValueError(
+                f"state_dict belief {key!r} has mean {tuple(kal['mean'].shape)}, chol "
+                f"{tuple(kal['chol'].shape)}; this optimiser needs {want} and {want + (n,)}"
+            )
+        kal.pop("shapes", None)
+        st[key] = kal
+    sd["state"] = st
+    return sd
+
+
 def _check_matches(x: Tensor, name: str, dtype, device, checked: bool) -> None:
     """:func:`check_matches`; the finiteness test is skipped when the values were checked."""
     if checked:
