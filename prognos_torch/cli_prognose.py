@@ -232,7 +232,7 @@ def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[li
     used = list(dict.fromkeys(p["name"] for p in points or () if "score" in p))
     src = (f"{cal.n} points from {len(used)} of {len(names)} histories" if points is not None
            else f"{cal.n} points{_of(cal.assets)} of the --calibration file")  # fmt: skip
-    if math.isinf(s["margin"]):
+    if s["margin"] == math.inf:
         from .prognosis.conformal import points_needed
 
         needed = points_needed(cal.coverage)
@@ -240,10 +240,12 @@ def calibration_rows(res, cal, points: list[dict] | None, unit: str) -> tuple[li
     else:
         f = math.exp(abs(s["margin"]))
         note = f"split conformal on {src}; ends moved {'out' if s['margin'] >= 0 else 'in'} by a factor {f:.3g}"
+        if f == math.inf:  # (calibration intervals [0, inf): every other interval comes out empty)
+            note = f"split conformal on {src}, whose intervals were [0, inf): margin -inf"
     # an open end lies beyond the horizon moved by the margin (infinite: no margin yet)
     beyond = full["bound"] * math.exp(s["margin"]) if math.isfinite(s["margin"]) else math.inf
     text = f"[{_fmt(s['q05'])}, {_rul_end(s['q95'], beyond)}]"
-    if s["q95"] is not None and s["q05"] > s["q95"]:  # narrowed past its width, as in CQR
+    if s["empty"]:  # narrowed past its width, as in CQR
         text = f"empty ({text} narrowed by the margin past its own width)"
     rows = [(f"calibrated 90 % interval ({unit})", f"{text} ({note})")]
     hist = res.history

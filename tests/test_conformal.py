@@ -112,6 +112,38 @@ def test_interval_keeps_open_ends_and_an_infinite_margin_opens_both():
     assert lo.tolist() == [0.0, 0.0] and hi.tolist() == [math.inf, math.inf]
 
 
+def test_a_margin_of_minus_inf_keeps_open_intervals_and_empties_the_others():
+    # most calibration intervals [0, inf): their scores are -inf, and so is Q; the CQR set
+    # {r: E(r) <= -inf} is everything for [0, inf) and nothing for any other interval
+    lo, hi = torch.cat([torch.zeros(20), T(5.0)]), torch.cat([torch.full((20,), math.inf), T(10.0)])
+    cal = calibrate_intervals(lo.double(), hi.double(), torch.full((21,), 7.0, dtype=torch.float64))
+    assert cal.margin == -math.inf
+    a, b = cal.interval(T(0.0, 2.0, 5.0), T(math.inf, math.inf, 10.0))
+    assert a.tolist() == [0.0, math.inf, math.inf] and b.tolist() == [math.inf, math.inf, 0.0]
+    # (a margin whose e^Q underflows does the same, not 0 / 0)
+    a, b = RULCalibration(-800.0, 0.9, 9).interval(T(0.0, 1.0), T(math.inf, 3.0))
+    assert a.tolist() == [0.0, math.inf] and b.tolist() == [math.inf, 0.0]
+
+
+def test_a_calibrated_summary_says_when_its_interval_is_empty():
+    class Result:  # what summary() reads of a RULResult
+        threshold, direction, n_particles = 1.0, "above", 100
+
+        def __init__(self, q05, q95):
+            self.s = {"status": "ok", "q05": q05, "q95": q95, "median": 2.0, "bound": 50.0}
+
+        def summary(self):
+            return dict(self.s)
+
+    narrow, wide = Result(1.8, 2.2), Result(1.0, 4.0)
+    cal = RULCalibration(-0.5, 0.9, 20)  # narrows by e^0.5 = 1.65 at each end
+    s = cal.summary(narrow)["calibrated"]
+    assert s["q05"] > s["q95"] and s["empty"] is True
+    s = cal.summary(wide)["calibrated"]
+    assert s["q05"] < s["q95"] and s["empty"] is False
+    assert RULCalibration(-math.inf, 0.9, 20).summary(wide)["calibrated"]["empty"] is True
+
+
 @pytest.mark.parametrize(
     "args, match",
     [
@@ -137,12 +169,14 @@ def test_bad_coverage_and_empty_scores_are_refused():
         conformal_margin(T(math.nan), 0.9)
     with pytest.raises(ValueError, match="groups must have 2 labels"):
         leave_one_group_out(T(1.0, 1.0), T(2.0, 2.0), T(1.0, 1.0), ["a"])
+    with pytest.raises(ValueError, match="groups must have 2 labels"):  # not one per character
+        leave_one_group_out(T(1.0, 1.0), T(2.0, 2.0), T(1.0, 1.0), "ab")
 
 
 def test_calibration_record_round_trips_and_refuses_bad_fields():
     import json
 
-    for margin, assets in ((0.25, None), (-0.1, 3), (math.inf, 12)):
+    for margin, assets in ((0.25, None), (-0.1, 3), (math.inf, 12), (-math.inf, 2)):
         cal = RULCalibration(margin, 0.9, 12, {"method": "auto", "threshold": "protocol"},
                              assets=assets)  # fmt: skip
         back = RULCalibration.from_dict(json.loads(json.dumps(cal.to_dict())))
@@ -150,7 +184,7 @@ def test_calibration_record_round_trips_and_refuses_bad_fields():
     ok = {"margin": 0.1, "coverage": 0.9, "n": 5}
     for bad, match in [
         ({"coverage": 0.9, "n": 5}, "has no margin"),
-        (dict(ok, margin="0.1"), "margin must be a number or null"),
+        (dict(ok, margin="0.1"), "margin must be a number, null"),
         (dict(ok, coverage=1.0), r"coverage must lie in \(0, 1\)"),
         (dict(ok, n=-1), "n must be a count"),
         (dict(ok, n=True), "n must be a count"),
@@ -215,6 +249,21 @@ def test_bins_of_the_predicted_median_have_their_own_margin():
         calibrate_intervals(lo, hi, tr, bins=2)
     with pytest.raises(ValueError, match="edges must be increasing"):
         RULCalibration.from_dict(dict(cal.to_dict(), margins=[0.1]))
+
+
+def test_bins_keep_no_boundary_that_a_tie_of_medians_leaves_empty():
+    # medians on a grid tie: the top half are all 10; the boundaries between the top bins lie
+    # on the tie and would put every tied point below them and none above (margin inf)
+    g = torch.Generator().manual_seed(0)
+    med = torch.cat([torch.linspace(2, 8, 20, dtype=torch.float64), torch.full((20,), 10.0,
+                                                                              dtype=torch.float64)])  # fmt: skip
+    y = med * torch.exp(0.2 * torch.randn(40, generator=g, dtype=torch.float64))
+    cal = calibrate_intervals(med * 0.8, med * 1.25, y, 0.8, median=med, bins=4)
+    z = med.log()
+    idx = torch.searchsorted(torch.tensor(cal.edges, dtype=torch.float64), z)
+    assert all(bool((idx == j).any()) for j in range(len(cal.margins)))  # no empty bin
+    assert cal.edges[-1] < math.log(10.0) and math.isfinite(cal.margins[-1])
+    assert float(cal.margin_for(T(10.5))) == cal.margins[-1]
 
 
 def test_protocol_with_a_known_threshold():

@@ -214,8 +214,9 @@ class RULCalibration:
         )
 
     def to_dict(self) -> dict:
-        """A JSON-ready record (``margin`` ``None`` when infinite); :meth:`from_dict` reads it."""
-        num = lambda q: None if math.isinf(q) else q  # noqa: E731
+        """A JSON-ready record (a margin ``None`` when ``+inf``, ``"-inf"`` when ``-inf``: the
+        calibration intervals were ``[0, inf)``); :meth:`from_dict` reads it."""
+        num = lambda q: q if math.isfinite(q) else (None if q > 0 else "-inf")  # noqa: E731
         out = {"margin": num(self.margin), "coverage": self.coverage, "n": self.n,
                "settings": dict(self.settings)}  # fmt: skip
         if self.edges:
@@ -234,8 +235,8 @@ class RULCalibration:
             raise ValueError(f"the calibration record has no {', '.join(missing)}")
         m, c, n = record["margin"], record["coverage"], record["n"]
         real = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
-        if m is not None and not (real(m) and not math.isnan(m)):
-            raise ValueError(f"margin must be a number or null (infinite), got {m!r}")
+        if m is not None and m != "-inf" and not (real(m) and not math.isnan(m)):
+            raise ValueError(f'margin must be a number, null (inf) or "-inf", got {m!r}')
         if not (real(c) and 0.0 < c < 1.0):
             raise ValueError(f"coverage must lie in (0, 1), got {c!r}")
         if not (isinstance(n, int) and not isinstance(n, bool) and n >= 0):
@@ -248,9 +249,11 @@ class RULCalibration:
                 and all(real(e) and math.isfinite(e) for e in edges)
                 and list(edges) == sorted(edges)
                 and len(margins) == (len(edges) + 1 if edges else 0)
-                and all(q is None or (real(q) and not math.isnan(q)) for q in margins)):  # fmt: skip
+                and all(q is None or q == "-inf" or (real(q) and not math.isnan(q))
+                        for q in margins)):  # fmt: skip
             raise ValueError(
-                "edges must be increasing finite numbers and margins one more numbers or nulls, "
+                "edges must be increasing finite numbers and margins one more numbers, nulls "
+                '(inf) or "-inf", '
                 f"got edges {edges!r:.80}, margins {margins!r:.80}"
             )
         assets = record.get("assets")
@@ -276,9 +279,11 @@ class RULCalibration:
 
     def summary(self, result) -> dict:
         """``result.summary()`` (a :class:`~prognos_torch.workflow.RULResult`) with a
-        ``"calibrated"`` entry ``{"q05", "q95", "margin", "coverage", "n", "assets", "warning"}``
-        (``warning``: :meth:`warning`'s sentence or ``None``): its 90 % interval
-        calibrated (``q95`` ``None`` when open). Before onset there is no interval, only a lower
+        ``"calibrated"`` entry ``{"q05", "q95", "margin", "empty", "coverage", "n", "assets",
+        "warning"}`` (``warning``: :meth:`warning`'s sentence or ``None``): its 90 % interval
+        calibrated (``q95`` ``None`` when open). ``empty`` is ``True`` where a negative margin
+        narrowed the interval past its own width (``q05 > q95``, or ``q05 = inf`` for a margin
+        of ``-inf``): the calibrated set is empty, as in CQR, and covers no RUL. Before onset there is no interval, only a lower
         bound, and the summary comes back unchanged. Where more than 95 % of the paths are
         censored, ``q05`` is beyond the horizon and the horizon ``bound`` stands in for it.
 
@@ -314,6 +319,7 @@ class RULCalibration:
             "q05": new_lo,
             "q95": new_hi if math.isfinite(new_hi) else None,
             "margin": float(q[0]),
+            "empty": new_lo > new_hi or new_lo == math.inf,
             "coverage": self.coverage,
             "n": self.n,
             "assets": self.assets,
@@ -324,11 +330,15 @@ class RULCalibration:
 
 def _widen(lo: Tensor, hi: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
     """``(lo e^-q, hi e^q)``, ``(n,)`` each: ``q = inf`` opens the interval to ``(0, inf)``;
-    an open upper end stays ``inf``, NaN stays NaN, and ``hi = 0`` stays 0."""
+    an open upper end stays ``inf``, a lower end of 0 stays 0, NaN stays NaN, and ``hi = 0``
+    stays 0. ``q = -inf`` (or one whose ``e^q`` underflows) keeps ``[0, inf)`` and empties
+    every other interval (a lower end ``> 0`` goes to ``inf``, a finite upper end to 0), as
+    the CQR set ``{r: E(r) <= Q}`` does."""
     inf = q == math.inf
     f = torch.where(inf, 1.0, q.clamp_max(700.0).exp())
-    new_lo = torch.where(inf & ~torch.isnan(lo), 0.0, lo / f)
+    new_lo = torch.where(inf & ~torch.isnan(lo), 0.0, torch.where(lo == 0, 0.0, lo / f))
     new_hi = torch.where(inf, torch.where(torch.isnan(hi), hi, math.inf), hi * f)
+    new_hi = torch.where(hi == math.inf, math.inf, new_hi)
     return new_lo, torch.where((hi == 0) & ~inf, 0.0, new_hi)
 
 
@@ -378,9 +388,14 @@ def calibrate_intervals(
     z = _log_median(m)[ok]
     order = torch.sort(z).values
     cuts = [int(round(n * j / bins)) for j in range(1, bins)]
-    # a boundary halfway between neighbours; two equal medians stay in one bin
-    mids = (0.5 * (float(order[c - 1]) + float(order[c])) for c in cuts)
-    edges = sorted({e for e in mids if math.isfinite(e)})
+    # a boundary halfway between neighbours; two equal medians stay in one bin, and a boundary
+    # that a tie of medians leaves with no point on one side (e.g. tied top medians) is dropped
+    mids = sorted({0.5 * (float(order[c - 1]) + float(order[c])) for c in cuts})
+    edges: list[float] = []
+    for e in (e for e in mids if math.isfinite(e)):
+        below = edges[-1] if edges else -math.inf
+        if bool(((z > below) & (z <= e)).any()) and bool((z > e).any()):
+            edges.append(e)
     idx = torch.searchsorted(torch.tensor(edges, dtype=torch.float64, device=z.device), z)
     s = scores[ok]
     margins = tuple(
@@ -408,7 +423,7 @@ def leave_one_group_out(
         (NaN where the point has no interval).
     """
     lo, hi, tr = _vectors(lower, upper, truth)
-    if len(groups) != lo.shape[0]:
+    if isinstance(groups, (str, bytes)) or len(groups) != lo.shape[0]:
         raise ValueError(
             f"groups must have {lo.shape[0]} labels (one per point), got {len(groups)}"
         )
