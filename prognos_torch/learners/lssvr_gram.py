@@ -18,9 +18,11 @@ of a fitted RBF LS-SVR that evaluates the same formulas through matrix products:
 
   whose last component is Eq. 23/26 (the derivative with respect to the newest value).
 
-The squared-distance expansion loses absolute accuracy ``~ eps (|x|^2 + |P_i|^2)``; relative to
-``2 sigma^2`` this is negligible unless the inputs are many orders of magnitude larger than the
-kernel width (the tests compare with :class:`LSSVR` to 1e-12).
+The squared-distance expansion loses absolute accuracy ``~ eps (|x|^2 + |P_i|^2)``, so ``x`` and
+the ``P_i`` are taken from the support vectors' centre ``mu`` first (the kernel and Eq. 25 are
+shift-invariant): the loss is then ``~ eps (|x - mu|^2 + |P_i - mu|^2)``, negligible relative to
+``2 sigma^2`` wherever the data lie (the tests compare with :class:`LSSVR` to 1e-12, and in
+float32 far from the origin).
 
 It exposes ``n_in``, ``n_out``, ``forward`` and ``input_gradient`` like :class:`LSSVR`, so it
 plugs into :func:`~prognos_torch.prognosis.learner_model.learner_transition_model` (e.g. with
@@ -50,7 +52,8 @@ __all__ = ["LSSVRGram", "fit_lssvr_gram", "lssvr_gram_fitter", "lssvr_grid_cv"]
 class LSSVRGram(nn.Module):
     """Frozen Gram-expansion evaluator of a fitted RBF :class:`LSSVR` (paper 002, Eq. 8, 25).
 
-    With ``c = 1 / (2 sigma^2)`` the log-kernel is affine in ``x`` apart from ``-c |x|^2``::
+    With ``c = 1 / (2 sigma^2)`` and ``x``, ``P_i`` taken from the centre ``mu`` of the support
+    vectors, the log-kernel is affine in ``x`` apart from ``-c |x|^2``::
 
         log phi(P_i, x) = (2 c P_i)^T x - c |P_i|^2 - c |x|^2
 
@@ -60,8 +63,9 @@ class LSSVRGram(nn.Module):
 
     Buffers (dtype and device of the source model; ``.to(...)`` moves them): ``support_vectors``
     ``(M, n_in)``, ``alpha`` ``(M, n_out)``, ``b`` ``(n_out,)``, ``inv_two_sigma2`` (0-d ``c``),
-    ``sv_scaled_t`` ``(n_in, M)`` = ``2 c P^T``, ``sv_log_norm`` ``(M,)`` = ``-c |P_i|^2``,
-    ``alpha_sv`` ``(M, n_out * n_in)`` = ``alpha_i P_i`` (for Eq. 25).
+    ``centre`` ``(n_in,)`` = ``mu``, and of the centred ``P``: ``sv_scaled_t`` ``(n_in, M)`` =
+    ``2 c P^T``, ``sv_log_norm`` ``(M,)`` = ``-c |P_i|^2``, ``alpha_sv`` ``(M, n_out * n_in)`` =
+    ``alpha_i P_i`` (for Eq. 25).
 
     Args:
         lssvr: a fitted :class:`LSSVR` with ``kernel="rbf"``.
@@ -88,6 +92,9 @@ class LSSVRGram(nn.Module):
         self.register_buffer("alpha", alpha.clone())
         self.register_buffer("b", lssvr.b.detach().clone())
         self.register_buffer("inv_two_sigma2", c.clone())
+        mu = sv.mean(0)
+        self.register_buffer("centre", mu)
+        sv = sv - mu  # (the kernel and Eq. 25 are shift-invariant; the expansion is not exact)
         self.register_buffer("sv_scaled_t", (2.0 * c * sv).mT.contiguous())
         self.register_buffer("sv_log_norm", -c * (sv * sv).sum(-1))
         alpha_sv = alpha.unsqueeze(-1) * sv.unsqueeze(-2)  # (M, n_out, n_in)
@@ -98,7 +105,7 @@ class LSSVRGram(nn.Module):
 
     def _phi(self, x: Tensor) -> Tensor:
         """Kernel values ``phi(P_i, x)`` (Eq. 24), ``(..., n_in) -> (..., M)``."""
-        x2 = x.reshape(-1, self.n_in)
+        x2 = x.reshape(-1, self.n_in) - self.centre
         logk = torch.addmm(self.sv_log_norm, x2, self.sv_scaled_t)  # 2c P.x - c|P|^2
         # - c|x|^2 in place (the block is fresh); round-off can leave log phi ~ +1e-16 at
         # x = P_i: harmless. Far from every P_i, exp is floored (core.kernel_exp)
@@ -128,7 +135,8 @@ class LSSVRGram(nn.Module):
             phi = self._phi(xb)  # (B, M)
             s = phi @ self.alpha  # (B, n_out): sum_i alpha_i phi_i
             wp = (phi @ self.alpha_sv).reshape(-1, self.n_out, self.n_in)  # sum alpha phi P_i
-            return -2.0 * self.inv_two_sigma2 * (s.unsqueeze(-1) * xb.unsqueeze(-2) - wp)
+            xc = (xb - self.centre).unsqueeze(-2)
+            return -2.0 * self.inv_two_sigma2 * (s.unsqueeze(-1) * xc - wp)
 
         per_row = x.element_size() * self.support_vectors.shape[0]
         return _blocked(block, x, per_row, GRAM_BLOCK_BYTES)
