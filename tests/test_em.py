@@ -140,3 +140,42 @@ def test_em_bad_arguments():
         em_linear_gaussian(A, C, SQ, SR, b0, part)
     fit = em_linear_gaussian(A, C, SQ, SR, b0, part, iterations=2, learn=("A", "Q", "init"))
     assert bool(torch.isfinite(fit.A).all())
+
+
+def test_em_refuses_non_finite_matrices_a_string_of_names_and_a_bad_tol():
+    (p,) = problem(3, batch=1)
+    A, C, SQ, SR, b0, ys = batched([p])
+    for name in ("A", "C"):
+        bad = {"A": A.clone(), "C": C.clone()}
+        bad[name][0, 0, 0] = float("nan")
+        with pytest.raises(ValueError, match=f"^{name} contains non-finite"):  # (not "init")
+            em_linear_gaussian(bad["A"], bad["C"], SQ, SR, b0, ys, iterations=0)
+    with pytest.raises(TypeError, match="learn must be a collection of names"):
+        em_linear_gaussian(A, C, SQ, SR, b0, ys, learn="init")
+    for tol in (-1.0, "x"):
+        with pytest.raises(ValueError, match="tol must be a number >= 0"):
+            em_linear_gaussian(A, C, SQ, SR, b0, ys, tol=tol)
+    with pytest.raises(TypeError, match="ys must be a torch.Tensor, got ndarray"):
+        em_linear_gaussian(A, C, SQ, SR, b0, ys.numpy())
+
+
+@pytest.mark.parametrize("rule", ["sckf", "ukf"])
+def test_per_series_matrices_apply_to_their_own_series_sigma_points(rule):
+    # 4 series and 2 n = 4 cubature points: right-aligned broadcasting paired A[j] with point j
+    from prognos_torch.filters import make_filter, smooth
+    from prognos_torch.optim import linear_model
+
+    d, B, n, m = torch.float64, 4, 2, 1
+    g = torch.Generator().manual_seed(0)
+    A = torch.stack([torch.tensor([[0.9, 0.3 * b], [-0.2 * b, 0.8]], dtype=d) for b in range(B)])
+    C = torch.tensor([[[1.0, 0.5]]], dtype=d).expand(B, m, n)
+    model = linear_model(A, C, 0.3 * torch.eye(n, dtype=d), 0.5 * torch.eye(m, dtype=d))
+    init = GaussianBelief(torch.zeros(B, n, dtype=d), torch.eye(n, dtype=d).expand(B, n, n))
+    ys = torch.randn(10, B, m, dtype=d, generator=g)
+    got, ref = smooth(make_filter(rule), model, init, ys), smooth(ekf(), model, init, ys)
+    torch.testing.assert_close(got.means, ref.means, rtol=0, atol=1e-12)
+    torch.testing.assert_close(got.log_likelihood, ref.log_likelihood, rtol=1e-12, atol=0)
+    # per-series matrices with fewer dims than the belief's: refused, not paired with points
+    init2 = GaussianBelief(torch.zeros(3, B, n, dtype=d), torch.eye(n, dtype=d).expand(3, B, n, n))
+    with pytest.raises(ValueError, match=r"A has batch dims \(4,\), the states \(3, 4"):
+        run(make_filter(rule), model, init2, ys.unsqueeze(1).expand(10, 3, B, m))

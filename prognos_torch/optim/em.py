@@ -47,23 +47,46 @@ _LEARNABLE = ("A", "C", "Q", "R", "init")
 
 
 def linear_model(A: Tensor, C: Tensor, chol_Q: Tensor, chol_R: Tensor) -> StateSpaceModel:
-    """``x_k = A x_{k-1} + w``, ``y_k = C x_k + v`` with per-series matrices (batch dims first,
-    broadcast against the belief's batch dims; analytic Jacobians, no ``vmap``)."""
+    """``x_k = A x_{k-1} + w``, ``y_k = C x_k + v`` (analytic Jacobians, no ``vmap``).
+
+    ``A`` ``(n, n)`` or ``(*batch, n, n)`` and ``C`` ``(m, n)`` or ``(*batch, m, n)``: one
+    matrix for every series, or one per series with *all* the belief's batch dims ``batch``
+    (dims of size 1 broadcast), as :class:`EMFit` returns them. Sigma points and particles
+    come after the series' dims (``(*batch, L, n)``), and per-series matrices are applied to
+    the points of their own series (right-aligned broadcasting would pair them with the
+    points).
+
+    Raises:
+        ValueError: at a filter call, the states' leading dims do not start with the
+            matrices' batch dims (per-series matrices with fewer dims than the belief's).
+    """
     n, m = A.shape[-1], C.shape[-2]
 
-    def mv(M, x):
-        return (M @ x.unsqueeze(-1)).squeeze(-1)
+    def aligned(M: Tensor, x: Tensor, name: str) -> Tensor:
+        batch = M.shape[:-2]
+        extra = x.dim() - 1 - len(batch)  # the point dims after the series' dims
+        if not batch:
+            return M
+        if extra < 0 or any(a != b and 1 not in (a, b) for a, b in zip(batch, x.shape)):
+            raise ValueError(
+                f"{name} has batch dims {tuple(batch)}, the states {tuple(x.shape[:-1])}: "
+                f"per-series matrices carry all the belief's batch dims, first"
+            )
+        return M.reshape(*batch, *([1] * extra), *M.shape[-2:])
+
+    def mv(M, x, name):
+        return (aligned(M, x, name) @ x.unsqueeze(-1)).squeeze(-1)
 
     return StateSpaceModel(
-        f=lambda x, u, k: mv(A, x),
-        h=lambda x, u, k: mv(C, x),
+        f=lambda x, u, k: mv(A, x, "A"),
+        h=lambda x, u, k: mv(C, x, "C"),
         state_dim=n,
         obs_dim=m,
         chol_Q=chol_Q,
         chol_R=chol_R,
         batched=True,
-        jac_f=lambda x, u, k: A.expand(*x.shape[:-1], n, n),
-        jac_h=lambda x, u, k: C.expand(*x.shape[:-1], m, n),
+        jac_f=lambda x, u, k: aligned(A, x, "A").expand(*x.shape[:-1], n, n),
+        jac_h=lambda x, u, k: aligned(C, x, "C").expand(*x.shape[:-1], m, n),
     )
 
 
@@ -136,10 +159,15 @@ def em_linear_gaussian(
     Returns:
         :class:`EMFit` with the parameters broadcast to the batch dims.
     """
+    if isinstance(learn, str):  # ("init" is one name, not four letters)
+        raise TypeError(f"learn must be a collection of names from {_LEARNABLE}, got {learn!r}")
     learn = tuple(learn)
     bad = [x for x in learn if x not in _LEARNABLE]
     if bad:
         raise ValueError(f"learn may contain {_LEARNABLE}, got {bad}")
+    if tol is not None and (isinstance(tol, bool) or not isinstance(tol, (int, float))
+                            or not tol >= 0):  # fmt: skip
+        raise ValueError(f"tol must be a number >= 0 or None, got {tol!r}")
     if not isinstance(init, GaussianBelief):
         raise TypeError("init must be a GaussianBelief on x_0")
     init.validate("init")
@@ -155,7 +183,12 @@ def em_linear_gaussian(
     _check(C, "C", (m, n), bs)
     _check(chol_Q, "chol_Q", (n, n), bs)
     _check(chol_R, "chol_R", (m, m), bs)
-    if not isinstance(ys, Tensor) or tuple(ys.shape[1:]) != bs + (m,) or ys.shape[0] < 1:
+    for x, name in ((A, "A"), (C, "C")):  # (chol_Q and chol_R: the model's own check)
+        if not bool(torch.isfinite(x).all()):
+            raise ValueError(f"{name} contains non-finite values (NaN or inf)")
+    if not isinstance(ys, Tensor):
+        raise TypeError(f"ys must be a torch.Tensor, got {type(ys).__name__}")
+    if tuple(ys.shape[1:]) != bs + (m,) or ys.shape[0] < 1:
         want = ", ".join(map(str, bs + (m,)))
         raise ValueError(f"ys must have shape (T, {want}), got {tuple(getattr(ys, 'shape', ()))}")
     if not isinstance(iterations, int) or iterations < 0:
