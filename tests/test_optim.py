@@ -752,3 +752,27 @@ def test_step_hooks_run_and_public_tensors_support_autograd():
     (o.filter_state.belief.chol.sum() * w.sum()).backward()
     assert torch.isfinite(w.grad).all()
     o.step(X[3:4], Y[3:4])  # stepping on after those reads still works
+
+
+@pytest.mark.parametrize("cls", [EKF, SRUKF])
+def test_a_non_finite_output_is_refused_and_leaves_the_belief_and_parameters(cls):
+    # log of a negative input: the innovation and so the updated mean would be NaN for good
+    class Log(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.w = nn.Parameter(torch.ones(1, dtype=torch.float64))
+
+        def forward(self, x):
+            return torch.log(x * self.w)
+
+    net = Log()
+    opt = cls(net, P0=0.01, R=1.0)  # (sigma points of w stay positive)
+    x, t = 2 * torch.ones(2, 1, dtype=torch.float64), torch.zeros(2, 1, dtype=torch.float64)
+    opt.step(x, t)
+    theta, chol = opt.theta.clone(), opt.belief.chol.clone()
+    with pytest.raises(ValueError, match="non-finite estimate of parameter group 0"):
+        opt.step(-x, t)
+    assert torch.equal(opt.theta, theta) and torch.equal(opt.belief.chol, chol)
+    assert torch.equal(net.w.detach(), theta)
+    opt.step(x, t)  # and training goes on
+    assert bool(torch.isfinite(opt.theta).all())

@@ -572,6 +572,10 @@ class KalmanOptimizer(torch.optim.Optimizer):
             :class:`KalmanStep` (loss, NIS, ``lambda_k``, log-likelihood, the engine's info of
             every group). With one run, the posterior means are written into the module's
             parameters.
+        Raises:
+            ValueError: the update gave a non-finite mean or factor (the module's output or
+                Jacobian is NaN or inf at the current parameters for these inputs); every
+                group's belief and the module's parameters stay as before the step.
 
         The step pre- and post-hooks of ``torch.optim`` (global and per optimiser) run as for
         any optimiser. Unlike ``torch.optim``'s own wrapper, the step is not wrapped in a
@@ -722,7 +726,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
                 y = y.expand(self.runs, y.shape[0])
         if any_missing:
             self._check_partial(y)
-        infos = []
+        infos, before = [], {}
         with batch_statistics_only(norms):
             for i, cfg in enumerate(self._cfg):
                 model = step_model(self, i, x, out_shape)
@@ -736,6 +740,16 @@ class KalmanOptimizer(torch.optim.Optimizer):
                     if clear is None:
                         raise
                     raise clear from exc
+                if not (bool(torch.isfinite(new.belief.mean).all())
+                        and bool(torch.isfinite(new.belief.chol).all())):  # fmt: skip
+                    self._restore(before)
+                    raise ValueError(
+                        f"the step gave a non-finite estimate of parameter group {i}: the "
+                        "module's output (or its Jacobian) at the current parameters is NaN or "
+                        "inf for these inputs; the belief and the parameters are left as they "
+                        "were before the step"
+                    )
+                before[i] = self.state[key]
                 self.state[key] = {
                     "mean": new.belief.mean,
                     "chol": new.belief.chol,
@@ -752,6 +766,14 @@ class KalmanOptimizer(torch.optim.Optimizer):
         else:
             loss = e2.mean(-1)
         return KalmanStep(loss, infos[0], tuple(infos))
+
+    def _restore(self, before: dict) -> None:
+        """Put back the states (and the module's parameters) of the groups a failed step
+        had updated (``before``: group index -> its former state)."""
+        for i, st in before.items():
+            self.state[_state_key(i)] = st
+            if self.runs is None:
+                self._cfg[i].bridge.assign(st["mean"])
 
     def _check_partial(self, y: Tensor) -> None:
         """A robust filter (paper 004's bound) updates with whole measurement vectors only: a
