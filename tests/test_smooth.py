@@ -353,3 +353,42 @@ def test_noise_estimator_steps_smooth_with_the_q_they_used():
     torch.testing.assert_close(a.covs, b.covs, atol=1e-9, rtol=0)
     with pytest.raises(ValueError, match="keep_steps"):
         smooth_trajectory(run(imsrukf(), model, b0, ys), b0)
+
+
+@pytest.mark.parametrize("make", [ekf, sckf])
+def test_a_singular_predicted_covariance_is_refused_by_step(make):
+    # no process noise and a transition that drops a direction: P_{k|k-1} is singular, the
+    # filter runs, and the gain C P^-1 does not exist (it came out NaN without a word)
+    d = torch.float64
+    A = torch.tensor([[1.0, 1.0], [0.0, 0.0]], dtype=d)
+    model = linear_gaussian_model(A, torch.tensor([[1.0, 0.0]], dtype=d),
+                                  torch.zeros(2, 2, dtype=d), 0.5 * torch.eye(1, dtype=d))  # fmt: skip
+    init = GaussianBelief(torch.zeros(2, dtype=d), torch.eye(2, dtype=d))
+    ys = torch.randn(5, 1, dtype=d, generator=torch.Generator().manual_seed(0))
+    assert bool(torch.isfinite(run(make(), model, init, ys).means).all())
+    with pytest.raises(ValueError, match=r"P_\{k\|k-1\} of step 1 is singular"):
+        smooth(make(), model, init, ys)
+
+
+def test_smooth_trajectory_checks_what_smooth_checks():
+    d = torch.float64
+    model = linear_gaussian_model(torch.tensor([[0.9, 0.2], [-0.1, 0.85]], dtype=d),
+                                  torch.eye(2, dtype=d), 0.3 * torch.eye(2, dtype=d),
+                                  0.4 * torch.eye(2, dtype=d))  # fmt: skip
+    init = GaussianBelief(torch.zeros(3, 2, dtype=d), torch.eye(2, dtype=d).expand(3, 2, 2))
+    ys = torch.randn(6, 3, 2, dtype=d, generator=torch.Generator().manual_seed(0))
+    tr = run(sckf(), model, init, ys, keep_steps=True)
+    ref = smooth(sckf(), model, init, ys)
+    # the FilterState the run started from serves as init, as in smooth()
+    state = sckf().init(model, init, 1)
+    torch.testing.assert_close(smooth_trajectory(tr, state).means, ref.means, rtol=0, atol=0)
+    with pytest.raises(ValueError, match=r"init must have mean \(3, 2\) and chol \(3, 2, 2\)"):
+        smooth_trajectory(tr, GaussianBelief(init.mean[0], init.chol[0]))
+    with pytest.raises(ValueError, match="init must have the run's dtype torch.float64"):
+        smooth_trajectory(tr, GaussianBelief(init.mean.float(), init.chol.float()))
+    with pytest.raises(TypeError, match="sqrt must be a bool"):
+        smooth_trajectory(tr, init, sqrt="yes")
+    # a robust filter's run: refused here as smooth() refuses the filter
+    rob = rukf(2.0, torch.eye(2, dtype=d))
+    with pytest.raises(ValueError, match="robust filter's run"):
+        smooth_trajectory(run(rob, model, init, ys, keep_steps=True), init)

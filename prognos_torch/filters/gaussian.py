@@ -671,6 +671,9 @@ class GaussianFilter:
             missing=missing,
             gain=K,
             observed=observed,
-            spread=Spread(prop.pos, prop.neg, prop.dev, prop.sigma),
+            # (the robust bound is no predictive covariance: nothing for a smoother)
+            spread=None
+            if self.robust is not None
+            else Spread(prop.pos, prop.neg, prop.dev, prop.sigma),  # fmt: skip
         )
         return FilterState(GaussianBelief(mean, chol), fstate, nstate), info

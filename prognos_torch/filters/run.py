@@ -30,8 +30,10 @@ class Trajectory:
         chol_innovations: ``(T, ..., m, m)``.
         log_likelihoods: ``(T, ...)`` per-step terms; ``log_likelihood`` their sum ``(...)``.
         nis: ``(T, ...)``; fading_factors: ``(T, ...)``.
-        chol_Q, chol_R: ``(T, ..., n, n)``/``(T, ..., m, m)`` noise square roots used per step
-            (only with a noise estimator, else ``None``); q, r likewise.
+        chol_Q, chol_R: ``(T, ..., n, n)``/``(T, ..., m, m)`` the noise estimator's square
+            roots after each step (row ``t``: the estimate that includes step ``t``'s data,
+            which step ``t + 1`` uses; the noise step ``t`` itself used is
+            ``steps[t].noise``); only with a noise estimator, else ``None``; q, r likewise.
         noise_fallback: ``(T, ...)`` bool.
         final: the :class:`FilterState` after the last step (resume from it).
         steps: the :class:`StepInfo` of every step with ``run(..., keep_steps=True)``, else

@@ -133,12 +133,44 @@ def smooth(
 
 
 def smooth_trajectory(
-    tr: Trajectory, init: GaussianBelief, *, sqrt: bool = True, lag: int | None = None
+    tr: Trajectory,
+    init: GaussianBelief | FilterState,
+    *,
+    sqrt: bool = True,
+    lag: int | None = None,
 ) -> Smoothed:
     """The backward pass of :func:`smooth` on a forward run ``run(..., keep_steps=True)``
-    started from ``init`` (the belief on ``x_{k0}``); ``sqrt``: square-root or full algebra."""
+    started from ``init`` (the belief on ``x_{k0}``, or the :class:`FilterState` the run
+    resumed from); ``sqrt``: square-root or full algebra.
+
+    Raises:
+        ValueError: ``tr`` is not such a run, or a robust filter's (paper 004's bound is no
+            predictive covariance), or ``init`` is not shaped and typed as its states.
+    """
     if not isinstance(tr, Trajectory) or tr.steps is None:
         raise ValueError("tr must be a Trajectory from run(..., keep_steps=True)")
+    if any(s.spread is None for s in tr.steps):
+        raise ValueError(
+            "tr is a robust filter's run: the robust bound replaces the prior by a bound, not a "
+            "predictive covariance; smooth with the filter without robust="
+        )
+    if isinstance(init, FilterState):
+        init = init.belief
+    if not isinstance(init, GaussianBelief):
+        raise TypeError(
+            f"init must be the GaussianBelief (or FilterState) the run started from, got "
+            f"{type(init).__name__}"
+        )
+    want = tuple(tr.means.shape[1:])
+    if tuple(init.mean.shape) != want or tuple(init.chol.shape) != tuple(tr.chols.shape[1:]):
+        raise ValueError(
+            f"init must have mean {want} and chol {tuple(tr.chols.shape[1:])} (the run's "
+            f"states), got {tuple(init.mean.shape)} and {tuple(init.chol.shape)}"
+        )
+    if init.mean.dtype != tr.means.dtype or init.chol.dtype != tr.chols.dtype:
+        raise ValueError(f"init must have the run's dtype {tr.means.dtype}, got {init.mean.dtype}")
+    if not isinstance(sqrt, bool):
+        raise TypeError(f"sqrt must be a bool, got {sqrt!r}")
     if lag is not None and (not isinstance(lag, int) or isinstance(lag, bool) or lag < 0):
         raise ValueError(f"lag must be None or a non-negative int, got {lag!r}")
     b0 = init
@@ -158,6 +190,15 @@ def smooth_trajectory(
     if dx_neg is not None:
         C = C - dx_neg @ df_neg.mT
     G = cho_solve_right(C, tr.pred_chols)  # (T, ..., n, n)
+    bad = ~torch.isfinite(G).flatten(1).all(-1)
+    if bool(bad.any()):
+        t = int(bad.nonzero()[0, 0])
+        raise ValueError(
+            f"the predicted covariance P_{{k|k-1}} of step {t + 1} is singular (its factor "
+            "has a zero on the diagonal: no process noise on a direction the transition "
+            "keeps, e.g. chol_Q = 0 with a singular A), so the smoother gain C P^-1 does not "
+            "exist; give every state some process noise (chol_Q with a positive diagonal)"
+        )
     b = fm[:-1] - _mv(G, tr.pred_means)
     lam1 = None
     if bool((tr.fading_factors != 1.0).any()):
