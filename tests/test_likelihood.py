@@ -126,6 +126,10 @@ def test_log_cholesky_round_trip():
         log_cholesky(-S)
     with pytest.raises(ValueError, match=r"\(..., n, n\)"):
         from_log_cholesky(torch.zeros(3, dtype=dt))
+    # an upper or symmetric square root of the same covariance: its upper part was dropped
+    # (S^T round-tripped to a factor of another covariance)
+    with pytest.raises(ValueError, match="chol must be lower-triangular"):
+        log_cholesky(S.mT.contiguous())
 
 
 # ---------------------------------------------------------------- recovery from simulated data
@@ -255,3 +259,24 @@ def test_bad_arguments():
             optimizer=lambda p: torch.optim.SGD(p, lr=1e6),
             steps=5,
         )
+
+
+def test_a_diverging_optimizer_instance_gets_its_last_finite_iterate_back():
+    ys = two_state_data(T=5)
+    b0 = GaussianBelief(torch.zeros(2, dtype=dt), torch.eye(2, dtype=dt))
+    p = {k: v.clone().requires_grad_(True) for k, v in params0().items()}
+    opt = torch.optim.SGD(list(p.values()), lr=1e6)
+    with pytest.raises(FloatingPointError, match="non-finite after") as err:
+        fit_likelihood(two_state_model, p, sckf(), b0, ys, optimizer=opt, steps=5)
+    trace = err.value.trace
+    assert trace is not None and bool(torch.isfinite(trace).all())
+    # the tensors hold the iterate of the last finite log-likelihood, which they reproduce
+    with torch.no_grad():
+        ll = run(sckf(), two_state_model(p), b0, ys).log_likelihood
+    torch.testing.assert_close(ll, trace[-1], rtol=1e-12, atol=0)
+    # non-finite at the start: said so; a build_model that is no model: named
+    bad = dict(params0(), a=torch.tensor(math.nan, dtype=dt))
+    with pytest.raises(FloatingPointError, match="at the starting parameters"):
+        fit_likelihood(two_state_model, bad, sckf(), b0, ys, steps=1)
+    with pytest.raises(TypeError, match="build_model must return a StateSpaceModel, got tuple"):
+        fit_likelihood(lambda q: (1, 2), params0(), sckf(), b0, ys, steps=1)

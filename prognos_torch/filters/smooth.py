@@ -35,6 +35,7 @@ not a predictive covariance and is refused.
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 
 import torch
@@ -97,6 +98,14 @@ def _stack_opt(xs: list) -> Tensor | None:
     return None if xs[0] is None else torch.stack(xs)
 
 
+def _check_lag(lag) -> int | None:
+    """``lag`` as an ``int`` (any integral number, e.g. ``numpy.int64``), or ``None``."""
+    if lag is not None and (not isinstance(lag, numbers.Integral) or isinstance(lag, bool)
+                            or lag < 0):  # fmt: skip
+        raise ValueError(f"lag must be None or a non-negative int, got {lag!r}")
+    return None if lag is None else int(lag)
+
+
 def smooth(
     filt: GaussianFilter,
     model: StateSpaceModel,
@@ -125,8 +134,7 @@ def smooth(
             "the robust bound replaces the prior by a bound, not a predictive covariance: "
             "smooth with the filter without robust="
         )
-    if lag is not None and (not isinstance(lag, int) or isinstance(lag, bool) or lag < 0):
-        raise ValueError(f"lag must be None or a non-negative int, got {lag!r}")
+    lag = _check_lag(lag)
     tr = run(filt, model, init, ys, us, k0=k0, keep_steps=True)
     b0 = init.belief if isinstance(init, FilterState) else init
     return smooth_trajectory(tr, b0, sqrt=filt.sqrt, lag=lag)
@@ -171,8 +179,7 @@ def smooth_trajectory(
         raise ValueError(f"init must have the run's dtype {tr.means.dtype}, got {init.mean.dtype}")
     if not isinstance(sqrt, bool):
         raise TypeError(f"sqrt must be a bool, got {sqrt!r}")
-    if lag is not None and (not isinstance(lag, int) or isinstance(lag, bool) or lag < 0):
-        raise ValueError(f"lag must be None or a non-negative int, got {lag!r}")
+    lag = _check_lag(lag)
     b0 = init
     steps = tr.steps
     T, n = tr.means.shape[0], tr.means.shape[-1]

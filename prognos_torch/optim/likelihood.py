@@ -48,6 +48,11 @@ def log_cholesky(chol: Tensor) -> Tensor:
         raise ValueError(
             f"chol must be a tensor of shape (..., n, n), got {getattr(chol, 'shape', chol)}"
         )
+    if bool((torch.triu(chol, 1) != 0).any()):  # (its upper part would be dropped silently)
+        raise ValueError(
+            "chol must be lower-triangular (a Cholesky factor); for another square root S of "
+            "a covariance use torch.linalg.cholesky(S @ S.mT)"
+        )
     d = torch.diagonal(chol, dim1=-2, dim2=-1)
     if not bool((d > 0).all()):
         raise ValueError("chol must have a positive diagonal (a Cholesky factor)")
@@ -117,7 +122,10 @@ def fit_likelihood(
     Returns:
         :class:`LikelihoodFit`. The minimised loss is ``-sum(log_likelihood) / T``.
     Raises:
-        FloatingPointError: the log-likelihood became non-finite (lower the learning rate).
+        FloatingPointError: the log-likelihood became non-finite (lower the learning rate), or
+            is at the starting parameters. With an optimiser instance, its tensors are put
+            back to the last iterate with a finite log-likelihood; the exception's ``trace``
+            holds the log-likelihoods up to there (``(k, ...)``, or ``None``).
     """
     if not callable(build_model):
         raise TypeError("build_model must be a callable params -> StateSpaceModel")
@@ -156,14 +164,25 @@ def fit_likelihood(
             raise TypeError("belief must be a GaussianBelief or params -> GaussianBelief")
         return b
 
+    def where() -> str:
+        if not trace:
+            return "is non-finite at the starting parameters (check them and the model they build)"
+        return (f"became non-finite after {len(trace)} steps (lower the learning rate or "
+                "start closer)")  # fmt: skip
+
+    def get_model(p) -> StateSpaceModel:
+        model = build_model(p)
+        if not isinstance(model, StateSpaceModel):
+            raise TypeError(
+                f"build_model must return a StateSpaceModel, got {type(model).__name__}"
+            )
+        return model
+
     def loglik(p) -> Tensor:
         try:
-            return run(filt, build_model(p), get_belief(p), ys, us, k0=k0).log_likelihood
+            return run(filt, get_model(p), get_belief(p), ys, us, k0=k0).log_likelihood
         except NonFiniteNoiseError as exc:  # parameters whose model noise overflowed
-            raise FloatingPointError(
-                f"the log-likelihood became non-finite after {len(trace)} steps: {exc} "
-                "(lower the learning rate or start closer)"
-            ) from None
+            raise FloatingPointError(f"the log-likelihood {where()}: {exc}") from None
 
     trace: list[Tensor] = []
     state: dict = {}
@@ -172,20 +191,31 @@ def fit_likelihood(
         opt.zero_grad()
         ll = loglik(leaves)
         if not bool(torch.isfinite(ll).all()):
-            raise FloatingPointError(
-                f"the log-likelihood became non-finite after {len(trace)} steps "
-                "(lower the learning rate or start closer)"
-            )
+            raise FloatingPointError(f"the log-likelihood {where()}")
         if "ll" not in state:  # the first evaluation of a step is at its starting point
             state["ll"] = ll.detach()
         loss = -ll.sum() / T
         loss.backward()
         return loss
 
-    taken = 0
+    taken, prev = 0, None
     for _ in range(steps):
         state.clear()
-        opt.step(closure)
+        start = {n: p.detach().clone() for n, p in leaves.items()}
+        try:
+            opt.step(closure)
+        except FloatingPointError as exc:
+            # the caller's tensors (an optimiser instance) go back to the last finite iterate
+            # (the start of this step, or of the one before when its start failed)
+            last = start if "ll" in state else prev
+            if last is not None:
+                with torch.no_grad():
+                    for n, p in leaves.items():
+                        p.copy_(last[n])
+            done = trace + ([state["ll"]] if "ll" in state else [])
+            exc.trace = torch.stack(done) if done else None
+            raise
+        prev = start
         trace.append(state["ll"])
         taken += 1
         if tol is not None and len(trace) >= 2:
@@ -198,6 +228,6 @@ def fit_likelihood(
         if not bool(torch.isfinite(ll).all()):
             raise FloatingPointError(f"the log-likelihood became non-finite after {taken} steps")
         trace.append(ll)
-        model = build_model(final)
+        model = get_model(final)
         b0 = get_belief(final)
     return LikelihoodFit(final, model, b0, torch.stack(trace), taken)
