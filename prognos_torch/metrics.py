@@ -88,8 +88,16 @@ def _vec(x, name: str, n: int | None = None, device=None) -> Tensor:
         raise ValueError(f"{name} must have shape ({n},), got {tuple(x.shape)}")
     if x.shape[0] == 0:
         raise ValueError(f"{name} is empty; shape (n,) with n >= 1")
-    if not bool(torch.isfinite(x).all()):
-        raise ValueError(f"{name} contains non-finite values")
+    bad = ~torch.isfinite(x)
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        raise ValueError(
+            f"{name} contains non-finite values (first at index {i}: {x[i].item()}); a censored "
+            "RUL has no point value: score its distribution (rul_samples with inf for the "
+            "censored paths, or rul_pmf) or leave the point out"
+            if name == "pred_rul"
+            else f"{name} contains non-finite values (first at index {i}: {x[i].item()})"
+        )
     return x
 
 
@@ -114,7 +122,25 @@ def _trajectory(times, true_rul, pred_rul, t_eol, *, need_pred: bool = True):
         t_eol = eol.mean().item()
     else:
         t_eol = check_scalar(t_eol, "t_eol")
+    if not t_eol > times[0].item():
+        raise ValueError(
+            f"t_eol ({t_eol:g}) must be later than the first prediction time ({times[0].item():g})"
+        )
     return times, true_rul, pred_rul, t_eol
+
+
+def _point_or_distribution(pred_rul, beta, dist: dict) -> float:
+    """``beta`` (default 0.5) for a distribution; refuses a point prediction given beside a
+    distribution (one of them would be ignored) and ``beta`` without a distribution."""
+    given = any(v is not None for v in dist.values())
+    if given and pred_rul is not None:
+        raise ValueError(
+            "give pred_rul (point predictions) or a distribution (rul_samples or rul_pmf), "
+            "not both: the criterion reads one of them"
+        )
+    if not given and beta is not None:
+        raise ValueError("beta applies to a distribution (rul_samples or rul_pmf), not to pred_rul")
+    return _beta(0.5 if beta is None else beta)
 
 
 def _alpha(alpha) -> tuple[float, float]:
@@ -193,6 +219,8 @@ def lambda_index(times: Tensor, lam: float, *, t_eol: float, t_p: float | None =
     """
     times = _vec(times, "times")
     t_p = times[0].item() if t_p is None else check_scalar(t_p, "t_p")
+    if not t_eol > t_p:
+        raise ValueError(f"t_eol ({t_eol:g}) must be later than t_P ({t_p:g})")
     t_lam = lambda_time(t_p, t_eol, lam)
     slack = 1e-9 * max(1.0, abs(t_lam))
     idx = torch.nonzero(times >= t_lam - slack).flatten()
@@ -247,7 +275,11 @@ def probability_in_bounds(
                 f"rul_samples must have shape ({n}, S) with S >= 1, got {tuple(s.shape)}"
             )
         if bool(torch.isnan(s).any()):
-            raise ValueError("rul_samples contains NaN")
+            i = int(torch.isnan(s).any(-1).nonzero()[0, 0])
+            raise ValueError(
+                f"rul_samples contains NaN (first in row {i}); a censored path's RUL is inf "
+                "(beyond every bound): pass inf for it, and leave out paths that do not count"
+            )
         w = check_weights(sample_weights, (n,), s.shape[1], s.device, name="sample_weights")
         inside = (s >= lower[:, None]) & (s <= upper[:, None])
         return (w * inside.to(torch.float64)).sum(-1)
@@ -255,15 +287,25 @@ def probability_in_bounds(
         raise ValueError("sample_weights goes with rul_samples, not with rul_pmf")
     if rul_support is None:
         raise ValueError("rul_pmf needs rul_support, shape (K,)")
-    p = as_tensor(rul_pmf, "rul_pmf", device=lower.device).to(torch.float64)
+    p = as_tensor(rul_pmf, "rul_pmf", device=lower.device)
+    # rows of a float32 pmf (a softmax, say) sum to one to float32 rounding, as sample weights
+    low = str(getattr(rul_pmf, "dtype", "")).replace("torch.", "") in ("float32", "float16",
+                                                                      "bfloat16")  # fmt: skip
+    tol = 1e-6 + 4.0 * p.shape[-1] * torch.finfo(torch.float32).eps if low else 1e-9
+    p = p.to(torch.float64)
     support = _vec(rul_support, "rul_support", device=lower.device)
     k = support.shape[0]
     if tuple(p.shape) != (n, k):
         raise ValueError(f"rul_pmf must have shape ({n}, {k}) (n, K), got {tuple(p.shape)}")
     if not bool(torch.isfinite(p).all()) or bool((p < 0).any()):
         raise ValueError("rul_pmf must be finite and non-negative")
-    if bool((p.sum(-1) > 1.0 + 1e-9).any()):
-        raise ValueError("rul_pmf rows must sum to at most one")
+    over = p.sum(-1) - 1.0
+    if bool((over > tol).any()):
+        i = int(over.argmax())
+        raise ValueError(
+            f"rul_pmf rows must sum to at most one (within {tol:.2g}); row {i} sums to "
+            f"1 + {over[i].item():.3g}"
+        )
     inside = (support[None, :] >= lower[:, None]) & (support[None, :] <= upper[:, None])
     return (p * inside.to(torch.float64)).sum(-1)
 
@@ -282,7 +324,7 @@ def prognostic_horizon(
     pred_rul: Tensor | None = None,
     *,
     alpha: float | tuple[float, float],
-    beta: float = 0.5,
+    beta: float | None = None,
     t_eol: float | None = None,
     persistent: bool = False,
     rul_samples: Tensor | None = None,
@@ -302,8 +344,9 @@ def prognostic_horizon(
         times, true_rul, pred_rul: ``(n,)`` trajectory (``pred_rul`` may be None with a
             distribution).
         alpha: bound half-width as a fraction of ``t_EoL`` (number or ``(minus, plus)`` pair).
-        beta: probability-mass threshold in (0, 1] (distributions only).
-        t_eol: end of life; inferred from ``times + true_rul`` when None.
+        beta: probability-mass threshold in (0, 1] (distributions only; default 0.5).
+        t_eol: end of life; inferred from ``times + true_rul`` when None; later than the
+            first prediction time.
         persistent: if True, ``i_alpha`` is the first index from which *every* later prediction
             meets the criterion (a stricter reading that ignores predictions which enter
             the bounds and leave them again).
@@ -319,11 +362,11 @@ def prognostic_horizon(
         rul_support=rul_support,
     )
     need_pred = all(v is None for v in dist.values())
+    beta = _point_or_distribution(pred_rul, beta, dist)
     times, true_rul, pred_rul, t_eol = _trajectory(
         times, true_rul, pred_rul, t_eol, need_pred=need_pred
     )
     a_minus, a_plus = _alpha(alpha)
-    beta = _beta(beta)
     lower = true_rul - a_minus * t_eol
     upper = true_rul + a_plus * t_eol
     ok = _within(pred_rul, lower, upper, beta, dist)
@@ -343,7 +386,7 @@ def alpha_lambda(
     *,
     alpha: float | tuple[float, float],
     lam: float,
-    beta: float = 0.5,
+    beta: float | None = None,
     t_eol: float | None = None,
     t_p: float | None = None,
     rul_samples: Tensor | None = None,
@@ -356,8 +399,9 @@ def alpha_lambda(
     ``t_lambda = t_P + lambda (t_EoL - t_P)``; evaluated at the first prediction made at or
     after ``t_lambda`` (:func:`lambda_index`). Point version:
     ``(1 - alpha^-) r*(t_lambda) <= r(t_lambda) <= (1 + alpha^+) r*(t_lambda)``; distribution
-    version: ``pi[r(t_lambda)]_{-alpha}^{+alpha} >= beta``. Paper 002 uses alpha = 0.3 and
-    lambda = 0.5 (Table 2).
+    version: ``pi[r(t_lambda)]_{-alpha}^{+alpha} >= beta`` (``beta`` default 0.5; given only
+    with a distribution, which replaces ``pred_rul``). ``t_EoL`` must be later than ``t_P``.
+    Paper 002 uses alpha = 0.3 and lambda = 0.5 (Table 2).
 
     Returns:
         True when the criterion holds.
@@ -369,20 +413,25 @@ def alpha_lambda(
         rul_support=rul_support,
     )
     need_pred = all(v is None for v in dist.values())
+    beta = _point_or_distribution(pred_rul, beta, dist)
     times, true_rul, pred_rul, t_eol = _trajectory(
         times, true_rul, pred_rul, t_eol, need_pred=need_pred
     )
-    beta = _beta(beta)
     i = lambda_index(times, lam, t_eol=t_eol, t_p=t_p)
     lower, upper = alpha_bounds(true_rul, alpha)
     ok = _within(pred_rul, lower, upper, beta, dist)
     return bool(ok[i].item())
 
 
-def _ra(true_rul: Tensor, pred_rul: Tensor) -> Tensor:
-    # RA = 1 - |r* - r| / r*  ([S10])
+def _ra(true_rul: Tensor, pred_rul: Tensor, times: Tensor) -> Tensor:
+    # RA = 1 - |r* - r| / r*  ([S10]); undefined at the end of life (r* = 0)
     if bool((true_rul <= 0).any()):
-        raise ValueError("relative accuracy needs true_rul > 0 at the evaluated times")
+        t = times[true_rul <= 0][0].item()
+        raise ValueError(
+            f"relative accuracy needs true_rul > 0 at the evaluated times; it is "
+            f"{true_rul[true_rul <= 0][0].item():g} at t = {t:g} (at the end of life RA is "
+            "undefined: evaluate up to a lam < 1, or leave that point out)"
+        )
     return 1.0 - (true_rul - pred_rul).abs() / true_rul
 
 
@@ -402,7 +451,7 @@ def relative_accuracy(
     """
     times, true_rul, pred_rul, t_eol = _trajectory(times, true_rul, pred_rul, t_eol)
     i = lambda_index(times, lam, t_eol=t_eol, t_p=t_p)
-    return float(_ra(true_rul[i : i + 1], pred_rul[i : i + 1]).item())
+    return float(_ra(true_rul[i : i + 1], pred_rul[i : i + 1], times[i : i + 1]).item())
 
 
 def cumulative_relative_accuracy(
@@ -410,7 +459,7 @@ def cumulative_relative_accuracy(
     true_rul: Tensor,
     pred_rul: Tensor,
     *,
-    lam: float = 1.0,
+    lam: float | None = None,
     lambdas: Sequence[float] | None = None,
     weights: Tensor | None = None,
     t_eol: float | None = None,
@@ -418,7 +467,7 @@ def cumulative_relative_accuracy(
 ) -> float:
     """Cumulative relative accuracy ([S10]), plain or weighted mean of RA.
 
-    Saxena's form (``lambdas`` None): ``CRA_lambda = sum_{i in p_lambda} w_i RA(i) /
+    Saxena's form (``lambdas`` None; ``lam`` default 1): ``CRA_lambda = sum_{i in p_lambda} w_i RA(i) /
     sum_{i in p_lambda} w_i`` over the prediction times ``p_lambda = {i : t_P <= t_i <=
     t_lambda}``. [S10] writes ``(1/|p_lambda|) sum w(r(i)) RA(i)``; normalising by ``sum w``
     makes it a weighted mean that reduces to the plain mean for equal weights (identical when
@@ -427,9 +476,17 @@ def cumulative_relative_accuracy(
 
     Paper 002's form (``lambdas`` given, e.g. ``(0, 0.25, 0.5, 0.75)`` as in its Table 2): the
     mean of ``RA_lambda`` at those lambda points (each at :func:`lambda_index`); ``weights``
-    then has one entry per lambda.
+    then has one entry per lambda (``lam`` is not given then).
+
+    RA is undefined where the true RUL is 0 (the end of life): with ``lam = 1`` on a trajectory
+    that holds its end-of-life point, evaluate up to a ``lam < 1`` or leave the point out.
     """
     times, true_rul, pred_rul, t_eol = _trajectory(times, true_rul, pred_rul, t_eol)
+    if lambdas is not None and lam is not None:
+        raise ValueError(
+            "give lam (Saxena's CRA up to t_lambda) or lambdas (paper 002's), not both"
+        )
+    lam = 1.0 if lam is None else lam
     if lambdas is not None:
         idx = torch.tensor(
             [lambda_index(times, lam_k, t_eol=t_eol, t_p=t_p) for lam_k in lambdas],
@@ -446,7 +503,7 @@ def cumulative_relative_accuracy(
         idx = torch.nonzero(mask).flatten()
         if idx.numel() == 0:
             raise ValueError(f"no prediction time in [t_P, t_lambda] = [{t_p_val:g}, {t_lam:g}]")
-    ra = _ra(true_rul[idx], pred_rul[idx])
+    ra = _ra(true_rul[idx], pred_rul[idx], times[idx])
     if weights is None:
         return float(ra.mean().item())
     if lambdas is not None:
@@ -476,7 +533,9 @@ def convergence(
     convergence). ``M(i)`` defaults to the absolute error ``|r*(t_i) - r(t_i)|``; any
     non-negative per-time metric ``(n,)`` may be passed as ``metric``. The sums run over the
     ``n - 1`` intervals between prediction times; with ``t_end`` (> last time, e.g. ``t_EoL``)
-    the last prediction holds until ``t_end`` and all ``n`` points contribute.
+    the last prediction holds until ``t_end`` and all ``n`` points contribute. With ``t_p``
+    the sums start at ``i = P``, the first prediction at or after ``t_p`` ([S10]: ``i`` from
+    ``P`` to ``EoUP``), and the distance is measured from ``(t_p, 0)``.
 
     Returns:
         ``C_M``; NaN when the area under ``M`` is zero (centroid undefined).
@@ -493,6 +552,15 @@ def convergence(
         m = _vec(metric, "metric", n, times.device)
         if bool((m < 0).any()):
             raise ValueError("metric must be non-negative, shape (n,)")
+    t_p_val = times[0].item() if t_p is None else check_scalar(t_p, "t_p")
+    if t_p is not None:  # i from P: the first prediction at or after t_p
+        keep = times >= t_p_val - 1e-9 * max(1.0, abs(t_p_val))
+        if not bool(keep.any()):
+            raise ValueError(
+                f"t_p ({t_p_val:g}) is later than the last prediction time ({times[-1].item():g})"
+            )
+        times, m = times[keep], m[keep]
+        n = times.shape[0]
     if t_end is not None:
         t_end = check_scalar(t_end, "t_end")
         if t_end <= times[-1].item():
@@ -509,7 +577,6 @@ def convergence(
         return math.nan
     x_c = ((t1.square() - t0.square()) * m).sum() / (2.0 * area)
     y_c = ((t1 - t0) * m.square()).sum() / (2.0 * area)
-    t_p_val = times[0].item() if t_p is None else check_scalar(t_p, "t_p")
     return float(torch.sqrt((x_c - t_p_val) ** 2 + y_c**2).item())
 
 

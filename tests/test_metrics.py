@@ -235,3 +235,62 @@ def test_trajectory_checks():
         prognostic_horizon(T, R_TRUE, R_PRED, alpha=-0.1)
     with pytest.raises(ValueError, match="beta"):
         prognostic_horizon(T, R_TRUE, R_PRED, alpha=0.1, beta=0.0)
+
+
+def test_convergence_from_t_p_sums_from_the_first_prediction_at_or_after_it():
+    # [S10]: the sums run from i = P; with t_P = 15 the intervals from t = 20 on count
+    # (M = 6, 1 on [20, 30), [30, 40)), and the distance is from (15, 0)
+    area = 10 * (6 + 1)
+    sx = (900 - 400) * 6 + (1600 - 900) * 1
+    sy = 10 * (36 + 1)
+    expected = math.hypot(sx / (2 * area) - 15.0, sy / (2 * area))
+    assert convergence(T, R_TRUE, R_PRED, t_p=15.0) == pytest.approx(expected, rel=1e-12)
+    with pytest.raises(ValueError, match=r"t_p \(100\) is later than the last prediction"):
+        convergence(T, R_TRUE, R_PRED, t_p=100.0)
+
+
+def test_end_of_life_before_the_predictions_is_refused():
+    # t_lambda ran backwards (t_eol 5 < t_P 10) and PH came out negative
+    with pytest.raises(ValueError, match=r"t_eol \(5\) must be later than the first prediction"):
+        prognostic_horizon(T + 10, R_TRUE, R_PRED, alpha=0.2, t_eol=5.0)
+    with pytest.raises(ValueError, match=r"t_eol \(30\) must be later than t_P \(35\)"):
+        alpha_lambda(T, R_TRUE, R_PRED, alpha=0.3, lam=0.5, t_eol=30.0, t_p=35.0)
+
+
+def test_arguments_that_would_be_ignored_are_refused():
+    samples = R_TRUE[:, None] + torch.zeros(5, 3, dtype=F64)
+    with pytest.raises(ValueError, match="give pred_rul .* or a distribution .*, not both"):
+        alpha_lambda(T, R_TRUE, 100 * R_TRUE, alpha=0.3, lam=0.5, rul_samples=samples)
+    with pytest.raises(ValueError, match="beta applies to a distribution"):
+        prognostic_horizon(T, R_TRUE, R_PRED, alpha=0.2, beta=0.8)
+    with pytest.raises(ValueError, match="give lam .* or lambdas .*, not both"):
+        cumulative_relative_accuracy(T, R_TRUE, R_PRED, lam=0.5, lambdas=[0.0, 0.5])
+    assert alpha_lambda(T, R_TRUE, alpha=0.3, lam=0.5, rul_samples=samples, beta=0.9)
+
+
+def test_metric_messages_name_the_point_and_what_to_do():
+    t = torch.tensor([0.0, 10.0, 20.0, 30.0, 40.0, 50.0], dtype=F64)
+    with pytest.raises(ValueError, match=r"true_rul > 0 .* it is 0 at t = 50 .* lam < 1"):
+        cumulative_relative_accuracy(t, 50.0 - t, 50.0 - t)  # (default lam = 1: the EoL point)
+    assert cumulative_relative_accuracy(t, 50.0 - t, 50.0 - t, lam=0.9) == 1.0
+    with pytest.raises(ValueError, match=r"pred_rul contains non-finite values \(first at index 2"):
+        alpha_lambda(T, R_TRUE, torch.tensor([60.0, 44.0, math.nan, 21.0, 10.5], dtype=F64),
+                     alpha=0.3, lam=0.5)  # fmt: skip
+    bad = (R_TRUE[:, None] + torch.zeros(5, 3, dtype=F64)).index_put_((torch.tensor([3]),),
+                                                                     torch.tensor(math.nan, dtype=F64))  # fmt: skip
+    with pytest.raises(ValueError, match=r"rul_samples contains NaN \(first in row 3\).*inf"):
+        probability_in_bounds(R_TRUE * 0.7, R_TRUE * 1.3, rul_samples=bad)
+
+
+def test_a_float32_pmf_is_held_to_float32_rounding():
+    # softmax rows in float32 sum to 1 within ~1e-7: accepted as sample weights are
+    g = torch.Generator().manual_seed(0)
+    pmf = torch.softmax(torch.randn(5, 400, generator=g), -1)
+    support = torch.linspace(1.0, 80.0, 400, dtype=F64)
+    got = probability_in_bounds(R_TRUE * 0.7, R_TRUE * 1.3, rul_pmf=pmf, rul_support=support)
+    inside = (support >= (R_TRUE * 0.7)[:, None]) & (support <= (R_TRUE * 1.3)[:, None])
+    ref = (pmf.double() * inside).sum(-1)
+    torch.testing.assert_close(got, ref, rtol=0, atol=0)
+    with pytest.raises(ValueError, match=r"within 0.00019\); row \d sums to 1 \+ 0.01"):
+        probability_in_bounds(R_TRUE * 0.7, R_TRUE * 1.3, rul_pmf=pmf * 1.01,
+                              rul_support=support)  # fmt: skip
