@@ -685,3 +685,31 @@ def test_learners_on_cuda_match_cpu(name):
         assert fresh.K.device.type == "cuda" and fresh.K.dtype == F64
         ref = ELM(3, 9, n_out=2, activation="tanh", generator=_gen(0)).fit_ridge(X, y, 1e-3)
         np.testing.assert_allclose(fresh.beta.detach().cpu().numpy(), ref.beta.detach(), atol=1e-8)
+
+
+def test_numpy_scalars_serve_as_hyper_parameters_and_bools_do_not():
+    import numpy as np
+
+    from prognos_torch.learners import FixedSizeLSSVR
+
+    X = torch.randn(40, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    y = X.sum(-1)
+    # (np.int64(10) was refused with "n_hidden must be a positive int, got np.int64(10)")
+    a, b = ELM(3, np.int64(10)), ELM(3, 10)
+    assert a.n_hidden == 10 and isinstance(a.n_hidden, int)
+    torch.testing.assert_close(a.fit_ridge(X, y, np.float32(0.5))(X), b.fit_ridge(X, y, 0.5)(X))
+    assert ANFIS(np.int64(3)).n_inputs == 3
+    fs = FixedSizeLSSVR(n_support=np.int64(20), trials=np.int64(5))
+    assert (fs.n_support, fs.trials) == (20, 5)
+    with torch.no_grad():
+        torch.testing.assert_close(LSSVR(sigma=np.float32(0.5), C=np.float64(10.0)).fit(X, y)(X),
+                                   LSSVR(sigma=float(np.float32(0.5)), C=10.0).fit(X, y)(X))  # fmt: skip
+    with pytest.raises(TypeError, match="C must be a real number, got bool True"):
+        LSSVR(C=True)
+    with pytest.raises(TypeError, match="lam must be a real number, got True"):
+        ELM(3, 5).fit_ridge(X, y, True)
+    with pytest.raises(ValueError, match="n_hidden must be a positive int, got True"):
+        ELM(3, True)
+    # a width whose square underflows: named, not "C is too large" after a NaN kernel
+    with pytest.raises(ValueError, match="sigma = 1e-300 is too small: 2 sigma\\^2 underflows"):
+        LSSVR(sigma=1e-300)

@@ -152,28 +152,34 @@ def chol_from_cov(C: Tensor, name: str, n: int) -> Tensor:
 
 
 # ------------------------------------------------------------------------------ integers
+def _integral(v) -> bool:
+    """An integral number (``int``, ``numpy.int64``, ...), not a ``bool``."""
+    return isinstance(v, numbers.Integral) and not isinstance(v, bool)
+
+
 def check_pos_int(v, name: str) -> int:
-    """A Python ``int >= 1`` (``bool`` rejected)."""
-    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+    """An integral number ``>= 1`` as a Python ``int`` (``bool`` rejected)."""
+    if not _integral(v) or v < 1:
         raise ValueError(f"{name} must be a positive int, got {v!r}")
-    return v
+    return int(v)
 
 
 def check_nonneg_int(v, name: str) -> int:
-    """A Python ``int >= 0`` (``bool`` rejected)."""
-    if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+    """An integral number ``>= 0`` as a Python ``int`` (``bool`` rejected)."""
+    if not _integral(v) or v < 0:
         raise ValueError(f"{name} must be a non-negative int, got {v!r}")
-    return v
+    return int(v)
 
 
 def check_count(value, name: str, minimum: int = 1, *, error: type = TypeError) -> int:
-    """A Python ``int >= minimum`` (``bool`` rejected). A value that is not an int raises
-    ``error`` (``TypeError`` by default), one below ``minimum`` a ``ValueError``."""
-    if isinstance(value, bool) or not isinstance(value, int):
+    """An integral number ``>= minimum`` as a Python ``int`` (``bool`` rejected). A value that
+    is not an int raises ``error`` (``TypeError`` by default), one below ``minimum`` a
+    ``ValueError``."""
+    if not _integral(value):
         raise error(f"{name} must be an int >= {minimum}, got {value!r}")
     if value < minimum:
         raise ValueError(f"{name} must be an int >= {minimum}, got {value}")
-    return value
+    return int(value)
 
 
 def check_seed(value, name: str = "seed") -> int:
@@ -189,18 +195,21 @@ def check_seed(value, name: str = "seed") -> int:
 def check_nonneg(value, name: str, *, numbers_only: bool = False) -> float:
     """A finite real ``>= 0`` as a float.
 
-    By default anything ``float()`` accepts (numbers, 0-d tensors and arrays) is taken and a
-    value it rejects raises ``TypeError``; with ``numbers_only`` only a Python ``int`` or
-    ``float`` (not ``bool``) is accepted, and anything else raises ``ValueError``.
+    By default anything ``float()`` accepts (numbers, 0-d tensors and arrays) but a ``bool``
+    is taken and a value it rejects raises ``TypeError``; with ``numbers_only`` only a real
+    number (``int``, ``float``, NumPy scalars; not ``bool``) is accepted, and anything else
+    raises ``ValueError``.
     """
     if numbers_only:
         if (
             isinstance(value, bool)
-            or not isinstance(value, (int, float))
+            or not isinstance(value, numbers.Real)
             or not 0 <= value < math.inf
         ):
             raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
         return float(value)
+    if isinstance(value, bool) or type(value).__name__ == "bool_":
+        raise TypeError(f"{name} must be a real number, got {value!r}")
     try:
         v = float(value)
     except (TypeError, ValueError) as exc:

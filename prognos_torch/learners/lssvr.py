@@ -25,6 +25,7 @@ For the RBF kernel it equals Eq. 25,
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 from torch import Tensor, nn
@@ -212,8 +213,12 @@ class LSSVR(nn.Module):
         if kernel not in KERNELS:
             raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
         for name, v in (("sigma", sigma), ("C", C)):
-            if not isinstance(v, (int, float)) or not (0.0 < float(v) < math.inf):
+            if isinstance(v, bool) or not isinstance(v, numbers.Real):
+                raise TypeError(f"{name} must be a real number, got {type(v).__name__} {v!r}")
+            if not (0.0 < float(v) < math.inf):
                 raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+        if float(sigma) ** 2 == 0.0:  # (the kernel's 2 sigma^2 would be 0: every entry NaN)
+            raise ValueError(f"sigma = {sigma!r} is too small: 2 sigma^2 underflows to 0")
         self.kernel = kernel
         self.degree = check_pos_int(degree, "degree")
         if not isinstance(coef0, (int, float)) or not math.isfinite(float(coef0)):

@@ -41,7 +41,13 @@ from torch import Tensor, nn
 
 from ..core.kernel_exp import floored_exp
 from ..core.linalg import tria
-from ..core.validation import as_data, as_targets, check_forward_input, check_pos_int
+from ..core.validation import (
+    as_data,
+    as_targets,
+    check_count,
+    check_forward_input,
+    check_pos_int,
+)
 from . import lssvr as _lssvr
 from .lssvr import LSSVR, _blocked, kernel_matrix
 
@@ -218,9 +224,8 @@ class FixedSizeLSSVR(LSSVR):
         if selection not in SELECTIONS:
             raise ValueError(f"selection must be one of {SELECTIONS}, got {selection!r}")
         self.selection = selection
-        bad_trials = isinstance(trials, bool) or not isinstance(trials, int) or trials < 0
-        if trials is not None and bad_trials:
-            raise ValueError(f"trials must be an int >= 0 or None, got {trials!r}")
+        if trials is not None:
+            trials = check_count(trials, "trials", 0, error=ValueError)
         self.trials = 20 * self.n_support if trials is None else trials
         if generator is not None and not isinstance(generator, torch.Generator):
             raise TypeError(f"generator must be a torch.Generator, got {type(generator)}")
