@@ -713,3 +713,20 @@ def test_numpy_scalars_serve_as_hyper_parameters_and_bools_do_not():
     # a width whose square underflows: named, not "C is too large" after a NaN kernel
     with pytest.raises(ValueError, match="sigma = 1e-300 is too small: 2 sigma\\^2 underflows"):
         LSSVR(sigma=1e-300)
+
+
+def test_meta_device_patterns_build_the_learners():
+    # module.to("meta").to_empty(device=...) (ELM's float64 K copied data out of the meta
+    # tensor) and building under a default-device context (ANFIS's premise range was made on
+    # that device, its parameters on the generator's)
+    for make in (lambda: ELM(3, 10), lambda: ANFIS(3, 2)):
+        m = make().to("meta").to_empty(device="cpu")
+        assert all(p.device.type == "cpu" for p in m.parameters())
+    elm = ELM(3, 10)
+    elm.init_online(
+        torch.randn(20, 3, dtype=torch.float64), torch.randn(20, dtype=torch.float64), 1e-3
+    )
+    assert elm.to("meta").to_empty(device="cpu").K.dtype == torch.float64
+    with torch.device("meta"):
+        a = ANFIS(3, 2)
+    assert a.b.device.type == "cpu"  # (the parameters follow the generator's device)

@@ -200,7 +200,7 @@ class ANFIS(nn.Module):
         for name in MEMBERSHIPS[mf]:
             p = torch.zeros(n_inputs, n_mfs, dtype=dtype, device=generator.device)
             self.register_parameter(name, nn.Parameter(p))
-        lo = torch.full((n_inputs,), -1.0, dtype=torch.float64)
+        lo = torch.full((n_inputs,), -1.0, dtype=torch.float64, device=generator.device)
         self._set_premises(lo, -lo)
 
     @property

@@ -207,8 +207,12 @@ class ELM(nn.Module):
         # device only (the cast is applied to the float64 original, so no precision is lost).
         K = self._buffers.get("K")
         out = super()._apply(fn, recurse)
-        if K is not None:
-            self._buffers["K"] = K.to(device=fn(K).device, dtype=torch.float64)
+        moved = self._buffers.get("K")
+        if K is not None and moved is not None and moved.dtype != torch.float64:
+            # a cast: recast the float64 original (no data on the meta device: nothing to keep)
+            keep = K.is_meta or moved.is_meta
+            self._buffers["K"] = moved.to(torch.float64) if keep else K.to(moved.device,
+                                                                           torch.float64)  # fmt: skip
         return out
 
     def extra_repr(self) -> str:
