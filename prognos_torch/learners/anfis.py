@@ -274,8 +274,9 @@ class ANFIS(nn.Module):
 
         The same Eq. 1-5 as :meth:`forward`, arranged for many parameter sets: every layer is
         elementwise on contiguous ``(..., B, n_inputs * n_mfs)`` blocks or a matrix product
-        with a constant matrix (rule selection for Eq. 3, ``kron(ubar, I_R)`` for Eq. 5), so the
-        large leading dimension never meets a reduction over a tiny trailing one.
+        with a constant matrix (rule selection for Eq. 3) or one 2-D product with the inputs
+        (Eq. 5), so the large leading dimension never meets a reduction over a tiny trailing
+        one.
         """
         return self._forward_parts(params, x)[0]
 
@@ -291,19 +292,19 @@ class ANFIS(nn.Module):
             p = params.get(name, getattr(self, name))
             premises.append(p.reshape(*p.shape[:-2], 1, nL))
         premises = tuple(premises)
-        G, eye_R, E = self._constants(x)
+        G, E = self._constants(x)
         xr = x @ E  # (B, n * L): u_j once per MF of input j (E = kron(I_n, 1_L^T), exact)
         log_mu = _log_membership(xr, self.mf, premises)  # (..., B, n * L), log of Eq. 2
         log_w = log_mu @ G  # (..., B, R), log of Eq. 3 (each rule picks one MF per input)
         wbar = torch.softmax(log_w, dim=-1)  # Eq. 4 (exp of the log firing, normalised)
-        B = x.shape[0]
-        ubar_t = F.pad(x.mT, (0, 0, 0, 1), value=1.0)  # (n + 1, B): [u_1 .. u_n, 1] per column
-        ubar = ubar_t.mT  # (B, n + 1)
-        # U[(m, i), (b, i')] = ubar[b, m] delta(i, i'), i.e. kron(ubar^T, I_R): f_i(u_b) = alpha_i . ubar_b
-        U = torch.kron(ubar_t, eye_R)  # ((n + 1) R, B R)
-        P = alpha.shape[-2] * alpha.shape[-1]
-        # one 2-D GEMM: a batched matmul of many (1, P) rows is several times slower
-        f = (alpha.reshape(-1, P) @ U).reshape(*alpha.shape[:-2], B, self.n_rules)
+        B, R = x.shape[0], self.n_rules
+        ubar = F.pad(x, (0, 1), value=1.0)  # (B, n + 1): [u_1 .. u_n, 1] per row
+        # f_i(u_b) = alpha_i . ubar_b (Eq. 5) for every parameter set as ONE 2-D GEMM, ubar by
+        # alpha laid out (n + 1, sets x R): a batched matmul of many tiny products is several
+        # times slower, and kron(ubar^T, I_R) ((n + 1) R x B R, mostly zeros) grew as B R^2
+        m = alpha.shape[-2]
+        a = alpha.reshape(-1, m, R).transpose(0, 1).reshape(m, -1)  # (n + 1, sets R)
+        f = (ubar @ a).reshape(B, -1, R).transpose(0, 1).reshape(*alpha.shape[:-2], B, R)
         out = (f * wbar.unsqueeze(-3)).sum(-1).mT  # Eq. 5: (..., B, n_out)
         return out, (premises, xr, G, wbar, ubar, f)
 
@@ -353,9 +354,9 @@ class ANFIS(nn.Module):
             raise ValueError(f"ANFIS has no parameters {sorted(unknown)}")
         return out, broadcast_jacobian(self, jac, lead)
 
-    def _constants(self, like: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def _constants(self, like: Tensor) -> tuple[Tensor, Tensor]:
         """For ``like``'s dtype and device: the rule-selection matrix ``(n * L, R)`` (Eq. 3 in
-        log space), ``I_R``, and ``kron(I_n, 1_L^T)`` ``(n, n * L)`` (each input once per MF)."""
+        log space) and ``kron(I_n, 1_L^T)`` ``(n, n * L)`` (each input once per MF)."""
         key = (like.dtype, like.device)
         cache = getattr(self, "_forward_constants", None)
         if cache is not None and key in cache:  # read only (a traced step may not write)
@@ -366,7 +367,7 @@ class ANFIS(nn.Module):
             cache[key] = self._make_constants(like)
         return cache[key]
 
-    def _make_constants(self, like: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def _make_constants(self, like: Tensor) -> tuple[Tensor, Tensor]:
         with torch.inference_mode(False), torch.no_grad():  # ordinary tensors in the cache
             G = torch.zeros(
                 self.n_inputs * self.n_mfs, self.n_rules, dtype=like.dtype, device=like.device
@@ -376,7 +377,7 @@ class ANFIS(nn.Module):
                     G[j * self.n_mfs + l, i] = 1.0
             E = torch.eye(self.n_inputs, dtype=like.dtype, device=like.device)
             E = E.repeat_interleave(self.n_mfs, dim=-1)
-            return G, torch.eye(self.n_rules, dtype=like.dtype, device=like.device), E
+            return G, E
 
     # ---------------------------------------------------------------- initialisation helpers
     @torch.no_grad()
