@@ -730,3 +730,15 @@ def test_meta_device_patterns_build_the_learners():
     with torch.device("meta"):
         a = ANFIS(3, 2)
     assert a.b.device.type == "cpu"  # (the parameters follow the generator's device)
+
+
+def test_an_exact_lssvr_larger_than_the_machine_is_refused_before_it_starts(monkeypatch):
+    import prognos_torch.learners.lssvr as lssvr_mod
+
+    # a machine of 1 GiB: 10,000 samples need 3 x 1e8 x 8 bytes = 2.2 GiB (the kernel blocks of
+    # a 100,000-row fit ran 40 s into an allocator failure)
+    monkeypatch.setattr(lssvr_mod, "_machine_memory", lambda device: 2**30)
+    X = torch.zeros(10_000, 3, dtype=torch.float64)
+    with pytest.raises(MemoryError, match=r"10,000 samples needs about 2.24 GiB.*FixedSizeLSSVR"):
+        LSSVR().fit(X, X[:, 0])
+    LSSVR().fit(X[:100], X[:100, 0])  # (within the memory: fitted)

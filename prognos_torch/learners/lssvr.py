@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 
 import torch
 from torch import Tensor, nn
@@ -131,6 +132,37 @@ def kernel_matrix(
     if kernel == "poly":
         return poly_kernel(X, Y, degree, coef0)
     raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+
+
+#: float64 ``M x M`` matrices the exact fit holds at once (the kernel matrix, ``Omega + I / C``
+#: and its Cholesky factor)
+KKT_MATRICES = 3
+
+
+def _machine_memory(device: torch.device) -> int | None:
+    """Bytes of memory on ``device`` (physical memory for the CPU), ``None`` if unknown."""
+    try:
+        if device.type == "cuda":
+            return torch.cuda.get_device_properties(device).total_memory
+        if device.type == "cpu":
+            return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError, RuntimeError):  # pragma: no cover
+        pass
+    return None
+
+
+def _check_kkt_memory(M: int, device: torch.device) -> None:
+    """Refuse an exact fit whose ``M x M`` matrices exceed the device's memory (before the
+    kernel blocks are built: a 100,000-row fit ran 40 s into an allocator failure)."""
+    need = KKT_MATRICES * 8 * M * M
+    have = _machine_memory(device)
+    if have is not None and need > have:
+        raise MemoryError(
+            f"the exact LS-SVR on {M:,} samples needs about {need / 2**30:.3g} GiB ({KKT_MATRICES} "
+            f"{M:,} x {M:,} float64 matrices: Eq. 4's kernel matrix and its factorisation), more "
+            f"than the {have / 2**30:.3g} GiB of this {device.type} device; use "
+            "FixedSizeLSSVR(n_support=M) (Nystrom on M support points, memory O(N M))"
+        )
 
 
 def solve_kkt(Omega: Tensor, Y: Tensor, C: Tensor | float) -> tuple[Tensor, Tensor]:
@@ -322,10 +354,15 @@ class LSSVR(nn.Module):
             y: targets ``(M, n_out)`` (or ``(M,)`` if ``n_out == 1``).
         Returns:
             ``self``.
+        Raises:
+            MemoryError: the ``M x M`` matrices of Eq. 4 (about ``24 M^2`` bytes) exceed the
+                device's memory; :class:`~prognos_torch.learners.FixedSizeLSSVR` fits long
+                series in ``O(N M)``.
         """
         dev = self.alpha.device
         X64 = as_data(X, "X", device=dev)
         Y64 = as_targets(y, "y", device=dev, n_rows=X64.shape[0], n_out=self.n_out)
+        _check_kkt_memory(X64.shape[0], dev)
         log_sigma = self.log_sigma.detach().to(torch.float64)
         Omega = self._kernel(X64, X64, log_sigma)
         alpha, b = solve_kkt(Omega, Y64, torch.exp(self.log_C.detach().to(torch.float64)))
