@@ -201,7 +201,11 @@ class FixedSizeLSSVR(LSSVR):
         n_support: ``M``, the number of support points (all rows when ``N <= M``).
         selection: ``"renyi"`` (quadratic Renyi entropy, the default) or ``"random"``.
         trials: swaps tried by the Renyi selection (default ``20 M``).
-        generator: CPU ``torch.Generator`` for the selection (default: seeded with 0).
+        generator: CPU ``torch.Generator`` for the selection (default: seeded with 0). Each
+            :meth:`fit` draws from it, so a second fit on the same data continues its stream
+            and may select other support points (pass a freshly seeded generator to repeat a
+            fit); its state is not part of ``state_dict`` (a loaded model holds the fitted
+            support points, not the stream).
     """
 
     def __init__(
