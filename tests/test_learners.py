@@ -742,3 +742,31 @@ def test_an_exact_lssvr_larger_than_the_machine_is_refused_before_it_starts(monk
     with pytest.raises(MemoryError, match=r"10,000 samples needs about 2.24 GiB.*FixedSizeLSSVR"):
         LSSVR().fit(X, X[:, 0])
     LSSVR().fit(X[:100], X[:100, 0])  # (within the memory: fitted)
+
+
+def test_online_and_selection_errors_name_their_cause():
+    from prognos_torch.learners import blocked_multistep_cv, ros_elm_init, ros_elm_update
+    from prognos_torch.optim import EKF
+
+    one = torch.ones(1, dtype=torch.float64)
+    st = ros_elm_init([ELM(2, 5)], torch.randn(20, 1, dtype=torch.float64), 2, 0.1)
+    with pytest.raises(ValueError, match="elms has 2 learners, the state 1 channels"):
+        ros_elm_update([ELM(2, 5), ELM(2, 5)], st, one)  # (an IndexError)
+    with pytest.raises(ValueError, match="elms\\[0\\] has n_hidden=7, .* made with 5"):
+        ros_elm_update([ELM(2, 7)], st, one)  # (a matrix-shape error)
+    X = torch.randn(40, 2, dtype=torch.float64)
+    Y = X.sum(-1, keepdim=True)
+    with pytest.raises(ValueError, match=r"inputs hold no sample \(shape \(0, 2\)\)"):
+        EKF(ELM(2, 5), P0=1.0, R=1.0).step(X[:0], Y[:0])  # ("obs_dim must be a positive int")
+    lm = LSSVR().fit(X[:30], Y[:30])
+    opt = EKF(lm, P0=1.0, R=1e-2)
+    lm.fit(X, Y)
+    with pytest.raises(ValueError, match=r"'alpha' now has shape \(40, 1\).*new optimiser"):
+        opt.step(X[:5], Y[:5])
+    fit = lambda a, b: lambda x: x[:, -1]  # noqa: E731 (persistence)
+    s = torch.randn(30, dtype=torch.float64)
+    with pytest.raises(ValueError, match="threshold must be a finite number or None, got 'a'"):
+        blocked_multistep_cv(fit, s, 3, 2, threshold="a")
+    s[10] = math.nan
+    with pytest.raises(ValueError, match="missing or non-finite value at index 10"):
+        blocked_multistep_cv(fit, s, 3, 2)  # (it returned NaN scores)

@@ -119,6 +119,23 @@ def ros_elm_init(elms: Sequence[nn.Module], z0: Tensor, p: int, lam: float) -> R
     return ROSELMState(window, tuple(betas), tuple(Ks), int(z0.shape[0] - p))
 
 
+def _check_elms_match(elms: Sequence, state: ROSELMState) -> None:
+    """The ELMs are those the state was made with: one per channel, with ``beta``'s hidden
+    size (an ELM swapped for another raised an IndexError or a matrix-shape error)."""
+    if len(elms) != len(state.beta):
+        raise ValueError(
+            f"elms has {len(elms)} learners, the state {len(state.beta)} channels: pass the "
+            "ELMs the state was made with (one per channel)"
+        )
+    for c, (elm, beta) in enumerate(zip(elms, state.beta)):
+        L = getattr(elm, "n_hidden", None)
+        if beta.numel() and L is not None and L != beta.shape[-1]:
+            raise ValueError(
+                f"elms[{c}] has n_hidden={L}, the state's channel {c} was made with "
+                f"{beta.shape[-1]} hidden units: pass the ELMs the state was made with"
+            )
+
+
 def ros_elm_update(elms: Sequence[nn.Module], state: ROSELMState, z: Tensor) -> ROSELMState:
     """ROS-ELM Step II with the newest measurement ``z`` (paper 000 Eq. 55-56, Sec. 5 step 9).
 
@@ -137,6 +154,7 @@ def ros_elm_update(elms: Sequence[nn.Module], state: ROSELMState, z: Tensor) -> 
     if tuple(z.shape) != want:
         raise ValueError(f"z must have shape {want} (batch shape + (C,)), got {tuple(z.shape)}")
     check_finite(z, "z", f"{want}")
+    _check_elms_match(elms, state)
     z = z.to(state.window.dtype)
     betas, Ks = [], []
     for c, elm in enumerate(elms):
@@ -170,6 +188,7 @@ def ros_elm_forecast(
         ``(n, ..., C)`` float64.
     """
     n = check_pos_int(n, "n")
+    _check_elms_match(elms, state)
     w = state.window
     out = []
     for _ in range(n):

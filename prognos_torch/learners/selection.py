@@ -16,6 +16,7 @@ series (RMSE over the horizon) and, given a failure threshold, the predicted tim
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -173,8 +174,15 @@ def blocked_multistep_cv(
     stride = check_pos_int(stride, "stride")
     if direction not in ("above", "below"):
         raise ValueError(f"direction must be 'above' or 'below', got {direction!r}")
-    if threshold is not None and not math.isfinite(float(threshold)):
+    if threshold is not None and (isinstance(threshold, bool) or not isinstance(threshold, numbers.Real)
+                                  or not math.isfinite(threshold)):  # fmt: skip
         raise ValueError(f"threshold must be a finite number or None, got {threshold!r}")
+    if not bool(torch.isfinite(series).all()):
+        i = int((~torch.isfinite(series)).nonzero()[0, 0])
+        raise ValueError(
+            f"series has a missing or non-finite value at index {i}: the folds' windows need "
+            "every value (fill or cut the gap first)"
+        )
     n = series.shape[0]
     if n - m < 2:
         raise ValueError(f"series must have at least m + 2 = {m + 2} samples (n,), got n={n}")

@@ -499,6 +499,10 @@ class KalmanOptimizer(torch.optim.Optimizer):
         if not isinstance(inputs, Tensor):
             raise TypeError(f"inputs must be a torch.Tensor, got {type(inputs)}")
         _check_matches(inputs, "inputs", b.dtype, b.device, checked)
+        if inputs.numel() == 0:  # (it surfaced as "obs_dim must be a positive int, got 0")
+            raise ValueError(
+                f"inputs hold no sample (shape {tuple(inputs.shape)}): a step needs one"
+            )
         if self.per_run_data and (inputs.dim() < 1 or inputs.shape[0] != self.runs):
             raise ValueError(
                 f"inputs must have shape (runs={self.runs}, ...) with per_run_data=True, got "

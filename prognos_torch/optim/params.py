@@ -174,6 +174,12 @@ class ParameterBridge:
         parts = []
         for name, shape in zip(self.names, self.shapes):
             p = params.get(name)
+            if module is None and p is not None and p.shape != shape:
+                raise ValueError(
+                    f"the module's parameter {name!r} now has shape {tuple(p.shape)}; this was "
+                    f"built for {tuple(shape)} (an LS-SVR refitted on another number of samples "
+                    "changes alpha's shape, for one): build a new optimiser for the module"
+                )
             if p is None or p.shape != shape:
                 raise ValueError(
                     f"module has no parameter {name!r} of shape {tuple(shape)} "
