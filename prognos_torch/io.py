@@ -290,6 +290,8 @@ def save_model_file(
     if not isinstance(config, Mapping):
         raise TypeError(f"config must be a mapping, got {type(config).__name__}")
     _check_json(config, "")
+    if not isinstance(tensors, Mapping):
+        raise TypeError(f"tensors must be a mapping name -> tensor, got {type(tensors).__name__}")
     items = []
     for name, t in tensors.items():
         if not isinstance(name, str) or name == _META:
@@ -298,7 +300,10 @@ def save_model_file(
             raise TypeError(f"tensors[{name!r}] must be a torch.Tensor, got {type(t).__name__}")
         if t.dtype not in _BY_TORCH:
             raise TypeError(f"tensors[{name!r}] has dtype {t.dtype}; allowed: {sorted(_DTYPES)}")
-        items.append((name, t))
+        if t.layout != torch.strided or t.is_meta:
+            what = "on the meta device (no data)" if t.is_meta else f"of layout {t.layout}"
+            raise TypeError(f"tensors[{name!r}] is {what}; a model file holds dense tensors")
+        items.append((name, t.resolve_conj().resolve_neg()))
     # widest dtypes first: every tensor then starts at a multiple of its item size
     items.sort(key=lambda it: -it[1].element_size())
     header: dict = {
@@ -340,11 +345,17 @@ def _sniff(prefix: bytes) -> str:
             "it is a zip archive (the format of torch.save); such files contain pickled objects "
             "and are never loaded here, because unpickling can run arbitrary code"
         )
-    if prefix[:1] == b"\x80" or prefix[:1] in (b"(", b"c", b"]", b"}"):
+    # a pickle opens with PROTO (0x80, protocol 2-5) or, protocols 0-1, one of "(c]}"; a
+    # safetensors-like length of 0x..80 bytes is followed by its JSON header at byte 8
+    json_at_8 = prefix[8:9] in (b"{", b"[")
+    if (prefix[:1] == b"\x80" and prefix[1:2] in (b"\x02", b"\x03", b"\x04", b"\x05")
+            and not json_at_8) or prefix[:1] in (b"(", b"c", b"]", b"}"):  # fmt: skip
         return (
             "it looks like a Python pickle; pickles are never loaded here, because unpickling "
             "can run arbitrary code"
         )
+    if json_at_8:
+        return "its header is not the JSON object of a safetensors file"
     return "it is neither a safetensors file nor a prognos model file of format 1"
 
 
@@ -382,6 +393,8 @@ def load_model_file(
     device = _device(map_location)
     if path.is_dir():
         raise IsADirectoryError(f"{path} is a folder, not a model file")
+    if path.exists() and not path.is_file():  # (a FIFO, a device: reading could block)
+        raise ModelFileError(f"{path} is not a regular file (a pipe or a device), not a model file")
     if not path.is_file():
         raise FileNotFoundError(f"model file not found: {path}")
     size = path.stat().st_size

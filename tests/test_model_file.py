@@ -325,3 +325,31 @@ def test_a_hand_edited_noise_level_is_refused(tmp_path):
         save_model(model, path)
         with pytest.raises(ModelFileError, match="configuration entry 'residual_rmse' is"):
             load_model(path)
+
+
+def test_messages_for_odd_files_and_tensors(tmp_path):
+    from prognos_torch.io import ModelFileError, load_model_file, save_model_file
+
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    with pytest.raises(ModelFileError, match="not a regular file"):  # (it said "not found")
+        load_model_file(fifo)
+    # a safetensors-like file with a JSON array for its header, 0x180 bytes long: its first
+    # byte 0x80 was read as a pickle's
+    h = b"[" + b" " * (0x180 - 2) + b"]"
+    (tmp_path / "arr.st").write_bytes(struct.pack("<Q", len(h)) + h)
+    with pytest.raises(ModelFileError, match="its header is not the JSON object"):
+        load_model_file(tmp_path / "arr.st")
+    # tensors the format cannot hold are named; a negated view is stored by value
+    for t, match in ((torch.eye(3).to_sparse(), "layout torch.sparse_coo"),
+                     (torch.empty(3, device="meta"), "on the meta device")):  # fmt: skip
+        with pytest.raises(TypeError, match=f"tensors\\['w'\\] is .*{match}"):
+            save_model_file(tmp_path / "a", {}, {"w": t})
+    with pytest.raises(TypeError, match="tensors must be a mapping name -> tensor, got list"):
+        save_model_file(tmp_path / "a", {}, [torch.ones(1)])
+    save_model_file(
+        tmp_path / "neg", {}, {"w": torch._neg_view(torch.ones(3, dtype=torch.float64))}
+    )
+    assert torch.equal(
+        load_model_file(tmp_path / "neg").tensors["w"], -torch.ones(3, dtype=torch.float64)
+    )
