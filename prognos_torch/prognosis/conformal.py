@@ -424,9 +424,8 @@ def leave_one_group_out(
     """
     lo, hi, tr = _vectors(lower, upper, truth)
     if isinstance(groups, (str, bytes)) or len(groups) != lo.shape[0]:
-        raise ValueError(
-            f"groups must have {lo.shape[0]} labels (one per point), got {len(groups)}"
-        )
+        got = f"the string {groups!r:.40}" if isinstance(groups, (str, bytes)) else len(groups)
+        raise ValueError(f"groups must have {lo.shape[0]} labels (one per point), got {got}")
     scores = interval_scores(lo, hi, tr)
     labels = list(groups)
     margin = torch.full_like(lo, math.nan)
