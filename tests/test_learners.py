@@ -770,3 +770,22 @@ def test_online_and_selection_errors_name_their_cause():
     s[10] = math.nan
     with pytest.raises(ValueError, match="missing or non-finite value at index 10"):
         blocked_multistep_cv(fit, s, 3, 2)  # (it returned NaN scores)
+
+
+def test_both_forms_of_the_batched_consequents_agree(monkeypatch):
+    import prognos_torch.learners.anfis as anfis_mod
+
+    g = torch.Generator().manual_seed(3)
+    net = ANFIS(3, 2, n_out=2, generator=g)
+    params = {k: v.detach().expand(7, *v.shape) + 0.01 * torch.randn(7, *v.shape, generator=g,
+                                                                     dtype=v.dtype)
+              for k, v in net.named_parameters()}  # fmt: skip
+    x = torch.randn(5, 3, generator=g, dtype=torch.float64)
+    out, jac = net.forward_and_jacobian(params, x)
+    monkeypatch.setattr(anfis_mod, "KRON_MAX_ENTRIES", 0)  # the direct product, as for large B R^2
+    out2, jac2 = net.forward_and_jacobian(params, x)
+    torch.testing.assert_close(out2, out, rtol=1e-13, atol=1e-14)
+    for k in jac:
+        torch.testing.assert_close(jac2[k], jac[k], rtol=1e-13, atol=1e-14)
+    ref = vmap(lambda p: functional_call(net, p, (x,)))(params)
+    torch.testing.assert_close(out2, ref, rtol=1e-13, atol=1e-14)

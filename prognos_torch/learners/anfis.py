@@ -145,6 +145,12 @@ def normalized_firing(log_mu: Tensor) -> Tensor:
 # --------------------------------------------------------------------------- module
 
 
+#: Entries of ``kron(ubar^T, I_R)`` up to which Eq. 5 of the batched forward multiplies by it
+#: (the form the committed study runs were made with); above, by the inputs directly (the same
+#: numbers to rounding, memory ``O(B R)``: 243 rules on a batch of 256 needed 700 MB a call)
+KRON_MAX_ENTRIES = 2**20
+
+
 class ANFIS(nn.Module):
     """First-order Sugeno ANFIS with grid rules (paper 003, Eq. 1-6).
 
@@ -298,13 +304,18 @@ class ANFIS(nn.Module):
         log_w = log_mu @ G  # (..., B, R), log of Eq. 3 (each rule picks one MF per input)
         wbar = torch.softmax(log_w, dim=-1)  # Eq. 4 (exp of the log firing, normalised)
         B, R = x.shape[0], self.n_rules
-        ubar = F.pad(x, (0, 1), value=1.0)  # (B, n + 1): [u_1 .. u_n, 1] per row
-        # f_i(u_b) = alpha_i . ubar_b (Eq. 5) for every parameter set as ONE 2-D GEMM, ubar by
-        # alpha laid out (n + 1, sets x R): a batched matmul of many tiny products is several
-        # times slower, and kron(ubar^T, I_R) ((n + 1) R x B R, mostly zeros) grew as B R^2
         m = alpha.shape[-2]
-        a = alpha.reshape(-1, m, R).transpose(0, 1).reshape(m, -1)  # (n + 1, sets R)
-        f = (ubar @ a).reshape(B, -1, R).transpose(0, 1).reshape(*alpha.shape[:-2], B, R)
+        ubar_t = F.pad(x.mT, (0, 0, 0, 1), value=1.0)  # (n + 1, B): [u_1 .. u_n, 1] per column
+        ubar = ubar_t.mT  # (B, n + 1)
+        # f_i(u_b) = alpha_i . ubar_b (Eq. 5) for every parameter set as ONE 2-D GEMM (a batched
+        # matmul of many tiny products is several times slower)
+        if m * R * B * R <= KRON_MAX_ENTRIES:
+            # with U = kron(ubar^T, I_R), U[(m, i), (b, i')] = ubar[b, m] delta(i, i')
+            U = torch.kron(ubar_t, torch.eye(R, dtype=x.dtype, device=x.device))  # ((n+1) R, B R)
+            f = (alpha.reshape(-1, m * R) @ U).reshape(*alpha.shape[:-2], B, R)
+        else:  # U would grow as B R^2 (mostly zeros): ubar by alpha laid out (n + 1, sets x R)
+            a = alpha.reshape(-1, m, R).transpose(0, 1).reshape(m, -1)
+            f = (ubar @ a).reshape(B, -1, R).transpose(0, 1).reshape(*alpha.shape[:-2], B, R)
         out = (f * wbar.unsqueeze(-3)).sum(-1).mT  # Eq. 5: (..., B, n_out)
         return out, (premises, xr, G, wbar, ubar, f)
 
