@@ -15,11 +15,22 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 TINY = {
+    "bench_anfis_rules.py": ["--repeat", "1", "--max-rules", "8"],
     "bench_calibrate.py": ["--histories", "1", "--method", "exponential"],
     "bench_datasets.py": ["--repeat", "1", "--n-files", "2", "--rows", "512", "--channels", "4"],
     "bench_filters.py": ["--steps", "5", "--sizes", "4"],
-    "bench_fleet.py": ["--assets", "20", "--steps", "40", "--samples", "50", "--shard-size", "8",
-                       "--workers", "2"],  # fmt: skip
+    "bench_fleet.py": [
+        "--assets",
+        "20",
+        "--steps",
+        "40",
+        "--samples",
+        "50",
+        "--shard-size",
+        "8",
+        "--workers",
+        "2",
+    ],  # fmt: skip
     "bench_float32.py": ["--steps", "50", "--runs", "2"],
     "bench_optim.py": ["--repeats", "1", "--runs", "2"],
     "bench_particle.py": [
