@@ -291,3 +291,19 @@ def test_glitch_limit_leaves_a_glitch_out_of_the_healthy_statistics():
     assert base.noise == plain.noise and plain.std > 3 * base.std
     with pytest.raises(ValueError, match="glitch_limit"):
         healthy_baseline(x, t, glitch_limit=0.0)
+
+
+def test_ksigma_raises_no_alarm_on_the_partial_windows_at_the_start():
+    # with consecutive = 1 the first sample's "median" is the sample itself: it exceeded k = 2
+    # in 2.3 % of stationary series, 200 times the documented rate
+    g = torch.Generator().manual_seed(0)
+    base = Baseline(0.0, 1.0, 0.0, 1000, -1.0)  # (mean, std, median, n, t_end)
+    hits = 0
+    for _ in range(2000):
+        x = torch.randn(50, generator=g, dtype=F64)
+        on = ksigma_onset(x, baseline=base, k=2.0, window=5, consecutive=1)
+        hits += int(on.detected and on.index < 4)
+    assert hits == 0
+    # a series that starts above the limit alarms once its first window is full
+    x = torch.full((20,), 10.0, dtype=F64)
+    assert ksigma_onset(x, baseline=base, k=2.0, window=5, consecutive=1).index == 4

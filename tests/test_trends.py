@@ -311,3 +311,33 @@ def test_trend_pool_splits_the_paths_evenly():
     assert counts == [1000, 250, 250, 250, 250] and nest.paths.shape == (100, 3)
     with pytest.raises(ValueError, match="members must be a non-empty tuple"):
         TrendPool(())
+
+
+def test_sampling_arguments_are_checked_by_name():
+    from prognos_torch.prognosis import TrendPool
+
+    t = torch.arange(60, dtype=F64)
+    rng = np.random.default_rng(5)
+    y = torch.tensor(1.0 + 0.2 * np.exp(0.05 * np.arange(60)) + 0.05 * rng.standard_normal(60))
+    fits = fit_trends(t, y, phi=1.0, sigma0=0.05)
+    grid = path_grid(59.0, 200.0, 1.0)
+    g = torch.Generator().manual_seed(0)
+    for shape in ("exponential", "linear"):  # a NaN level: every path "crossed" / none did
+        with pytest.raises(ValueError, match="level must be a finite number, got nan"):
+            fits[shape].first_passage(-1, math.nan, grid, 20, g)
+    with pytest.raises(ValueError, match="n_paths must be an int >= the 3 members"):
+        TrendPool(tuple(fits.values())).first_passage(-1, 20.0, grid, 2, g)  # (ZeroDivisionError)
+    with pytest.raises(ValueError, match="n_paths must be an int >= 1, got 0"):
+        fits["linear"].first_passage(-1, 20.0, grid, 0, g)
+    for bad in ([61.0, 70.0, 65.0, 80.0], [61.0, math.nan, 80.0]):  # (taken silently)
+        with pytest.raises(ValueError, match="finite, strictly increasing times"):
+            fits["linear"].first_passage(-1, 5.0, torch.tensor(bad, dtype=F64), 5, g)
+    # no hidden draw from torch's global stream
+    with pytest.raises(TypeError, match="generator must be a torch.Generator, got NoneType"):
+        fits["linear"].first_passage(-1, 20.0, grid, 5, None)
+    for args, match in [((0.0, 1e3, 1.0, 0.0), "rel must be a positive"),
+                        ((0.0, 1e3, 1.0, math.nan), "rel must be a positive"),
+                        ((0.0, math.inf, 1.0), "positive finite numbers"),
+                        ((math.nan, 10.0, 1.0), "t_origin must be a finite time")]:  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            path_grid(*args)

@@ -328,6 +328,14 @@ def simulate_first_passage(
         ``(first, levels)``: ``(B, N)`` int64 0-based grid step of the first crossing (``J``:
         none), and the kept levels or ``None``.
     """
+    if not isinstance(generator, torch.Generator):  # (None drew from the global stream)
+        raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
+    if isinstance(n_paths, bool) or not isinstance(n_paths, int) or n_paths < 1:
+        raise ValueError(f"n_paths must be an int >= 1, got {n_paths!r}")
+    if math.isnan(z_level):
+        raise ValueError("z_level is NaN: the level to reach must be a number")
+    if ds.dim() != 1 or not bool((ds > 0).all()) or not bool(torch.isfinite(ds).all()):
+        raise ValueError("ds must be (J,) finite clock steps > 0 (an increasing grid)")
     B, J = means.shape[0], ds.shape[0]
     dt, dev = means.dtype, means.device
     e = standard_normal((B, n_paths, 3), generator, dt, dev)
@@ -422,8 +430,12 @@ class TrendPool:
         keep: int = 0,
     ) -> Passage:
         """Crossing times of ``level`` by the members' paths from the observation ``index``
-        on ``grid`` ``(J,)``, ``n_paths`` in all (class docstring)."""
+        on ``grid`` ``(J,)``, ``n_paths`` in all, at least one per member (class docstring)."""
         k = len(self.members)
+        if isinstance(n_paths, bool) or not isinstance(n_paths, int) or n_paths < k:
+            raise ValueError(
+                f"n_paths must be an int >= the {k} members of the pool, got {n_paths!r}"
+            )
         parts = []
         for j, f in enumerate(self.members):
             n = n_paths // k + (n_paths % k if j == 0 else 0)
@@ -506,7 +518,14 @@ class TrendFit:
 
     # -- transforms -------------------------------------------------------------
     def to_z(self, level: float) -> float:
-        """An (oriented) indicator level in the model's measurement space."""
+        """An (oriented) indicator level in the model's measurement space; a level at or below
+        the exponential's and power law's offset ``phi`` is reached at once (``-inf``)."""
+        if (
+            isinstance(level, bool)
+            or not isinstance(level, (int, float))
+            or not math.isfinite(level)
+        ):
+            raise ValueError(f"level must be a finite number, got {level!r}")
         if self.shape == "linear":
             return float(level)
         d = float(level) - self.phi
@@ -526,8 +545,9 @@ class TrendFit:
 
     def _steps(self, index: int, grid: Tensor) -> Tensor:
         t_origin = float(self.t[index])
-        if grid.dim() != 1 or grid.numel() < 1 or not bool(grid[0] > t_origin):
-            raise ValueError("grid must be (J,) increasing times after the origin")
+        if (grid.dim() != 1 or grid.numel() < 1 or not bool(grid[0] > t_origin)
+                or not bool(torch.isfinite(grid).all()) or not bool((grid.diff() > 0).all())):  # fmt: skip
+            raise ValueError("grid must be (J,) finite, strictly increasing times after the origin")
         return torch.diff(self.clock(torch.cat([grid.new_tensor([t_origin]), grid])))
 
     # -- prediction -------------------------------------------------------------
@@ -589,8 +609,12 @@ class TrendFit:
 def path_grid(t_origin: float, horizon: float, dt: float, rel: float = 0.01) -> Tensor:
     """Future times ``t_origin + h_j`` up to ``horizon``: steps of ``dt`` until ``dt < rel h``,
     then geometric steps of ``rel`` of the elapsed horizon (relative resolution ``rel``)."""
-    if not (horizon > 0 and dt > 0):
-        raise ValueError(f"horizon and dt must be positive, got {horizon}, {dt}")
+    if not (0 < horizon < math.inf and 0 < dt < math.inf):
+        raise ValueError(f"horizon and dt must be positive finite numbers, got {horizon}, {dt}")
+    if not 0 < rel < math.inf:
+        raise ValueError(f"rel must be a positive number (a relative resolution), got {rel}")
+    if not math.isfinite(t_origin):
+        raise ValueError(f"t_origin must be a finite time, got {t_origin}")
     h_switch = min(horizon, dt / rel)
     n_lin = max(1, int(math.ceil(h_switch / dt)))
     lin = torch.arange(1, n_lin + 1, dtype=torch.float64) * dt
