@@ -273,3 +273,35 @@ def test_cuda_matches_cpu():
     torch.testing.assert_close(
         fault_probability(x.cuda(), 2.0, w.cuda()).cpu(), fault_probability(x, 2.0, w)
     )
+
+
+def test_scalars_text_and_complex_samples():
+    S = torch.zeros(4, 5, dtype=torch.float64)
+    with pytest.raises(TypeError, match="threshold must be a real number, got the text '1'"):
+        rul_distribution(S, "1")  # (float("1") took the text)
+    with pytest.raises(TypeError, match="samples must be real, got dtype torch.complex64"):
+        rul_distribution(torch.ones(2, 3, dtype=torch.complex64), 1.0)
+    a = rul_distribution(S + torch.arange(5.0, dtype=torch.float64), 2.5, dt=np.float32(2.0))
+    b = rul_distribution(S + torch.arange(5.0, dtype=torch.float64), 2.5, dt=2.0)
+    assert a.dt == 2.0 and torch.equal(a.pmf, b.pmf)
+    for x, y in zip(a.binned(np.int64(2)), b.binned(2)):
+        assert torch.equal(x, y)
+
+
+def test_particle_and_gaussian_bands_agree_once_the_particles_carry_the_measurement_noise():
+    from prognos_torch.core import GaussianBelief, linear_gaussian_model
+    from prognos_torch.prognosis import fault_probability_gaussian, particle_paths, predict_paths
+
+    f = torch.float64
+    model = linear_gaussian_model(torch.eye(1, dtype=f), torch.eye(1, dtype=f),
+                                  torch.eye(1, dtype=f) * 0.3, torch.eye(1, dtype=f) * 0.5,
+                                  q=torch.tensor([0.1], dtype=f))  # fmt: skip
+    b = GaussianBelief(torch.zeros(1, dtype=f), torch.eye(1, dtype=f) * 0.4)
+    gp = predict_paths(model, b, 10, method="gaussian")
+    sp = predict_paths(model, b, 10, method="particle", n_particles=40_000,
+                       generator=torch.Generator().manual_seed(0), measurement_noise=True)  # fmt: skip
+    pg = float(fault_probability_gaussian(gp.mean, gp.std, 2.0)[-1])  # exact: 0.1911
+    ps = float(fault_probability(sp.samples, 2.0, sp.weights)[-1])
+    assert abs(ps - pg) < 4 * (pg * (1 - pg) / 40_000) ** 0.5
+    with pytest.raises(ValueError, match="particles have dtype torch.float32, the model's noise"):
+        particle_paths(model, torch.zeros(10, 1), 3, generator=torch.Generator())

@@ -298,6 +298,8 @@ def check_scalar(x, name: str) -> float:
     float; ``bool`` is rejected."""
     if isinstance(x, bool):
         raise TypeError(f"{name} must be a real number, got bool")
+    if isinstance(x, (str, bytes)):  # (float("1") would take text)
+        raise TypeError(f"{name} must be a real number, got the text {x!r}")
     if isinstance(x, Tensor):
         if x.numel() != 1 or x.dim() > 1:
             raise ValueError(

@@ -337,6 +337,12 @@ def particle_paths(
         raise ValueError(f"particles must have shape (..., N, n) with n={n}, got {tuple(x.shape)}")
     check_finite(x, "particles", f"(..., N, {n})")
     check_generator(generator, x)
+    model_dtype = model.noise(k0 + 1).chol_Q.dtype
+    if x.dtype != model_dtype:  # (a raw "expected m1 and m2 to have the same dtype" otherwise)
+        raise ValueError(
+            f"particles have dtype {x.dtype}, the model's noise {model_dtype}: use one dtype "
+            f"(particles.to({model_dtype}), or the model built in {x.dtype})"
+        )
     batch, N = x.shape[:-2], x.shape[-2]
     w = check_weights(weights, batch, N, x.device).to(x.dtype)
     us = check_controls(model, us, horizon)
@@ -422,6 +428,13 @@ def predict_paths(
 
     A learner is turned into a model with :func:`learner_transition_model` (``m`` from the
     window, noise from ``chol_Q``/``chol_R``) when the method needs one.
+
+    What the band describes differs by method: the Gaussian band is that of the predicted
+    *measurement* (its std includes ``R``), the particle paths follow the noise-free
+    measurement ``h(x)`` unless ``measurement_noise=True``. So with the defaults a fault
+    probability read from a Gaussian band is that of a noisy reading crossing, from particle
+    paths that of the indicator itself (lower where ``R`` matters); pass
+    ``measurement_noise=True`` to the particle method for the Gaussian reading.
 
     Returns:
         :class:`RecursivePaths`, :class:`GaussianPaths` or :class:`SamplePaths`.

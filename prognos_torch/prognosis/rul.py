@@ -27,6 +27,7 @@ Shapes: ``samples`` is ``(..., N, H)`` (N sample paths / particles, H future ste
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -54,6 +55,8 @@ def _check_direction(direction: str) -> str:
 
 def _check_samples(samples) -> Tensor:
     samples = as_tensor(samples, "samples")
+    if samples.is_complex():  # (a cast would drop the imaginary part with a warning only)
+        raise TypeError(f"samples must be real, got dtype {samples.dtype}")
     if not samples.is_floating_point():
         samples = samples.to(torch.float64)
     if samples.dim() < 2:
@@ -243,8 +246,9 @@ class RULDistribution:
         steps when ``H < width``; the last ``H - B * width`` steps are dropped); ``support`` is
         the mean RUL of each bin's steps, ``pmf`` the mass of each bin.
         """
-        if isinstance(width, bool) or not isinstance(width, int) or width < 1:
+        if isinstance(width, bool) or not isinstance(width, numbers.Integral) or width < 1:
             raise ValueError(f"width must be a positive int (steps per bin), got {width!r}")
+        width = int(width)
         n_bin = max(1, self.horizon // width)
         keep = n_bin * width
         pmf = self.pmf[..., :keep]
@@ -258,7 +262,9 @@ class RULDistribution:
 
         The censored mass counts as the upper tail (RUL > ``H dt``), so ``Q(q)`` is well defined
         whenever ``q <= 1 - censored_mass``; otherwise the quantile lies beyond the horizon and
-        NaN is returned. A scalar ``q`` gives shape ``(...)``, a 1-D ``q`` gives ``(..., Q)``.
+        NaN is returned. The comparison ``P(RUL <= l) >= q`` allows ``1e-12`` for the rounding of
+        the cumulative sum (a cdf that sums to ``0.5 - 1e-16`` still gives the median). A scalar
+        ``q`` gives shape ``(...)``, a 1-D ``q`` gives ``(..., Q)``.
         """
         qs = torch.as_tensor(q, dtype=torch.float64, device=self.pmf.device)
         if qs.dim() > 1:
@@ -311,9 +317,10 @@ def rul_distribution(
     direction = _check_direction(direction)
     samples = _check_samples(samples)
     thr = check_scalar(threshold, "threshold")
-    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not math.isfinite(dt) or dt <= 0:
+    if isinstance(dt, bool) or not isinstance(dt, numbers.Real) or not math.isfinite(dt) or dt <= 0:
         raise ValueError(f"dt must be a finite positive number, got {dt!r}")
-    if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not 0.0 <= tol < 1.0:
+    dt = float(dt)
+    if isinstance(tol, bool) or not isinstance(tol, numbers.Real) or not 0.0 <= tol < 1.0:
         raise ValueError(f"tol must be a number in [0, 1), got {tol!r}")
     n_paths, horizon = samples.shape[-2], samples.shape[-1]
     w = check_weights(weights, samples.shape[:-2], n_paths, samples.device)
