@@ -1,8 +1,10 @@
 """The package's module-level imports form no cycle (a layered house: each module imports only
-from below). Imports inside functions, the way to load optional extras lazily, do not count.
+from below), and its packages import only the layers above them in docs/ARCHITECTURE.md's
+table, lazy imports included (annotation-only imports under ``if TYPE_CHECKING:`` do not run).
 
 The scanner reads the source (no import is run), resolves relative imports, and finds the
-strongly connected components of the module graph; the second test shows it finds a cycle.
+strongly connected components of the module graph; the second test shows it finds a cycle, the
+fourth that the layer check finds an import from below.
 """
 
 import ast
@@ -21,14 +23,35 @@ def _modules(root: Path) -> dict[str, Path]:
     return out
 
 
-def import_graph(root: Path) -> dict[str, set[str]]:
-    """``{module: modules it imports at module level}`` within the package at ``root``."""
+def _type_checking(node) -> bool:
+    return isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test)
+
+
+def _nodes(tree: ast.Module, lazy: bool):
+    """The module's top-level statements, or with ``lazy`` every node outside ``if
+    TYPE_CHECKING:`` blocks (imports inside functions included)."""
+    if not lazy:
+        yield from tree.body
+        return
+    todo = list(tree.body)
+    while todo:
+        node = todo.pop()
+        if _type_checking(node):
+            todo.extend(node.orelse)
+            continue
+        yield node
+        todo.extend(ast.iter_child_nodes(node))
+
+
+def import_graph(root: Path, lazy: bool = False) -> dict[str, set[str]]:
+    """``{module: modules it imports at module level}`` within the package at ``root`` (with
+    ``lazy``: anywhere in the module but under ``if TYPE_CHECKING:``)."""
     mods = _modules(root)
     pkg = root.name
     graph: dict[str, set[str]] = {m: set() for m in mods}
     for m, p in mods.items():
         is_pkg = p.name == "__init__.py"
-        for node in ast.parse(p.read_text(encoding="utf-8")).body:
+        for node in _nodes(ast.parse(p.read_text(encoding="utf-8")), lazy):
             if isinstance(node, ast.ImportFrom):
                 if node.level:
                     base = m.split(".") if is_pkg else m.split(".")[:-1]
@@ -114,3 +137,63 @@ def test_the_scanner_finds_a_cycle(tmp_path):
     graph = import_graph(pkg)
     assert graph["pkg.sub.b"] == {"pkg.a"}  # the import inside f does not count
     assert cycles(graph) == [["pkg.a", "pkg.sub.b"]]
+
+
+#: top-level helper modules and the layer of the table they belong to
+HELPERS = {"_text": "workflow", "_workers": "workflow", "cli_parser": "cli",
+           "cli_prognose": "cli", "__main__": "cli"}  # fmt: skip
+
+
+def layers(doc: Path) -> dict[str, int]:
+    """``{package: row}`` of the "## Layers" table of ``doc`` (first column, backticked)."""
+    text = doc.read_text(encoding="utf-8").split("## Layers", 1)[1]
+    rows = [line for line in text.splitlines() if line.startswith("| `")]
+    out = {}
+    for i, line in enumerate(rows):
+        first = line.split("|")[1]
+        for name in first.split("`")[1::2]:
+            out[name] = i
+    return out
+
+
+def layer_violations(root: Path, rows: dict[str, int]) -> list[str]:
+    """Imports (lazy ones included) of a package from a row below its own."""
+    pkg = root.name
+    graph = import_graph(root, lazy=True)
+
+    def row(module: str) -> int | None:
+        parts = module.split(".")
+        if len(parts) == 1:  # the package's __init__ (the version): every layer may read it
+            return None
+        name = HELPERS.get(parts[1], parts[1])
+        assert name in rows, f"{module}: its package {name!r} is not in the layer table"
+        return rows[name]
+
+    bad = []
+    for m, targets in graph.items():
+        mine = row(m)
+        for t in targets:
+            theirs = row(t)
+            if mine is not None and theirs is not None and theirs > mine:
+                bad.append(f"{m} imports {t}")
+    assert pkg
+    return sorted(bad)
+
+
+def test_packages_import_only_the_layers_above_them():
+    rows = layers(ROOT.parent / "docs" / "ARCHITECTURE.md")
+    assert {"core", "filters", "optim", "prognosis", "workflow", "cli"} <= set(rows)
+    assert layer_violations(ROOT, rows) == []
+
+
+def test_the_layer_check_finds_an_import_from_below(tmp_path):
+    pkg = tmp_path / "pkg"
+    for sub in ("core", "filters"):
+        (pkg / sub).mkdir(parents=True)
+        (pkg / sub / "__init__.py").write_text("")
+    (pkg / "__init__.py").write_text("")
+    (pkg / "core" / "a.py").write_text("def f():\n    from ..filters import b\n")
+    (pkg / "filters" / "b.py").write_text(
+        "from typing import TYPE_CHECKING\nfrom ..core import a\nif TYPE_CHECKING:\n    from ..core import a\n"
+    )
+    assert layer_violations(pkg, {"core": 0, "filters": 1}) == ["pkg.core.a imports pkg.filters.b"]
