@@ -14,7 +14,7 @@ cycle; the learners extrapolate poorly beyond the range of their training values
 wear is not carried forward and most of the RUL mass for the 2.7 mm/s alarm level lies beyond
 the 10-day horizon (reported as censored, never as a number).
 
-Run from the repository root (a few seconds)::
+Run from the repository root (15-30 s)::
 
     python examples/user_csv.py               # figures to docs/figures/
 """

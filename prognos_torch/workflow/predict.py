@@ -17,13 +17,13 @@ Both :func:`forecast` and :func:`rul` first run a filter over the last ``filter_
 observations (the belief starts at the observed window with std ``r`` per element), then predict
 ``horizon`` steps from the filtered belief:
 
-* Gaussian filters (``sckf`` default, ``stsckf``, ``ukf``, ``ekf``, ...): the band is the
-  engine's predict-only propagation (:func:`~prognos_torch.prognosis.paths.gaussian_paths`),
-  ``mean -+ z std`` of the next *measurements*; for the RUL, particles are drawn from the
-  filtered Gaussian;
-* particle filters (``pf`` = bootstrap SIR, ``ekpf``, ``stpf`` = paper 002's strong-tracking PF,
-  ``upf``): weighted sample paths (:func:`~prognos_torch.prognosis.paths.particle_paths`),
-  band from weighted quantiles.
+* Gaussian filters (``sckf``, :func:`forecast`'s default; ``stsckf``, ``ukf``, ``ekf``, ...):
+  the band is the engine's predict-only propagation
+  (:func:`~prognos_torch.prognosis.paths.gaussian_paths`), ``mean -+ z std`` of the next
+  *measurements*; for the RUL, particles are drawn from the filtered Gaussian;
+* particle filters (``pf`` = bootstrap SIR, ``ekpf``, ``stpf`` = paper 002's strong-tracking PF
+  and :func:`rul`'s default, ``upf``): weighted sample paths
+  (:func:`~prognos_torch.prognosis.paths.particle_paths`), band from weighted quantiles.
 
 RUL (paper 002, Eq. 28 and Fig. 11): the first passage of each sample path of the *state*
 ``x`` (no measurement noise) through the threshold, weighted;

@@ -6,7 +6,8 @@
 
     s = load_series("bearing.csv", column="rms", time_column="timestamp", where={"channel": 5})
     r = prognose(s, threshold=0.45)
-    print(r.summary())   # median, q05, q95, censored_mass, bound, status, model, onset, flags
+    print(r.summary())   # status, median, mean, q05, q95, censored_mass, bound, model,
+                         # onset_time, flags
 
 Pipeline of :func:`prognose` (every step a library function with its own tests):
 
@@ -25,7 +26,8 @@ Pipeline of :func:`prognose` (every step a library function with its own tests):
    detected yet"*: no median or interval is reported, only a lower bound (below).
 3. **Trend models** on the data since onset (:mod:`~prognos_torch.prognosis.trends`:
    exponential, power law, linear, all filtered at once by the engine, by default with the
-   exact Kalman filter (``filter="stekf"``: strong tracking), over a grid of noise levels;
+   exact Kalman filter (``filter="ekf"``; ``"stekf"`` adds strong tracking), over a grid of
+   noise levels;
    :mod:`~prognos_torch.prognosis.learner_trend`: an ELM growth
    rate trained online by the Kalman optimiser, as an equal-weight ensemble of
    ``learner_members`` ELMs with independent random features). Series with more than
