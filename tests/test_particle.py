@@ -481,6 +481,11 @@ def test_residual_one_run_counts_and_ragged_batches():
     assert anc[0].tolist() == [0, 1, 2, 3]  # no residual draw
     assert anc[1, :2].tolist() == [0, 0] and anc[2, :2].tolist() == [0, 1]
     assert bool(((anc >= 0) & (anc < 4)).all())
+    # equal weights 1/13 normalise to N w_i a few ulps below 1: each particle still keeps its
+    # one copy, with no residual draw
+    for N in (13, 26, 29):
+        anc = residual(torch.full((3, N), 1.0 / N, dtype=torch.float64), g, log=False)
+        assert (anc == torch.arange(N)).all(), N
 
 
 def test_ess_closed_form():

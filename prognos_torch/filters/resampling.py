@@ -225,7 +225,11 @@ def _residual(w: Tensor, generator: torch.Generator) -> Tensor:
     N = w.shape[-1]
     bs = w.shape[:-1]
     Nw = N * w
-    det = torch.floor(Nw)
+    # a whole N w_i that rounding left a few ulps below its integer (weights from log weights:
+    # 1/8 as 0.12499999999999999) keeps its copy; a run whose raised floors would sum past N
+    # (only with ~1/(8 eps) particles) keeps the plain floors
+    det = torch.floor(Nw * (1.0 + 8.0 * torch.finfo(w.dtype).eps))
+    det = torch.where(det.sum(-1, keepdim=True) > N, torch.floor(Nw), det)
     counts = det.to(torch.int64)
     R = N - counts.sum(-1)  # (...), residual draws per run (floors sum to at most N)
     # slot j < D of a run: the particle whose cumulative count first exceeds j; each run's
@@ -236,7 +240,7 @@ def _residual(w: Tensor, generator: torch.Generator) -> Tensor:
         return out
     # a run with R_b > 0 draws has residual mass sum_i (N w_i - floor(N w_i)) = R_b >= 1 (up
     # to rounding); a run with none has no residual slot, whatever its look-up gives
-    res = Nw - det
+    res = (Nw - det).clamp_min(0.0)
     u = _sorted_uniforms(R, r_max, generator, w)
     if not bs:  # one run: its R draws fill the last R slots, in order
         out[N - r_max :] = _lookup(_cdf(res), u)
