@@ -303,5 +303,5 @@ def test_particle_and_gaussian_bands_agree_once_the_particles_carry_the_measurem
     pg = float(fault_probability_gaussian(gp.mean, gp.std, 2.0)[-1])  # exact: 0.1911
     ps = float(fault_probability(sp.samples, 2.0, sp.weights)[-1])
     assert abs(ps - pg) < 4 * (pg * (1 - pg) / 40_000) ** 0.5
-    with pytest.raises(ValueError, match="particles have dtype torch.float32, the model's noise"):
+    with pytest.raises(TypeError, match="model.f failed on states of dtype torch.float32"):
         particle_paths(model, torch.zeros(10, 1), 3, generator=torch.Generator())

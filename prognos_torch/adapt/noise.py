@@ -148,8 +148,10 @@ def _project_pd(C: Tensor, floor: Tensor, diagonal: bool) -> tuple[Tensor, Tenso
     fb = info > 0
     if bool(fb.any()):
         w, V = torch.linalg.eigh(C)
-        # the floor is also kept above round-off relative to the largest eigenvalue
-        fl = torch.maximum(floor, 1e-10 * w.abs().amax(-1))
+        # the floor is also kept above round-off relative to the largest eigenvalue: 1e-10 in
+        # float64, 64 eps in float32 (1e-10 lies below its rounding: the Cholesky failed)
+        rel = max(1e-10, 64.0 * torch.finfo(C.dtype).eps)
+        fl = torch.maximum(floor, rel * w.abs().amax(-1))
         w = torch.maximum(w, fl[..., None])
         Cp = (V * w.unsqueeze(-2)) @ V.mT
         Cp = 0.5 * (Cp + Cp.mT)

@@ -113,6 +113,12 @@ class GaussianBelief:
                 f"{name}.mean and {name}.chol must have one floating dtype, got "
                 f"{self.mean.dtype} and {self.chol.dtype}"
             )
+        if self.mean.dtype in (torch.float16, torch.bfloat16):
+            raise TypeError(
+                f"{name} has dtype {self.mean.dtype}: the filters need float32 or float64 (half "
+                "precision has no QR or Cholesky, and its 3 digits lose the weights and "
+                "events); convert it with .to(torch.float32)"
+            )
         if self.chol.device != self.mean.device:
             raise ValueError(
                 f"{name}.mean is on {self.mean.device}, {name}.chol on {self.chol.device}"

@@ -94,4 +94,5 @@ def run_in_segments(
         ks = range(k0 + 1, k0 + T + 1)
         vq = torch.stack([_diag(model.noise(k).chol_Q).expand(*bs, n) for k in ks])
         vr = torch.stack([_diag(model.noise(k).chol_R).expand(*bs, m) for k in ks])
-    return SegmentedTrajectory(torch.cat(means), vq, vr, state)
+    like = state.belief.mean  # (the filter ran in the belief's dtype; the model's noise is cast)
+    return SegmentedTrajectory(torch.cat(means), vq.to(like), vr.to(like), state)

@@ -198,6 +198,8 @@ def simulate_to_event(
         raise ValueError(f"x0 must be a tensor of shape (..., N, {n}) (N samples), got {got}")
     if not x0.is_floating_point() or not bool(torch.isfinite(x0).all()):
         raise ValueError(f"x0 must be finite floating point, shape (..., N, {n})")
+    if x0.dtype in (torch.float16, torch.bfloat16):  # (the state drifted: no event, no error)
+        raise TypeError(f"x0 has dtype {x0.dtype}: simulate in float32 or float64")
     us = _check_controls(model, controls, x0)
     if max_steps is None:
         if us is None:

@@ -337,12 +337,6 @@ def particle_paths(
         raise ValueError(f"particles must have shape (..., N, n) with n={n}, got {tuple(x.shape)}")
     check_finite(x, "particles", f"(..., N, {n})")
     check_generator(generator, x)
-    model_dtype = model.noise(k0 + 1).chol_Q.dtype
-    if x.dtype != model_dtype:  # (a raw "expected m1 and m2 to have the same dtype" otherwise)
-        raise ValueError(
-            f"particles have dtype {x.dtype}, the model's noise {model_dtype}: use one dtype "
-            f"(particles.to({model_dtype}), or the model built in {x.dtype})"
-        )
     batch, N = x.shape[:-2], x.shape[-2]
     w = check_weights(weights, batch, N, x.device).to(x.dtype)
     us = check_controls(model, us, horizon)
