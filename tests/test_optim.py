@@ -776,3 +776,38 @@ def test_a_non_finite_output_is_refused_and_leaves_the_belief_and_parameters(cls
     assert torch.equal(net.w.detach(), theta)
     opt.step(x, t)  # and training goes on
     assert bool(torch.isfinite(opt.theta).all())
+
+
+def test_steps_are_all_or_nothing():
+    # row 3 of 5 takes the square root of a negative number: the call raises naming the row and
+    # leaves the belief, the step count and the parameters as before it (rows 0-2 had stayed)
+    class Sqrt(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.w = nn.Parameter(torch.ones(1, dtype=torch.float64))
+
+        def forward(self, x):
+            return torch.sqrt(x * self.w)
+
+    net = Sqrt()
+    opt = EKF(net, P0=0.01, R=1.0)
+    X = torch.ones(5, 4, 1, dtype=torch.float64)
+    Y = torch.full((5, 4, 1), 1.1, dtype=torch.float64)
+    opt.step(X[0], Y[0])
+    theta, chol, k = opt.theta.clone(), opt.belief.chol.clone(), opt.state["kalman"]["step"]
+    bad = X.clone()
+    bad[3] = -1.0
+    inf = Y.clone()
+    inf[2, 0] = float("inf")
+    # eager steps, and the eager rerun that a compiled pass falls back to
+    for run, (x, y, msg) in [
+        (opt.steps, (bad, Y, "row 3 of 5: the step gave a non-finite")),
+        (opt.steps, (X, inf, "row 2 of 5: targets contains inf")),
+        (lambda x, y: opt._steps_eager_from(opt.state["kalman"], x, y), (bad, Y, "row 3 of 5")),
+    ]:
+        with pytest.raises(ValueError, match=f"steps, {msg}"):
+            run(x, y)
+        assert torch.equal(opt.theta, theta) and torch.equal(opt.belief.chol, chol)
+        assert torch.equal(net.w.detach(), theta) and opt.state["kalman"]["step"] == k
+    opt.steps(X, Y)  # and training goes on
+    assert opt.state["kalman"]["step"] == k + 5

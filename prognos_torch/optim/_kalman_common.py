@@ -203,6 +203,25 @@ def _state_key(i: int) -> str:
     return _STATE_KEY if i == 0 else f"{_STATE_KEY}.{i}"
 
 
+def all_or_nothing_steps(opt, inputs: Tensor, targets: Tensor) -> Tensor:
+    """``opt.step`` on each row of ``inputs`` ``(T, *x)`` and ``targets`` ``(T, *out)``; returns
+    the stacked losses. A row that fails undoes the rows before it (each step replaces its
+    groups' state entries, so the entries at the start restore them) and raises naming it."""
+    before, losses = {i: opt.state[_state_key(i)] for i in range(len(opt._cfg))}, []
+    for row, (x, t) in enumerate(zip(inputs, targets)):
+        try:
+            losses.append(opt.step(x, t).loss)
+        except Exception as exc:
+            opt._restore(before)
+            if row == 0 or type(exc) not in (ValueError, TypeError):
+                raise
+            raise type(exc)(
+                f"steps, row {row} of {len(inputs)}: {exc} (the {row} steps before it are "
+                "undone too: all as before the call)"
+            ) from exc
+    return torch.stack(losses)
+
+
 def _clone_state(obj):
     """A copy of a frozen dataclass of tensors (``None`` stays ``None``)."""
     if obj is None:

@@ -59,6 +59,7 @@ from ._kalman_common import (
     _group_bridge,
     _resolve_groups,
     _state_key,
+    all_or_nothing_steps,
     noise_factor,
 )
 from ._step_model import step_model
@@ -818,7 +819,8 @@ class KalmanOptimizer(torch.optim.Optimizer):
         again, so the call's time minus :attr:`compile_time` is the time of one pass.
 
         The step hooks of ``torch.optim`` run once around the whole sequence when compiled
-        (with ``args = (self, inputs, targets)``), at every step when not.
+        (with ``args = (self, inputs, targets)``), at every step when not. All or nothing: a
+        failing row raises naming it, and the steps before it are undone.
         """
         if not isinstance(inputs, Tensor) or not isinstance(targets, Tensor):
             raise TypeError("steps needs tensors inputs (T, *x) and targets (T, *out)")
@@ -829,14 +831,14 @@ class KalmanOptimizer(torch.optim.Optimizer):
             )
         self.compile_time = 0.0
         if not compile:
-            return torch.stack([self.step(x, t).loss for x, t in zip(inputs, targets)])
+            return all_or_nothing_steps(self, inputs, targets)
         self._before_steps()
         return compiled_steps(self, inputs, targets)
 
     def _steps_eager_from(self, s: dict, inputs: Tensor, targets: Tensor) -> Tensor:
         """The eager steps from the state ``s`` (the compiled pass is discarded)."""
         self.state[_state_key(0)] = s
-        return torch.stack([self.step(x, t).loss for x, t in zip(inputs, targets)])
+        return all_or_nothing_steps(self, inputs, targets)
 
     # ------------------------------------------------------------------ persistence
     def state_dict(self) -> dict:
