@@ -655,3 +655,46 @@ def test_cstr_in_float32_and_battery_currents_are_checked():
         simulate_battery(3, generator=g, u=nan_u)
     with pytest.raises(TypeError, match=r"u must be a tensor or an array of numbers \(T, 1\)"):
         simulate_battery(3, generator=g, u="abc")
+
+
+def test_float32_simulation_draws_the_float64_noise_rounded():
+    """A float32 run drew another realisation than the float64 run of the same seed
+    (torch.randn draws other numbers per dtype from 16 values on): the train's float32 outputs
+    differed from the float64 ones by 150 % of their range."""
+    spec = [("normal", (3,)), ("uniform", ())]
+    a = draw_run_noise(gen(2), 2, 40, spec)
+    b = draw_run_noise(gen(2), 2, 40, spec, dtype=torch.float32)
+    assert b[0].dtype == b[1].dtype == torch.float32
+    assert torch.equal(b[0], a[0].float())
+    below_one = torch.nextafter(torch.tensor(1.0), torch.tensor(0.0))
+    assert torch.equal(b[1], a[1].float().clamp(max=below_one))
+    s64 = simulate_hst(60, 2, generator=gen(5))
+    s32 = simulate_hst(60, 2, generator=gen(5), dtype=torch.float32)
+    torch.testing.assert_close(s32.y.double(), s64.y, rtol=0, atol=1e-4)
+    torch.testing.assert_close(s32.x.double(), s64.x, rtol=0, atol=1e-4)
+
+
+def test_three_tank_refuses_negative_outflow_coefficients_and_a_nan_az2():
+    """A negative az1/az2/az3 (a sign typo) ran a tank that drains into a fuller one;
+    three_tank_equilibrium(az2=nan) returned NaN levels and az1 = 0 a ZeroDivisionError."""
+    for name in ("az1", "az2", "az3"):
+        with pytest.raises(ValueError, match=rf"ThreeTankParams\.{name} must be >= 0"):
+            ThreeTankParams(**{name: -0.5})
+    with pytest.raises(ValueError, match="az2 must be a finite number > 0, got nan"):
+        three_tank_equilibrium(az2=float("nan"))
+    with pytest.raises(ValueError, match="az1 > 0"):
+        three_tank_equilibrium(ThreeTankParams(az1=0.0))
+    p = ThreeTankParams(az2=0.3)  # closed form against the flow balance of Eq. 57-58
+    h = three_tank_equilibrium(p)
+    torch.testing.assert_close(three_tank_step(h, p.az2, None, p), h, rtol=0, atol=1e-15)
+
+
+def test_simulate_hst_runs_names_a_single_generator():
+    """One generator instead of a list gave "'Generator' object is not iterable"."""
+    from prognos_torch.systems import simulate_hst_runs
+
+    with pytest.raises(TypeError, match=r"one per run, got one Generator: pass \[generator\]"):
+        simulate_hst_runs(3, gen(0))
+    truth, y, _ = simulate_hst_runs(3, [gen(0)])
+    ref = simulate_hst(3, 1, generator=gen(0))
+    assert torch.equal(y, ref.y) and torch.equal(truth, torch.cat([ref.x, ref.theta], -1))

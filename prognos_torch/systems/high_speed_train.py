@@ -604,6 +604,11 @@ def simulate_hst_runs(
         :func:`hst_fault_model` at steps ``0..T``; ``y`` ``(T, B, 2n-1)``; ``t`` ``(T+1,)``
         seconds; ``B = len(generators)``.
     """
+    if isinstance(generators, torch.Generator):
+        raise TypeError(
+            "generators must be a sequence of torch.Generator, one per run, got one Generator: "
+            "pass [generator], or simulate_hst(n_steps, runs, generator=generator)"
+        )
     if not generators:
         raise ValueError("generators must list at least one torch.Generator")
     sims = [

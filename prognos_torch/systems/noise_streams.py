@@ -5,6 +5,12 @@ drawn in run order); run ``r`` then draws all of its noise from a private genera
 seed ``r``, in a fixed order (process noise ``(T, n)``, measurement noise ``(T, m)``, then any
 system-specific draws). Hence a batch of ``R`` runs equals ``R`` successive single-run calls with
 the same generator, and run ``r`` does not depend on ``R``.
+
+The draws are made in float64 on the device of the caller's generator, then cast to the
+requested dtype and moved to the requested device (as :mod:`prognos_torch.core.random` draws): a
+float32 simulation receives the float64 simulation's noise rounded (``torch.randn`` draws other
+numbers in float32 than in float64), and a CPU generator gives the same noise whatever device
+the simulation runs on.
 """
 
 from __future__ import annotations
@@ -35,16 +41,23 @@ def draw_run_noise(
     Returns:
         One tensor ``(n_steps, runs, *shape)`` per entry of ``draws``.
     """
-    seeds = torch.randint(0, 2**62, (runs,), generator=generator, device=generator.device)
+    for kind, _ in draws:
+        if kind not in ("normal", "uniform"):
+            raise ValueError(f"draw kind must be 'normal' or 'uniform', got {kind!r}")
+    where = generator.device
+    f64 = torch.float64
+    seeds = torch.randint(0, 2**62, (runs,), generator=generator, device=where)
     out: list[list[Tensor]] = [[] for _ in draws]
     for seed in seeds.tolist():
-        g = torch.Generator(device=device if device is not None else "cpu").manual_seed(seed)
+        g = torch.Generator(device=where).manual_seed(seed)
         for j, (kind, shape) in enumerate(draws):
-            size = (n_steps, *shape)
-            if kind == "normal":
-                out[j].append(torch.randn(size, generator=g, dtype=dtype, device=device))
-            elif kind == "uniform":
-                out[j].append(torch.rand(size, generator=g, dtype=dtype, device=device))
-            else:
-                raise ValueError(f"draw kind must be 'normal' or 'uniform', got {kind!r}")
-    return [torch.stack(parts, dim=1) for parts in out]
+            draw = torch.randn if kind == "normal" else torch.rand
+            out[j].append(draw((n_steps, *shape), generator=g, dtype=f64, device=where))
+    target = torch.get_default_device() if device is None else torch.device(device)
+    result = []
+    for (kind, _), parts in zip(draws, out):
+        z = torch.stack(parts, dim=1).to(dtype=dtype, device=target)
+        if kind == "uniform" and dtype != f64:  # rounding may reach 1: keep U[0, 1)
+            z = z.clamp_(max=torch.nextafter(z.new_ones(()), z.new_zeros(())))
+        result.append(z)
+    return result

@@ -30,6 +30,7 @@ derivative of ``sgn(d) sqrt(|d|)`` at ``d = 0`` (infinite) is replaced by 0.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -79,7 +80,8 @@ class ThreeTankParams:
         S_n: pipe cross-section ``5e-5`` m^2.
         Q1, Q2: pump flows ``4.5e-5`` m^3/s (the input ``u`` when none is given).
         g: ``9.81`` m/s^2.
-        az1, az2, az3: outflow coefficients ``0.5, 0.6, 0.5`` (``az2`` is the nominal value).
+        az1, az2, az3: outflow coefficients ``0.5, 0.6, 0.5`` (``az2`` is the nominal value),
+            each ``>= 0``.
         dt: Euler / sampling step ``1`` s.
         k_fault: last step with the nominal ``az2`` (Eq. 61: 10).
         drift_rate: ``1e-4`` (Eq. 61).
@@ -100,6 +102,11 @@ class ThreeTankParams:
     def __post_init__(self):
         check_params_finite(self)
         check_positive(self, "A_s", "S_n", "g", "dt")
+        for name in ("az1", "az2", "az3"):  # (0: a closed valve; < 0 reverses the square root)
+            if getattr(self, name) < 0:
+                raise ValueError(
+                    f"ThreeTankParams.{name} must be >= 0, got {getattr(self, name)!r}"
+                )
         check_count(self.k_fault, "ThreeTankParams.k_fault", 0)
 
 
@@ -162,8 +169,13 @@ def three_tank_equilibrium(
     """
     p = params or ThreeTankParams()
     a2 = p.az2 if az2 is None else float(az2)
-    if p.Q1 < 0 or p.Q1 + p.Q2 < 0 or a2 <= 0:
-        raise ValueError("three_tank_equilibrium needs Q1 >= 0, Q1 + Q2 >= 0 and az2 > 0")
+    if not (math.isfinite(a2) and a2 > 0):
+        raise ValueError(f"az2 must be a finite number > 0, got {a2!r}")
+    if p.Q1 < 0 or p.Q1 + p.Q2 < 0 or (p.Q1 > 0 and min(p.az1, p.az3) <= 0):
+        raise ValueError(
+            "three_tank_equilibrium needs Q1 >= 0, Q1 + Q2 >= 0, az2 > 0 and, with Q1 > 0, "
+            "az1 > 0 and az3 > 0 (tank 1 drains through tank 3)"
+        )
     head = lambda q, a: (q / (a * p.S_n)) ** 2 / (2.0 * p.g)  # noqa: E731
     h2 = head(p.Q1 + p.Q2, a2)
     h3 = h2 + head(p.Q1, p.az3)
