@@ -677,3 +677,87 @@ def test_no_warnings_from_a_clean_read(tmp_path):
         warnings.simplefilter("error")
         read_raw_features(tmp_path)
         read_raw_features(tmp_path)
+
+
+def test_raw_reader_cache_does_not_bypass_expected_samples(tmp_path):
+    """A short snapshot read once (cache filled) was accepted later with expected_samples:
+    the cache hit skipped the row count."""
+    _write_snapshots(tmp_path, n_files=2, n_rows=30, n_channels=4)
+    short = tmp_path / _name(START + timedelta(minutes=20))
+    short.write_text("0.1\t0.2\t0.3\t0.4\n0.5\t0.1\t0.2\t0.3\n0.2\t0.4\t0.1\t0.0\n")
+    assert len(read_raw_features(tmp_path, test=2)) == 3  # fills the cache
+    with pytest.raises(IMSFormatError, match="3 sample rows, expected 30"):
+        read_raw_features(tmp_path, test=2, expected_samples=30)
+    with pytest.warns(UserWarning, match="skipped 1 unreadable"):
+        kept = read_raw_features(tmp_path, test=2, expected_samples=30, on_error="skip")
+    assert len(kept) == 2
+
+
+def test_raw_reader_refuses_one_snapshot_listed_twice(tmp_path):
+    """files naming one snapshot twice (or two copies of one time from two folders) gave a
+    duplicate snapshot at the same instant: days [0, 0, ...]."""
+    data = _write_snapshots(tmp_path, n_files=2, n_rows=20, n_channels=4)
+    first = sorted(data)[0]
+    with pytest.raises(ValueError, match=rf"files: two files for the snapshot time {first}"):
+        read_raw_features(tmp_path, test=2, files=[first, sorted(data)[1], first], cache=False)
+    other = tmp_path / "copy"
+    other.mkdir()
+    (other / first).write_text((tmp_path / first).read_text())
+    with pytest.raises(ValueError, match="two files for the snapshot time"):
+        read_raw_features(tmp_path, test=2, files=[first, other / first], cache=False)
+
+
+def test_ims_table_without_rows_or_with_infinite_cells_is_refused(tmp_path):
+    """A table holding its header alone gave an empty IMSFeatures (start NaT) that failed later
+    (last_days: IndexError); an 'inf' cell became an infinite feature."""
+    lines = (DATA / "test2_features.csv").read_text().splitlines()
+    path = tmp_path / "t.csv"
+    path.write_text(lines[0] + "\n")
+    with pytest.raises(ValueError, match=r"t\.csv: the table holds no rows"):
+        load_ims_features(2, path=path)
+    cells = lines[1].split(",")
+    cells[4] = "inf"
+    path.write_text("\n".join([lines[0], ",".join(cells), *lines[2:5]]) + "\n")
+    with pytest.raises(ValueError, match=r"line 2: non-finite value 'inf' in column 'std'"):
+        load_ims_features(2, path=path)
+
+
+def test_minmax_normalize_of_integer_series_with_given_extremes():
+    """lo/hi were cast to the series' integer dtype (0.5 -> 0, 9.5 -> 9): silently other
+    numbers; without them an integer series came back in float32. A NaN lo was reported as a
+    constant series."""
+    from prognos_torch.datasets import minmax_denormalize, minmax_normalize
+
+    x = torch.arange(11)
+    ns = minmax_normalize(x, lo=0.5, hi=9.5)
+    assert ns.values.dtype == torch.float64
+    assert torch.equal(ns.values, (x.double() - 0.5) / 9.0)
+    torch.testing.assert_close(minmax_denormalize(ns.values, ns.lo, ns.hi), x.double())
+    assert torch.equal(minmax_normalize(x).values, x.double() / 10.0)
+    with pytest.raises(ValueError, match="lo must be finite"):
+        minmax_normalize(torch.arange(5.0), lo=float("nan"))
+    with pytest.raises(ValueError, match=r"hi must broadcast to one row of series \(3,\)"):
+        minmax_normalize(torch.ones(4, 3).cumsum(0), hi=torch.ones(2))
+
+
+def test_pronostia_empty_or_truncated_record_is_named(tmp_path):
+    """An empty record raised NumPy's 'input contained no data' warning and then 'got shape
+    (0, 1)'; a record cut inside its last row gave NumPy's advice to 'use usecols'."""
+    from prognos_torch.datasets import read_pronostia_bearing
+
+    d = tmp_path / "Learning_set" / "Bearing1_1"
+    d.mkdir(parents=True)
+    x = np.array([[0.1, -0.2], [0.3, 0.1], [-0.2, 0.4]])
+    for k in range(2):
+        rows = [f"9,39,{39 + 10 * k},{100 * i},{a},{b}" for i, (a, b) in enumerate(x * (k + 1))]
+        (d / f"acc_{k + 1:05d}.csv").write_text("\n".join(rows) + "\n")
+    ok = read_pronostia_bearing(d, expected_samples=None)
+    np.testing.assert_allclose(ok.values[1].numpy(), _reference_features(2 * x), rtol=1e-12)
+    (d / "acc_00003.csv").write_text("")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match=r"acc_00003\.csv: the record holds no rows"):
+            read_pronostia_bearing(d, expected_samples=None)
+    (d / "acc_00003.csv").write_text("9,39,59,0,0.1,0.2\n9,39,59,39,0.1\n")
+    with pytest.raises(ValueError, match=r"acc_00003\.csv, row 2: 5 columns, expected 6 "):
+        read_pronostia_bearing(d, expected_samples=None)

@@ -79,7 +79,7 @@ IMS_SAMPLES = 20480
 
 _SNAPSHOT_NAME = re.compile(r"^(\d{4})\.(\d{2})\.(\d{2})\.(\d{2})\.(\d{2})\.(\d{2})$")
 _CSV_HEADER = ("timestamp", "channel") + FEATURE_NAMES
-_CACHE_VERSION = 1
+_CACHE_VERSION = 2  # 2: entries hold the row count (checked against expected_samples)
 
 
 def _feature_position(feature_names: Sequence[str], name: str) -> int:
@@ -371,20 +371,21 @@ def _default_cache_path(directory: Path, test: int) -> Path:
     return directory / f".prognos_ims_test{test}_features_cache.npz"
 
 
-def _load_cache(path: Path, n_channels: int) -> dict[str, tuple[int, int, np.ndarray]]:
+def _load_cache(path: Path, n_channels: int) -> dict[str, tuple[int, int, int, np.ndarray]]:
     if not path.is_file():
         return {}
     try:
         with np.load(path, allow_pickle=False) as npz:
             if int(npz["version"]) != _CACHE_VERSION or int(npz["n_channels"]) != n_channels:
                 return {}
-            names, sizes, mtimes, values = npz["names"], npz["sizes"], npz["mtimes"], npz["values"]
+            names, sizes, mtimes = npz["names"], npz["sizes"], npz["mtimes"]
+            rows, values = npz["rows"], npz["values"]
     except Exception as exc:  # a broken cache is recomputed, never fatal
         warnings.warn(f"ignoring unreadable feature cache {path}: {exc}", stacklevel=3)
         return {}
     return {
-        str(name): (int(size), int(mtime), vals)
-        for name, size, mtime, vals in zip(names, sizes, mtimes, values)
+        str(name): (int(size), int(mtime), int(n), vals)
+        for name, size, mtime, n, vals in zip(names, sizes, mtimes, rows, values)
     }
 
 
@@ -399,7 +400,8 @@ def _save_cache(path: Path, n_channels: int, entries: dict) -> None:
             names=np.array(names, dtype=str),
             sizes=np.array([entries[n][0] for n in names], dtype=np.int64),
             mtimes=np.array([entries[n][1] for n in names], dtype=np.int64),
-            values=np.stack([entries[n][2] for n in names]).astype(np.float64),
+            rows=np.array([entries[n][2] for n in names], dtype=np.int64),
+            values=np.stack([entries[n][3] for n in names]).astype(np.float64),
         )
         os.replace(tmp, path)
     except OSError as exc:
@@ -440,8 +442,9 @@ def read_raw_features(
             time in their names.
         cache: ``True`` keeps a cache ``.prognos_ims_test{test}_features_cache.npz`` in
             ``directory``; a path puts it there; ``False`` disables it. Entries are keyed by file
-            name, size and modification time (ns) and hold full-precision features, so re-reading
-            unchanged files is a lookup. A cache that cannot be written only warns.
+            name, size and modification time (ns) and hold full-precision features and the row
+            count (checked against ``expected_samples``), so re-reading unchanged files is a
+            lookup. A cache that cannot be written only warns.
         on_error: ``"raise"`` (default) raises :class:`IMSFormatError` naming the file and line
             of the first bad file; ``"skip"`` leaves bad files out, lists them in ``skipped`` and
             warns.
@@ -458,7 +461,7 @@ def read_raw_features(
         FileNotFoundError: ``directory`` or a listed file does not exist, or no snapshot file
             was found.
         ValueError: unknown ``test``/``on_error``; a listed file whose name is not a snapshot
-            time; no readable snapshot left.
+            time; two listed files of one snapshot time; no readable snapshot left.
         IMSFormatError: bad file content (with ``on_error="raise"``).
     """
     test = _check_test(test)
@@ -501,6 +504,12 @@ def read_raw_features(
         if not paths:
             raise ValueError("files is empty: give at least one snapshot file")
     paths.sort(key=lambda p: (snapshot_time(p.name), p.name))
+    for a, b in zip(paths, paths[1:]):
+        if snapshot_time(a.name) == snapshot_time(b.name):  # (one name, listed twice)
+            raise ValueError(
+                f"files: two files for the snapshot time {a.name}: {a} and {b} (one snapshot "
+                "per time; list each once)"
+            )
 
     entries = _load_cache(cache_path, n_channels) if cache_path is not None else {}
     changed = False
@@ -510,20 +519,23 @@ def read_raw_features(
         stat = path.stat()
         key = path.name
         hit = entries.get(key)
-        if hit is not None and hit[0] == stat.st_size and hit[1] == stat.st_mtime_ns:
-            feats = hit[2]
-        else:
-            try:
+        try:
+            if hit is not None and hit[0] == stat.st_size and hit[1] == stat.st_mtime_ns:
+                if expected_samples is not None and hit[2] != expected_samples:
+                    # (the check read_snapshot makes, on the row count the cache kept)
+                    raise IMSFormatError(path, f"{hit[2]} sample rows, expected {expected_samples}")
+                feats = hit[3]
+            else:
                 data = read_snapshot(path, n_channels, expected_samples)
-            except IMSFormatError as exc:
-                if on_error == "raise":
-                    raise
-                bad.append(SkippedFile(str(path), str(exc)))
-                continue
-            feats = snapshot_features(data)
-            del data  # one snapshot in memory at a time
-            entries[key] = (stat.st_size, stat.st_mtime_ns, feats)
-            changed = True
+                feats = snapshot_features(data)
+                entries[key] = (stat.st_size, stat.st_mtime_ns, data.shape[0], feats)
+                del data  # one snapshot in memory at a time
+                changed = True
+        except IMSFormatError as exc:
+            if on_error == "raise":
+                raise
+            bad.append(SkippedFile(str(path), str(exc)))
+            continue
         stamps.append(np.datetime64(snapshot_time(path.name), "s"))
         values.append(feats)
 
@@ -563,8 +575,8 @@ def load_ims_features(test: int = 1, path: str | os.PathLike | None = None) -> I
         over 34.5 days; the median is NaN except where the table has it.
 
     Raises:
-        ValueError: unknown ``test``; a malformed table (header, channel numbers, a missing or
-            duplicated (timestamp, channel) row, a non-numeric cell).
+        ValueError: unknown ``test``; a malformed table (header, no row, channel numbers, a
+            missing or duplicated (timestamp, channel) row, a non-numeric or infinite cell).
         FileNotFoundError: no such table.
     """
     test = _check_test(test)
@@ -589,6 +601,8 @@ def load_ims_features(test: int = 1, path: str | os.PathLike | None = None) -> I
         if header != _CSV_HEADER:
             raise ValueError(f"{path}: header must be {','.join(_CSV_HEADER)}, got {header}")
         rows = list(reader)
+    if not any(rows):
+        raise ValueError(f"{path}: the table holds no rows (its header alone)")
     # snapshots in time order, one per instant however its date-time is written ("T" or a
     # space, an offset): sorting the texts put "2004-02-12 12:02:39" before every "...T..."
     second: dict[str, int] = {}
@@ -619,6 +633,11 @@ def load_ims_features(test: int = 1, path: str | os.PathLike | None = None) -> I
             feats = [float(cell) if cell else math.nan for cell in row[2:]]
         except ValueError as exc:
             raise ValueError(f"{path}, line {line}: {exc}") from None
+        for name, value, cell in zip(FEATURE_NAMES, feats, row[2:]):
+            if math.isinf(value):  # (an empty cell or NaN is a missing feature)
+                raise ValueError(
+                    f"{path}, line {line}: non-finite value {cell!r} in column {name!r}"
+                )
         if not 1 <= channel <= n_channels:
             raise ValueError(
                 f"{path}, line {line}: channel {channel} outside 1..{n_channels} (test {test})"

@@ -118,17 +118,25 @@ def find_pronostia_bearings(root: str | os.PathLike) -> dict[str, Path]:
     return dict(sorted(found.items()))
 
 
+_COLUMNS = "hour, minute, second, microsecond, horizontal, vertical"
+
+
 def _read_record(path: Path, expected_samples: int | None) -> np.ndarray:
     raw = path.read_bytes().replace(b";", b",")
+    if not raw.strip():
+        raise ValueError(f"{path}: the record holds no rows (an empty file)")
     try:
         a = np.loadtxt(io.BytesIO(raw), delimiter=",", dtype=np.float64, ndmin=2)
     except ValueError as exc:
+        for number, line in enumerate(raw.splitlines(), start=1):  # a row cut short?
+            n = len(line.split(b",")) if line.strip() else 6
+            if n != 6:
+                raise ValueError(
+                    f"{path}, row {number}: {n} columns, expected 6 ({_COLUMNS}); a truncated file?"
+                ) from None
         raise ValueError(f"{path}: not a numeric record ({exc})") from None
     if a.shape[1] != 6 or a.shape[0] < 2:
-        raise ValueError(
-            f"{path}: expected rows of 6 columns (hour, minute, second, microsecond, horizontal, "
-            f"vertical), got shape {a.shape}"
-        )
+        raise ValueError(f"{path}: expected rows of 6 columns ({_COLUMNS}), got shape {a.shape}")
     if expected_samples is not None and a.shape[0] != expected_samples:
         raise ValueError(f"{path}: expected {expected_samples} rows, got {a.shape[0]}")
     bad = ~np.isfinite(a)

@@ -234,6 +234,24 @@ class NormalizedSeries(NamedTuple):
     hi: Tensor
 
 
+def _extreme(v, name: str, series: Tensor) -> Tensor:
+    """A given ``lo``/``hi`` as a tensor of the series' dtype and device, finite, broadcastable
+    to the series (one value per column)."""
+    v = torch.as_tensor(v, dtype=series.dtype).to(series)
+    try:
+        fits = torch.broadcast_shapes(v.shape, series.shape) == series.shape
+    except RuntimeError:
+        fits = False
+    if not fits:
+        raise ValueError(
+            f"{name} must broadcast to one row of series {tuple(series.shape[1:])} (one value "
+            f"per column), got shape {tuple(v.shape)}"
+        )
+    if not bool(torch.isfinite(v).all()):
+        raise ValueError(f"{name} must be finite, got {v.tolist()}")
+    return v
+
+
 def minmax_normalize(series: Tensor, lo=None, hi=None) -> NormalizedSeries:
     """Affine min-max scaling to ``[0, 1]`` (paper 003 Sec. V: "normalized into 0 to 1").
 
@@ -248,14 +266,18 @@ def minmax_normalize(series: Tensor, lo=None, hi=None) -> NormalizedSeries:
     map outside ``[0, 1]`` and are not clipped.
 
     Args:
-        series: ``(N, ...)``; the extremes are taken over dim 0 (per column).
+        series: ``(N, ...)``; the extremes are taken over dim 0 (per column). An integer series
+            is scaled in float64.
+        lo, hi: numbers or tensors broadcastable to one row ``series.shape[1:]``.
     """
     if not isinstance(series, Tensor) or series.dim() < 1 or series.shape[0] < 1:
         raise ValueError("series must be a tensor of shape (N, ...) with N >= 1")
+    if not series.is_floating_point():
+        series = series.to(torch.float64)  # (lo/hi were cast to an integer dtype, 0.5 to 0)
     if not bool(torch.isfinite(series).all()):
         raise ValueError("series contains non-finite values")
-    lo = series.amin(0) if lo is None else torch.as_tensor(lo, dtype=series.dtype).to(series)
-    hi = series.amax(0) if hi is None else torch.as_tensor(hi, dtype=series.dtype).to(series)
+    lo = series.amin(0) if lo is None else _extreme(lo, "lo", series)
+    hi = series.amax(0) if hi is None else _extreme(hi, "hi", series)
     if not bool((hi > lo).all()):
         raise ValueError("minmax_normalize needs hi > lo (a constant series cannot be scaled)")
     return NormalizedSeries((series - lo) / (hi - lo), lo, hi)
