@@ -359,3 +359,48 @@ def test_optimised_bound_without_uncertainty_is_the_ukf(N):
     if N:
         printed = run(rukf(1.05, M0, N), model, b0, ys)
         assert float((printed.covs - ref.covs).abs().max()) > 0.1
+
+
+def test_moving_window_warmup_is_checked_and_holds_until_valid_steps():
+    """warmup must lie in [1, window]: 0 averaged an empty window after a missing first step (R
+    fell to the floor, 1e-3 of the model's), above the window the estimates were never used.
+    With warmup=1 a missing first step keeps the model's R and the first observed step gives
+    the one-term window of Eq. 48 (exact Kalman quantities: linear model)."""
+    F, H, SQ, SR = _lin_data(T=1, B=1)[:4]
+    ys = torch.tensor([[float("nan")] * 2, [10.0, -8.0]], dtype=dt)
+    with pytest.raises(ValueError, match=r"warmup must be an int in \[1, window=5\]"):
+        MovingWindow(window=5, warmup=0)
+    with pytest.raises(ValueError, match="warmup"):
+        MovingWindow(window=5, warmup=6)
+    model = linear_gaussian_model(F, H, SQ, SR)
+    est = MovingWindow(window=5, warmup=1, estimate=("R",), diagonal=True)
+    m0, P0 = torch.zeros(2, dtype=dt), torch.eye(2, dtype=dt)
+    tr = run(GaussianFilter(unscented(1.0, 0.0, 1.0), noise=est), model, GaussianBelief(m0, P0), ys)
+    R0, Q = SR @ SR.T, SQ @ SQ.T
+    torch.testing.assert_close(tr.chol_R[0] @ tr.chol_R[0].mT, R0)
+    xp, Pp = F @ (F @ m0), F @ (F @ P0 @ F.T + Q) @ F.T + Q  # two predictions
+    e = ys[1] - H @ xp
+    term = e * e - torch.diagonal(H @ Pp @ H.T)  # Eq. 48's diagonal, one valid step
+    assert bool((term > 0).all())  # no projection
+    R1 = tr.chol_R[1] @ tr.chol_R[1].mT
+    torch.testing.assert_close(R1, torch.diag(term), rtol=1e-12, atol=1e-12)
+
+
+def test_adaptation_settings_are_checked_with_the_argument_named():
+    from prognos_torch.adapt import StrongTracking
+
+    per_run = torch.tensor([0.9, 0.95], dtype=dt)
+    with pytest.raises(TypeError, match="rho must be a real number"):
+        StrongTracking(rho=per_run)  # was: "Boolean value of Tensor ... is ambiguous"
+    with pytest.raises(ValueError, match="forgetting must be a finite real number"):
+        SageHusa(forgetting=per_run)
+    with pytest.raises(ValueError, match="floor_rel"):  # NaN floor: NaN diagonal estimates
+        SageHusa(floor_rel=float("nan"))
+    with pytest.raises(ValueError, match="floor_rel must be >= 0"):
+        MovingWindow(floor_rel=-1.0)
+    with pytest.raises(ValueError, match="mu must be positive"):  # was ZeroDivisionError
+        MovingWindow(M=torch.ones(1, dtype=dt), mu=0.0)
+    with pytest.raises(ValueError, match="window"):
+        MovingWindow(window=True)
+    with pytest.raises(ValueError, match="give kappa or rule"):  # kappa was ignored
+        srukf(2.0, rule=unscented(0.5, 2.0, 0.0))

@@ -625,3 +625,19 @@ def test_model_outputs_noise_and_settings_are_checked_not_broadcast():
     # a product A A^T in float32 is symmetric to rounding: taken
     A = torch.randn(4, 4, generator=torch.Generator().manual_seed(0))
     GaussianBelief.from_cov(torch.zeros(4), A @ A.mT + torch.eye(4))
+
+
+def test_sigma_point_rule_settings_are_checked():
+    """NaN/inf alpha, beta, kappa gave NaN estimates silently; a Gauss-Hermite rule of order 1
+    (the mean alone: zero spread) a filter that never updated; non-integral orders were cut."""
+    for bad in (dict(alpha=float("nan")), dict(beta=float("inf")), dict(kappa=float("nan"))):
+        with pytest.raises(ValueError, match=f"{next(iter(bad))} must be a finite real number"):
+            unscented(**{"alpha": 1.0, "beta": 2.0, "kappa": 0.0, **bad})
+    with pytest.raises(ValueError, match="alpha must be nonzero"):
+        unscented(0.0)
+    for order in (0, 1, 2.5):
+        with pytest.raises(ValueError, match="order must be an int >= 2"):
+            gauss_hermite(order)
+    with pytest.raises(ValueError, match="unknown sigma-point rule kind"):
+        __import__("prognos_torch.quadrature", fromlist=["x"]).SigmaPoints("sobol")
+    assert gauss_hermite(np.int64(3)).order == 3  # numpy integers are ints

@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from prognos_torch.adapt.noise import SageHusa
-from prognos_torch.core import GaussianBelief, StateSpaceModel
+from prognos_torch.core import GaussianBelief, StateSpaceModel, linear_gaussian_model
 from prognos_torch.filters import imsrukf, run
 from prognos_torch.optim import KalmanOptimizer
 from prognos_torch.optim.kalman import OPTIMIZER_NOISE
@@ -106,3 +106,61 @@ def test_k0_and_r_form_are_validated():
     with pytest.raises(ValueError, match="r_form"):
         SageHusa(r_form="posterior")
     assert OPTIMIZER_NOISE.r_form == "post-fit" and OPTIMIZER_NOISE.k0 > 1
+
+
+def _sage_husa_kalman(F, H, LQ, LR, q, r, x, P, ys, b, k0):
+    """Eq. 40-43 with the fading-memory weight ``d_k = (1 - b) / (1 - b^k)`` around an exact
+    Kalman filter (linear model: the unscented sums are ``F P F^T``, ``H P H^T``); a step with a
+    missing component updates with the observed ones and holds every estimate."""
+    Q, R, count, out = LQ @ LQ.T, LR @ LR.T, k0 - 1.0, []
+    for y in ys:
+        fx = F @ x
+        xp, FPF = fx + q, F @ P @ F.T
+        Pp = FPF + Q
+        hz = H @ xp
+        o = ~torch.isnan(y)
+        Ho, Ro = H[o], R[o][:, o]
+        S = Ho @ Pp @ Ho.T + Ro
+        K = torch.linalg.solve(S, Ho @ Pp).T
+        e = y[o] - hz[o] - r[o]
+        x, P = xp + K @ e, Pp - K @ S @ K.T
+        if bool(o.all()):
+            count += 1.0
+            d = (1 - b) / (1 - b**count)
+            Ke = K @ e
+            q = (1 - d) * q + d * (x - fx)
+            Q = (1 - d) * Q + d * (torch.outer(Ke, Ke) + P - FPF)
+            r = (1 - d) * r + d * (y - hz)
+            R = (1 - d) * R + d * (torch.outer(e, e) - H @ Pp @ H.T)
+        out.append((x, Q, R, q, r))
+    return out
+
+
+def test_forgetting_recursion_with_missing_steps_matches_the_closed_form():
+    """``forgetting=b``, ``k0`` and all four statistics over a run with a missing row and a
+    partially missing one, batched with different patterns per run, against the closed form."""
+    g = _gen(5)
+    n, m, T = 3, 2, 12
+    dt = torch.float64
+    F = 0.9 * torch.eye(n, dtype=dt) + 0.05 * torch.randn(n, n, generator=g, dtype=dt)
+    H = torch.randn(m, n, generator=g, dtype=dt)
+    LQ, LR = 0.3 * torch.eye(n, dtype=dt), 0.5 * torch.eye(m, dtype=dt)
+    q, r = 0.1 * torch.randn(n, generator=g, dtype=dt), 0.1 * torch.randn(m, generator=g, dtype=dt)
+    ys = 2.0 * torch.randn(T, 2, m, generator=g, dtype=dt)
+    ys[4, 0], ys[7, 0, 1], ys[2, 1, 0] = float("nan"), float("nan"), float("nan")
+    model = linear_gaussian_model(F, H, LQ, LR, q=q, r=r)
+    b, k0 = 0.9, 30.0  # prior weight: no estimate needs the positive-definite projection
+    est = SageHusa(forgetting=b, k0=k0)
+    x0, S0 = torch.zeros(2, n, dtype=dt), torch.eye(n, dtype=dt).expand(2, n, n)
+    tr = run(imsrukf(noise=est), model, GaussianBelief(x0, S0), ys)
+    assert not bool(tr.noise_fallback.any())
+    for i in range(2):
+        ref = _sage_husa_kalman(F, H, LQ, LR, q, r, x0[i], S0[i], ys[:, i], b, k0)
+        x, Q, R, qT, rT = (torch.stack(v) for v in zip(*ref))
+        cQ, cR = tr.chol_Q[:, i], tr.chol_R[:, i]
+        close = lambda a, b: torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)  # noqa: E731
+        close(tr.means[:, i], x)
+        close(cQ @ cQ.mT, Q)
+        close(cR @ cR.mT, R)
+        close(tr.final.noise.q[i], qT[-1])
+        close(tr.final.noise.r[i], rT[-1])

@@ -16,6 +16,8 @@ is flagged in ``StepInfo.noise_fallback``. ``diagonal=True`` estimates only the 
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass, replace
 from functools import cached_property
 
@@ -163,6 +165,22 @@ def _project_pd(C: Tensor, floor: Tensor, diagonal: bool) -> tuple[Tensor, Tenso
     return C, L, fb
 
 
+def _check_real(name: str, v, none_ok: bool = False) -> None:
+    """``v`` is one finite real number (the same for every batch element)."""
+    if v is None and none_ok:
+        return
+    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
+        raise ValueError(
+            f"{name} must be a finite real number (one value for every batch element), got {v!r}"
+        )
+
+
+def _check_floor(floor_rel) -> None:
+    _check_real("floor_rel", floor_rel)
+    if floor_rel < 0:
+        raise ValueError(f"floor_rel must be >= 0, got {floor_rel}")
+
+
 def _outer(v: Tensor) -> Tensor:
     return v.unsqueeze(-1) * v.unsqueeze(-2)
 
@@ -204,7 +222,10 @@ class SageHusa:
         forgetting: ``None`` for ``1/k`` averaging, else ``b`` in ``(0, 1)``.
         diagonal: estimate only variances.
         floor_rel: eigenvalue floor of the positive-definite projection (module docstring).
-        frozen: keep the initial statistics (adaptation off; the filter is then exactly SRUKF).
+        frozen: keep the initial statistics (adaptation off; the filter is then exactly SRUKF
+            for a model with constant noise). The estimator's state replaces the model's noise:
+            a per-step (callable) noise is read once, at the step of ``init``, also for the
+            statistics not in ``estimate``.
         k0: the counter's start, ``>= 1`` (prior weight, above).
         r_form: ``"innovation"`` (Eq. 43 as printed) or ``"post-fit"`` (above).
     """
@@ -221,6 +242,8 @@ class SageHusa:
         bad = set(self.estimate) - {"q", "Q", "r", "R"}
         if bad:
             raise ValueError(f"estimate must be a subset of ('q', 'Q', 'r', 'R'), got {bad}")
+        _check_real("forgetting", self.forgetting, none_ok=True)
+        _check_floor(self.floor_rel)
         if self.forgetting is not None and not 0.0 < self.forgetting < 1.0:
             raise ValueError(f"forgetting must be in (0, 1) or None, got {self.forgetting}")
         if (
@@ -374,11 +397,23 @@ class MovingWindow:
     frozen: bool = False
 
     def __post_init__(self):
-        if not isinstance(self.window, int) or self.window < 1:
+        if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 1:
             raise ValueError(f"window must be a positive int, got {self.window!r}")
+        w = self.warmup
+        if w is not None and (
+            isinstance(w, bool) or not isinstance(w, int) or not 1 <= w <= self.window
+        ):
+            # 0 would average an empty window (a zero estimate, floored) after missing steps;
+            # above the window length the estimates would never be used
+            raise ValueError(f"warmup must be an int in [1, window={self.window}], got {w!r}")
         bad = set(self.estimate) - {"Q", "R"}
         if bad:
             raise ValueError(f"estimate must be a subset of ('Q', 'R'), got {bad}")
+        _check_real("N", self.N)
+        _check_real("mu", self.mu, none_ok=True)
+        if self.mu is not None and not self.mu > 0:
+            raise ValueError(f"mu must be positive (Eq. 48 divides by it), got {self.mu}")
+        _check_floor(self.floor_rel)
 
     def init(self, noise: Noise, batch_shape, n: int, m: int, like: Tensor) -> NoiseEstimatorState:
         base = SageHusa(floor_rel=self.floor_rel).init(noise, batch_shape, n, m, like)

@@ -24,6 +24,7 @@ denominator is garbled in the extracted Eq. 10-11; it is Zhou's standard form).
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import torch
@@ -40,8 +41,9 @@ class StrongTracking:
 
     Attributes:
         rho: forgetting factor of ``V_k`` in ``(0, 1]`` (Eq. 10); 0.95 is customary.
-        beta: weakening (softening) factor ``>= 1`` multiplying ``R`` in ``N_k``; larger values
-            make the fading factor less aggressive (smoother estimates).
+        beta: weakening (softening) factor multiplying ``R`` in ``N_k``, any positive finite
+            number; ``>= 1`` is customary: larger values make the fading factor less aggressive
+            (smoother estimates), values below 1 more aggressive.
         max_factor: optional upper bound on ``lambda_k`` (``None``: unbounded, as in the paper).
     """
 
@@ -50,10 +52,21 @@ class StrongTracking:
     max_factor: float | None = None
 
     def __post_init__(self):
+        for name in ("rho", "beta", "max_factor"):
+            v = getattr(self, name)
+            if name == "max_factor" and v is None:
+                continue
+            if isinstance(v, bool) or not isinstance(v, numbers.Real):
+                raise TypeError(
+                    f"{name} must be a real number (one value for every batch element), "
+                    f"got {type(v).__name__}"
+                )
         if not 0.0 < self.rho <= 1.0:
             raise ValueError(f"rho must be in (0, 1], got {self.rho}")
         if not self.beta > 0 or self.beta == math.inf:  # (NaN fails every comparison)
-            raise ValueError(f"beta (weakening factor) must be a positive finite number, got {self.beta}")
+            raise ValueError(
+                f"beta (weakening factor) must be a positive finite number, got {self.beta}"
+            )
         if self.max_factor is not None and not self.max_factor >= 1:
             raise ValueError(f"max_factor must be >= 1, got {self.max_factor}")
 

@@ -58,7 +58,10 @@ def ukf(
 
 
 def srukf(kappa: float | None = 1.0, *, rule: SigmaPoints | None = None, **kw) -> GaussianFilter:
-    """Square-root UKF of paper 003 (Eq. 10-30), Julier's rule with ``kappa = 1`` by default."""
+    """Square-root UKF of paper 003 (Eq. 10-30), Julier's rule with ``kappa = 1`` by default;
+    ``rule`` replaces Julier's rule (``kappa`` is then the rule's own, not an option here)."""
+    if rule is not None and kappa != 1.0:
+        raise ValueError(f"give kappa or rule, not both: kappa={kappa!r} would be ignored")
     return GaussianFilter(rule or julier(kappa), sqrt=True, name=kw.pop("name", "SRUKF"), **kw)
 
 

@@ -34,11 +34,30 @@ class SigmaPoints:
     kappa: float | None = 0.0
     order: int = 3
 
+    def __post_init__(self):
+        if self.kind not in ("unscented", "cubature", "gauss_hermite"):
+            raise ValueError(f"unknown sigma-point rule kind {self.kind!r}")
+        for name in ("alpha", "beta") + (() if self.kappa is None else ("kappa",)):
+            v = getattr(self, name)
+            if not _is_real(v) or not math.isfinite(v):
+                raise ValueError(f"{name} must be a finite real number, got {v!r}")
+        if self.kind == "unscented" and self.alpha == 0:
+            raise ValueError("alpha must be nonzero (the points collapse onto the mean)")
+        o = self.order
+        if isinstance(o, bool) or not isinstance(o, (int, np.integer)) or o < 2:
+            # one point per dimension is the mean alone: zero spread, no update ever
+            raise ValueError(f"order must be an int >= 2, got {o!r}")
+        object.__setattr__(self, "order", int(o))
+
     def points(self, n: int, dtype=torch.float64, device=None) -> tuple[Tensor, Tensor, Tensor]:
         """Unit points ``xi`` ``(L, n)``, mean weights ``wm`` ``(L,)``, covariance weights ``wc``."""
         xi, wm, wc = _points(self.kind, self.alpha, self.beta, self.kappa, self.order, n)
         t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
         return t(xi), t(wm), t(wc)
+
+
+def _is_real(v) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
 
 
 @lru_cache(maxsize=256)
@@ -93,4 +112,4 @@ def cubature() -> SigmaPoints:
 
 def gauss_hermite(order: int = 3) -> SigmaPoints:
     """Gauss-Hermite product rule with ``order`` points per dimension (``order^n`` points)."""
-    return SigmaPoints("gauss_hermite", order=int(order))
+    return SigmaPoints("gauss_hermite", order=order)
