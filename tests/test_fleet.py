@@ -217,7 +217,11 @@ def test_baseline_phi_posterior_is_the_data_scale_map_with_its_laplace_covarianc
 
         start = out["posterior_mean"][b].numpy() + [0.05, 1e-3]
         fit = least_squares(
-            _data_scale_residuals, start, args=(d, H, s0, m0, sd), xtol=1e-15, ftol=1e-15,
+            _data_scale_residuals,
+            start,
+            args=(d, H, s0, m0, sd),
+            xtol=1e-15,
+            ftol=1e-15,
             gtol=1e-15,
         )
         J = fit.jac
@@ -925,8 +929,10 @@ def test_an_option_the_method_does_not_take_is_refused_before_the_table_is_read(
 def test_one_column_in_two_roles_is_refused():
     """--column t --time-column t read the clock as the indicator without a word."""
     tab = {"asset": ["a"] * 20, "t": list(range(20)), "value": list(range(20))}
-    for kw, msg in ((dict(column="t"), "time (--time-column) and value (--column)"),
-                    (dict(time_column="asset"), "asset (--group-by) and time (--time-column)")):
+    for kw, msg in (
+        (dict(column="t"), "time (--time-column) and value (--column)"),
+        (dict(time_column="asset"), "asset (--group-by) and time (--time-column)"),
+    ):
         with pytest.raises(ValueError, match=rf"the {re.escape(msg)} columns must differ"):
             read_fleet_table(tab, **kw)
 
@@ -972,3 +978,79 @@ def test_prognose_method_reports_a_reached_threshold_as_the_exponential_method_d
         res = fleet_rul(tab, 10.0, method=method, **kw)
         assert res.columns["flags"] == ["threshold_reached"], method
         assert res.columns["rul_median"] == [0.0] and res.columns["p_fail_within_horizon"] == [1.0]
+
+
+def test_prognose_method_flags_a_threshold_on_the_healthy_side_not_rul_zero():
+    """A falling capacity (healthy near 1, threshold 0.8) with the default direction "above"
+    came back from method="prognose" as threshold_reached with RUL 0 for every healthy asset;
+    it gets the exponential method's threshold_on_healthy_side and no RUL now. An asset whose
+    rising indicator did reach the threshold is still RUL 0 (neither calls prognose)."""
+    t = np.arange(30.0)
+    wobble = 0.01 * np.sin(t)
+    tab = {"asset": ["cap"] * 30 + ["rms"] * 30, "t": np.concatenate([t, t]),
+           "value": np.concatenate([1.0 - 0.001 * t + wobble, 0.5 + 0.02 * t + wobble])}  # fmt: skip
+    # reference: the healthy window's mean (first 30 % of the time span) against 0.8
+    first = t <= 0.3 * t[-1]
+    assert (1.0 - 0.001 * t + wobble)[first].mean() > 0.8 > (0.5 + 0.02 * t + wobble)[first].mean()
+    for method in ("prognose", "exponential"):
+        res = fleet_rul(tab, 0.8, method=method)
+        assert "threshold_on_healthy_side" in res.row("cap")["flags"].split(";"), method
+        assert "threshold_reached" not in res.row("cap")["flags"], method
+        assert math.isnan(res.row("cap")["rul_median"]), method
+        assert res.row("rms")["flags"] == "threshold_reached" and res.row("rms")["rul_median"] == 0
+
+
+def test_direction_and_min_rows_are_refused_by_name_before_the_table_is_read(tmp_path):
+    """A mistyped direction reached method="prognose" per asset and came back as a
+    prognose_error row for every asset; min_rows=0 or -1 sent assets without a value to the
+    fit, and 2.5 was taken as is. All are argument errors, raised before the table is read."""
+    missing = tmp_path / "not_there.csv"
+    with pytest.raises(ValueError, match=r"direction must be 'above', 'below' or 'auto' .*'Below'"):
+        fleet_rul(missing, 0.8, method="prognose", direction="Below")
+    with pytest.raises(ValueError, match=r"direction must be 'above' or 'below' .*got 'auto'"):
+        fleet_rul(missing, 0.8, direction="auto")
+    for bad, err in ((0, ValueError), (-1, ValueError), (2.5, TypeError), (True, TypeError)):
+        with pytest.raises(err, match=r"min_rows must be"):
+            fleet_rul(missing, 0.8, min_rows=bad)
+    batch = pad_batch(["a"], [np.arange(3.0)], [np.ones(3)])
+    for method in METHODS.values():
+        with pytest.raises(ValueError, match=r"min_rows must be >= 1 \(observed rows\), got 0"):
+            method(batch, 2.0, min_rows=0)
+    with pytest.raises(ValueError, match=r"direction must be .*got 'up'"):
+        METHODS["prognose"](batch, 2.0, direction="up")
+
+
+def test_a_column_with_one_cell_for_the_whole_table_is_refused_not_spread():
+    """A single asset id for a one-asset table ({"asset": "A", ...}) raised "len() of unsized
+    object"; columns of two lengths said only "must be 1-D"."""
+    t = np.arange(5.0)
+    with pytest.raises(ValueError, match=r"table: column 'asset' must be 1-D \(one cell per row\), got shape \(\)"):  # fmt: skip
+        read_fleet_table({"asset": "A", "t": t, "value": t})
+    with pytest.raises(ValueError, match=r"column 'value' has 4 rows, column 'asset' has 5"):
+        read_fleet_table({"asset": ["A"] * 5, "t": t, "value": t[:4]})
+    # (and a result asked for an asset it does not hold said only "'B' is not in list")
+    res = fleet_rul({"asset": [7] * 5, "t": t, "value": t}, 20.0)
+    assert res.row(7) == res.row("7")
+    with pytest.raises(ValueError, match=r"asset 'B' is not in this result \(1 assets\)"):
+        res.row("B")
+
+
+def test_baseline_phi_with_a_drift_does_not_depend_on_the_shard():
+    """With drift_std the baseline trend's iterated smoother ran every asset of a shard until
+    the LAST one had converged, so an asset's RUL moved (~1e-7) with its shard mates; each
+    asset now stops where it converges alone."""
+    g = torch.Generator().manual_seed(1)
+    t = torch.arange(40.0, dtype=torch.float64)
+
+    def rise(rate, noise, start):
+        ramp = torch.where(t > start, torch.exp(rate * (t - start)) - 1, 0.0)
+        return (1.0 + ramp + noise * torch.randn(40, generator=g, dtype=torch.float64)).numpy()
+
+    ys = [rise(0.1, 0.02, 20), rise(0.05, 0.3, 12)]  # 5 and 3 iterations alone
+    kw = dict(phi="baseline", drift_std=(1e-2, 1e-3), samples=20)
+    whole = exponential_trend_rul(pad_batch(["a", "b"], [t.numpy()] * 2, ys), 60.0, **kw)
+    for i, a in enumerate("ab"):
+        alone = exponential_trend_rul(pad_batch([a], [t.numpy()], [ys[i]]), 60.0, **kw)
+        assert alone["flags"][0] == whole["flags"][i]
+        for c in ("rul_median", "rul_q05", "rul_q95"):
+            np.testing.assert_allclose(alone[c][0], whole[c][i], rtol=1e-12, atol=0)

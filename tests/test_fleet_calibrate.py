@@ -166,3 +166,27 @@ def test_cli_calibrate_adds_the_calibrated_columns(tmp_path, capsys):
     assert "points of 3 failed assets" in said and "margin" in said
     assert "warning: the points come from 3 failed assets; an asset's points move together, " \
         "and 90 % coverage for a new asset is assured from 9 failed assets on" in said  # fmt: skip
+
+
+def test_replayed_truth_counts_from_the_replayed_rows_and_run_options_are_not_settings():
+    """A failed asset with missing values (every other row after t = 40): a replayed point
+    whose last rows had no value took its true RUL from the last observed time, while the
+    fleet row's RUL counts from its last row (t_last), so its score was off by the gap.
+    shard_size/progress/on_error passed to calibrate_fleet became settings that every live
+    result was refused against; on_error was not applied to the failed table."""
+    f = synthetic_fleet(1, 120, seed=2, life_fraction=(1.1, 1.3), healthy_fraction=0.0)
+    t, y = f.table["t"], f.table["value"].copy()
+    y[(t > 40) & (t % 2 == 1)] = np.nan
+    bad = {"asset": np.array(["z"] * 3), "t": np.arange(3.0), "value": np.array(["1", "x", "2"])}
+    tab = {k: np.concatenate([f.table[k] if k == "asset" else (t if k == "t" else y), bad[k]])
+           for k in ("asset", "t", "value")}  # fmt: skip
+    cal, pts = calibrate_fleet(tab, 20.0, samples=50, fractions=(0.5, 0.9), shard_size=1,
+                               progress=False, on_error="flag")  # fmt: skip
+    ok = ~np.isnan(y)
+    pc = known_threshold_protocol(torch.from_numpy(t[ok]), torch.from_numpy(y[ok]), threshold=20.0)
+    last = [float(t[t <= tp].max()) for tp in pts["t_pred"][:-1]]  # the replayed rows' t_last
+    assert pts["t_last"][:-1] == last and any(np.isnan(y[t == v][0]) for v in last)
+    assert pts["true_rul"][:-1] == [pc.t_eol - v for v in last]
+    assert pts["asset"][-1] == "z" and "value 'x' in column 'value'" in pts["status"][-1]
+    assert not {"shard_size", "progress", "on_error"} & set(cal.settings)
+    fleet_rul(f.table, 20.0, samples=50).calibrated(cal)  # the same method: accepted

@@ -17,8 +17,9 @@ and :meth:`FleetResult.calibrated
     live = fleet_rul("fleet.parquet", threshold=20.0).calibrated(cal)
     live.columns["rul_q05_calibrated"], live.columns["rul_q95_calibrated"]
 
-The RUL of a fleet row counts from the asset's last observation, so the true RUL of a replayed
-point is ``t_EoL - t_last`` (``t_last``: the last observed time up to the prediction time). A
+The RUL of a fleet row counts from the asset's last row (``t_last``, also where the values of
+its last rows are missing: ``last_rows_missing``), so the true RUL of a replayed point is
+``t_EoL - t_last`` (``t_last``: the time of the last row up to the prediction time). A
 quantile that lies beyond every sampled crossing (NaN ``rul_q95`` with more than 5 % of the
 mass censored) is an open upper end. The guarantee holds for live assets exchangeable with the
 failed ones: the same population, indicator, threshold and method.
@@ -43,6 +44,10 @@ from .run import fleet_rul, interval_columns, method_settings
 from .table import FleetTable, read_fleet_table
 
 __all__ = ["calibrate_fleet"]
+
+#: ``fleet_rul``'s settings of how a fleet is run (the intervals do not depend on them): passed
+#: on to the replay, left out of the calibration's settings
+_RUN_OPTIONS = ("shard_size", "backend", "progress", "ray_init")
 
 
 def calibrate_fleet(
@@ -82,7 +87,10 @@ def calibrate_fleet(
         decimal, time_format: a CSV table's decimal mark and the layout of its date-times
             (:func:`~prognos_torch.fleet.read_fleet_table`).
         workers: processes that replay the points (``fleet_rul``'s; not a setting of the
-            calibration: the intervals are the same).
+            calibration: the intervals are the same); so are ``fleet_rul``'s ``shard_size``,
+            ``backend``, ``progress`` and ``ray_init`` among ``**options``. ``on_error``
+            (``**options``; ``"raise"`` or ``"flag"``) applies to reading the table: a flagged
+            asset is left out, its message in the points' ``status``.
 
     Returns:
         ``(calibration, points)``: the :class:`~prognos_torch.prognosis.RULCalibration` (its
@@ -93,6 +101,9 @@ def calibrate_fleet(
     Raises:
         ValueError: bad arguments, or no failed asset gives a point with an interval.
     """
+    # how the replay is run, not how its intervals are made: passed on, not recorded
+    run = {key: options.pop(key) for key in _RUN_OPTIONS if key in options}
+    on_error = options.pop("on_error", "raise")
     thr = check_real(threshold, "threshold")
     if direction not in ("above", "below"):
         raise ValueError(f"direction must be 'above' or 'below', got {direction!r}")
@@ -107,13 +118,16 @@ def calibrate_fleet(
             time_column=time_column,
             decimal=decimal,
             time_format=time_format,
+            on_error=on_error,
         )
     )
     if not table.assets:
         raise ValueError("the table of failed assets is empty")
     names, times, values, rows, truth, t_pred, t_last = [], [], [], [], [], [], []
-    skipped: dict[str, str] = {}
+    skipped: dict[str, str] = dict(table.errors)  # set aside by the table checks
     for a, t, y, r in zip(table.assets, table.times, table.values, table.rows):
+        if a in skipped:
+            continue
         ok = ~np.isnan(y)
         if int(ok.sum()) < 20:
             skipped[a] = f"{int(ok.sum())} observed values, the protocol needs 20"
@@ -125,7 +139,7 @@ def calibrate_fleet(
             continue
         for f, tp in zip(fractions, pc.times.tolist()):
             keep = t <= tp
-            last = float(t[keep & ok][-1])
+            last = float(t[keep][-1])  # the replayed row's t_last, where its RUL counts from
             names.append(f"{a}@{f:g}")
             times.append(t[keep]), values.append(y[keep]), rows.append(r[keep])
             truth.append(pc.t_eol - last), t_pred.append(tp), t_last.append(last)
@@ -138,7 +152,7 @@ def calibrate_fleet(
     replay = FleetTable(names, times, values, rows, source=f"{table.source} (replayed)",
                         time_unit=table.time_unit, epoch=table.epoch)  # fmt: skip
     res = fleet_rul(replay, thr, direction=direction, seed=seed, method=method, workers=workers,
-                    **options)  # fmt: skip
+                    **run, **options)  # fmt: skip
     lo, hi, med = interval_columns(res.columns)
     cm = res.columns["censored_mass"]
     true = torch.tensor(truth, dtype=torch.float64)

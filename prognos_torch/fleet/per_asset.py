@@ -11,7 +11,9 @@ the assets of a shard instead.
 
 Per asset: the seed is the asset's seed (:func:`~prognos_torch.fleet.trend.asset_seed`), so
 the table does not depend on sharding; a last observed value at or beyond the threshold is
-``threshold_reached`` with RUL 0, as in the exponential method; an input that ``prognose``
+``threshold_reached`` with RUL 0, as in the exponential method, unless the healthy baseline's
+mean already lies there (``threshold_on_healthy_side``, no RUL: a falling indicator with
+``direction="above"``, say); an input that ``prognose``
 rejects (too few values, a threshold inside the healthy band, ...) is reported in the asset's
 row (flag ``prognose_error`` and the message), never fatal for the fleet. ``p_fail_within_horizon``
 is :meth:`~prognos_torch.workflow.RULResult.failure_probability`; a ``horizon`` beyond
@@ -27,7 +29,7 @@ import math
 
 import numpy as np
 
-from .trend import RUL_COLUMNS, PaddedBatch
+from .trend import RUL_COLUMNS, PaddedBatch, check_min_rows
 
 __all__ = ["prognose_rul"]
 
@@ -49,7 +51,8 @@ def prognose_rul(
             ``"auto"``).
         horizon: time span for ``p_fail_within_horizon`` (``None``: ever, i.e. within the
             prognosis horizon; the rest is the censored mass).
-        min_rows: fewer observed rows: flagged ``too_few_rows``, ``prognose`` is not called.
+        min_rows: fewer observed rows: flagged ``too_few_rows``, ``prognose`` is not called
+            (an int >= 1).
         **options: passed to ``prognose`` (``method``, ``n_paths``, ``filter``, ...).
     Returns:
         The columns of :data:`~prognos_torch.fleet.trend.RUL_COLUMNS`, ``flags`` and
@@ -59,6 +62,9 @@ def prognose_rul(
 
     from ..workflow import prognose
 
+    if direction not in ("above", "below", "auto"):  # an argument, not an asset's input
+        raise ValueError(f"direction must be 'above', 'below' or 'auto', got {direction!r}")
+    min_rows = check_min_rows(min_rows)
     B = len(batch)
     out = {c: np.full(B, np.nan) for c in RUL_COLUMNS}
     flags, messages = [], []
@@ -74,6 +80,12 @@ def prognose_rul(
         seen = y[~torch.isnan(y)]
         sign = {"above": 1.0, "below": -1.0}.get(direction)
         if sign is not None and sign * (float(seen[-1]) - float(threshold)) >= 0:
+            # a healthy level at or beyond the threshold is the wrong direction (or threshold),
+            # not a failure: every healthy asset would read RUL 0 (as the exponential method)
+            if _healthy_side(seen, t[~torch.isnan(y)], threshold, sign, options):
+                flags.append("threshold_on_healthy_side")
+                messages.append("")
+                continue
             # as the exponential method: failed, RUL 0 (prognose refuses such a series)
             for col, v in (("rul_median", 0.0), ("rul_q05", 0.0), ("rul_q95", 0.0),
                            ("p_fail_within_horizon", 1.0), ("censored_mass", 0.0)):  # fmt: skip
@@ -114,3 +126,20 @@ def prognose_rul(
     res["flags"] = flags
     res["message"] = messages
     return res
+
+
+def _healthy_side(seen, t_seen, threshold: float, sign: float, options) -> bool:
+    """Whether the mean of the healthy window (``prognose``'s ``baseline`` option: its fraction
+    or a given ``Baseline``) lies at or beyond the threshold in the failure direction; ``False``
+    where the window gives no baseline (``prognose`` is then not asked either)."""
+    from ..prognosis.onset import Baseline, healthy_baseline
+
+    base = options.get("baseline", 0.3)
+    if not isinstance(base, Baseline):
+        try:
+            base = healthy_baseline(
+                seen, t_seen, fraction=base, glitch_limit=options.get("glitch_limit")
+            )
+        except ValueError:
+            return False
+    return sign * (float(threshold) - base.mean) <= 0

@@ -41,12 +41,15 @@ from ..prognosis.conformal import record_settings
 from ..workflow.data import date_after
 from .per_asset import prognose_rul
 from .table import FleetTable, read_fleet_table, write_table
-from .trend import RUL_COLUMNS, exponential_trend_rul, pad_batch
+from .trend import RUL_COLUMNS, check_min_rows, exponential_trend_rul, pad_batch
 
 __all__ = ["FleetResult", "fleet_rul", "METHODS", "OUTPUT_COLUMNS", "DATE_COLUMNS", "run_shard"]
 
 #: RUL methods by name: the batched exponential trend (default) and the per-asset prognose
 METHODS: dict[str, Callable] = {"exponential": exponential_trend_rul, "prognose": prognose_rul}
+
+#: the failure directions each built-in method takes (``prognose`` also finds it: ``"auto"``)
+_DIRECTIONS = {"exponential": ("above", "below"), "prognose": ("above", "below", "auto")}
 
 #: the output table's columns, in order
 OUTPUT_COLUMNS = ("asset",) + RUL_COLUMNS + ("flags", "message")
@@ -116,8 +119,13 @@ class FleetResult:
         return len(self.columns["asset"])
 
     def row(self, asset: str) -> dict:
-        """The output row of one asset as a dict."""
-        i = self.columns["asset"].index(str(asset))
+        """The output row of one asset (its id, or a number read as its text) as a dict."""
+        try:
+            i = self.columns["asset"].index(str(asset))
+        except ValueError:
+            raise ValueError(
+                f"asset {str(asset)!r} is not in this result ({len(self)} assets)"
+            ) from None
         return {k: v[i] for k, v in self.columns.items()}
 
     def flagged(self, flag: str) -> list[str]:
@@ -321,7 +329,7 @@ def fleet_rul(
             path, a pandas DataFrame or a mapping of columns.
         threshold: failure threshold on the value column.
         group_by, column, time_column: column names (asset, value, time).
-        direction: ``"above"`` or ``"below"``.
+        direction: ``"above"`` or ``"below"`` (``method="prognose"`` also ``"auto"``).
         horizon: time span for ``p_fail_within_horizon`` (``None``: ever).
         seed: fleet seed; asset ``a`` uses ``asset_seed(seed, a)``.
         method: a key of :data:`METHODS`.
@@ -352,6 +360,14 @@ def fleet_rul(
             f"fleet_rul got {', '.join(map(repr, unknown))}, not an option of method "
             f"{method!r}; its options: {', '.join(sorted(allowed))}"
         )
+    sides = _DIRECTIONS.get(method)
+    if sides is not None and direction not in sides:  # (not per asset: every asset's error)
+        raise ValueError(
+            f"direction must be {', '.join(map(repr, sides[:-1]))} or {sides[-1]!r} for method "
+            f"{method!r}, got {direction!r}"
+        )
+    if "min_rows" in options:
+        check_min_rows(options["min_rows"])
     if backend not in ("local", "ray"):
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
     if isinstance(shard_size, bool) or not isinstance(shard_size, int) or shard_size < 1:

@@ -376,10 +376,18 @@ def read_fleet_table(
             "source must be a .csv/.parquet path, a pandas DataFrame or a mapping of columns, "
             f"got {type(source).__name__}"
         )
+    for name, c in zip(names, cols):  # one cell per row: a single id or time is not spread
+        if np.ndim(c) != 1:
+            raise ValueError(
+                f"{label}: column {name!r} must be 1-D (one cell per row), got shape {np.shape(c)}"
+            )
     n = len(cols[0])
-    for name, c in zip(names, cols):
-        if np.ndim(c) != 1 or len(c) != n:
-            raise ValueError(f"{label}: column {name!r} must be 1-D with {n} rows")
+    for name, c in zip(names[1:], cols[1:]):
+        if len(c) != n:
+            raise ValueError(
+                f"{label}: column {name!r} has {len(c)} rows, column {group_by!r} has {n}: "
+                "the columns must be of one length"
+            )
     if n == 0:
         raise ValueError(f"{label}: the table has no data rows")
 

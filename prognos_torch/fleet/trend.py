@@ -89,6 +89,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import numbers
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -133,6 +134,16 @@ RUL_COLUMNS = (
     "p_fail_within_horizon",
     "censored_mass",
 )
+
+
+def check_min_rows(min_rows) -> int:
+    """``min_rows``, the observed rows an asset needs for a RUL: an int >= 1 (``TypeError``,
+    ``ValueError``); 0 or less would send assets without a value to the trend fit."""
+    if isinstance(min_rows, bool) or not isinstance(min_rows, numbers.Integral):
+        raise TypeError(f"min_rows must be an int (observed rows), got {min_rows!r}")
+    if min_rows < 1:
+        raise ValueError(f"min_rows must be >= 1 (observed rows), got {min_rows}")
+    return int(min_rows)
 
 
 def asset_seed(seed: int, asset: str) -> int:
@@ -451,21 +462,24 @@ def _iterated_smoother(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """:func:`_gauss_newton` with a drift: the linearisation points are the RTS-smoothed
     means, one per row (the iterated extended Kalman smoother), the steps whole, until every
-    step is below ``GN_TOLERANCE`` smoothed std."""
+    step of an asset is below ``GN_TOLERANCE`` smoothed std; a converged asset keeps its
+    linearisation points (its result is then that of the iteration where it converged,
+    whatever the other assets of the shard do: shard-size invariance)."""
     from ..filters.smooth import smooth
 
     ds, taus, last, sigma0 = data
     B, T = ds.shape
     path = x[None].expand(T, B, 2)  # linearisation point per row (T, B, 2)
+    done = torch.zeros(B, dtype=torch.bool, device=x.device)
     for it in range(GN_ITERATIONS + 1):
         g = path[..., 0].T + path[..., 1].T * taus
         model, z, w = _linearised_model(drift, ds, g, sigma0)
         sm = smooth(filt, model, prior, z.T[..., None], taus.T[..., None])
         step = sm.means - path
-        if it == GN_ITERATIONS or bool((step.abs() <= GN_TOLERANCE * sm.chols.pow(2).sum(-1)
-                                        .sqrt()).all()):  # fmt: skip
+        done |= (step.abs() <= GN_TOLERANCE * sm.chols.pow(2).sum(-1).sqrt()).all(-1).all(0)
+        if it == GN_ITERATIONS or bool(done.all()):
             break
-        path = sm.means
+        path = torch.where(done[None, :, None], path, sm.means)
     return _at(sm.means, last), _at(sm.chols, last), z, w
 
 
@@ -500,7 +514,8 @@ def exponential_trend_rul(
             result holds ``"phi"`` ``(B,)``, the offset each asset used.
         horizon: time span for ``p_fail_within_horizon`` (``None``: ever).
         samples: posterior draws per asset.
-        min_rows: fewer observed rows than this are flagged ``too_few_rows`` (no RUL).
+        min_rows: fewer observed rows than this are flagged ``too_few_rows`` (no RUL); an
+            int >= 1.
         baseline, k, window, consecutive: the onset rule.
         drift_std: random-walk std of ``[a, beta]`` per step (default 0: fixed parameters).
         prior_std: prior std of ``a`` and ``beta`` (``None``: one log unit per median interval).
@@ -542,6 +557,7 @@ def exponential_trend_rul(
         raise ValueError(f"horizon must be a positive finite number or None, got {horizon!r}")
     if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
         raise ValueError(f"samples must be a positive int, got {samples!r}")
+    min_rows = check_min_rows(min_rows)
     y, t, lengths = batch.values, batch.times, batch.lengths
     B, T = y.shape
     dev, dt = y.device, y.dtype
