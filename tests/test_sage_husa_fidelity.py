@@ -108,14 +108,16 @@ def test_k0_and_r_form_are_validated():
     assert OPTIMIZER_NOISE.r_form == "post-fit" and OPTIMIZER_NOISE.k0 > 1
 
 
-def _sage_husa_kalman(F, H, LQ, LR, q, r, x, P, ys, b, k0):
+def _sage_husa_kalman(F, H, LQ, LR, q, r, x, P, ys, b, k0, lam=1.0):
     """Eq. 40-43 with the fading-memory weight ``d_k = (1 - b) / (1 - b^k)`` around an exact
     Kalman filter (linear model: the unscented sums are ``F P F^T``, ``H P H^T``); a step with a
-    missing component updates with the observed ones and holds every estimate."""
+    missing component updates with the observed ones and holds every estimate. A constant
+    fading factor ``lam`` scales the propagated spread in the prior (paper 000 Eq. 36) and so
+    in Eq. 41, which subtracts the spread the prior used."""
     Q, R, count, out = LQ @ LQ.T, LR @ LR.T, k0 - 1.0, []
     for y in ys:
         fx = F @ x
-        xp, FPF = fx + q, F @ P @ F.T
+        xp, FPF = fx + q, lam * F @ P @ F.T
         Pp = FPF + Q
         hz = H @ xp
         o = ~torch.isnan(y)
@@ -164,3 +166,31 @@ def test_forgetting_recursion_with_missing_steps_matches_the_closed_form():
         close(cR @ cR.mT, R)
         close(tr.final.noise.q[i], qT[-1])
         close(tr.final.noise.r[i], rT[-1])
+
+
+@pytest.mark.parametrize("filt", ["srukf", "ekf"])
+def test_a_fading_factor_beside_the_noise_estimator_is_not_read_as_process_noise(filt):
+    """With a fading factor lambda the prior is lambda F P F^T + Q, and Eq. 41 subtracts that
+    spread: the estimated Q was Q + (lambda - 1) sum W (gamma - x)(gamma - x)^T, about 7 times
+    the true Q under strong tracking."""
+    from prognos_torch.filters import ekf, srukf
+
+    g = _gen(6)
+    n, m, T, lam = 3, 2, 15, 1.3
+    dt = torch.float64
+    F = 0.9 * torch.eye(n, dtype=dt) + 0.05 * torch.randn(n, n, generator=g, dtype=dt)
+    H = torch.randn(m, n, generator=g, dtype=dt)
+    LQ, LR = torch.eye(n, dtype=dt), 4.0 * torch.eye(m, dtype=dt)  # (no projection needed)
+    q, r = torch.zeros(n, dtype=dt), torch.zeros(m, dtype=dt)
+    ys = 3.0 * torch.randn(T, m, generator=g, dtype=dt)
+    model = linear_gaussian_model(F, H, LQ, LR)
+    est = SageHusa(forgetting=0.9, k0=30.0)
+    make = {"srukf": srukf, "ekf": ekf}[filt]
+    x0, S0 = torch.zeros(n, dtype=dt), torch.eye(n, dtype=dt)
+    tr = run(make(noise=est, fading=lam), model, GaussianBelief(x0, S0), ys)
+    assert not bool(tr.noise_fallback.any())
+    x, Q, R, _, _ = (torch.stack(v) for v in zip(*_sage_husa_kalman(
+        F, H, LQ, LR, q, r, x0, S0, ys, 0.9, 30.0, lam)))  # fmt: skip
+    torch.testing.assert_close(tr.means, x, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(tr.chol_Q @ tr.chol_Q.mT, Q, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(tr.chol_R @ tr.chol_R.mT, R, rtol=1e-10, atol=1e-12)

@@ -28,6 +28,8 @@ Step ``k`` (model convention of :mod:`prognos_torch.core.model`):
    downdate would lose precision (a very informative measurement), under autograd (tensors
    that require grad: a failed downdate's NaN would leak into the gradient) and with the robust
    bound of paper 004.
+5. A noise estimator updates its statistics (paper 003 Eq. 40-46) from the spread the prior
+   used, ``sqrt(lambda_k) A``: with a fading factor, ``Q`` is not credited with the inflation.
 
 Missing data: NaN marks a missing measurement component. A vector that is NaN throughout is
 *missing*: the step only predicts (the posterior equals the prior, the log-likelihood
@@ -641,11 +643,16 @@ class GaussianFilter:
             fallback = _constant(belief.batch_shape, torch.bool, y.device, False)
         else:
             h_mean = mom.z if noise.r is None else mom.z - noise.r
+            spread_pos, spread_neg = prop.pos, prop.neg
+            if lam is not None:  # Eq. 41 subtracts the spread the prior used: lambda F P F^T
+                sl = lam.sqrt()[..., None, None]
+                spread_pos = sl * spread_pos
+                spread_neg = None if spread_neg is None else sl * spread_neg
             ctx = UpdateContext(
                 x_post=mean,
                 f_mean=prop.f_mean,
-                spread_pos=prop.pos,
-                spread_neg=prop.neg,
+                spread_pos=spread_pos,
+                spread_neg=spread_neg,
                 gain=K,
                 innovation=eps,
                 chol_post=chol,
