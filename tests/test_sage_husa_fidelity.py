@@ -3,6 +3,8 @@ the post-fit form of the ``R`` estimate, and ImSRUKF training a generic network.
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 from torch import nn
@@ -194,3 +196,31 @@ def test_a_fading_factor_beside_the_noise_estimator_is_not_read_as_process_noise
     torch.testing.assert_close(tr.means, x, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(tr.chol_Q @ tr.chol_Q.mT, Q, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(tr.chol_R @ tr.chol_R.mT, R, rtol=1e-10, atol=1e-12)
+
+
+def test_statistics_the_estimator_does_not_estimate_follow_a_per_step_model():
+    """A model whose Q grows per step (a callable): with SageHusa(frozen=True) the filter is
+    exactly the SRUKF on that model, and estimating R alone leaves Q the model's at every step
+    (both used to keep Q at its value of the first step)."""
+    from prognos_torch.filters import srukf
+
+    g = _gen(7)
+    n, m, T = 2, 1, 10
+    dt = torch.float64
+    F = torch.tensor([[1.0, 0.1], [0.0, 0.95]], dtype=dt)
+    H = torch.tensor([[1.0, 0.0]], dtype=dt)
+    base = linear_gaussian_model(F, H, 0.1 * torch.eye(n, dtype=dt), torch.eye(m, dtype=dt))
+    chol_Q = lambda k: (0.1 + 0.2 * k) * torch.eye(n, dtype=dt)  # noqa: E731
+    model = dataclasses.replace(base, chol_Q=chol_Q)
+    ys = 5.0 * torch.randn(T, m, generator=g, dtype=dt)
+    b0 = GaussianBelief(torch.zeros(n, dtype=dt), torch.eye(n, dtype=dt))
+    plain = run(srukf(), model, b0, ys)
+    frozen = run(imsrukf(noise=SageHusa(frozen=True)), model, b0, ys)
+    torch.testing.assert_close(frozen.means, plain.means, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(frozen.chols, plain.chols, rtol=1e-12, atol=1e-14)
+    only_R = run(imsrukf(noise=SageHusa(estimate=("R",))), model, b0, ys, keep_steps=True)
+    used = torch.stack([st.noise.chol_Q for st in only_R.steps])  # (the noise each step used)
+    want = torch.stack([chol_Q(k) for k in range(1, T + 1)])
+    torch.testing.assert_close(used, want, rtol=0, atol=0)
+    assert not bool(only_R.noise_fallback[1:].any())  # (R is estimated: floored once only)
+    assert not torch.equal(only_R.chol_R[0], only_R.chol_R[-1])

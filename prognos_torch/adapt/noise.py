@@ -222,10 +222,9 @@ class SageHusa:
         forgetting: ``None`` for ``1/k`` averaging, else ``b`` in ``(0, 1)``.
         diagonal: estimate only variances.
         floor_rel: eigenvalue floor of the positive-definite projection (module docstring).
-        frozen: keep the initial statistics (adaptation off; the filter is then exactly SRUKF
-            for a model with constant noise). The estimator's state replaces the model's noise:
-            a per-step (callable) noise is read once, at the step of ``init``, also for the
-            statistics not in ``estimate``.
+        frozen: adaptation off: the filter uses the model's noise at every step (exactly
+            SRUKF, per-step noise included). The statistics not in ``estimate`` are the model's
+            at every step too.
         k0: the counter's start, ``>= 1`` (prior weight, above).
         r_form: ``"innovation"`` (Eq. 43 as printed) or ``"post-fit"`` (above).
     """

@@ -295,9 +295,23 @@ class GaussianFilter:
 
     # ------------------------------------------------------------------ noise
     def _noise(self, model, state: FilterState, k: int) -> Noise:
-        if state.noise is not None:
-            return state.noise.noise()
-        return model.checked_noise(k, state.belief.batch_shape, state.belief.mean)
+        """The noise of step ``k``: the estimator's statistics where it estimates them, the
+        model's (per step, where callable) for the others and when it is frozen."""
+        if state.noise is None:
+            return model.checked_noise(k, state.belief.batch_shape, state.belief.mean)
+        est = state.noise.noise()
+        held = {"q", "Q", "r", "R"} - (set() if self.noise.frozen else set(self.noise.estimate))
+        raw = {"q": model.q, "Q": model.chol_Q, "r": model.r, "R": model.chol_R}
+        if not any(callable(raw[name]) for name in held):  # (constant: as the estimator's)
+            return est
+        mod = model.checked_noise(k, state.belief.batch_shape, state.belief.mean)
+        return Noise(
+            mod.q if "q" in held else est.q,
+            mod.chol_Q if "Q" in held else est.chol_Q,
+            mod.r if "r" in held else est.r,
+            mod.chol_R if "R" in held else est.chol_R,
+            mod.diag_Q if "Q" in held else None,
+        )
 
     # ------------------------------------------------------------------ stages
     def _propagate(self, model, belief: GaussianBelief, u, k: int, q) -> _Propagation:
