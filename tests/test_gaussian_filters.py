@@ -20,7 +20,7 @@ from prognos_torch.filters import (
     stsckf,
     ukf,
 )
-from prognos_torch.filters.gaussian import GaussianFilter
+from prognos_torch.filters.gaussian import GaussianFilter, Taylor
 from prognos_torch.quadrature import cubature, gauss_hermite, julier, unscented
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -641,3 +641,14 @@ def test_sigma_point_rule_settings_are_checked():
     with pytest.raises(ValueError, match="unknown sigma-point rule kind"):
         __import__("prognos_torch.quadrature", fromlist=["x"]).SigmaPoints("sobol")
     assert gauss_hermite(np.int64(3)).order == 3  # numpy integers are ints
+
+
+def test_a_fading_factor_without_redrawn_points_is_refused():
+    # the propagated points carry neither lambda nor Q: a constant factor changed the prior
+    # but not the gain, and strong tracking read H and M_k from the wrong covariance
+    from prognos_torch.adapt.strong_tracking import StrongTracking
+
+    for fading in (1.5, StrongTracking()):
+        with pytest.raises(ValueError, match="a fading factor needs redraw=True"):
+            GaussianFilter(unscented(1.0, 2.0, 2.0), redraw=False, fading=fading)
+    GaussianFilter(Taylor(), redraw=False, fading=StrongTracking())  # (the EKF draws no points)

@@ -269,6 +269,13 @@ class GaussianFilter:
             raise TypeError("fading must be None, a float >= 1 or StrongTracking")
         if self.robust is not None and not self.redraw:
             raise ValueError("the robust update needs redraw=True (Joseph-form posterior)")
+        if self.fading is not None and not self.redraw and isinstance(self.rule, SigmaPoints):
+            # the propagated points carry neither lambda nor Q: the gain would ignore the
+            # fading factor, and strong tracking's H (Eq. 17) and M_k would be misread
+            raise ValueError(
+                "a fading factor needs redraw=True with a sigma-point rule (paper 000 Eq. 36-37: "
+                "the points are drawn from the faded prior)"
+            )
         if self.prior not in ("qr", "cholesky"):
             raise ValueError(f"prior must be 'qr' or 'cholesky', got {self.prior!r}")
         if self.posterior not in ("downdate", "potter"):
