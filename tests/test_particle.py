@@ -829,3 +829,67 @@ def test_particle_weights_refuse_an_upper_triangular_noise_factor():
     torch.testing.assert_close(run(ekf(), ok, b, y).means, ref)
     pf = sir(20000).run(ok, b, y, generator=torch.Generator().manual_seed(0)).means
     torch.testing.assert_close(pf, ref, atol=0.02, rtol=0)
+
+
+# ---------------------------------------------------------------------- weights given by hand
+def _two_runs_one_degenerate(N=50):
+    """Two runs of ``N`` particles: uniform weights (``N_eff = N``) and one particle carrying
+    almost all the weight (``N_eff`` near 1), with a model and a missing measurement, which
+    leaves the weights as they are."""
+    model = linear_gaussian_model(t([[1.0]]), t([[1.0]]), t([[0.1]]), t([[0.1]]))
+    x = torch.linspace(-1.0, 1.0, N, dtype=torch.float64).reshape(1, N, 1).repeat(2, 1, 1)
+    lw = torch.full((2, N), -math.log(N), dtype=torch.float64)
+    lw[1] = torch.log_softmax(torch.where(torch.arange(N) == 3, 0.0, -20.0).double(), -1)
+    return model, ParticleState(x, lw), t([[math.nan], [math.nan]])
+
+
+def test_a_custom_resampler_of_the_wrong_shape_is_refused_when_some_runs_resample():
+    """Only run 1 resamples: ancestors ``(N,)`` for weights ``(2, N)`` broadcast against the
+    other run's own indices and passed the shape check."""
+    model, state, y = _two_runs_one_degenerate()
+
+    def one_row(lw, g):  # the ancestors of run 1 only: shape (N,)
+        return systematic(lw[1], g)
+
+    with pytest.raises(ValueError, match=r"ancestors of shape \(2, 50\), got \(50,\)"):
+        sir(50, resampler=one_row).step(model, state, y, generator=gen(0))
+
+
+def test_threshold_one_keeps_uniform_weights_and_resamples_any_other():
+    """``resample_threshold=1`` resamples whenever the weights are not uniform: uniform weights
+    (a missing measurement after resampling) have ``N_eff = N`` up to rounding, which fell
+    below ``N`` for N = 50 and resampled them (multinomially: Monte Carlo noise for nothing)."""
+    model, state, y = _two_runs_one_degenerate()
+    for name in ("multinomial", "systematic"):
+        pf = sir(50, resample_threshold=1.0, resampler=name)
+        new, info = pf.step(model, state, y, generator=gen(1))
+        assert info.resampled.tolist() == [False, True]
+        assert torch.equal(new.particles[0], info.particles[0])
+        assert torch.equal(new.log_weights[0], state.log_weights[0])
+
+
+def test_log_weights_given_by_hand_must_be_a_normalised_distribution():
+    """A state's log-weights are normalised: unnormalised ones shifted the log-likelihood
+    estimate log sum_i w_i p(y | x_i) by their log-sum (here 5 nats); NaN and all -inf ones were
+    reset to uniform with a collapse warning. Each is refused by name."""
+    model, state, _ = _two_runs_one_degenerate()
+    y = t([[0.2], [0.1]])
+    pf = sir(50, resample_threshold=0.0)
+    _, info = pf.step(model, state, y, generator=gen(2))
+    # the exact estimate from the same draws: x_k = x + 0.1 eps
+    eps = torch.randn(2, 50, 1, generator=gen(2), dtype=torch.float64)
+    x = state.particles + 0.1 * eps
+    logp = -0.5 * (((y.unsqueeze(-2) - x) / 0.1) ** 2).squeeze(-1) - math.log(
+        0.1 * math.sqrt(2 * math.pi)
+    )
+    want = torch.logsumexp(state.log_weights + logp, -1)
+    assert float((info.log_likelihood - want).abs().max()) < 1e-12
+    for bad, msg in (
+        (state.log_weights + 5.0, "normalised"),
+        (torch.where(torch.arange(50) == 7, math.nan, state.log_weights), "NaN"),
+        (torch.full_like(state.log_weights, -math.inf), "-inf for every particle"),
+    ):
+        with pytest.raises(ValueError, match=f"state.log_weights.*{msg}"):
+            pf.step(model, ParticleState(state.particles, bad), y, generator=gen(2))
+        with pytest.raises(ValueError, match=f"state.log_weights.*{msg}"):
+            pf.run(model, ParticleState(state.particles, bad), y[None], generator=gen(2))

@@ -110,3 +110,48 @@ def test_rolling_particle_prediction_rejects_bad_input():
         rolling_particle_prediction(pf, model, _belief(2), ys, generator=g, us=ys)
     with pytest.raises(ValueError, match="ys"):
         rolling_particle_prediction(pf, model, _belief(2), ys[:, 0, 0], generator=g)
+
+
+def test_rolling_prediction_over_a_zero_weight_particle_that_left_the_reals():
+    """The filter keeps a particle that became infinite with weight zero (``run`` is finite);
+    the prediction from that state raised ``particles contains non-finite values``. Its paths
+    now carry zero weight as the particle does: the same summaries as from the state with that
+    particle replaced by any finite value."""
+    import math
+
+    from prognos_torch.core import StateSpaceModel
+
+    model = StateSpaceModel(
+        f=lambda x, u, k: torch.where(x > 2.0, math.inf, x),
+        h=lambda x, u, k: torch.tanh(x),
+        state_dim=1, obs_dim=1, chol_Q=t([[0.3]]), chol_R=t([[0.3]]), batched=True,
+    )  # fmt: skip
+    pf, ys = sir(200, resample_threshold=0.0), torch.full((3, 1), 0.2, dtype=torch.float64)
+    b0 = GaussianBelief(t([0.0]), t([[1.0]]))
+    rp = rolling_particle_prediction(
+        pf, model, b0, ys, 2, generator=torch.Generator().manual_seed(1), threshold=0.5
+    )
+    g = torch.Generator().manual_seed(1)
+    st = pf.init(model, b0, generator=g)
+    for j in range(3):
+        x = st.particles
+        x = torch.where(torch.isfinite(x), x, torch.full_like(x, -7.0))
+        pp = particle_paths(model, x, 2, generator=g, weights=st.weights, k0=j)
+        assert torch.equal(rp.mean[j], pp.mean)
+        assert torch.equal(rp.std[j], pp.std)
+        fault = fault_probability(pp.samples, 0.5, pp.weights)
+        assert torch.equal(rp.fault_probability[j], fault)
+        st, _ = pf.step(model, st, ys[j], k=j + 1, generator=g)
+    assert not bool(torch.isfinite(st.particles).all())  # the case arose
+
+
+def test_rolling_prediction_refuses_options_it_would_ignore_or_misuse():
+    """``k0`` reached f, h and the noise as a float or a negative step (``run`` refuses both);
+    a misspelt ``direction`` without a threshold was accepted and ignored."""
+    model, pf, g = _linear(), sir(10), torch.Generator().manual_seed(0)
+    ys = _ys(3, 2)
+    for k0 in (1.5, -2):
+        with pytest.raises(ValueError, match="k0 must be a non-negative int"):
+            rolling_particle_prediction(pf, model, _belief(2), ys, generator=g, k0=k0)
+    with pytest.raises(ValueError, match="direction must be 'above' or 'below'"):
+        rolling_particle_prediction(pf, model, _belief(2), ys, generator=g, direction="up")

@@ -21,7 +21,8 @@ class ParticleState:
 
     Attributes:
         particles: ``(..., N, n)``.
-        log_weights: ``(..., N)``, normalised (``logsumexp`` over ``N`` is 0).
+        log_weights: ``(..., N)``, normalised (``logsumexp`` over ``N`` is 0; ``step``,
+            ``predict`` and ``run`` refuse a state whose are not, never renormalise it).
         proposal: per-particle Gaussian filter state with batch dims ``(..., N)`` (Gaussian-proposal
             PFs; its ``belief.mean`` equals ``particles``), or ``None`` (bootstrap).
     """
@@ -97,3 +98,19 @@ def _resample_some(do: Tensor, anc: Tensor, lw: Tensor) -> tuple[Tensor, Tensor]
     keep = torch.arange(N, device=anc.device).expand(lw.shape)
     anc = torch.where(do[..., None], anc, keep)
     return anc, torch.where(do[..., None], torch.full_like(lw, -math.log(N)), lw)
+
+
+#: a resampling threshold above this fraction of ``N`` can meet uniform weights, whose effective
+#: sample size is ``N`` only up to rounding (below ``N`` for about half the particle counts in
+#: float64): :func:`_resample_flags` keeps those, as the threshold 1 promises
+_UNIFORM_CHECK = 1.0 - 1e-3
+
+
+def _resample_flags(n_eff: Tensor, lw: Tensor, fraction: float) -> Tensor:
+    """``(...)`` bool: resample the runs with ``N_eff < fraction * N`` (paper 002 STPF step 6)
+    whose normalised log-weights ``lw`` ``(..., N)`` are not all equal."""
+    do = n_eff < fraction * lw.shape[-1]
+    if fraction > _UNIFORM_CHECK:
+        lo, hi = torch.aminmax(lw, dim=-1)
+        do = do & (hi > lo)
+    return do

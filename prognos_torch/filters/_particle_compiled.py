@@ -44,7 +44,13 @@ from ..core.model import Noise
 from ..core.random import box_muller
 from ..core.validation import all_finite
 from ._blocks import FilterState, Taylor
-from ._particle_blocks import ParticleState, _estimates, _log_normaliser, _resample_some
+from ._particle_blocks import (
+    ParticleState,
+    _estimates,
+    _log_normaliser,
+    _resample_flags,
+    _resample_some,
+)
 from ._particle_noise import _constant_noise, _Setup
 from ._particle_trees import gather_particles
 from .gaussian import deferred_fallbacks
@@ -259,7 +265,6 @@ def _step_functions(
     hit = _STEPS.get(key)
     if hit is not None and hit[0] == pf and all(a is b for a, b in zip(hit[1], raw)):
         return hit[2], hit[3]
-    thr = pf.resample_threshold * N
     log_uniform = -math.log(N)
     P = 0 if u_shape is None else math.prod(u_shape)
     count = math.prod(bs) * N * n
@@ -301,7 +306,7 @@ def _step_functions(
         mean, cov, n_eff = _estimates(W, x)
         if lam is not None:
             lam = (W * lam).sum(-1)
-        do = n_eff < thr
+        do = _resample_flags(n_eff, lw, pf.resample_threshold)
         new = torch.cond(do.any(), resample, keep_all, (W, U, do, x, lw, *extra))
         return tuple(new), (mean, cov, n_eff, do, ll, lam, x, lw)
 

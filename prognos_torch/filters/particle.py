@@ -70,7 +70,14 @@ from ..core.validation import (
     check_sequence,
     has_missing,
 )
-from ._particle_blocks import ParticleState, _estimates, _log_normaliser, _resample_some
+from ._particle_blocks import (
+    _UNIFORM_CHECK,
+    ParticleState,
+    _estimates,
+    _log_normaliser,
+    _resample_flags,
+    _resample_some,
+)
 from ._particle_compiled import check_compilable, compiled_run
 from ._particle_noise import (
     _LOG_2PI,
@@ -107,6 +114,28 @@ def _host_float(t: Tensor) -> float:
     """A one-element tensor read on the host for a decision (no gradient flows through it, and
     autograd's warning about a scalar read of a differentiable tensor does not apply)."""
     return float(t.detach() if t.requires_grad else t)
+
+
+def _check_log_weights(lw: Tensor) -> None:
+    """Refuse log-weights ``(..., N)`` that are no normalised distribution (NaN or ``+inf``, a
+    run all ``-inf``, a log-sum off 0 by more than ``1e-6 + 4 N eps``, the tolerance of
+    :func:`~prognos_torch.core.validation.check_weights`): the step's likelihood estimate
+    ``log sum_i w_i p(y | x_i)`` reads them as normalised, and weights are never renormalised
+    silently. One host read."""
+    lse = torch.logsumexp(lw.detach(), -1)
+    dev = _host_float(lse.abs().amax()) if lse.numel() else 0.0
+    if dev <= 1e-6 + 4.0 * lw.shape[-1] * torch.finfo(lw.dtype).eps:
+        return
+    if bool(torch.isnan(lw).any()) or bool((lw == math.inf).any()):
+        raise ValueError("state.log_weights must not contain NaN or +inf")
+    if bool(torch.isneginf(lse).any()):
+        raise ValueError(
+            "state.log_weights are -inf for every particle of a run (no weighted particle set)"
+        )
+    raise ValueError(
+        f"state.log_weights must be normalised (logsumexp over the particles 0), got a log-sum "
+        f"off by up to {dev:.3g}; pass log_weights - log_weights.logsumexp(-1, keepdim=True)"
+    )
 
 
 class WeightCollapseWarning(RuntimeWarning):
@@ -276,6 +305,7 @@ class ParticleFilter:
                 "state.proposal must be a FilterState for a Gaussian-proposal filter and None "
                 "for the bootstrap filter (build the state with this filter's init)"
             )
+        _check_log_weights(lw)
 
     # ------------------------------------------------------------------ stages
     def _setup(self, model, bs: torch.Size, like: Tensor, k: int) -> _Setup:
@@ -444,7 +474,14 @@ class ParticleFilter:
         sum themselves and take ``W``; residual resampling needs ``N w_i`` exactly normalised
         and takes ``softmax(lw)``."""
         if callable(self.resampler):
-            return self.resampler(lw, generator)
+            anc = self.resampler(lw, generator)
+            # (before the runs that do not resample are merged in, which would broadcast)
+            if not isinstance(anc, Tensor) or tuple(anc.shape) != tuple(lw.shape):
+                got = tuple(anc.shape) if isinstance(anc, Tensor) else type(anc).__name__
+                raise ValueError(
+                    f"the resampler must return ancestors of shape {tuple(lw.shape)}, got {got}"
+                )
+            return anc
         name = self.resampler.lower()
         w = torch.softmax(lw, dim=-1) if name == "residual" else W
         return _draw_ancestors(name, w, generator)
@@ -591,11 +628,14 @@ class ParticleFilter:
 
         x_w, lw_w = x, lw
         # resampling (STPF step 6): particles, weights and every per-particle Gaussian
+        thr = self.resample_threshold
         if n_eff.dim() == 0:  # one run: one host read, no comparison and count on tensors
-            n_do = int(_host_float(n_eff) < self.resample_threshold * N)
+            n_do = int(_host_float(n_eff) < thr * N)
+            if n_do and thr > _UNIFORM_CHECK:  # (uniform weights are kept: N_eff = N rounded)
+                n_do = int(bool(lw.amax() > lw.amin()))
             do = setup.yes_flag if n_do else setup.no_flag
         else:
-            do = n_eff < self.resample_threshold * N
+            do = _resample_flags(n_eff, lw, thr)
             n_do = int(do.sum())
         if n_do:
             anc = self._ancestors(lw, W, generator)
@@ -603,11 +643,6 @@ class ParticleFilter:
                 anc, lw = _resample_some(do, anc, lw)
             else:
                 lw = torch.full_like(lw, -math.log(N))
-            if tuple(anc.shape) != tuple(lw.shape):
-                raise ValueError(
-                    f"the resampler must return ancestors of shape {tuple(lw.shape)}, got "
-                    f"{tuple(anc.shape)}"
-                )
             if fs_new is not None:  # its belief's mean is x: gathered with it
                 fs_new = gather_particles(fs_new, anc)
                 x = fs_new.belief.mean

@@ -11,6 +11,7 @@ generator as the filter, between the filter's steps.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -19,7 +20,7 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
-from ..core.validation import check_pos_int, check_sequence
+from ..core.validation import check_nonneg_int, check_pos_int, check_sequence
 from ..filters import ParticleFilter, ParticleState, scan
 from .paths import particle_paths
 from .rul import fault_probability
@@ -57,6 +58,20 @@ class RollingParticlePrediction:
     collapsed: Tensor
     states: dict[int, ParticleState]
     final: ParticleState
+
+
+def _finite_particles(st: ParticleState) -> Tensor:
+    """The particles, those that left the reals (which the filter keeps with weight zero)
+    replaced by the run's heaviest particle: their paths then carry weight zero too, and
+    :func:`particle_paths` draws the same numbers for every particle. A non-finite particle
+    with positive weight is left for :func:`particle_paths` to refuse."""
+    x = st.particles
+    if bool(torch.isfinite(x).all()):
+        return x
+    ok = torch.isfinite(x).all(-1) | (st.log_weights > -math.inf)
+    best = st.log_weights.argmax(-1, keepdim=True)  # (..., 1)
+    heaviest = torch.gather(x, -2, best.unsqueeze(-1).expand(*best.shape, x.shape[-1]))
+    return torch.where(ok.unsqueeze(-1), x, heaviest)
 
 
 def rolling_particle_prediction(
@@ -98,6 +113,9 @@ def rolling_particle_prediction(
         :class:`RollingParticlePrediction`.
     """
     horizon = check_pos_int(horizon, "horizon")
+    k0 = check_nonneg_int(k0, "k0")  # (as run: a float k0 reached f, h and the noise as k)
+    if direction not in ("above", "below"):  # (checked with or without a threshold)
+        raise ValueError(f"direction must be 'above' or 'below', got {direction!r}")
     state = (
         init if isinstance(init, ParticleState) else pf.init(model, init, generator=generator, k=k0)
     )
@@ -120,7 +138,7 @@ def rolling_particle_prediction(
         t = k - k0 - 1
         paths = particle_paths(
             model,
-            st.particles,
+            _finite_particles(st),
             horizon,
             generator=generator,
             weights=st.weights,
