@@ -97,6 +97,44 @@ def test_bridge_selection():
         ParameterBridge(torch.zeros(3))
 
 
+def test_tied_parameter_is_one_entry_of_theta_under_any_of_its_names():
+    class Tied(nn.Module):  # encoder and decoder share one weight (b.weight is a.weight)
+        def __init__(self, tie):
+            super().__init__()
+            self.a = nn.Linear(3, 3, bias=False, dtype=torch.float64)
+            self.b = nn.Linear(3, 3, bias=False, dtype=torch.float64)
+            if tie:
+                self.b.weight = self.a.weight
+            self.out = nn.Linear(3, 1, dtype=torch.float64)
+
+        def forward(self, x):
+            return self.out(torch.tanh(self.b(torch.tanh(self.a(x)))))
+
+    class Twice(nn.Module):  # the reference: one weight used twice by hand
+        def __init__(self, tied):
+            super().__init__()
+            self.w, self.out = nn.Parameter(tied.a.weight.detach().clone()), copy.deepcopy(tied.out)
+
+        def forward(self, x):
+            return self.out(torch.tanh(torch.tanh(x @ self.w.T) @ self.w.T))
+
+    m = Tied(tie=True)
+    ref = Twice(m)
+    # any name of the tied weight selects its one entry block (it said "unknown parameters")
+    assert ParameterBridge(m, ["b.weight", "out.bias"]).names == ("a.weight", "out.bias")
+    with pytest.raises(ValueError, match="'b.weight' is 'a.weight'"):
+        ParameterBridge(m, ["a.weight", "b.weight"])
+    X, Y = _linear_data(N=8, d=3, seed=5)
+    opt, ref_opt = EKF(m, P0=1.0, R=0.1), EKF(ref, P0=1.0, R=0.1)
+    assert opt.bridge.numel == ref_opt.bridge.numel == 13  # not 22: the tie counted once
+    for k in range(0, 8, 4):
+        opt.step(X[k : k + 4], Y[k : k + 4])
+        ref_opt.step(X[k : k + 4], Y[k : k + 4])
+    torch.testing.assert_close(opt.theta, ref_opt.theta, rtol=1e-12, atol=1e-12)
+    assert m.b.weight is m.a.weight
+    torch.testing.assert_close(m.a.weight, ref.w, rtol=1e-12, atol=1e-12)
+
+
 def test_bridge_functional_batched_and_jacobian():
     m = ANFIS(3, 2, n_out=2, generator=_gen(0))
     b = ParameterBridge(m)
@@ -647,6 +685,33 @@ def test_fit_early_stopping_restores_best():
         fit(lin, opt, (X, Y), shuffle=True, progress=False)
     with pytest.raises(ValueError, match="batch_size"):
         fit(lin, opt, (X, Y), batch_size=0, progress=False)
+
+
+def test_fit_refuses_metrics_of_one_name_before_any_step():
+    # History keeps one list per name: two lambdas (or a callable named "mae" beside the
+    # built-in) kept the values of the last one only, under a name given twice
+    X, Y = _linear_data(N=6, d=2, seed=2)
+    lin = nn.Linear(2, 1, dtype=torch.float64)
+    w = lin.weight.detach().clone()
+    opt = torch.optim.SGD(lin.parameters(), lr=0.1)
+
+    def mae(p, t):
+        return (p - t).abs().max()
+
+    for metrics in ((lambda p, t: p.max(), lambda p, t: p.min()), ("mae", mae)):
+        with pytest.raises(ValueError, match="more than once"):
+            fit(lin, opt, (X, Y), metrics=metrics, progress=False)
+    assert torch.equal(lin.weight, w)
+
+    def worst(p, t):
+        return (p - t).abs().max()
+
+    h = fit(lin, opt, (X, Y), metrics=("mae", worst), progress=False)
+    with torch.no_grad():
+        err = (lin(X) - Y).abs()
+    assert h.metrics == ("mae", "worst")
+    torch.testing.assert_close(h.train["mae"][0], err.mean(), rtol=0, atol=0)
+    torch.testing.assert_close(h.train["worst"][0], err.max(), rtol=0, atol=0)
 
 
 # --------------------------------------------------------------------------- paper 003

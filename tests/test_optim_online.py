@@ -147,3 +147,55 @@ def test_online_helpers_reject_bad_input():
         predict_then_update(m, opt, X.numpy(), Y)
     with pytest.raises(TypeError, match="predict"):
         predict_then_update(m, opt, X, Y, predict=3)
+
+
+def test_blocks_and_online_steps_take_samples_with_no_observed_target():
+    # NaN targets are missing measurements (fit steps through a sample with none observed: the
+    # Kalman step is the filter's prediction, a gradient optimiser takes none); a block or an
+    # online sample that observes nothing is one such step, not "nothing to fit"
+    g = torch.Generator().manual_seed(4)
+    X = torch.randn(10, 3, generator=g, dtype=torch.float64)
+    Y = X @ torch.tensor([[1.0], [-2.0], [0.5]], dtype=torch.float64)
+    Y[4:6] = float("nan")  # block 2 of blocks of 2 sees no target
+    Yr = torch.stack([Y, X.sum(-1, keepdim=True)])  # per-run: run 1 observes every sample
+
+    def lin():
+        m = torch.nn.Linear(3, 1, dtype=torch.float64)
+        with torch.no_grad():
+            m.weight.copy_(torch.randn(1, 3, generator=torch.Generator().manual_seed(0)))
+            m.bias.zero_()
+        return m
+
+    for make in (
+        lambda m: KalmanOptimizer(m, P0=10.0, R=0.1),
+        lambda m: torch.optim.SGD(m.parameters(), lr=0.1, momentum=0.5),
+        lambda m: KalmanOptimizer(m, P0=10.0, R=0.1, runs=2, per_run_data=True),
+    ):
+        runs = getattr(make(lin()), "runs", None)
+        data = (X.expand(2, 10, 3), Yr) if runs else (X, Y)
+        m1 = lin()
+        o1 = make(m1)
+        h = fit(m1, o1, data, batch_size=1, progress=False)  # the uninterrupted reference
+        m2 = lin()
+        o2 = make(m2)
+        steps, losses, _ = train_in_blocks(m2, o2, *data, block=2)
+        assert steps == [2, 4, 6, 8, 10]
+        blk = losses[2] if runs is None else losses[2, 0]
+        assert bool(torch.isnan(blk)) and bool(torch.isfinite(losses[:2]).all())
+        for p1, p2 in zip(m1.parameters(), m2.parameters()):
+            torch.testing.assert_close(p2, p1, rtol=0, atol=0)
+        if runs:
+            torch.testing.assert_close(o2.theta, o1.theta, rtol=0, atol=0)
+        torch.testing.assert_close(losses.nanmean(0), h.loss[0])  # blocks of 2, no NaN step
+    # online: predicted first, then the filter's prediction step (P + Q) where nothing is seen
+    m, ref = lin(), lin()
+    opt, ref_opt = KalmanOptimizer(m, P0=10.0, R=0.1), KalmanOptimizer(ref, P0=10.0, R=0.1)
+    pred, _ = predict_then_update(m, opt, X, Y)
+    want = []
+    for k in range(10):
+        want.append(ref_opt.predict(X[k : k + 1])[0])
+        ref_opt.step(X[k : k + 1], Y[k : k + 1])
+    torch.testing.assert_close(pred, torch.stack(want), rtol=0, atol=0)
+    torch.testing.assert_close(opt.belief.chol, ref_opt.belief.chol, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="all missing"):  # the stream needs one target
+        predict_then_update(m, opt, X, torch.full_like(Y, float("nan")))

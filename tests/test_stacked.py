@@ -237,3 +237,58 @@ def test_kalman_runs_optimizer_starts_each_run_from_its_module():
     assert isinstance(opt, KalmanOptimizer)
     for r, m in enumerate(mods):
         torch.testing.assert_close(opt.theta[r], ParameterBridge(m).flatten())
+
+
+def test_per_run_data_and_subsets_on_every_stacking_path():
+    X = _x(2, 12, 3, seed=6)
+    Y = X.sum(-1, keepdim=True).sin() + torch.tensor([0.0, 0.5], dtype=F64).reshape(2, 1, 1)
+    fkw = dict(batch_size=4, progress=False)
+    kw = dict(filter="ekf", P0=1.0, Q=1e-6, R=1e-2, per_run_data=True)
+
+    def lins():
+        return [torch.nn.Linear(3, 1, dtype=F64) for _ in range(2)]
+
+    # per-run data on the non-batched path (modules with their own fixed layers: one
+    # optimiser each) trained module r on run r's data, as the batched path does; it raised
+    # "per_run_data=True needs runs=R"
+    for batched in (True, False):
+        torch.manual_seed(0)
+        st = fit_kalman_runs(lins(), (X, Y), batched=batched, fit_options=fkw, **kw)
+        torch.manual_seed(0)
+        for r, mod in enumerate(lins()):
+            fit(mod, KalmanOptimizer(mod, **{**kw, "per_run_data": False}), (X[r], Y[r]), **fkw)
+            tol = TOL if batched else dict(rtol=0, atol=0)
+            torch.testing.assert_close(st(X)[r], mod(X[r]).detach(), **tol)
+    with pytest.raises(TypeError, match="runs"):  # it trained R runs per module, kept none
+        fit_kalman_runs(lins(), (X[0], Y[0]), batched=False, runs=2, fit_options=fkw)
+    # theta of an optimiser over a subset of the parameters: from_theta takes its names
+    m = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.Tanh(), torch.nn.Linear(4, 1)).double()
+    opt = KalmanOptimizer([m[2].weight, m[2].bias], module=m, runs=2, P0=1.0, R=1e-2)
+    fit(m, opt, (X[0], Y[0]), **fkw)
+    with pytest.raises(ValueError, match="params=\\[names\\]"):
+        StackedLearner.from_theta(m, opt.theta)
+    st = StackedLearner.from_theta(m, opt.theta, params=opt.bridge.names)
+    torch.testing.assert_close(st(X[0].expand(2, -1, -1)), opt.predict(X[0]), **TOL)
+
+
+def test_fit_together_repeats_the_validation_data_over_the_runs():
+    # val was passed to fit unrepeated: "x must have shape (B, R, ..., n_in)" (and with as
+    # many validation samples as runs it was taken as runs)
+    X, Xv = _x(20, 3, seed=7), _x(6, 3, seed=8) + 2.0
+    Y, Yv = X.sum(-1, keepdim=True).sin(), Xv.sum(-1, keepdim=True).sin()
+    mods = [ELM(3, 5, generator=torch.Generator().manual_seed(i)) for i in range(2)]
+    fkw = dict(epochs=30, batch_size=5, progress=False, early_stopping=2)
+    st = StackedLearner.from_modules(mods, run_dim=1, trainable=True)
+
+    def rep(v):
+        return v.unsqueeze(1).expand(-1, 2, -1)
+
+    opt = torch.optim.Adam(st.parameters(), lr=0.5)
+    h = fit(st, opt, (rep(X), rep(Y)), val=(rep(Xv), rep(Yv)), loss_fn=run_sum_mse, **fkw)
+    assert h.stopped_early and h.best_epoch < h.epoch[-1]  # the best epoch restored
+    together = fit_together(
+        mods, lambda ps: torch.optim.Adam(ps, lr=0.5), (X, Y), val=(Xv, Yv), **fkw
+    )
+    torch.testing.assert_close(
+        together.parameter_sets()["beta"], st.parameter_sets()["beta"], rtol=0, atol=0
+    )

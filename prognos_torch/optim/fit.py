@@ -61,6 +61,9 @@ def _observed_mse(pred: Tensor, target: Tensor) -> Tensor:
     return d.square().sum() / obs.sum().clamp(min=1)
 
 
+_observed_mse.handles_missing = True  # type: ignore[attr-defined]
+
+
 #: Built-in metrics (paper 003 Eq. 48-49), computed in float64 over the output entries whose
 #: target is observed (NaN targets are missing and left out). Non-finite predictions give NaN
 #: (a diverged run is reported, not raised).
@@ -93,6 +96,10 @@ class History:
         best_epoch: epoch with the lowest mean validation value of the first metric (``None``
             without ``val``).
         stopped_early: whether early stopping ended the training.
+
+    With early stopping and ``restore_best``, the module and the optimiser end at
+    ``best_epoch``, while the lists (and :meth:`last`) still run to the last epoch trained:
+    the restored model's values are ``train[m][best_epoch - 1]`` and ``val[m][best_epoch - 1]``.
     """
 
     metrics: tuple[str, ...]
@@ -146,12 +153,14 @@ def _check_data(data, name: str, runs: int | None = None) -> tuple[Tensor, Tenso
     return X, Y
 
 
-def _check_values(X: Tensor, Y: Tensor, name: str, runs: int | None) -> bool:
+def _check_values(X: Tensor, Y: Tensor, name: str, runs: int | None, observed: bool = True) -> bool:
     """Finite inputs; targets finite or NaN (missing), with at least one observed target (per
-    run with per-run data). Returns whether any target is missing."""
+    run with per-run data) when ``observed``. Returns whether any target is missing."""
     check_finite(X, f"{name} inputs X")
     if not has_missing(Y, f"{name} targets Y", "target"):
         return False
+    if not observed:
+        return True
     seen = (~torch.isnan(Y)).reshape(runs or 1, -1).any(-1)
     if not bool(seen.all()):
         whose = "" if runs is None else f" of run {int((~seen).nonzero()[0, 0])}"
@@ -175,6 +184,14 @@ def _metric_fns(metrics) -> list[tuple[str, Callable]]:
             raise TypeError(f"metrics must contain names or callables, got {type(m)}")
     if not out:
         raise ValueError("metrics must name at least one metric")
+    names = [name for name, _ in out]
+    twice = sorted({name for name in names if names.count(name) > 1})
+    if twice:
+        raise ValueError(
+            f"metrics: the names {twice} are given more than once (a callable is named by its "
+            "__name__, 'metric' without one); History keeps one list per name, so give each "
+            "callable its own name (a def, or set fn.__name__)"
+        )
     return out
 
 
@@ -238,7 +255,8 @@ def fit(
         early_stopping: patience in epochs (``None``: off): stop when the first metric on
             ``val`` (mean over runs) has not improved for that many epochs. Needs ``val``.
         restore_best: with early stopping, restore the module and optimiser state of the best
-            epoch at the end.
+            epoch at the end (also when no stop came before ``epochs``; without early stopping
+            nothing is restored, ``History.best_epoch`` is only reported).
         drop_last: skip the last mini-batch of an epoch if it is smaller than ``batch_size``
             (a Kalman optimiser with a noise estimator or strong tracking needs equal sizes).
         progress: show a ``tqdm`` progress bar (``None``: only where stderr is a terminal).
@@ -256,10 +274,51 @@ def fit(
     Returns:
         :class:`History`.
     """
+    return _fit(
+        module,
+        optimizer,
+        train,
+        epochs=epochs,
+        batch_size=batch_size,
+        shuffle=shuffle,
+        generator=generator,
+        val=val,
+        early_stopping=early_stopping,
+        restore_best=restore_best,
+        drop_last=drop_last,
+        progress=progress,
+        metrics=metrics,
+        loss_fn=loss_fn,
+        compile=compile,
+    )
+
+
+def _fit(
+    module: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    train: tuple[Tensor, Tensor],
+    *,
+    epochs: int,
+    batch_size: int,
+    shuffle: bool,
+    generator: torch.Generator | None,
+    val: tuple[Tensor, Tensor] | None,
+    early_stopping: int | None,
+    restore_best: bool,
+    drop_last: bool,
+    progress: bool | None,
+    metrics: Sequence[str | Callable],
+    loss_fn: Callable[[Tensor, Tensor], Tensor] | None,
+    compile: bool,
+    observed: bool = True,
+) -> History:
+    """:func:`fit`; with ``observed=False`` a ``train`` whose targets (of a run) are all missing
+    is taken too (a block of a stream, :mod:`~prognos_torch.optim.online`: the Kalman steps are
+    predictions, a gradient optimiser takes none, the losses and metrics are NaN)."""
     per_run = isinstance(optimizer, KalmanOptimizer) and optimizer.per_run_data
     runs = optimizer.runs if per_run else None
     X, Y = _check_data(train, "train", runs)
-    missing = _check_values(X, Y, "train", runs)
+    missing = _check_values(X, Y, "train", runs, observed)
     if val is not None:
         Xv, Yv = _check_data(val, "val", runs)
         _check_values(Xv, Yv, "val", runs)

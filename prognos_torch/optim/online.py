@@ -21,7 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from ..core.validation import check_pos_int
-from .fit import _check_data, fit
+from .fit import _check_data, _check_values, _fit, _observed_mse
 from .kalman import KalmanOptimizer
 
 __all__ = ["BlockCurve", "train_in_blocks", "predict_then_update"]
@@ -48,6 +48,31 @@ def _rows(optimizer) -> int:
     return int(isinstance(optimizer, KalmanOptimizer) and optimizer.per_run_data)
 
 
+def _step_through(module, optimizer, X: Tensor, Y: Tensor, missing: bool):
+    """One :func:`fit` call, one sample per step, on a block of the stream. With missing
+    targets anywhere in the stream a block may observe none (a run's, with per-run data): the
+    Kalman steps are then the filter's predictions and a gradient optimiser takes no step, as
+    in one ``fit`` call over the whole stream, whose default loss every block uses too."""
+    return _fit(
+        module,
+        optimizer,
+        (X, Y),
+        epochs=1,
+        batch_size=1,
+        shuffle=False,
+        generator=None,
+        val=None,
+        early_stopping=None,
+        restore_best=False,
+        drop_last=False,
+        progress=False,
+        metrics=("mse",),
+        loss_fn=_observed_mse if missing else None,
+        compile=False,
+        observed=False,
+    )
+
+
 def train_in_blocks(
     module: nn.Module,
     optimizer: torch.optim.Optimizer,
@@ -67,7 +92,9 @@ def train_in_blocks(
         module: the learner (the optimiser was built on it).
         optimizer: a :class:`KalmanOptimizer` or a ``torch.optim.Optimizer``.
         X: ``(N, ...)`` inputs; Y: ``(N, ...)`` targets (``module(X).shape``); ``(R, N, ...)``
-            for a :class:`KalmanOptimizer` with ``per_run_data``.
+            for a :class:`KalmanOptimizer` with ``per_run_data``. NaN in ``Y`` marks a missing
+            target, as for :func:`fit`; a block may observe none (its loss is NaN), the stream
+            (every run's) needs one.
         block: optimiser steps per point of the curve.
         passes: sweeps over the samples.
     Returns:
@@ -75,20 +102,14 @@ def train_in_blocks(
     """
     d = _rows(optimizer)
     X, Y = _check_data((X, Y), "(X, Y)", optimizer.runs if d else None)
+    missing = _check_values(X, Y, "(X, Y)", optimizer.runs if d else None)
     block, passes = check_pos_int(block, "block"), check_pos_int(passes, "passes")
     steps, losses, secs, done = [], [], 0.0, 0
     N = X.shape[d]
     for _ in range(passes):
         for a in range(0, N, block):
-            h = fit(
-                module,
-                optimizer,
-                (X.narrow(d, a, min(block, N - a)), Y.narrow(d, a, min(block, N - a))),
-                epochs=1,
-                batch_size=1,
-                progress=False,
-                metrics=("mse",),
-            )
+            n = min(block, N - a)
+            h = _step_through(module, optimizer, X.narrow(d, a, n), Y.narrow(d, a, n), missing)
             done += h.steps
             steps.append(done)
             losses.append(h.loss[0])
@@ -112,7 +133,10 @@ def predict_then_update(
     Args:
         module, optimizer: as for :func:`fit`.
         X: ``(N, ...)`` inputs; Y: ``(N, ...)`` targets, in stream order (``(R, N, ...)`` for
-            a :class:`KalmanOptimizer` with ``per_run_data``).
+            a :class:`KalmanOptimizer` with ``per_run_data``). NaN in ``Y`` marks a missing
+            target, as for :func:`fit`: a sample with none observed is still predicted, then
+            the Kalman step is the filter's prediction alone and a gradient optimiser takes
+            none; the stream (every run's) needs one observed target.
         predict: ``(1, ...) -> (..., 1, *out)`` (default: ``optimizer.predict`` for a
             :class:`KalmanOptimizer`, whose ``runs=R`` give ``(R, 1, *out)``, else ``module``).
     Returns:
@@ -121,6 +145,7 @@ def predict_then_update(
     """
     d = _rows(optimizer)
     X, Y = _check_data((X, Y), "(X, Y)", optimizer.runs if d else None)
+    missing = _check_values(X, Y, "(X, Y)", optimizer.runs if d else None)
     if predict is None:
         predict = optimizer.predict if isinstance(optimizer, KalmanOptimizer) else module
     if not callable(predict):
@@ -133,6 +158,6 @@ def predict_then_update(
             out = predict(xk)
         secs += time.perf_counter() - t0
         preds.append(out.select(out.dim() - tail, 0))  # the run dims lead the sample dim
-        h = fit(module, optimizer, (xk, yk), progress=False, metrics=("mse",))
+        h = _step_through(module, optimizer, xk, yk, missing)
         secs += h.train_time
     return torch.stack(preds, -tail), secs

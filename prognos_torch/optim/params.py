@@ -40,7 +40,9 @@ class ParameterBridge:
         module: the learner.
         params: selection of the parameters that form ``theta``: ``None`` selects every parameter
             with ``requires_grad=True``; a sequence of names (as in ``module.named_parameters()``)
-            selects those, trainable or not (a Kalman optimiser needs no gradients); a callable
+            selects those, trainable or not (a Kalman optimiser needs no gradients; a tied
+            parameter, one ``Parameter`` in several layers, is one entry of ``theta`` under its
+            first name, and any of its names selects it); a callable
             ``(name, parameter) -> bool`` selects where it returns true. ``theta`` always follows
             the module's registration order.
 
@@ -68,14 +70,23 @@ class ParameterBridge:
             if not all(isinstance(w, str) for w in wanted):
                 raise TypeError("params must be a sequence of parameter names (str)")
             known = {n for n, _ in named}
-            unknown = [w for w in wanted if w not in known]
+            # a tied parameter (one Parameter in two layers) is listed once by
+            # named_parameters(), under its first name; its other names select it too
+            first = {id(p): n for n, p in named}
+            alias = {n: first[id(p)] for n, p in module.named_parameters(remove_duplicate=False)}
+            unknown = [w for w in wanted if w not in alias]
             if unknown:
                 raise ValueError(
                     f"params names unknown parameters {unknown}; the module has {sorted(known)}"
                 )
-            if len(set(wanted)) != len(wanted):
-                raise ValueError(f"params names a parameter more than once: {wanted}")
-            chosen = [(n, p) for n, p in named if n in set(wanted)]
+            resolved = [alias[w] for w in wanted]
+            if len(set(resolved)) != len(resolved):
+                tied = [f"{w!r} is {alias[w]!r}" for w in wanted if alias[w] != w]
+                raise ValueError(
+                    f"params names a parameter more than once: {wanted}"
+                    + (f" (tied: {', '.join(tied)})" if tied else "")
+                )
+            chosen = [(n, p) for n, p in named if n in set(resolved)]
         else:
             raise TypeError(
                 f"params must be None, a sequence of parameter names or a predicate (name, "

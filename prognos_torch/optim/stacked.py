@@ -37,9 +37,9 @@ import torch
 from torch import Tensor, nn
 from torch.func import functional_call, vmap
 
-from .fit import fit
+from .fit import _check_data, fit
 from .kalman import KalmanOptimizer
-from .params import ParameterBridge
+from .params import ParameterBridge, Selector
 
 __all__ = [
     "StackedLearner",
@@ -186,12 +186,26 @@ class StackedLearner(nn.Module):
         return cls(copy.deepcopy(modules[0]), params, **options)
 
     @classmethod
-    def from_theta(cls, base: nn.Module, theta: Tensor, **options) -> StackedLearner:
+    def from_theta(
+        cls, base: nn.Module, theta: Tensor, params: Selector = None, **options
+    ) -> StackedLearner:
         """``R`` flat parameter vectors ``theta`` ``(R, n)`` of ``base`` (the layout of
-        :class:`ParameterBridge`, e.g. ``KalmanOptimizer(runs=R).theta``)."""
+        :class:`ParameterBridge`, e.g. ``KalmanOptimizer(runs=R).theta``).
+
+        ``params`` selects the parameters ``theta`` holds, as for :class:`ParameterBridge`
+        (default: those with ``requires_grad``); pass the names of an optimiser's group that
+        holds fewer (``opt.bridge.names``). The others are shared by all runs.
+        """
         if not isinstance(theta, Tensor) or theta.dim() != 2:
             raise ValueError("theta must have shape (R, n)")
-        return cls(base, ParameterBridge(base).unflatten(theta), **options)
+        bridge = ParameterBridge(base, params)
+        if theta.shape[-1] != bridge.numel:
+            raise ValueError(
+                f"theta has {theta.shape[-1]} entries per run, but the parameters selected in "
+                f"base ({', '.join(bridge.names)}) have {bridge.numel}: pass params=[names] "
+                "of the parameters theta holds (a KalmanOptimizer's opt.bridge.names)"
+            )
+        return cls(base, bridge.unflatten(theta), **options)
 
     @property
     def base(self) -> nn.Module:
@@ -327,15 +341,24 @@ def fit_together(
         make_optimizer: ``parameters -> torch.optim.Optimizer``, e.g.
             ``lambda ps: torch.optim.Adam(ps, lr=1e-2)``.
         train: ``(X, Y)``, samples along dim 0.
-        fit_options: passed to :func:`~prognos_torch.optim.fit` (epochs, batch_size, ...).
+        fit_options: passed to :func:`~prognos_torch.optim.fit` (epochs, batch_size, ...);
+            ``val=(X_val, Y_val)``, samples along dim 0, is repeated over the runs as
+            ``train`` is (its metrics, and the ``History`` that early stopping reads, are over
+            all runs' outputs: one best epoch for the stack).
     Returns:
         The trained runs as a runs-leading :class:`StackedLearner`.
     """
     stack = StackedLearner.from_modules(modules, run_dim=1, trainable=True)
-    X, Y = train
     R = stack.runs
-    Xr, Yr = X.unsqueeze(1).expand(-1, R, *X.shape[1:]), Y.unsqueeze(1).expand(-1, R, *Y.shape[1:])
-    fit(stack, make_optimizer(stack.parameters()), (Xr, Yr), loss_fn=run_sum_mse, **fit_options)
+
+    def repeated(data, name):  # (X, Y) -> (X, Y) with the run axis at dim 1
+        _check_data(data, name)
+        return tuple(v.unsqueeze(1).expand(-1, R, *v.shape[1:]) for v in data)
+
+    if fit_options.get("val") is not None:
+        fit_options = dict(fit_options, val=repeated(fit_options["val"], "val"))
+    opt = make_optimizer(stack.parameters())
+    fit(stack, opt, repeated(train, "train"), loss_fn=run_sum_mse, **fit_options)
     return StackedLearner(stack.base, stack.parameter_sets())
 
 
@@ -372,7 +395,8 @@ def fit_kalman_runs(
     fit_options: Mapping | None = None,
     **kalman_options,
 ) -> StackedLearner:
-    """Train ``R`` modules on the same data with Kalman optimisers and stack them.
+    """Train ``R`` modules with Kalman optimisers (on the same data, or each on its own) and
+    stack them.
 
     With ``batched`` (default: whenever the modules share every tensor outside the Kalman
     state, e.g. ANFIS initialisations; not ELMs with their own random hidden layers) one
@@ -382,12 +406,23 @@ def fit_kalman_runs(
     Args:
         modules: ``R`` structurally identical modules; the non-batched path trains them in
             place.
-        train: ``(X, Y)``.
+        train: ``(X, Y)``; with ``per_run_data=True`` (a Kalman option) ``(R, N, ...)`` each,
+            run ``r``'s data for module ``r`` on either path (``val`` likewise).
         fit_options: passed to :func:`~prognos_torch.optim.fit` (epochs, batch_size, ...).
+            Early stopping reads the mean over runs on the batched path (one best epoch for
+            all runs), each run's own value on the other.
         kalman_options: passed to :class:`~prognos_torch.optim.KalmanOptimizer` (filter, P0,
-            Q, R, ...).
+            Q, R, per_run_data, ...); ``runs`` and ``theta0`` are set here (a ``TypeError``).
     """
     modules = list(modules)
+    if not modules:
+        raise ValueError("modules must contain at least one module")
+    fixed = sorted(k for k in ("runs", "theta0") if k in kalman_options)
+    if fixed:
+        raise TypeError(
+            f"fit_kalman_runs sets {fixed} itself (runs = len(modules), each run starting from "
+            "its module's parameters): leave them out of the options"
+        )
     fit_options = dict(fit_options or {})
     base = modules[0]
     bridge = ParameterBridge(base)
@@ -397,8 +432,18 @@ def fit_kalman_runs(
         opt = kalman_runs_optimizer(base, modules, **kalman_options)
         fit(base, opt, train, **fit_options)
         return StackedLearner.from_theta(base, opt.theta)
-    for mod in modules:
-        fit(mod, KalmanOptimizer(mod, **kalman_options), train, **fit_options)
+    per_run = kalman_options.pop("per_run_data", False)
+    R = len(modules)
+    if per_run:  # run r's data (and validation data) for module r
+        train = _check_data(train, "train", R)
+        if fit_options.get("val") is not None:
+            fit_options["val"] = _check_data(fit_options["val"], "val", R)
+    for r, mod in enumerate(modules):
+        opts = fit_options
+        if per_run and opts.get("val") is not None:
+            opts = dict(opts, val=tuple(v[r] for v in opts["val"]))
+        data = tuple(v[r] for v in train) if per_run else train
+        fit(mod, KalmanOptimizer(mod, **kalman_options), data, **opts)
     return StackedLearner.from_modules(modules)
 
 
