@@ -122,3 +122,67 @@ def test_downdate_with_the_callers_solve_equals_the_solved_one(n, k, path):
     for got in (down, given):
         torch.testing.assert_close(got, ref, rtol=0, atol=1e-12 * float(ref.abs().max()))
     torch.testing.assert_close(ratio_given, ratio, rtol=1e-12, atol=0)
+
+
+def test_update_of_a_singular_factor_is_the_cholesky_of_the_sum(path):
+    # a factor with a zero on its diagonal (a tria of fewer columns than rows, a 1 x 1 zero):
+    # the closed form's S^{-1} v does not exist there; the result is the QR's, not NaN
+    from prognos_torch.core.linalg import safe_cholesky
+
+    g = torch.Generator().manual_seed(11)
+    S = torch.stack(
+        [tria(torch.randn(4, 3, generator=g, dtype=torch.float64)), _spd_factor(g, n=4)]
+    )
+    S.requires_grad_(True)
+    V = torch.randn(2, 4, 2, generator=g, dtype=torch.float64, requires_grad=True)
+    up = chol_update(S, V)
+    ref = safe_cholesky(S @ S.mT + V @ V.mT).detach()
+    torch.testing.assert_close(up, ref, rtol=0, atol=1e-12 * float(ref.abs().max()))
+    up.sum().backward()
+    assert bool(torch.isfinite(S.grad).all()) and bool(torch.isfinite(V.grad).all())
+    zero = torch.zeros(3, 1, 1, dtype=torch.float64)
+    v = torch.tensor([[0.5], [-2.0], [0.0]], dtype=torch.float64)
+    assert chol_update(zero, v).flatten().tolist() == [0.5, 2.0, 0.0]
+
+
+def test_up_and_downdates_broadcast_a_shared_factor(path):
+    g = torch.Generator().manual_seed(12)
+    S = _spd_factor(g, n=4)  # one factor for a batch of 3 column blocks
+    V = 0.3 * torch.randn(3, 4, 2, generator=g, dtype=torch.float64)
+    ref = torch.linalg.cholesky(S @ S.mT + V @ V.mT)
+    up = chol_update(S, V)
+    torch.testing.assert_close(up, ref, rtol=0, atol=1e-12 * float(ref.abs().max()))
+    down, ratio = chol_downdate_ex(up, V[:1])  # and a batch of factors, one block
+    torch.testing.assert_close(down[0], S, rtol=0, atol=1e-10)
+    assert ratio.shape == (3,)
+
+
+def test_downdate_by_no_columns_is_the_identity(path):
+    g = torch.Generator().manual_seed(13)
+    S = _spd_factor(g, 2, n=5)
+    down, ratio = chol_downdate_ex(S, S.new_zeros(2, 5, 0))
+    assert torch.equal(down, S) and ratio.tolist() == [1.0, 1.0]
+    assert torch.equal(chol_update(S, S.new_zeros(2, 5, 0)), S)
+
+
+def test_tria_of_fewer_columns_than_rows_has_a_gradient():
+    g = torch.Generator().manual_seed(14)
+    A = torch.randn(2, 4, 2, generator=g, dtype=torch.float64, requires_grad=True)
+    assert torch.equal(tria(A), tria(A.detach()))  # the values of the QR without autograd
+    assert torch.autograd.gradcheck(tria, (A,))
+
+
+def test_safe_cholesky_jitters_only_the_elements_that_need_it():
+    from prognos_torch.core.linalg import safe_cholesky
+
+    P = torch.stack([4.0 * torch.eye(2), torch.ones(2, 2)]).double()  # PD, singular
+    L = safe_cholesky(P, jitter=1e-9)
+    assert torch.equal(L[0], 2.0 * torch.eye(2, dtype=torch.float64))  # its exact factor
+    torch.testing.assert_close(L[1] @ L[1].mT, P[1], rtol=0, atol=1e-7)
+
+
+def test_mm_of_mismatched_shapes_fails_like_matmul():
+    from prognos_torch.core.linalg import mm
+
+    with pytest.raises(RuntimeError):
+        mm(torch.ones(2, 1), torch.ones(2, 3))  # A @ B fails; A * B broadcast to (2, 3)

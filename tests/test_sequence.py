@@ -262,3 +262,41 @@ def test_compiled_scans_of_many_steps_do_not_share_the_recompile_limit(monkeypat
         got = scan(step, state, ys, record=record, compile=True)[1]["x"]
         ref = scan(step, state, ys, record=record)[1]["x"]
         torch.testing.assert_close(got, ref, rtol=1e-12, atol=0.0)
+
+
+def test_scan_hands_out_ordinary_named_tuple_states():
+    from collections import namedtuple
+
+    State = namedtuple("State", "x c")
+    ys = torch.arange(3.0, dtype=F64).reshape(3, 1)
+    s0 = State(torch.zeros(1, dtype=F64), torch.ones(1, dtype=F64))
+    final, _ = scan(lambda s, y, u, k: (State(s.x + y, s.c), None), s0, ys,
+                    record=lambda s, i: {"x": s.x}, inference=True)  # fmt: skip
+    assert type(final) is State and not final.x.is_inference()
+    final.x.add_(1.0)  # writable outside inference mode
+    assert final.x.tolist() == [4.0]
+
+
+def test_scan_names_a_record_whose_shape_changes():
+    ys = torch.zeros(3, 1, dtype=F64)
+    with pytest.raises(
+        ValueError, match=r"record 'a' gave shape \(2,\) first and shape \(3,\) later"
+    ):
+        scan(lambda s, y, u, k: (s + 1, None), 1, ys, record=lambda s, i: {"a": torch.zeros(s)})
+    with pytest.raises(ValueError, match="record 'b' gave shape .* int"):
+        scan(lambda s, y, u, k: (s + 1, None), 1, ys,
+             record=lambda s, i: {"b": torch.zeros(1) if s == 2 else s})  # fmt: skip
+
+
+def test_compiled_scan_of_no_steps_returns_the_state_without_compiling(monkeypatch):
+    def no_compile(*args, **kwargs):
+        raise AssertionError("nothing to compile")
+
+    monkeypatch.setattr(torch, "compile", no_compile)
+    s0 = (torch.ones(2, dtype=F64),)
+    final, out = scan(lambda s, y, u, k: (s, None), s0, torch.zeros(0, 1, dtype=F64),
+                      record=lambda s, i: {"x": s[0]}, compile=True)  # fmt: skip
+    assert out == {} and len(final) == 1 and torch.equal(final[0], s0[0])
+    with pytest.raises(TypeError, match="state must be a tuple of tensors"):
+        scan(lambda s, y, u, k: (s, None), [s0[0]], torch.zeros(0, 1), record=dict,
+             compile=True)  # fmt: skip

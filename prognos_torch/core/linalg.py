@@ -1,7 +1,9 @@
 """Square-root linear algebra: ``tria`` via QR, Cholesky rank-one up/downdates, safe Cholesky.
 
-All functions act on the last two dimensions, batched over the leading ones; the arguments of
-one call share those leading dimensions (no broadcasting between them).
+All functions act on the last two dimensions, batched over the leading ones; the leading
+dimensions of the arguments of one call broadcast against each other (a factor ``(n, n)``
+shared by a batch of ``(B, n, k)`` columns), and a vector argument is one with a dimension
+fewer than the factor.
 Nothing here forms an explicit inverse; triangular factors are applied with solves.
 """
 
@@ -43,6 +45,17 @@ def tria(A: Tensor) -> Tensor:
     if L < n:  # pad with zero columns so that R is square
         A = torch.cat([A, A.new_zeros(*A.shape[:-1], n - L)], dim=-1)
     if A.requires_grad and torch.is_grad_enabled():
+        if L < n:
+            # the padded A has rank L < n and its QR no derivative (NaN); the first L columns
+            # of S are those of the QR of the L x n matrix A^T, which has one where A has full
+            # column rank, and the others are zero. The values are the padded QR's.
+            Rw = torch.linalg.qr(A[..., :L].mT, mode="reduced")[1]  # (..., L, n)
+            dw = torch.diagonal(Rw, dim1=-2, dim2=-1)
+            Sw = (Rw * torch.ones_like(dw).copysign(dw).unsqueeze(-1)).mT
+            Sw = torch.cat([Sw, Sw.new_zeros(*Sw.shape[:-1], n - L)], dim=-1)
+            with torch.no_grad():
+                S0 = tria(A)
+            return S0 + (Sw - Sw.detach())
         # geqrf has no derivative; the reduced QR has one (it needs a full-rank A)
         R = torch.linalg.qr(A.mT, mode="reduced")[1]
     elif torch.compiler.is_compiling():
@@ -61,7 +74,7 @@ def tria(A: Tensor) -> Tensor:
 def mm(A: Tensor, B: Tensor) -> Tensor:
     """``A @ B``; with an inner dimension of 1 the outer product ``A * B``, the same numbers
     without a batched matrix product (1 x 1 factors batched over particles or runs)."""
-    if A.shape[-1] == 1:
+    if A.shape[-1] == 1 and B.dim() > 1 and B.shape[-2] == 1:
         return A * B
     return A @ B
 
@@ -113,6 +126,8 @@ _RANK_ONE_MIN_N_PER_RANK = 50
 
 def _use_rank_one(S: Tensor, k: int) -> bool:
     n = S.shape[-1]
+    if k == 0:
+        return False  # nothing to add or remove: the dense form gives S and a ratio of 1
     if k == 1 and n >= 8 and torch.compiler.is_compiling():
         return True  # compiled, the closed form's small operations fuse: O(n^2) wins
     return S.numel() >= _RANK_ONE_MIN_NUMEL and (k == 1 or _RANK_ONE_MIN_N_PER_RANK * k <= n)
@@ -166,15 +181,39 @@ def chol_update(S: Tensor, V: Tensor) -> Tensor:
     """Cholesky update: ``S' S'^T = S S^T + V V^T`` for ``V`` of shape ``(..., n)`` or ``(..., n, k)``.
 
     By closed-form rank-one updates (O(n^2) each, Gill et al. 1974) for large factors and small
-    ranks (``_use_rank_one``), otherwise by one QR (``tria([S, V])``).
+    ranks (``_use_rank_one``), otherwise by one QR (``tria([S, V])``). The closed form needs
+    ``S^{-1} v``; where ``S`` is singular (a zero on its diagonal, e.g. a ``tria`` of fewer
+    columns than rows) or so near it that the result overflows, that batch element is made by
+    the QR instead.
     """
     if V.dim() == S.dim() - 1:
         V = V.unsqueeze(-1)
     if not _use_rank_one(S, V.shape[-1]):
-        return tria(torch.cat([S, V], dim=-1))
+        return tria(torch.cat(_broadcast_batch(S, V), dim=-1))
+    S2 = _rank_one_updates(S, V)
+    if torch.compiler.is_compiling():
+        return S2
+    bad = ~torch.isfinite(S2).flatten(-2).all(-1)
+    if not bool(bad.any()):
+        return S2
+    # again with those elements replaced by I and 0 (so that no inf or NaN reaches autograd),
+    # then the QR there
+    keep = bad[..., None, None]
+    eye = _eye(S.shape[-1], S.dtype, S.device)
+    S2 = _rank_one_updates(torch.where(keep, eye, S), torch.where(keep, 0.0, V))
+    return torch.where(keep, tria(torch.cat(_broadcast_batch(S, V), dim=-1)), S2)
+
+
+def _rank_one_updates(S: Tensor, V: Tensor) -> Tensor:
     for j in range(V.shape[-1]):
         S, _ = _rank_one(S, V[..., j], 1.0)
     return S
+
+
+def _broadcast_batch(*Xs: Tensor) -> list[Tensor]:
+    """``Xs`` expanded to their common leading dimensions (the last two kept)."""
+    batch = torch.broadcast_shapes(*(X.shape[:-2] for X in Xs))
+    return [X if X.shape[:-2] == batch else X.expand(*batch, *X.shape[-2:]) for X in Xs]
 
 
 def chol_downdate_ex(S: Tensor, V: Tensor, W: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -226,11 +265,13 @@ def safe_cholesky(P: Tensor, *, jitter: float = 0.0, max_tries: int = 6) -> Tens
     """Lower Cholesky factor of a symmetric matrix, with optional escalating diagonal jitter.
 
     With ``jitter == 0`` a failure raises ``torch.linalg.LinAlgError``. With ``jitter > 0``
-    the jitter (relative to the mean diagonal) is multiplied by 10 up to ``max_tries`` times.
+    the jitter (relative to the mean diagonal) is multiplied by 10 up to ``max_tries`` times,
+    for the batch elements that fail only: the others get their exact factor.
     """
     P = symmetrize(P)
     L, info = torch.linalg.cholesky_ex(P)
-    if not bool((info > 0).any()):
+    bad = info > 0
+    if not bool(bad.any()):
         return L
     if jitter <= 0:
         raise torch.linalg.LinAlgError("matrix is not positive definite")
@@ -238,8 +279,12 @@ def safe_cholesky(P: Tensor, *, jitter: float = 0.0, max_tries: int = 6) -> Tens
     eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
     eps = jitter
     for _ in range(max_tries):
-        L, info = torch.linalg.cholesky_ex(P + (eps * scale).unsqueeze(-1) * eye)
-        if not bool((info > 0).any()):
+        # only the batch elements that still fail get the jitter: the others keep their exact
+        # factor (or the one of the smallest jitter that worked for them)
+        Lj, info = torch.linalg.cholesky_ex(P + (eps * scale).unsqueeze(-1) * eye)
+        L = torch.where(bad[..., None, None], Lj, L)
+        bad = bad & (info > 0)
+        if not bool(bad.any()):
             return L
         eps *= 10.0
     raise torch.linalg.LinAlgError("matrix is not positive definite, even with jitter")

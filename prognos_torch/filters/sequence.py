@@ -96,6 +96,9 @@ def scan(
         got = tuple(us.shape) if isinstance(us, Tensor) else type(us)
         raise ValueError(f"us must have one row per step of ys (T = {T}), got {got}")
     if compile:
+        if T == 0:  # no step to trace (torch's scan operator refuses an empty sequence)
+            _check_compiled_state(state)
+            return tuple(state), {}
         return _compiled_scan(step, state, ys, us, record)
     steps: Iterable[int] = range(T) if progress is None else progress(range(T))
     rows: dict[str, list[Any]] = {}
@@ -131,8 +134,29 @@ def scan(
                 fast = not (_needs_grad((ys, us)) or _needs_grad((state, row)))
                 if fast:  # (one mode for the other steps: entering it per step costs more)
                     mode.enter_context(torch.inference_mode())
-    stacked = {key: (torch.stack(col) if col else None) for key, col in rows.items()}
+    stacked = {key: _stack(key, col) for key, col in rows.items()}
     return (_ordinary(state) if inferred else state), stacked
+
+
+def _stack(key: str, col: list[Any]) -> Tensor | None:
+    """The rows of ``record``'s ``key`` stacked; an error names the key and the first step
+    whose value differs in shape from the first one (or is not a tensor)."""
+    if not col:
+        return None
+    try:
+        return torch.stack(col)
+    except (RuntimeError, TypeError) as err:
+        first = col[0]
+        odd = [j for j, v in enumerate(col) if not isinstance(v, Tensor) or v.shape != first.shape]
+        if not odd:
+            raise
+        j, v = odd[0], col[odd[0]]
+        what = f"shape {tuple(v.shape)}" if isinstance(v, Tensor) else type(v).__name__
+        head = f"shape {tuple(first.shape)}" if isinstance(first, Tensor) else type(first).__name__
+        raise ValueError(
+            f"record {key!r} gave {head} first and {what} later (row {j} of its stack): a name "
+            "must give a tensor of the same shape at every step (or None)"
+        ) from err
 
 
 def _leaves(obj):
@@ -168,9 +192,11 @@ def _ordinary(obj):
                 if w is not v:
                     changes[f.name] = w
         return dataclasses.replace(obj, **changes) if changes else obj
-    if isinstance(obj, tuple) and not hasattr(obj, "_fields"):
+    if isinstance(obj, tuple):
         out = tuple(_ordinary(v) for v in obj)
-        return obj if all(a is b for a, b in zip(out, obj)) else out
+        if all(a is b for a, b in zip(out, obj)):
+            return obj
+        return type(obj)(*out) if hasattr(obj, "_fields") else out  # (a named tuple's type)
     if isinstance(obj, list):
         return [_ordinary(v) for v in obj]
     if isinstance(obj, dict):
@@ -179,6 +205,11 @@ def _ordinary(obj):
 
 
 _COMPILED: dict = {}
+
+
+def _check_compiled_state(state) -> None:
+    if not isinstance(state, tuple) or not all(isinstance(t, Tensor) for t in state):
+        raise TypeError("with compile=True, state must be a tuple of tensors")
 
 
 def _compile_options(device: torch.device, cpp_wrapper: bool = True) -> dict:
@@ -216,8 +247,7 @@ def _compiled_scan(
     ``False`` compiles each new set of shapes on its own (torch 2.13's dynamic-shape recompile
     can round a float constant of the step, e.g. ``-log N``, to float32). ``cpp_wrapper``:
     inductor's C++ wrapper on the CPU (see :func:`_compile_options`)."""
-    if not isinstance(state, tuple) or not all(isinstance(t, Tensor) for t in state):
-        raise TypeError("with compile=True, state must be a tuple of tensors")
+    _check_compiled_state(state)
     device = state[0].device if state else ys.device
     key = (step, record, device.type, dynamic, cpp_wrapper)
     fn = _COMPILED.get(key)
