@@ -480,6 +480,71 @@ def test_lle_follows_float32_dtype():
     assert fit.embedding.dtype == torch.float32 and fit.weights.dtype == torch.float32
 
 
+@pytest.mark.parametrize("scale", [2.0**-560, 2.0**530])
+def test_lle_does_not_depend_on_the_scale_of_the_points(scale):
+    # LLE is scale invariant, and a power of two scales every product exactly: neighbours,
+    # weights and embedding must equal the unscaled fit's bit for bit. At 2^-560 (1e-169) the
+    # squared distances and the local Gram matrices underflow to 0, at 2^530 (1e160) they
+    # overflow.
+    rng = np.random.default_rng(8)
+    X = torch.as_tensor(_curve(np.sort(rng.uniform(0, 6, 40))))
+    ref = lle_fit(X, n_neighbors=6)
+    got = lle_fit(X * scale, n_neighbors=6)
+    assert torch.equal(got.neighbors, ref.neighbors)
+    assert torch.equal(got.weights, ref.weights)
+    assert torch.equal(got.embedding, ref.embedding)
+    assert torch.equal(got.transform(X[:5] * scale), ref.transform(X[:5]))
+
+
+def test_lle_with_duplicate_samples_breaks_distance_ties_by_index():
+    # every point twice: a point's twin lies at distance 0 (singular local Gram matrices, the
+    # regulariser must carry them) and every other neighbour comes as two tied copies; the
+    # neighbours, weights and M are those of the loop reference with a stable sort (lowest
+    # index first among equal distances)
+    rng = np.random.default_rng(9)
+    P = _curve(np.sort(rng.uniform(0, 6, 15)))
+    X = np.concatenate([P, P])
+    d = np.sqrt(((X[:, None] - X[None]) ** 2).sum(-1))
+    np.fill_diagonal(d, np.inf)
+    nb_ref = np.argsort(d, axis=1, kind="stable")[:, :5]
+    nb = knn(torch.as_tensor(X), None, 5)
+    assert nb.tolist() == nb_ref.tolist()
+    W_ref, M_ref, _, _ = _reference_lle(X, 5, 1e-3)
+    w = reconstruction_weights(torch.as_tensor(X), nb)
+    W = torch.zeros(30, 30, dtype=torch.float64).scatter_(1, nb, w)
+    np.testing.assert_allclose(W.numpy(), W_ref, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(lle_cost_matrix(nb, w, 30).numpy(), M_ref, rtol=1e-9, atol=1e-9)
+
+
+def test_lle_sign_does_not_depend_on_rounding_between_tied_extremes():
+    # evenly spaced points on a line: the embedding is odd about the middle, its two ends equal
+    # in magnitude up to rounding, which decided the sign (the scipy and torch solvers
+    # disagreed); the first of the (nearly) tied largest entries is made positive
+    for n in (21, 31):
+        t = np.linspace(0.0, 1.0, n)
+        X = np.stack([t, 2 * t, -t], 1)
+        got = lle_fit(torch.as_tensor(X), n_neighbors=4).embedding[:, 0].numpy()
+        _, _, _, evecs = _reference_lle(X, 4, 1e-3)  # another LAPACK driver (evx)
+        ref = evecs[:, 1] * math.sqrt(n)
+        assert abs(abs(ref[0]) - abs(ref[-1])) < 1e-6 * abs(ref[0])  # tied extremes
+        np.testing.assert_allclose(got, np.sign(ref[0]) * ref, rtol=1e-6, atol=1e-6)
+        assert got[0] > 0
+
+
+def test_lle_reg_must_be_a_finite_positive_number():
+    rng = np.random.default_rng(10)
+    X = torch.as_tensor(_curve(np.sort(rng.uniform(0, 6, 20))))
+    nb = knn(X, None, 4)
+    with pytest.raises(ValueError, match="reg must be a finite number, got inf"):
+        reconstruction_weights(X, nb, reg=float("inf"))  # it gave NaN weights
+    with pytest.raises(ValueError, match="reg must be a finite number, got True"):
+        lle_fit(X, n_neighbors=4, reg=True)  # it was taken as 1
+    with pytest.raises(ValueError, match="reg must be a positive float, got 0"):
+        reconstruction_weights(X, nb, reg=0)
+    a = reconstruction_weights(X, nb, reg=np.float32(0.25))  # it was refused
+    assert torch.equal(a, reconstruction_weights(X, nb, reg=0.25))
+
+
 # --------------------------------------------------------------------------- health indicator
 
 

@@ -218,3 +218,30 @@ def test_blocked_multistep_cv_rejects_bad_input():
         blocked_multistep_cv(_persistence, z, 3, 2, direction="up")
     with pytest.raises(ValueError, match="predictor returned shape"):
         blocked_multistep_cv(lambda a, b: lambda Xh: Xh, z, 3, 2)
+
+
+def test_blocked_cv_rmse_refuses_missing_values():
+    # a missing target gave a NaN score, which any min() over candidates mis-ranks; a
+    # non-finite input scored whatever the predictor made of it
+    X = torch.arange(10.0, dtype=torch.float64)[:, None].repeat(1, 2)
+    y = X[:, 0].clone()
+    y[3] = float("nan")
+    with pytest.raises(ValueError, match=r"Y has a missing or non-finite value at row 3"):
+        blocked_cv_rmse(lambda a, b: lambda Xh: Xh[:, 0], X, y, 2)
+    X[7, 1] = float("inf")
+    with pytest.raises(ValueError, match=r"X has a missing or non-finite value at row 7"):
+        blocked_cv_rmse(lambda a, b: lambda Xh: Xh[:, 0], X, X[:, 0], 2)
+
+
+def test_blocked_multistep_cv_with_as_many_folds_as_windows():
+    # n = 8, m = 3: 5 windows, so at most 5 folds; the message counts windows (it said n=5
+    # of a series of 8 samples)
+    z = torch.tensor([0.0, 1.0, 3.0, 2.0, 5.0, 4.0, 6.0, 8.0], dtype=torch.float64)
+    got = blocked_multistep_cv(_endpoint_trend, z, 3, 2, 5, threshold=4.5)
+    ref = _reference(_endpoint_trend(None, None), z, 3, 2, 5, 4.5, 1)
+    assert got.one_step == pytest.approx(ref[0], rel=1e-12)
+    assert got.multi_step == pytest.approx(ref[1], rel=1e-12)
+    assert got.crossing == pytest.approx(ref[2], rel=1e-12)
+    assert (got.origins, got.crossing_origins) == (ref[3], ref[4]) == (5, 3)
+    with pytest.raises(ValueError, match=r"folds must satisfy 2 <= folds <= n - m = 5 \(the "):
+        blocked_multistep_cv(_endpoint_trend, z, 3, 2, 6)

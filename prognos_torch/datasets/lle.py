@@ -26,7 +26,11 @@ full decomposition at N = 1263) and ``torch.linalg.eigh`` for tensors on other d
 assembled densely, (N, N): fine for the few thousand points this library meets.
 
 The sign of an eigenvector is arbitrary; every column is flipped so that its entry of largest
-magnitude is positive. That makes results deterministic, not meaningful: callers that need a
+magnitude is positive, the first of them (in sample order) where several lie within a relative
+1e-4 of the largest (an odd embedding, e.g. of evenly spaced points on a line, has two extremes
+whose magnitudes differ by rounding only, and the eigensolvers round differently). Neighbours at
+equal distances (duplicate points) are taken in index order. That makes results deterministic,
+not meaningful: callers that need a
 direction (a health indicator that grows with degradation) fix it themselves, see
 :func:`prognos_torch.datasets.ims.health_indicator`.
 """
@@ -44,6 +48,8 @@ import scipy.sparse
 import scipy.sparse.csgraph
 import torch
 from torch import Tensor
+
+from ..core.validation import check_real
 
 __all__ = [
     "LLEFit",
@@ -70,12 +76,31 @@ def _check_points(X, name: str) -> Tensor:
     return X
 
 
+def _check_reg(reg) -> float:
+    reg = check_real(reg, "reg")
+    if not reg > 0:
+        raise ValueError(f"reg must be a positive float, got {reg!r}")
+    return reg
+
+
 def _check_k(n_neighbors, n_available: int, what: str) -> int:
     if isinstance(n_neighbors, bool) or not isinstance(n_neighbors, int) or n_neighbors < 1:
         raise ValueError(f"n_neighbors must be a positive int, got {n_neighbors!r}")
     if n_neighbors > n_available:
         raise ValueError(f"n_neighbors={n_neighbors} exceeds the {n_available} {what} available")
     return n_neighbors
+
+
+def _pow2_scaled(X: Tensor, size: Tensor) -> Tensor:
+    """``X * 2^-e`` with ``size = f 2^e``, ``0.5 <= f < 1`` (``torch.frexp``; ``X`` itself for
+    ``size`` 0): exact, up to the factor, wherever the result is a normal number.
+
+    ``size`` broadcasts against ``X`` (one exponent for all, or one per leading index).
+    """
+    e = torch.frexp(size).exponent
+    if e.dim() == 0 and int(e) == 0:
+        return X
+    return X * torch.pow(torch.tensor(2.0, dtype=X.dtype, device=X.device), (-e).to(X.dtype))
 
 
 def knn(X_ref: Tensor, X_query: Tensor | None = None, n_neighbors: int = 12) -> Tensor:
@@ -98,11 +123,18 @@ def knn(X_ref: Tensor, X_query: Tensor | None = None, n_neighbors: int = 12) -> 
             f"X_query must have shape (m, {X_ref.shape[1]}) like X_ref, got {tuple(Q.shape)}"
         )
     k = _check_k(n_neighbors, X_ref.shape[0] - int(self_query), "other reference points")
+    X_ref = X_ref.to(Q.dtype)
+    # One power of two for both sets keeps every distance exact up to that factor, so the order
+    # is the unscaled one, while squared distances of points near 1e-160 or 1e160 would
+    # underflow or overflow.
+    both = X_ref.abs().amax() if self_query else torch.maximum(X_ref.abs().amax(), Q.abs().amax())
+    X_ref, Q = _pow2_scaled(X_ref, both), _pow2_scaled(Q, both)
     # Exact differences (no |a|^2 + |b|^2 - 2ab shortcut) so that neighbour order is reproducible.
-    dist = torch.cdist(Q, X_ref.to(Q.dtype), compute_mode="donot_use_mm_for_euclid_dist")
+    dist = torch.cdist(Q, X_ref, compute_mode="donot_use_mm_for_euclid_dist")
     if self_query:
         dist.fill_diagonal_(float("inf"))
-    return torch.topk(dist, k, dim=1, largest=False, sorted=True).indices
+    # a stable sort: equal distances (duplicate points) in index order, on every device
+    return torch.sort(dist, dim=1, stable=True).indices[:, :k]
 
 
 def reconstruction_weights(
@@ -124,10 +156,12 @@ def reconstruction_weights(
     Q = X_ref if X_query is None else _check_points(X_query, "X_query")
     if not isinstance(neighbors, Tensor) or neighbors.dim() != 2 or neighbors.shape[0] != len(Q):
         raise ValueError(f"neighbors must be a LongTensor of shape ({len(Q)}, K)")
-    if not (isinstance(reg, (int, float)) and reg > 0):
-        raise ValueError(f"reg must be a positive float, got {reg!r}")
+    reg = _check_reg(reg)
     k = neighbors.shape[1]
     Z = X_ref[neighbors] - Q.unsqueeze(1)  # (m, K, D)
+    # w does not depend on the scale of Z; a power of two per point scales C exactly and keeps
+    # its entries normal numbers (they underflow for points near 1e-160, overflow near 1e160)
+    Z = _pow2_scaled(Z, Z.abs().amax((1, 2))[:, None, None])
     C = Z @ Z.mT  # local Gram matrices (m, K, K)
     trace = torch.diagonal(C, dim1=-2, dim2=-1).sum(-1)
     ridge = torch.where(trace > 0, reg * trace, torch.full_like(trace, reg))
@@ -180,6 +214,21 @@ def _bottom_eigh(M: Tensor, n_eig: int, solver: str) -> tuple[Tensor, Tensor]:
         evals, evecs = torch.linalg.eigh(M)
         return evals[:n_eig], evecs[:, :n_eig]
     raise ValueError(f"eigen_solver must be 'auto', 'scipy' or 'torch', got {solver!r}")
+
+
+#: entries within this fraction of a column's largest magnitude count as tied for its sign
+SIGN_TIE_RTOL = 1e-4
+
+
+def _sign_convention(Y: Tensor) -> Tensor:
+    """``(1, d)`` signs that make the first entry of each column whose magnitude lies within
+    :data:`SIGN_TIE_RTOL` of the column's largest positive. An odd embedding has two extremes
+    of one magnitude: rounding, not the data, would pick one of them."""
+    a = Y.abs()
+    near = a >= a.amax(0, keepdim=True) * (1 - SIGN_TIE_RTOL)
+    first = near.to(torch.uint8).argmax(0, keepdim=True)  # the first True of each column
+    flip = torch.gather(Y, 0, first).sign()
+    return torch.where(flip == 0, torch.ones_like(flip), flip)
 
 
 @dataclass(frozen=True)
@@ -262,8 +311,7 @@ def lle_fit(
     evals, evecs = _bottom_eigh(M, n_components + 1, eigen_solver)
     # Skip the constant eigenvector (eigenvalue 0); scale to (1/n) Y^T Y = I.
     Y = evecs[:, 1:] * math.sqrt(n)
-    flip = torch.gather(Y, 0, Y.abs().argmax(0, keepdim=True)).sign()
-    Y = Y * torch.where(flip == 0, torch.ones_like(flip), flip)
+    Y = Y * _sign_convention(Y)
     return LLEFit(points=X, embedding=Y, neighbors=nb, weights=w, eigenvalues=evals, reg=reg)
 
 

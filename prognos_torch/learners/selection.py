@@ -55,7 +55,8 @@ def blocked_cv_rmse(
     Args:
         fit: trains a model on ``(X_train, Y_train)`` and returns its predictor, a callable
             ``(n_hold, ...) -> `` the shape of ``Y[hold]``.
-        X: ``(N, ...)`` inputs in time order; Y: ``(N, ...)`` targets.
+        X: ``(N, ...)`` inputs in time order; Y: ``(N, ...)`` targets, both finite (a
+            missing value is refused, naming its row).
         folds: number of folds ``k``, ``2 <= k <= N``.
     Returns:
         The out-of-fold RMSE (a Python float).
@@ -69,6 +70,13 @@ def blocked_cv_rmse(
         )
     if not callable(fit):
         raise TypeError(f"fit must be callable (X_train, Y_train) -> predictor, got {fit!r}")
+    for name, T in (("X", X), ("Y", Y)):
+        bad = ~torch.isfinite(T).reshape(T.shape[0], -1).all(1)
+        if bool(bad.any()):
+            raise ValueError(
+                f"{name} has a missing or non-finite value at row {int(bad.nonzero()[0, 0])}: "
+                "every row is trained on or scored (fill or cut the gap first)"
+            )
     index = blocked_folds(X.shape[0], folds, device=X.device)
     sq = 0.0
     for f in range(folds):
@@ -186,6 +194,12 @@ def blocked_multistep_cv(
     n = series.shape[0]
     if n - m < 2:
         raise ValueError(f"series must have at least m + 2 = {m + 2} samples (n,), got n={n}")
+    folds = check_pos_int(folds, "folds")
+    if not 2 <= folds <= n - m:
+        raise ValueError(
+            f"folds must satisfy 2 <= folds <= n - m = {n - m} (the windows of m = {m} values "
+            f"with a target in a series of n = {n} samples), got {folds}"
+        )
     X = series.unfold(0, m, 1)[: n - m]  # (n - m, m): P_i = z[i : i + m]
     y = series[m:]
     index = blocked_folds(X.shape[0], folds, device=series.device)
