@@ -247,12 +247,8 @@ class StateSpaceModel:
         """Noise-free ``f`` on ``x`` of shape ``(..., n)``; returns ``(..., n)``."""
         if self.f is None:
             return x
-        try:
-            out = _apply(self.f, x, u, k, self.batched)
-        except RuntimeError as exc:
-            _raise_named_dtype_error(exc, "f", x)
-            raise
-        return _checked_out(out, self.state_dim, "f", "state_dim")
+        return _checked_out(_evaluate(self.f, "f", x, u, k, self.batched), self.state_dim, "f",
+                            "state_dim")  # fmt: skip
 
     def transition_into(self, x: Tensor, u: Tensor | None, k: int, out: Tensor) -> Tensor:
         """:meth:`transition` of ``x`` ``(..., n)`` written into ``out`` ``(..., n)``; returns ``out``.
@@ -265,12 +261,8 @@ class StateSpaceModel:
 
     def observe(self, x: Tensor, u: Tensor | None, k: int) -> Tensor:
         """Noise-free ``h`` on ``x`` of shape ``(..., n)``; returns ``(..., m)``."""
-        try:
-            out = _apply(self.h, x, u, k, self.batched)
-        except RuntimeError as exc:
-            _raise_named_dtype_error(exc, "h", x)
-            raise
-        return _checked_out(out, self.obs_dim, "h", "obs_dim")
+        return _checked_out(_evaluate(self.h, "h", x, u, k, self.batched), self.obs_dim, "h",
+                            "obs_dim")  # fmt: skip
 
     def transition_jacobian(self, x: Tensor, u: Tensor | None, k: int) -> Tensor:
         """``df/dx`` at ``x`` ``(..., n)``: ``(..., n, n)`` (identity for the random walk)."""
@@ -298,18 +290,21 @@ def _check_finite_noise(x: Tensor, name: str) -> None:
         raise NonFiniteNoiseError(f"{name} contains non-finite values (NaN or inf)")
 
 
-def _raise_named_dtype_error(exc: RuntimeError, fn: str, x: Tensor) -> None:
-    """A dtype clash inside the model's ``f`` or ``h`` (float64 constants on float32 states, a
-    float32 model on a float64 belief) raised as such, not as torch's "expected m1 and m2 to
-    have the same dtype"; any other error is left to the caller to re-raise."""
-    text = str(exc)
-    if "dtype" not in text and "scalar type" not in text:
-        return
-    raise TypeError(
-        f"model.{fn} failed on states of dtype {x.dtype} ({text.splitlines()[0]}): the model "
-        f"computes in another dtype; pass the belief or particles in the model's dtype, or "
-        f"build the model's constants in {x.dtype}"
-    ) from exc
+def _evaluate(fn: Fn, name: str, x: Tensor, u, k: int, batched: bool):
+    """``fn`` (the model's ``f`` or ``h``, called ``name``) on ``x``; a dtype clash inside it
+    (float64 constants on float32 states, a float32 model on a float64 belief) is raised as
+    such, not as torch's "expected m1 and m2 to have the same dtype"."""
+    try:
+        return _apply(fn, x, u, k, batched)
+    except RuntimeError as exc:
+        text = str(exc)
+        if "dtype" not in text and "scalar type" not in text:
+            raise
+        raise TypeError(
+            f"model.{name} failed on states of dtype {x.dtype} ({text.splitlines()[0]}): the "
+            f"model computes in another dtype; pass the belief or particles in the model's "
+            f"dtype, or build the model's constants in {x.dtype}"
+        ) from exc
 
 
 def _checked_out(out, dim: int, fn: str, field: str) -> Tensor:
