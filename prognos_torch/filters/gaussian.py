@@ -307,9 +307,11 @@ class GaussianFilter:
         if state.noise is None:
             return model.checked_noise(k, state.belief.batch_shape, state.belief.mean)
         est = state.noise.noise()
-        held = {"q", "Q", "r", "R"} - (set() if self.noise.frozen else set(self.noise.estimate))
         raw = {"q": model.q, "Q": model.chol_Q, "r": model.r, "R": model.chol_R}
-        if not any(callable(raw[name]) for name in held):  # (constant: as the estimator's)
+        if not any(map(callable, raw.values())):  # constant noise: the estimator's holds it
+            return est
+        held = {"q", "Q", "r", "R"} - (set() if self.noise.frozen else set(self.noise.estimate))
+        if not any(callable(raw[name]) for name in held):
             return est
         mod = model.checked_noise(k, state.belief.batch_shape, state.belief.mean)
         return Noise(
