@@ -16,8 +16,6 @@ is flagged in ``StepInfo.noise_fallback``. ``diagonal=True`` estimates only the 
 
 from __future__ import annotations
 
-import math
-import numbers
 from dataclasses import dataclass, replace
 from functools import cached_property
 
@@ -25,6 +23,7 @@ import torch
 from torch import Tensor
 
 from ..core.model import Noise
+from ..core.validation import check_setting
 
 __all__ = ["SageHusa", "MovingWindow", "NoiseEstimatorState", "UpdateContext"]
 
@@ -165,18 +164,8 @@ def _project_pd(C: Tensor, floor: Tensor, diagonal: bool) -> tuple[Tensor, Tenso
     return C, L, fb
 
 
-def _check_real(name: str, v, none_ok: bool = False) -> None:
-    """``v`` is one finite real number (the same for every batch element)."""
-    if v is None and none_ok:
-        return
-    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
-        raise ValueError(
-            f"{name} must be a finite real number (one value for every batch element), got {v!r}"
-        )
-
-
 def _check_floor(floor_rel) -> None:
-    _check_real("floor_rel", floor_rel)
+    check_setting(floor_rel, "floor_rel")
     if floor_rel < 0:
         raise ValueError(f"floor_rel must be >= 0, got {floor_rel}")
 
@@ -241,7 +230,7 @@ class SageHusa:
         bad = set(self.estimate) - {"q", "Q", "r", "R"}
         if bad:
             raise ValueError(f"estimate must be a subset of ('q', 'Q', 'r', 'R'), got {bad}")
-        _check_real("forgetting", self.forgetting, none_ok=True)
+        check_setting(self.forgetting, "forgetting", optional=True)
         _check_floor(self.floor_rel)
         if self.forgetting is not None and not 0.0 < self.forgetting < 1.0:
             raise ValueError(f"forgetting must be in (0, 1) or None, got {self.forgetting}")
@@ -408,8 +397,8 @@ class MovingWindow:
         bad = set(self.estimate) - {"Q", "R"}
         if bad:
             raise ValueError(f"estimate must be a subset of ('Q', 'R'), got {bad}")
-        _check_real("N", self.N)
-        _check_real("mu", self.mu, none_ok=True)
+        check_setting(self.N, "N")
+        check_setting(self.mu, "mu", optional=True)
         if self.mu is not None and not self.mu > 0:
             raise ValueError(f"mu must be positive (Eq. 48 divides by it), got {self.mu}")
         _check_floor(self.floor_rel)

@@ -326,6 +326,17 @@ def check_real(v, name: str) -> float:
     return float(v)
 
 
+def check_setting(v, name: str, *, optional: bool = False) -> None:
+    """A filter setting that is one finite real number, a Python or NumPy scalar (the same for
+    every batch element: a tensor is refused), or ``None`` where ``optional``; ``ValueError``."""
+    if v is None and optional:
+        return
+    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
+        raise ValueError(
+            f"{name} must be a finite real number (one value for every batch element), got {v!r}"
+        )
+
+
 # ------------------------------------------------------------------------------ learner data
 def check_dtype_arg(dtype: torch.dtype) -> torch.dtype:
     """A module ``dtype`` argument: a floating-point ``torch.dtype``."""

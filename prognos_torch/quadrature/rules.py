@@ -14,6 +14,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..core.validation import check_setting
+
 __all__ = ["SigmaPoints", "unscented", "julier", "cubature", "gauss_hermite"]
 
 
@@ -38,9 +40,7 @@ class SigmaPoints:
         if self.kind not in ("unscented", "cubature", "gauss_hermite"):
             raise ValueError(f"unknown sigma-point rule kind {self.kind!r}")
         for name in ("alpha", "beta") + (() if self.kappa is None else ("kappa",)):
-            v = getattr(self, name)
-            if not _is_real(v) or not math.isfinite(v):
-                raise ValueError(f"{name} must be a finite real number, got {v!r}")
+            check_setting(getattr(self, name), name)
         if self.kind == "unscented" and self.alpha == 0:
             raise ValueError("alpha must be nonzero (the points collapse onto the mean)")
         o = self.order
@@ -54,10 +54,6 @@ class SigmaPoints:
         xi, wm, wc = _points(self.kind, self.alpha, self.beta, self.kappa, self.order, n)
         t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
         return t(xi), t(wm), t(wc)
-
-
-def _is_real(v) -> bool:
-    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
 
 
 @lru_cache(maxsize=256)
