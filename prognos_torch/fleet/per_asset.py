@@ -33,6 +33,9 @@ from .trend import RUL_COLUMNS, PaddedBatch, check_min_rows
 
 __all__ = ["prognose_rul"]
 
+#: the failure directions ``prognose`` takes (``"auto"``: it finds the direction itself)
+DIRECTIONS = ("above", "below", "auto")
+
 
 def prognose_rul(
     batch: PaddedBatch,
@@ -62,7 +65,7 @@ def prognose_rul(
 
     from ..workflow import prognose
 
-    if direction not in ("above", "below", "auto"):  # an argument, not an asset's input
+    if direction not in DIRECTIONS:  # an argument, not an asset's input
         raise ValueError(f"direction must be 'above', 'below' or 'auto', got {direction!r}")
     min_rows = check_min_rows(min_rows)
     B = len(batch)

@@ -39,8 +39,10 @@ from .._workers import check_workers, process_map
 from ..core.validation import check_real, check_seed
 from ..prognosis.conformal import record_settings
 from ..workflow.data import date_after
+from .per_asset import DIRECTIONS as prognose_directions
 from .per_asset import prognose_rul
 from .table import FleetTable, read_fleet_table, write_table
+from .trend import DIRECTIONS as trend_directions
 from .trend import RUL_COLUMNS, check_min_rows, exponential_trend_rul, pad_batch
 
 __all__ = ["FleetResult", "fleet_rul", "METHODS", "OUTPUT_COLUMNS", "DATE_COLUMNS", "run_shard"]
@@ -48,8 +50,8 @@ __all__ = ["FleetResult", "fleet_rul", "METHODS", "OUTPUT_COLUMNS", "DATE_COLUMN
 #: RUL methods by name: the batched exponential trend (default) and the per-asset prognose
 METHODS: dict[str, Callable] = {"exponential": exponential_trend_rul, "prognose": prognose_rul}
 
-#: the failure directions each built-in method takes (``prognose`` also finds it: ``"auto"``)
-_DIRECTIONS = {"exponential": ("above", "below"), "prognose": ("above", "below", "auto")}
+#: the failure directions each built-in method takes
+_DIRECTIONS = {"exponential": trend_directions, "prognose": prognose_directions}
 
 #: the output table's columns, in order
 OUTPUT_COLUMNS = ("asset",) + RUL_COLUMNS + ("flags", "message")

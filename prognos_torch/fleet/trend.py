@@ -136,6 +136,10 @@ RUL_COLUMNS = (
 )
 
 
+#: the failure directions the exponential trend takes
+DIRECTIONS = ("above", "below")
+
+
 def check_min_rows(min_rows) -> int:
     """``min_rows``, the observed rows an asset needs for a RUL: an int >= 1 (``TypeError``,
     ``ValueError``); 0 or less would send assets without a value to the trend fit."""
@@ -530,7 +534,7 @@ def exponential_trend_rul(
         ``{column: (B,) float64 numpy array}`` for :data:`RUL_COLUMNS` and ``"flags"`` (list of
         ``;``-separated strings).
     """
-    if direction not in ("above", "below"):
+    if direction not in DIRECTIONS:
         raise ValueError(f"direction must be 'above' or 'below', got {direction!r}")
     s = 1.0 if direction == "above" else -1.0
     thr = float(threshold)
