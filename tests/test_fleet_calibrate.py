@@ -190,3 +190,25 @@ def test_replayed_truth_counts_from_the_replayed_rows_and_run_options_are_not_se
     assert pts["asset"][-1] == "z" and "value 'x' in column 'value'" in pts["status"][-1]
     assert not {"shard_size", "progress", "on_error"} & set(cal.settings)
     fleet_rul(f.table, 20.0, samples=50).calibrated(cal)  # the same method: accepted
+
+
+def test_cli_calibrate_takes_on_error_and_names_assets_without_a_point(tmp_path, capsys):
+    """`prognos rul LIVE --calibrate FAILED --on-error flag` read the failed table with
+    on_error='raise': one bad cell in a failed asset stopped the run."""
+    from prognos_torch.cli import main
+    from prognos_torch.fleet import write_table
+
+    failed = _failed(3, seed=5).table
+    bad = {"asset": ["z"] * 3, "t": [0.0, 1.0, 2.0], "value": ["1", "x", "2"]}
+    write_table(tmp_path / "failed.csv", {k: list(failed[k]) + bad[k] for k in bad})
+    write_table(tmp_path / "live.csv", {k: list(v) for k, v in _failed(2, seed=6).table.items()})
+    out = tmp_path / "res.csv"
+    args = ["rul", str(tmp_path / "live.csv"), "--group-by", "asset", "--threshold", "20",
+            "--calibrate", str(tmp_path / "failed.csv"), "--out", str(out), "--no-progress",
+            "--samples", "50"]  # fmt: skip
+    assert main(args) == 2 and not out.exists()
+    assert "error: --calibrate: " in (err := capsys.readouterr().err) and "'x'" in err
+    assert main([*args, "--on-error", "flag"]) == 0 and out.exists()
+    said = capsys.readouterr()
+    assert "points of 3 failed assets" in said.out
+    assert "1 failed asset(s) gave no calibration point (first, 'z': " in said.err

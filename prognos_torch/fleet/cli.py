@@ -111,7 +111,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--on-error",
         default="raise",
         help="raise (default) or flag: an asset with a non-numeric value, a duplicate or "
-        "unsorted time is set aside with its message instead of stopping the run",
+        "unsorted time is set aside with its message instead of stopping the run (in the "
+        "--calibrate table too: a failed asset set aside gives no point)",
     )
     p.add_argument(
         "--calibrate",
@@ -161,12 +162,12 @@ def main(argv: list[str] | None = None) -> int:
         same = dict(group_by=args.group_by, column=args.column, time_column=args.time_column,
                     direction=args.direction, seed=args.seed, decimal=args.decimal,
                     time_format=args.time_format)  # fmt: skip
-        cal = None
+        cal, cal_points = None, None
         if args.calibrate is not None:
             try:
-                cal, _ = calibrate_fleet(
+                cal, cal_points = calibrate_fleet(
                     args.calibrate, args.threshold, **same, workers=args.workers,
-                    **method_options,
+                    on_error=args.on_error, **method_options,
                 )  # fmt: skip
             except FileNotFoundError as exc:
                 raise FileNotFoundError(f"--calibrate: {exc}") from None
@@ -231,6 +232,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  calibrated on {cal.n} points of {cal.assets} failed assets ({args.calibrate}): {how}")
         if (few := cal.warning("failed assets")) is not None:
             print(f"  warning: {few}")
+        # failed assets that gave no point (set aside, too short, no onset): their reasons
+        aside = [(a, s) for a, s in zip(cal_points["asset"], cal_points["status"]) if "@" not in a]
+        if aside:
+            print(f"  {len(aside)} failed asset(s) gave no calibration point (first, {aside[0][0]!r}: "
+                  f"{aside[0][1]})", file=sys.stderr)  # fmt: skip
     bad = [m for m in res.columns["message"] if m]
     for m in bad[:5]:
         print(f"  {m}", file=sys.stderr)
