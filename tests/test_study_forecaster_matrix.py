@@ -255,10 +255,11 @@ def test_quick_headline_numbers(quick_out):
             # BLAS kernels (about 1e-8); iterated ten steps through a trained ANFIS that becomes
             # up to 2e-6 (measured between two machines), so the HI cells get 1e-5. With 30
             # particles such rounding can move a resampling draw across a cumulative-weight edge
-            # and swap one ancestor: 1.2e-4 in one PF cell between an AMD and an Intel CPU, so
-            # the particle filter cells get 1e-3
+            # and swap one ancestor: 1.2e-4 in one PF cell between an AMD and an Intel CPU, and
+            # 2.0e-3 (RMSE_1; 5.2e-4 RMSE_10) in CSTR | LSSVR-closed | STPF between two Intel
+            # CPUs (every other cell within 3.2e-7 there), so the particle filter cells get 5e-3
             rel = (
-                1e-3
+                5e-3
                 if "PF" in k
                 else 1e-4
                 if "ImSRUKF" in k
