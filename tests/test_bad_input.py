@@ -272,3 +272,31 @@ def test_prognose_refuses_values_whose_squares_overflow_or_underflow_as_load_ser
         load_series(x * 1e-160)
     assert prognose(x * 1e-140, 3e-140).status == prognose(x, 3.0).status  # scale-free above
     assert float(load_series(np.zeros(5)).values.abs().max()) == 0.0  # zeros: not this error
+
+
+def test_numpy_integers_are_taken_where_an_int_is_asked_and_bools_are_not():
+    """Counts from NumPy (``np.arange``, a table's column) were refused by local
+    ``isinstance(v, int)`` checks (embedding dimension, LLE sizes, IMS test and bearing,
+    moving-median window, fit epochs); EM's ``iterations`` and the likelihood fit's ``steps``
+    took ``True`` as 1."""
+    from prognos_torch.datasets import bearing_channels, embed, lle_fit
+    from prognos_torch.optim.em import em_linear_gaussian
+    from prognos_torch.prognosis.onset import moving_median
+
+    x = torch.linspace(0.0, 1.0, 40, dtype=torch.float64) ** 2
+    for a, b in zip(embed(x, np.int64(3)), embed(x, 3)):
+        assert torch.equal(a, b)
+    assert bearing_channels(np.int64(1), np.int32(3)) == bearing_channels(1, 3) == (5, 6)
+    assert torch.equal(moving_median(x, np.int64(5)), moving_median(x, 5))
+    X = torch.stack([torch.cos(x * 6), torch.sin(x * 6), x], -1)
+    assert torch.equal(lle_fit(X, np.int64(1), np.int16(6)).embedding, lle_fit(X, 1, 6).embedding)
+    for bad in (True, np.bool_(True), 2.0):
+        with pytest.raises(ValueError, match="embedding dimension m must be a positive int"):
+            embed(x, bad)
+    eye = torch.eye(1, dtype=torch.float64)
+    init = GaussianBelief(torch.zeros(1, dtype=torch.float64), eye)
+    with pytest.raises(ValueError, match="iterations must be a non-negative int, got True"):
+        em_linear_gaussian(eye, eye, eye, eye, init, x[:, None], iterations=True)
+    fit = em_linear_gaussian(eye, eye, eye, eye, init, x[:, None], iterations=np.int64(2))
+    assert torch.equal(fit.A, em_linear_gaussian(eye, eye, eye, eye, init, x[:, None],
+                                                 iterations=2).A)  # fmt: skip

@@ -152,21 +152,22 @@ def chol_from_cov(C: Tensor, name: str, n: int) -> Tensor:
 
 
 # ------------------------------------------------------------------------------ integers
-def _integral(v) -> bool:
-    """An integral number (``int``, ``numpy.int64``, ...), not a ``bool``."""
+def is_int(v) -> bool:
+    """An integral number (``int``, ``numpy.int64``, ...), not a ``bool`` (``numpy.bool_`` is
+    not integral either)."""
     return isinstance(v, numbers.Integral) and not isinstance(v, bool)
 
 
 def check_pos_int(v, name: str) -> int:
     """An integral number ``>= 1`` as a Python ``int`` (``bool`` rejected)."""
-    if not _integral(v) or v < 1:
+    if not is_int(v) or v < 1:
         raise ValueError(f"{name} must be a positive int, got {v!r}")
     return int(v)
 
 
 def check_nonneg_int(v, name: str) -> int:
     """An integral number ``>= 0`` as a Python ``int`` (``bool`` rejected)."""
-    if not _integral(v) or v < 0:
+    if not is_int(v) or v < 0:
         raise ValueError(f"{name} must be a non-negative int, got {v!r}")
     return int(v)
 
@@ -175,7 +176,7 @@ def check_count(value, name: str, minimum: int = 1, *, error: type = TypeError) 
     """An integral number ``>= minimum`` as a Python ``int`` (``bool`` rejected). A value that
     is not an int raises ``error`` (``TypeError`` by default), one below ``minimum`` a
     ``ValueError``."""
-    if not _integral(value):
+    if not is_int(value):
         raise error(f"{name} must be an int >= {minimum}, got {value!r}")
     if value < minimum:
         raise ValueError(f"{name} must be an int >= {minimum}, got {value}")

@@ -36,6 +36,8 @@ from torch import Tensor
 
 from prognos_torch.datasets.lle import LLEFit, lle_fit
 
+from ..core.validation import is_int
+
 __all__ = [
     "FEATURE_NAMES",
     "PAPER_FEATURES",
@@ -110,15 +112,15 @@ class SkippedFile:
 
 
 def _check_test(test) -> int:
-    if isinstance(test, bool) or not isinstance(test, int) or test not in IMS_CHANNELS:
+    if not is_int(test) or test not in IMS_CHANNELS:
         raise ValueError(f"test must be one of {sorted(IMS_CHANNELS)} (IMS tests), got {test!r}")
-    return test
+    return int(test)
 
 
 def bearing_channels(test: int, bearing: int) -> tuple[int, ...]:
     """1-based channels of a bearing: test 1 has (2b - 1, 2b), tests 2 and 3 have (b,)."""
     test = _check_test(test)
-    if isinstance(bearing, bool) or not isinstance(bearing, int) or not 1 <= bearing <= 4:
+    if not is_int(bearing) or not 1 <= bearing <= 4:
         raise ValueError(f"bearing must be 1, 2, 3 or 4 (IMS test {test}), got {bearing!r}")
     return (2 * bearing - 1, 2 * bearing) if test == 1 else (bearing,)
 

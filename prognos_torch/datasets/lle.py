@@ -49,7 +49,7 @@ import scipy.sparse.csgraph
 import torch
 from torch import Tensor
 
-from ..core.validation import check_real
+from ..core.validation import check_real, is_int
 
 __all__ = [
     "LLEFit",
@@ -84,11 +84,11 @@ def _check_reg(reg) -> float:
 
 
 def _check_k(n_neighbors, n_available: int, what: str) -> int:
-    if isinstance(n_neighbors, bool) or not isinstance(n_neighbors, int) or n_neighbors < 1:
+    if not is_int(n_neighbors) or n_neighbors < 1:
         raise ValueError(f"n_neighbors must be a positive int, got {n_neighbors!r}")
     if n_neighbors > n_available:
         raise ValueError(f"n_neighbors={n_neighbors} exceeds the {n_available} {what} available")
-    return n_neighbors
+    return int(n_neighbors)
 
 
 def _pow2_scaled(X: Tensor, size: Tensor) -> Tensor:
@@ -292,7 +292,7 @@ def lle_fit(
     """
     X = _check_points(X, "X")
     n = X.shape[0]
-    if isinstance(n_components, bool) or not isinstance(n_components, int) or n_components < 1:
+    if not is_int(n_components) or n_components < 1:
         raise ValueError(f"n_components must be a positive int, got {n_components!r}")
     if n_components > n - 2:
         raise ValueError(f"n_components={n_components} needs at least {n_components + 2} points")

@@ -22,6 +22,8 @@ from torch import Tensor
 
 from prognos_torch.core.validation import as_tensor
 
+from ..core.validation import is_int
+
 __all__ = [
     "embed",
     "shift_append",
@@ -36,14 +38,14 @@ __all__ = [
 
 
 def _check_m(m, T: int) -> int:
-    if isinstance(m, bool) or not isinstance(m, int) or m < 1:
+    if not is_int(m) or m < 1:
         raise ValueError(f"embedding dimension m must be a positive int, got {m!r}")
     if m >= T:
         raise ValueError(
             f"embedding dimension m={m} is too large for a series of length T={T}: "
             f"need T >= m + 1 to form at least one (window, target) pair"
         )
-    return m
+    return int(m)
 
 
 def embed(series: Tensor, m: int) -> tuple[Tensor, Tensor]:

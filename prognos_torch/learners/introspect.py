@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from ..core.validation import is_int
+
 __all__ = ["learner_dims", "learner_dtype_device"]
 
 
@@ -13,13 +15,13 @@ def learner_dims(learner) -> tuple[int | None, int | None]:
     n_in = n_out = None
     for attr in ("n_in", "n_inputs", "in_features"):
         v = getattr(learner, attr, None)
-        if isinstance(v, int) and not isinstance(v, bool):
-            n_in = v
+        if is_int(v):
+            n_in = int(v)
             break
     for attr in ("n_out", "out_features"):
         v = getattr(learner, attr, None)
-        if isinstance(v, int) and not isinstance(v, bool):
-            n_out = v
+        if is_int(v):
+            n_out = int(v)
             break
     return n_in, n_out
 

@@ -16,7 +16,7 @@ from torch import Tensor, nn
 from ..adapt.noise import MovingWindow, SageHusa
 from ..adapt.strong_tracking import StrongTracking
 from ..core.linalg import tria
-from ..core.validation import check_matches, has_missing
+from ..core.validation import check_matches, has_missing, is_int
 from ..filters.gaussian import GaussianFilter, StepInfo
 from ..filters.variants import make_filter
 from .params import ParameterBridge
@@ -295,7 +295,7 @@ def _configure(module: nn.Module, g: dict, where: str) -> _Group:
             f"jacobian must be 'auto', 'rev', 'fwd' or 'autograd', got {g['jacobian']!r}"
         )
     chunk = g["chunk_size"]
-    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
+    if chunk is not None and (not is_int(chunk) or chunk < 1):
         raise ValueError(f"chunk_size must be None or a positive int, got {chunk!r}")
     filt = _resolve_filter(g["filter"], g["fading"], g["noise"])
     _check_lr(g["lr"], filt, f"{where}['lr']")

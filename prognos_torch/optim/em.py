@@ -38,6 +38,7 @@ from torch import Tensor
 from ..core.belief import GaussianBelief
 from ..core.linalg import cho_solve_right, tria
 from ..core.model import StateSpaceModel
+from ..core.validation import is_int
 from ..filters.smooth import smooth
 from ..filters.variants import ekf
 
@@ -191,7 +192,7 @@ def em_linear_gaussian(
     if tuple(ys.shape[1:]) != bs + (m,) or ys.shape[0] < 1:
         want = ", ".join(map(str, bs + (m,)))
         raise ValueError(f"ys must have shape (T, {want}), got {tuple(getattr(ys, 'shape', ()))}")
-    if not isinstance(iterations, int) or iterations < 0:
+    if not is_int(iterations) or iterations < 0:
         raise ValueError(f"iterations must be a non-negative int, got {iterations!r}")
     dt = init.mean.dtype
     nan = torch.isnan(ys)

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
-from ..core.validation import check_finite, has_missing
+from ..core.validation import check_finite, has_missing, is_int
 from .kalman import KalmanOptimizer
 
 __all__ = ["fit", "History", "METRICS"]
@@ -327,12 +327,12 @@ def _fit(
     if not isinstance(module, nn.Module):
         raise TypeError(f"module must be a torch.nn.Module, got {type(module)}")
     for name, v in (("epochs", epochs), ("batch_size", batch_size)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        if not is_int(v) or v < 1:
             raise ValueError(f"{name} must be a positive int, got {v!r}")
     if shuffle and not isinstance(generator, torch.Generator):
         raise ValueError("shuffle=True needs an explicit torch.Generator (generator=...)")
     if early_stopping is not None:
-        if isinstance(early_stopping, bool) or not isinstance(early_stopping, int):
+        if not is_int(early_stopping):
             raise ValueError(
                 f"early_stopping must be None or a positive int, got {early_stopping!r}"
             )

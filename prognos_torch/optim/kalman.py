@@ -43,6 +43,7 @@ from ..adapt.noise import NoiseEstimatorState
 from ..adapt.strong_tracking import StrongTracking, StrongTrackingState
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
+from ..core.validation import is_int
 from ..filters.gaussian import FilterState, GaussianFilter, Taylor
 from ._buffers import batch_statistics_only, explain_transform_error, tracking_batch_norms
 from ._kalman_common import (
@@ -238,7 +239,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         chunk_size: int | None = None,
     ) -> None:
         module, groups = _resolve_groups(params, module)
-        if runs is not None and (isinstance(runs, bool) or not isinstance(runs, int) or runs < 1):
+        if runs is not None and (not is_int(runs) or runs < 1):
             raise ValueError(f"runs must be None or a positive int, got {runs!r}")
         if not isinstance(per_run_data, bool):
             raise TypeError(f"per_run_data must be a bool, got {type(per_run_data)}")

@@ -25,6 +25,7 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import NonFiniteNoiseError, StateSpaceModel
+from ..core.validation import is_int
 from ..filters.gaussian import GaussianFilter
 from ..filters.run import run
 
@@ -138,7 +139,7 @@ def fit_likelihood(
         raise TypeError(f"filt must be a GaussianFilter (e.g. filters.sckf()), got {type(filt)}")
     if not isinstance(ys, Tensor) or ys.dim() < 2 or ys.shape[0] < 1:
         raise ValueError("ys must be a tensor of shape (T, ..., m) with T >= 1")
-    if not isinstance(steps, int) or steps < 0:
+    if not is_int(steps) or steps < 0:
         raise ValueError(f"steps must be a non-negative int, got {steps!r}")
 
     if isinstance(optimizer, torch.optim.Optimizer):

@@ -37,6 +37,7 @@ import torch
 from torch import Tensor, nn
 from torch.func import functional_call, vmap
 
+from ..core.validation import is_int
 from .fit import _check_data, fit
 from .kalman import KalmanOptimizer
 from .params import ParameterBridge, Selector
@@ -74,7 +75,8 @@ run_sum_mse.handles_missing = True  # type: ignore[attr-defined]
 def _index(index, runs: int) -> Tensor | slice:
     if isinstance(index, slice):
         return index
-    if isinstance(index, int) and not isinstance(index, bool):
+    if is_int(index):
+        index = int(index)
         return slice(index, index + 1 if index != -1 else None)
     idx = torch.as_tensor(index)
     if idx.dtype == torch.bool:

@@ -13,6 +13,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from ..core.validation import is_int
 from ._arrays import write_png
 from .figures import PathLike, _np, _same_len
 
@@ -102,9 +103,9 @@ def plot_line_panels(
     xs = _np(x, "x")
     if not panels:
         raise ValueError("panels must hold at least one LinePanel")
-    if not isinstance(ncols, int) or ncols < 1:
+    if not is_int(ncols) or ncols < 1:
         raise ValueError(f"ncols must be a positive int, got {ncols!r}")
-    ncols = min(ncols, len(panels))
+    ncols = min(int(ncols), len(panels))
     nrows = -(-len(panels) // ncols)
     if figsize is None:
         figsize = (7.0 if ncols == 1 else 5.5 * ncols, 3.0 * nrows + (0.6 if title else 0.0))

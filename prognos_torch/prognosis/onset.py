@@ -60,7 +60,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.validation import as_tensor, has_missing
+from ..core.validation import as_tensor, has_missing, is_int
 
 __all__ = [
     "Baseline",
@@ -210,9 +210,9 @@ def _check_direction(direction: str) -> str:
 
 
 def _check_int(v, name: str, lo: int) -> int:
-    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+    if not is_int(v) or v < lo:
         raise ValueError(f"{name} must be an int >= {lo}, got {v!r}")
-    return v
+    return int(v)
 
 
 def _check_pos(v, name: str, allow_zero: bool = False) -> float:

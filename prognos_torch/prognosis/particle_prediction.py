@@ -20,7 +20,7 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
-from ..core.validation import check_nonneg_int, check_pos_int, check_sequence
+from ..core.validation import check_nonneg_int, check_pos_int, check_sequence, is_int
 from ..filters import ParticleFilter, ParticleState, scan
 from .paths import particle_paths
 from .rul import fault_probability
@@ -122,7 +122,7 @@ def rolling_particle_prediction(
     check_sequence(ys, "ys", model.obs_dim, state.batch_shape, nonempty=True)
     T = ys.shape[0]
     keep = sorted(set(keep))
-    if any(isinstance(k, bool) or not isinstance(k, int) for k in keep):
+    if any(not is_int(k) for k in keep):
         raise TypeError(f"keep must hold int step indices, got {keep!r}")
     if keep and not (k0 <= keep[0] and keep[-1] <= k0 + T):
         raise ValueError(f"keep must lie in [k0, k0 + T] = [{k0}, {k0 + T}], got {keep}")

@@ -40,6 +40,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..core.validation import is_int
+
 __all__ = ["RUN_TO_FAILURE_FAMILIES", "RunToFailure", "simulate_run_to_failure",
            "run_to_failure_set"]  # fmt: skip
 
@@ -218,7 +220,7 @@ def run_to_failure_set(
 ) -> dict[str, RunToFailure]:
     """``per_family`` records of each family from one generator seeded with ``seed``, named
     ``"<family> <i>"`` (the families interleaved in the stream in the order given)."""
-    if isinstance(per_family, bool) or not isinstance(per_family, int) or per_family < 1:
+    if not is_int(per_family) or per_family < 1:
         raise ValueError(f"per_family must be an int >= 1, got {per_family!r}")
     g = torch.Generator().manual_seed(int(seed))
     return {
