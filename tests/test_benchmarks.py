@@ -58,7 +58,8 @@ TINY = {
         "--filters",
         "ekf",
         "--no-single",
-    ],  # fmt: skip  (one compiled fit: the batched row's)
+        "--no-compile",
+    ],  # fmt: skip  (fit(compile=True) itself: test_compiled_steps.py; two cold compiles ~25 s)
     "bench_prognose.py": ["--rows", "400", "--repeat", "1"],
     "bench_progpy.py": [
         "--samples",
