@@ -737,7 +737,7 @@ def exponential_trend_rul(
         ("no_baseline", enough & ~base_ok),
         ("threshold_on_healthy_side", healthy_side),
         ("threshold_reached", reached & enough),
-        ("no_onset", enough & base_ok & (on.index < 0) & ~reached),
+        ("no_onset", enough & base_ok & (on.index < 0) & ~reached & ~healthy_side),
         ("glitch_in_baseline", enough & base_ok & (on.glitch_widening >= GLITCH_WIDENING)),
         ("few_degraded_points", has_onset & (n_deg < 3) & ~reached),
         ("nonpositive_dropped", has_onset & nonpos & ~reached),
