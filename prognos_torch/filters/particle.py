@@ -358,19 +358,33 @@ class ParticleFilter:
         generator: torch.Generator,
     ) -> ParticleState:
         """Propagate the particles through ``p(x_k | x_{k-1})``; weights unchanged (multi-step
-        prediction, paper 002 "LS-SVR STPF method for failure prognosis", step 2)."""
+        prediction, paper 002 "LS-SVR STPF method for failure prognosis", step 2).
+
+        With a Gaussian proposal (EKPF, UPF, STPF) each particle's carried Gaussian is predicted
+        by the engine as well (its factor grows by the transition and ``Q``), as in a
+        :meth:`step` whose measurement is missing: the two give the same particles and Gaussians,
+        bit for bit (the step renormalises the unchanged weights, to rounding).
+        """
         self._check_state(model, state)
         x_prev = state.particles
         check_generator(generator, x_prev)
         bs = state.batch_shape
         u = check_control(u, model.control_dim, bs, x_prev)
         u_p = None if u is None else u if u.dim() == 1 else u.unsqueeze(-2)
-        pn = _noise(model, k, bs, x_prev)
+        if state.proposal is None:
+            pn = _noise(model, k, bs, x_prev)
+            eps = standard_normal(x_prev.shape, generator, x_prev.dtype, x_prev.device)
+            _, x = self._transition_sample(model, x_prev, u_p, k, pn, eps)
+            return ParticleState(x, state.log_weights, None)
+        setup = self._setup(model, bs, x_prev, k)
+        pn = setup.noise if setup.noise is not None else _noise(model, k, bs, x_prev, True)
         eps = standard_normal(x_prev.shape, generator, x_prev.dtype, x_prev.device)
-        _, x = self._transition_sample(model, x_prev, u_p, k, pn, eps)
-        fs = state.proposal
-        if fs is not None:
-            fs = replace(fs, belief=GaussianBelief(x, fs.belief.chol))
+        y = torch.full((*bs, model.obs_dim), math.nan, dtype=x_prev.dtype, device=x_prev.device)
+        args = (setup, model, state, y, torch.zeros_like(y), u, u_p, k, pn, eps, setup.yes_flag,
+                True)  # fmt: skip
+        x, _, fs, _, _, eng, checks = self._propose_gaussian(*args)
+        if checks and not all_finite(torch.cat(checks)):  # test each Gaussian, as a step does
+            x, _, fs, _, _, _, _ = self._propose_gaussian(*args, eng)
         return ParticleState(x, state.log_weights, fs)
 
     def _propose_gaussian(
