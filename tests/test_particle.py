@@ -922,3 +922,68 @@ def test_log_weights_given_by_hand_must_be_a_normalised_distribution():
             pf.step(model, ParticleState(state.particles, bad), y, generator=gen(2))
         with pytest.raises(ValueError, match=f"state.log_weights.*{msg}"):
             pf.run(model, ParticleState(state.particles, bad), y[None], generator=gen(2))
+
+
+def _two_sensor_model(rows):
+    """The 2-D model of _lgssm_2d seen by two sensors (rows ``rows`` of H, R, r)."""
+    F, _, LQ, _, q, _, m0, P0 = _lgssm_2d()
+    H = np.array([[1.0, 0.5], [0.3, -1.0]])
+    LR = np.array([[0.6, 0.0], [0.2, 0.5]])
+    r = np.array([0.1, -0.2])
+    R = LR @ LR.T
+    Hs, Rs, rs = H[rows], R[np.ix_(rows, rows)], r[rows]
+    model = linear_gaussian_model(t(F), t(Hs), t(LQ), t(np.linalg.cholesky(Rs)), q=t(q), r=t(rs))
+    return model, GaussianBelief.from_cov(t(m0), t(P0)), F, LQ, q
+
+
+@pytest.mark.parametrize("factory", [sir, ekpf, upf, stpf])
+def test_a_partly_missing_vector_weighs_by_its_observed_components(factory):
+    """A partly NaN measurement was treated as missing (propagate only). The second sensor
+    silent throughout: the run equals the filter on the first sensor's model (its row of H, r
+    and R_00), draw for draw, to rounding. STPF: strong tracking skips a partly observed vector,
+    as in the Gaussian filters (lambda = 1), so it equals the EKPF on the first sensor."""
+    full, b0, *_ = _two_sensor_model([0, 1])
+    first, *_ = _two_sensor_model([0])
+    ys = t(_simulate(*_lgssm_2d()[:1], np.array([[1.0, 0.5]]), *_lgssm_2d()[2:3],
+                     np.array([[0.6]]), *_lgssm_2d()[4:5], np.array([0.1]), *_lgssm_2d()[6:], 25,
+                     seed=4))  # fmt: skip
+    y2 = torch.cat([ys, torch.full_like(ys, math.nan)], -1)
+    pf = factory(200)
+    a = pf.run(full, b0, y2, generator=gen(1), keep_particles=True)
+    if factory is stpf:
+        pf = ekpf(200, resample_threshold=pf.resample_threshold)
+    b = pf.run(first, b0, ys, generator=gen(1), keep_particles=True)
+    assert not bool(a.missing.any()) and torch.equal(a.resampled, b.resampled)
+    for name in ("means", "log_likelihoods", "particles", "log_weights", "fading_factors"):
+        torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=1e-9, atol=1e-11)
+
+
+def test_partly_missing_runs_in_a_batch_get_the_observed_density_in_one_step():
+    """Three runs, one step: both sensors, the second only, neither. The weights are the prior
+    weights times N(y_o; H_o x + r_o, R_oo) of each run's own observed part (closed form), the
+    log-likelihood their log-sum; the silent run keeps its weights and is flagged missing."""
+    model, b0, *_ = _two_sensor_model([0, 1])
+    H = np.array([[1.0, 0.5], [0.3, -1.0]])
+    LR = np.array([[0.6, 0.0], [0.2, 0.5]])
+    R, r = LR @ LR.T, np.array([0.1, -0.2])
+    pf = sir(300)
+    b3 = GaussianBelief.from_cov(b0.mean.expand(3, 2), b0.cov.expand(3, 2, 2))
+    state = pf.init(model, b3, generator=gen(0))
+    state, _ = pf.step(model, state, t([[0.4, 0.1], [0.2, -0.3], [0.9, 0.0]]), k=1,
+                       generator=gen(1))  # fmt: skip
+    y = t([[0.5, -0.2], [math.nan, 0.3], [math.nan, math.nan]])
+    new, info = pf.step(model, state, y, k=2, generator=gen(2))
+    assert info.missing.tolist() == [False, False, True]
+    x = info.particles.numpy()  # (3, N, 2), before resampling
+    lw0 = state.log_weights.numpy()
+    for run, rows in ((0, [0, 1]), (1, [1])):
+        e = y.numpy()[run, rows] - (x[run] @ H[rows].T + r[rows])
+        Ro = R[np.ix_(rows, rows)]
+        quad = np.einsum("ni,ij,nj->n", e, np.linalg.inv(Ro), e)
+        logp = -0.5 * (quad + len(rows) * math.log(2 * math.pi) + np.linalg.slogdet(Ro)[1])
+        want_ll = np.logaddexp.reduce(lw0[run] + logp)
+        assert float(info.log_likelihood[run]) == pytest.approx(want_ll, abs=1e-10)
+        np.testing.assert_allclose(info.log_weights[run].numpy(), lw0[run] + logp - want_ll,
+                                   atol=1e-10)  # fmt: skip
+    np.testing.assert_allclose(info.log_weights[2].numpy(), lw0[2], atol=1e-14)
+    assert float(info.log_likelihood[2]) == 0.0

@@ -11,6 +11,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
+from ..core.linalg import tria
 from ..core.model import Noise, StateSpaceModel
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -114,6 +115,24 @@ def _gauss_logpdf(e: Tensor, S: Tensor, k: Tensor | None = None, inv_d: Tensor |
         return -0.5 * (k + (z * z).sum(-1))
     z = torch.linalg.solve_triangular(S, e.mT, upper=False)  # (..., d, N)
     return -0.5 * (k + (z * z).sum(-2))
+
+
+def _observed_logpdf(e: Tensor, S: Tensor, observed: Tensor) -> Tensor:
+    """``log N(e_o; 0, S_o S_o^T)`` over the observed components ``o`` of each run: the
+    residuals ``e`` ``(..., N, d)``, ``S`` ``(d, d)`` or ``(..., d, d)``, ``observed``
+    ``(..., d)`` bool. Returns ``(..., N)``.
+
+    As the Gaussian filters' update (``_blocks._observed_part``): the rows of the missing
+    components are zeroed in ``S`` and in ``e`` and unit columns ``diag(1 - o)`` appended, so
+    ``S' S'^T = R_oo (+) I`` (block diagonal up to the order; ``S' = tria(...)``, Eq. 25 of
+    paper 000). The unit block adds ``-1/2 log 2 pi`` per missing component, taken off again.
+    """
+    o = observed.to(e.dtype)
+    SR = S * o.unsqueeze(-1)
+    E = torch.diag_embed(1.0 - o)
+    Sp = tria(torch.cat([SR.expand(*E.shape[:-2], *SR.shape[-2:]), E], dim=-1))
+    n_miss = (1.0 - o).sum(-1, keepdim=True)  # (..., 1)
+    return _gauss_logpdf(e * o.unsqueeze(-2), Sp) + 0.5 * _LOG_2PI * n_miss
 
 
 def _particle_model(model: StateSpaceModel, bs_ndim: int, N: int) -> StateSpaceModel:

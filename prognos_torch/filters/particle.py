@@ -36,8 +36,10 @@ is what step 2 describes. Step 6 of the paper redraws particles from the per-par
 when resampling; that would leave the weights wrong (the draw is not from the weighted target),
 so we resample ancestors (particles, their Gaussians and fading states together) instead.
 
-Missing measurements (a ``y_k`` with NaN, per run): the particles are only propagated through
-``p(x_k | x_{k-1})`` and the weights are unchanged; the carried Gaussians are predicted.
+Missing measurements (a ``y_k`` with NaN throughout, per run): the particles are only
+propagated through ``p(x_k | x_{k-1})`` and the weights are unchanged; the carried Gaussians are
+predicted. A partly NaN ``y_k`` weights by ``p(y_{k,o} | x_k)``, the density of its observed
+components ``o`` (Gaussian, covariance ``R_oo``), and a Gaussian proposal updates with them.
 
 Robustness: a particle whose proposal Gaussian is not finite or not positive definite is drawn
 from the transition prior instead (a valid per-particle proposal; counted in
@@ -84,6 +86,7 @@ from ._particle_noise import (
     _constant_noise,
     _gauss_logpdf,
     _noise,
+    _observed_logpdf,
     _particle_model,
     _PNoise,
     _Setup,
@@ -162,7 +165,7 @@ class ParticleStepInfo:
             Gaussian proposal was invalid.
         fading_factor: ``(...)`` weighted mean of the particles' fading factors ``lambda_k``
             (1 without strong tracking).
-        missing: ``(...)`` bool.
+        missing: ``(...)`` bool: no component observed (propagated only).
         particles: ``(..., N, n)`` the weighted particle set before resampling.
         log_weights: ``(..., N)`` its normalised log-weights.
     """
@@ -340,13 +343,19 @@ class ParticleFilter:
             fq = fq + pn.q
         return fq, None if eps is None else fq + self._draw(pn, eps)
 
-    def _log_lik(self, model, x, y, u_p, k, pn: _PNoise) -> Tensor:
-        """``log p(y_k | x_k^i)`` ``(..., N)`` (paper 002 Eq. 16)."""
+    def _log_lik(self, model, x, y, u_p, k, pn: _PNoise, observed=None) -> Tensor:
+        """``log p(y_k | x_k^i)`` ``(..., N)`` (paper 002 Eq. 16); with ``observed`` ``(..., m)``
+        (some run's vector partly missing; ``y`` 0 there) the density of each run's observed
+        components, ``log p(y_{k,o} | x_k^i)``."""
         hx = model.observe(x, u_p, k)
         if pn.r is not None:
             hx = hx + pn.r
         e = (y if y.dim() == 1 else y.unsqueeze(-2)) - hx  # (one run: y broadcasts as it is)
-        return _gauss_logpdf(e, pn.noise.chol_R, pn.kR, pn.inv_dR)
+        ll = _gauss_logpdf(e, pn.noise.chol_R, pn.kR, pn.inv_dR)
+        if observed is None:
+            return ll
+        part = _observed_logpdf(e, pn.noise.chol_R, observed)
+        return torch.where(observed.all(-1).unsqueeze(-1), ll, part)
 
     def predict(
         self,
@@ -388,8 +397,9 @@ class ParticleFilter:
         return ParticleState(x, state.log_weights, fs)
 
     def _propose_gaussian(
-        self, setup, model, state, y, y_safe, u, u_p, k, pn, eps, missing, any_missing, eng=None
-    ):
+        self, setup, model, state, y, y_safe, u, u_p, k, pn, eps, missing, any_missing, eng=None,
+        observed=None,
+    ):  # fmt: skip
         """Per-particle Gaussian proposal (paper 002 STPF steps 2-3; Van der Merwe et al. 2000).
 
         Returns the new particles, the log-weight increments
@@ -456,7 +466,7 @@ class ParticleFilter:
                 ok = torch.ones((*bs, N), dtype=torch.bool, device=dev)
             use_q = ok & ~missing[..., None]
             x = torch.where(use_q[..., None], x_q, fq + self._draw(pn, eps))
-        log_lik = self._log_lik(model, x, y_safe, u_p, k, pn)
+        log_lik = self._log_lik(model, x, y_safe, u_p, k, pn, observed)
         log_trans = _gauss_logpdf(x - fq, pn.noise.chol_Q, pn.kQ, pn.inv_dQ)
         inc = log_lik + log_trans - log_q  # STPF step 3 (in log space)
         n_bad = None
@@ -515,7 +525,9 @@ class ParticleFilter:
         Args:
             model: the state-space model (additive Gaussian noise; per-step noise honoured).
             state: :class:`ParticleState` at ``k - 1``.
-            y: ``(..., m)`` measurement of each run (NaN: missing, propagate only).
+            y: ``(..., m)`` measurement of each run (NaN: missing; a run whose vector is NaN
+                throughout propagates only, a partly NaN one is weighted by the density of its
+                observed components, with which a Gaussian proposal updates).
             u: control ``(p,)`` or ``(..., p)``, or ``None``.
             k: step index passed to ``f``, ``h`` and the noise callables.
             generator: ``torch.Generator`` on the particles' device.
@@ -529,8 +541,13 @@ class ParticleFilter:
         y, any_nan = check_measurement(y, model.obs_dim, bs, x_prev, owner="particles")
         u = check_control(u, model.control_dim, bs, x_prev)
         setup = self._setup(model, bs, x_prev, k)
-        missing = torch.isnan(y).any(-1) if any_nan else None
-        return self._step(model, setup, state, y, u, k, generator, missing)
+        missing = observed = None
+        if any_nan:
+            nan = torch.isnan(y)
+            missing = nan.all(-1)
+            if bool((nan.any(-1) & ~missing).any()):
+                observed = ~nan
+        return self._step(model, setup, state, y, u, k, generator, missing, observed)
 
     def _step(
         self,
@@ -542,16 +559,20 @@ class ParticleFilter:
         k: int,
         generator: torch.Generator,
         missing: Tensor | None,
+        observed: Tensor | None = None,
     ) -> tuple[ParticleState, ParticleStepInfo]:
         """:meth:`step` on checked inputs: ``y`` in the particles' dtype, ``u`` checked,
-        ``missing`` ``(...)`` bool where some run's ``y`` has NaN (else ``None``)."""
+        ``missing`` ``(...)`` bool, the runs whose ``y`` is NaN throughout, where some entry of
+        ``y`` is NaN (else ``None``); ``observed`` ``(...)`` ``~isnan(y)`` where some run's
+        vector is partly missing (else ``None``): those runs are weighted by the density of
+        their observed components, and a Gaussian proposal updates with them."""
         x_prev, lw_prev = state.particles, state.log_weights
         bs, N = state.batch_shape, state.num_particles
         dt, dev = x_prev.dtype, x_prev.device
         u_p = None if u is None else u if u.dim() == 1 else u.unsqueeze(-2)
         any_missing = missing is not None
         if any_missing:
-            y_safe = torch.where(missing[..., None], torch.zeros_like(y), y)
+            y_safe = torch.where(torch.isnan(y), torch.zeros_like(y), y)
         else:
             missing = setup.no_flag
             y_safe = y
@@ -565,11 +586,13 @@ class ParticleFilter:
             fallback = None
             fs_new = None
             _, x = self._transition_sample(model, x_prev, u_p, k, pn, eps)
-            inc = self._log_lik(model, x, y_safe, u_p, k, pn)
+            inc = self._log_lik(model, x, y_safe, u_p, k, pn, observed)
             lam_prop = None
         else:
             args = (setup, model, state, y, y_safe, u, u_p, k, pn, eps, missing, any_missing)
-            x, inc, fs_new, fallback, lam_prop, eng, checks = self._propose_gaussian(*args)
+            x, inc, fs_new, fallback, lam_prop, eng, checks = self._propose_gaussian(
+                *args, observed=observed
+            )
 
         # missing runs: propagate only, weights unchanged
         if any_missing:
@@ -595,7 +618,9 @@ class ParticleFilter:
         collapsed = None
         if not finite and self.proposal is not None and checks is not None:
             # some proposal may be invalid: test each one, with fallbacks (same engine step)
-            x, inc, fs_new, fallback, lam_prop, eng, checks = self._propose_gaussian(*args, eng)
+            x, inc, fs_new, fallback, lam_prop, eng, checks = self._propose_gaussian(
+                *args, eng, observed=observed
+            )
             if any_missing:
                 inc = torch.where(missing[..., None], torch.zeros_like(inc), inc)
         if not finite:
@@ -755,11 +780,15 @@ class ParticleFilter:
             raise ValueError(f"ys is on {ys.device}, the particles on {like.device}")
         ys = ys.to(like.dtype)
         T = ys.shape[0]
-        miss_rows: list[bool] = [False] * T
-        miss = None
+        miss_rows: list[bool] = [False] * T  # steps with a NaN entry
+        part_rows: list[bool] = [False] * T  # steps where some run's vector is partly NaN
+        miss = observed = None
         if has_missing(ys, "ys", "measurement"):
-            miss = torch.isnan(ys).any(-1)  # (T, ...)
-            miss_rows = miss.reshape(T, -1).any(-1).tolist()
+            nan = torch.isnan(ys)
+            miss = nan.all(-1)  # (T, ...) runs with no component observed
+            miss_rows = nan.reshape(T, -1).any(-1).tolist()
+            part_rows = (nan.any(-1) & ~miss).reshape(T, -1).any(-1).tolist()
+            observed = ~nan
         if model.control_dim:
             check_sequence(us, "us", model.control_dim, bs, steps=T, shared=True)
             if us.device != like.device:
@@ -789,7 +818,8 @@ class ParticleFilter:
         def step(s: ParticleState, y: Tensor, u: Tensor | None, k: int):
             t = k - k0 - 1
             missing = miss[t] if miss_rows[t] else None  # type: ignore[index]
-            return self._step(model, setup, s, y, u, k, generator, missing)
+            obs = observed[t] if part_rows[t] else None  # type: ignore[index]
+            return self._step(model, setup, s, y, u, k, generator, missing, obs)
 
         def record(s: ParticleState, info: ParticleStepInfo) -> dict[str, Tensor | None]:
             return {
