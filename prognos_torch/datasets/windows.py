@@ -58,7 +58,12 @@ def embed(series: Tensor, m: int) -> tuple[Tensor, Tensor]:
     Returns:
         ``inputs`` of shape (T - m, m) (or (T - m, m, d)) with row i = ``[x_i, ..., x_{i+m-1}]``,
         oldest first, and ``targets`` of shape (T - m,) (or (T - m, d)) with ``x_{i+m}``.
-        Fresh tensors with the dtype and device of ``series``.
+        Fresh tensors with the dtype and device of ``series``. A NaN (missing) sample is
+        copied into every window and target it falls in: a pair with a NaN target is a
+        missing measurement to the Kalman optimisers and is left out of the gradient
+        baselines' loss; inputs with a NaN are refused by :func:`~prognos_torch.optim.fit`
+        (``train inputs X contains non-finite values``): drop those rows first
+        (``keep = ~inputs.isnan().flatten(1).any(-1)``).
     """
     x = as_tensor(series, "series")
     if x.dim() not in (1, 2):
