@@ -274,11 +274,12 @@ def test_prognose_refuses_values_whose_squares_overflow_or_underflow_as_load_ser
     assert float(load_series(np.zeros(5)).values.abs().max()) == 0.0  # zeros: not this error
 
 
-def test_numpy_integers_are_taken_where_an_int_is_asked_and_bools_are_not():
+def test_numpy_scalars_are_taken_where_a_number_is_asked_and_bools_are_not():
     """Counts from NumPy (``np.arange``, a table's column) were refused by local
     ``isinstance(v, int)`` checks (embedding dimension, LLE sizes, IMS test and bearing,
-    moving-median window, fit epochs); EM's ``iterations`` and the likelihood fit's ``steps``
-    took ``True`` as 1."""
+    moving-median window, fit epochs, particle count), and float32 scalars by
+    ``isinstance(v, (int, float))`` (a constant fading factor: a TypeError; the protocol's
+    threshold); EM's ``iterations`` and the likelihood fit's ``steps`` took ``True`` as 1."""
     from prognos_torch.datasets import bearing_channels, embed, lle_fit
     from prognos_torch.optim.em import em_linear_gaussian
     from prognos_torch.prognosis.onset import moving_median
@@ -297,6 +298,20 @@ def test_numpy_integers_are_taken_where_an_int_is_asked_and_bools_are_not():
     init = GaussianBelief(torch.zeros(1, dtype=torch.float64), eye)
     with pytest.raises(ValueError, match="iterations must be a non-negative int, got True"):
         em_linear_gaussian(eye, eye, eye, eye, init, x[:, None], iterations=True)
+    # NumPy reals (a float32 array's max, say) where a number is asked
+    from prognos_torch.filters import ekf, sir
+    from prognos_torch.prognosis.protocol import known_threshold_protocol
+
+    assert ekf(fading=np.float32(1.25)).fading == 1.25 and ekf(fading=1.25) == ekf(fading=1.25)
+    pf = sir(np.int64(10), resample_threshold=np.float32(0.5))
+    assert (pf.num_particles, pf.resample_threshold) == (10, 0.5)
+    t = torch.arange(300.0, dtype=torch.float64)
+    g = torch.Generator().manual_seed(0)
+    y = 0.1 + 0.01 * torch.randn(300, generator=g, dtype=torch.float64)
+    y = y + torch.where(t > 150, 0.02 * torch.exp((t - 150) / 30), torch.zeros_like(t))
+    a = known_threshold_protocol(t, y, threshold=np.float32(1.5))
+    b = known_threshold_protocol(t, y, threshold=float(np.float32(1.5)))
+    assert a.valid and a.t_eol == b.t_eol and torch.equal(a.times, b.times)
     fit = em_linear_gaussian(eye, eye, eye, eye, init, x[:, None], iterations=np.int64(2))
     assert torch.equal(fit.A, em_linear_gaussian(eye, eye, eye, eye, init, x[:, None],
                                                  iterations=2).A)  # fmt: skip

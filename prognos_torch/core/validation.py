@@ -20,6 +20,8 @@ from torch import Tensor
 
 __all__ = [
     "as_tensor",
+    "is_int",
+    "is_real",
     "all_finite",
     "check_finite",
     "check_chol",
@@ -156,6 +158,12 @@ def is_int(v) -> bool:
     """An integral number (``int``, ``numpy.int64``, ...), not a ``bool`` (``numpy.bool_`` is
     not integral either)."""
     return isinstance(v, numbers.Integral) and not isinstance(v, bool)
+
+
+def is_real(v) -> bool:
+    """A real number (``int``, ``float``, ``numpy.float32``, ``numpy.int64``, ...), not a
+    ``bool``."""
+    return isinstance(v, numbers.Real) and not isinstance(v, bool)
 
 
 def check_pos_int(v, name: str) -> int:

@@ -36,7 +36,7 @@ from torch import Tensor
 
 from prognos_torch.datasets.lle import LLEFit, lle_fit
 
-from ..core.validation import is_int
+from ..core.validation import is_int, is_real
 
 __all__ = [
     "FEATURE_NAMES",
@@ -318,7 +318,7 @@ class IMSFeatures:
 
     def last_days(self, span: float) -> IMSFeatures:
         """Snapshots with ``days >= days[-1] - span`` (paper 002 uses the last 12 days)."""
-        if not (isinstance(span, (int, float)) and span > 0):
+        if not (is_real(span) and span > 0):
             raise ValueError(f"span must be a positive number of days, got {span!r}")
         mask = (self.days >= self.days[-1] - span).cpu().numpy()
         return self.take(mask)

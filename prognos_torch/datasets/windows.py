@@ -22,7 +22,7 @@ from torch import Tensor
 
 from prognos_torch.core.validation import as_tensor
 
-from ..core.validation import is_int
+from ..core.validation import is_int, is_real
 
 __all__ = [
     "embed",
@@ -315,7 +315,7 @@ def chronological_split(
             f"x must be a tensor, array or sequence with a time axis, got {type(x)}"
         ) from exc
     if train_fraction is not None:
-        if not (isinstance(train_fraction, (int, float)) and 0.0 < train_fraction < 1.0):
+        if not (is_real(train_fraction) and 0.0 < train_fraction < 1.0):
             raise ValueError(f"train_fraction must lie in (0, 1), got {train_fraction!r}")
         n_train = int(math.floor(train_fraction * T))
     elif isinstance(n_train, bool) or not isinstance(n_train, (int, np.integer)):

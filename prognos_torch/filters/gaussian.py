@@ -63,7 +63,7 @@ from ..core.linalg import (
     tria,
 )
 from ..core.model import Noise, StateSpaceModel
-from ..core.validation import check_control, check_measurement
+from ..core.validation import check_control, check_measurement, is_real
 from ..quadrature import SigmaPoints
 from ._blocks import (
     FilterState,
@@ -260,7 +260,8 @@ class GaussianFilter:
     def __post_init__(self):
         if not isinstance(self.rule, (Taylor, SigmaPoints)):
             raise TypeError(f"rule must be Taylor() or a SigmaPoints rule, got {type(self.rule)}")
-        if isinstance(self.fading, (int, float)) and not isinstance(self.fading, bool):
+        if is_real(self.fading):  # a constant factor (a NumPy scalar becomes a float)
+            object.__setattr__(self, "fading", float(self.fading))
             if not 1.0 <= self.fading < float("inf"):
                 raise ValueError(
                     f"a constant fading factor must be a finite number >= 1, got {self.fading}"

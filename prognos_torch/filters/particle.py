@@ -71,6 +71,8 @@ from ..core.validation import (
     check_nonneg_int,
     check_sequence,
     has_missing,
+    is_int,
+    is_real,
 )
 from ._particle_blocks import (
     _UNIFORM_CHECK,
@@ -247,10 +249,10 @@ class ParticleFilter:
 
     def __post_init__(self):
         N = self.num_particles
-        if isinstance(N, bool) or not isinstance(N, int) or N < 1:
+        if not is_int(N) or N < 1:
             raise ValueError(f"num_particles must be a positive int, got {N!r}")
         thr = self.resample_threshold
-        if isinstance(thr, bool) or not isinstance(thr, (int, float)) or not 0.0 <= thr <= 1.0:
+        if not is_real(thr) or not 0.0 <= thr <= 1.0:
             raise ValueError(f"resample_threshold must be a number in [0, 1], got {thr!r}")
         if self.proposal is not None and not isinstance(self.proposal, GaussianFilter):
             raise TypeError(

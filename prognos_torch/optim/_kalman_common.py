@@ -16,7 +16,7 @@ from torch import Tensor, nn
 from ..adapt.noise import MovingWindow, SageHusa
 from ..adapt.strong_tracking import StrongTracking
 from ..core.linalg import tria
-from ..core.validation import check_matches, has_missing, is_int
+from ..core.validation import check_matches, has_missing, is_int, is_real
 from ..filters.gaussian import GaussianFilter, StepInfo
 from ..filters.variants import make_filter
 from .params import ParameterBridge
@@ -181,7 +181,7 @@ def _check_lr(lr, filt: GaussianFilter, where: str) -> float:
     """``lr`` as a float; it scales the measurement noise of its group (``R / lr``)."""
     if isinstance(lr, Tensor) and lr.numel() == 1:
         lr = float(lr)
-    if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not math.isfinite(lr) or lr <= 0:
+    if not is_real(lr) or not math.isfinite(lr) or lr <= 0:
         raise ValueError(
             f"{where} must be a positive finite number (the learning rate divides the "
             f"measurement noise: R / lr), got {lr!r}"

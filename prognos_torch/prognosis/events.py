@@ -29,7 +29,7 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
-from ..core.validation import check_weights
+from ..core.validation import check_weights, is_int, is_real
 from .rul import RULDistribution
 
 __all__ = ["EventPrediction", "sample_belief", "simulate_to_event"]
@@ -91,7 +91,7 @@ def sample_belief(belief: GaussianBelief, n: int, generator: torch.Generator) ->
     """
     if not isinstance(belief, GaussianBelief):
         raise TypeError(f"belief must be a GaussianBelief, got {type(belief)}")
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+    if not is_int(n) or n < 1:
         raise ValueError(f"n must be a positive int, got {n!r}")
     if not isinstance(generator, torch.Generator):
         raise TypeError(f"generator must be a torch.Generator, got {type(generator)}")
@@ -205,7 +205,7 @@ def simulate_to_event(
         if us is None:
             raise ValueError("max_steps is required when no controls are given")
         max_steps = us.shape[0]
-    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
+    if not is_int(max_steps) or max_steps < 1:
         raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
     if us is not None and us.shape[0] < max_steps:
         raise ValueError(
@@ -213,13 +213,13 @@ def simulate_to_event(
             "shape (H, ..., p) with H >= max_steps"
         )
     for name, v in (("t0", t0), ("dt", dt)):
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        if not is_real(v) or not math.isfinite(v):
             raise ValueError(f"{name} must be a finite number, got {v!r}")
     if dt <= 0:
         raise ValueError(f"dt must be positive, got {dt!r}")
     if chunk is None:
         chunk = max(2, min(32, 2**18 // max(1, x0.numel())))
-    if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
+    if not is_int(chunk) or chunk < 1:
         raise ValueError(f"chunk must be a positive int, got {chunk!r}")
     if process_noise and not isinstance(generator, torch.Generator):
         raise TypeError("process_noise=True needs a torch.Generator (generator=...)")

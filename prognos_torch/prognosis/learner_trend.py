@@ -47,7 +47,7 @@ from torch import Tensor, nn
 
 from ..core.belief import GaussianBelief
 from ..core.random import standard_normal
-from ..core.validation import broadcast_shape
+from ..core.validation import broadcast_shape, is_int, is_real
 from ..learners import ELM
 from ..optim import KalmanOptimizer
 from .trends import Passage, TrendFit, TrendPool
@@ -279,7 +279,7 @@ def fit_learner_trend(
     nz = level_fit.noise
     R = float(nz.meas) + float(level_fit.a[ok].median()) + float(nz.wander)
     # the random walk lets g drift by about two noise std over the observed span
-    if isinstance(drift, bool) or not isinstance(drift, (int, float)) or not drift >= 0:
+    if not is_real(drift) or not drift >= 0:
         raise ValueError(f"drift must be a number >= 0, got {drift!r}")
     q_c, q_b = drift * R / idx.numel(), drift * R / (idx.numel() * n_hidden / 4.0)
     Q = [q_c, q_c] + [q_b] * n_hidden
@@ -344,7 +344,7 @@ def fit_learner_trends(
     Returns:
         a :class:`~prognos_torch.prognosis.trends.TrendPool` of :class:`LearnerTrendFit`.
     """
-    if isinstance(members, bool) or not isinstance(members, int) or members < 1:
+    if not is_int(members) or members < 1:
         raise ValueError(f"members must be an int >= 1, got {members!r}")
     fits = tuple(
         fit_learner_trend(

@@ -60,7 +60,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.validation import as_tensor, has_missing, is_int
+from ..core.validation import as_tensor, has_missing, is_int, is_real
 
 __all__ = [
     "Baseline",
@@ -216,7 +216,7 @@ def _check_int(v, name: str, lo: int) -> int:
 
 
 def _check_pos(v, name: str, allow_zero: bool = False) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+    if not is_real(v) or not math.isfinite(v):
         raise ValueError(f"{name} must be a finite number, got {v!r}")
     if v < 0 or (v == 0 and not allow_zero):
         raise ValueError(f"{name} must be {'>= 0' if allow_zero else '> 0'}, got {v!r}")
@@ -312,8 +312,7 @@ def healthy_baseline(
     if glitch_limit is not None:
         glitch_limit = _check_pos(glitch_limit, "glitch_limit")
     if (
-        isinstance(fraction, bool)
-        or not isinstance(fraction, (int, float))
+        not is_real(fraction)
         or not (0.0 < fraction <= 1.0)
     ):
         raise ValueError(f"baseline fraction must be a number in (0, 1], got {fraction!r}")
@@ -411,7 +410,7 @@ def _resolve_baseline(x: Tensor, t: Tensor, baseline, sign: float) -> Baseline:
 def _after_mask(t: Tensor, after) -> Tensor:
     if after is None:
         return torch.ones_like(t, dtype=torch.bool)
-    if isinstance(after, bool) or not isinstance(after, (int, float)) or math.isnan(after):
+    if not is_real(after) or math.isnan(after):
         raise ValueError(f"after must be a time (a number) or None, got {after!r}")
     return t > float(after)
 

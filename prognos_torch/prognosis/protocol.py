@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..core.validation import is_real
 from ..metrics import prognostic_horizon
 from .onset import Baseline, healthy_baseline, ksigma_onset, moving_median
 
@@ -103,7 +104,7 @@ def known_threshold_protocol(
         raise ValueError("y contains NaN; drop missing values first")
     m = moving_median(y, 5)
     if threshold is not None:
-        if isinstance(threshold, bool) or not isinstance(threshold, (int, float)):
+        if not is_real(threshold):
             raise TypeError(f"threshold must be a real number or None, got {threshold!r}")
         if not math.isfinite(threshold):
             raise ValueError(f"threshold must be finite, got {threshold!r}")

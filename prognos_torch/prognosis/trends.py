@@ -58,6 +58,7 @@ from torch import Tensor
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
 from ..core.random import standard_normal
+from ..core.validation import is_int, is_real
 from ..filters import GaussianFilter, make_filter, stekf
 from ..filters import run as run_filter
 
@@ -330,7 +331,7 @@ def simulate_first_passage(
     """
     if not isinstance(generator, torch.Generator):  # (None drew from the global stream)
         raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
-    if isinstance(n_paths, bool) or not isinstance(n_paths, int) or n_paths < 1:
+    if not is_int(n_paths) or n_paths < 1:
         raise ValueError(f"n_paths must be an int >= 1, got {n_paths!r}")
     if math.isnan(z_level):
         raise ValueError("z_level is NaN: the level to reach must be a number")
@@ -432,7 +433,7 @@ class TrendPool:
         """Crossing times of ``level`` by the members' paths from the observation ``index``
         on ``grid`` ``(J,)``, ``n_paths`` in all, at least one per member (class docstring)."""
         k = len(self.members)
-        if isinstance(n_paths, bool) or not isinstance(n_paths, int) or n_paths < k:
+        if not is_int(n_paths) or n_paths < k:
             raise ValueError(
                 f"n_paths must be an int >= the {k} members of the pool, got {n_paths!r}"
             )
@@ -521,8 +522,7 @@ class TrendFit:
         """An (oriented) indicator level in the model's measurement space; a level at or below
         the exponential's and power law's offset ``phi`` is reached at once (``-inf``)."""
         if (
-            isinstance(level, bool)
-            or not isinstance(level, (int, float))
+            not is_real(level)
             or not math.isfinite(level)
         ):
             raise ValueError(f"level must be a finite number, got {level!r}")

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import torch
 
+from ..core.validation import is_int
+
 __all__ = ["Study", "StudyConfig", "StudyResult"]
 
 
@@ -34,7 +36,7 @@ class StudyConfig:
     data: Path | None = None
 
     def __post_init__(self):
-        if self.runs is not None and (not isinstance(self.runs, int) or self.runs < 1):
+        if self.runs is not None and (not is_int(self.runs) or self.runs < 1):
             raise ValueError(f"runs must be a positive int, got {self.runs!r}")
         if self.device not in ("cpu", "cuda"):
             raise ValueError(f"device must be 'cpu' or 'cuda', got {self.device!r}")

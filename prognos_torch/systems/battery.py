@@ -55,6 +55,7 @@ from ..core.validation import (
     check_positive,
     check_std,
     diag_chol,
+    is_real,
 )
 from .noise_streams import draw_run_noise
 from .simulation import (
@@ -350,7 +351,7 @@ def battery_circuit_model(
             UKF default ``R = 1e-3 I``.
     """
     p = params or BatteryCircuitParams()
-    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not math.isfinite(dt) or dt <= 0:
+    if not is_real(dt) or not math.isfinite(dt) or dt <= 0:
         raise ValueError(f"dt must be a finite positive number, got {dt!r}")
     dt = float(dt)
     SQ = diag_chol(check_std(process_noise_std, 4, "process_noise_std"), dtype, device)
@@ -425,7 +426,7 @@ def load_controls(
     ``t_{k-1} + dt / 2``. ``load`` defaults to :func:`piecewise_load` (progpy's example load).
     """
     check_count(steps, "steps")
-    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not math.isfinite(dt) or dt <= 0:
+    if not is_real(dt) or not math.isfinite(dt) or dt <= 0:
         raise ValueError(f"dt must be a finite positive number, got {dt!r}")
     load = load or piecewise_load()
     k = torch.arange(1, steps + 1, dtype=torch.float64)

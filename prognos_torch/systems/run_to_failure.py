@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.validation import is_int
+from ..core.validation import is_int, is_real
 
 __all__ = ["RUN_TO_FAILURE_FAMILIES", "RunToFailure", "simulate_run_to_failure",
            "run_to_failure_set"]  # fmt: skip
@@ -74,7 +74,7 @@ def _uniform(g: torch.Generator, lo: float, hi: float) -> float:
 
 def _range(v, name: str, lo: float, hi: float | None = None) -> tuple[float, float]:
     if not (isinstance(v, tuple) and len(v) == 2) or not all(
-        isinstance(x, (int, float)) and not isinstance(x, bool) for x in v
+        is_real(x) for x in v
     ):
         raise TypeError(f"{name} must be a tuple (low, high) of numbers, got {v!r}")
     a, b = float(v[0]), float(v[1])
@@ -187,7 +187,7 @@ def simulate_run_to_failure(
         raise ValueError(f"family must be one of {', '.join(_FAMILY)}, got {family!r}")
     if not isinstance(generator, torch.Generator):
         raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
-    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not dt > 0:
+    if not is_real(dt) or not dt > 0:
         raise ValueError(f"dt must be a positive number, got {dt!r}")
     life_r = _range(life, "life", 0.0)
     onset_r = _range(onset, "onset", 0.0, 0.99)
