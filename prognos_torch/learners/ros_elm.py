@@ -68,7 +68,8 @@ def ros_elm_init(elms: Sequence[nn.Module], z0: Tensor, p: int, lam: float) -> R
         elms: one :class:`~prognos_torch.learners.ELM` (``n_in = p``, ``n_out = 1``) per channel.
         z0: ``(N0, ..., C)`` initial measurements, time first.
         p: embedding dimension.
-        lam: ridge parameter ``lambda >= 0`` (Eq. 52).
+        lam: ridge parameter ``lambda >= 0`` (Eq. 52); ``lam == 0`` needs ``N0 - p >= L``
+            pairs (paper 000, Step I), else ``ValueError``.
     Returns:
         The :class:`ROSELMState` after ``z0``.
     """
@@ -103,6 +104,14 @@ def ros_elm_init(elms: Sequence[nn.Module], z0: Tensor, p: int, lam: float) -> R
         X, T = _pairs(z64[..., c, :], p)  # (..., N', p), (..., N')
         H = _hidden(elm, X)  # (..., N', L)
         L = H.shape[-1]
+        if lam == 0 and X.shape[-2] < L:
+            # H^T H has rank <= N0 - p < L: its Cholesky factor can still succeed on rounding
+            # (K ~ 1e16), so the paper's condition is checked, as ELM.init_online does
+            raise ValueError(
+                f"channel {c}: z0 gives N0 - p = {X.shape[-2]} training pairs but ROS-ELM "
+                f"initialisation without regularisation needs N0 - p >= L = {L} (paper 000, "
+                "Step I); pass more samples or lam > 0"
+            )
         G = H.mT @ H + lam * torch.eye(L, dtype=H.dtype, device=H.device)
         chol, info = torch.linalg.cholesky_ex(G)
         if bool((info > 0).any()):
