@@ -179,3 +179,26 @@ def test_per_series_matrices_apply_to_their_own_series_sigma_points(rule):
     init2 = GaussianBelief(torch.zeros(3, B, n, dtype=d), torch.eye(n, dtype=d).expand(3, B, n, n))
     with pytest.raises(ValueError, match=r"A has batch dims \(4,\), the states \(3, 4"):
         run(make_filter(rule), model, init2, ys.unsqueeze(1).expand(10, 3, B, m))
+
+
+def test_em_equals_numpy_em_with_one_state_and_more_measurements_than_states():
+    # n = 1, m = 3 (the other tests have n = m = 2), a missing first and middle row
+    g = np.random.default_rng(4)
+    n, m, T = 1, 3, 8
+    A, C = np.array([[0.7]]), g.normal(size=(m, n))
+    Q, R, m0, P0 = np.eye(n) * 0.4, np.diag([0.6, 0.3, 0.5]), np.zeros(n), np.eye(n) * 1.5
+    ys = g.normal(size=(T, m))
+    ys[[0, 4]] = np.nan
+    ch = np.linalg.cholesky
+    b0 = GaussianBelief.from_cov(t(m0), t(P0))
+    fit = em_linear_gaussian(t(A), t(C), t(ch(Q)), t(ch(R)), b0, t(ys), iterations=3)
+    state, lls = (A, C, Q, R, m0, P0), []
+    for _ in range(3):
+        *state, ll = numpy_em_step(*state, ys, ("A", "C", "Q", "R", "init"))
+        lls.append(ll)
+    lls.append(rts_reference(*state, ys)["ll"])
+    An, Cn, Qn, Rn, m0n, P0n = state
+    close = lambda a, b: np.testing.assert_allclose(a.numpy(), b, atol=1e-9, rtol=0)  # noqa: E731
+    close(fit.A, An), close(fit.C, Cn), close(fit.chol_Q @ fit.chol_Q.mT, Qn)
+    close(fit.chol_R @ fit.chol_R.mT, Rn), close(fit.init.mean, m0n), close(fit.init.cov, P0n)
+    np.testing.assert_allclose(fit.trace.numpy(), lls, atol=1e-8, rtol=0)

@@ -280,3 +280,91 @@ def test_a_diverging_optimizer_instance_gets_its_last_finite_iterate_back():
         fit_likelihood(two_state_model, bad, sckf(), b0, ys, steps=1)
     with pytest.raises(TypeError, match="build_model must return a StateSpaceModel, got tuple"):
         fit_likelihood(lambda q: (1, 2), params0(), sckf(), b0, ys, steps=1)
+
+
+def test_a_divergence_in_the_last_step_gives_the_last_finite_iterate_back():
+    # the last step's result is only evaluated after the loop: there the optimiser's tensors
+    # stayed at the non-finite iterate and the exception carried no trace
+    ys = two_state_data(T=5)
+    b0 = GaussianBelief(torch.zeros(2, dtype=dt), torch.eye(2, dtype=dt))
+    p = {k: v.clone().requires_grad_(True) for k, v in params0().items()}
+    start = {k: v.detach().clone() for k, v in p.items()}
+    opt = torch.optim.SGD(list(p.values()), lr=1e6)
+    with pytest.raises(FloatingPointError, match="non-finite after 1 steps") as err:
+        fit_likelihood(two_state_model, p, sckf(), b0, ys, optimizer=opt, steps=1)
+    for k in p:
+        assert torch.equal(p[k].detach(), start[k]), k
+    with torch.no_grad():
+        ll = run(sckf(), two_state_model(p), b0, ys).log_likelihood
+    assert err.value.trace.shape == (1,)
+    torch.testing.assert_close(err.value.trace[-1], ll, rtol=1e-12, atol=0)
+    # with no step taken the message says it is the starting point
+    bad = dict(params0(), a=torch.tensor(math.nan, dtype=dt))
+    with pytest.raises(FloatingPointError, match="at the starting parameters") as err:
+        fit_likelihood(two_state_model, bad, sckf(), b0, ys, steps=0)
+    assert err.value.trace is None
+
+
+def test_a_bad_tol_is_refused():
+    # tol=-1 or NaN never stopped, a string failed inside torch after two steps
+    ys = two_state_data(T=5)
+    b0 = GaussianBelief(torch.zeros(2, dtype=dt), torch.eye(2, dtype=dt))
+    for tol in (-1.0, math.nan, "1e-3", True):
+        with pytest.raises(ValueError, match="tol must be a number >= 0 or None"):
+            fit_likelihood(two_state_model, params0(), sckf(), b0, ys, steps=3, tol=tol)
+
+
+def test_sgd_step_is_the_gradient_of_the_exact_joint_gaussian_log_likelihood():
+    # one SGD step moves each parameter by lr / T times the derivative of log p(y_{1:T}),
+    # here by central differences of the brute-force joint Gaussian (controls, a partly
+    # observed and a missing row, parameters of f, Q, R and the initial mean)
+    import numpy as np
+    from test_smooth import joint_gaussian_reference
+
+    g = np.random.default_rng(5)
+    n, m, T = 2, 3, 4
+    B, H = g.normal(size=(n, 1)), g.normal(size=(m, n))
+    us, ys = g.normal(size=(T, 1)), g.normal(size=(T, m))
+    ys[1], ys[3, 0] = np.nan, np.nan
+
+    def build(p):
+        return StateSpaceModel(
+            f=lambda x, u, k: p["A"] @ x + torch.as_tensor(B) @ u,
+            h=lambda x, u, k: torch.as_tensor(H) @ x,
+            state_dim=n,
+            obs_dim=m,
+            chol_Q=from_log_cholesky(p["lq"]),
+            chol_R=from_log_cholesky(p["lr"]),
+            control_dim=1,
+        )
+
+    def belief(p):
+        return GaussianBelief(p["m0"], 0.8 * torch.eye(n, dtype=dt))
+
+    p0 = {
+        "A": torch.tensor([[0.8, 0.2], [-0.1, 0.5]], dtype=dt),
+        "lq": torch.tensor([[-0.5, 0.0], [0.3, -0.8]], dtype=dt),
+        "lr": torch.tensor([[-0.2, 0, 0], [0.1, -0.4, 0], [0.2, 0.1, -0.3]], dtype=dt),
+        "m0": torch.tensor([0.3, -0.2], dtype=dt),
+    }
+
+    def exact(p):
+        SQ, SR = from_log_cholesky(p["lq"]).numpy(), from_log_cholesky(p["lr"]).numpy()
+        Qs, Rs = [SQ @ SQ.T] * T, [SR @ SR.T] * T
+        args = (p["A"].numpy(), H, Qs, Rs, p["m0"].numpy(), 0.64 * np.eye(n), ys)
+        return joint_gaussian_reference(*args, Bu=us @ B.T)[3]
+
+    lr, h = 1e-3, 1e-6
+    for filt in (ekf(), sckf()):
+        res = fit_likelihood(build, p0, filt, belief, torch.as_tensor(ys), torch.as_tensor(us),
+                             optimizer=lambda q: torch.optim.SGD(q, lr=lr), steps=1)  # fmt: skip
+        assert abs(float(res.trace[0]) - exact(p0)) < 1e-10
+        assert abs(float(res.trace[1]) - exact(res.params)) < 1e-10
+        for name, v in p0.items():
+            for i in range(v.numel()):
+                e = torch.zeros(v.numel(), dtype=dt)
+                e[i] = h
+                e = e.reshape(v.shape)
+                fd = (exact({**p0, name: v + e}) - exact({**p0, name: v - e})) / (2 * h)
+                step = float((res.params[name] - v).reshape(-1)[i]) * T / lr
+                assert abs(step - fd) < 1e-6 * max(1.0, abs(fd)), (name, i, step, fd)

@@ -392,3 +392,94 @@ def test_smooth_trajectory_checks_what_smooth_checks():
     rob = rukf(2.0, torch.eye(2, dtype=d))
     with pytest.raises(ValueError, match="robust filter's run"):
         smooth_trajectory(run(rob, model, init, ys, keep_steps=True), init)
+
+
+def joint_gaussian_reference(F, H, Qs, Rs, m0, P0, ys, Bu=None, qs=None, rs=None, upto=None):
+    """Brute force: the joint Gaussian of ``x_{0:T}`` and ``y_{1:T}`` of ``x_t = F x_{t-1} +
+    Bu_t + q_t + w_t``, ``y_t = H x_t + r_t + v_t`` (per-step ``Q_t``, ``R_t``), conditioned on
+    the observed components of ``ys[:upto]``. Returns the means ``(T+1, n)``, covariances
+    ``(T+1, n, n)``, ``Cov(x_t, x_{t-1})`` ``(T, n, n)`` and ``log p(y_obs)``."""
+    T, m = ys.shape
+    n = m0.size
+    Lx, c = [np.eye(n, n * (T + 1))], [m0]  # x_t = Lx_t [x_0 - m0, w_1..w_T] + c_t
+    for k in range(T):
+        L = F @ Lx[-1]
+        L[:, n * (k + 1) : n * (k + 2)] += np.eye(n)
+        Lx.append(L)
+        c.append(F @ c[-1] + (0 if Bu is None else Bu[k]) + (0 if qs is None else qs[k]))
+    Lx, mX = np.vstack(Lx), np.concatenate(c)
+    Pz = np.zeros((n * (T + 1),) * 2)
+    for k, P in enumerate([P0, *Qs]):
+        Pz[n * k : n * (k + 1), n * k : n * (k + 1)] = P
+    PX = Lx @ Pz @ Lx.T
+    Hb = np.kron(np.eye(T + 1), H)[m:]
+    mY = Hb @ mX + (0 if rs is None else np.concatenate(rs))
+    PY = Hb @ PX @ Hb.T
+    for k, R in enumerate(Rs):
+        PY[m * k : m * (k + 1), m * k : m * (k + 1)] += R
+    y = ys.copy()
+    if upto is not None:
+        y[upto:] = np.nan
+    o = ~np.isnan(y.reshape(-1))
+    S, e = PY[np.ix_(o, o)], y.reshape(-1)[o] - mY[o]
+    K = np.linalg.solve(S, Hb[o] @ PX).T
+    mean, cov = mX + K @ e, PX - K @ Hb[o] @ PX
+    ll = -0.5 * (
+        o.sum() * math.log(2 * math.pi) + np.linalg.slogdet(S)[1] + e @ np.linalg.solve(S, e)
+    )
+    blk = lambda i, j: cov[n * i : n * (i + 1), n * j : n * (j + 1)]  # noqa: E731
+    return (
+        mean.reshape(T + 1, n),
+        np.array([blk(k, k) for k in range(T + 1)]),
+        np.array([blk(k, k - 1) for k in range(1, T + 1)]),
+        ll,
+    )
+
+
+def test_rts_and_fixed_lag_equal_joint_gaussian_conditioning_with_controls_and_step_noise():
+    # x_{0:T}, y_{1:T} as one Gaussian, conditioned exactly: controls, per-step (callable)
+    # Q_k, R_k and noise means, k0 > 0, m > n, rows missing (first, last) and partly observed
+    g = np.random.default_rng(11)
+    n, m, T, k0 = 2, 3, 5, 4
+    F, H, B = 0.6 * g.normal(size=(n, n)), g.normal(size=(m, n)), g.normal(size=(n, 1))
+    SQs = np.tril(g.normal(size=(T, n, n))) * 0.4 + 0.3 * np.eye(n)
+    SRs = np.tril(g.normal(size=(T, m, m))) * 0.3 + 0.4 * np.eye(m)
+    qs, rs, us = g.normal(size=(T, n)), g.normal(size=(T, m)), g.normal(size=(T, 1))
+    m0, P0 = g.normal(size=n), np.array([[1.0, 0.3], [0.3, 0.8]])
+    ys = g.normal(size=(T, m))
+    ys[0], ys[T - 1], ys[2, 1], ys[3, [0, 2]] = np.nan, np.nan, np.nan, np.nan
+    at = lambda a: lambda k: t(a[k - k0 - 1])  # noqa: E731
+    model = StateSpaceModel(f=lambda x, u, k: t(F) @ x + t(B) @ u, h=lambda x, u, k: t(H) @ x,
+                            state_dim=n, obs_dim=m, chol_Q=at(SQs), chol_R=at(SRs), q=at(qs),
+                            r=at(rs), control_dim=1)  # fmt: skip
+    b0 = GaussianBelief.from_cov(t(m0), t(P0))
+    args = (F, H, SQs @ SQs.swapaxes(1, 2), SRs @ SRs.swapaxes(1, 2), m0, P0, ys)
+    kw = dict(Bu=us @ B.T, qs=qs, rs=rs)
+    ms, Ps, cr, ll = joint_gaussian_reference(*args, **kw)
+    close = lambda a, b: np.testing.assert_allclose(a.numpy(), b, atol=1e-10, rtol=0)  # noqa: E731
+    for filt in (ekf(), sckf()):
+        sm = smooth(filt, model, b0, t(ys), t(us), k0=k0)
+        close(sm.means, ms[1:]), close(sm.covs, Ps[1:]), close(sm.cross_covs, cr)
+        close(sm.initial.mean, ms[0]), close(sm.initial.cov, Ps[0])
+        assert abs(float(sm.log_likelihood) - ll) < 1e-10
+    fl = smooth(sckf(), model, b0, t(ys), t(us), k0=k0, lag=1)
+    for k in range(T + 1):  # x_k given y_{1:min(k+1, T)}
+        ms2, Ps2, cr2, _ = joint_gaussian_reference(*args, upto=min(k + 1, T), **kw)
+        mean, cov = (fl.means[k - 1], fl.covs[k - 1]) if k else (fl.initial.mean, fl.initial.cov)
+        close(mean, ms2[k]), close(cov, Ps2[k])
+        if k:
+            close(fl.cross_covs[k - 1], cr2[k - 1])
+
+
+def test_a_nan_in_the_model_is_named_as_such_not_as_a_singular_covariance():
+    # a NaN in F made the forward run NaN, and the smoother blamed a singular P_{k|k-1} and
+    # asked for more process noise
+    d = torch.float64
+    F = torch.tensor([[0.9, float("nan")], [0.0, 0.8]], dtype=d)
+    model = linear_gaussian_model(F, torch.tensor([[1.0, 0.5]], dtype=d),
+                                  0.3 * torch.eye(2, dtype=d), 0.5 * torch.eye(1, dtype=d))  # fmt: skip
+    init = GaussianBelief(torch.zeros(2, dtype=d), torch.eye(2, dtype=d))
+    ys = torch.randn(4, 1, dtype=d, generator=torch.Generator().manual_seed(0))
+    for filt in (ekf(), sckf()):
+        with pytest.raises(ValueError, match=r"run is non-finite \(NaN or inf\) from step 1 on"):
+            smooth(filt, model, init, ys)

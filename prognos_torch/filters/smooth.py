@@ -199,6 +199,14 @@ def smooth_trajectory(
     G = cho_solve_right(C, tr.pred_chols)  # (T, ..., n, n)
     bad = ~torch.isfinite(G).flatten(1).all(-1)
     if bool(bad.any()):
+        fin = [torch.isfinite(x).flatten(1).all(-1) for x in (fm[1:], fS[1:], C)]
+        nonfinite = ~(fin[0] & fin[1] & fin[2])
+        if bool(nonfinite.any()):  # (no singular covariance: the run itself holds NaN or inf)
+            t = int(nonfinite.nonzero()[0, 0])
+            raise ValueError(
+                f"the filter's run is non-finite (NaN or inf) from step {t + 1} on: check the "
+                "model's f and h and the parameters they use (a NaN there), and the belief"
+            )
         t = int(bad.nonzero()[0, 0])
         raise ValueError(
             f"the predicted covariance P_{{k|k-1}} of step {t + 1} is singular (its factor "

@@ -25,7 +25,7 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import NonFiniteNoiseError, StateSpaceModel
-from ..core.validation import is_int
+from ..core.validation import is_int, is_real
 from ..filters.gaussian import GaussianFilter
 from ..filters.run import run
 
@@ -141,6 +141,8 @@ def fit_likelihood(
         raise ValueError("ys must be a tensor of shape (T, ..., m) with T >= 1")
     if not is_int(steps) or steps < 0:
         raise ValueError(f"steps must be a non-negative int, got {steps!r}")
+    if tol is not None and (not is_real(tol) or not tol >= 0):
+        raise ValueError(f"tol must be a number >= 0 or None, got {tol!r}")
 
     if isinstance(optimizer, torch.optim.Optimizer):
         opt = optimizer
@@ -225,9 +227,18 @@ def fit_likelihood(
                 break
     with torch.no_grad():
         final = {n: p.detach().clone() for n, p in leaves.items()}
-        ll = loglik(final)
-        if not bool(torch.isfinite(ll).all()):
-            raise FloatingPointError(f"the log-likelihood became non-finite after {taken} steps")
+        try:
+            ll = loglik(final)
+            if not bool(torch.isfinite(ll).all()):
+                raise FloatingPointError(f"the log-likelihood {where()}")
+        except FloatingPointError as exc:
+            # the last step diverged: as inside the loop, the caller's tensors go back to the
+            # start of that step (the last finite iterate, trace[-1])
+            if prev is not None:
+                for n, p in leaves.items():
+                    p.copy_(prev[n])
+            exc.trace = torch.stack(trace) if trace else None
+            raise
         trace.append(ll)
         model = get_model(final)
         b0 = get_belief(final)
