@@ -131,7 +131,9 @@ def _weighted_quantile(samples: Tensor, weights: Tensor, q: float) -> Tensor:
     if not 0.0 < q <= 1.0:
         raise ValueError(f"q must lie in (0, 1], got {q}")
     s, order = samples.sort(dim=-2)  # (..., N, H)
-    w = weights.to(samples.dtype).unsqueeze(-1).expand_as(samples).gather(-2, order)
+    # The cumulative weights in float64 whatever the samples' dtype: a float32 cumsum of 1/N
+    # falls short of q = k/N by more than the 1e-12 allowance and picks the next sample.
+    w = weights.to(torch.float64).unsqueeze(-1).expand(samples.shape).gather(-2, order)
     cdf = w.cumsum(-2)
     n = samples.shape[-2]
     idx = (cdf < q - 1e-12).sum(-2, keepdim=True).clamp(max=n - 1)  # first index with cdf >= q
@@ -338,7 +340,8 @@ def particle_paths(
     check_finite(x, "particles", f"(..., N, {n})")
     check_generator(generator, x)
     batch, N = x.shape[:-2], x.shape[-2]
-    w = check_weights(weights, batch, N, x.device).to(x.dtype)
+    w64 = check_weights(weights, batch, N, x.device)  # float64, kept for the weights returned
+    w = w64.to(x.dtype)
     us = check_controls(model, us, horizon)
     out = []
     for j in range(horizon):
@@ -365,11 +368,11 @@ def particle_paths(
     lo, hi = (1.0 - level) / 2.0, (1.0 + level) / 2.0
     return SamplePaths(
         samples=samples,
-        weights=w.to(torch.float64),
+        weights=w64,
         mean=mean,
         std=std,
-        lower=_weighted_quantile(samples, w, lo),
-        upper=_weighted_quantile(samples, w, hi),
+        lower=_weighted_quantile(samples, w64, lo),
+        upper=_weighted_quantile(samples, w64, hi),
         level=level,
     )
 

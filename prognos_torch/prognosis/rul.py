@@ -74,7 +74,10 @@ def _check_samples(samples) -> Tensor:
 
 
 def _crossed(samples: Tensor, threshold: float, direction: str) -> Tensor:
-    # Failure region Omega_0 (paper 002): reaching the threshold counts as failure.
+    # Failure region Omega_0 (paper 002): reaching the threshold counts as failure. Compared in
+    # float64: a Python threshold against a float32 tensor is rounded to float32 first, so a
+    # value below the threshold could count as reaching it (1e8 >= 1e8 + 1 in float32).
+    samples = samples.to(torch.float64)
     return samples >= threshold if direction == "above" else samples <= threshold
 
 
