@@ -95,6 +95,15 @@ class RobustBound:
             raise ValueError(f"form must be 'scalar' or 'lemma', got {self.form!r}")
         if self.bound not in ("printed", "optimised"):
             raise ValueError(f"bound must be 'printed' or 'optimised', got {self.bound!r}")
+        # non-finite settings: NaN estimates (scalar form) or a misleading "gamma too small"
+        # (lemma form) at the first step otherwise
+        if self.bound == "printed" and not math.isfinite(float(self.gamma)):
+            raise ValueError(f"gamma must be a finite number, got {self.gamma}")
+        N = self.N if isinstance(self.N, Tensor) else torch.as_tensor(float(self.N))
+        if not bool(torch.isfinite(N).all()):
+            raise ValueError(f"N must be finite, got {self.N}")
+        if not bool(torch.isfinite(torch.as_tensor(self.M)).all()):
+            raise ValueError(f"M must be finite, got {self.M}")
         if self.bound == "optimised":
             if self.form != "scalar":
                 raise ValueError("bound='optimised' needs form='scalar' (Eq. 28-29)")
