@@ -404,3 +404,18 @@ def test_adaptation_settings_are_checked_with_the_argument_named():
         MovingWindow(window=True)
     with pytest.raises(ValueError, match="give kappa or rule"):  # kappa was ignored
         srukf(2.0, rule=unscented(0.5, 2.0, 0.0))
+
+
+@pytest.mark.parametrize("form", ["scalar", "lemma"])
+def test_robust_filter_on_a_missing_step_gives_the_prediction(form):
+    """The lemma form's prior is the inflated bound P~ (paper 004 Theorem 1); on a missing step
+    the posterior was that bound (0.13 off the prediction here), where it is the prediction
+    F P F^T + Q, as the scalar form gave."""
+    t = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
+    F, LQ = t([[0.95, 0.1], [-0.1, 0.9]]), t([[0.4, 0.0], [0.1, 0.3]])
+    model = linear_gaussian_model(F, t([[1.0, 0.5]]), LQ, t([[0.6]]))
+    b0 = GaussianBelief.from_cov(t([0.5, -0.3]), torch.diag(t([1.0, 0.5])))
+    tr = run(rukf(1.05, t([0.3]), 0.5, form=form), model, b0, t([[0.3], [0.5], [math.nan]]))
+    P1 = tr.covs[1]
+    torch.testing.assert_close(tr.covs[2], F @ P1 @ F.T + LQ @ LQ.T, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(tr.means[2], F @ tr.means[1], rtol=1e-12, atol=1e-12)

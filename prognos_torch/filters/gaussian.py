@@ -38,7 +38,8 @@ components only, exactly: the rows of the missing components are removed from th
 moments and the noise factor, and a unit block keeps the innovation factor square, so the gain
 has zero columns there and ``nis`` and the log-likelihood are those of the observed components.
 Strong tracking (fading factor 1) and the noise estimators (estimates held) skip any step that is
-not fully observed; the robust bound of paper 004 treats a partially observed vector as missing.
+not fully observed; the robust bound of paper 004 treats a partially observed vector as missing
+(the posterior of such a step is the prediction, not the lemma form's bound).
 """
 
 from __future__ import annotations
@@ -659,8 +660,13 @@ class GaussianFilter:
             mean = prior.mean + mm(K, eps.unsqueeze(-1)).squeeze(-1)  # Eq. 45
         chol = self._posterior_chol(prior, mom, K, Szz, chol_R, coef)
         if any_missing:
-            mean = torch.where(missing[..., None], prior.mean, mean)
-            chol = torch.where(missing[..., None, None], prior.chol, chol)
+            keep = prior
+            if self.robust is not None and self.robust.form == "lemma" and bool(missing.any()):
+                # the lemma form's prior is the bound P~ (paper 004 Theorem 1); a step without
+                # a measurement has no uncertainty term to bound: its posterior is the prediction
+                keep = self._prior(prop, noise.chol_Q, lam, False, noise.diag_Q)
+            mean = torch.where(missing[..., None], keep.mean, mean)
+            chol = torch.where(missing[..., None, None], keep.chol, chol)
 
         nstate = state.noise
         if nstate is None:
