@@ -76,6 +76,12 @@ def _pair(pred, target, pred_name: str, target_name: str) -> tuple[Tensor, Tenso
     return pred, target
 
 
+def _slack(x: Tensor) -> Tensor:
+    """Round-off allowance of an inclusive bound, ``1e-9 max(1, |x|)`` as in :func:`lambda_index`:
+    ``(1 - 0.2) * 3`` is ``2.4000000000000004``, which must not exclude a prediction of 2.4."""
+    return 1e-9 * x.abs().clamp_min(1.0)
+
+
 def _reduce(x: Tensor, dim) -> Tensor:
     return x.mean() if dim is None else x.mean(dim=dim)
 
@@ -215,9 +221,13 @@ def lambda_index(times: Tensor, lam: float, *, t_eol: float, t_p: float | None =
     Predictions exist only at discrete times; [S10] evaluates at the time index ``i_lambda``
     reached once the fraction lambda of ``[t_P, t_EoL]`` has elapsed, i.e. the first prediction
     made at or after ``t_lambda`` (a relative tolerance of 1e-9 absorbs round-off).
-    Raises ``ValueError`` if no prediction is made at or after ``t_lambda``.
+    Raises ``ValueError`` if no prediction is made in ``[t_lambda, t_EoL]`` (a prediction made
+    after the end of life has a negative true RUL and no place in the metrics).
     """
     times = _vec(times, "times")
+    if times.shape[0] > 1 and not bool((times[1:] > times[:-1]).all()):
+        raise ValueError("times must be strictly increasing, shape (n,)")
+    t_eol = check_scalar(t_eol, "t_eol")
     t_p = times[0].item() if t_p is None else check_scalar(t_p, "t_p")
     if not t_eol > t_p:
         raise ValueError(f"t_eol ({t_eol:g}) must be later than t_P ({t_p:g})")
@@ -229,7 +239,13 @@ def lambda_index(times: Tensor, lam: float, *, t_eol: float, t_p: float | None =
             f"no prediction at or after t_lambda = {t_lam:g} (lam = {lam}); last time is "
             f"{times[-1].item():g}"
         )
-    return int(idx[0].item())
+    i = int(idx[0].item())
+    if times[i].item() > t_eol + 1e-9 * max(1.0, abs(t_eol)):
+        raise ValueError(
+            f"no prediction in [t_lambda, t_EoL] = [{t_lam:g}, {t_eol:g}] (lam = {lam}): the "
+            f"first one at or after t_lambda is at {times[i].item():g}, after the end of life"
+        )
+    return i
 
 
 def alpha_bounds(true_rul: Tensor, alpha: float | tuple[float, float]) -> tuple[Tensor, Tensor]:
@@ -254,7 +270,8 @@ def probability_in_bounds(
     """Probability mass ``pi[r(i)]`` of each predicted RUL distribution in ``[lower_i, upper_i]``.
 
     [S09]/[S10]: the probability-mass criterion ``pi[r(i)]_{-alpha}^{+alpha} >= beta`` of PH and
-    alpha-lambda. Bounds are inclusive. Give either ``rul_samples`` ``(n, S)`` (optional
+    alpha-lambda. Bounds are inclusive (to a round-off of ``1e-9 max(1, |bound|)``, as are the
+    point criteria of PH and alpha-lambda). Give either ``rul_samples`` ``(n, S)`` (optional
     normalised ``sample_weights`` ``(n, S)``; default ``1/S``) or ``rul_pmf`` ``(n, K)`` with
     ``rul_support`` ``(K,)`` (pmf entries >= 0, row sums <= 1; missing mass is outside).
 
@@ -281,7 +298,8 @@ def probability_in_bounds(
                 "(beyond every bound): pass inf for it, and leave out paths that do not count"
             )
         w = check_weights(sample_weights, (n,), s.shape[1], s.device, name="sample_weights")
-        inside = (s >= lower[:, None]) & (s <= upper[:, None])
+        lo, hi = lower - _slack(lower), upper + _slack(upper)
+        inside = (s >= lo[:, None]) & (s <= hi[:, None])
         return (w * inside.to(torch.float64)).sum(-1)
     if sample_weights is not None:
         raise ValueError("sample_weights goes with rul_samples, not with rul_pmf")
@@ -306,7 +324,8 @@ def probability_in_bounds(
             f"rul_pmf rows must sum to at most one (within {tol:.2g}); row {i} sums to "
             f"1 + {over[i].item():.3g}"
         )
-    inside = (support[None, :] >= lower[:, None]) & (support[None, :] <= upper[:, None])
+    lo, hi = lower - _slack(lower), upper + _slack(upper)
+    inside = (support[None, :] >= lo[:, None]) & (support[None, :] <= hi[:, None])
     return (p * inside.to(torch.float64)).sum(-1)
 
 
@@ -314,7 +333,7 @@ def _within(pred_rul, lower, upper, beta, dist: dict) -> Tensor:
     """Point criterion ``lower <= r <= upper`` or mass criterion ``pi >= beta`` ([S10])."""
     if any(v is not None for v in dist.values()):
         return probability_in_bounds(lower, upper, **dist) >= beta
-    return (pred_rul >= lower) & (pred_rul <= upper)
+    return (pred_rul >= lower - _slack(lower)) & (pred_rul <= upper + _slack(upper))
 
 
 # --------------------------------------------------------------------------- prognostic metrics
@@ -353,7 +372,8 @@ def prognostic_horizon(
         rul_samples, sample_weights, rul_pmf, rul_support: see :func:`probability_in_bounds`.
 
     Returns:
-        PH in the units of ``times``; NaN when the criterion is never met.
+        PH in the units of ``times``; NaN when the criterion is never met. Prediction times
+        after ``t_eol`` raise ``ValueError``.
     """
     dist = dict(
         rul_samples=rul_samples,
@@ -366,6 +386,11 @@ def prognostic_horizon(
     times, true_rul, pred_rul, t_eol = _trajectory(
         times, true_rul, pred_rul, t_eol, need_pred=need_pred
     )
+    if times[-1].item() > t_eol + 1e-9 * max(1.0, abs(t_eol)):
+        raise ValueError(
+            f"times must not be later than t_eol ({t_eol:g}); the last is {times[-1].item():g} "
+            "(a prediction after the end of life would give a negative horizon): leave it out"
+        )
     a_minus, a_plus = _alpha(alpha)
     lower = true_rul - a_minus * t_eol
     upper = true_rul + a_plus * t_eol
