@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..core.validation import check_setting
+from ..core.validation import check_setting, is_int
 
 __all__ = ["SigmaPoints", "unscented", "julier", "cubature", "gauss_hermite"]
 
@@ -50,9 +50,13 @@ class SigmaPoints:
         object.__setattr__(self, "order", int(o))
 
     def points(self, n: int, dtype=torch.float64, device=None) -> tuple[Tensor, Tensor, Tensor]:
-        """Unit points ``xi`` ``(L, n)``, mean weights ``wm`` ``(L,)``, covariance weights ``wc``."""
-        xi, wm, wc = _points(self.kind, self.alpha, self.beta, self.kappa, self.order, n)
-        t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
+        """Unit points ``xi`` ``(L, n)``, mean weights ``wm`` ``(L,)``, covariance weights ``wc``
+        (new tensors each call: editing them leaves the rule unchanged)."""
+        if not is_int(n) or n < 1:
+            raise ValueError(f"n (the state dimension) must be an int >= 1, got {n!r}")
+        xi, wm, wc = _points(self.kind, self.alpha, self.beta, self.kappa, self.order, int(n))
+        # a copy: the cached arrays must not share memory with tensors handed out
+        t = lambda a: torch.tensor(a, dtype=dtype, device=device)  # noqa: E731
         return t(xi), t(wm), t(wc)
 
 
