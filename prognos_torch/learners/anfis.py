@@ -291,6 +291,7 @@ class ANFIS(nn.Module):
         check_forward_input(x, self.n_inputs, self.alpha)
         if x.dim() != 2:
             raise ValueError(f"x must have shape (B, {self.n_inputs}), got {tuple(x.shape)}")
+        self._check_params(params)
         alpha = params.get("alpha", self.alpha)
         nL = self.n_inputs * self.n_mfs
         premises = []  # (..., 1, n * L), membership index fastest
@@ -318,6 +319,27 @@ class ANFIS(nn.Module):
             f = (ubar @ a).reshape(B, -1, R).transpose(0, 1).reshape(*alpha.shape[:-2], B, R)
         out = (f * wbar.unsqueeze(-3)).sum(-1).mT  # Eq. 5: (..., B, n_out)
         return out, (premises, xr, G, wbar, ubar, f)
+
+    def _check_params(self, params: dict[str, Tensor]) -> None:
+        """Names and trailing shapes of batched parameters (metadata only): a premise given as
+        ``(n_mfs, n_inputs)`` or a misspelt name was used silently (wrong numbers)."""
+        if not isinstance(params, dict):
+            raise TypeError(f"params must be a dict of tensors, got {type(params).__name__}")
+        for name, v in params.items():
+            own = self._parameters.get(name)
+            if own is None:
+                raise ValueError(
+                    f"params has no ANFIS parameter {name!r}; expected any of "
+                    f"{list(self._parameters)}"
+                )
+            want = tuple(own.shape)
+            if not isinstance(v, Tensor):
+                raise TypeError(f"params[{name!r}] must be a torch.Tensor, got {type(v).__name__}")
+            if v.dim() < len(want) or tuple(v.shape[v.dim() - len(want) :]) != want:
+                raise ValueError(
+                    f"params[{name!r}] must have shape (..., {', '.join(map(str, want))}), "
+                    f"got {tuple(v.shape)}"
+                )
 
     def forward_and_jacobian(
         self, params: dict[str, Tensor], x: Tensor, names: tuple[str, ...] | None = None

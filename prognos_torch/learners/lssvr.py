@@ -251,14 +251,27 @@ class LSSVR(nn.Module):
                 raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
         if float(sigma) ** 2 == 0.0:  # (the kernel's 2 sigma^2 would be 0: every entry NaN)
             raise ValueError(f"sigma = {sigma!r} is too small: 2 sigma^2 underflows to 0")
+        check_dtype_arg(dtype)
+        # the forward evaluates 2 sigma^2 in the module dtype from exp(log_sigma): in float32 a
+        # sigma below ~1e-23 gave 0 there, and NaN (0/0) at every support vector
+        s = torch.exp(torch.tensor(math.log(sigma), dtype=dtype, device="cpu"))
+        if float(2.0 * s * s) == 0.0:
+            raise ValueError(
+                f"sigma = {sigma!r} is too small: 2 sigma^2 underflows to 0 in {dtype}"
+            )
+        # Eq. 4's 1 / C (float64, from exp(log_C)) must be finite: C = 1e-310 gave NaN alpha, b
+        C_fit = torch.tensor(math.log(C), dtype=dtype, device="cpu").double().exp()  # as in fit
+        if not bool(torch.isfinite(1.0 / C_fit)):
+            raise ValueError(f"C = {C!r} is too small: 1/C overflows float64")
         self.kernel = kernel
         self.degree = check_pos_int(degree, "degree")
-        if not isinstance(coef0, (int, float)) or not math.isfinite(float(coef0)):
+        if isinstance(coef0, bool) or not isinstance(coef0, numbers.Real):
+            raise TypeError(f"coef0 must be a real number, got {type(coef0).__name__} {coef0!r}")
+        if not math.isfinite(float(coef0)):
             raise ValueError(f"coef0 must be a finite number, got {coef0!r}")
         self.coef0 = float(coef0)
         self.n_out = check_pos_int(n_out, "n_out")
         self.trainable_hyper = bool(trainable_hyper)
-        check_dtype_arg(dtype)
         self.alpha = nn.Parameter(torch.zeros(0, n_out, dtype=dtype))
         self.b = nn.Parameter(torch.zeros(n_out, dtype=dtype))
         self.log_sigma = nn.Parameter(
