@@ -11,20 +11,12 @@ import itertools
 import numpy as np
 import pytest
 import torch
+from test_learners import _np_kernel  # paper 002, Eq. 5-7 in NumPy
 
 import prognos_torch.learners.anfis as anfis_mod
 from prognos_torch.learners import ANFIS, LSSVR
 
 F64 = torch.float64
-
-
-def _np_kernel(kind, X, Y, sigma=1.0, degree=2, coef0=1.0):
-    if kind == "linear":
-        return X @ Y.T
-    if kind == "poly":
-        return (coef0 + X @ Y.T) ** degree
-    d2 = ((X[:, None, :] - Y[None, :, :]) ** 2).sum(-1)
-    return np.exp(-d2 / (2.0 * sigma**2))
 
 
 def _np_kkt(K, y, C):
