@@ -30,8 +30,9 @@ depend on how far ahead it predicts (a lag between the model's event and the fai
 definition weighs most on a short RUL). With ``bins = B > 1`` the calibration points are cut
 into ``B`` equal-count bins of their predicted median RUL (in log; a censored median in the top
 bin), each bin gets its own ``Q``, and a new point takes the margin of its bin: the guarantee
-then holds within each bin. Every bin needs its own points (``Q`` is ``inf`` below
-``ceil(c / (1 - c))`` of them), so bins are for large calibration sets, a fleet's.
+then holds within each bin (given the bin edges, which the calibration medians set). Every
+bin needs its own points (``Q`` is ``inf`` below :func:`points_needed` of them, 9 at
+``c = 0.9``), so bins are for large calibration sets, a fleet's.
 """
 
 from __future__ import annotations
