@@ -44,6 +44,7 @@ __all__ = [
     "lambda_time",
     "lambda_index",
     "alpha_bounds",
+    "in_alpha_cone",
     "probability_in_bounds",
     "prognostic_horizon",
     "alpha_lambda",
@@ -256,6 +257,16 @@ def alpha_bounds(true_rul: Tensor, alpha: float | tuple[float, float]) -> tuple[
     true_rul = as_tensor(true_rul, "true_rul").to(torch.float64)
     a_minus, a_plus = _alpha(alpha)
     return (1.0 - a_minus) * true_rul, (1.0 + a_plus) * true_rul
+
+
+def in_alpha_cone(pred_rul: Tensor, true_rul: Tensor, alpha: float | tuple[float, float]) -> Tensor:
+    """Whether each predicted RUL lies in its alpha cone :func:`alpha_bounds` (bounds inclusive
+    to a round-off of ``1e-9 max(1, |bound|)``, as every criterion here); ``inf`` and NaN
+    predictions lie outside. Shapes broadcast; returns a bool tensor."""
+    pred = as_tensor(pred_rul, "pred_rul").to(torch.float64)
+    lower, upper = alpha_bounds(true_rul, alpha)
+    lower, upper = lower.to(pred.device), upper.to(pred.device)
+    return (pred >= lower - _slack(lower)) & (pred <= upper + _slack(upper))
 
 
 def probability_in_bounds(

@@ -162,3 +162,21 @@ def test_batched_rmse_equals_per_series_loop():
     assert bool((rmse(p, y, dim=-1) == loop).all())
     with pytest.raises(ValueError, match=r"times must be 1-D with shape \(n,\), got \(2, 5\)"):
         alpha_lambda(T.expand(2, 5), R_TRUE.expand(2, 5), R_PRED.expand(2, 5), alpha=0.2, lam=0.5)
+
+
+def test_the_protocol_cone_is_the_metrics_cone():
+    """rul_scores (the RUL studies' alpha-lambda) compared (1 - a) r <= p <= (1 + a) r in
+    floating point, so 0.8 x 3 = 2.4000000000000004 left out a prediction of 2.4, where the
+    metrics' inclusive cone takes it (in_alpha_cone)."""
+    from prognos_torch.metrics import in_alpha_cone
+    from prognos_torch.prognosis.protocol import rul_scores
+
+    times = torch.tensor([1.0, 2.0, 3.0], dtype=F64)
+    r = 5.0 - times  # 4, 3, 2
+    p = torch.tensor([4.0 * 1.3, 2.4, 2.0 * 0.69], dtype=F64)
+    want = [True, True, False]
+    assert in_alpha_cone(p, r, 0.3).tolist() == want
+    assert in_alpha_cone(p, r, 0.2).tolist() == [False, True, False]
+    s = rul_scores(times, r, p, t_onset=0.0, t_eol=5.0)
+    assert s["in_cone_0.3"].tolist() == want and s["alpha_lambda_0.2"] == 1 / 3
+    assert not bool(in_alpha_cone(torch.tensor([math.inf, math.nan], dtype=F64), 3.0, 0.3).any())

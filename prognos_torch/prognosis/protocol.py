@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from ..core.validation import is_real
-from ..metrics import prognostic_horizon
+from ..metrics import in_alpha_cone, prognostic_horizon
 from .onset import Baseline, healthy_baseline, ksigma_onset, moving_median
 
 __all__ = [
@@ -200,7 +200,7 @@ def rul_scores(
     out["abs_error"] = err
     out["rel_error"] = err / r
     for a in alphas:
-        inside = (p >= (1 - a) * r) & (p <= (1 + a) * r)
+        inside = in_alpha_cone(p, r, a)
         out[f"in_cone_{a:g}"] = inside
         out[f"alpha_lambda_{a:g}"] = float(inside.to(torch.float64).mean())
     ra = 1.0 - err / r
