@@ -32,13 +32,14 @@ evaluator, not a trainable model; re-create it after re-fitting the LS-SVR.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import math
+from collections.abc import Callable, Iterable, Sequence
 
 import torch
 from torch import Tensor, nn
 
 from ..core.kernel_exp import floored_exp
-from ..core.validation import check_forward_input
+from ..core.validation import check_forward_input, is_real
 from .lssvr import LSSVR, _blocked
 from .selection import MultiStepCV, blocked_multistep_cv
 
@@ -160,13 +161,37 @@ def lssvr_gram_fitter(
 ) -> Callable[[Tensor, Tensor], Callable[[Tensor], Tensor]]:
     """``fit(X, y) -> predict`` for the blocked cross-validation
     (:func:`~prognos_torch.learners.blocked_multistep_cv`): each fold's model is
-    :func:`fit_lssvr_gram` with these ``sigma`` and ``C``, its predictor ``(B, n_in) -> (B,)``."""
+    :func:`fit_lssvr_gram` with these ``sigma`` and ``C``, its predictor ``(B, n_in) -> (B,)``
+    in the dtype of its input (the model is fitted and evaluated in float64, so a float32
+    series cross-validates as well)."""
 
     def fit(X: Tensor, y: Tensor) -> Callable[[Tensor], Tensor]:
         g = fit_lssvr_gram(X, y, sigma=sigma, C=C)
-        return lambda Xh: g(Xh)[:, 0]
+        # (the evaluator is float64: a float32 window was refused with a dtype TypeError)
+        return lambda Xh: g(Xh.to(g.alpha.dtype))[:, 0].to(Xh.dtype)
 
     return fit
+
+
+def _check_positive(v, name: str) -> float:
+    """A finite real number ``> 0`` (``bool`` refused), as given."""
+    if not is_real(v):
+        raise TypeError(f"{name} must be a finite number > 0, got {type(v).__name__} {v!r}")
+    if not 0.0 < float(v) < math.inf:
+        raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+    return v
+
+
+def _grid_values(values, name: str) -> tuple:
+    """A non-empty tuple of finite numbers ``> 0`` (one axis of the grid)."""
+    if isinstance(values, (str, bytes)) or not isinstance(values, Iterable):
+        raise TypeError(f"{name} must be a non-empty sequence of numbers > 0, got {values!r}")
+    values = tuple(values)
+    if not values:
+        raise ValueError(f"{name} must be a non-empty sequence of numbers > 0, got ()")
+    for i, v in enumerate(values):
+        _check_positive(v, f"{name}[{i}]")
+    return values
 
 
 def lssvr_grid_cv(
@@ -190,10 +215,19 @@ def lssvr_grid_cv(
         horizon, folds, threshold, stride: as in
             :func:`~prognos_torch.learners.blocked_multistep_cv`.
         sigmas: kernel widths in units of ``scale`` (e.g. multiples of the series' std);
-            Cs: regularisations.
+            Cs: regularisations; both non-empty, of finite numbers ``> 0`` (any iterable; a
+            generator is read once).
+        scale: finite number ``> 0``.
     Returns:
         ``{(s, C): MultiStepCV}`` for the width ``s * scale``, ``s`` outer and ``C`` inner.
+    Raises:
+        ValueError / TypeError: an empty grid, or a width, regularisation or scale that is not
+            a finite number ``> 0``.
     """
+    # (a generator of Cs was exhausted by the first width: the other widths got no cells;
+    # an empty grid returned {} and a later min() over it failed without a name)
+    sigmas, Cs = _grid_values(sigmas, "sigmas"), _grid_values(Cs, "Cs")
+    _check_positive(scale, "scale")
     return {
         (s, C): blocked_multistep_cv(
             lssvr_gram_fitter(s * scale, C),
