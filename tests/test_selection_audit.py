@@ -127,3 +127,23 @@ def test_lssvr_grid_cv_rejects_a_bad_grid_by_name():
         lssvr_grid_cv(z, 3, 2, **(kw | dict(sigmas=1.0)))
     with pytest.raises(ValueError, match=r"scale must be a finite number > 0, got nan"):
         lssvr_grid_cv(z, 3, 2, **kw, scale=float("nan"))
+
+
+def test_best_setting_skips_nan_scores_keeps_grid_order_on_ties_and_names_an_empty_choice():
+    """The study chose with min(scores, key=...): a NaN first cell (no origin qualified for the
+    crossing score) was kept, since nothing compares below NaN."""
+    from prognos_torch.learners import MultiStepCV, best_setting
+
+    def cv(one, cross):
+        return MultiStepCV(one, 1.0, cross, 3, 2)
+
+    nan = float("nan")
+    scores = {(1.0, 10.0): cv(0.3, nan), (1.0, 100.0): cv(0.2, 5.0), (3.0, 10.0): cv(0.2, 4.0),
+              (3.0, 100.0): cv(0.5, 4.0)}  # fmt: skip
+    assert min(scores, key=lambda k: scores[k].crossing) == (1.0, 10.0)  # the former choice
+    assert best_setting(scores, "crossing") == (3.0, 10.0)  # lowest finite, first of the tie
+    assert best_setting(scores, "one_step") == (1.0, 100.0)
+    with pytest.raises(ValueError, match="no setting has a finite crossing score"):
+        best_setting({(1.0, 1.0): cv(0.1, nan)}, "crossing")
+    with pytest.raises(ValueError, match="criterion must be"):
+        best_setting(scores, "rmse")

@@ -41,7 +41,7 @@ import torch
 
 from prognos_torch.datasets import MinMaxScaler, embed, health_indicator
 from prognos_torch.filters import ekpf, sir, stpf
-from prognos_torch.learners import fit_lssvr_gram, lssvr_grid_cv
+from prognos_torch.learners import best_setting, fit_lssvr_gram, lssvr_grid_cv
 from prognos_torch.metrics import first_crossing_time, point_rul_scores
 from prognos_torch.prognosis import learner_transition_model, settle
 from prognos_torch.studies import Study, StudyConfig, StudyResult, method_mean, tables
@@ -158,8 +158,8 @@ def run(cfg: StudyConfig, out_dir: Path) -> StudyResult:
     grid = dict(sigmas=(3.0, 30.0), Cs=(1e3, 1e4)) if quick else dict(sigmas=SIGMA_GRID, Cs=C_GRID)
     scores = lssvr_grid_cv(z_train, m, h_sel, **grid, scale=sd, folds=CV_FOLDS,
                            threshold=THRESHOLD, stride=SELECT_STRIDE)  # fmt: skip
-    key_1 = min(scores, key=lambda k: scores[k].one_step)  # the paper's rows
-    key_ms = min(scores, key=lambda k: scores[k].crossing)  # beyond the paper: (ms) rows
+    key_1 = best_setting(scores, "one_step")  # the paper's rows
+    key_ms = best_setting(scores, "crossing")  # beyond the paper: (ms) rows
 
     # results: both protocols ((ms) filters: seed + 1000 x (filter index + 3))
     args = (case, X, y, sd, scores, runs, n_part)

@@ -11,7 +11,8 @@
 * :class:`ANFIS`: first-order Sugeno ANFIS with grid rules, Eq. 44 parameter order (paper 003).
 * :func:`blocked_cv_rmse`: blocked (time-ordered) cross-validation of any fit/predict pair;
   :func:`blocked_multistep_cv`: the same folds scoring the recursive (iterated) prediction
-  over a horizon and its time to cross a threshold.
+  over a horizon and its time to cross a threshold; :func:`best_setting` picks a grid's
+  setting by one of those scores (NaN never wins).
 
 Every ``forward`` maps ``(..., n_in) -> (..., n_out)`` with pure tensor code, so it can be used
 with ``torch.func.functional_call``, ``vmap``, ``jacrev`` and ``jacfwd``.
@@ -24,7 +25,13 @@ from .lssvr import LSSVR
 from .lssvr_fixed import FixedSizeLSSVR
 from .lssvr_gram import LSSVRGram, fit_lssvr_gram, lssvr_gram_fitter, lssvr_grid_cv
 from .ros_elm import ROSELMState, ros_elm_forecast, ros_elm_init, ros_elm_update
-from .selection import MultiStepCV, blocked_cv_rmse, blocked_folds, blocked_multistep_cv
+from .selection import (
+    MultiStepCV,
+    best_setting,
+    blocked_cv_rmse,
+    blocked_folds,
+    blocked_multistep_cv,
+)
 
 __all__ = [
     "ELM",
@@ -45,4 +52,5 @@ __all__ = [
     "blocked_folds",
     "blocked_multistep_cv",
     "MultiStepCV",
+    "best_setting",
 ]

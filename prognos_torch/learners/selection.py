@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import torch
@@ -25,7 +25,13 @@ from torch import Tensor
 
 from ..core.validation import check_pos_int
 
-__all__ = ["blocked_folds", "blocked_cv_rmse", "MultiStepCV", "blocked_multistep_cv"]
+__all__ = [
+    "blocked_folds",
+    "blocked_cv_rmse",
+    "MultiStepCV",
+    "blocked_multistep_cv",
+    "best_setting",
+]
 
 
 def blocked_folds(n: int, folds: int, device=None) -> Tensor:
@@ -250,3 +256,29 @@ def blocked_multistep_cv(
         origins=n_o,
         crossing_origins=n_c,
     )
+
+
+def best_setting(scores: Mapping, criterion: str = "one_step"):
+    """The key of ``scores`` (``{setting: MultiStepCV}``, e.g. from
+    :func:`~prognos_torch.learners.lssvr_grid_cv`) with the lowest finite ``criterion``
+    (``"one_step"``, ``"multi_step"`` or ``"crossing"``); a tie goes to the first in the
+    mapping's order. A NaN score (no origin qualified) never wins: ``min`` over the keys kept a
+    NaN first cell, since nothing compares below NaN. Raises ``ValueError`` when no setting
+    has a finite score."""
+    if criterion not in ("one_step", "multi_step", "crossing"):
+        raise ValueError(
+            f"criterion must be 'one_step', 'multi_step' or 'crossing', got {criterion!r}"
+        )
+    if not isinstance(scores, Mapping) or not scores:
+        raise ValueError("scores must be a non-empty mapping {setting: MultiStepCV}")
+    best, best_v = None, math.inf
+    for key, sc in scores.items():
+        v = float(getattr(sc, criterion))
+        if math.isfinite(v) and (best is None or v < best_v):
+            best, best_v = key, v
+    if best is None:
+        raise ValueError(
+            f"no setting has a finite {criterion} score ({len(scores)} settings; for "
+            "'crossing': no origin's window ended on the safe side of the threshold)"
+        )
+    return best
