@@ -207,7 +207,7 @@ def test_weighted_quantiles_and_summary_fields_against_numpy():
             # batched call = per-series call
             db = rul_distribution(s[b], 1.0, w[b], dt=dt, tol=0.2)
             assert torch.equal(db.first_passage, d.first_passage[b])
-            torch.testing.assert_close(db.pmf, d.pmf[b], rtol=0, atol=1e-16)
+            torch.testing.assert_close(db.pmf, d.pmf[b], rtol=0, atol=1e-15)  # (a sum order: ulps)
             torch.testing.assert_close(db.quantile(qs), got[b], equal_nan=True)
 
 
