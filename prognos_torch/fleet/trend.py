@@ -255,8 +255,10 @@ def ksigma_onset_batch(
     std = torch.sqrt((dev * dev).sum(1) / (nb - 1).clamp(min=1))
     ok = (nb >= 3) & (std > 0) & (n_obs >= 1)
     pad = torch.full((B, window - 1), math.nan, dtype=xc.dtype, device=xc.device)
-    med = torch.cat([pad, xc], 1).unfold(1, window, 1).nanmedian(-1).values  # (B, T)
-    z = sign * (med - mean[:, None]) / torch.where(ok, std, torch.ones_like(std))[:, None]
+    # the median of the series oriented to the direction (the lower middle of an even window),
+    # as prognosis.ksigma_onset: a falling series needs the documented majority past the limit
+    med = torch.cat([pad, sign * xc], 1).unfold(1, window, 1).nanmedian(-1).values  # (B, T)
+    z = (med - sign * mean[:, None]) / torch.where(ok, std, torch.ones_like(std))[:, None]
     late = valid & ~inside if skip_window else valid
     above = (late & (z > k)).to(torch.int64)
     if T < consecutive:

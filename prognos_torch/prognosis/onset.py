@@ -174,10 +174,17 @@ def ksigma_false_alarm_rate(k: float, window: int) -> tuple[float, float]:
 def cusum_arl0(drift: float, limit: float) -> float:
     """Siegmund's approximation of the in-control ARL of a one-sided CUSUM (module docstring)."""
     kappa, b = float(drift), float(limit) + 1.166
-    if kappa == 0.0:
-        return b * b
     a = 2.0 * kappa * b
-    return (math.exp(a) - a - 1.0) / (2.0 * kappa * kappa)
+    if a >= 0.5:
+        return (math.exp(a) - a - 1.0) / (2.0 * kappa * kappa)
+    # small drift: exp(a) - a - 1 cancels (to 0 below kappa ~ 1e-9); its series,
+    # (exp(a) - a - 1) / (2 kappa^2) = b^2 sum_n 2 a^n / (n + 2)!, is b^2 at kappa = 0
+    total, term, n = 1.0, 1.0, 0
+    while term > 1e-17 * total:
+        n += 1
+        term *= a / (n + 2)
+        total += term
+    return b * b * total
 
 
 def _series(values, time, name: str = "values") -> tuple[Tensor, Tensor]:
@@ -311,10 +318,7 @@ def healthy_baseline(
     x, t = _series(values, time)
     if glitch_limit is not None:
         glitch_limit = _check_pos(glitch_limit, "glitch_limit")
-    if (
-        not is_real(fraction)
-        or not (0.0 < fraction <= 1.0)
-    ):
+    if not is_real(fraction) or not (0.0 < fraction <= 1.0):
         raise ValueError(f"baseline fraction must be a number in (0, 1], got {fraction!r}")
     ok = ~torch.isnan(x)
     if int(ok.sum()) < 3:
@@ -334,7 +338,8 @@ def healthy_baseline(
         if bool(out.any()) and int((~out).sum()) >= 3:  # (a window of glitches stays as it is)
             glitches = tuple(t[inside][out].tolist())
             xb = xb[~out]
-    std = float(xb.std(correction=1))
+    # (a constant window has no spread: its std's round-off, 1e-17 for 0.1, 0.1, 0.1, is none)
+    std = 0.0 if bool((xb == xb[0]).all()) else float(xb.std(correction=1))
     q = None
     if not std > 0:
         q = _resolution(x[ok])
@@ -435,7 +440,8 @@ def ksigma_onset(
         baseline: a :class:`Baseline` (data units, as returned by :func:`healthy_baseline` on
             the series as given), or the fraction of the time span that forms it.
         k: limit in baseline standard deviations.
-        window: moving-median window ``w``.
+        window: moving-median window ``w`` (for even ``w`` the lower middle value of the series
+            oriented to ``direction``).
         consecutive: number ``c`` of consecutive exceedances (of observed samples).
         direction: ``"above"`` (degradation raises the indicator) or ``"below"``.
         after: only exceedances at times later than ``after`` count (``None``: all). The end
@@ -461,8 +467,8 @@ def ksigma_onset(
     stat = torch.full_like(x, math.nan)
     rate, bound = ksigma_false_alarm_rate(k, window)
     if obs.numel():
-        med = moving_median(x[obs], window)
-        z = sign * (med - base.mean) / base.std
+        med = moving_median(sign * x[obs], window)  # of the oriented series (lower middle)
+        z = (med - sign * base.mean) / base.std
         stat[obs] = z
         above = ((z > k) & late[obs]).to(torch.int64)
         above[: window - 1] = 0  # partial windows (1 .. w - 1 samples): not the documented rate
