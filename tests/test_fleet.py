@@ -1060,3 +1060,14 @@ def test_baseline_phi_with_a_drift_does_not_depend_on_the_shard():
         assert alone["flags"][0] == whole["flags"][i]
         for c in ("rul_median", "rul_q05", "rul_q95"):
             np.testing.assert_allclose(alone[c][0], whole[c][i], rtol=1e-12, atol=0)
+
+
+def test_a_healthy_window_of_one_repeated_value_has_no_baseline_whatever_its_rounding():
+    """A constant healthy window of 0.1s has a round-off std of 1.5e-17 (1s: exactly 0), which
+    made a band of 1e-16 around it and the first rise an onset; both now get no_baseline."""
+    t = np.arange(60.0)
+    for level in (0.1, 1.0):
+        y = np.full(60, level)
+        y[40:] = level + 0.01 * np.exp((t[40:] - 40) / 5)
+        assert fleet_rul({"asset": ["a"] * 60, "t": t, "value": y}, 5.0).row("a")["flags"] == \
+            "no_baseline", level  # fmt: skip

@@ -253,6 +253,8 @@ def ksigma_onset_batch(
     mean = xs.sum(1) / nb.clamp(min=1)
     dev = torch.where(inside, xc - mean[:, None], torch.zeros_like(xc))
     std = torch.sqrt((dev * dev).sum(1) / (nb - 1).clamp(min=1))
+    # a window of one repeated value has no spread (its round-off std, 1.5e-17 for 0.1s, none)
+    std = torch.where((inside & (xc != xc[:, :1])).any(1), std, torch.zeros_like(std))
     ok = (nb >= 3) & (std > 0) & (n_obs >= 1)
     pad = torch.full((B, window - 1), math.nan, dtype=xc.dtype, device=xc.device)
     # the median of the series oriented to the direction (the lower middle of an even window),
