@@ -521,10 +521,7 @@ class TrendFit:
     def to_z(self, level: float) -> float:
         """An (oriented) indicator level in the model's measurement space; a level at or below
         the exponential's and power law's offset ``phi`` is reached at once (``-inf``)."""
-        if (
-            not is_real(level)
-            or not math.isfinite(level)
-        ):
+        if not is_real(level) or not math.isfinite(level):
             raise ValueError(f"level must be a finite number, got {level!r}")
         if self.shape == "linear":
             return float(level)
@@ -627,7 +624,10 @@ def path_grid(t_origin: float, horizon: float, dt: float, rel: float = 0.01) -> 
         geo = float(lin[-1]) * (1.0 + rel) ** torch.arange(1, n_geo + 1, dtype=torch.float64)
         hs = torch.cat([lin, geo.clamp(max=horizon)])
         hs = torch.unique(hs)
-    return t_origin + hs
+    out = t_origin + hs
+    # a step of a few ulp of the horizon (its clamp) can vanish once added to a large origin:
+    # drop such repeated times (a grid that was strictly increasing is unchanged)
+    return torch.unique_consecutive(out)
 
 
 # --------------------------------------------------------------------------- fitting
@@ -684,7 +684,7 @@ def fit_trends(
             :func:`strong_tracking_filter`.
         noise: per shape, a fixed :class:`TrendNoise` (0-dim tensors) instead of the
             maximum-likelihood grid search.
-        prior: per shape, the initial belief on ``[L, beta]`` (default: diffuse, data-scaled).
+        prior: per shape, the initial belief on ``[L, beta, c]`` (default: diffuse, data-scaled).
 
     Returns:
         ``{shape: TrendFit}``.
@@ -710,6 +710,11 @@ def fit_trends(
         grid = TrendNoise(*(v.reshape(-1).to(z.device) for v in grid._fields()))
         if prior and shape in prior:
             m0, S0 = prior[shape].mean.to(z.device), prior[shape].chol.to(z.device)
+            if tuple(m0.shape) != (3,) or tuple(S0.shape) != (3, 3):
+                raise ValueError(
+                    f"prior of {shape!r} must be on [L, beta, c] (mean (3,), chol (3, 3)), got "
+                    f"{tuple(m0.shape)}, {tuple(S0.shape)}"
+                )
         else:
             m0, S0 = _prior(z, s)
         per.append((shape, z, s, a, grid, m0, S0))
