@@ -58,8 +58,15 @@ class GaussianBelief:
         cov = torch.as_tensor(cov, dtype=mean.dtype, device=mean.device)
         if not cov.is_floating_point():
             raise TypeError(f"mean must be a floating tensor, got {mean.dtype}")
-        # symmetric to rounding (a product A A^T), never symmetrised away
-        tol = 1e3 * torch.finfo(cov.dtype).eps * cov.abs().amax()
+        if mean.dim() < 1 or cov.dim() < 2 or cov.shape[-2:] != (mean.shape[-1],) * 2:
+            raise ValueError(
+                f"GaussianBelief.from_cov: mean must be (..., n) and cov (..., n, n), got "
+                f"{tuple(mean.shape)} and {tuple(cov.shape)}"
+            )
+        check_finite(cov, "cov")
+        # symmetric to rounding (a product A A^T), never symmetrised away; the scale of each
+        # matrix of the batch is its own
+        tol = 1e3 * torch.finfo(cov.dtype).eps * cov.abs().amax(dim=(-2, -1), keepdim=True)
         if not bool(((cov - cov.mT).abs() <= tol).all()):
             raise ValueError("cov must be symmetric positive definite, shape (..., n, n)")
         L, info = torch.linalg.cholesky_ex(0.5 * (cov + cov.mT))
@@ -86,10 +93,16 @@ class GaussianBelief:
     def expand(self, *batch_shape: int) -> GaussianBelief:
         """Repeat the belief over new leading batch dimensions (e.g. Monte Carlo runs)."""
         n = self.dim
-        return GaussianBelief(
-            self.mean.expand(*batch_shape, n).clone(),
-            self.chol.expand(*batch_shape, n, n).clone(),
-        )
+        try:
+            mean = self.mean.expand(*batch_shape, n)
+            chol = self.chol.expand(*batch_shape, n, n)
+        except RuntimeError as exc:
+            raise ValueError(
+                f"GaussianBelief.expand: batch_shape {tuple(batch_shape)} must be the new batch "
+                f"shape: new leading dimensions, then the belief's own {tuple(self.batch_shape)} "
+                "(each kept, or expanded from 1)"
+            ) from exc
+        return GaussianBelief(mean.clone(), chol.clone())
 
     def __getitem__(self, idx) -> GaussianBelief:
         if not isinstance(idx, tuple):

@@ -78,7 +78,7 @@ def _at(v, k: int):
     return v(k) if callable(v) else v
 
 
-def _apply(fn: Fn, x: Tensor, u: Tensor | None, k: int, batched: bool) -> Tensor:
+def _apply(fn: Fn, x: Tensor, u: Tensor | None, k: int, batched: bool, name: str = "f") -> Tensor:
     """Evaluate a per-sample function on ``x`` of shape ``(..., n)`` (and ``u`` ``(..., p)``)."""
     if batched:
         return fn(x, u, k)
@@ -89,6 +89,11 @@ def _apply(fn: Fn, x: Tensor, u: Tensor | None, k: int, batched: bool) -> Tensor
     else:
         uf = torch.broadcast_to(u, lead + u.shape[-1:]).reshape(-1, u.shape[-1])
         out = vmap(lambda xi, ui: fn(xi, ui, k))(xf, uf)
+    if out.dim() != 2:  # a per-sample result that is not a vector (e.g. a scalar for m = 1)
+        raise ValueError(
+            f"model.{name} returned shape {tuple(out.shape[1:])} for one sample; a per-sample "
+            f"model.{name} must return a vector ((n,) for f, (m,) for h; one output as x[0:1])"
+        )
     return out.reshape(*lead, out.shape[-1])
 
 
@@ -270,13 +275,15 @@ class StateSpaceModel:
             eye = torch.eye(self.state_dim, dtype=x.dtype, device=x.device)
             return eye.expand(*x.shape[:-1], self.state_dim, self.state_dim)
         if self.jac_f is not None:
-            return _apply_matrix(self.jac_f, x, u, k, self.batched)
+            J = _apply_matrix(self.jac_f, x, u, k, self.batched)
+            return _checked_jac(J, self.state_dim, self.state_dim, "jac_f", "(n, n)")
         return _jacobian(self.f, x, u, k, self.batched)
 
     def observation_jacobian(self, x: Tensor, u: Tensor | None, k: int) -> Tensor:
         """``dh/dx`` at ``x`` ``(..., n)``: ``(..., m, n)``."""
         if self.jac_h is not None:
-            return _apply_matrix(self.jac_h, x, u, k, self.batched)
+            J = _apply_matrix(self.jac_h, x, u, k, self.batched)
+            return _checked_jac(J, self.obs_dim, self.state_dim, "jac_h", "(m, n)")
         return _jacobian(self.h, x, u, k, self.batched)
 
 
@@ -295,7 +302,7 @@ def _evaluate(fn: Fn, name: str, x: Tensor, u, k: int, batched: bool):
     (float64 constants on float32 states, a float32 model on a float64 belief) is raised as
     such, not as torch's "expected m1 and m2 to have the same dtype"."""
     try:
-        return _apply(fn, x, u, k, batched)
+        return _apply(fn, x, u, k, batched, name)
     except RuntimeError as exc:
         text = str(exc)
         if "dtype" not in text and "scalar type" not in text:
@@ -317,6 +324,17 @@ def _checked_out(out, dim: int, fn: str, field: str) -> Tensor:
             f"input (..., state_dim)"
         )
     return out
+
+
+def _checked_jac(J, rows: int, cols: int, name: str, what: str) -> Tensor:
+    """An analytic Jacobian, refused unless it ends in ``(rows, cols)`` (a wrong shape would
+    broadcast through the filter's products into wrong numbers or a cryptic error)."""
+    if not isinstance(J, Tensor) or J.dim() < 2 or J.shape[-2:] != (rows, cols):
+        got = tuple(J.shape) if isinstance(J, Tensor) else type(J).__name__
+        raise ValueError(
+            f"model.{name} returned {got}; it must return {what} = ({rows}, {cols}) per sample"
+        )
+    return J
 
 
 def _apply_matrix(fn: Fn, x: Tensor, u: Tensor | None, k: int, batched: bool) -> Tensor:
@@ -349,12 +367,26 @@ def linear_gaussian_model(
     ``F``: ``(n, n)``, ``H``: ``(m, n)``, ``B``: ``(n, p)`` or ``None``. The filters treat it as any
     nonlinear model (sigma points / Jacobians), which is what the exactness tests rely on.
     """
+    for name, M in (("F", F), ("H", H), ("B", B)):
+        if M is not None and (not isinstance(M, Tensor) or M.dim() != 2):
+            got = tuple(M.shape) if isinstance(M, Tensor) else type(M).__name__
+            raise ValueError(f"linear_gaussian_model: {name} must be a 2-D tensor, got {got}")
     n, m = F.shape[-1], H.shape[-2]
+    if F.shape != (n, n) or H.shape != (m, n) or (B is not None and B.shape[0] != n):
+        raise ValueError(
+            f"linear_gaussian_model: F must be (n, n), H (m, n) and B (n, p), got F "
+            f"{tuple(F.shape)}, H {tuple(H.shape)}" + ("" if B is None else f", B {tuple(B.shape)}")
+        )
     if B is None:
         f = lambda x, u, k: F @ x  # noqa: E731
         p = 0
     else:
-        f = lambda x, u, k: F @ x + B @ u  # noqa: E731
+
+        def f(x, u, k):
+            if u is None:
+                raise ValueError(f"this linear_gaussian_model has B {tuple(B.shape)}: pass u (p,)")
+            return F @ x + B @ u
+
         p = B.shape[-1]
     h = lambda x, u, k: H @ x  # noqa: E731
     return StateSpaceModel(
