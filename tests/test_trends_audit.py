@@ -216,3 +216,26 @@ def test_prior_of_the_wrong_size_is_refused_by_name():
     with pytest.raises(ValueError, match=r"prior of 'exponential' must be on \[L, beta, c\]"):
         fit_trends(t, y, phi=1.0, sigma0=0.01, shapes=("exponential",),
                    prior={"exponential": two})  # fmt: skip
+
+
+def test_learner_trend_paths_refuse_a_bad_grid_count_or_generator():
+    """LearnerTrendFit.first_passage took a grid that steps back (sqrt of a negative step: a
+    path quietly counted as diverged), any n_paths, and generator=None (the global stream);
+    TrendFit.first_passage refused each."""
+    from prognos_torch.prognosis import fit_learner_trend
+
+    g = torch.Generator().manual_seed(0)
+    t = torch.sort(torch.rand(60, generator=g, dtype=torch.float64) * 10).values
+    y = 1.0 + 0.5 * torch.exp(0.3 * t + 0.05 * torch.randn(60, generator=g, dtype=torch.float64))
+    level = fit_trends(t, y, phi=1.0, sigma0=0.05, shapes=("exponential",), filter="ekf")
+    fit = fit_learner_trend(level["exponential"])
+    grid = torch.tensor([10.5, 11.0, 12.0], dtype=torch.float64)
+    ok = fit.first_passage(-1, 30.0, grid, 8, torch.Generator().manual_seed(1))
+    assert ok.times.shape == (8,)
+    back = torch.tensor([10.5, 11.0, 10.8], dtype=torch.float64)
+    with pytest.raises(ValueError, match="strictly increasing"):
+        fit.first_passage(-1, 30.0, back, 8, torch.Generator().manual_seed(1))
+    with pytest.raises(ValueError, match="n_paths must be an int >= 1"):
+        fit.first_passage(-1, 30.0, grid, 0, torch.Generator().manual_seed(1))
+    with pytest.raises(TypeError, match="generator must be a torch.Generator"):
+        fit.first_passage(-1, 30.0, grid, 8, None)

@@ -176,12 +176,23 @@ class LearnerTrendFit:
     ) -> Passage:
         """Crossing times of ``level`` (module docstring); the signature of
         :meth:`TrendFit.first_passage`."""
+        if not isinstance(generator, torch.Generator):  # (None drew from the global stream)
+            raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
+        if not is_int(n_paths) or n_paths < 1:
+            raise ValueError(f"n_paths must be an int >= 1, got {n_paths!r}")
         lf = self.level_fit
         zt = lf.to_z(level)
         i = index % lf.t.shape[0]
         t_origin = float(lf.t[i])
-        if grid.dim() != 1 or grid.numel() < 1 or not bool(grid[0] > t_origin):
-            raise ValueError("grid must be (J,) increasing times after the origin")
+        # (a step back or a NaN time gave sqrt of a negative step: a path counted as diverged)
+        if (
+            grid.dim() != 1
+            or grid.numel() < 1
+            or not bool(grid[0] > t_origin)
+            or not bool(torch.isfinite(grid).all())
+            or not bool((grid[1:] > grid[:-1]).all())
+        ):
+            raise ValueError("grid must be (J,) finite, strictly increasing times after the origin")
         dt, dev = torch.float64, lf.z.device
         pb = self.parameter_belief(i)
         eb = standard_normal((n_paths, pb.mean.shape[-1]), generator, dt, dev)
