@@ -24,13 +24,13 @@ denominator is garbled in the extracted Eq. 10-11; it is Zhou's standard form).
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from ..core.linalg import cho_solve_right, mm
+from ..core.validation import is_real
 
 __all__ = ["StrongTracking", "StrongTrackingState", "fading_factor"]
 
@@ -56,7 +56,7 @@ class StrongTracking:
             v = getattr(self, name)
             if name == "max_factor" and v is None:
                 continue
-            if isinstance(v, bool) or not isinstance(v, numbers.Real):
+            if not is_real(v):
                 raise TypeError(
                     f"{name} must be a real number (one value for every batch element), "
                     f"got {type(v).__name__}"

@@ -194,7 +194,7 @@ def check_count(value, name: str, minimum: int = 1, *, error: type = TypeError) 
 def check_seed(value, name: str = "seed") -> int:
     """A seed: a Python or NumPy integer (``bool`` refused) as an ``int``; anything else (text,
     a float) raises a ``TypeError`` naming ``name``."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):  # (np.bool_ is not)
+    if not is_int(value):  # (np.bool_ is not integral)
         raise TypeError(f"{name} must be an int, got {value!r}")
     if not -(2**63) <= int(value) < 2**64:  # torch.Generator.manual_seed's range
         raise ValueError(f"{name} must lie in [-2**63, 2**64) (a generator seed), got {value!r}")
@@ -210,11 +210,7 @@ def check_nonneg(value, name: str, *, numbers_only: bool = False) -> float:
     raises ``ValueError``.
     """
     if numbers_only:
-        if (
-            isinstance(value, bool)
-            or not isinstance(value, numbers.Real)
-            or not 0 <= value < math.inf
-        ):
+        if not is_real(value) or not 0 <= value < math.inf:
             raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
         return float(value)
     if isinstance(value, bool) or type(value).__name__ == "bool_":
@@ -330,7 +326,7 @@ def check_real(v, name: str) -> float:
     refusal is a ``ValueError`` naming ``name``."""
     if getattr(v, "ndim", None) == 0 and hasattr(v, "item"):
         v = v.item()  # (a bool or complex tensor gives a bool or complex: refused below)
-    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(float(v)):
+    if not is_real(v) or not math.isfinite(float(v)):
         raise ValueError(f"{name} must be a finite number, got {v!r}")
     return float(v)
 
@@ -340,7 +336,7 @@ def check_setting(v, name: str, *, optional: bool = False) -> None:
     every batch element: a tensor is refused), or ``None`` where ``optional``; ``ValueError``."""
     if v is None and optional:
         return
-    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
+    if not is_real(v) or not math.isfinite(v):
         raise ValueError(
             f"{name} must be a finite real number (one value for every batch element), got {v!r}"
         )

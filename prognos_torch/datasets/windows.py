@@ -20,9 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from prognos_torch.core.validation import as_tensor
-
-from ..core.validation import is_int, is_real
+from prognos_torch.core.validation import as_tensor, is_int, is_real
 
 __all__ = [
     "embed",
@@ -318,7 +316,7 @@ def chronological_split(
         if not (is_real(train_fraction) and 0.0 < train_fraction < 1.0):
             raise ValueError(f"train_fraction must lie in (0, 1), got {train_fraction!r}")
         n_train = int(math.floor(train_fraction * T))
-    elif isinstance(n_train, bool) or not isinstance(n_train, (int, np.integer)):
+    elif not is_int(n_train):
         raise ValueError(f"n_train must be an int, got {n_train!r}")
     if not 1 <= n_train <= T - 1:
         raise ValueError(
@@ -362,7 +360,7 @@ def one_step_pairs(series: Tensor, m: int, n_train: int) -> OneStepPairs:
     if x.dim() != 1:
         raise ValueError(f"series must have shape (T,), got {tuple(x.shape)}")
     inputs, targets = embed(x, m)
-    if isinstance(n_train, bool) or not isinstance(n_train, (int, np.integer)):
+    if not is_int(n_train):
         raise ValueError(f"n_train must be an int, got {n_train!r}")
     if not m < n_train < x.shape[0]:
         raise ValueError(

@@ -35,7 +35,6 @@ not a predictive covariance and is refused.
 
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass
 
 import torch
@@ -44,6 +43,7 @@ from torch import Tensor
 from ..core.belief import GaussianBelief
 from ..core.linalg import cho_solve_right, chol_downdate, safe_cholesky, symmetrize, tria
 from ..core.model import StateSpaceModel
+from ..core.validation import is_int
 from .gaussian import FilterState, GaussianFilter
 from .run import Trajectory, run
 
@@ -100,8 +100,7 @@ def _stack_opt(xs: list) -> Tensor | None:
 
 def _check_lag(lag) -> int | None:
     """``lag`` as an ``int`` (any integral number, e.g. ``numpy.int64``), or ``None``."""
-    if lag is not None and (not isinstance(lag, numbers.Integral) or isinstance(lag, bool)
-                            or lag < 0):  # fmt: skip
+    if lag is not None and (not is_int(lag) or lag < 0):
         raise ValueError(f"lag must be None or a non-negative int, got {lag!r}")
     return None if lag is None else int(lag)
 

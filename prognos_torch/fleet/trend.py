@@ -89,7 +89,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-import numbers
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -98,7 +97,7 @@ import torch
 from torch import Tensor
 
 from ..core import GaussianBelief, StateSpaceModel
-from ..core.validation import check_real
+from ..core.validation import check_real, is_int
 from ..filters import ekf, run
 from ..filters.gaussian import GaussianFilter
 from ..prognosis.onset import (
@@ -143,7 +142,7 @@ DIRECTIONS = ("above", "below")
 def check_min_rows(min_rows) -> int:
     """``min_rows``, the observed rows an asset needs for a RUL: an int >= 1 (``TypeError``,
     ``ValueError``); 0 or less would send assets without a value to the trend fit."""
-    if isinstance(min_rows, bool) or not isinstance(min_rows, numbers.Integral):
+    if not is_int(min_rows):
         raise TypeError(f"min_rows must be an int (observed rows), got {min_rows!r}")
     if min_rows < 1:
         raise ValueError(f"min_rows must be >= 1 (observed rows), got {min_rows}")

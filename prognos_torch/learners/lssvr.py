@@ -25,7 +25,6 @@ For the RBF kernel it equals Eq. 25,
 from __future__ import annotations
 
 import math
-import numbers
 import os
 
 import torch
@@ -38,6 +37,7 @@ from ..core.validation import (
     check_dtype_arg,
     check_forward_input,
     check_pos_int,
+    is_real,
 )
 
 __all__ = [
@@ -245,7 +245,7 @@ class LSSVR(nn.Module):
         if kernel not in KERNELS:
             raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
         for name, v in (("sigma", sigma), ("C", C)):
-            if isinstance(v, bool) or not isinstance(v, numbers.Real):
+            if not is_real(v):
                 raise TypeError(f"{name} must be a real number, got {type(v).__name__} {v!r}")
             if not (0.0 < float(v) < math.inf):
                 raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
@@ -265,7 +265,7 @@ class LSSVR(nn.Module):
             raise ValueError(f"C = {C!r} is too small: 1/C overflows float64")
         self.kernel = kernel
         self.degree = check_pos_int(degree, "degree")
-        if isinstance(coef0, bool) or not isinstance(coef0, numbers.Real):
+        if not is_real(coef0):
             raise TypeError(f"coef0 must be a real number, got {type(coef0).__name__} {coef0!r}")
         if not math.isfinite(float(coef0)):
             raise ValueError(f"coef0 must be a finite number, got {coef0!r}")

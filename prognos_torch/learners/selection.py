@@ -16,14 +16,13 @@ series (RMSE over the horizon) and, given a failure threshold, the predicted tim
 from __future__ import annotations
 
 import math
-import numbers
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from ..core.validation import check_pos_int
+from ..core.validation import check_pos_int, is_real
 
 __all__ = [
     "blocked_folds",
@@ -188,8 +187,7 @@ def blocked_multistep_cv(
     stride = check_pos_int(stride, "stride")
     if direction not in ("above", "below"):
         raise ValueError(f"direction must be 'above' or 'below', got {direction!r}")
-    if threshold is not None and (isinstance(threshold, bool) or not isinstance(threshold, numbers.Real)
-                                  or not math.isfinite(threshold)):  # fmt: skip
+    if threshold is not None and (not is_real(threshold) or not math.isfinite(threshold)):
         raise ValueError(f"threshold must be a finite number or None, got {threshold!r}")
     if not bool(torch.isfinite(series).all()):
         i = int((~torch.isfinite(series)).nonzero()[0, 0])

@@ -27,14 +27,13 @@ Shapes: ``samples`` is ``(..., N, H)`` (N sample paths / particles, H future ste
 from __future__ import annotations
 
 import math
-import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from ..core.validation import as_tensor, check_scalar, check_weights
+from ..core.validation import as_tensor, check_scalar, check_weights, is_int, is_real
 
 __all__ = [
     "RULDistribution",
@@ -249,7 +248,7 @@ class RULDistribution:
         steps when ``H < width``; the last ``H - B * width`` steps are dropped); ``support`` is
         the mean RUL of each bin's steps, ``pmf`` the mass of each bin.
         """
-        if isinstance(width, bool) or not isinstance(width, numbers.Integral) or width < 1:
+        if not is_int(width) or width < 1:
             raise ValueError(f"width must be a positive int (steps per bin), got {width!r}")
         width = int(width)
         n_bin = max(1, self.horizon // width)
@@ -320,10 +319,10 @@ def rul_distribution(
     direction = _check_direction(direction)
     samples = _check_samples(samples)
     thr = check_scalar(threshold, "threshold")
-    if isinstance(dt, bool) or not isinstance(dt, numbers.Real) or not math.isfinite(dt) or dt <= 0:
+    if not is_real(dt) or not math.isfinite(dt) or dt <= 0:
         raise ValueError(f"dt must be a finite positive number, got {dt!r}")
     dt = float(dt)
-    if isinstance(tol, bool) or not isinstance(tol, numbers.Real) or not 0.0 <= tol < 1.0:
+    if not is_real(tol) or not 0.0 <= tol < 1.0:
         raise ValueError(f"tol must be a number in [0, 1), got {tol!r}")
     n_paths, horizon = samples.shape[-2], samples.shape[-1]
     w = check_weights(weights, samples.shape[:-2], n_paths, samples.device)

@@ -44,7 +44,7 @@ class SigmaPoints:
         if self.kind == "unscented" and self.alpha == 0:
             raise ValueError("alpha must be nonzero (the points collapse onto the mean)")
         o = self.order
-        if isinstance(o, bool) or not isinstance(o, (int, np.integer)) or o < 2:
+        if not is_int(o) or o < 2:
             # one point per dimension is the mean alone: zero spread, no update ever
             raise ValueError(f"order must be an int >= 2, got {o!r}")
         object.__setattr__(self, "order", int(o))
