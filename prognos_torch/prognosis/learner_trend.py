@@ -50,7 +50,7 @@ from ..core.random import standard_normal
 from ..core.validation import broadcast_shape, is_int, is_real
 from ..learners import ELM
 from ..optim import KalmanOptimizer
-from .trends import Passage, TrendFit, TrendPool
+from .trends import Passage, TrendFit, TrendPool, check_path_draws
 
 __all__ = ["TimeELM", "LearnerTrendFit", "fit_learner_trend", "fit_learner_trends"]
 
@@ -176,10 +176,7 @@ class LearnerTrendFit:
     ) -> Passage:
         """Crossing times of ``level`` (module docstring); the signature of
         :meth:`TrendFit.first_passage`."""
-        if not isinstance(generator, torch.Generator):  # (None drew from the global stream)
-            raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
-        if not is_int(n_paths) or n_paths < 1:
-            raise ValueError(f"n_paths must be an int >= 1, got {n_paths!r}")
+        check_path_draws(generator, n_paths)
         lf = self.level_fit
         zt = lf.to_z(level)
         i = index % lf.t.shape[0]

@@ -298,6 +298,15 @@ def _ou_by_decay_matrix(logr: Tensor, w: Tensor, c0: Tensor) -> Tensor:
     return w @ decay.mT + torch.exp(logr)[:, None, :] * c0
 
 
+def check_path_draws(generator, n_paths) -> None:
+    """The draws of a first-passage simulation: a ``torch.Generator`` (``None`` would draw
+    from the global stream) and ``n_paths`` an int ``>= 1``."""
+    if not isinstance(generator, torch.Generator):
+        raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
+    if not is_int(n_paths) or n_paths < 1:
+        raise ValueError(f"n_paths must be an int >= 1, got {n_paths!r}")
+
+
 def simulate_first_passage(
     means: Tensor,
     chols: Tensor,
@@ -329,10 +338,7 @@ def simulate_first_passage(
         ``(first, levels)``: ``(B, N)`` int64 0-based grid step of the first crossing (``J``:
         none), and the kept levels or ``None``.
     """
-    if not isinstance(generator, torch.Generator):  # (None drew from the global stream)
-        raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
-    if not is_int(n_paths) or n_paths < 1:
-        raise ValueError(f"n_paths must be an int >= 1, got {n_paths!r}")
+    check_path_draws(generator, n_paths)
     if math.isnan(z_level):
         raise ValueError("z_level is NaN: the level to reach must be a number")
     if ds.dim() != 1 or not bool((ds > 0).all()) or not bool(torch.isfinite(ds).all()):
