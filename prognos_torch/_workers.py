@@ -14,16 +14,18 @@ from concurrent.futures.process import BrokenProcessPool
 
 import torch
 
+from .core.validation import is_int
+
 __all__ = ["check_workers", "process_map"]
 
 
 def check_workers(workers) -> int:
     """``workers`` as a count of processes: an int >= 1 (``TypeError``/``ValueError``)."""
-    if isinstance(workers, bool) or not isinstance(workers, int):
+    if not is_int(workers):
         raise TypeError(f"workers must be an int (processes), got {workers!r}")
     if workers < 1:
         raise ValueError(f"workers must be >= 1 (processes), got {workers}")
-    return workers
+    return int(workers)
 
 
 def process_map(

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from ..core.model import Noise
-from ..core.validation import check_setting
+from ..core.validation import check_setting, is_int
 
 __all__ = ["SageHusa", "MovingWindow", "NoiseEstimatorState", "UpdateContext"]
 
@@ -385,15 +385,18 @@ class MovingWindow:
     frozen: bool = False
 
     def __post_init__(self):
-        if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 1:
+        if not is_int(self.window) or self.window < 1:
             raise ValueError(f"window must be a positive int, got {self.window!r}")
         w = self.warmup
         if w is not None and (
-            isinstance(w, bool) or not isinstance(w, int) or not 1 <= w <= self.window
+            not is_int(w) or not 1 <= w <= self.window
         ):
             # 0 would average an empty window (a zero estimate, floored) after missing steps;
             # above the window length the estimates would never be used
             raise ValueError(f"warmup must be an int in [1, window={self.window}], got {w!r}")
+        object.__setattr__(self, "window", int(self.window))
+        if w is not None:
+            object.__setattr__(self, "warmup", int(w))
         bad = set(self.estimate) - {"Q", "R"}
         if bad:
             raise ValueError(f"estimate must be a subset of ('Q', 'R'), got {bad}")

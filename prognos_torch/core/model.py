@@ -25,6 +25,8 @@ import torch
 from torch import Tensor
 from torch.func import jvp, vmap
 
+from .validation import is_int
+
 __all__ = [
     "StateSpaceModel",
     "Noise",
@@ -173,10 +175,12 @@ class StateSpaceModel:
             raise TypeError("f must be a callable f(x, u, k) -> (n,) or None (random walk)")
         for name in ("state_dim", "obs_dim"):
             v = getattr(self, name)
-            if not isinstance(v, int) or v < 1:
+            if not is_int(v) or v < 1:
                 raise ValueError(f"{name} must be a positive int, got {v!r}")
-        if not isinstance(self.control_dim, int) or self.control_dim < 0:
+            object.__setattr__(self, name, int(v))
+        if not is_int(self.control_dim) or self.control_dim < 0:
             raise ValueError(f"control_dim must be a non-negative int, got {self.control_dim!r}")
+        object.__setattr__(self, "control_dim", int(self.control_dim))
         if self.f_into is not None and not (
             callable(self.f_into) and self.f is not None and self.batched
         ):

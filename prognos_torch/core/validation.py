@@ -249,16 +249,16 @@ def check_window(window, m: int, name: str = "window") -> Tensor:
 # ------------------------------------------------------------------------------ choices
 def check_level(level: float) -> float:
     """A probability ``level`` in ``(0, 1)`` (of a central band)."""
-    if isinstance(level, bool) or not isinstance(level, (int, float)) or not 0.0 < level < 1.0:
+    if not is_real(level) or not 0.0 < level < 1.0:
         raise ValueError(f"level must be a number in (0, 1), got {level!r}")
     return float(level)
 
 
 def check_channel(channel, obs_dim: int) -> int:
     """A measurement channel index in ``[0, obs_dim)``."""
-    if isinstance(channel, bool) or not isinstance(channel, int) or not 0 <= channel < obs_dim:
+    if not is_int(channel) or not 0 <= channel < obs_dim:
         raise ValueError(f"channel must be an int in [0, {obs_dim}), got {channel!r}")
-    return channel
+    return int(channel)
 
 
 def check_controls(model, us, horizon: int, name: str = "us") -> Tensor | None:
@@ -284,8 +284,8 @@ def check_index(index, n: int, name: str = "param_index") -> Tensor:
         return torch.arange(n)
     if isinstance(index, bool):
         raise TypeError(f"{name} must be an int, a slice, a sequence of ints or None")
-    if isinstance(index, int):
-        idx = [index]
+    if is_int(index):
+        idx = [int(index)]
     elif isinstance(index, slice):
         idx = list(range(n))[index]
     else:
@@ -586,11 +586,11 @@ def check_std(value, n: int, name: str) -> tuple[float, ...]:
     """A standard deviation given as one number or ``n`` numbers, finite and ``>= 0``."""
     if isinstance(value, Tensor):
         value = value.detach().cpu().reshape(-1).tolist()
-    vals = (value,) * n if isinstance(value, (int, float)) else tuple(value)
+    vals = tuple(value) if hasattr(value, "__iter__") else (value,) * n
     if len(vals) != n:
         raise ValueError(f"{name} must be a number or a sequence of {n} numbers, got {value!r}")
     for v in vals:
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
+        if not is_real(v):
             raise TypeError(f"{name} must contain real numbers, got {value!r}")
         if not math.isfinite(v) or v < 0:
             raise ValueError(f"{name} must be finite and >= 0, got {value!r}")

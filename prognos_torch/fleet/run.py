@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from .._workers import check_workers, process_map
-from ..core.validation import check_real, check_seed
+from ..core.validation import check_real, check_seed, is_int
 from ..prognosis.conformal import record_settings
 from ..workflow.data import date_after
 from .per_asset import DIRECTIONS as prognose_directions
@@ -372,8 +372,9 @@ def fleet_rul(
         check_min_rows(options["min_rows"])
     if backend not in ("local", "ray"):
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
-    if isinstance(shard_size, bool) or not isinstance(shard_size, int) or shard_size < 1:
+    if not is_int(shard_size) or shard_size < 1:
         raise ValueError(f"shard_size must be a positive int, got {shard_size!r}")
+    shard_size = int(shard_size)
     seed = check_seed(seed)
     check_workers(workers)
     if workers > 1 and backend != "local":

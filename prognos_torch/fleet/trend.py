@@ -562,8 +562,9 @@ def exponential_trend_rul(
         )
     if horizon is not None and not check_real(horizon, "horizon") > 0:
         raise ValueError(f"horizon must be a positive finite number or None, got {horizon!r}")
-    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
+    if not is_int(samples) or samples < 1:
         raise ValueError(f"samples must be a positive int, got {samples!r}")
+    samples = int(samples)
     min_rows = check_min_rows(min_rows)
     y, t, lengths = batch.values, batch.times, batch.lengths
     B, T = y.shape

@@ -38,7 +38,7 @@ from torch import Tensor
 from ..core.belief import GaussianBelief
 from ..core.linalg import cho_solve_right, tria
 from ..core.model import StateSpaceModel
-from ..core.validation import is_int
+from ..core.validation import is_int, is_real
 from ..filters.smooth import smooth
 from ..filters.variants import ekf
 
@@ -166,8 +166,7 @@ def em_linear_gaussian(
     bad = [x for x in learn if x not in _LEARNABLE]
     if bad:
         raise ValueError(f"learn may contain {_LEARNABLE}, got {bad}")
-    if tol is not None and (isinstance(tol, bool) or not isinstance(tol, (int, float))
-                            or not tol >= 0):  # fmt: skip
+    if tol is not None and (not is_real(tol) or not tol >= 0):
         raise ValueError(f"tol must be a number >= 0 or None, got {tol!r}")
     if not isinstance(init, GaussianBelief):
         raise TypeError("init must be a GaussianBelief on x_0")

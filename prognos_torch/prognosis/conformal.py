@@ -44,6 +44,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from ..core.validation import is_int, is_real
+
 __all__ = [
     "interval_scores",
     "conformal_margin",
@@ -124,15 +126,16 @@ def conformal_margin(scores, coverage: float = 0.9) -> float:
 
 
 def _check_coverage(coverage) -> None:
-    if isinstance(coverage, bool) or not isinstance(coverage, (int, float)):
+    if not is_real(coverage):
         raise TypeError(f"coverage must be a float in (0, 1), got {coverage!r}")
     if not 0.0 < coverage < 1.0:
         raise ValueError(f"coverage must lie in (0, 1), got {coverage!r}")
 
 
-def _check_bins(bins) -> None:
-    if isinstance(bins, bool) or not isinstance(bins, int) or bins < 1:
+def _check_bins(bins) -> int:
+    if not is_int(bins) or bins < 1:
         raise ValueError(f"bins must be an int >= 1, got {bins!r}")
+    return int(bins)
 
 
 def _rank(n: int, coverage: float) -> int:
@@ -376,7 +379,7 @@ def calibrate_intervals(
             )
         assets = len({g for g, k in zip(groups, ok.tolist()) if k})
     pooled = conformal_margin(scores, coverage)
-    _check_bins(bins)
+    bins = _check_bins(bins)
     if bins == 1:
         return RULCalibration(pooled, float(coverage), n, assets=assets)
     if median is None:

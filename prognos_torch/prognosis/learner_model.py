@@ -28,7 +28,7 @@ from torch.func import functional_call, jacrev, vmap
 
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
-from ..core.validation import check_finite, check_pos_int, is_int
+from ..core.validation import check_finite, check_pos_int, is_int, is_real
 from ..learners.introspect import learner_dims, learner_dtype_device
 
 __all__ = ["learner_transition_model", "window_belief"]
@@ -64,7 +64,7 @@ def _as_chol(v, size: int, name: str, dtype, device, *, newest_only: bool):
         return v
     if isinstance(v, bool):
         raise TypeError(f"{name} must be a number, a tensor or a callable, got bool")
-    if isinstance(v, (int, float)) or (isinstance(v, Tensor) and v.dim() == 0):
+    if is_real(v) or (isinstance(v, Tensor) and v.dim() == 0):
         std = float(v)
         if not math.isfinite(std) or std < 0:
             raise ValueError(f"{name} as a standard deviation must be finite and >= 0, got {std}")
@@ -236,10 +236,11 @@ def window_belief(
         raise ValueError(
             f"series must be a tensor of shape (T,), got {getattr(series, 'shape', series)}"
         )
-    if isinstance(end, bool) or not isinstance(end, int) or not m <= end <= series.shape[0]:
+    if not is_int(end) or not m <= end <= series.shape[0]:
         raise ValueError(
             f"end must be an int with m={m} <= end <= T={series.shape[0]}, got {end!r}"
         )
+    end = int(end)
     if runs is not None:
         runs = check_pos_int(runs, "runs")
     w = series[end - m : end]

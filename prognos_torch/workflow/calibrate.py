@@ -31,6 +31,7 @@ from dataclasses import replace
 import torch
 
 from .._workers import check_workers, process_map
+from ..core.validation import is_real
 from ..prognosis.conformal import (
     RULCalibration,
     _check_bins,
@@ -119,20 +120,18 @@ def calibrate_rul(
             "direction='below' needs the known threshold: the protocol's 0.9 x highest moving "
             "median is defined for a rising indicator only"
         )
-    if threshold is not None and (
-        isinstance(threshold, bool) or not isinstance(threshold, (int, float))
-    ):
+    if threshold is not None and not is_real(threshold):
         raise TypeError(f"threshold must be a real number or None, got {threshold!r}")
     check_workers(workers)
     # checked before the replays (minutes to hours on a real archive), not after them
     _check_coverage(coverage)
-    _check_bins(bins)
+    bins = _check_bins(bins)
     fr = tuple(fractions)
-    if not fr or any(isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 < f < 1
-                     for f in fr) or len(set(fr)) != len(fr):  # fmt: skip
+    if not fr or any(not is_real(f) or not 0 < f < 1 for f in fr) or len(set(fr)) != len(fr):
         raise ValueError(
             f"fractions must be distinct numbers in (0, 1) of [onset, end of life], got {fr!r}"
         )
+    fractions = tuple(float(f) for f in fr)
     seeds = _check_seeds(seed)  # (as prognose reads it: one seed, or several pooled)
     seed = seeds[0] if len(seeds) == 1 else seeds
     signed = None if threshold is None else sign * threshold

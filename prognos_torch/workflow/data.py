@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 from .._text import fmt_time
-from ..core.validation import check_real
+from ..core.validation import check_real, is_int
 from ..io import sniffed_csv
 
 __all__ = ["Series", "load_series", "parse_where", "FILL_METHODS", "MAX_ABS_VALUE"]
@@ -625,8 +625,9 @@ def load_series(
         raise ValueError(
             f"time_format must be strptime codes such as '%d/%m/%Y %H:%M', got {time_format!r}"
         )
-    if last is not None and (isinstance(last, bool) or not isinstance(last, int) or last < 1):
+    if last is not None and (not is_int(last) or last < 1):
         raise ValueError(f"last must be a positive int, got {last!r}")
+    last = None if last is None else int(last)
     pandas_like = hasattr(source, "to_numpy")
     if not (
         isinstance(source, (str, os.PathLike, Tensor, np.ndarray, Sequence)) or pandas_like

@@ -24,6 +24,7 @@ from __future__ import annotations
 import os
 import re
 
+from ..core.validation import is_int
 from ..learners.lssvr import KERNEL_BLOCK_BYTES
 
 __all__ = [
@@ -93,10 +94,9 @@ def memory_budget() -> int:
 def lssvr_support(n_rows: int, max_support: int | None) -> int | None:
     """Support points of the LS-SVR for ``n_rows`` training values: ``None`` for the exact
     LS-SVR (all rows), else ``M`` for the fixed-size LS-SVR (module notes)."""
-    if max_support is not None and (
-        isinstance(max_support, bool) or not isinstance(max_support, int) or max_support < 1
-    ):
+    if max_support is not None and (not is_int(max_support) or max_support < 1):
         raise ValueError(f"max_support must be a positive int or None, got {max_support!r}")
+    max_support = None if max_support is None else int(max_support)
     limit = FULL_LSSVR_MAX_ROWS if max_support is None else max_support
     if n_rows <= limit:
         return None

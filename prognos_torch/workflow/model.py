@@ -53,7 +53,7 @@ import torch
 from torch import Tensor, nn
 
 from ..adapt.noise import SageHusa
-from ..core.validation import all_finite, check_seed
+from ..core.validation import all_finite, check_seed, is_int, is_real
 from ..datasets.windows import MinMaxScaler, embed
 from ..learners import ANFIS, ELM, LSSVR
 from ..learners.lssvr_fixed import FixedSizeLSSVR
@@ -299,8 +299,9 @@ def _train(
     elif learner == "anfis":
         net.init_premises(X)
     epochs = oopts["epochs"]
-    if isinstance(epochs, bool) or not isinstance(epochs, int) or epochs < 1:
+    if not is_int(epochs) or epochs < 1:
         raise ValueError(f"epochs must be a positive int, got {epochs!r}")
+    epochs = int(epochs)
     if optimizer in KALMAN:
         n_state = sum(p.numel() for p in net.parameters() if p.requires_grad)
         if n_state > MAX_KALMAN_STATE:
@@ -336,12 +337,12 @@ def _train(
 def _holdout_size(holdout, T: int) -> int:
     if isinstance(holdout, bool):
         raise ValueError(f"holdout must be a fraction in [0, 1) or a count, got {holdout!r}")
-    if isinstance(holdout, int):
-        n = holdout
+    if is_int(holdout):
+        n = int(holdout)
         if n < 0:
             raise ValueError(f"holdout must be a fraction in [0, 1) or a count >= 0, got {n}")
-    elif isinstance(holdout, float) and 0.0 <= holdout < 1.0:
-        n = int(round(holdout * T))
+    elif is_real(holdout) and 0.0 <= holdout < 1.0:
+        n = int(round(float(holdout) * T))
     else:
         raise ValueError(f"holdout must be a fraction in [0, 1) or a count >= 0, got {holdout!r}")
     if n < 0 or n >= T:
@@ -404,8 +405,9 @@ def fit_series(
         raise TypeError(f"refit must be a bool, got {refit!r}")
     T = len(series)
     if m is not None:
-        if isinstance(m, bool) or not isinstance(m, int) or m < 1:
+        if not is_int(m) or m < 1:
             raise ValueError(f"embedding dimension m must be a positive int, got {m!r}")
+        m = int(m)
         if T < m + 1:
             raise ValueError(
                 f"series {series.name!r} has {T} values; embedding m={m} needs at least "

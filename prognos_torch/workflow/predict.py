@@ -44,7 +44,7 @@ from torch import Tensor
 
 from .._text import json_number
 from ..core.belief import GaussianBelief
-from ..core.validation import check_count, check_real, check_seed
+from ..core.validation import check_count, check_real, check_seed, is_real
 from ..filters import make_filter, make_particle_filter
 from ..filters import run as run_filter
 from ..learners import LSSVR
@@ -549,8 +549,9 @@ def forecast(
     filter_steps = check_count(filter_steps, "filter_steps", 0, error=ValueError)
     n_particles = check_count(n_particles, "n_particles", MIN_PARTICLES, error=ValueError)
     name = _check_filter(filter)
-    if isinstance(level, bool) or not isinstance(level, (int, float)) or not 0 < level < 1:
+    if not is_real(level) or not 0 < level < 1:
         raise ValueError(f"level must be a number in (0, 1), got {level!r}")
+    level = float(level)
     seed = int(model.config.get("seed", 0)) if seed is None else check_seed(seed)
     if name not in GAUSSIAN_FILTERS:
         check_paths_memory(n_particles, horizon, model.m)

@@ -99,7 +99,7 @@ import torch
 from torch import Tensor
 
 from .._text import fmt_level, fmt_time
-from ..core.validation import check_real, check_seed, has_missing
+from ..core.validation import check_real, check_seed, has_missing, is_int
 from ..filters import FILTERS, GaussianFilter
 from ..prognosis.backtest import (
     backtest_scores,
@@ -251,9 +251,9 @@ def _check_seeds(seed) -> tuple[int, ...]:
 
 
 def _check_int(v, name: str, lo: int) -> int:
-    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+    if not is_int(v) or v < lo:
         raise ValueError(f"{name} must be an int >= {lo}, got {v!r}")
-    return v
+    return int(v)
 
 
 def _blocks(t: Tensor, y: Tensor, sigma0: float, max_points: int):
