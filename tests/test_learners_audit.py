@@ -80,3 +80,24 @@ def test_fixed_size_below_n_is_the_documented_nystrom_ridge(selection):
         batched = fs(Xt)
         rows = torch.stack([fs(x) for x in Xt.reshape(-1, 2)]).reshape(3, 4, 2)
     torch.testing.assert_close(batched, rows, rtol=0, atol=1e-14)
+
+
+# --------------------------------------------------------------------------- ELM forward_with
+def test_elm_forward_with_checks_parameter_names_and_shapes():
+    # a misspelt name was ignored (the module's own beta used) and a b of shape (1,) was
+    # broadcast over the hidden nodes: wrong outputs, no error (ANFIS refused both)
+    elm = ELM(3, 4, n_out=2, generator=_gen(1))
+    torch.nn.init.normal_(elm.beta, generator=_gen(2))
+    x = torch.randn(5, 3, generator=_gen(3), dtype=F64)
+    beta = torch.randn(6, 4, 2, generator=_gen(4), dtype=F64)  # 6 parameter sets
+    out = elm.forward_with({"beta": beta}, x)
+    ref = torch.sigmoid(x @ elm.a.detach().T + elm.b.detach()) @ beta  # Eq. 47-48
+    torch.testing.assert_close(out, ref, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match=r"params has no ELM parameter 'bta'; expected any of"):
+        elm.forward_with({"bta": beta}, x)
+    with pytest.raises(ValueError, match=r"params\['b'\] must have shape \(\.\.\., 4\), got \(1,\)"):
+        elm.forward_with({"b": torch.zeros(1, dtype=F64)}, x)
+    with pytest.raises(ValueError, match=r"params\['beta'\] must have shape \(\.\.\., 4, 2\)"):
+        elm.forward_and_jacobian({"beta": beta.mT}, x)
+    with pytest.raises(TypeError, match="params must be a dict of tensors"):
+        elm.forward_with([beta], x)

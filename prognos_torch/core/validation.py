@@ -350,6 +350,32 @@ def check_dtype_arg(dtype: torch.dtype) -> torch.dtype:
     return dtype
 
 
+def check_learner_params(params, module, label: str) -> None:
+    """Names and trailing shapes of batched parameters given to a learner's ``forward_with``:
+    ``params[name]`` is ``(..., *module.name.shape)`` for a parameter ``name`` of ``module``.
+
+    Only metadata is inspected (compatible with ``torch.func``): a misspelt name was ignored
+    (the module's own values used), a transposed or short tensor reshaped or broadcast.
+    """
+    if not isinstance(params, dict):
+        raise TypeError(f"params must be a dict of tensors, got {type(params).__name__}")
+    own_params = dict(module.named_parameters(recurse=False))
+    for name, v in params.items():
+        own = own_params.get(name)
+        if own is None:
+            raise ValueError(
+                f"params has no {label} parameter {name!r}; expected any of {list(own_params)}"
+            )
+        want = tuple(own.shape)
+        if not isinstance(v, Tensor):
+            raise TypeError(f"params[{name!r}] must be a torch.Tensor, got {type(v).__name__}")
+        if v.dim() < len(want) or tuple(v.shape[v.dim() - len(want) :]) != want:
+            raise ValueError(
+                f"params[{name!r}] must have shape (..., {', '.join(map(str, want))}), "
+                f"got {tuple(v.shape)}"
+            )
+
+
 def check_forward_input(x: Tensor, n_in: int, ref: Tensor) -> None:
     """The input of a ``forward``: a tensor ``(..., n_in)`` with ``ref``'s dtype and device.
 

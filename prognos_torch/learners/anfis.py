@@ -49,6 +49,7 @@ from ..core.validation import (
     broadcast_shape,
     check_dtype_arg,
     check_forward_input,
+    check_learner_params,
     check_nonneg,
     check_pos_int,
 )
@@ -323,23 +324,7 @@ class ANFIS(nn.Module):
     def _check_params(self, params: dict[str, Tensor]) -> None:
         """Names and trailing shapes of batched parameters (metadata only): a premise given as
         ``(n_mfs, n_inputs)`` or a misspelt name was used silently (wrong numbers)."""
-        if not isinstance(params, dict):
-            raise TypeError(f"params must be a dict of tensors, got {type(params).__name__}")
-        for name, v in params.items():
-            own = self._parameters.get(name)
-            if own is None:
-                raise ValueError(
-                    f"params has no ANFIS parameter {name!r}; expected any of "
-                    f"{list(self._parameters)}"
-                )
-            want = tuple(own.shape)
-            if not isinstance(v, Tensor):
-                raise TypeError(f"params[{name!r}] must be a torch.Tensor, got {type(v).__name__}")
-            if v.dim() < len(want) or tuple(v.shape[v.dim() - len(want) :]) != want:
-                raise ValueError(
-                    f"params[{name!r}] must have shape (..., {', '.join(map(str, want))}), "
-                    f"got {tuple(v.shape)}"
-                )
+        check_learner_params(params, self, "ANFIS")
 
     def forward_and_jacobian(
         self, params: dict[str, Tensor], x: Tensor, names: tuple[str, ...] | None = None

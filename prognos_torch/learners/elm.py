@@ -27,6 +27,7 @@ from prognos_torch.core.validation import (
     as_targets,
     check_dtype_arg,
     check_forward_input,
+    check_learner_params,
     check_nonneg,
     check_pos_int,
     to_float64,
@@ -255,6 +256,7 @@ class ELM(nn.Module):
             ``(..., B, n_out)``, equal to ``torch.func.vmap`` of ``functional_call`` over ``...``.
         """
         check_forward_input(x, self.n_in, self.beta)
+        check_learner_params(params, self, "ELM")  # (a misspelt name was ignored, b (1,) broadcast)
         a = params.get("a", self.a)
         b = params.get("b", self.b)
         beta = params.get("beta", self.beta)
@@ -287,6 +289,7 @@ class ELM(nn.Module):
         if unknown:
             raise ValueError(f"ELM has no parameters {sorted(unknown)}")
         check_forward_input(x, self.n_in, self.beta)
+        check_learner_params(params, self, "ELM")
         a = params.get("a", self.a)
         b = params.get("b", self.b)
         beta = params.get("beta", self.beta)
