@@ -117,6 +117,18 @@ def _check_test(test) -> int:
     return int(test)
 
 
+def _check_expected_samples(expected_samples) -> int | None:
+    if expected_samples is None:
+        return None
+    if not is_int(expected_samples) or expected_samples < 2:
+        # ("20480" gave "20480 sample rows, expected 20480"; 0 made every file a bad file)
+        raise ValueError(
+            f"expected_samples must be None or an int >= 2 (rows per file), "
+            f"got {expected_samples!r}"
+        )
+    return int(expected_samples)
+
+
 def bearing_channels(test: int, bearing: int) -> tuple[int, ...]:
     """1-based channels of a bearing: test 1 has (2b - 1, 2b), tests 2 and 3 have (b,)."""
     test = _check_test(test)
@@ -150,7 +162,9 @@ def snapshot_features(x: np.ndarray) -> np.ndarray:
     if x.ndim != 2 or x.shape[0] < 2:
         raise ValueError(f"x must have shape (n, C) with n >= 2, got {x.shape}")
     n = x.shape[0]
-    mean = x.mean(0)
+    # a constant channel's mean is its value, exactly (x.mean rounds: 20480 x 0.1 gave m2 > 0,
+    # skewness 1 and kurtosis 1 instead of NaN)
+    mean = np.where(x.max(0) == x.min(0), x[0], x.mean(0))
     centred = x - mean
     c2 = centred * centred
     m2 = c2.mean(0)
@@ -205,6 +219,11 @@ def read_snapshot(
             value (the message names the file and line), fewer than 2 rows, or a row count other
             than ``expected_samples`` when given.
     """
+    if not is_int(n_channels) or n_channels < 1:
+        # ("8" gave "8 columns, expected 8 channels")
+        raise ValueError(f"n_channels must be a positive int, got {n_channels!r}")
+    n_channels = int(n_channels)
+    expected_samples = _check_expected_samples(expected_samples)
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"IMS snapshot file not found: {path}")
@@ -260,7 +279,8 @@ class IMSFeatures:
         return len(self)
 
     def _channel_index(self, channel: int) -> int:
-        if channel not in self.channels:
+        # (is_int: True was channel 1, 5.0 channel 5)
+        if not is_int(channel) or channel not in self.channels:
             raise ValueError(f"channel must be one of {list(self.channels)}, got {channel!r}")
         return self.channels.index(channel)
 
@@ -470,6 +490,12 @@ def read_raw_features(
     n_channels = IMS_CHANNELS[test]
     if on_error not in ("raise", "skip"):
         raise ValueError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
+    expected_samples = _check_expected_samples(expected_samples)
+    if isinstance(cache, np.bool_):
+        cache = bool(cache)
+    if not isinstance(cache, (bool, str, os.PathLike)) and cache is not None:
+        # (1 failed in Path() with "expected str, bytes or os.PathLike object, not int")
+        raise TypeError(f"cache must be True, False or a file path, got {cache!r}")
     directory = Path(directory)
     if not directory.exists():
         raise FileNotFoundError(f"IMS raw data directory not found: {directory}")
@@ -696,6 +722,11 @@ class HealthIndicator:
 
 
 def _standardise_stats(X: Tensor, name: str, names: Sequence[str]) -> tuple[Tensor, Tensor]:
+    if X.shape[0] < 2:  # (one snapshot gave a NaN std and "X ... contains non-finite values")
+        raise ValueError(
+            f"{name}: {X.shape[0]} snapshot(s) in the window, need at least 2 to standardise "
+            "(a longer last_days?)"
+        )
     if not bool(torch.isfinite(X).all()):
         bad = [names[j] for j in range(X.shape[1]) if not bool(torch.isfinite(X[:, j]).all())]
         raise ValueError(

@@ -123,7 +123,10 @@ def knn(X_ref: Tensor, X_query: Tensor | None = None, n_neighbors: int = 12) -> 
             f"X_query must have shape (m, {X_ref.shape[1]}) like X_ref, got {tuple(Q.shape)}"
         )
     k = _check_k(n_neighbors, X_ref.shape[0] - int(self_query), "other reference points")
-    X_ref = X_ref.to(Q.dtype)
+    # the wider of the two dtypes (X_ref.to(Q.dtype) rounded float64 references to a float32
+    # query's precision, and their order with it)
+    common = torch.promote_types(X_ref.dtype, Q.dtype)
+    X_ref, Q = X_ref.to(common), Q.to(common)
     # One power of two for both sets keeps every distance exact up to that factor, so the order
     # is the unscaled one, while squared distances of points near 1e-160 or 1e160 would
     # underflow or overflow.
@@ -154,8 +157,20 @@ def reconstruction_weights(
     """
     X_ref = _check_points(X_ref, "X_ref")
     Q = X_ref if X_query is None else _check_points(X_query, "X_query")
+    if Q.shape[1] != X_ref.shape[1]:  # (a (m, 1) query was broadcast against every coordinate)
+        raise ValueError(
+            f"X_query must have shape (m, {X_ref.shape[1]}) like X_ref, got {tuple(Q.shape)}"
+        )
     if not isinstance(neighbors, Tensor) or neighbors.dim() != 2 or neighbors.shape[0] != len(Q):
         raise ValueError(f"neighbors must be a LongTensor of shape ({len(Q)}, K)")
+    if neighbors.dtype not in (torch.int64, torch.int32):
+        raise TypeError(f"neighbors must be a LongTensor of row indices, got {neighbors.dtype}")
+    if neighbors.numel() and not 0 <= int(neighbors.min()) <= int(neighbors.max()) < len(X_ref):
+        # (a negative index picked a point from the end)
+        raise ValueError(
+            f"neighbors must index rows 0..{len(X_ref) - 1} of X_ref, got values "
+            f"{int(neighbors.min())}..{int(neighbors.max())}"
+        )
     reg = _check_reg(reg)
     k = neighbors.shape[1]
     Z = X_ref[neighbors] - Q.unsqueeze(1)  # (m, K, D)
@@ -185,7 +200,7 @@ def lle_cost_matrix(neighbors: Tensor, weights: Tensor, n: int) -> Tensor:
             f"got {tuple(neighbors.shape)} and {tuple(weights.shape)}"
         )
     W = torch.zeros(m, n, dtype=weights.dtype, device=weights.device)
-    W.scatter_(1, neighbors, weights)
+    W.scatter_add_(1, neighbors, weights)  # (scatter_ kept one of a repeated index's weights)
     M = torch.eye(n, dtype=weights.dtype, device=weights.device) - W - W.mT
     rows = neighbors.unsqueeze(2).expand(m, k, k)
     cols = neighbors.unsqueeze(1).expand(m, k, k)

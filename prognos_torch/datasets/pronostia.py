@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .ims import FEATURE_NAMES, _feature_position, snapshot_features
+from .ims import FEATURE_NAMES, _check_expected_samples, _feature_position, snapshot_features
 
 __all__ = [
     "PRONOSTIA_AXES",
@@ -135,8 +135,10 @@ def _read_record(path: Path, expected_samples: int | None) -> np.ndarray:
                     f"{path}, row {number}: {n} columns, expected 6 ({_COLUMNS}); a truncated file?"
                 ) from None
         raise ValueError(f"{path}: not a numeric record ({exc})") from None
-    if a.shape[1] != 6 or a.shape[0] < 2:
+    if a.shape[1] != 6:
         raise ValueError(f"{path}: expected rows of 6 columns ({_COLUMNS}), got shape {a.shape}")
+    if a.shape[0] < 2:  # (was "expected rows of 6 columns" for one row of 6 columns)
+        raise ValueError(f"{path}: {a.shape[0]} row, need at least 2 samples per record")
     if expected_samples is not None and a.shape[0] != expected_samples:
         raise ValueError(f"{path}: expected {expected_samples} rows, got {a.shape[0]}")
     bad = ~np.isfinite(a)
@@ -163,6 +165,7 @@ def read_pronostia_bearing(
         ValueError: a record that is not 6 numeric columns or has another number of rows than
             ``expected_samples`` (named with its path).
     """
+    expected_samples = _check_expected_samples(expected_samples)
     folder = Path(folder)
     m = _BEARING.match(folder.name)
     if m is None or not folder.is_dir():

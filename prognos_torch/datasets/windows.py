@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from prognos_torch.core.validation import as_tensor, is_int, is_real
+from prognos_torch.core.validation import as_tensor, broadcast_shape, is_int, is_real
 
 __all__ = [
     "embed",
@@ -92,6 +92,8 @@ def shift_append(window: Tensor, new_value: Tensor, *, time_dim: int = -1) -> Te
         raise TypeError(f"window must be a tensor of shape (..., m), got {type(window)}")
     if window.dim() == 0:
         raise ValueError("window must have shape (..., m) with m >= 1, got a scalar")
+    if not is_int(time_dim):
+        raise TypeError(f"time_dim must be an int, got {time_dim!r}")
     dim = time_dim % window.dim() if -window.dim() <= time_dim < window.dim() else None
     if dim is None:
         raise ValueError(
@@ -105,6 +107,11 @@ def shift_append(window: Tensor, new_value: Tensor, *, time_dim: int = -1) -> Te
             f"time_dim={time_dim}), got {tuple(new_value.shape)}"
         )
     m = window.shape[dim]
+    if m == 0:  # (narrow() failed with "length must be non-negative")
+        raise ValueError(
+            f"window must hold m >= 1 samples along time_dim={time_dim}, got shape "
+            f"{tuple(window.shape)}"
+        )
     return torch.cat((window.narrow(dim, 1, m - 1), new_value.unsqueeze(dim)), dim=dim)
 
 
@@ -225,6 +232,9 @@ class MinMaxScaler:
                 "state['data_min'] and state['data_max'] must have the same shape () or (d,), "
                 f"got {tuple(data_min.shape)} and {tuple(data_max.shape)}"
             )
+        if not (bool(torch.isfinite(data_min).all()) and bool(torch.isfinite(data_max).all())):
+            # (an infinite extreme mapped every value to NaN or to lo)
+            raise ValueError("state['data_min'] and state['data_max'] must be finite")
         if not bool((data_max > data_min).all()):
             raise ValueError("state['data_max'] must exceed state['data_min'] elementwise")
         self.feature_range = self._check_range(state["feature_range"])
@@ -242,10 +252,17 @@ class NormalizedSeries(NamedTuple):
 def _extreme(v, name: str, series: Tensor) -> Tensor:
     """A given ``lo``/``hi`` as a tensor of the series' dtype and device, finite, broadcastable
     to the series (one value per column)."""
-    v = torch.as_tensor(v, dtype=series.dtype).to(series)
     try:
-        fits = torch.broadcast_shapes(v.shape, series.shape) == series.shape
-    except RuntimeError:
+        v = torch.as_tensor(v, dtype=series.dtype).to(series)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise TypeError(f"{name} must be a number or a tensor of numbers, got {v!r}") from exc
+    try:  # (broadcast_shape: torch.broadcast_shapes imports SymPy on its first call, ~1 s)
+        fits = broadcast_shape(v.shape, series.shape) == series.shape
+    except ValueError:
+        fits = False
+    # one row, not one value per sample: an (N, ...) extreme scaled each sample by its own range
+    lead = v.dim() - (series.dim() - 1)
+    if lead > 0 and any(size != 1 for size in v.shape[:lead]):
         fits = False
     if not fits:
         raise ValueError(
@@ -315,7 +332,12 @@ def chronological_split(
     if train_fraction is not None:
         if not (is_real(train_fraction) and 0.0 < train_fraction < 1.0):
             raise ValueError(f"train_fraction must lie in (0, 1), got {train_fraction!r}")
-        n_train = int(math.floor(train_fraction * T))
+        # floor(fraction * T), the product rounded first where it misses an integer by rounding
+        # only (0.29 * 100 = 28.999999999999996 gave 28 rows)
+        product = float(train_fraction) * T
+        n_train = round(product)
+        if abs(product - n_train) > 1e-9 * max(1.0, product):
+            n_train = int(math.floor(product))
     elif not is_int(n_train):
         raise ValueError(f"n_train must be an int, got {n_train!r}")
     if not 1 <= n_train <= T - 1:
