@@ -19,6 +19,7 @@ from ..core.linalg import tria
 from ..core.validation import check_matches, has_missing, is_int, is_real
 from ..filters.gaussian import GaussianFilter, StepInfo
 from ..filters.variants import make_filter
+from ._buffers import tracking_batch_norms
 from .params import ParameterBridge
 
 _STATE_KEY = "kalman"
@@ -70,14 +71,7 @@ def noise_factor(value, dim: int, name: str, *, allow_singular: bool, device=Non
     With ``allow_singular`` a positive semi-definite matrix (e.g. ``Q = 0``) is accepted and
     factorised through its eigen-decomposition; otherwise it must be positive definite.
     """
-    if isinstance(value, bool):
-        raise TypeError(f"{name} must be a number or a tensor, got {value!r}")
-    try:
-        v = torch.as_tensor(value, dtype=torch.float64, device=device)
-    except (TypeError, ValueError, RuntimeError) as exc:
-        raise TypeError(
-            f"{name} must be a number, a vector or a matrix, got {type(value)}"
-        ) from exc
+    v = _as_float64(value, name, device)
     if device is not None:
         v = v.to(device)
     if not bool(torch.isfinite(v).all()):
@@ -110,6 +104,35 @@ def noise_factor(value, dim: int, name: str, *, allow_singular: bool, device=Non
     return tria(V * w.clamp_min(0.0).sqrt().unsqueeze(-2))
 
 
+def _as_float64(value, name: str, device=None) -> Tensor:
+    """``value`` (a number, a vector or a matrix) as a float64 tensor. A bool or complex value
+    (Python, NumPy or torch) is refused: the cast would read ``True`` as ``1`` and drop an
+    imaginary part."""
+    dt = getattr(value, "dtype", None)
+    if (
+        isinstance(value, (bool, complex))
+        or dt == torch.bool
+        or (isinstance(dt, torch.dtype) and dt.is_complex)
+        or getattr(dt, "kind", "") in ("b", "c")  # NumPy bool or complex
+    ):
+        raise TypeError(f"{name} must be a real number, a vector or a matrix, got {value!r}")
+    try:
+        return torch.as_tensor(value, dtype=torch.float64, device=device)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise TypeError(
+            f"{name} must be a number, a vector or a matrix, got {type(value)}"
+        ) from exc
+
+
+def _plain(value):
+    """A NumPy integer or real as a Python ``int`` or ``float`` (the same value), anything else
+    unchanged: the options are kept in ``param_groups``, and a state dict holding a NumPy
+    scalar is refused by ``torch.load`` (``weights_only=True``, its default)."""
+    if type(value) in (int, float) or not is_real(value):
+        return value
+    return int(value) if is_int(value) else float(value)
+
+
 #: The noise estimator of the ``"imsrukf"`` optimiser (paper 003 Eq. 41 and 43, see
 #: :class:`KalmanOptimizer`): ``Q`` and ``R`` only, ``Q`` diagonal, ``R`` in the post-fit form,
 #: the prior weighted as ``k0 - 1 = 299`` earlier steps.
@@ -132,7 +155,7 @@ def _resolve_filter(filt, fading, noise) -> GaussianFilter:
             changes["fading"] = None
         elif fading is True:
             changes["fading"] = StrongTracking()
-        elif isinstance(fading, (StrongTracking, int, float)):
+        elif isinstance(fading, StrongTracking) or is_real(fading):  # (the engine checks >= 1)
             changes["fading"] = fading
         else:
             raise TypeError("fading must be None, True/False, a float >= 1 or StrongTracking")
@@ -203,16 +226,34 @@ def _state_key(i: int) -> str:
     return _STATE_KEY if i == 0 else f"{_STATE_KEY}.{i}"
 
 
+def norm_statistics(norms: list) -> list[tuple[Tensor, Tensor]]:
+    """``(buffer, copy)`` of the running statistics of the BatchNorm layers ``norms``, which a
+    step moves once (:mod:`prognos_torch.optim._buffers`) and a failed step puts back."""
+    return [(b, b.clone()) for m in norms for b in m.buffers(recurse=False)]
+
+
+def restore_norm_statistics(norms: list, saved: list[tuple[Tensor, Tensor]]) -> None:
+    """Put back the running statistics saved by :func:`norm_statistics`."""
+    with torch.no_grad():
+        for b, old in saved:
+            b.copy_(old)
+
+
 def all_or_nothing_steps(opt, inputs: Tensor, targets: Tensor) -> Tensor:
     """``opt.step`` on each row of ``inputs`` ``(T, *x)`` and ``targets`` ``(T, *out)``; returns
     the stacked losses. A row that fails undoes the rows before it (each step replaces its
-    groups' state entries, so the entries at the start restore them) and raises naming it."""
+    groups' state entries, so the entries at the start restore them; the running statistics
+    of BatchNorm layers are put back too) and raises naming it."""
     before, losses = {i: opt.state[_state_key(i)] for i in range(len(opt._cfg))}, []
+    norms = tracking_batch_norms(opt.module)
+    stats = norm_statistics(norms) if norms else None
     for row, (x, t) in enumerate(zip(inputs, targets)):
         try:
             losses.append(opt.step(x, t).loss)
         except Exception as exc:
             opt._restore(before)
+            if stats is not None:
+                restore_norm_statistics(norms, stats)
             if row == 0 or type(exc) not in (ValueError, TypeError):
                 raise
             raise type(exc)(
@@ -304,10 +345,7 @@ def _configure(module: nn.Module, g: dict, where: str) -> _Group:
     Q = bridge.expand(Q, "Q") if isinstance(Q, dict) else Q
     chol_P0 = noise_factor(P0, n, "P0", allow_singular=False, device=dev)
     chol_Q = noise_factor(Q, n, "Q", allow_singular=True, device=dev)
-    try:
-        R = torch.as_tensor(g["R"], dtype=torch.float64, device=dev)
-    except (TypeError, ValueError, RuntimeError) as exc:
-        raise TypeError(f"R must be a number, a vector or a matrix, got {type(g['R'])}") from exc
+    R = _as_float64(g["R"], "R", dev)
     n_out = 1 if R.dim() == 0 else R.shape[0]
     chol_R1 = noise_factor(R, n_out, "R", allow_singular=False, device=dev)
     return _Group(bridge, filt, chol_P0, chol_Q, chol_R1, R.dim() == 0)
@@ -349,7 +387,15 @@ def _checked_state_dict(state_dict, module: nn.Module, param_groups: list[dict],
                 f"state_dict['state'] has no {key!r} entry (not a KalmanOptimizer state"
                 f"{'' if i == 0 else f' with {i + 1} parameter groups'})"
             )
-        kal = conv(st[key], f"['state'][{key!r}]")
+        entry = st[key]
+        lacking = [k for k in ("mean", "chol", "step") if not isinstance(entry, dict) or k not in entry]
+        if lacking or not is_int(entry["step"]) or entry["step"] < 0:
+            raise ValueError(
+                f"state_dict['state'][{key!r}] must be a KalmanOptimizer belief entry (a dict "
+                f"with 'mean', 'chol' and an int 'step' >= 0), got "
+                f"{sorted(entry) if isinstance(entry, dict) else type(entry).__name__}"
+            )
+        kal = conv(entry, f"['state'][{key!r}]")
         cfg = _configure(module, {**g, "params": cur["params"]}, f"state_dict param_groups[{i}]")
         runs, n = g.get("runs"), cfg.bridge.numel
         if runs != cur.get("runs"):
@@ -369,6 +415,10 @@ def _checked_state_dict(state_dict, module: nn.Module, param_groups: list[dict],
                 f"state_dict belief {key!r} has mean {tuple(kal['mean'].shape)}, chol "
                 f"{tuple(kal['chol'].shape)}; this optimiser needs {want} and {want + (n,)}"
             )
+        if not all(isinstance(kal[k], Tensor) for k in ("mean", "chol")) or not (
+            bool(torch.isfinite(kal["mean"]).all()) and bool(torch.isfinite(kal["chol"]).all())
+        ):
+            raise ValueError(f"state_dict belief {key!r} must hold finite tensors mean and chol")
         kal.pop("shapes", None)
         st[key] = kal
     sd["state"] = st

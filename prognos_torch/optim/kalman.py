@@ -58,10 +58,13 @@ from ._kalman_common import (
     _dataclass_dict,
     _Group,
     _group_bridge,
+    _plain,
     _resolve_groups,
     _state_key,
     all_or_nothing_steps,
     noise_factor,
+    norm_statistics,
+    restore_norm_statistics,
 )
 from ._step_model import step_model
 from .compiled import compiled_steps
@@ -81,12 +84,21 @@ __all__ = [
 # ---------------------------------------------------------------------- the optimiser
 #: the group options read when the optimiser is built or loaded (``lr`` is read at each step)
 _FIXED_OPTIONS = ("filter", "P0", "Q", "R", "fading", "noise", "jacobian", "chunk_size")
+#: the group options kept as Python numbers when given as NumPy scalars (see ``_plain``)
+_PLAIN_OPTIONS = ("P0", "Q", "R", "lr", "fading", "chunk_size", "runs")
 
 # torch wraps Optimizer.add_param_group in _disable_dynamo, whose first call imports
 # torch._dynamo (about 1.5 s of a command's start); a parameter group is never added inside a
 # compiled region, so the method is called unwrapped
 _BASE_ADD_PARAM_GROUP = getattr(
     torch.optim.Optimizer.add_param_group, "__wrapped__", torch.optim.Optimizer.add_param_group
+)
+# (state_dict and load_state_dict likewise: their first call cost a fresh process 1.5 s)
+_BASE_STATE_DICT = getattr(
+    torch.optim.Optimizer.state_dict, "__wrapped__", torch.optim.Optimizer.state_dict
+)
+_BASE_LOAD_STATE_DICT = getattr(
+    torch.optim.Optimizer.load_state_dict, "__wrapped__", torch.optim.Optimizer.load_state_dict
 )
 
 
@@ -247,16 +259,16 @@ class KalmanOptimizer(torch.optim.Optimizer):
             raise ValueError("per_run_data=True needs runs=R (the number of runs)")
         defaults = dict(
             filter=filter,
-            P0=P0,
-            Q=Q,
-            R=R,
-            lr=lr,
-            fading=fading,
+            P0=_plain(P0),  # (NumPy scalars as Python numbers: see _plain)
+            Q=_plain(Q),
+            R=_plain(R),
+            lr=_plain(lr),
+            fading=_plain(fading),
             noise=noise,
-            runs=runs,
+            runs=_plain(runs),
             per_run_data=per_run_data,
             jacobian=jacobian,
-            chunk_size=chunk_size,
+            chunk_size=_plain(chunk_size),
         )
         self.module = module
         self._cfg: list[_Group] | None = []
@@ -290,7 +302,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
             raise TypeError(f"param_group must be a dict, got {type(param_group)}")
         if "params" not in param_group:
             raise ValueError("param_group must have a 'params' entry (parameters of the module)")
-        group = dict(param_group)
+        group = {k: _plain(v) if k in _PLAIN_OPTIONS else v for k, v in param_group.items()}
         for key in ("runs", "per_run_data"):
             if key in group and group[key] != self.defaults[key]:
                 raise ValueError(
@@ -715,12 +727,14 @@ class KalmanOptimizer(torch.optim.Optimizer):
         norms = tracking_batch_norms(self.module)
         with batch_statistics_only(norms):
             x, t, out_shape, any_missing = self._check_batch(inputs, targets, checked)
+        stats = None
         if norms:
             if self.runs is not None:
                 raise ValueError(
                     "the module has BatchNorm layers in training mode, whose running statistics "
                     "the runs would share: call module.eval() (fixed statistics) or use runs=None"
                 )
+            stats = norm_statistics(norms)  # put back if the step fails
             self.module(x)  # running statistics: once, at the parameters before the step
         if t.dtype != torch.float64:
             t = t.to(torch.float64)
@@ -733,39 +747,44 @@ class KalmanOptimizer(torch.optim.Optimizer):
         if any_missing:
             self._check_partial(y)
         infos, before = [], {}
-        with batch_statistics_only(norms):
-            for i, cfg in enumerate(self._cfg):
-                model = step_model(self, i, x, out_shape)
-                fstate = self._engine_state(i, model)
-                key = _state_key(i)
-                k = self.state[key]["step"] + 1
-                try:  # y checked (finite, NaN where missing): the engine's checks not repeated
-                    new, info = cfg.filter._update(model, fstate, y, None, k, any_missing)
-                except RuntimeError as exc:
-                    clear = explain_transform_error(exc)
-                    if clear is None:
-                        raise
-                    raise clear from exc
-                if not (bool(torch.isfinite(new.belief.mean).all())
-                        and bool(torch.isfinite(new.belief.chol).all())):  # fmt: skip
-                    self._restore(before)
-                    raise ValueError(
-                        f"the step gave a non-finite estimate of parameter group {i}: the "
-                        "module's output (or its Jacobian) at the current parameters is NaN or "
-                        "inf for these inputs; the belief and the parameters are left as they "
-                        "were before the step"
-                    )
-                before[i] = self.state[key]
-                self.state[key] = {
-                    "mean": new.belief.mean,
-                    "chol": new.belief.chol,
-                    "fading": _dataclass_dict(new.fading),
-                    "noise": _dataclass_dict(new.noise),
-                    "step": k,
-                }
-                if self.runs is None:
-                    cfg.bridge.assign(new.belief.mean)
-                infos.append(info)
+        try:  # all or nothing: a group that fails puts back the groups updated before it
+            with batch_statistics_only(norms):
+                for i, cfg in enumerate(self._cfg):
+                    model = step_model(self, i, x, out_shape)
+                    fstate = self._engine_state(i, model)
+                    key = _state_key(i)
+                    k = self.state[key]["step"] + 1
+                    try:  # y checked (finite, NaN where missing): the engine's checks not repeated
+                        new, info = cfg.filter._update(model, fstate, y, None, k, any_missing)
+                    except RuntimeError as exc:
+                        clear = explain_transform_error(exc)
+                        if clear is None:
+                            raise
+                        raise clear from exc
+                    if not (bool(torch.isfinite(new.belief.mean).all())
+                            and bool(torch.isfinite(new.belief.chol).all())):  # fmt: skip
+                        raise ValueError(
+                            f"the step gave a non-finite estimate of parameter group {i}: the "
+                            "module's output (or its Jacobian) at the current parameters is NaN "
+                            "or inf for these inputs; the belief and the parameters are left as "
+                            "they were before the step"
+                        )
+                    before[i] = self.state[key]
+                    self.state[key] = {
+                        "mean": new.belief.mean,
+                        "chol": new.belief.chol,
+                        "fading": _dataclass_dict(new.fading),
+                        "noise": _dataclass_dict(new.noise),
+                        "step": k,
+                    }
+                    if self.runs is None:
+                        cfg.bridge.assign(new.belief.mean)
+                    infos.append(info)
+        except BaseException:
+            self._restore(before)
+            if stats is not None:
+                restore_norm_statistics(norms, stats)
+            raise
         e2 = infos[0].innovation.square()  # (the engine's innovation is 0 where y is missing)
         if any_missing:  # the mean over the observed entries (NaN where none is observed)
             loss = e2.sum(-1) / (~torch.isnan(y)).sum(-1)
@@ -845,7 +864,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
     def state_dict(self) -> dict:
         """``torch.optim``'s state dict; each group's belief entry also holds the ``shapes`` of
         its parameters, which :meth:`load_state_dict` compares."""
-        sd = super().state_dict()
+        sd = _BASE_STATE_DICT(self)  # (super().state_dict(), without the import)
         for i, cfg in enumerate(self._cfg):
             key = _state_key(i)
             if key in sd["state"]:  # (a copy: the entry is the live state's dict)
@@ -863,7 +882,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
         without ``lr`` (written before the option existed) loads with ``lr = 1``.
         """
         sd = _checked_state_dict(state_dict, self.module, self.param_groups, self.bridge.device)
-        super().load_state_dict(sd)
+        _BASE_LOAD_STATE_DICT(self, sd)  # (super().load_state_dict(), without the import)
         self._setup()
         if self.runs is None:
             for i, cfg in enumerate(self._cfg):

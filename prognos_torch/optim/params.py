@@ -183,13 +183,22 @@ class ParameterBridge:
         src = self.module if module is None else module
         params = dict(src.named_parameters())
         parts = []
-        for name, shape in zip(self.names, self.shapes):
+        for name, shape, own in zip(self.names, self.shapes, self._params):
             p = params.get(name)
             if module is None and p is not None and p.shape != shape:
                 raise ValueError(
                     f"the module's parameter {name!r} now has shape {tuple(p.shape)}; this was "
                     f"built for {tuple(shape)} (an LS-SVR refitted on another number of samples "
                     "changes alpha's shape, for one): build a new optimiser for the module"
+                )
+            if module is None and p is not None and p is not own:
+                # assign writes into the objects the bridge was built on: the module's new
+                # parameter would be read here but never written (its training silently lost)
+                raise ValueError(
+                    f"the module's parameter {name!r} was replaced by a new Parameter object "
+                    "after this was built (module.<name> = nn.Parameter(...)): build a new "
+                    "optimiser for the module, or write new values in place "
+                    "(with torch.no_grad(): parameter.copy_(values))"
                 )
             if p is None or p.shape != shape:
                 raise ValueError(
