@@ -62,6 +62,7 @@ import torch
 from torch import Tensor
 
 from ..core.linalg import tria
+from ..core.validation import as_tensor, is_int, is_real
 
 __all__ = ["RobustBound"]
 
@@ -71,9 +72,10 @@ class RobustBound:
     """Robust-update configuration (paper 004 Theorem 1).
 
     Attributes:
-        gamma: robust bound; must satisfy ``gamma^2 > N^2`` (Eq. 27). Paper 004 uses 1.05.
+        gamma: robust bound, a positive number; must satisfy ``gamma^2 > N^2`` (Eq. 27).
+            Paper 004 uses 1.05.
         M: ``(m,)`` or ``(m, j)`` uncertainty direction.
-        N: scalar uncertainty gain.
+        N: scalar uncertainty gain (``form="lemma"``: or an ``(l, n)`` tensor).
         form: ``"scalar"`` (Eq. 28-29) or ``"lemma"`` (module docstring).
         bound: ``"printed"`` (``t = N^2 / gamma^2``) or ``"optimised"`` (``t`` chosen per step
             to minimise ``trace P_k``; ``form="scalar"`` only, ``gamma`` then unused).
@@ -95,28 +97,63 @@ class RobustBound:
             raise ValueError(f"form must be 'scalar' or 'lemma', got {self.form!r}")
         if self.bound not in ("printed", "optimised"):
             raise ValueError(f"bound must be 'printed' or 'optimised', got {self.bound!r}")
+        # gamma and a scalar N as Python floats: a NumPy float32 squared in float32 arithmetic
+        # (gamma**2, 1 - nu / gamma^2) moved the coefficients by 1e-7 relative
+        if not is_real(self.gamma):
+            raise TypeError(f"gamma must be a real number, got {type(self.gamma).__name__}")
+        object.__setattr__(self, "gamma", float(self.gamma))
+        if isinstance(self.N, Tensor):
+            if self.N.dim() != 2:
+                raise ValueError(
+                    "N must be a real number or an (l, n) tensor (form='lemma'), got a tensor "
+                    f"of shape {tuple(self.N.shape)}"
+                )
+        elif is_real(self.N):
+            object.__setattr__(self, "N", float(self.N))
+        else:
+            raise TypeError(
+                f"N must be a real number or an (l, n) tensor, got {type(self.N).__name__}"
+            )
+        M = as_tensor(self.M, "M")  # (TypeError naming M for None, text, ...)
+        if M.dim() not in (1, 2):
+            raise ValueError(f"M must have shape (m,) or (m, j), got {tuple(M.shape)}")
         # non-finite settings: NaN estimates (scalar form) or a misleading "gamma too small"
         # (lemma form) at the first step otherwise
-        if self.bound == "printed" and not math.isfinite(float(self.gamma)):
+        if self.bound == "printed" and not math.isfinite(self.gamma):
             raise ValueError(f"gamma must be a finite number, got {self.gamma}")
-        N = self.N if isinstance(self.N, Tensor) else torch.as_tensor(float(self.N))
+        N = self.N if isinstance(self.N, Tensor) else torch.as_tensor(self.N)
         if not bool(torch.isfinite(N).all()):
             raise ValueError(f"N must be finite, got {self.N}")
-        if not bool(torch.isfinite(torch.as_tensor(self.M)).all()):
+        if not bool(torch.isfinite(M).all()):
             raise ValueError(f"M must be finite, got {self.M}")
         if self.bound == "optimised":
             if self.form != "scalar":
                 raise ValueError("bound='optimised' needs form='scalar' (Eq. 28-29)")
             if isinstance(self.N, Tensor):
                 raise ValueError("bound='optimised' takes a scalar N")
-            if len(self.search) < 1 or any(int(g) < 3 for g in self.search):
-                raise ValueError(f"search must be grid sizes >= 3, got {self.search!r}")
-            if not self.span[0] < self.span[1]:
-                raise ValueError(f"span must be (lo, hi) with lo < hi, got {self.span!r}")
+            search = self.search
+            if (
+                not isinstance(search, (tuple, list))
+                or len(search) < 1
+                or not all(is_int(g) and g >= 3 for g in search)
+            ):
+                raise ValueError(f"search must be a tuple of int grid sizes >= 3, got {search!r}")
+            object.__setattr__(self, "search", tuple(int(g) for g in search))
+            span = self.span
+            if (
+                not isinstance(span, (tuple, list))
+                or len(span) != 2
+                or not all(is_real(v) and math.isfinite(v) for v in span)
+                or not span[0] < span[1]
+            ):
+                raise ValueError(
+                    f"span must be (lo, hi), two finite numbers with lo < hi, got {span!r}"
+                )
+            object.__setattr__(self, "span", (float(span[0]), float(span[1])))
             return
+        if not self.gamma > 0:  # Theorem 1: a positive constant gamma
+            raise ValueError(f"gamma must be positive, got {self.gamma}")
         if self.form == "lemma":
-            if not self.gamma > 0:
-                raise ValueError(f"gamma must be positive, got {self.gamma}")
             return
         if isinstance(self.N, Tensor):
             raise ValueError("form='scalar' takes a scalar N (paper 004's simulation: N = 1)")
@@ -214,13 +251,18 @@ class RobustBound:
         if self.form != "lemma":
             return S
         N = self.N
-        if isinstance(N, Tensor):
-            B = N.to(dtype=S.dtype, device=S.device) @ S
-        else:
-            B = float(N) * S
-        if isinstance(N, (int, float)) and N == 0:
-            return S
         n = S.shape[-1]
+        if isinstance(N, Tensor):
+            if N.shape[-1] != n:
+                raise ValueError(
+                    f"RobustBound.N must have shape (l, n) with n={n} (the state dimension), "
+                    f"got {tuple(N.shape)}"
+                )
+            B = N.to(dtype=S.dtype, device=S.device) @ S
+        elif N == 0:
+            return S
+        else:
+            B = N * S
         A = torch.eye(n, dtype=S.dtype, device=S.device) - (B.mT @ B) / self.gamma**2
         L, info = torch.linalg.cholesky_ex(A)
         if bool((info > 0).any()):

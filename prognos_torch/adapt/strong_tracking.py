@@ -61,6 +61,9 @@ class StrongTracking:
                     f"{name} must be a real number (one value for every batch element), "
                     f"got {type(v).__name__}"
                 )
+            # a Python float: a NumPy float32 rho gave 1 + rho in float32 arithmetic (Eq. 10's
+            # denominator), lambda_k 1e-7 relative off the same value given as a float
+            object.__setattr__(self, name, float(v))
         if not 0.0 < self.rho <= 1.0:
             raise ValueError(f"rho must be in (0, 1], got {self.rho}")
         if not self.beta > 0 or self.beta == math.inf:  # (NaN fails every comparison)

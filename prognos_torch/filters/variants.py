@@ -8,13 +8,16 @@ A new variant is a new factory here, never a copy of a step.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
+import numpy as np
 from torch import Tensor
 
 from ..adapt.noise import MovingWindow, SageHusa
 from ..adapt.robust import RobustBound
 from ..adapt.strong_tracking import StrongTracking
+from ..core.validation import check_setting
 from ..quadrature import SigmaPoints, cubature, julier, unscented
 from .gaussian import GaussianFilter, Taylor
 from .particle import ParticleFilter
@@ -43,17 +46,28 @@ __all__ = [
 
 
 # ---------------------------------------------------------------------- Gaussian filters
+def _flag(v, name: str) -> bool:
+    """A factory's on/off option as a bool (``numpy.bool_`` too); anything else, which the
+    engine would read by its truth value (``sqrt="no"``: square-root algebra), is refused."""
+    if not isinstance(v, (bool, np.bool_)):
+        raise TypeError(f"{name} must be a bool, got {v!r}")
+    return bool(v)
+
+
 def ekf(*, sqrt: bool = True, **kw) -> GaussianFilter:
     """Extended Kalman filter (Jacobians by ``torch.func``)."""
-    return GaussianFilter(Taylor(), sqrt=sqrt, name=kw.pop("name", "EKF"), **kw)
+    return GaussianFilter(Taylor(), sqrt=_flag(sqrt, "sqrt"), name=kw.pop("name", "EKF"), **kw)
 
 
 def ukf(
     alpha: float = 1.0, beta: float = 2.0, kappa: float | None = 0.0, *, sqrt: bool = False, **kw
 ) -> GaussianFilter:
     """Unscented KF with the scaled rule (full covariance algebra by default)."""
+    # (unscented() takes float(alpha): text failed with float()'s message, True became 1.0)
+    check_setting(alpha, "alpha")
+    check_setting(beta, "beta")
     return GaussianFilter(
-        unscented(alpha, beta, kappa), sqrt=sqrt, name=kw.pop("name", "UKF"), **kw
+        unscented(alpha, beta, kappa), sqrt=_flag(sqrt, "sqrt"), name=kw.pop("name", "UKF"), **kw
     )
 
 
@@ -93,7 +107,7 @@ def stukf(
     """
     return GaussianFilter(
         julier(kappa),
-        sqrt=sqrt,
+        sqrt=_flag(sqrt, "sqrt"),
         fading=StrongTracking(rho, beta),
         name=kw.pop("name", "STUKF"),
         **kw,
@@ -107,6 +121,9 @@ def stsckf(rho: float = 0.95, beta: float = 1.0, **kw) -> GaussianFilter:
 
 def imsrukf(kappa: float | None = 1.0, *, noise: SageHusa | None = None, **kw) -> GaussianFilter:
     """ImSRUKF: SRUKF with the Sage-Husa noise-statistics estimator (paper 003 Sec. III-B)."""
+    if noise is not None and not isinstance(noise, SageHusa):
+        # (the engine would fail at the first step with an AttributeError)
+        raise TypeError(f"noise must be a SageHusa estimator or None, got {type(noise).__name__}")
     return srukf(kappa, noise=noise or SageHusa(), name=kw.pop("name", "ImSRUKF"), **kw)
 
 
@@ -129,9 +146,10 @@ def rukf(
     ``bound``: ``"printed"`` (the scale fixed by ``gamma``) or ``"optimised"`` (the scale of
     Eq. 28's bound chosen per step to minimise ``trace P_k``; ``form="scalar"`` only).
     """
+    check_setting(alpha, "alpha")  # (unscented() takes float(alpha))
     return GaussianFilter(
         unscented(alpha, 0.0, kappa),
-        sqrt=kw.pop("sqrt", True),
+        sqrt=_flag(kw.pop("sqrt", True), "sqrt"),
         robust=RobustBound(gamma, M, N, form=form, bound=bound),
         name=kw.pop("name", "RUKF"),
         **kw,
@@ -156,10 +174,20 @@ def arukf(
     (``(1 - N^2 / mu) C P C^T + mu M M^T``, ``mu = gamma^2``; also with ``bound="optimised"``,
     which changes only the bound of Eq. 60, see :func:`rukf`).
     """
+    # the bound's checks first (gamma**2 and float(N) below failed with Python's messages on a
+    # text gamma or a matrix N); its gamma is a float (a NumPy float32 squared in float32 moved
+    # mu = gamma^2 by 1e-7 relative)
+    rob = RobustBound(gamma, M, N, form=form, bound=bound)
+    if not (math.isfinite(rob.gamma) and rob.gamma > 0):  # (bound="optimised" leaves gamma free)
+        raise ValueError(
+            f"gamma must be a positive finite number (mu = gamma^2 of Eq. 48), got {gamma!r}"
+        )
+    diagonal = _flag(diagonal, "diagonal")
+    mu = rob.gamma**2
     if form == "lemma":
-        est = MovingWindow(window=window, M=M, N=0.0, mu=gamma**2, diagonal=diagonal)
+        est = MovingWindow(window=window, M=M, N=0.0, mu=mu, diagonal=diagonal)
     else:
-        est = MovingWindow(window=window, M=M, N=float(N), mu=gamma**2, diagonal=diagonal)
+        est = MovingWindow(window=window, M=M, N=rob.N, mu=mu, diagonal=diagonal)
     return rukf(gamma, M, N, form=form, bound=bound, noise=est, name=kw.pop("name", "ARUKF"), **kw)
 
 
@@ -179,6 +207,8 @@ FILTERS = {
 def make_filter(name: str, **kw) -> GaussianFilter:
     """Build a configured filter by name (``ekf``, ``ukf``, ``srukf``, ``ckf``, ``sckf``,
     ``stekf``, ``stukf``, ``stsckf``, ``imsrukf``)."""
+    if not isinstance(name, str):
+        raise TypeError(f"name must be a filter name (str), got {type(name).__name__}")
     key = name.lower()
     if key not in FILTERS:
         raise ValueError(f"unknown filter {name!r}; choose one of {sorted(FILTERS)}")
@@ -238,6 +268,8 @@ PARTICLE_FILTERS: dict[str, Callable[..., ParticleFilter]] = {
 
 def make_particle_filter(name: str, **kw) -> ParticleFilter:
     """Build a particle filter by name (``sir``/``pf``, ``ekpf``, ``upf``, ``stpf``)."""
+    if not isinstance(name, str):
+        raise TypeError(f"name must be a particle filter name (str), got {type(name).__name__}")
     key = name.lower()
     if key not in PARTICLE_FILTERS:
         raise ValueError(
