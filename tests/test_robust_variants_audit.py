@@ -401,3 +401,20 @@ def test_numpy_scalar_options_are_accepted():
     rb = RobustBound(1.05, M2, 1.0, bound="optimised", search=[np.int64(9), 5], span=(-20, 10))
     assert rb.search == (9, 5) and rb.span == (-20.0, 10.0)
     hash(rb)  # (a list search left the configuration unhashable)
+
+
+def test_the_engine_checks_its_on_off_options_and_estimator_types():
+    # GaussianFilter read sqrt/redraw by their truth value (sqrt="no": the square-root algebra)
+    # and took any object as noise or robust (an AttributeError at the first step)
+    from prognos_torch.filters.gaussian import GaussianFilter, Taylor
+
+    f = GaussianFilter(Taylor(), sqrt=np.bool_(False), redraw=np.bool_(True))
+    assert f.sqrt is False and f.redraw is True
+    with pytest.raises(TypeError, match="sqrt must be a bool, got 'no'"):
+        GaussianFilter(Taylor(), sqrt="no")
+    with pytest.raises(TypeError, match="redraw must be a bool, got 1"):
+        GaussianFilter(Taylor(), redraw=1)
+    with pytest.raises(TypeError, match="noise must be None, SageHusa or MovingWindow, got str"):
+        GaussianFilter(Taylor(), noise="sage")
+    with pytest.raises(TypeError, match="robust must be None or a RobustBound, got float"):
+        GaussianFilter(Taylor(), robust=1.05)

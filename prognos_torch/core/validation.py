@@ -160,6 +160,18 @@ def is_int(v) -> bool:
     return isinstance(v, numbers.Integral) and not isinstance(v, bool)
 
 
+def check_flag(v, name: str) -> bool:
+    """An on/off option as a Python ``bool`` (``numpy.bool_`` too); anything else, which would be
+    read by its truth value (``sqrt="no"`` is true), is a ``TypeError``."""
+    if (
+        isinstance(v, bool)
+        or type(v).__name__ in ("bool_", "bool")
+        and type(v).__module__ == "numpy"
+    ):
+        return bool(v)
+    raise TypeError(f"{name} must be a bool, got {v!r}")
+
+
 def is_real(v) -> bool:
     """A real number (``int``, ``float``, ``numpy.float32``, ``numpy.int64``, ...), not a
     ``bool``."""

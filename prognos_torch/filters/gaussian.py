@@ -64,7 +64,7 @@ from ..core.linalg import (
     tria,
 )
 from ..core.model import Noise, StateSpaceModel
-from ..core.validation import check_control, check_measurement, is_real
+from ..core.validation import check_control, check_flag, check_measurement, is_real
 from ..quadrature import SigmaPoints
 from ._blocks import (
     FilterState,
@@ -261,6 +261,17 @@ class GaussianFilter:
     def __post_init__(self):
         if not isinstance(self.rule, (Taylor, SigmaPoints)):
             raise TypeError(f"rule must be Taylor() or a SigmaPoints rule, got {type(self.rule)}")
+        # (read by their truth value otherwise: sqrt="no" ran the square-root algebra)
+        object.__setattr__(self, "sqrt", check_flag(self.sqrt, "sqrt"))
+        object.__setattr__(self, "redraw", check_flag(self.redraw, "redraw"))
+        if self.noise is not None and not isinstance(self.noise, (SageHusa, MovingWindow)):
+            raise TypeError(
+                "noise must be None, SageHusa or MovingWindow, got " + type(self.noise).__name__
+            )
+        if self.robust is not None and not isinstance(self.robust, RobustBound):
+            raise TypeError(
+                f"robust must be None or a RobustBound, got {type(self.robust).__name__}"
+            )
         if is_real(self.fading):  # a constant factor (a NumPy scalar becomes a float)
             object.__setattr__(self, "fading", float(self.fading))
             if not 1.0 <= self.fading < float("inf"):

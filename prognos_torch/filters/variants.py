@@ -11,13 +11,12 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
-import numpy as np
 from torch import Tensor
 
 from ..adapt.noise import MovingWindow, SageHusa
 from ..adapt.robust import RobustBound
 from ..adapt.strong_tracking import StrongTracking
-from ..core.validation import check_setting
+from ..core.validation import check_flag, check_setting
 from ..quadrature import SigmaPoints, cubature, julier, unscented
 from .gaussian import GaussianFilter, Taylor
 from .particle import ParticleFilter
@@ -46,17 +45,9 @@ __all__ = [
 
 
 # ---------------------------------------------------------------------- Gaussian filters
-def _flag(v, name: str) -> bool:
-    """A factory's on/off option as a bool (``numpy.bool_`` too); anything else, which the
-    engine would read by its truth value (``sqrt="no"``: square-root algebra), is refused."""
-    if not isinstance(v, (bool, np.bool_)):
-        raise TypeError(f"{name} must be a bool, got {v!r}")
-    return bool(v)
-
-
 def ekf(*, sqrt: bool = True, **kw) -> GaussianFilter:
     """Extended Kalman filter (Jacobians by ``torch.func``)."""
-    return GaussianFilter(Taylor(), sqrt=_flag(sqrt, "sqrt"), name=kw.pop("name", "EKF"), **kw)
+    return GaussianFilter(Taylor(), sqrt=check_flag(sqrt, "sqrt"), name=kw.pop("name", "EKF"), **kw)
 
 
 def ukf(
@@ -67,7 +58,10 @@ def ukf(
     check_setting(alpha, "alpha")
     check_setting(beta, "beta")
     return GaussianFilter(
-        unscented(alpha, beta, kappa), sqrt=_flag(sqrt, "sqrt"), name=kw.pop("name", "UKF"), **kw
+        unscented(alpha, beta, kappa),
+        sqrt=check_flag(sqrt, "sqrt"),
+        name=kw.pop("name", "UKF"),
+        **kw,
     )
 
 
@@ -107,7 +101,7 @@ def stukf(
     """
     return GaussianFilter(
         julier(kappa),
-        sqrt=_flag(sqrt, "sqrt"),
+        sqrt=check_flag(sqrt, "sqrt"),
         fading=StrongTracking(rho, beta),
         name=kw.pop("name", "STUKF"),
         **kw,
@@ -149,7 +143,7 @@ def rukf(
     check_setting(alpha, "alpha")  # (unscented() takes float(alpha))
     return GaussianFilter(
         unscented(alpha, 0.0, kappa),
-        sqrt=_flag(kw.pop("sqrt", True), "sqrt"),
+        sqrt=check_flag(kw.pop("sqrt", True), "sqrt"),
         robust=RobustBound(gamma, M, N, form=form, bound=bound),
         name=kw.pop("name", "RUKF"),
         **kw,
@@ -182,7 +176,7 @@ def arukf(
         raise ValueError(
             f"gamma must be a positive finite number (mu = gamma^2 of Eq. 48), got {gamma!r}"
         )
-    diagonal = _flag(diagonal, "diagonal")
+    diagonal = check_flag(diagonal, "diagonal")
     mu = rob.gamma**2
     if form == "lemma":
         est = MovingWindow(window=window, M=M, N=0.0, mu=mu, diagonal=diagonal)
