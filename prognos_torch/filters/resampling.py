@@ -57,25 +57,43 @@ def _normalized(weights: Tensor, log: bool) -> Tensor:
         )
     if not weights.is_floating_point():
         raise TypeError(f"weights must be a floating-point tensor, got {weights.dtype}")
+    if weights.dtype in (torch.float16, torch.bfloat16):
+        # half precision holds integers exactly only to 2048 (bfloat16: 256): the points
+        # (j + U) / N and the offspring counts would be off; the draws are made in float32
+        weights = weights.float()
     if log:
-        # one host read in the usual case: the maxima propagate NaN and +inf, and a run whose
-        # log-weights are all -inf has maximum -inf, so a finite sum of maxima means valid input
-        if not math.isfinite(float(weights.detach().amax(-1).sum())):
-            if torch.isnan(weights).any() or (weights == float("inf")).any():
-                raise ValueError("log-weights must not contain NaN or +inf")
-            mx = weights.amax(-1, keepdim=True)
-            if (mx == float("-inf")).any():
-                raise ValueError("log-weights are -inf for every particle of a batch element")
+        _check_log_weights(weights)
         return torch.softmax(weights, dim=-1)
+    if weights.numel() == 0:  # an empty batch (0, ..., N): nothing to check
+        return weights.clone()
     s = weights.sum(-1, keepdim=True)
     low, total, s_min = torch.stack([weights.amin(), s.sum(), s.amin()]).tolist()
     # non-negative entries with a finite sum are finite (NaN makes the minimum NaN)
     if not (low >= 0 and math.isfinite(total)):
         if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()):
             raise ValueError("weights must be finite and non-negative (or pass log=True)")
+        # finite weights whose sum overflows (1e308 + 1e308 = inf gave w = 0, a NaN cdf):
+        # those runs are first divided by their largest weight (the others are kept as they are)
+        big = ~torch.isfinite(s)
+        if bool(big.any()):
+            weights = torch.where(big, weights / weights.amax(-1, keepdim=True), weights)
+            s = weights.sum(-1, keepdim=True)
     if s_min <= 0:
         raise ValueError("weights sum to zero for a batch element")
     return weights / s
+
+
+def _check_log_weights(log_w: Tensor, name: str = "log-weights") -> None:
+    """``ValueError`` for NaN or +inf log-weights ``(..., N)``, or a run whose log-weights are
+    all -inf (no weight at all)."""
+    # one host read in the usual case: the maxima propagate NaN and +inf, and a run whose
+    # log-weights are all -inf has maximum -inf, so a finite sum of maxima means valid input
+    if not math.isfinite(float(log_w.detach().amax(-1).sum())):
+        if torch.isnan(log_w).any() or (log_w == float("inf")).any():
+            raise ValueError(f"{name} must not contain NaN or +inf")
+        mx = log_w.amax(-1, keepdim=True)
+        if (mx == float("-inf")).any():
+            raise ValueError(f"{name} are -inf for every particle of a batch element")
 
 
 def _cdf(w: Tensor) -> Tensor:
@@ -161,6 +179,8 @@ def _systematic(w: Tensor, generator: torch.Generator) -> Tensor:
 def _near_integer(K: Tensor, x: Tensor) -> bool:
     """Whether some ``K - x`` (``K = ceil(x)``, so each in ``[0, 1)``) lies within rounding of 0
     or 1: O(N eps) for ``x = N cdf - U`` and for the points ``u_j``, with a margin."""
+    if x.numel() == 0:  # an empty batch
+        return False
     tol = 16.0 * x.shape[-1] * torch.finfo(x.dtype).eps
     lo, hi = torch.aminmax(K - x)
     return bool((lo < tol) | (hi > 1.0 - tol))
@@ -235,7 +255,7 @@ def _residual(w: Tensor, generator: torch.Generator) -> Tensor:
     # slot j < D of a run: the particle whose cumulative count first exceeds j; each run's
     # residual slots first hold the pad value N
     out = _ancestors_from_counts(torch.cumsum(counts, dim=-1))
-    r_max = int(R.max())
+    r_max = int(R.max()) if R.numel() else 0  # (an empty batch draws nothing)
     if r_max == 0:
         return out
     # a run with R_b > 0 draws has residual mass sum_i (N w_i - floor(N w_i)) = R_b >= 1 (up
@@ -311,12 +331,18 @@ def normalize_log_weights(log_w: Tensor) -> tuple[Tensor, Tensor]:
 def ess(log_w: Tensor) -> Tensor:
     """Effective sample size ``1 / sum_i w_i^2`` of (unnormalised) log-weights ``(..., N)``.
 
-    Computed in log space, ``exp(2 logsumexp(l) - logsumexp(2 l))``; returns ``(...)``. It lies in
-    ``[1, N]`` for finite weights.
+    Computed in log space, ``exp(2 logsumexp(l) - logsumexp(2 l))`` with ``l`` relative to each
+    run's largest log-weight; returns ``(...)``. It lies in ``[1, N]``. NaN or +inf
+    log-weights, or a run whose log-weights are all -inf, raise a ``ValueError``.
     """
-    if not isinstance(log_w, Tensor) or log_w.dim() < 1:
-        raise ValueError("log_w must be a tensor of shape (..., N)")
-    return torch.exp(2.0 * torch.logsumexp(log_w, -1) - torch.logsumexp(2.0 * log_w, -1))
+    if not isinstance(log_w, Tensor) or log_w.dim() < 1 or log_w.shape[-1] < 1:
+        got = tuple(log_w.shape) if isinstance(log_w, Tensor) else type(log_w).__name__
+        raise ValueError(f"log_w must be a tensor of shape (..., N) with N >= 1, got {got}")
+    _check_log_weights(log_w, "log_w")
+    # shifted by the maximum: un-normalised float32 log-weights near -1e4 lost ~1e-3 of
+    # 2 logsumexp(l) - logsumexp(2 l) to cancellation, and 2 l overflowed from |l| ~ max / 2
+    l = log_w - log_w.detach().amax(-1, keepdim=True)
+    return torch.exp(2.0 * torch.logsumexp(l, -1) - torch.logsumexp(2.0 * l, -1))
 
 
 RESAMPLERS: dict[str, Resampler] = {

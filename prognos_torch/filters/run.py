@@ -11,7 +11,13 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief, check_belief
 from ..core.model import StateSpaceModel
-from ..core.validation import check_nonneg_int, check_pos_int, check_sequence
+from ..core.validation import (
+    check_finite,
+    check_nonneg_int,
+    check_pos_int,
+    check_sequence,
+    has_missing,
+)
 from .gaussian import FilterState, GaussianFilter, StepInfo, innovation_stats
 from .sequence import scan
 
@@ -84,12 +90,21 @@ def check_filter(filt, name: str = "filter") -> GaussianFilter:
     )
 
 
-def _start(filt, model, init, k: int) -> FilterState:
+def _start(filt, model, init, k0) -> tuple[FilterState, int]:
+    """The state at ``k0`` and ``k0`` as an ``int``."""
     check_filter(filt)
-    check_nonneg_int(k - 1, "k0")  # (a float k0 reached f, h and the noise as k)
+    # (a float k0 reached f, h and the noise as k; True was taken as k0 = 1, text failed in +)
+    k0 = check_nonneg_int(k0, "k0")
     if isinstance(init, FilterState):
-        return init
-    return filt.init(model, check_belief(init, model.state_dim, "init"), k)
+        mean = getattr(init.belief, "mean", None)
+        if not isinstance(mean, Tensor) or mean.dim() < 1 or mean.shape[-1] != model.state_dim:
+            got = tuple(mean.shape) if isinstance(mean, Tensor) else type(init.belief).__name__
+            raise ValueError(
+                f"init.belief.mean must have shape (..., {model.state_dim}) for this model, "
+                f"got {got}"
+            )
+        return init, k0
+    return filt.init(model, check_belief(init, model.state_dim, "init"), k0 + 1), k0
 
 
 def _record(state: FilterState, info: StepInfo) -> dict[str, Tensor | None]:
@@ -133,14 +148,16 @@ def run(
     the first under ``torch.inference_mode()`` (not with ``keep_steps``; the conditions of
     :meth:`~prognos_torch.filters.ParticleFilter.run`).
     """
-    state = _start(filt, model, init, k0 + 1)
+    state, k0 = _start(filt, model, init, k0)
     bs = state.belief.batch_shape
     check_sequence(ys, "ys", model.obs_dim, bs)
     T = ys.shape[0]
     if T == 0:
         raise ValueError("ys must hold at least one step, shape (T, ..., m) with T >= 1")
+    has_missing(ys, "ys", "measurement")  # inf named here, not as the step's y
     if model.control_dim:
         check_sequence(us, "us", model.control_dim, bs, steps=T, shared=True)
+        check_finite(us, "us", "(T, ..., p)")
     elif us is not None:
         raise ValueError("us was given but the model has control_dim=0")
 
@@ -191,10 +208,13 @@ def forecast(
 ) -> Forecast:
     """Multi-step-ahead prediction without measurements (``k = k0 + 1 .. k0 + steps``)."""
     steps = check_pos_int(steps, "steps")
-    state = _start(filt, model, init, k0 + 1)
+    state, k0 = _start(filt, model, init, k0)
     if model.control_dim:
         bs = state.belief.batch_shape
         check_sequence(us, "us", model.control_dim, bs, steps=steps, shared=True)
+        check_finite(us, "us", "(H, ..., p)")
+    elif us is not None:
+        raise ValueError("us was given but the model has control_dim=0")
     means, chols, ym, yc = [], [], [], []
     for j in range(steps):
         u = None if us is None else us[j]

@@ -19,6 +19,8 @@ from typing import Any, TypeVar
 import torch
 from torch import Tensor
 
+from ..core.validation import check_nonneg_int
+
 __all__ = ["scan"]
 
 S = TypeVar("S")
@@ -89,8 +91,12 @@ def scan(
         steps at which ``record`` gave a tensor for ``name`` (``T' = T`` unless it skipped some),
         ``None`` where it never did. With ``T = 0`` the dict is empty.
     """
-    if not isinstance(ys, Tensor) or ys.dim() < 1:
-        raise TypeError("ys must be a torch.Tensor of shape (T, ..., m)")
+    if not isinstance(ys, Tensor):
+        raise TypeError(f"ys must be a torch.Tensor of shape (T, ..., m), got {type(ys).__name__}")
+    if ys.dim() < 1:
+        raise ValueError(f"ys must have shape (T, ..., m) (time leading), got {tuple(ys.shape)}")
+    # (a float k0 reached the step as k = 2.5, None failed in k0 + t + 1)
+    k0 = check_nonneg_int(k0, "k0")
     T = ys.shape[0]
     if us is not None and (not isinstance(us, Tensor) or us.dim() < 1 or us.shape[0] != T):
         got = tuple(us.shape) if isinstance(us, Tensor) else type(us)
@@ -126,6 +132,11 @@ def scan(
                 new, info = step(state, *args)
                 row = record(new, info)
             state = new
+            if not isinstance(row, Mapping):  # (was an AttributeError on .items())
+                raise TypeError(
+                    f"record must return a mapping {{name: tensor or None}}, got "
+                    f"{type(row).__name__} at step {t}"
+                )
             for key, value in row.items():
                 col = rows.setdefault(key, [])
                 if value is not None:
