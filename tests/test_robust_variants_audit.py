@@ -418,3 +418,16 @@ def test_the_engine_checks_its_on_off_options_and_estimator_types():
         GaussianFilter(Taylor(), noise="sage")
     with pytest.raises(TypeError, match="robust must be None or a RobustBound, got float"):
         GaussianFilter(Taylor(), robust=1.05)
+
+
+def test_sigma_point_rules_check_text_and_bools_and_keep_python_floats():
+    # unscented() called float(alpha) first: text failed with float()'s message and True was
+    # read as 1.0; a NumPy kappa was kept as float32 (a rule unequal to the float one)
+    from prognos_torch.quadrature import julier, unscented
+
+    for bad in ("a", None, True):
+        with pytest.raises(ValueError, match="alpha must be a finite real number"):
+            unscented(bad)
+    r = julier(np.float32(1.0))
+    assert type(r.kappa) is float and r == julier(1.0)
+    assert unscented(np.float32(0.5), np.int64(2)) == unscented(0.5, 2.0)

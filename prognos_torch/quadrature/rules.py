@@ -41,6 +41,8 @@ class SigmaPoints:
             raise ValueError(f"unknown sigma-point rule kind {self.kind!r}")
         for name in ("alpha", "beta") + (() if self.kappa is None else ("kappa",)):
             check_setting(getattr(self, name), name)
+            # a Python float (a NumPy float32 kappa computed the weights in float32)
+            object.__setattr__(self, name, float(getattr(self, name)))
         if self.kind == "unscented" and self.alpha == 0:
             raise ValueError("alpha must be nonzero (the points collapse onto the mean)")
         o = self.order
@@ -94,7 +96,8 @@ def _points(kind, alpha, beta, kappa, order, n):
 
 def unscented(alpha: float = 1.0, beta: float = 2.0, kappa: float | None = 0.0) -> SigmaPoints:
     """Scaled unscented rule (Van der Merwe): ``2n + 1`` points, ``lambda = alpha^2 (n + kappa) - n``."""
-    return SigmaPoints("unscented", alpha=float(alpha), beta=float(beta), kappa=kappa)
+    # (checked by SigmaPoints: float() here gave its own message for text and read True as 1)
+    return SigmaPoints("unscented", alpha=alpha, beta=beta, kappa=kappa)
 
 
 def julier(kappa: float | None = 1.0) -> SigmaPoints:
