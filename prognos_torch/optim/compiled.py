@@ -43,10 +43,10 @@ def compiled_steps(opt: Optimizer, inputs: Tensor, targets: Tensor) -> Tensor:
     targets ``(T, *out)``; returns the ``(T,)`` (or ``(T, R)``) losses. Sets
     ``opt.compile_time``; a pass that needed a fallback (non-finite result) is discarded and
     the steps rerun eagerly (``opt._steps_eager_from``)."""
-    check_compilable(opt, inputs)
     T = inputs.shape[0]
-    if T == 0:
+    if T == 0:  # (before check_compilable, whose EKF test reads inputs[0]: an IndexError)
         raise ValueError("steps needs at least one step (T >= 1)")
+    check_compilable(opt, inputs)
     args = (opt, inputs, targets)
     for hook in chain(_global_optimizer_pre_hooks.values(), opt._optimizer_step_pre_hooks.values()):
         if hook(opt, args, {}) is not None:

@@ -133,6 +133,9 @@ def _check_data(data, name: str, runs: int | None = None) -> tuple[Tensor, Tenso
     X, Y = data
     if not isinstance(X, Tensor) or not isinstance(Y, Tensor):
         raise TypeError(f"{name} must be a pair (X, Y) of tensors, got {type(X)}, {type(Y)}")
+    for what, v in (("inputs X", X), ("targets Y", Y)):
+        if not v.is_floating_point():  # (an int or bool Y was taken by the MSE as 0/1 values)
+            raise TypeError(f"{name} {what} must be a floating-point tensor, got {v.dtype}")
     if runs is not None:
         if X.dim() < 2 or Y.dim() < 2 or X.shape[0] != runs or Y.shape[0] != runs:
             raise ValueError(
@@ -195,18 +198,68 @@ def _metric_fns(metrics) -> list[tuple[str, Callable]]:
     return out
 
 
-@torch.no_grad()
-def _evaluate(module, optimizer, X: Tensor, Y: Tensor, fns) -> dict[str, Tensor]:
-    if isinstance(optimizer, KalmanOptimizer) and optimizer.runs is not None:
-        pred = optimizer.predict(X)  # (R, N, ...)
-        dims = tuple(range(1, pred.dim()))
-    else:
-        pred = module(X)
-        dims = tuple(range(pred.dim()))
-    if pred.shape[-Y.dim() :] != Y.shape:
+def _predict(module, optimizer, X: Tensor, Y: Tensor, name: str, shown=None) -> Tensor:
+    """The predictions that the metrics score: ``optimizer.predict`` for ``R`` runs
+    (``(R, N, ...)``; per-run data ``(R, N, ...)`` in, the same out), else ``module(X)``; of
+    exactly the targets' shape (after the runs): nothing broadcast. ``shown``: the shape of
+    the whole targets, named in the error when ``Y`` is their first sample."""
+    runs = optimizer.runs if isinstance(optimizer, KalmanOptimizer) else None
+    pred = module(X) if runs is None else optimizer.predict(X)
+    lead = (runs,) if runs is not None and not optimizer.per_run_data else ()
+    if not isinstance(pred, Tensor) or tuple(pred.shape) != lead + tuple(Y.shape):
+        if not isinstance(pred, Tensor):
+            raise TypeError(f"the module must return one tensor, got {type(pred).__name__}")
+        rows = len(lead) + (1 if runs is not None and optimizer.per_run_data else 0) + 1
+        Ys = tuple(Y.shape if shown is None else shown)
+        want = Ys[: rows - len(lead)] + tuple(pred.shape[rows:])  # the rows, then the output
         raise ValueError(
-            f"the model output {tuple(pred.shape)} does not match the targets {tuple(Y.shape)}"
+            f"{name} targets Y must have shape {want} as the model output (for inputs of "
+            f"shape {tuple(X.shape)}: {tuple(pred.shape)}), got {Ys}: a metric would broadcast "
+            "them"
         )
+    return pred
+
+
+def _check_outputs(module, optimizer, X: Tensor, Y: Tensor, name: str, per_run: bool) -> None:
+    """The prediction of the first sample has the targets' shape: checked before any step, so
+    that a bad ``val`` is refused before an epoch has trained the module (it failed after)."""
+    first = slice(0, 1)
+    x1, y1 = (X[:, first], Y[:, first]) if per_run else (X[first], Y[first])
+    modes = _modes(module)
+    module.eval()  # (no running statistics moved by this look at the output's shape)
+    try:
+        with torch.no_grad():
+            _predict(module, optimizer, x1, y1, name, Y.shape)
+    finally:
+        _restore_modes(modes)
+
+
+def _modes(module: nn.Module) -> list[tuple[nn.Module, bool]]:
+    """The training flag of every submodule (a layer put in eval() by the user keeps it)."""
+    return [(m, m.training) for m in module.modules()]
+
+
+def _restore_modes(modes: list[tuple[nn.Module, bool]]) -> None:
+    for m, training in modes:
+        m.training = training
+
+
+def _train_mode(module: nn.Module, modes: list[tuple[nn.Module, bool]]) -> None:
+    """``module.train()``, except for the submodules the caller had put in ``eval()`` inside a
+    module in training mode (a frozen BatchNorm, a Dropout switched off for a Kalman
+    optimiser, as its error message advises): they stay in eval mode."""
+    module.train()
+    if modes[0][1]:
+        for m, training in modes:
+            if not training:
+                m.training = False
+
+
+@torch.no_grad()
+def _evaluate(module, optimizer, X: Tensor, Y: Tensor, fns, name: str) -> dict[str, Tensor]:
+    pred = _predict(module, optimizer, X, Y, name)
+    runs = isinstance(optimizer, KalmanOptimizer) and optimizer.runs is not None
+    dims = tuple(range(1 if runs else 0, pred.dim()))
     p64, t64 = pred.to(torch.float64), Y.to(device=pred.device, dtype=torch.float64)
     return {name: fn(p64, t64, dims) for name, fn in fns}
 
@@ -364,20 +417,31 @@ def _fit(
             "compile=False steps update with the observed ones"
         )
 
+    if kalman and val is not None:  # as the steps check train's, before any step
+        b = optimizer.bridge
+        for what, v in (("val inputs X", Xv), ("val targets Y", Yv)):
+            if v.dtype != b.dtype:
+                raise TypeError(
+                    f"{what} has dtype {v.dtype} but the module parameters have dtype {b.dtype}"
+                )
+            if v.device != b.device:
+                raise ValueError(f"{what} is on {v.device} but the module is on {b.device}")
     if not kalman and X.shape[0] > 0:  # (the Kalman steps check theirs before updating)
-        was = module.training
+        modes = _modes(module)
         module.eval()  # (no running statistics moved by this look at the output's shape)
         try:
             with torch.no_grad():
                 out = module(X[:1])
         finally:
-            module.train(was)
+            _restore_modes(modes)
         if tuple(out.shape[1:]) != tuple(Y.shape[1:]):
             raise ValueError(
                 f"train targets must have shape (N, ...) = (N, {', '.join(map(str, out.shape[1:]))})"
                 f" as the model output per sample, got {tuple(Y.shape)}: a loss would broadcast "
                 "them (an (N,) target against an (N, 1) output compares every pair)"
             )
+    if val is not None:
+        _check_outputs(module, optimizer, Xv, Yv, "val", per_run)
     N = X.shape[1 if per_run else 0]  # per-run data: (runs, N, ...)
     n_batches = N // batch_size if drop_last else -(-N // batch_size)
     if n_batches == 0:
@@ -395,7 +459,7 @@ def _fit(
     except ImportError:  # pragma: no cover - tqdm is a dependency
         bar = None
 
-    was_training = module.training
+    modes = _modes(module)
     best_value, best_state, since_best = float("inf"), None, 0
     if kalman:
         # values checked once here; the steps check types, shapes, dtypes and devices (with
@@ -409,14 +473,14 @@ def _fit(
                 order = order.to(X.device)
             else:
                 order = torch.arange(N, device=X.device)
-            module.train()
+            _train_mode(module, modes)
             losses = []
             _synchronize(X.device)  # device work queued before the epoch is not its time
             t0 = time.perf_counter()
             compiled_time = 0.0
             done = 0
-            if compile:
-                full = N // batch_size
+            full = N // batch_size
+            if compile and full > 0:  # (no full mini-batch: the one smaller one is eager)
                 idx = order[: full * batch_size]
                 xs, ys = (X[:, idx], Y[:, idx]) if per_run else (X[idx], Y[idx])
                 shape = (full, batch_size)
@@ -465,10 +529,10 @@ def _fit(
             hist.epoch.append(epoch)
 
             module.eval()
-            for name, v in _evaluate(module, optimizer, X, Y, fns).items():
+            for name, v in _evaluate(module, optimizer, X, Y, fns, "train").items():
                 hist.train[name].append(v)
             if val is not None:
-                vals = _evaluate(module, optimizer, Xv, Yv, fns)
+                vals = _evaluate(module, optimizer, Xv, Yv, fns, "val")
                 for name, v in vals.items():
                     hist.val[name].append(v)
                 monitored = float(vals[hist.metrics[0]].mean())
@@ -494,7 +558,7 @@ def _fit(
             optimizer._finite_checked = False
         if bar is not None:
             bar.close()
-        module.train(was_training)
+        _restore_modes(modes)
     if best_state is not None and hist.best_epoch != hist.epoch[-1]:
         module.load_state_dict(best_state[0])
         optimizer.load_state_dict(best_state[1])

@@ -157,6 +157,14 @@ def predict_then_update(
         with torch.no_grad():
             out = predict(xk)
         secs += time.perf_counter() - t0
+        want = (1, *Y.shape[d + 1 :])  # one sample, then the output (as the targets)
+        if not isinstance(out, Tensor) or tuple(out.shape[out.dim() - tail :]) != want:
+            got = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
+            raise ValueError(
+                f"predict must return (..., {', '.join(map(str, want))}) for one sample (the "
+                f"targets' shape per sample {tuple(Y.shape[d + 1 :])} after a sample dim of 1), "
+                f"got {got}"
+            )
         preds.append(out.select(out.dim() - tail, 0))  # the run dims lead the sample dim
         h = _step_through(module, optimizer, xk, yk, missing)
         secs += h.train_time

@@ -37,7 +37,7 @@ import torch
 from torch import Tensor, nn
 from torch.func import functional_call, vmap
 
-from ..core.validation import is_int
+from ..core.validation import check_pos_int, is_int
 from .fit import _check_data, fit
 from .kalman import KalmanOptimizer
 from .params import ParameterBridge, Selector
@@ -77,6 +77,8 @@ def _index(index, runs: int) -> Tensor | slice:
         return index
     if is_int(index):
         index = int(index)
+        if not -runs <= index < runs:  # (a slice past the end picked no run, silently)
+            raise IndexError(f"run index {index} is out of range for {runs} runs")
         return slice(index, index + 1 if index != -1 else None)
     idx = torch.as_tensor(index)
     if idx.dtype == torch.bool:
@@ -142,7 +144,7 @@ class StackedLearner(nn.Module):
                 runs = v.shape[0]
             elif v.shape[0] != runs:
                 raise ValueError(f"every entry of params needs the same R={runs}, {name!r} differs")
-        if run_dim not in (0, 1):
+        if not is_int(run_dim) or run_dim not in (0, 1):  # (True was taken as 1)
             raise ValueError(f"run_dim must be 0 or 1, got {run_dim!r}")
         if evaluate not in EVALUATE:
             raise ValueError(f"evaluate must be one of {EVALUATE}, got {evaluate!r}")
@@ -160,11 +162,26 @@ class StackedLearner(nn.Module):
             else:
                 self.register_buffer(attr, v)
             self._names[attr] = name
-        self.runs, self.run_dim, self.evaluate = int(runs), run_dim, evaluate
+        self.runs, self.run_dim, self.evaluate = int(runs), int(run_dim), evaluate
         if lo is not None:
-            lo, hi = torch.as_tensor(lo), torch.as_tensor(hi)
+            # numbers (a list, an array) take the dtype of the parameters: a list became
+            # float32, its bounds rounded (0.1 -> 0.10000000149)
+            dtype = next(iter(params.values())).dtype
+            lo, hi = (
+                v if isinstance(v, Tensor) else torch.as_tensor(v, dtype=dtype) for v in (lo, hi)
+            )
             if lo.shape != (self.runs,) or hi.shape != (self.runs,):
-                raise ValueError(f"lo and hi must have shape ({self.runs},), got {lo.shape}")
+                raise ValueError(
+                    f"lo and hi must have shape ({self.runs},), got {tuple(lo.shape)} and "
+                    f"{tuple(hi.shape)}"
+                )
+            bad = ~(torch.isfinite(lo) & torch.isfinite(hi) & (hi > lo))
+            if bool(bad.any()):  # (hi == lo divided by zero: inf or NaN outputs)
+                r = int(bad.nonzero()[0, 0])
+                raise ValueError(
+                    f"lo and hi must be finite with hi > lo for every run (the scale hi - lo "
+                    f"divides), got lo={float(lo[r])!r}, hi={float(hi[r])!r} for run {r}"
+                )
             self.register_buffer("lo", lo.detach().clone())
             self.register_buffer("scale", (hi - lo).detach().clone())
         else:
@@ -385,7 +402,14 @@ def kalman_runs_optimizer(
     starting from the parameters of ``modules[r]`` (structurally identical to ``base`` and
     sharing every tensor outside the Kalman state with it). ``kalman_options``: filter, P0, Q,
     R, ..."""
-    theta0 = ParameterBridge(base).stack(modules)
+    bridge = ParameterBridge(base)
+    if not _share_the_rest([base, *modules], bridge):  # (each run evaluated base's instead)
+        raise ValueError(
+            "the modules differ from base outside the parameters in the Kalman state (a fixed "
+            "layer, a buffer): the runs of one optimiser share base's; train them separately "
+            "(fit_kalman_runs(..., batched=False))"
+        )
+    theta0 = bridge.stack(modules)
     return KalmanOptimizer(base, runs=len(modules), theta0=theta0, **kalman_options)
 
 
@@ -466,6 +490,7 @@ class StackedForecaster:
     """
 
     def __init__(self, inner, runs: int, channels: int) -> None:
+        runs, channels = check_pos_int(runs, "runs"), check_pos_int(channels, "channels")
         if len(inner.learners) != runs * channels:
             raise ValueError(
                 f"inner must have runs x channels = {runs * channels} channels, got "
@@ -513,16 +538,30 @@ class StackedForecaster:
     def copy(self) -> StackedForecaster:
         return StackedForecaster(self.inner.copy(), self.runs, self.channels)
 
+    def _check(self, z, name: str, shape: str, lead: int) -> None:
+        """``z`` ends with ``(R, C)`` after ``lead`` dims (a reshape took any tensor of as many
+        entries: ``(C, R)`` swapped the runs and channels, silently)."""
+        want = (self.runs, self.channels)
+        if not isinstance(z, Tensor) or z.dim() != lead + 2 or tuple(z.shape[lead:]) != want:
+            got = tuple(z.shape) if isinstance(z, Tensor) else type(z).__name__
+            raise ValueError(
+                f"{name} must have shape {shape} with R={self.runs} runs and C={self.channels} "
+                f"channels, got {got}"
+            )
+
     def initialize(self, z0: Tensor) -> StackedForecaster:
         """Train on ``z0`` ``(N0, R, C)``."""
+        self._check(z0, "z0", "(N0, R, C)", 1)
         self.inner.initialize(z0.reshape(z0.shape[0], self.runs * self.channels))
         return self
 
     def forecast(self, n: int) -> Tensor:
         """``(n, R, C)`` forecasts."""
-        return self.inner.forecast(n).reshape(n, self.runs, self.channels)
+        out = self.inner.forecast(n)
+        return out.reshape(out.shape[0], self.runs, self.channels)
 
     def update(self, z: Tensor) -> StackedForecaster:
         """Absorb the measurement ``z`` ``(R, C)``."""
+        self._check(z, "z", "(R, C)", 0)
         self.inner.update(z.reshape(self.runs * self.channels))
         return self
