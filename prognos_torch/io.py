@@ -208,9 +208,14 @@ def atomic_write(path: str | os.PathLike, data: bytes) -> None:
         IsADirectoryError: ``path`` is a folder (give a file name inside it).
         FileNotFoundError: the folder of ``path`` does not exist.
     """
+    raw = os.fspath(path)
     path = Path(path)
     if path.is_dir():
         raise IsADirectoryError(f"{path} is a folder; give a file name, e.g. {path / 'model.pt'}")
+    if isinstance(raw, str) and raw.endswith(("/", os.sep)):  # (Path("out/") is Path("out"))
+        raise FileNotFoundError(
+            f"output folder does not exist: {raw}; give a file name in an existing folder"
+        )
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise FileNotFoundError(f"output folder does not exist: {folder}")
@@ -230,25 +235,42 @@ def atomic_write(path: str | os.PathLike, data: bytes) -> None:
         raise
 
 
-def _check_json(value, where: str) -> None:
-    """Only plain JSON values (no NaN/inf: JSON has none); raise TypeError naming the key."""
+def _check_json(value, where: str):
+    """Only plain JSON values (no NaN/inf: JSON has none); raise TypeError naming the key.
+    Returns the value with NumPy scalars (``np.int64``, ``np.float32``, ``np.bool_``) as the
+    Python numbers they hold, which ``json`` writes (it refuses NumPy integers)."""
+    if isinstance(value, (np.integer, np.floating, np.bool_)):
+        value = value.item()
     if value is None or isinstance(value, (bool, int, str)):
-        return
+        return value
     if isinstance(value, float):
         if not math.isfinite(value):
             raise ValueError(f"config{where} is {value}; store non-finite numbers as None")
-        return
+        return value
     if isinstance(value, (list, tuple)):
-        for i, v in enumerate(value):
-            _check_json(v, f"{where}[{i}]")
-        return
+        return [_check_json(v, f"{where}[{i}]") for i, v in enumerate(value)]
     if isinstance(value, Mapping):
+        out = {}
         for k, v in value.items():
             if not isinstance(k, str):
                 raise TypeError(f"config{where} has a non-string key {k!r}")
-            _check_json(v, f"{where}[{k!r}]")
-        return
+            out[k] = _check_json(v, f"{where}[{k!r}]")
+        return out
     raise TypeError(f"config{where} must be a JSON value, got {type(value).__name__}")
+
+
+def _stored_config(path, config) -> dict:
+    """A stored configuration holds only what :func:`_check_json` passes: ``json`` reads
+    ``NaN``/``Infinity`` that no writer here produces, and a model loaded with them could not be
+    saved again; such a file is refused, naming the entry."""
+    try:
+        _check_json(config, "")
+    except (TypeError, ValueError) as exc:
+        raise ModelFileError(
+            f"{path}: the stored configuration is not plain JSON ({exc}); prognos_torch never "
+            "writes such a file"
+        ) from None
+    return config
 
 
 def _dumps(obj) -> str:
@@ -280,7 +302,7 @@ def save_model_file(
     Args:
         path: destination (its folder must exist; not a folder itself).
         config: JSON-serialisable configuration (dicts, lists, str, int, finite float, bool,
-            None).
+            None; NumPy scalars are written as the Python numbers they hold).
         tensors: name -> tensor of a dtype in ``float64, float32, int64, int32, bool`` (any
             device; stored from CPU copies). Names must not be ``"__metadata__"``.
         kind: a short label checked by readers that expect a particular kind of file.
@@ -289,7 +311,7 @@ def save_model_file(
         raise ValueError(f"kind must be a non-empty string, got {kind!r}")
     if not isinstance(config, Mapping):
         raise TypeError(f"config must be a mapping, got {type(config).__name__}")
-    _check_json(config, "")
+    config = _check_json(config, "")
     if not isinstance(tensors, Mapping):
         raise TypeError(f"tensors must be a mapping name -> tensor, got {type(tensors).__name__}")
     items = []
@@ -479,6 +501,7 @@ def load_model_file(
         raise ModelFileError(f"{path}: malformed JSON configuration ({exc})") from None
     if not isinstance(config, dict):
         raise ModelFileError(f"{path}: header lacks a configuration object")
+    _stored_config(path, config)
     for e in entries:
         if e["dtype"] not in _FROM_ST:
             raise ModelFileError(
@@ -646,6 +669,7 @@ def _load_v1(path, handle, size: int, kind, device) -> ModelFile:
     entries = header.get("tensors")
     if not isinstance(config, dict) or not isinstance(entries, list):
         raise ModelFileError(f"{path}: header lacks config or tensors")
+    _stored_config(path, config)
     tensors = _decode_tensors(path, entries, memoryview(body)[_U64.size + head_len :], device)
     return ModelFile(
         kind=file_kind, config=config, tensors=tensors, library_version=written, format_version=1

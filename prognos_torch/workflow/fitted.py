@@ -47,4 +47,5 @@ class FittedModel:
     def metrics(self) -> dict:
         """Held-out metrics recorded by :func:`~prognos_torch.workflow.fit_series` (empty
         without a holdout)."""
-        return dict(self.config.get("holdout", {}).get("metrics", {}))
+        holdout = self.config.get("holdout") or {}  # (None: no holdout, as {} is)
+        return dict(holdout.get("metrics") or {})
