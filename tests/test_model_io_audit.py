@@ -298,3 +298,22 @@ def test_fitted_metrics_without_a_holdout_record():
     rec = {"m": 2, "holdout": {"n": 3, "metrics": {"rmse": 0.5}}}
     got = FittedModel(lin, scaler, rec).metrics
     assert got == {"rmse": 0.5} and got is not rec["holdout"]["metrics"]
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX permissions and folder fsync")
+def test_atomic_write_keeps_a_replaced_files_permissions_and_flushes_the_folder(
+    tmp_path, monkeypatch
+):
+    """A replaced file got the default permissions (a 0600 secret became 0644 on the next
+    save), and the folder entry of the rename was never flushed (lost on a power cut)."""
+    target = tmp_path / "f.bin"
+    target.write_bytes(b"old")
+    os.chmod(target, 0o600)
+    synced = []
+    real = pio.os.fsync
+    monkeypatch.setattr(pio.os, "fsync", lambda fd: synced.append(os.fstat(fd).st_mode) or real(fd))
+    atomic_write(target, b"new")
+    assert target.read_bytes() == b"new" and (target.stat().st_mode & 0o777) == 0o600
+    import stat
+
+    assert [stat.S_ISDIR(m) for m in synced] == [False, True]  # the file, then its folder
