@@ -33,9 +33,11 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from ..core.validation import check_real
+from ..core.validation import check_real, is_real
 from ..prognosis.conformal import (
     RULCalibration,
+    _check_bins,
+    _check_coverage,
     calibrate_intervals,
     interval_scores,
 )
@@ -107,6 +109,21 @@ def calibrate_fleet(
     thr = check_real(threshold, "threshold")
     if direction not in ("above", "below"):
         raise ValueError(f"direction must be 'above' or 'below', got {direction!r}")
+    # checked before the replay, as calibrate_rul does (a fraction beyond 1 replayed rows past
+    # the end of life; coverage and bins were refused only after the whole replay)
+    _check_coverage(coverage)
+    if not (isinstance(bins, str) and bins == "auto"):
+        bins = _check_bins(bins)
+    try:
+        fr = tuple(fractions)
+    except TypeError:
+        fr = ()
+    if not fr or any(not is_real(f) or not 0 < f < 1 for f in fr) or len(set(fr)) != len(fr):
+        raise ValueError(
+            f"fractions must be distinct numbers in (0, 1) of [onset, end of life], got "
+            f"{fractions!r}"
+        )
+    fractions = tuple(float(f) for f in fr)
     sign = 1.0 if direction == "above" else -1.0
     table = (
         source

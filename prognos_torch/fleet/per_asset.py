@@ -29,6 +29,7 @@ import math
 
 import numpy as np
 
+from ..core.validation import check_real
 from .trend import RUL_COLUMNS, PaddedBatch, check_min_rows
 
 __all__ = ["prognose_rul"]
@@ -68,6 +69,10 @@ def prognose_rul(
     if direction not in DIRECTIONS:  # an argument, not an asset's input
         raise ValueError(f"direction must be 'above', 'below' or 'auto', got {direction!r}")
     min_rows = check_min_rows(min_rows)
+    # arguments, not an asset's input (a NaN threshold was every asset's prognose_error)
+    threshold = check_real(threshold, "threshold")
+    if horizon is not None and not check_real(horizon, "horizon") > 0:
+        raise ValueError(f"horizon must be a positive finite number or None, got {horizon!r}")
     B = len(batch)
     out = {c: np.full(B, np.nan) for c in RUL_COLUMNS}
     flags, messages = [], []

@@ -41,7 +41,7 @@ from ..prognosis.conformal import record_settings
 from ..workflow.data import date_after
 from .per_asset import DIRECTIONS as prognose_directions
 from .per_asset import prognose_rul
-from .table import FleetTable, read_fleet_table, write_table
+from .table import FleetTable, _id_text, read_fleet_table, write_table
 from .trend import DIRECTIONS as trend_directions
 from .trend import RUL_COLUMNS, check_min_rows, exponential_trend_rul, pad_batch
 
@@ -121,13 +121,13 @@ class FleetResult:
         return len(self.columns["asset"])
 
     def row(self, asset: str) -> dict:
-        """The output row of one asset (its id, or a number read as its text) as a dict."""
+        """The output row of one asset (its id, or a number read as its text as the table
+        reads it: ``7.0`` is asset ``"7"``) as a dict."""
+        key = _id_text(asset)
         try:
-            i = self.columns["asset"].index(str(asset))
+            i = self.columns["asset"].index(key)
         except ValueError:
-            raise ValueError(
-                f"asset {str(asset)!r} is not in this result ({len(self)} assets)"
-            ) from None
+            raise ValueError(f"asset {key!r} is not in this result ({len(self)} assets)") from None
         return {k: v[i] for k, v in self.columns.items()}
 
     def flagged(self, flag: str) -> list[str]:

@@ -20,9 +20,12 @@ A ``healthy_fraction`` of the assets never degrades (``beta = 0``, onset and fai
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from ..core.validation import is_int, is_real
 
 __all__ = ["SyntheticFleet", "synthetic_fleet"]
 
@@ -61,9 +64,43 @@ def synthetic_fleet(
     onset: tuple[float, float] = (0.35, 0.75),
     life_fraction: tuple[float, float] = (0.3, 0.9),
 ) -> SyntheticFleet:
-    """Simulate the fleet of the module docstring."""
-    if n_assets < 1 or n_steps < 10:
-        raise ValueError(f"need n_assets >= 1 and n_steps >= 10, got {n_assets}, {n_steps}")
+    """Simulate the fleet of the module docstring.
+
+    ``ValueError`` naming the argument unless: ``ragged`` in (0, 1] with every life at least
+    10 samples (``ceil(ragged n_steps) >= 10``), ``healthy_fraction`` in [0, 1], the pairs
+    ``noise`` ``0 <= lo <= hi``, ``onset`` ``0 <= lo < 1``, ``lo <= hi <= 1`` (fractions of
+    each life) and ``life_fraction`` ``0 < lo <= hi`` (above 1: observed past failure), and
+    ``threshold`` finite and > 0.
+    """
+    if not is_int(n_assets) or not is_int(n_steps) or n_assets < 1 or n_steps < 10:
+        raise ValueError(
+            f"need ints n_assets >= 1 and n_steps >= 10, got {n_assets!r}, {n_steps!r}"
+        )
+    n_assets, n_steps = int(n_assets), int(n_steps)
+    if not is_real(ragged) or not 0.0 < ragged <= 1.0 or math.ceil(ragged * n_steps) < 10:
+        raise ValueError(
+            "ragged must be a number in (0, 1] with ceil(ragged * n_steps) >= 10 (the shortest "
+            f"life in samples), got {ragged!r} with n_steps={n_steps}"
+        )
+    if not is_real(threshold) or not 0.0 < threshold < math.inf:
+        raise ValueError(f"threshold must be a finite number > 0, got {threshold!r}")
+    if not is_real(healthy_fraction) or not 0.0 <= healthy_fraction <= 1.0:
+        raise ValueError(f"healthy_fraction must be a number in [0, 1], got {healthy_fraction!r}")
+    for name, pair, span in (
+        ("noise", noise, "0 <= lo <= hi, finite"),
+        ("onset", onset, "0 <= lo < 1, lo <= hi <= 1"),  # (an onset at the end: beta inf)
+        ("life_fraction", life_fraction, "0 < lo <= hi, finite"),  # (above 1: past failure)
+    ):
+        lo, hi = tuple(pair) if np.ndim(pair) == 1 and len(pair) == 2 else (None, None)
+        ok = is_real(lo) and is_real(hi) and lo <= hi < math.inf
+        if name == "noise":
+            ok = ok and lo >= 0.0
+        elif name == "onset":
+            ok = ok and 0.0 <= lo < 1.0 and hi <= 1.0
+        else:
+            ok = ok and lo > 0.0
+        if not ok:
+            raise ValueError(f"{name} must be a pair (lo, hi) with {span}, got {pair!r}")
     rng = np.random.default_rng(seed)
     lo = int(np.ceil(ragged * n_steps)) if ragged < 1 else n_steps
     n = rng.integers(lo, n_steps + 1, size=n_assets) if lo < n_steps else np.full(n_assets, n_steps)

@@ -188,11 +188,14 @@ def _numbers(col, what: str):
     if arr.dtype.kind == "f":
         out = arr.astype(np.float64)
         return out, np.flatnonzero(np.isinf(out))
-    try:  # fast path: every cell is a number (NumPy parses the text)
-        out = np.asarray(arr, dtype=np.float64)
-        return out, np.flatnonzero(np.isinf(out))
-    except (ValueError, TypeError):
-        pass
+    # fast path: every cell is a number (NumPy parses the text); not with a boolean cell among
+    # them, which it would read as 0/1 where a column of booleans is refused
+    if arr.dtype.kind != "O" or not any(isinstance(c, (bool, np.bool_)) for c in arr.flat):
+        try:
+            out = np.asarray(arr, dtype=np.float64)
+            return out, np.flatnonzero(np.isinf(out))
+        except (ValueError, TypeError):
+            pass
     out = np.empty(arr.size, dtype=np.float64)
     bad = []
     for i, cell in enumerate(arr.tolist()):
@@ -240,15 +243,19 @@ def _times(col, where, time_format: str | None = None):
         return t, None, None
     else:
         t, bad = _numbers(arr, "time")
-        if bad.size == 0 and not np.isnan(t).any():
+        finite = np.isfinite(t)
+        if finite.all():
             return t, None, None
-        if bad.size and np.isfinite(t).any():  # numbers and text in one time column
-            i, j = int(bad[0]), int(np.flatnonzero(np.isfinite(t))[0])
-            raise ValueError(
-                f"{where(i)}: time {arr[i]!r} is not a number, while {where(j)} holds the "
-                f"number {arr[j]!r}: a time column holds numbers or ISO 8601 date-times, not both"
-            )
-        cells = arr.tolist()
+        cells = arr.tolist()  # (Python text: np.str_ cells would print as np.str_('x'))
+        if finite.any():  # a column of numbers: a missing or infinite cell, or text among them
+            i, j = int(np.flatnonzero(~finite)[0]), int(np.flatnonzero(finite)[0])
+            if np.isnan(t[i]) and bool((bad == i).any()):  # text, not a missing cell
+                raise ValueError(
+                    f"{where(i)}: time {cells[i]!r} is not a number, while {where(j)} holds the "
+                    f"number {cells[j]!r}: a time column holds numbers or ISO 8601 date-times, "
+                    "not both"
+                )
+            raise ValueError(f"{where(i)}: the time is missing or not finite")
         stamps = np.empty(len(cells), dtype="datetime64[ns]")
         for i, c in enumerate(cells):
             try:

@@ -97,7 +97,7 @@ import torch
 from torch import Tensor
 
 from ..core import GaussianBelief, StateSpaceModel
-from ..core.validation import check_real, is_int
+from ..core.validation import check_real, check_seed, is_int, is_real
 from ..filters import ekf, run
 from ..filters.gaussian import GaussianFilter
 from ..prognosis.onset import (
@@ -149,6 +149,46 @@ def check_min_rows(min_rows) -> int:
     return int(min_rows)
 
 
+def check_onset_rule(baseline, k, window, consecutive, direction) -> tuple:
+    """The onset rule's settings as :func:`~prognos_torch.prognosis.onset.ksigma_onset` and
+    ``healthy_baseline`` take them (``ValueError`` naming the setting): ``baseline`` in (0, 1],
+    ``k`` finite > 0, ``window`` and ``consecutive`` ints >= 1, ``direction`` a side."""
+    if direction not in DIRECTIONS:
+        raise ValueError(f"direction must be 'above' or 'below', got {direction!r}")
+    if not is_real(baseline) or not 0.0 < baseline <= 1.0:
+        raise ValueError(f"baseline fraction must be a number in (0, 1], got {baseline!r}")
+    if not is_real(k) or not 0.0 < k < math.inf:
+        raise ValueError(f"k must be a finite number > 0, got {k!r}")
+    for name, v in (("window", window), ("consecutive", consecutive)):
+        if not is_int(v) or v < 1:
+            raise ValueError(f"{name} must be an int >= 1, got {v!r}")
+    return float(baseline), float(k), int(window), int(consecutive), direction
+
+
+def _check_pair(v, name: str, what: str, positive: bool, optional_second: bool = False):
+    """A pair of finite reals (``> 0`` if ``positive``, else ``>= 0``), its second ``None``
+    where ``optional_second``: ``ValueError`` naming ``name`` and ``what`` it holds."""
+    try:
+        pair = tuple(v)
+    except TypeError:
+        pair = ()
+    if len(pair) == 2:
+        out = []
+        for j, x in enumerate(pair):
+            if x is None and j == 1 and optional_second:
+                out.append(None)
+                continue
+            if getattr(x, "ndim", None) == 0 and hasattr(x, "item"):
+                x = x.item()
+            if not is_real(x) or not (0.0 < x < math.inf if positive else 0.0 <= x < math.inf):
+                break
+            out.append(float(x))
+        else:
+            return tuple(out)
+    sign = "> 0" if positive else ">= 0"
+    raise ValueError(f"{name} must be a pair of finite numbers {sign} ({what}), got {v!r}")
+
+
 def asset_seed(seed: int, asset: str) -> int:
     """A 63-bit seed from the fleet seed and the asset id (BLAKE2b of both; stable everywhere)."""
     h = hashlib.blake2b(f"{int(seed)}\x1f{asset}".encode(), digest_size=8).digest()
@@ -178,17 +218,32 @@ class PaddedBatch:
 
 
 def pad_batch(assets, times, values, seed: int = 0) -> PaddedBatch:
-    """Pad per-asset 1-D arrays into a :class:`PaddedBatch` (float64, NaN padding)."""
+    """Pad per-asset 1-D arrays into a :class:`PaddedBatch` (float64, NaN padding). Each
+    asset's times must be finite and strictly increasing (as a fleet table's are); its values
+    may be NaN (missing)."""
+    seed = check_seed(seed)
     B = len(assets)
     if not (len(times) == len(values) == B) or B == 0:
         raise ValueError("assets, times and values must be non-empty and of one length")
-    lengths = [len(v) for v in values]
+    times = [np.asarray(t, dtype=np.float64) for t in times]
+    values = [np.asarray(v, dtype=np.float64) for v in values]
+    lengths = [len(v) if v.ndim == 1 else -1 for v in values]
     T = max(max(lengths), 1)
     V = np.full((B, T), np.nan)
     X = np.full((B, T), np.nan)
     for i, (t, v) in enumerate(zip(times, values)):
+        if t.ndim != 1 or v.ndim != 1:
+            raise ValueError(
+                f"asset {assets[i]!r}: times and values must be 1-D, got shapes {t.shape} and "
+                f"{v.shape}"
+            )
         if len(t) != len(v):
             raise ValueError(f"asset {assets[i]!r}: {len(t)} times but {len(v)} values")
+        if not np.isfinite(t).all() or not (np.diff(t) > 0).all():
+            raise ValueError(
+                f"asset {assets[i]!r}: times must be finite and strictly increasing, got "
+                f"{t.tolist() if t.size <= 6 else t}"
+            )
         V[i, : len(v)] = v
         X[i, : len(t)] = t
     return PaddedBatch(
@@ -231,7 +286,12 @@ def ksigma_onset_batch(
     """The k-sigma moving-median onset rule (module docstring), batched over ``(B, T)`` rows.
 
     ``skip_window=True`` counts only exceedances after each row's healthy window (the
-    per-series rule with ``after=Baseline.t_end``): a run-in transient in it is no onset."""
+    per-series rule with ``after=Baseline.t_end``): a run-in transient in it is no onset, and,
+    as in the per-series rule, neither are the first ``window - 1`` observed samples of a row,
+    whose trailing window is partial (the fleet's rule)."""
+    baseline, k, window, consecutive, direction = check_onset_rule(
+        baseline, k, window, consecutive, direction
+    )
     B, T = values.shape
     sign = 1.0 if direction == "above" else -1.0
     cols = torch.arange(T, device=values.device)
@@ -260,7 +320,9 @@ def ksigma_onset_batch(
     # as prognosis.ksigma_onset: a falling series needs the documented majority past the limit
     med = torch.cat([pad, sign * xc], 1).unfold(1, window, 1).nanmedian(-1).values  # (B, T)
     z = (med - sign * mean[:, None]) / torch.where(ok, std, torch.ones_like(std))[:, None]
-    late = valid & ~inside if skip_window else valid
+    # after the window, as the per-series rule, the first w - 1 observed samples (a partial
+    # trailing window, not the documented rate) raise no alarm; without skip_window they do
+    late = valid & ~inside & (cols >= window - 1) if skip_window else valid
     above = (late & (z > k)).to(torch.int64)
     if T < consecutive:
         above = torch.cat([above, above.new_zeros(B, consecutive - T)], 1)
@@ -537,10 +599,19 @@ def exponential_trend_rul(
         ``{column: (B,) float64 numpy array}`` for :data:`RUL_COLUMNS` and ``"flags"`` (list of
         ``;``-separated strings).
     """
-    if direction not in DIRECTIONS:
-        raise ValueError(f"direction must be 'above' or 'below', got {direction!r}")
+    baseline, k, window, consecutive, direction = check_onset_rule(
+        baseline, k, window, consecutive, direction
+    )
     s = 1.0 if direction == "above" else -1.0
-    thr = float(threshold)
+    thr = check_real(threshold, "threshold")
+    drift_std = _check_pair(drift_std, "drift_std", "random-walk std of a and beta per step",
+                            positive=False)  # fmt: skip
+    prior_std = _check_pair(prior_std, "prior_std", "prior std of a and beta, or None",
+                            positive=True, optional_second=True)  # fmt: skip
+    if not is_real(extrapolation_limit) or not extrapolation_limit > 0:
+        raise ValueError(
+            f"extrapolation_limit must be a number > 0 (inf: no guard), got {extrapolation_limit!r}"
+        )
     per_asset = isinstance(phi, str)
     if per_asset and phi not in ("baseline", "auto"):
         raise ValueError(f"phi must be a number, 'baseline' or 'auto', got {phi!r}")
@@ -552,8 +623,8 @@ def exponential_trend_rul(
                  drift_std=drift_std, prior_std=prior_std,
                  extrapolation_limit=extrapolation_limit, filt=filt),
         )  # fmt: skip
-    if not math.isfinite(thr) or (not per_asset and not math.isfinite(float(phi))):
-        raise ValueError(f"threshold and phi must be finite, got {threshold!r}, {phi!r}")
+    if not per_asset and (not is_real(phi) or not math.isfinite(phi)):
+        raise ValueError(f"phi must be a finite number, 'baseline' or 'auto', got {phi!r}")
     if not per_asset and not s * (thr - phi) > 0:
         side = "above" if s > 0 else "below"
         raise ValueError(
