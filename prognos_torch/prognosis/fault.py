@@ -24,8 +24,10 @@ from ..core.validation import (
     check_index,
     check_nonneg_int,
     check_pos_int,
+    check_sequence,
 )
 from ..filters.gaussian import FilterState, GaussianFilter
+from ..filters.run import check_filter
 from ..filters.run import run as _engine_run
 from ..filters.sequence import scan
 
@@ -35,6 +37,11 @@ __all__ = [
     "RollingFaultPrediction",
     "rolling_fault_prediction",
 ]
+
+
+def _check_model(model) -> None:
+    if not isinstance(model, StateSpaceModel):
+        raise TypeError(f"model must be a StateSpaceModel, got {type(model).__name__}")
 
 
 @dataclass(frozen=True)
@@ -95,6 +102,7 @@ def predict_fault_parameter(
     Returns:
         :class:`FaultPrediction`.
     """
+    _check_model(model)
     n = check_pos_int(n, "n")
     k = check_nonneg_int(k, "k")
     if not isinstance(state, FilterState):
@@ -204,6 +212,18 @@ def rolling_fault_prediction(
     Returns:
         :class:`RollingFaultPrediction`.
     """
+    # (an uncalled factory, a wrong model or forecaster failed with an AttributeError, the
+    # filter only after the forecaster's training)
+    check_filter(filt, "filt")
+    _check_model(model)
+    lacking = [
+        a for a in ("copy", "forecast", "update") if not callable(getattr(forecaster, a, None))
+    ]
+    if lacking or not hasattr(forecaster, "initialized"):
+        raise TypeError(
+            "forecaster must have initialized, copy(), initialize(z0), forecast(n) and update(z) "
+            f"(a MeasurementForecaster), got {type(forecaster).__name__}"
+        )
     n = check_pos_int(n, "n")
     ys = check_float_tensor(ys, "ys", "(T, ..., m)")
     if ys.dim() < 2 or ys.shape[-1] != model.obs_dim:
@@ -215,16 +235,19 @@ def rolling_fault_prediction(
         raise ValueError(f"start must satisfy 1 <= start <= T={T}, got {start}")
     if not isinstance(init, (GaussianBelief, FilterState)):
         raise TypeError(f"init must be a GaussianBelief or a FilterState, got {type(init)}")
-    if model.control_dim:
-        us = check_controls(model, us, T + n)
+    if model.control_dim:  # (a wrong batch shape was named against T = start, NaN found late)
+        p = model.control_dim
+        check_sequence(us, "us", p, ys.shape[1:-1], steps=T + n, shared=True)
+        check_finite(us, "us", f"(T + n, ..., {p})")
     elif us is not None:
         raise ValueError("us was given but the model has control_dim=0")
     sel = check_index(param_index, model.state_dim)
 
+    # (the belief is checked before the forecaster's training)
+    state = init if isinstance(init, FilterState) else filt.init(model, init, 1)
     fc = forecaster.copy()
     if not fc.initialized:
         fc.initialize(ys[:start])
-    state = init if isinstance(init, FilterState) else filt.init(model, init, 1)
     traj = _engine_run(filt, model, state, ys[:start], None if us is None else us[:start], k0=0)
     state = traj.final
     sel = sel.to(state.belief.mean.device)

@@ -9,12 +9,18 @@ Carlo runs), or over any static learners. Its forecasts are the pseudo-measureme
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import torch
 from torch import Tensor, nn
 
-from ..core.validation import check_finite, check_float_tensor, check_nonneg, check_pos_int
+from ..core.validation import (
+    check_finite,
+    check_flag,
+    check_float_tensor,
+    check_nonneg,
+    check_pos_int,
+)
 from ..learners.elm import ELM
 from ..learners.introspect import learner_dims
 from ..learners.ros_elm import ROSELMState, ros_elm_forecast, ros_elm_init, ros_elm_update
@@ -51,11 +57,17 @@ class MeasurementForecaster:
         online: bool | None = None,
     ) -> None:
         self.p = check_pos_int(p, "p")
+        if not isinstance(learners, Iterable):  # (one learner, not a list: 'ELM' is not iterable)
+            raise TypeError(
+                f"learners must be a sequence of one learner per channel (e.g. [elm]), got "
+                f"{type(learners).__name__}"
+            )
         learners = tuple(learners)
         if not learners:
             raise ValueError("learners must hold one learner per measurement channel (C >= 1)")
         all_elm = all(isinstance(lr, ELM) for lr in learners)
-        self.online = all_elm if online is None else bool(online)
+        # (read by truth value: online="no" was True)
+        self.online = all_elm if online is None else check_flag(online, "online")
         if self.online and not all_elm:
             raise TypeError("online=True (ROS-ELM) needs ELM learners for every channel")
         for c, lr in enumerate(learners):
@@ -66,6 +78,10 @@ class MeasurementForecaster:
                 raise ValueError(f"learners[{c}] has input dimension {n_in}, expected p={p}")
             if self.online and n_out != 1:
                 raise ValueError(f"learners[{c}] must have n_out=1 for ROS-ELM, got {n_out}")
+            if n_out is not None and n_out != 1:  # (a static learner's first output was used)
+                raise ValueError(
+                    f"learners[{c}] must map (..., p) to (..., 1) (one channel), got n_out={n_out}"
+                )
         self.learners = learners
         self.lam = check_nonneg(lam, "lam", numbers_only=True)
         self.state: ROSELMState | None = None

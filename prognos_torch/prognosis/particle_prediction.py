@@ -18,9 +18,19 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.belief import GaussianBelief
+from ..core.belief import GaussianBelief, check_belief
 from ..core.model import StateSpaceModel
-from ..core.validation import check_nonneg_int, check_pos_int, check_sequence, is_int
+from ..core.validation import (
+    check_channel,
+    check_finite,
+    check_generator,
+    check_nonneg_int,
+    check_pos_int,
+    check_scalar,
+    check_sequence,
+    has_missing,
+    is_int,
+)
 from ..filters import ParticleFilter, ParticleState, scan
 from .paths import particle_paths
 from .rul import fault_probability
@@ -112,26 +122,48 @@ def rolling_particle_prediction(
     Returns:
         :class:`RollingParticlePrediction`.
     """
+    if not isinstance(pf, ParticleFilter):  # (a factory passed uncalled: AttributeError on init)
+        raise TypeError(
+            f"pf must be a ParticleFilter (e.g. sir(), stpf()), got {type(pf).__name__}"
+        )
+    if not isinstance(model, StateSpaceModel):
+        raise TypeError(f"model must be a StateSpaceModel, got {type(model).__name__}")
     horizon = check_pos_int(horizon, "horizon")
     k0 = check_nonneg_int(k0, "k0")  # (as run: a float k0 reached f, h and the noise as k)
     if direction not in ("above", "below"):  # (checked with or without a threshold)
         raise ValueError(f"direction must be 'above' or 'below', got {direction!r}")
-    state = (
-        init if isinstance(init, ParticleState) else pf.init(model, init, generator=generator, k=k0)
-    )
-    check_sequence(ys, "ys", model.obs_dim, state.batch_shape, nonempty=True)
+    # every argument is checked before the first draw: an error leaves the generator as it was
+    # (threshold and channel were read after the first filter step)
+    if threshold is not None:
+        check_scalar(threshold, "threshold")
+    check_channel(channel, model.obs_dim)
+    if isinstance(init, ParticleState):
+        pf._check_state(model, init)
+        like, bs = init.particles, init.batch_shape
+    else:
+        like = check_belief(init, model.state_dim, "init").mean
+        bs = init.batch_shape
+    check_generator(generator, like)
+    check_sequence(ys, "ys", model.obs_dim, bs, nonempty=True)
+    has_missing(ys, "ys", "measurement")  # inf named here, not as a step's y
     T = ys.shape[0]
-    keep = sorted(set(keep))
-    if any(not is_int(k) for k in keep):
+    if isinstance(keep, (str, bytes)) or not isinstance(keep, Iterable):
+        raise TypeError(f"keep must be an iterable of int step indices, got {keep!r}")
+    keep = list(keep)
+    if any(not is_int(k) for k in keep):  # (before sorting: text among ints failed in sorted)
         raise TypeError(f"keep must hold int step indices, got {keep!r}")
+    keep = sorted({int(k) for k in keep})
     if keep and not (k0 <= keep[0] and keep[-1] <= k0 + T):
         raise ValueError(f"keep must lie in [k0, k0 + T] = [{k0}, {k0 + T}], got {keep}")
     if model.control_dim:
-        check_sequence(
-            us, "us", model.control_dim, state.batch_shape, steps=T + horizon - 1, shared=True
-        )
+        check_sequence(us, "us", model.control_dim, bs, steps=T + horizon - 1, shared=True)
+        # (the last H - 1 rows reach only the predictions: NaN there gave NaN means silently)
+        check_finite(us, "us", f"(T + H - 1, ..., {model.control_dim})")
     elif us is not None:
         raise ValueError("us was given but the model has control_dim=0")
+    state = (
+        init if isinstance(init, ParticleState) else pf.init(model, init, generator=generator, k=k0)
+    )
     states, wanted = {}, set(keep)
 
     def step(st: ParticleState, y: Tensor, u, k: int):
