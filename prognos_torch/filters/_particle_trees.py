@@ -4,6 +4,7 @@ Gaussian-proposal filter), re-exported by :mod:`prognos_torch.filters.particle`.
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import fields, is_dataclass
 
 import torch
@@ -39,7 +40,25 @@ def _init_fields(cls: type) -> tuple[str, ...]:
     return names
 
 
+def _kind(obj) -> str:
+    if obj is None:
+        return "None"
+    if isinstance(obj, Tensor):
+        return "a tensor"
+    return f"a {type(obj).__name__}"
+
+
 def _tree_map(fn, obj, others, name: str, leading: dict[str, int]):
+    # the other trees' node must be of the same kind (b's None or missing field reached
+    # torch.where unnamed; a's None dropped b's tensor)
+    for o in others:
+        same = (
+            (obj is None) == (o is None)
+            and isinstance(obj, Tensor) == isinstance(o, Tensor)
+            and (not is_dataclass(obj) or isinstance(obj, Tensor) or type(o) is type(obj))
+        )
+        if not same:
+            raise TypeError(f"{name}: the trees differ here: {_kind(obj)} and {_kind(o)}")
     if obj is None:
         return None
     if isinstance(obj, Tensor):
@@ -51,7 +70,9 @@ def _tree_map(fn, obj, others, name: str, leading: dict[str, int]):
             for f in _init_fields(cls)
         }
         return cls(**kw)  # (what dataclasses.replace builds, without its field scan)
-    if isinstance(obj, (int, float, bool, str)):
+    # (NumPy scalars too: a numpy.int64 field was refused)
+    np_bool = type(obj).__name__ in ("bool_", "bool") and type(obj).__module__ == "numpy"
+    if isinstance(obj, (numbers.Number, str)) or np_bool:
         return obj
     raise TypeError(f"{name}: cannot map over particles of a {type(obj).__name__}")
 
@@ -71,6 +92,15 @@ def gather_particles(obj, ancestors: Tensor, *, leading: dict[str, int] | None =
         The same structure with ``out[..., j, ...] = obj[..., ancestors[..., j], ...]``.
     """
     leading = ENGINE_LEADING_DIMS if leading is None else leading
+    # (a float index failed in gather, unnamed; int32 worked for one run only; a 0-dim one
+    # selected along the last dim of every leaf)
+    if not isinstance(ancestors, Tensor):
+        raise TypeError(f"ancestors must be an int64 tensor (..., N), got {type(ancestors)}")
+    if ancestors.is_floating_point() or ancestors.is_complex() or ancestors.dtype == torch.bool:
+        raise TypeError(f"ancestors must be an int64 tensor (..., N), got {ancestors.dtype}")
+    if ancestors.dim() == 0:
+        raise ValueError("ancestors must have shape (..., N), got a 0-dim tensor")
+    ancestors = ancestors.long()
     want = tuple(ancestors.shape)
     nb = len(want) - 1
 
@@ -90,12 +120,20 @@ def where_particles(mask: Tensor, a, b, *, leading: dict[str, int] | None = None
     ``mask``: ``(..., N)`` bool; ``a``, ``b``: as in :func:`gather_particles`.
     """
     leading = ENGINE_LEADING_DIMS if leading is None else leading
+    if not isinstance(mask, Tensor) or mask.dim() == 0 or mask.dtype != torch.bool:
+        got = (mask.dtype, tuple(mask.shape)) if isinstance(mask, Tensor) else type(mask).__name__
+        raise TypeError(f"mask must be a bool tensor of shape (..., N), got {got}")
     want = tuple(mask.shape)
     nb = len(want) - 1
 
     def fn(v, others, lead, name):
         w = others[0]
         _check_leaf(v, name, lead, want)
+        if w.shape != v.shape or w.dtype != v.dtype:  # (torch.where broadcast and promoted)
+            raise ValueError(
+                f"{name}: b's tensor must match a's, shape {tuple(v.shape)} and {v.dtype}, got "
+                f"{tuple(w.shape)} and {w.dtype}"
+            )
         return torch.where(_particle_view(mask, v, lead, nb), v, w)
 
     return _tree_map(fn, a, [b], "a", leading)

@@ -18,9 +18,9 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
-from ..core.validation import check_pos_int
+from ..core.validation import check_pos_int, check_sequence
 from .gaussian import FilterState, GaussianFilter
-from .run import run
+from .run import _start, run
 
 __all__ = ["SegmentedTrajectory", "run_in_segments"]
 
@@ -71,10 +71,14 @@ def run_in_segments(
         :class:`SegmentedTrajectory`.
     """
     segment = check_pos_int(segment, "segment")
-    if not isinstance(ys, Tensor) or ys.dim() < 2 or ys.shape[0] < 1:
-        raise ValueError(f"ys must be a tensor of shape (T, ..., {model.obs_dim}) with T >= 1")
-    state = init if isinstance(init, FilterState) else filt.init(model, init, k0 + 1)
-    T, bs = ys.shape[0], state.belief.batch_shape
+    # run's checks of filt, init and k0 (k0 = True was taken as 1; an uncalled factory or a
+    # wrong belief failed in filt.init, unnamed)
+    state, k0 = _start(filt, model, init, k0)
+    bs = state.belief.batch_shape
+    check_sequence(ys, "ys", model.obs_dim, bs, nonempty=True)
+    T = ys.shape[0]
+    if model.control_dim:  # whole (a segment's slice hid extra rows, and named its own T)
+        check_sequence(us, "us", model.control_dim, bs, steps=T, shared=True)
     means, var_Q, var_R = [], [], []
     if state.noise is not None:  # the estimate held before the first step
         var_Q.append(_diag(state.noise.chol_Q).expand(1, *bs, -1))

@@ -31,6 +31,8 @@ import warnings
 import torch
 from torch import Tensor
 
+from ..core.validation import check_level, check_pos_int, is_real
+
 __all__ = [
     "ExtrapolationWarning",
     "WARN_FRACTION",
@@ -46,6 +48,24 @@ WARN_FRACTION = 0.1
 
 class ExtrapolationWarning(UserWarning):
     """A forecast or RUL starts from, or runs into, values outside the training range."""
+
+
+def _check_range(lo: float, hi: float) -> tuple[float, float]:
+    """The training range as floats: finite numbers with ``lo <= hi`` (a NaN bound gave
+    ``d = 0`` everywhere, a swapped one a negative span)."""
+    if not (is_real(lo) and is_real(hi) and math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+        raise ValueError(
+            f"lo, hi must be finite numbers with lo <= hi (the training range), got {lo!r}, {hi!r}"
+        )
+    return float(lo), float(hi)
+
+
+def _check_history(history: Tensor, m: int) -> int:
+    m = check_pos_int(m, "m")
+    if not isinstance(history, Tensor) or history.dim() != 1:
+        got = tuple(history.shape) if isinstance(history, Tensor) else type(history).__name__
+        raise ValueError(f"history must be a tensor of shape (T,), got {got}")
+    return m
 
 
 def _outside(values: Tensor, lo: float, hi: float) -> Tensor:
@@ -64,6 +84,12 @@ def extrapolation_distance(history: Tensor, mean: Tensor, m: int, lo: float, hi:
         m: embedding dimension (inputs per step).
         lo, hi: the training range.
     """
+    m, (lo, hi) = _check_history(history, m), _check_range(lo, hi)
+    if not isinstance(mean, Tensor) or mean.dim() != 1 or not mean.is_floating_point():
+        got = tuple(mean.shape) if isinstance(mean, Tensor) else type(mean).__name__
+        raise ValueError(f"mean must be a floating-point tensor of shape (H,), got {got}")
+    if history.shape[0] < m:  # (fewer than H windows: a short d that widen broadcast)
+        raise ValueError(f"history must hold at least m = {m} values, got {history.shape[0]}")
     seq = torch.cat([history[-m:].to(mean), mean])
     dist = _outside(seq, lo, hi)
     return dist.unfold(0, m, 1)[: mean.shape[0]].amax(-1)
@@ -71,6 +97,9 @@ def extrapolation_distance(history: Tensor, mean: Tensor, m: int, lo: float, hi:
 
 def origin_distance(history: Tensor, m: int, lo: float, hi: float) -> float:
     """How far the last ``m`` observations lie outside the training range at most."""
+    m, (lo, hi) = _check_history(history, m), _check_range(lo, hi)  # (m = 0 read all of it)
+    if history.shape[0] == 0:
+        raise ValueError("history must hold at least one value, got shape (0,)")
     return float(_outside(history[-m:], lo, hi).max())
 
 
@@ -78,22 +107,32 @@ def widen(
     mean: Tensor, lower: Tensor, upper: Tensor, std: Tensor, dist: Tensor, level: float
 ) -> tuple[Tensor, Tensor, Tensor]:
     """``(lower, upper, std)`` widened by ``dist`` in quadrature (module notes)."""
+    level = check_level(level)  # (level >= 1 gave a NaN band)
+    for name, v in (("lower", lower), ("upper", upper), ("std", std), ("dist", dist)):
+        if not isinstance(v, Tensor) or v.shape != mean.shape:
+            got = tuple(v.shape) if isinstance(v, Tensor) else type(v).__name__
+            raise ValueError(f"{name} must have the shape of mean {tuple(mean.shape)}, got {got}")
     z = math.sqrt(2.0) * float(torch.special.erfinv(torch.tensor(level, dtype=torch.float64)))
-    extra = (z * dist).square()
-    lower = mean - ((mean - lower).square() + extra).sqrt()
-    upper = mean + ((upper - mean).square() + extra).sqrt()
-    return lower, upper, (std.square() + dist.square()).sqrt()
+    # sqrt(h^2 + (z d)^2) as hypot: h^2 overflowed in float32 for h > 1.8e19 (an infinite band)
+    lower = mean - torch.hypot(mean - lower, z * dist)
+    upper = mean + torch.hypot(upper - mean, z * dist)
+    return lower, upper, torch.hypot(std, dist)
 
 
 def warn(what: str, dist: float, lo: float, hi: float) -> str | None:
     """Issue an :class:`ExtrapolationWarning` when ``dist`` exceeds :data:`WARN_FRACTION` of
     the span, and return its sentence (a result's flag); ``None``: no warning."""
+    lo, hi = _check_range(lo, hi)
+    if not is_real(dist) or math.isnan(dist) or dist < 0:
+        raise ValueError(f"dist must be a number >= 0 (data units), got {dist!r}")
     span = hi - lo
     if not dist > WARN_FRACTION * span:
         return None
+    # (a constant training range, span 0, raised ZeroDivisionError here)
+    share = f"{100 * dist / span:.0f} % of its span" if span > 0 else "its span is 0"
     text = (
         f"{what} lies outside the model's training range [{lo:.4g}, {hi:.4g}] by up to "
-        f"{dist:.4g} ({100 * dist / span:.0f} % of its span): the learner extrapolates there"
+        f"{dist:.4g} ({share}): the learner extrapolates there"
         + (", so the band is widened by that distance" if what.startswith("the forecast") else "")
         + " (prognos_torch.workflow.extrapolation)"
     )
