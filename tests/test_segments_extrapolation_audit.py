@@ -310,3 +310,29 @@ def test_where_particles_refuses_broadcasting_promotion_and_mismatched_trees():
         where_particles(mask, _State(x), _State(y, buf))
     with pytest.raises(TypeError, match=r"mask must be a bool tensor"):
         where_particles(mask.float(), _State(x), _State(y))
+
+
+def test_a_forecast_that_overflows_warns_that_it_diverges():
+    # An ANFIS whose consequents are scaled up grows without bound when iterated: the EKF's
+    # mean reached inf with only the extrapolation warning ("inf % of its span"), the UKF
+    # failed with torch's "matrix is not positive definite"
+    from prognos_torch.workflow import fit_series, forecast, load_series
+
+    t = np.arange(200.0)
+    s = load_series(1.0 + 0.2 * np.sin(t / 7.0) + 0.002 * t)
+    m = fit_series(s, learner="anfis", m=2, optimizer_options={"epochs": 1}, seed=0)
+    with torch.no_grad():
+        m.learner.alpha.mul_(1e6)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        f = forecast(m, s, 60, filter="ekf", filter_steps=5)
+    first = int((~torch.isfinite(f.mean)).nonzero()[0, 0]) + 1  # the reference: the means
+    texts = [str(w.message) for w in caught if issubclass(w.category, ExtrapolationWarning)]
+    assert any(f"the forecast diverges: its mean is not finite from step {first} of 60" in x
+               for x in texts)  # fmt: skip
+    assert not any("inf %" in x for x in texts)
+    with pytest.raises(ValueError, match="the ukf forecast diverged within 60 steps"):
+        forecast(m, s, 60, filter="ukf", filter_steps=5)
+    assert ex.diverged(torch.tensor([1.0, 2.0], dtype=torch.float64)) is None
+    with pytest.warns(ExtrapolationWarning, match="not finite from step 2 of 3 on"):
+        ex.diverged(torch.tensor([1.0, math.nan, math.inf], dtype=torch.float64))

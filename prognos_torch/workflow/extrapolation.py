@@ -40,6 +40,7 @@ __all__ = [
     "origin_distance",
     "widen",
     "warn",
+    "diverged",
 ]
 
 #: Fraction of the training span beyond which a forecast warns that it extrapolates.
@@ -129,12 +130,33 @@ def warn(what: str, dist: float, lo: float, hi: float) -> str | None:
     if not dist > WARN_FRACTION * span:
         return None
     # (a constant training range, span 0, raised ZeroDivisionError here)
-    share = f"{100 * dist / span:.0f} % of its span" if span > 0 else "its span is 0"
+    share = f"{100 * (dist / span):.0f} % of its span" if span > 0 else "its span is 0"
+    if math.isinf(dist):  # ("inf % of its span": the values overflowed)
+        share = "the values overflow"
+    elif "inf" in share:  # (100 x a ratio near the largest float)
+        share = f"{dist / span:.3g} times its span"
     text = (
         f"{what} lies outside the model's training range [{lo:.4g}, {hi:.4g}] by up to "
         f"{dist:.4g} ({share}): the learner extrapolates there"
         + (", so the band is widened by that distance" if what.startswith("the forecast") else "")
         + " (prognos_torch.workflow.extrapolation)"
+    )
+    warnings.warn(text, ExtrapolationWarning, stacklevel=3)
+    return text
+
+
+def diverged(mean: Tensor) -> str | None:
+    """Issue an :class:`ExtrapolationWarning` when the forecast means ``(H,)`` are not all
+    finite (the learner's output, iterated, overflowed), naming the first such step, and
+    return its sentence; ``None`` when every mean is finite."""
+    bad = ~torch.isfinite(mean)
+    if not bool(bad.any()):
+        return None
+    k = int(bad.nonzero()[0, 0]) + 1
+    text = (
+        f"the forecast diverges: its mean is not finite from step {k} of {mean.shape[0]} on "
+        "(the learner's output, iterated, grows without bound), so the steps from there are no "
+        "forecast; forecast fewer steps (prognos_torch.workflow.extrapolation)"
     )
     warnings.warn(text, ExtrapolationWarning, stacklevel=3)
     return text

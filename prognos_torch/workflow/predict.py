@@ -563,7 +563,15 @@ def forecast(
     span = float(model.scaler.data_max - model.scaler.data_min)
     if kind == "gaussian":
         filt, state = res
-        gp = gaussian_paths(filt, ssm, state, horizon, level=float(level))
+        try:
+            gp = gaussian_paths(filt, ssm, state, horizon, level=float(level))
+        except torch.linalg.LinAlgError as exc:  # (torch's "matrix is not positive definite")
+            raise ValueError(
+                f"the {name} forecast diverged within {horizon} steps: its covariance lost "
+                "positive definiteness (the learner's output, iterated from this series, grows "
+                "without bound); forecast fewer steps (horizon), or use a particle filter "
+                "(filter='stpf'), whose forecast warns where it diverges"
+            ) from exc
         mean, lower, upper = inv(gp.mean), inv(gp.lower), inv(gp.upper)
         std, samples, weights = gp.std * span, None, None
     else:
@@ -581,6 +589,7 @@ def forecast(
         std, samples, weights = sp.std * span, inv(sp.samples), sp.weights
     lo, hi = float(model.scaler.data_min), float(model.scaler.data_max)
     dist = _extra.extrapolation_distance(series.values, mean, model.m, lo, hi)
+    _extra.diverged(mean)
     if bool((dist > 0).any()):  # outside the training range: the learner extrapolates
         lower, upper, std = _extra.widen(mean, lower, upper, std, dist, float(level))
         _extra.warn("the forecast", float(dist.max()), lo, hi)
