@@ -336,3 +336,28 @@ def test_a_forecast_that_overflows_warns_that_it_diverges():
     assert ex.diverged(torch.tensor([1.0, 2.0], dtype=torch.float64)) is None
     with pytest.warns(ExtrapolationWarning, match="not finite from step 2 of 3 on"):
         ex.diverged(torch.tensor([1.0, math.nan, math.inf], dtype=torch.float64))
+
+
+def test_rul_from_paths_that_overflow_counts_them_as_not_crossing_from_then_on():
+    # the model-file RUL refused such paths with "samples contains NaN; shape (..., N, H)"
+    from prognos_torch.workflow import fit_series, load_series, rul
+
+    t = np.arange(200.0)
+    s = load_series(1.0 + 0.2 * np.sin(t / 7.0) + 0.002 * t)
+    m = fit_series(s, learner="anfis", m=2, optimizer_options={"epochs": 1}, seed=0)
+    with torch.no_grad():
+        m.learner.alpha.mul_(1e6)
+    kw = dict(horizon=60, filter_steps=5, n_particles=50)
+    with pytest.warns(ExtrapolationWarning, match="diverging paths: 100.0 % of the predicted"):
+        up = rul(m, s, 2.0, direction="above", **kw)
+    # the reference: each path's first step above the threshold among its finite values
+    finite = torch.isfinite(up.paths).to(torch.int8).cummin(-1).values.bool()
+    crossed = (up.paths > 2.0) & finite
+    first = crossed.to(torch.int8).argmax(-1) + 1
+    assert bool(crossed.any(-1).all())
+    med = float(first.to(torch.float64).median())  # (lower median, as the sample quantile)
+    assert up.summary()["median"] == pytest.approx(med * s.dt)
+    assert any(f.startswith("diverging paths") for f in up.flags)
+    with pytest.warns(ExtrapolationWarning, match="diverging paths"):
+        down = rul(m, s, 0.5, direction="below", **kw)  # they run up to inf: never below
+    assert down.summary()["censored_mass"] == 1.0

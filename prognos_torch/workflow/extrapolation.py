@@ -41,6 +41,7 @@ __all__ = [
     "widen",
     "warn",
     "diverged",
+    "censor_diverged",
 ]
 
 #: Fraction of the training span beyond which a forecast warns that it extrapolates.
@@ -143,6 +144,29 @@ def warn(what: str, dist: float, lo: float, hi: float) -> str | None:
     )
     warnings.warn(text, ExtrapolationWarning, stacklevel=3)
     return text
+
+
+def censor_diverged(paths: Tensor, direction: str) -> tuple[Tensor, str | None]:
+    """Paths ``(..., N, H)`` whose values become non-finite (the learner's output, iterated,
+    overflowed: ``inf``, then ``inf - inf = NaN``) count as not crossing from their first
+    non-finite step on, as the library's other first passages do
+    (:func:`~prognos_torch.prognosis.assess.threshold_crossings`): a crossing before it is
+    kept, otherwise the path is censored. Returns the paths to take the first passage of
+    (``-inf``, or ``+inf`` for ``direction="below"``, from that step on) and, where some path
+    diverged, the sentence of an :class:`ExtrapolationWarning` (issued here)."""
+    bad = ~torch.isfinite(paths)
+    if not bool(bad.any()):
+        return paths, None
+    bad = bad.to(torch.int8).cummax(-1).values.bool()  # from the first one on
+    share = float(bad[..., -1].to(torch.float64).mean())
+    text = (
+        f"diverging paths: {100 * share:.1f} % of the predicted paths became non-finite within "
+        "the horizon (the learner's output, iterated, grows without bound); each counts as not "
+        "crossing from then on, its crossing before that kept (prognos_torch.workflow."
+        "extrapolation)"
+    )
+    warnings.warn(text, ExtrapolationWarning, stacklevel=3)
+    return torch.where(bad, -math.inf if direction == "above" else math.inf, paths), text
 
 
 def diverged(mean: Tensor) -> str | None:

@@ -699,7 +699,9 @@ def rul(
         particles, weights, gen = res
     sp = particle_paths(ssm, particles, horizon, generator=gen, weights=weights)
     paths = model.scaler.inverse_transform(sp.samples)
-    dist = rul_distribution(paths, threshold, sp.weights, dt=series.dt, direction=direction)
+    # (a path that overflowed to NaN was refused as "samples contains NaN")
+    passable, div_flag = _extra.censor_diverged(paths, direction)
+    dist = rul_distribution(passable, threshold, sp.weights, dt=series.dt, direction=direction)
     t = series.t
     return RULResult(
         distribution=dist,
@@ -714,7 +716,7 @@ def rul(
         filter=name,
         n_particles=int(particles.shape[-2]),
         history=series,
-        flags=tuple(f for f in (flag, thr_flag, side) if f is not None),
+        flags=tuple(f for f in (flag, thr_flag, side, div_flag) if f is not None),
     )
 
 
