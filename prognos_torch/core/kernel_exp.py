@@ -22,6 +22,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .validation import check_flag
+
 __all__ = ["EXP_FLOORS", "floored_exp"]
 
 #: the floor of the argument by dtype: ``exp(-700) = 9.86e-305`` (float64 subnormals start
@@ -42,12 +44,20 @@ def floored_exp(z: Tensor, *, out_of_place: bool | None = None) -> Tensor:
         z: the exponent (a log-kernel value), ``(...)``.
         out_of_place: ``False`` writes the result into ``z`` (for a fresh temporary, saving
             an allocation as large as ``z``); ``None`` (default) does so only when ``z`` does
-            not require grad; ``True`` never does.
+            not require grad and is floating (``exp`` of an integer tensor is a new float
+            tensor); ``True`` never does.
     Returns:
         ``(...)``, ``z``'s shape; ``z`` itself when written in place.
     """
+    if not isinstance(z, Tensor):
+        raise TypeError(f"z must be a torch.Tensor, got {type(z).__name__}")
+    inexact = z.is_floating_point() or z.is_complex()
     if out_of_place is None:
-        out_of_place = z.requires_grad
+        out_of_place = z.requires_grad or not inexact
+    else:
+        out_of_place = check_flag(out_of_place, "out_of_place")
+        if not out_of_place and not inexact:
+            raise TypeError(f"out_of_place=False needs a floating z to write into, got {z.dtype}")
     floor = EXP_FLOORS.get(z.dtype)
     if out_of_place:
         return z.exp() if floor is None else z.clamp_min(floor).exp()

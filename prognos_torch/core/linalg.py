@@ -5,12 +5,16 @@ dimensions of the arguments of one call broadcast against each other (a factor `
 shared by a batch of ``(B, n, k)`` columns), and a vector argument is one with a dimension
 fewer than the factor.
 Nothing here forms an explicit inverse; triangular factors are applied with solves.
+Shapes, dtypes and batch dimensions are checked (a ``ValueError`` or ``TypeError`` naming the
+argument); values are not (that would synchronise the device): NaN propagates.
 """
 
 from __future__ import annotations
 
 import torch
 from torch import Tensor
+
+from .validation import check_count, check_nonneg
 
 __all__ = [
     "tria",
@@ -21,6 +25,67 @@ __all__ = [
     "cho_solve_right",
     "symmetrize",
 ]
+
+
+def _check_square(S, name: str) -> None:
+    """``S`` a floating tensor ``(..., n, n)``; anything else named (shapes only: no sync)."""
+    if not isinstance(S, Tensor):
+        raise TypeError(
+            f"{name} must be a torch.Tensor of shape (..., n, n), got {type(S).__name__}"
+        )
+    shape = S.shape
+    if len(shape) < 2 or shape[-1] != shape[-2]:
+        raise ValueError(f"{name} must have shape (..., n, n), got {tuple(shape)}")
+    if not S.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got {S.dtype}")
+
+
+def _check_like(S: Tensor, X, name: str, dim: int) -> None:
+    """``X`` a tensor of ``S``'s dtype with ``X.shape[dim] == n`` (``S`` ``(..., n, n)``) and
+    batch dimensions that broadcast against ``S``'s: ``V`` ``(..., n, k)`` (``dim=-2``) or ``B``
+    ``(..., m, n)`` (``dim=-1``)."""
+    if not isinstance(X, Tensor):
+        _raise_shape(S, X, name, dim)
+    xs, ss = X.shape, S.shape
+    if len(xs) < 2 or xs[dim] != ss[-1]:
+        _raise_shape(S, X, name, dim)
+    if X.dtype != S.dtype:
+        raise TypeError(f"S and {name} must have one dtype, got {S.dtype} and {X.dtype}")
+    if xs[:-2] != ss[:-2]:
+        try:
+            torch.broadcast_shapes(xs[:-2], ss[:-2])
+        except RuntimeError:
+            raise ValueError(
+                f"the batch dimensions of S {tuple(ss[:-2])} and {name} {tuple(xs[:-2])} "
+                "do not broadcast"
+            ) from None
+
+
+def _raise_shape(S: Tensor, X, name: str, dim: int) -> None:
+    """The error of :func:`_check_like` for an ``X`` of the wrong type or shape."""
+    n = S.shape[-1]
+    want = (
+        f"(..., {n}) (one dimension fewer than S) or (..., {n}, k)"
+        if dim == -2
+        else f"(..., n, {n})"
+    )
+    if not isinstance(X, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor of shape {want}, got {type(X).__name__}")
+    raise ValueError(
+        f"{name} must have shape {want} for S of shape {tuple(S.shape)}, got {tuple(X.shape)}"
+    )
+
+
+def _columns(S: Tensor, V, name: str = "V") -> Tensor:
+    """``V`` as ``(..., n, k)``, checked against the factor ``S`` ``(..., n, n)``: a vector
+    ``(..., n)`` (one dimension fewer than ``S``) becomes one column."""
+    _check_square(S, "S")
+    if isinstance(V, Tensor) and V.dim() == S.dim() - 1:
+        if V.shape[-1] != S.shape[-1]:
+            _raise_shape(S, V, name, -2)
+        V = V.unsqueeze(-1)
+    _check_like(S, V, name, -2)
+    return V
 
 
 def tria(A: Tensor) -> Tensor:
@@ -39,6 +104,12 @@ def tria(A: Tensor) -> Tensor:
     Returns:
         ``(..., n, n)`` lower triangular with non-negative diagonal.
     """
+    if not isinstance(A, Tensor):
+        raise TypeError(f"A must be a torch.Tensor of shape (..., n, L), got {type(A).__name__}")
+    if A.dim() < 2:
+        raise ValueError(f"A must have shape (..., n, L), got {tuple(A.shape)}")
+    if not A.is_floating_point():
+        raise TypeError(f"A must be a floating-point tensor, got {A.dtype}")
     n, L = A.shape[-2], A.shape[-1]
     if n == 1:  # QR of one column: R = +-||a||
         return torch.linalg.vector_norm(A, dim=-1, keepdim=True)
@@ -155,8 +226,12 @@ def _dense(S: Tensor, V: Tensor, sign: float, W: Tensor | None = None) -> tuple[
         A = torch.matmul(W, W.mT).mul_(sign).add_(eye)
     L, info = torch.linalg.cholesky_ex(A)
     d = torch.diagonal(L, dim1=-2, dim2=-1)
-    ratio = d.square().prod(-1).masked_fill(info > 0, -1.0)
-    return S @ L, ratio
+    ratio = d.square().prod(-1)
+    if V.shape[-1] > 1:
+        # det(I - W W^T) is a product of k eigenvalues in (0, 1]: for many strongly downdating
+        # columns it underflows to 0 although every factor is positive (a valid downdate)
+        ratio = ratio.clamp_min(torch.finfo(ratio.dtype).tiny)
+    return S @ L, ratio.masked_fill(info > 0, -1.0)
 
 
 _EYE_CACHE: dict = {}
@@ -186,8 +261,7 @@ def chol_update(S: Tensor, V: Tensor) -> Tensor:
     columns than rows) or so near it that the result overflows, that batch element is made by
     the QR instead.
     """
-    if V.dim() == S.dim() - 1:
-        V = V.unsqueeze(-1)
+    V = _columns(S, V)
     if not _use_rank_one(S, V.shape[-1]):
         return tria(torch.cat(_broadcast_batch(S, V), dim=-1))
     S2 = _rank_one_updates(S, V)
@@ -220,25 +294,39 @@ def chol_downdate_ex(S: Tensor, V: Tensor, W: Tensor | None = None) -> tuple[Ten
     """Cholesky downdate ``S' S'^T = S S^T - V V^T`` without raising; also returns ``ratio``.
 
     ``ratio`` ``(...)`` is ``det(S' S'^T) / det(S S^T)`` (in ``(0, 1]`` for a valid downdate,
-    ``<= 0`` or NaN where the result would not be positive definite; ``S'`` is then NaN or
-    garbage there, so test ``ratio > 0``, which is false for NaN). Large factors, small ranks:
-    ``k`` closed-form rank-one downdates (Gill et al. 1974, O(n^2) each); otherwise
-    ``S chol(I - W W^T)`` with ``W = S^{-1} V`` (one triangular solve, one small Cholesky).
+    floored at the dtype's smallest normal number where the product of several columns'
+    ratios underflows; ``<= 0`` or NaN where the result would not be positive definite; ``S'``
+    is then NaN or garbage there, so test ``ratio > 0``, which is false for NaN). Large
+    factors, small ranks: ``k`` closed-form rank-one downdates (Gill et al. 1974, O(n^2)
+    each); otherwise ``S chol(I - W W^T)`` with ``W = S^{-1} V`` (one triangular solve, one
+    small Cholesky).
 
     ``W`` ``(..., n, k)`` (like ``V``): ``S^{-1} V`` when the caller knows it without a solve
     (a Kalman update whose cross-covariance is ``S Z^T``: ``W = Z^T S_zz^{-T}``); the
     triangular solves are then skipped. Sequential rank-one steps need ``S^{-1} V`` against
     the factor of each step, so there only the first column's ``W`` is used.
     """
-    if V.dim() == S.dim() - 1:
-        V = V.unsqueeze(-1)
-        W = None if W is None else W.unsqueeze(-1)
-    if not _use_rank_one(S, V.shape[-1]):
+    V = _columns(S, V)
+    if W is not None:
+        W = _columns(S, W, "W")
+        if W.shape[-1] != V.shape[-1]:
+            raise ValueError(
+                f"W (S^-1 V) must have V's {V.shape[-1]} column(s), got shape {tuple(W.shape)}"
+            )
+    k = V.shape[-1]
+    if not _use_rank_one(S, k):
         return _dense(S, V, -1.0, W)
     S, ratio = _rank_one(S, V[..., 0], -1.0, None if W is None else W[..., 0])
-    for j in range(1, V.shape[-1]):
+    if k == 1:
+        return S, ratio
+    r_min = ratio
+    for j in range(1, k):
         S, r = _rank_one(S, V[..., j], -1.0)
         ratio = ratio * r
+        r_min = torch.minimum(r_min, r)  # (NaN propagates)
+    # the product of k positive s_n can underflow to 0: kept positive where every step was
+    # valid (as in _dense)
+    ratio = torch.where(r_min > 0, ratio.clamp_min(torch.finfo(ratio.dtype).tiny), ratio)
     return S, ratio
 
 
@@ -250,6 +338,8 @@ def chol_downdate(S: Tensor, V: Tensor) -> Tensor:
     """
     S2, ratio = chol_downdate_ex(S, V)
     if not bool((ratio > 0).all()):
+        if bool(S.isnan().any()) or bool(V.isnan().any()):
+            raise torch.linalg.LinAlgError("Cholesky downdate failed: S or V contains NaN")
         raise torch.linalg.LinAlgError(
             "Cholesky downdate failed: the downdated matrix is not positive definite"
         )
@@ -257,7 +347,8 @@ def chol_downdate(S: Tensor, V: Tensor) -> Tensor:
 
 
 def symmetrize(P: Tensor) -> Tensor:
-    """``(P + P^T) / 2``."""
+    """``(P + P^T) / 2`` of ``P`` ``(..., n, n)``."""
+    _check_square(P, "P")  # (P + P^T of a (1, n) P would broadcast to (n, n))
     return 0.5 * (P + P.mT)
 
 
@@ -268,14 +359,21 @@ def safe_cholesky(P: Tensor, *, jitter: float = 0.0, max_tries: int = 6) -> Tens
     the jitter (relative to the mean diagonal) is multiplied by 10 up to ``max_tries`` times,
     for the batch elements that fail only: the others get their exact factor.
     """
+    jitter = check_nonneg(jitter, "jitter", numbers_only=True)
+    max_tries = check_count(max_tries, "max_tries", 0)
     P = symmetrize(P)
     L, info = torch.linalg.cholesky_ex(P)
     bad = info > 0
     if not bool(bad.any()):
         return L
+    if not bool(torch.isfinite(P).all()):
+        raise torch.linalg.LinAlgError("P contains non-finite values (NaN or inf)")
     if jitter <= 0:
         raise torch.linalg.LinAlgError("matrix is not positive definite")
-    scale = torch.diagonal(P, dim1=-2, dim2=-1).abs().mean(-1, keepdim=True).clamp_min(1e-300)
+    # a zero diagonal: the scale's floor makes the first jitter at least the smallest normal
+    # number (1e-300 alone is 0 in float32, and a subnormal jitter fails the factorisation)
+    floor = max(1e-300, torch.finfo(P.dtype).tiny / jitter)
+    scale = torch.diagonal(P, dim1=-2, dim2=-1).abs().mean(-1, keepdim=True).clamp_min(floor)
     eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
     eps = jitter
     for _ in range(max_tries):
@@ -295,6 +393,8 @@ def cho_solve_right(B: Tensor, S: Tensor) -> Tensor:
 
     ``B``: ``(..., n, m)``, ``S``: ``(..., m, m)`` lower. Returns ``(..., n, m)``.
     """
+    _check_square(S, "S")
+    _check_like(S, B, "B", -1)
     if S.shape[-1] == 1:  # scalar innovation: B / s^2
         return B / (S * S)
     # X S S^T = B  <=>  S S^T X^T = B^T

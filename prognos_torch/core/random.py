@@ -7,6 +7,8 @@ import math
 import torch
 from torch import Tensor
 
+from .validation import is_int
+
 #: from this many float64 draws on the CPU the vectorised transform of :func:`_randn_cpu_f64`
 #: is faster than ``torch.randn``'s per-element loop (the two cross near 2,000-4,000 draws on
 #: the 2-core benchmark machine; ``benchmarks/bench_particle.py``)
@@ -30,6 +32,9 @@ def standard_normal(
     come from :func:`_randn_cpu_f64`: ``torch.randn``'s uniforms and transform, vectorised (the
     same numbers to a few ulps, at most 3 measured, the generator left in the same state).
     """
+    if not torch.compiler.is_compiling():  # (traced: symbolic sizes, checked by the caller)
+        _check_draw_args(shape, generator, dtype)
+        shape = tuple(int(d) for d in shape)
     where = torch.device(device if generator is None else generator.device)
     n = math.prod(shape)
     if dtype == torch.float64 and where.type == "cpu" and n >= _VECTOR_MIN:
@@ -37,6 +42,20 @@ def standard_normal(
     else:
         z = torch.randn(shape, generator=generator, dtype=dtype, device=where)
     return z if generator is None or z.device == torch.device(device) else z.to(device)
+
+
+def _check_draw_args(shape, generator, dtype) -> None:
+    """:func:`standard_normal`'s arguments, each named (``NumPy`` integers are sizes too)."""
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise TypeError(
+            f"generator must be a torch.Generator or None, got {type(generator).__name__}"
+        )
+    if not isinstance(shape, (tuple, list)) or not all(is_int(d) for d in shape):
+        raise TypeError(f"shape must be a tuple of non-negative ints, got {shape!r}")
+    if any(d < 0 for d in shape):
+        raise ValueError(f"shape must be a tuple of non-negative ints, got {shape!r}")
+    if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+        raise TypeError(f"dtype must be a floating torch.dtype, got {dtype!r}")
 
 
 def box_muller(u: Tensor, out: Tensor | None = None) -> Tensor:
@@ -47,8 +66,10 @@ def box_muller(u: Tensor, out: Tensor | None = None) -> Tensor:
     Returns ``(..., 16)``; written into ``out`` (the same shape) when given, else a new tensor
     (the pure form, for traced code).
     """
-    if u.shape[-1] != 16:
+    if u.dim() == 0 or u.shape[-1] != 16:
         raise ValueError(f"u must have shape (..., 16), got {tuple(u.shape)}")
+    if out is not None and out.shape != u.shape:  # (a resized view of out would stay unwritten)
+        raise ValueError(f"out must have u's shape {tuple(u.shape)}, got {tuple(out.shape)}")
     theta = u[..., 8:] * _TWO_PI
     if out is None:  # (out of place: a traced step fuses it without copies)
         r = torch.sqrt(torch.log(torch.rsub(u[..., :8], 1.0)) * -2.0)
