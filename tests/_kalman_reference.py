@@ -29,6 +29,36 @@ def kalman_filter(F, H, Q, R, m0, P0, ys, q=None, r=None):
     return np.array(means), np.array(covs), ll
 
 
+def kalman_filter_observed(F, H, Q, R, m0, P0, ys, B=None, us=None):
+    """The filter that updates with the observed components of each ``y`` (NaN: not observed).
+
+    ``F``: a matrix or ``k -> F_k`` (``k`` from 1); ``x_k = F_k x + B u_k``. Returns means
+    ``(T, n)``, covariances ``(T, n, n)`` and the per-step log-likelihoods ``(T,)``."""
+    n = m0.shape[0]
+    m, P = m0.copy(), P0.copy()
+    means, covs, ll = [], [], []
+    for k, y in enumerate(ys, start=1):
+        Fk = F(k) if callable(F) else F
+        m = Fk @ m + (B @ us[k - 1] if B is not None else 0.0)
+        P = Fk @ P @ Fk.T + Q
+        o = ~np.isnan(y)
+        lk = 0.0
+        if o.any():
+            Ho, Ro = H[o], R[np.ix_(o, o)]
+            S = Ho @ P @ Ho.T + Ro
+            e = y[o] - Ho @ m
+            K = np.linalg.solve(S, Ho @ P).T
+            m = m + K @ e
+            I_KH = np.eye(n) - K @ Ho
+            P = I_KH @ P @ I_KH.T + K @ Ro @ K.T
+            lk = -0.5 * (o.sum() * math.log(2 * math.pi) + np.linalg.slogdet(S)[1]
+                         + e @ np.linalg.solve(S, e))  # fmt: skip
+        means.append(m.copy())
+        covs.append(P.copy())
+        ll.append(lk)
+    return np.array(means), np.array(covs), np.array(ll)
+
+
 def kalman_filter_tv(Fs, H, Qs, Rs, m0, P0, ys):
     """The same filter with per-step F_k, Q_k, R_k: (T, n, n), (T, n, n), (T, m, m)."""
     n = m0.shape[0]

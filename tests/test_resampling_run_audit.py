@@ -12,6 +12,8 @@
 from __future__ import annotations
 
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -27,6 +29,9 @@ from prognos_torch.filters.resampling import (
     stratified,
     systematic,
 )
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _kalman_reference import kalman_filter_observed  # noqa: E402
 
 F64 = torch.float64
 SCHEMES = {
@@ -208,31 +213,6 @@ def test_ess_refuses_what_has_no_weights():
 
 
 # ---------------------------------------------------------------------- runs: references
-def _kf(F_of, H, Q, R, B, m0, P0, ys, us):
-    """Plain KF on one batch element: ``x_k = F_k x + B u_k``; observed components only."""
-    m, P = m0.copy(), P0.copy()
-    means, covs, ll = [], [], []
-    for k, (y, u) in enumerate(zip(ys, us), start=1):
-        F = F_of(k)
-        m = F @ m + B @ u
-        P = F @ P @ F.T + Q
-        o = ~np.isnan(y)
-        lk = 0.0
-        if o.any():
-            Ho, Ro = H[o], R[np.ix_(o, o)]
-            S = Ho @ P @ Ho.T + Ro
-            e = y[o] - Ho @ m
-            K = np.linalg.solve(S, Ho @ P).T
-            m = m + K @ e
-            P = (np.eye(len(m)) - K @ Ho) @ P @ (np.eye(len(m)) - K @ Ho).T + K @ Ro @ K.T
-            lk = -0.5 * (o.sum() * math.log(2 * math.pi) + np.linalg.slogdet(S)[1]
-                         + e @ np.linalg.solve(S, e))  # fmt: skip
-        means.append(m.copy())
-        covs.append(P.copy())
-        ll.append(lk)
-    return np.array(means), np.array(covs), np.array(ll)
-
-
 def _setup(k0: int):
     rng = np.random.default_rng(0)
     n, m, p, T, bs = 3, 2, 2, 7, (2, 3)
@@ -287,7 +267,9 @@ def test_run_is_a_plain_kalman_filter_with_missing_steps_inputs_and_batch_dims(f
     for i in range(2):
         for j in range(3):
             u_ij = us if shared_u else us[:, i, j]
-            mm, PP, ll = _kf(F_k, H, Q, R, Bm, m0[i, j], L0 @ L0.T, ys[:, i, j], u_ij)
+            mm, PP, ll = kalman_filter_observed(
+                F_k, H, Q, R, m0[i, j], L0 @ L0.T, ys[:, i, j], Bm, u_ij
+            )
             assert np.allclose(tr.means[:, i, j].numpy(), mm, rtol=0, atol=1e-12)
             assert np.allclose(tr.covs[:, i, j].numpy(), PP, rtol=0, atol=1e-12)
             assert np.allclose(tr.log_likelihoods[:, i, j].numpy(), ll, rtol=0, atol=1e-12)

@@ -9,8 +9,10 @@ over the ancestor indices.
 from __future__ import annotations
 
 import math
+import sys
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,6 +23,9 @@ from prognos_torch.filters import run, run_in_segments, sckf
 from prognos_torch.filters.particle import gather_particles, where_particles
 from prognos_torch.workflow import extrapolation as ex
 from prognos_torch.workflow.extrapolation import ExtrapolationWarning
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _kalman_reference import kalman_filter_observed  # noqa: E402
 
 D = torch.float64
 F = torch.tensor([[0.9, 0.2], [-0.1, 0.95]], dtype=D)
@@ -44,19 +49,9 @@ def _belief(bs, dtype=D):
 
 def _kalman(ys, m0, P0):
     """Covariance-form Kalman filter of one run in NumPy; a NaN component is not observed."""
-    Fn, Hn, Q, R = F.numpy(), H.numpy(), (LQ @ LQ.mT).numpy(), (LR @ LR.mT).numpy()
-    x, P, means = m0.copy(), P0.copy(), []
-    for y in ys:
-        x, P = Fn @ x, Fn @ P @ Fn.T + Q
-        o = ~np.isnan(y)
-        if o.any():
-            Ho, Ro = Hn[o], R[np.ix_(o, o)]
-            S = Ho @ P @ Ho.T + Ro
-            K = np.linalg.solve(S, Ho @ P).T
-            x = x + K @ (y[o] - Ho @ x)
-            P = (np.eye(2) - K @ Ho) @ P @ (np.eye(2) - K @ Ho).T + K @ Ro @ K.T
-        means.append(x)
-    return np.stack(means), P
+    Q, R = (LQ @ LQ.mT).numpy(), (LR @ LR.mT).numpy()
+    means, covs, _ = kalman_filter_observed(F.numpy(), H.numpy(), Q, R, m0, P0, ys)
+    return means, covs[-1]
 
 
 # ------------------------------------------------------------------------------ segments
