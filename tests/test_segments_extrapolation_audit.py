@@ -181,8 +181,10 @@ def test_warn_flag_threshold_inf_and_a_constant_training_range():
     with pytest.warns(ExtrapolationWarning, match=r"by up to 0\.25 \(25 % of its span\)"):
         text = ex.warn("the forecast", np.float32(0.25), np.int64(0), 1.0)
     assert text.endswith("widened by that distance (prognos_torch.workflow.extrapolation)")
-    with pytest.warns(ExtrapolationWarning, match=r"by up to inf \(inf % of its span\)"):
+    with pytest.warns(ExtrapolationWarning, match=r"by up to inf \(the values overflow\)"):
         ex.warn("the series the RUL starts from", math.inf, 0.0, 1.0)
+    with pytest.warns(ExtrapolationWarning, match=r"by up to 1e\+308 \(1e\+308 times its span\)"):
+        ex.warn("the forecast", 1e308, 0.0, 1.0)  # (100 x the ratio overflows)
     with pytest.warns(ExtrapolationWarning, match=r"\[2, 2\] by up to 0\.5 \(its span is 0\)"):
         text = ex.warn("the forecast", 0.5, 2.0, 2.0)
     assert "ZeroDivision" not in text
