@@ -355,3 +355,15 @@ def test_state_dict_and_load_state_dict_skip_torch_optims_dynamo_wrapper(monkeyp
     opt.step(X[1], Y[1])
     again.step(X[1], Y[1])
     assert torch.equal(again.theta, opt.theta) and torch.equal(again.belief.chol, opt.belief.chol)
+
+
+@pytest.mark.parametrize("bad", [True, np.bool_(True), torch.tensor(True), 1.0 + 0j, "1e-2"])
+def test_a_per_parameter_prior_refuses_bools_complex_values_and_text(bad):
+    """A dict prior (``P0={"weight": ...}``) read a bool as a variance of 1 and dropped a
+    complex value's imaginary part; text failed inside torch."""
+    lin = _lin()
+    good = EKF(lin, P0={"weight": np.float32(0.25)}, Q=1e-3, R=0.1)
+    want = torch.full((lin.weight.numel(),), 0.25, dtype=torch.float64)
+    torch.testing.assert_close(good.belief.chol.diagonal() ** 2, want, rtol=1e-12, atol=0)
+    with pytest.raises(TypeError, match=r"P0\['weight'\] must be a real number or a tensor"):
+        EKF(lin, P0={"weight": bad}, Q=1e-3, R=0.1)

@@ -148,7 +148,17 @@ class ParameterBridge:
             )
         parts = []
         for pname, shape, k in zip(self.names, self.shapes, self.numels):
-            v = torch.as_tensor(values[pname], dtype=torch.float64, device=self.device)
+            raw, dt = values[pname], getattr(values[pname], "dtype", None)
+            if (
+                isinstance(raw, (bool, complex, str))
+                or dt == torch.bool
+                or (isinstance(dt, torch.dtype) and dt.is_complex)
+                or getattr(dt, "kind", "") in ("b", "c", "U", "S", "O")  # NumPy bool, complex, text
+            ):  # (a bool was read as 1, a complex value lost its imaginary part)
+                raise TypeError(
+                    f"{name}[{pname!r}] must be a real number or a tensor of reals, got {raw!r}"
+                )
+            v = torch.as_tensor(raw, dtype=torch.float64, device=self.device)
             if v.dim() == 0:
                 v = v.expand(k)
             elif tuple(v.shape) == tuple(shape):
