@@ -33,7 +33,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from ..core.validation import check_real, is_real
+from ..core.validation import check_real
 from ..prognosis.conformal import (
     RULCalibration,
     _check_bins,
@@ -41,7 +41,7 @@ from ..prognosis.conformal import (
     calibrate_intervals,
     interval_scores,
 )
-from ..prognosis.protocol import PROTOCOL_FRACTIONS, known_threshold_protocol
+from ..prognosis.protocol import PROTOCOL_FRACTIONS, check_fractions, known_threshold_protocol
 from .run import fleet_rul, interval_columns, method_settings
 from .table import FleetTable, read_fleet_table
 
@@ -114,16 +114,7 @@ def calibrate_fleet(
     _check_coverage(coverage)
     if not (isinstance(bins, str) and bins == "auto"):
         bins = _check_bins(bins)
-    try:
-        fr = tuple(fractions)
-    except TypeError:
-        fr = ()
-    if not fr or any(not is_real(f) or not 0 < f < 1 for f in fr) or len(set(fr)) != len(fr):
-        raise ValueError(
-            f"fractions must be distinct numbers in (0, 1) of [onset, end of life], got "
-            f"{fractions!r}"
-        )
-    fractions = tuple(float(f) for f in fr)
+    fractions = check_fractions(fractions)
     sign = 1.0 if direction == "above" else -1.0
     table = (
         source

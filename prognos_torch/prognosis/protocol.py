@@ -52,6 +52,21 @@ PROTOCOL_FRACTIONS = (0.2, 0.4, 0.6, 0.8, 0.9)
 PROTOCOL_MIN_POINTS = 20
 
 
+def check_fractions(fractions) -> tuple[float, ...]:
+    """Prediction times as distinct fractions in (0, 1) of [onset, end of life], as floats
+    (``ValueError`` naming them: a fraction beyond 1 would replay rows past the end of life)."""
+    try:
+        fr = tuple(fractions)
+    except TypeError:
+        fr = ()
+    if not fr or any(not is_real(f) or not 0 < f < 1 for f in fr) or len(set(fr)) != len(fr):
+        raise ValueError(
+            f"fractions must be distinct numbers in (0, 1) of [onset, end of life], got "
+            f"{fractions!r}"
+        )
+    return tuple(float(f) for f in fr)
+
+
 @dataclass(frozen=True)
 class ProtocolCase:
     """A run-to-failure series under the known-threshold protocol.

@@ -43,6 +43,7 @@ from ..prognosis.conformal import (
 from ..prognosis.protocol import (
     PROTOCOL_FRACTIONS,
     PROTOCOL_MIN_POINTS,
+    check_fractions,
     known_threshold_protocol,
 )
 from .data import Series
@@ -126,12 +127,7 @@ def calibrate_rul(
     # checked before the replays (minutes to hours on a real archive), not after them
     _check_coverage(coverage)
     bins = _check_bins(bins)
-    fr = tuple(fractions)
-    if not fr or any(not is_real(f) or not 0 < f < 1 for f in fr) or len(set(fr)) != len(fr):
-        raise ValueError(
-            f"fractions must be distinct numbers in (0, 1) of [onset, end of life], got {fr!r}"
-        )
-    fractions = tuple(float(f) for f in fr)
+    fractions = check_fractions(fractions)
     seeds = _check_seeds(seed)  # (as prognose reads it: one seed, or several pooled)
     seed = seeds[0] if len(seeds) == 1 else seeds
     signed = None if threshold is None else sign * threshold
