@@ -172,6 +172,18 @@ def check_flag(v, name: str) -> bool:
     raise TypeError(f"{name} must be a bool, got {v!r}")
 
 
+def is_bool_or_complex(value) -> bool:
+    """A bool or complex value or array (Python, NumPy or torch), which a cast to float would
+    read as ``0``/``1`` or strip of its imaginary part."""
+    dt = getattr(value, "dtype", None)
+    return (
+        isinstance(value, (bool, complex))
+        or dt == torch.bool
+        or (isinstance(dt, torch.dtype) and dt.is_complex)
+        or getattr(dt, "kind", "") in ("b", "c")  # NumPy bool or complex
+    )
+
+
 def is_real(v) -> bool:
     """A real number (``int``, ``float``, ``numpy.float32``, ``numpy.int64``, ...), not a
     ``bool``."""

@@ -16,7 +16,7 @@ from torch import Tensor, nn
 from ..adapt.noise import MovingWindow, SageHusa
 from ..adapt.strong_tracking import StrongTracking
 from ..core.linalg import tria
-from ..core.validation import check_matches, has_missing, is_int, is_real
+from ..core.validation import check_matches, has_missing, is_bool_or_complex, is_int, is_real
 from ..filters.gaussian import GaussianFilter, StepInfo
 from ..filters.variants import make_filter
 from ._buffers import tracking_batch_norms
@@ -108,13 +108,7 @@ def _as_float64(value, name: str, device=None) -> Tensor:
     """``value`` (a number, a vector or a matrix) as a float64 tensor. A bool or complex value
     (Python, NumPy or torch) is refused: the cast would read ``True`` as ``1`` and drop an
     imaginary part."""
-    dt = getattr(value, "dtype", None)
-    if (
-        isinstance(value, (bool, complex))
-        or dt == torch.bool
-        or (isinstance(dt, torch.dtype) and dt.is_complex)
-        or getattr(dt, "kind", "") in ("b", "c")  # NumPy bool or complex
-    ):
+    if is_bool_or_complex(value):
         raise TypeError(f"{name} must be a real number, a vector or a matrix, got {value!r}")
     try:
         return torch.as_tensor(value, dtype=torch.float64, device=device)
@@ -388,7 +382,9 @@ def _checked_state_dict(state_dict, module: nn.Module, param_groups: list[dict],
                 f"{'' if i == 0 else f' with {i + 1} parameter groups'})"
             )
         entry = st[key]
-        lacking = [k for k in ("mean", "chol", "step") if not isinstance(entry, dict) or k not in entry]
+        lacking = [
+            k for k in ("mean", "chol", "step") if not isinstance(entry, dict) or k not in entry
+        ]
         if lacking or not is_int(entry["step"]) or entry["step"] < 0:
             raise ValueError(
                 f"state_dict['state'][{key!r}] must be a KalmanOptimizer belief entry (a dict "

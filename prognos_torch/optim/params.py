@@ -23,6 +23,8 @@ import torch
 from torch import Tensor, nn
 from torch.func import functional_call, jacfwd, jacrev, jvp, vmap
 
+from ..core.validation import is_bool_or_complex
+
 __all__ = ["ParameterBridge", "Selector"]
 
 #: How to choose the parameters that form ``theta``: ``None`` (those with ``requires_grad``),
@@ -148,13 +150,10 @@ class ParameterBridge:
             )
         parts = []
         for pname, shape, k in zip(self.names, self.shapes, self.numels):
-            raw, dt = values[pname], getattr(values[pname], "dtype", None)
-            if (
-                isinstance(raw, (bool, complex, str))
-                or dt == torch.bool
-                or (isinstance(dt, torch.dtype) and dt.is_complex)
-                or getattr(dt, "kind", "") in ("b", "c", "U", "S", "O")  # NumPy bool, complex, text
-            ):  # (a bool was read as 1, a complex value lost its imaginary part)
+            raw = values[pname]
+            kind = getattr(getattr(raw, "dtype", None), "kind", "")  # NumPy text or objects
+            # (a bool was read as 1, a complex value lost its imaginary part, text failed in torch)
+            if isinstance(raw, str) or kind in ("U", "S", "O") or is_bool_or_complex(raw):
                 raise TypeError(
                     f"{name}[{pname!r}] must be a real number or a tensor of reals, got {raw!r}"
                 )
