@@ -5,6 +5,24 @@ import math
 import numpy as np
 
 
+def _update(m, P, H, R, y, r=None):
+    """Joseph-form update with the observed components of ``y`` (NaN: not observed); returns
+    the mean, the covariance, ``K H_o`` and the step's log-likelihood term."""
+    n = m.shape[0]
+    o = ~np.isnan(y)
+    if not o.any():
+        return m, P, np.zeros((n, n)), 0.0
+    Ho, Ro = H[o], R[np.ix_(o, o)]
+    S = Ho @ P @ Ho.T + Ro
+    e = y[o] - (Ho @ m + (0.0 if r is None else r[o]))
+    K = np.linalg.solve(S, Ho @ P).T
+    KH = K @ Ho
+    I_KH = np.eye(n) - KH
+    lk = -0.5 * (o.sum() * math.log(2 * math.pi) + np.linalg.slogdet(S)[1]
+                 + e @ np.linalg.solve(S, e))  # fmt: skip
+    return m + K @ e, I_KH @ P @ I_KH.T + K @ Ro @ K.T, KH, lk
+
+
 def kalman_filter(F, H, Q, R, m0, P0, ys, q=None, r=None):
     """Predict-then-update KF. ys: (T, m). Returns means (T, n), covs (T, n, n), loglik."""
     n = F.shape[0]
@@ -15,15 +33,9 @@ def kalman_filter(F, H, Q, R, m0, P0, ys, q=None, r=None):
     for y in ys:
         m = F @ m + q
         P = F @ P @ F.T + Q
-        if not np.isnan(y).any():
-            S = H @ P @ H.T + R
-            e = y - (H @ m + r)
-            K = np.linalg.solve(S, H @ P).T
-            m = m + K @ e
-            I_KH = np.eye(n) - K @ H
-            P = I_KH @ P @ I_KH.T + K @ R @ K.T
-            sign, logdet = np.linalg.slogdet(S)
-            ll += -0.5 * (len(y) * math.log(2 * math.pi) + logdet + e @ np.linalg.solve(S, e))
+        if not np.isnan(y).any():  # (a partly missing row is skipped whole)
+            m, P, _, lk = _update(m, P, H, R, y, r)
+            ll += lk
         means.append(m.copy())
         covs.append(P.copy())
     return np.array(means), np.array(covs), ll
@@ -34,25 +46,13 @@ def kalman_filter_observed(F, H, Q, R, m0, P0, ys, B=None, us=None):
 
     ``F``: a matrix or ``k -> F_k`` (``k`` from 1); ``x_k = F_k x + B u_k``. Returns means
     ``(T, n)``, covariances ``(T, n, n)`` and the per-step log-likelihoods ``(T,)``."""
-    n = m0.shape[0]
     m, P = m0.copy(), P0.copy()
     means, covs, ll = [], [], []
     for k, y in enumerate(ys, start=1):
         Fk = F(k) if callable(F) else F
         m = Fk @ m + (B @ us[k - 1] if B is not None else 0.0)
         P = Fk @ P @ Fk.T + Q
-        o = ~np.isnan(y)
-        lk = 0.0
-        if o.any():
-            Ho, Ro = H[o], R[np.ix_(o, o)]
-            S = Ho @ P @ Ho.T + Ro
-            e = y[o] - Ho @ m
-            K = np.linalg.solve(S, Ho @ P).T
-            m = m + K @ e
-            I_KH = np.eye(n) - K @ Ho
-            P = I_KH @ P @ I_KH.T + K @ Ro @ K.T
-            lk = -0.5 * (o.sum() * math.log(2 * math.pi) + np.linalg.slogdet(S)[1]
-                         + e @ np.linalg.solve(S, e))  # fmt: skip
+        m, P, _, lk = _update(m, P, H, R, y)
         means.append(m.copy())
         covs.append(P.copy())
         ll.append(lk)
@@ -61,21 +61,14 @@ def kalman_filter_observed(F, H, Q, R, m0, P0, ys, B=None, us=None):
 
 def kalman_filter_tv(Fs, H, Qs, Rs, m0, P0, ys):
     """The same filter with per-step F_k, Q_k, R_k: (T, n, n), (T, n, n), (T, m, m)."""
-    n = m0.shape[0]
     m, P = m0.copy(), P0.copy()
     means, covs, ll = [], [], 0.0
     for F, Q, R, y in zip(Fs, Qs, Rs, ys):
         m = F @ m
         P = F @ P @ F.T + Q
-        if not np.isnan(y).any():
-            S = H @ P @ H.T + R
-            e = y - H @ m
-            K = np.linalg.solve(S, H @ P).T
-            m = m + K @ e
-            I_KH = np.eye(n) - K @ H
-            P = I_KH @ P @ I_KH.T + K @ R @ K.T
-            sign, logdet = np.linalg.slogdet(S)
-            ll += -0.5 * (len(y) * math.log(2 * math.pi) + logdet + e @ np.linalg.solve(S, e))
+        if not np.isnan(y).any():  # (a partly missing row is skipped whole)
+            m, P, _, lk = _update(m, P, H, R, y)
+            ll += lk
         means.append(m.copy())
         covs.append(P.copy())
     return np.array(means), np.array(covs), ll
@@ -100,19 +93,8 @@ def rts_reference(F, H, Q, R, m0, P0, ys, fading=1.0):
         P = fading * F @ Pf[-1] @ F.T + Q
         mp.append(m)
         Pp.append(P)
-        o = ~np.isnan(y)
-        KH = np.zeros((n, n))
-        if o.any():
-            Ho, Ro = H[o], R[np.ix_(o, o)]
-            S = Ho @ P @ Ho.T + Ro
-            e = y[o] - Ho @ m
-            K = np.linalg.solve(S, Ho @ P).T
-            m = m + K @ e
-            KH = K @ Ho
-            P = (np.eye(n) - KH) @ P @ (np.eye(n) - KH).T + K @ Ro @ K.T
-            ll += -0.5 * (o.sum() * math.log(2 * math.pi) + np.linalg.slogdet(S)[1])
-            ll += -0.5 * e @ np.linalg.solve(S, e)
-        KH_last = KH
+        m, P, KH_last, lk = _update(m, P, H, R, y)
+        ll += lk
         mf.append(m)
         Pf.append(P)
     J = [np.linalg.solve(Pp[t + 1], F @ Pf[t]).T for t in range(T)]  # Pf F^T Pp^-1
