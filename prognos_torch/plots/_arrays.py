@@ -113,12 +113,27 @@ def time_text(series, t: float) -> str:
     return f"{date} UTC" if date else f"t = {t:g}"
 
 
-def as_numpy(x) -> np.ndarray:
+def as_numpy(x, name: str = "value") -> np.ndarray:
     """``x`` as a float64 array: a tensor on any device is detached and copied to the CPU
-    (``np.asarray`` refuses a CUDA tensor), anything else goes through ``np.asarray``."""
+    (``np.asarray`` refuses a CUDA tensor), anything else goes through ``np.asarray``. ``None``
+    (which NumPy reads as NaN), complex values (whose imaginary part the cast drops) and what
+    is no array of numbers are a ``TypeError``/``ValueError`` naming ``name``."""
+    if x is None:
+        raise TypeError(f"{name} must be an array or tensor of real numbers, got None")
     if isinstance(x, torch.Tensor):
+        if x.is_complex():
+            raise TypeError(f"{name} must be real, got a complex tensor ({x.dtype})")
         x = x.detach().to("cpu", torch.float64).numpy()
-    return np.asarray(x, dtype=np.float64)
+    try:
+        a = np.asarray(x)
+        cplx = np.iscomplexobj(a)
+        if not cplx:
+            a = np.asarray(a, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise type(exc)(f"{name} must be an array of real numbers ({exc})") from None
+    if cplx:
+        raise TypeError(f"{name} must be real, got complex values ({a.dtype})")
+    return a
 
 
 def clip_for_drawing(paths: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -144,9 +159,9 @@ def write_png(fig: Figure, path: str | os.PathLike | None, *, make_folder: bool 
     if path is None:
         return fig
     fmt = figure_format(path)
-    if make_folder:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
     buf = io.BytesIO()
-    fig.savefig(buf, format=fmt, dpi=dpi)
+    fig.savefig(buf, format=fmt, dpi=dpi)  # rendered before any folder is made: a failed
+    if make_folder:  # render leaves the file system as it was
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
     atomic_write(path, buf.getvalue())
     return fig

@@ -16,6 +16,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from ..core.validation import is_real
 from ..metrics import alpha_bounds, lambda_index, lambda_time
 from ._arrays import as_numpy, write_png
 
@@ -33,7 +34,7 @@ PathLike = str | os.PathLike
 
 
 def _np(x, name: str, ndim: int | None = 1) -> np.ndarray:
-    arr = as_numpy(x)
+    arr = as_numpy(x, name)
     if ndim is not None and arr.ndim != ndim:
         raise ValueError(f"{name} must be {ndim}-D, got shape {arr.shape}")
     return arr
@@ -46,12 +47,13 @@ def _same_len(a: np.ndarray, b: np.ndarray, a_name: str, b_name: str) -> None:
         )
 
 
-def _series(x, name: str, default_label: str) -> list[tuple[str, np.ndarray]]:
+def _series(x, name: str, default_label: str) -> list[tuple[str, str, np.ndarray]]:
+    """``(label, name, values)`` of each series: ``name[label]`` names an entry of a mapping."""
     if isinstance(x, Mapping):
         if not x:
             raise ValueError(f"{name} is empty")
-        return [(str(k), _np(v, f"{name}[{k!r}]")) for k, v in x.items()]
-    return [(default_label, _np(x, name))]
+        return [(str(k), f"{name}[{k!r}]", _np(v, f"{name}[{k!r}]")) for k, v in x.items()]
+    return [(default_label, name, _np(x, name))]
 
 
 def _new(figsize=(7.0, 4.0)) -> tuple[Figure, object]:
@@ -87,8 +89,12 @@ def plot_prediction(
     if std is not None and (lower is not None or upper is not None):
         raise ValueError("give std or (lower, upper), not both")
     if std is not None:
+        if not (is_real(n_std) and math.isfinite(n_std) and n_std >= 0):
+            raise ValueError(f"n_std must be a finite number >= 0, got {n_std!r}")
         std = _np(std, "std")
         _same_len(t, std, "t", "std")
+        if np.any(std < 0):  # (NaN: missing, no band there)
+            raise ValueError(f"std must be >= 0 (NaN: missing), got {np.nanmin(std):g}")
         lower, upper = mean - n_std * std, mean + n_std * std
         band_label = f"mean +- {n_std:g} std"
     elif lower is not None or upper is not None:
@@ -118,8 +124,8 @@ def plot_fading_factor(path: PathLike, t, lam, *, title: str | None = None) -> F
     """
     t = _np(t, "t")
     fig, ax = _new()
-    for label, y in _series(lam, "lam", "lambda_k"):
-        _same_len(t, y, "t", "lam")
+    for label, name, y in _series(lam, "lam", "lambda_k"):
+        _same_len(t, y, "t", name)
         ax.plot(t, y, lw=1.2, label=label)
     ax.axhline(1.0, color="0.5", lw=0.8, ls=":")
     ax.set_xlabel("time")
@@ -170,7 +176,8 @@ def plot_rul_pdf(
         if true_rul is not None:
             ax.plot([true_rul[i]] * 2, [base, base + 0.95], "r-", lw=1.2)
         if censored_mass is not None and censored_mass[i] > 0:
-            ax.text(support[-1], base + 0.5, f" censored {censored_mass[i]:.2f}", fontsize=7)
+            x = support[-1] if support.size else 0.0  # (no support: an empty pmf)
+            ax.text(x, base + 0.5, f" censored {censored_mass[i]:.2f}", fontsize=7)
     ax.set_yticks(np.arange(len(times)))
     ax.set_yticklabels([f"{v:g}" for v in times])
     ax.set_xlabel("RUL")
@@ -205,6 +212,8 @@ def plot_alpha_lambda(
     r_true, r_pred = _np(true_rul, "true_rul"), _np(pred_rul, "pred_rul")
     _same_len(t, r_true, "times", "true_rul")
     _same_len(t, r_pred, "times", "pred_rul")
+    if t.size == 0:
+        raise ValueError("times must hold at least one prediction time, got shape (0,)")
     t_eol = float(t[-1] + r_true[-1]) if t_eol is None else float(t_eol)
     grid = np.linspace(float(t[0]), t_eol, 200)
     r_grid = t_eol - grid
@@ -250,8 +259,8 @@ def plot_fault_probability(
     """
     t = _np(t, "t")
     fig, ax = _new()
-    for label, p in _series(prob, "prob", "fault probability"):
-        _same_len(t, p, "t", "prob")
+    for label, name, p in _series(prob, "prob", "fault probability"):
+        _same_len(t, p, "t", name)
         ax.plot(t, p, ".-", lw=0.8, ms=3, label=label)
     ax.axhline(decision, color="C3", ls="--", lw=1.0, label=f"decision {decision:g}")
     ax.set_ylim(-0.02, 1.02)
@@ -282,6 +291,10 @@ def plot_fault_probability_box(
     _same_len(t, p, "t", "prob")
     if not (math.isfinite(period) and period > 0):
         raise ValueError(f"period must be a finite positive number, got {period}")
+    keep = np.isfinite(t) & ~np.isnan(p)  # NaN: missing (a NaN time cast to int64 made a group)
+    t, p = t[keep], p[keep]
+    if t.size == 0:
+        raise ValueError("t and prob must hold at least one pair of a finite time and a value")
     groups = np.floor(t / period).astype(np.int64)
     keys = np.unique(groups)
     data = [p[groups == k] for k in keys]
@@ -312,7 +325,7 @@ def plot_training_curves(
     default; e.g. ``xlabel="step", x_step=50`` for a loss recorded every 50 steps).
     """
     fig, ax = _new()
-    for label, y in _series(curves, "curves", "loss"):
+    for label, _, y in _series(curves, "curves", "loss"):
         ax.plot(x_step * np.arange(1, len(y) + 1), y, lw=1.2, label=label)
     if logy:
         ax.set_yscale("log")

@@ -43,7 +43,7 @@ class HeatmapPanel:
 
 
 def _checked(panel: HeatmapPanel) -> tuple[np.ndarray, list[list[str]]]:
-    v = as_numpy(panel.values)
+    v = as_numpy(panel.values, "values")
     shape = (len(panel.rows), len(panel.cols))
     if v.shape != shape:
         raise ValueError(f"values must have shape {shape} (rows, cols), got {v.shape}")

@@ -214,8 +214,13 @@ def plot_prediction_errors(
         threshold: optional failure threshold drawn in (a).
         alternate: see :func:`plot_line_panels`.
     """
-    tr = _np(truth, "truth")
-    errors = {k: np.abs(_np(v, f"predictions[{k!r}]") - tr) for k, v in predictions.items()}
+    tt, tr = _np(t, "t"), _np(truth, "truth")
+    _same_len(tt, tr, "t", "truth")
+    errors = {}
+    for k, v in predictions.items():  # lengths first: NumPy would broadcast a length-1 series
+        v = _np(v, f"predictions[{k!r}]")
+        _same_len(tt, v, "t", f"predictions[{k!r}]")
+        errors[k] = np.abs(v - tr)
     panels = [
         LinePanel(
             predictions,

@@ -24,7 +24,7 @@ PathLike = str | os.PathLike
 
 
 def _arr(x, name: str) -> np.ndarray:
-    a = as_numpy(x)
+    a = as_numpy(x, name)
     if a.ndim == 1:
         a = a[:, None]
     if a.ndim != 2:
@@ -63,14 +63,16 @@ def plot_panels(
     Returns:
         The saved :class:`~matplotlib.figure.Figure`.
     """
-    tt = _arr(t, "t")
-    if tt.shape[1] != 1:
+    tt = as_numpy(t, "t")
+    if tt.ndim != 1:
         raise ValueError(f"t must have shape (T,), got {tt.shape}")
-    tt = tt[:, 0]
     if not isinstance(series, Mapping) or not series:
         raise ValueError("series must be a non-empty mapping label -> (T, P) values")
     data = {str(k): _arr(v, f"series[{k!r}]") for k, v in series.items()}
-    P = next(iter(data.values())).shape[1]
+    first = next(iter(data.values())).shape
+    P = first[1]
+    if P == 0:
+        raise ValueError(f"series must have at least one component (T, P >= 1), got {first}")
     for k, v in data.items():
         if v.shape != (tt.shape[0], P):
             raise ValueError(f"series[{k!r}] must have shape ({tt.shape[0]}, {P}), got {v.shape}")
@@ -103,9 +105,10 @@ def plot_panels(
             ax.plot(tt, tr[:, j], "k-", lw=1.3, label="truth")
             if clip is not None:
                 finite = tr[np.isfinite(tr[:, j]), j]
-                lo, hi = float(finite.min()), float(finite.max())
-                span = max(hi - lo, 1e-3 * max(1.0, float(np.abs(finite).max())))
-                ax.set_ylim(lo - clip * span, hi + clip * span)
+                if finite.size:  # (a truth missing throughout: matplotlib scales)
+                    lo, hi = float(finite.min()), float(finite.max())
+                    span = max(hi - lo, 1e-3 * max(1.0, float(np.abs(finite).max())))
+                    ax.set_ylim(lo - clip * span, hi + clip * span)
         ax.set_title(names[j], fontsize=9)
         ax.tick_params(labelsize=7)
         if j // ncols == nrows - 1 or j + ncols >= P:

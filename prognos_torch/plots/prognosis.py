@@ -20,12 +20,19 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from ..core.validation import is_int, is_real
 from ._arrays import as_numpy, check_result, clip_for_drawing, time_axis, time_text, write_png
 
 if TYPE_CHECKING:  # annotations only: the workflow imports the plots, not the reverse
     from ..workflow.predict import RULResult
 
 __all__ = ["plot_prognosis", "plot_prognosis_grid", "plot_rul_trajectory"]
+
+
+def _check_len(x: np.ndarray, times: np.ndarray, name: str) -> None:
+    """``x`` must be ``(P,)`` like the panel's times (matplotlib broadcast a length 1)."""
+    if x.shape != times.shape:
+        raise ValueError(f"{name} must have shape {times.shape} like the times, got {x.shape}")
 
 
 def _reach(summary: dict, bound: float, shown: float) -> float:
@@ -80,6 +87,16 @@ def plot_prognosis(
         ax: draw only the top panel into this matplotlib axis (no file is written).
     """
     check_result(result, "RULResult from prognose", "distribution", "plot_prognosis", "(or None) ")
+    if not is_int(n_paths) or n_paths < 0:
+        raise ValueError(f"n_paths must be an int >= 0, got {n_paths!r}")
+    if truth is not None:
+        if not isinstance(truth, (tuple, list)) or len(truth) != 2:
+            raise ValueError("truth must be a pair (t, y) of (T,) values")
+        tt, yt = as_numpy(truth[0], "truth t"), as_numpy(truth[1], "truth y")
+        if tt.ndim != 1 or yt.shape != tt.shape:
+            raise ValueError(
+                f"truth must be a pair (t, y) of (T,) values, got shapes {tt.shape}, {yt.shape}"
+            )
     own = ax is None
     fig = None
     if own:
@@ -100,7 +117,6 @@ def plot_prognosis(
     reach = _reach(s, result.bound, result.t_last - t0)
     t_end = result.t_last + reach
     if truth is not None:
-        tt, yt = as_numpy(truth[0]), as_numpy(truth[1])
         sel = (tt > result.t_last) & (tt <= t_end)
         ax.plot(tt[sel], yt[sel], ".", ms=2, color="0.65", label="what followed")
     ylo, yhi = float(np.min(yh[keep])), float(np.max(yh[keep]))
@@ -198,13 +214,18 @@ def plot_rul_trajectory(
 
     Args:
         path: figure file (.png, .pdf or .svg), or ``None``.
-        panels: dicts with ``title``, ``times`` ``(P,)``, ``true`` ``(P,)``, ``t_eol``, and
+        panels: dicts with ``title``, ``times`` ``(P,)``, ``true`` ``(P,)`` (NaN: missing),
+            ``t_eol``, and
             ``methods``: ``{name: {"pred": (P,), "lo": (P,) | None, "hi": (P,) | None}}``
             (``inf``/NaN: no finite prediction, drawn at the top edge).
         alpha: cone half-width.
         ncols: panels per row.
         time_unit: the unit of the times and RULs, for the axis labels (e.g. ``"days"``).
     """
+    if not (is_real(alpha) and math.isfinite(alpha) and alpha >= 0):  # fill_between would
+        raise ValueError(f"alpha must be a finite number >= 0, got {alpha!r}")  # flip a < 0
+    if not is_int(ncols) or ncols < 1:
+        raise ValueError(f"ncols must be a positive int, got {ncols!r}")
     n = len(panels)
     unit = f" ({time_unit})" if time_unit else ""
     nrows = max(1, math.ceil(n / ncols))
@@ -212,24 +233,37 @@ def plot_rul_trajectory(
     FigureCanvasAgg(fig)
     for k, pan in enumerate(panels):
         ax = fig.add_subplot(nrows, ncols, k + 1)
-        tt = as_numpy(pan["times"])
-        tr = as_numpy(pan["true"])
+        tt = as_numpy(pan["times"], f"panels[{k}]['times']")
+        tr = as_numpy(pan["true"], f"panels[{k}]['true']")
         t_eol = float(pan["t_eol"])
+        if tt.ndim != 1 or tt.size == 0 or not np.all(np.isfinite(tt)):
+            raise ValueError(f"panels[{k}]['times'] must be finite (P,) times with P >= 1, "
+                             f"got shape {tt.shape}")  # fmt: skip
+        _check_len(tr, tt, f"panels[{k}]['true']")
+        if not np.isfinite(tr).any():
+            raise ValueError(f"panels[{k}]['true'] holds no finite true RUL")
         grid = np.linspace(tt.min() - 0.05 * (t_eol - tt.min()), t_eol, 50)
         r = t_eol - grid
         ax.fill_between(grid, (1 - alpha) * r, (1 + alpha) * r, color="0.85",
                         label=f"alpha = {alpha:g} cone")  # fmt: skip
         ax.plot(grid, r, color="k", lw=1.0, label="true RUL")
-        top = 2.2 * float(tr.max())
+        top = 2.2 * float(tr[np.isfinite(tr)].max())  # (NaN: a missing true RUL)
         for j, (name, m) in enumerate(pan["methods"].items()):
-            p = as_numpy(m["pred"])
+            where = f"panels[{k}]['methods'][{name!r}]"
+            p = as_numpy(m["pred"], f"{where}['pred']")
+            _check_len(p, tt, f"{where}['pred']")
+            if (m.get("lo") is None) != (m.get("hi") is None):
+                raise ValueError(f"{where}: give both 'lo' and 'hi' or neither")
             shown = np.where(np.isfinite(p), np.minimum(p, top), top)
             dx = (j - 0.5 * (len(pan["methods"]) - 1)) * 0.01 * (t_eol - tt.min())
             ax.plot(tt + dx, shown, "o-" if j == 0 else "s--", ms=4, lw=0.8, color=f"C{j}",
                     label=name)  # fmt: skip
             if m.get("lo") is not None:
-                lo = np.minimum(np.nan_to_num(as_numpy(m["lo"]), nan=top, posinf=top), top)
-                hi = np.minimum(np.nan_to_num(as_numpy(m["hi"]), nan=top, posinf=top), top)
+                lo, hi = (as_numpy(m[b], f"{where}[{b!r}]") for b in ("lo", "hi"))
+                _check_len(lo, tt, f"{where}['lo']")
+                _check_len(hi, tt, f"{where}['hi']")
+                lo = np.minimum(np.nan_to_num(lo, nan=top, posinf=top), top)
+                hi = np.minimum(np.nan_to_num(hi, nan=top, posinf=top), top)
                 ax.vlines(tt + dx, lo, hi, color=f"C{j}", lw=2.0, alpha=0.35)
         ax.set_ylim(0, top * 1.02)
         ax.set_title(pan["title"], fontsize=9)

@@ -6,11 +6,13 @@ the figure returned; values may be tensors (any device) or array-likes.
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from ..core.validation import is_int, is_real
 from ..metrics import alpha_bounds
 from ._arrays import as_numpy, write_png
 from .figures import PathLike, _new, _np, _same_len
@@ -43,6 +45,13 @@ def plot_rul_band(
     t = _np(times, "times")
     r_true = _np(true_rul, "true_rul")
     _same_len(t, r_true, "times", "true_rul")
+    if (
+        not isinstance(band, (tuple, list))
+        or len(band) != 2
+        or not all(is_real(q) and 0 <= q <= 100 for q in band)
+        or band[0] > band[1]
+    ):
+        raise ValueError(f"band must be a pair of percentiles 0 <= lo <= hi <= 100, got {band!r}")
     fig, ax = _new((7.0, 4.2))
     if alpha is not None:
         lo, hi = (b.numpy() for b in alpha_bounds(r_true, alpha))
@@ -51,7 +60,9 @@ def plot_rul_band(
     for i, (label, pred) in enumerate(predictions.items()):
         p = _np(pred, f"predictions[{label!r}]", ndim=2)
         if p.shape[0] != t.shape[0]:
-            raise ValueError(f"predictions[{label!r}] must have shape ({t.shape[0]}, R)")
+            raise ValueError(
+                f"predictions[{label!r}] must have shape ({t.shape[0]}, R), got {p.shape}"
+            )
         with warnings.catch_warnings():  # all-NaN rows (every run censored) stay NaN
             warnings.simplefilter("ignore", RuntimeWarning)
             med = np.nanmedian(p, axis=1)
@@ -69,11 +80,19 @@ def plot_rul_band(
 
 def weighted_quantiles(samples, weights, qs: Sequence[float]) -> np.ndarray:
     """Per column of ``samples`` ``(N, H)`` the weighted quantiles ``qs``: ``(len(qs), H)``
-    (the smallest sample whose cumulative weight reaches ``q``)."""
-    samples, w = as_numpy(samples), as_numpy(weights)
+    (the smallest sample whose cumulative weight reaches ``q`` of the total; ``weights``
+    ``(N,)``, ``>= 0``, need not sum to 1)."""
+    samples, w = as_numpy(samples, "samples"), as_numpy(weights, "weights")
+    if samples.ndim != 2 or samples.shape[0] == 0:
+        raise ValueError(f"samples must have shape (N, H) with N >= 1, got {samples.shape}")
+    if w.shape != (samples.shape[0],):
+        raise ValueError(f"weights must have shape ({samples.shape[0]},), got {w.shape}")
+    total = float(w.sum())
+    if not (np.all(w >= 0) and math.isfinite(total) and total > 0):
+        raise ValueError("weights must be finite, >= 0 and not all 0")
     order = np.argsort(samples, axis=0)
     s = np.take_along_axis(samples, order, axis=0)
-    cw = np.cumsum(w[order], axis=0)
+    cw = np.cumsum(w[order], axis=0) / total  # normalised: unnormalised weights gave the minimum
     out = []
     for q in qs:
         idx = np.minimum((cw < q - 1e-12).sum(0), samples.shape[0] - 1)
@@ -95,12 +114,14 @@ def draw_paths(
     heaviest paths and the threshold.
 
     Args:
-        t: ``(H,)`` times of the path steps; paths: ``(N, H)``; weights: ``(N,)`` (default
-            equal).
+        t: ``(H,)`` times of the path steps; paths: ``(N, H)``; weights: ``(N,)``, ``>= 0``,
+            need not sum to 1 (default equal).
     """
     tf, p = _np(t, "t"), _np(paths, "paths", ndim=2)
-    if p.shape[1] != tf.shape[0]:
-        raise ValueError(f"paths must have shape (N, {tf.shape[0]}), got {p.shape}")
+    if p.shape[1] != tf.shape[0] or p.shape[0] == 0:
+        raise ValueError(f"paths must have shape (N, {tf.shape[0]}) with N >= 1, got {p.shape}")
+    if not is_int(n_show) or n_show < 0:
+        raise ValueError(f"n_show must be an int >= 0, got {n_show!r}")
     w = np.full(p.shape[0], 1.0 / p.shape[0]) if weights is None else _np(weights, "weights")
     if w.shape != (p.shape[0],):
         raise ValueError(f"weights must have shape ({p.shape[0]},), got {w.shape}")

@@ -15,6 +15,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from ..core.validation import is_int
 from ._arrays import as_numpy, check_result, clip_for_drawing, time_axis, time_text, write_png
 from .prognosis import plot_prognosis
 from .rul import draw_paths
@@ -24,6 +25,13 @@ if TYPE_CHECKING:  # annotations only: the workflow imports this module, not the
     from ..workflow.predict import ForecastResult, RULResult
 
 __all__ = ["plot_forecast", "plot_rul"]
+
+
+def _check_history(history) -> None:
+    """``history`` is ``None`` or a positive int: ``values[-0:]`` is the whole series and
+    ``values[-n:]`` for ``n < 0`` drops the first ``|n|`` values."""
+    if history is not None and (not is_int(history) or history < 1):
+        raise ValueError(f"history must be None or a positive int, got {history!r}")
 
 
 def _history_tail(series: Series, horizon: int, history: int | None) -> tuple:
@@ -54,6 +62,7 @@ def plot_forecast(
         history: number of past values shown (default ``max(4 H, 200)``).
     """
     check_result(result, "ForecastResult", "lower", "plot_forecast")
+    _check_history(history)
     fig = Figure(figsize=(7.5, 4.0))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
@@ -116,6 +125,7 @@ def plot_rul(
         title: figure title.
     """
     check_result(result, "RULResult", "distribution", "plot_rul")
+    _check_history(history)
     if result.onset is not None:  # a prognose result
         if history is not None:
             raise ValueError(
