@@ -15,12 +15,15 @@ Run 'prognos COMMAND --help' for the options and examples of each command.
 from __future__ import annotations
 
 import argparse
+import os
+import re
 import sys
 import warnings
 from pathlib import Path
 
 from ._text import fmt_time
 from .cli_parser import (
+    CALIBRATE_DEFAULTS,
     MODEL_RUL_DEFAULTS,
     PROGNOSE_RUL_DEFAULTS,
     add_fit,
@@ -52,7 +55,10 @@ def _cmd_study(args) -> int:
         for name, st in studies.items():
             need = f" (needs --data: {st.needs_data})" if st.needs_data else ""
             print(f"{name:20s} paper {st.paper:8s} {st.title}{need}")
-        return 0 if args.list else 2
+        if args.list:
+            return 0
+        print("error: study needs a NAME from the list above, or all", file=sys.stderr)
+        return 2
     try:
         cfg = StudyConfig(
             runs=args.runs,
@@ -143,11 +149,14 @@ def _holdout(text: str):
         raise ValueError(f"--holdout must be a fraction or a count, got {text!r}") from None
 
 
-def _check_out_folder(path: Path | None, what: str) -> None:
+def _check_out_folder(path: str | Path | None, what: str) -> None:
     """An output file's folder exists and it is no folder itself; a figure (``--plot``) has
     a figure suffix (:func:`~prognos_torch.io.figure_format`)."""
     if path is None:
         return
+    if str(path).endswith(("/", os.sep)):  # (a folder: Path() would drop the separator)
+        raise ValueError(f"{what}: {path} names a folder, expected a file name")
+    path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise FileNotFoundError(f"{what}: folder {folder} does not exist")
@@ -157,6 +166,27 @@ def _check_out_folder(path: Path | None, what: str) -> None:
         from .io import figure_format
 
         figure_format(path, what)
+
+
+def _check_overwrites(outputs: dict, inputs: dict) -> None:
+    """No output file is a file this run reads or another output (``--csv data.csv`` replaced
+    the data it had read; ``--plot`` and ``--json`` on one name kept the last one written)."""
+    seen: dict = {}
+    for what, path in outputs.items():
+        if path is None or str(path) == "-":  # (--json -: standard output)
+            continue
+        key = os.path.realpath(path)
+        for name, src in inputs.items():
+            if src is not None and os.path.realpath(src) == key:
+                raise ValueError(
+                    f"{what}: {path} is {name}, which this run reads; writing it would replace "
+                    "it (give another file name)"
+                )
+        if key in seen:
+            raise ValueError(
+                f"{seen[key]} and {what} name the same file {path}: one would replace the other"
+            )
+        seen[key] = what
 
 
 def _share(p: float) -> str:
@@ -243,6 +273,24 @@ class LookAheadWarning(UserWarning):
     """A backtest (``--until``) with a model trained on rows after the cut."""
 
 
+class BacktestWarning(UserWarning):
+    """A backtest (``--until``) whose cut leaves no rows after it to compare with."""
+
+
+def _warn_nothing_after(truth, series, until) -> None:
+    """One ``warning:`` line where ``--until`` lies at or after the last row: the backtest has
+    nothing to score (its "observed RUL" would read "not reached in the data")."""
+    if truth is None or float(truth.t[-1]) > float(series.t[-1]):
+        return
+    warnings.warn(
+        f"--until {until}: the data end at t = {fmt_time(float(truth.t[-1]))}, at or before "
+        "the cut, so there are no rows after it to compare with (a --until inside the data "
+        "backtests)",
+        BacktestWarning,
+        stacklevel=2,
+    )
+
+
 class CapacityWarning(UserWarning):
     """A learner with more trained coefficients than training windows (``warning:`` line)."""
 
@@ -275,6 +323,7 @@ def _cmd_fit(args) -> int:
     from .workflow import fit_series, save_model
 
     _check_out_folder(args.out, "--out")
+    _check_overwrites({"--out": args.out}, {"the data file": args.data})
     series, data_cfg = _series_from_args(args)
     _warn_gaps(series)
     oopts = _options(args.optimizer_option, "--optimizer-option")
@@ -397,11 +446,15 @@ def _load_for_prediction(args):
 
     for path, what in ((args.plot, "--plot"), (getattr(args, "csv", None), "--csv")):
         _check_out_folder(path, what)
+    outputs = {"--plot": args.plot, "--csv": getattr(args, "csv", None)}
+    outputs["--json"] = getattr(args, "json", None)
+    _check_overwrites(outputs, {"the model file": args.model, "the data file": args.data})
     model = load_model(args.model)
     series, data_cfg = _series_from_args(args, model.config.get("data"))
     _warn_gaps(series)
     # with --until, the rows after the cut are the truth to compare against
     truth = _series_from_args(args, data_cfg, truth=True)[0] if args.until else None
+    _warn_nothing_after(truth, series, args.until)
     info = model.config.get("series") or {}
     end = info.get("t_train_end")  # (model files from before it was recorded: not checked)
     if truth is not None and end is not None and info.get("start") == series.start:
@@ -532,7 +585,7 @@ def _cmd_rul(args) -> int:
     from .workflow import rul
 
     if args.json not in (None, "-"):
-        _check_out_folder(Path(args.json), "--json")
+        _check_out_folder(args.json, "--json")
     if args.data is None:  # prognos rul DATA.csv ...: no model file
         from .cli_prognose import load_histories, run_prognose
 
@@ -548,16 +601,29 @@ def _cmd_rul(args) -> int:
                 "without one, prognose sets its horizon from the observed life and filters "
                 "every value since onset (--paths, --method, --filter, --seed, --direction apply)"
             )
-        for k, v in PROGNOSE_RUL_DEFAULTS.items():
+        given = [f"--{k.replace('_', '-')}" for k in CALIBRATE_DEFAULTS
+                 if getattr(args, k) is not None]  # fmt: skip
+        if given and args.calibrate is None:  # (they were ignored without a word)
+            raise ValueError(
+                f"{', '.join(given)} {'apply' if len(given) > 1 else 'applies'} with "
+                "--calibrate TABLE: the replay of its histories"
+            )
+        for k, v in {**PROGNOSE_RUL_DEFAULTS, **CALIBRATE_DEFAULTS}.items():
             if getattr(args, k) is None:
                 setattr(args, k, v)
         args.data = args.model
         _check_out_folder(args.plot, "--plot")
         _check_out_folder(args.calibration_out, "--calibration-out")
+        _check_overwrites(
+            {"--plot": args.plot, "--calibration-out": args.calibration_out, "--json": args.json},
+            {"the data file": args.data, "the --calibrate table": args.calibrate,
+             "the --calibration file": args.calibration},
+        )  # fmt: skip
         if args.workers < 1:
             raise ValueError(f"--workers must be >= 1 (processes), got {args.workers}")
         series, data_cfg = _series_from_args(args)
         truth = _series_from_args(args, data_cfg, truth=True)[0] if args.until else None
+        _warn_nothing_after(truth, series, args.until)
         histories = load_histories(args, series)
         censored = run_prognose(args, series, data_cfg, truth, histories)
         if censored:
@@ -572,6 +638,14 @@ def _cmd_rul(args) -> int:
         raise ValueError(
             "--calibrate and --calibration apply without a model file (prognos rul DATA.csv --column C ...): it "
             "calibrates prognose's interval"
+        )
+    given = [f"--{k.replace('_', '-')}" for k in ("calibration_out", *CALIBRATE_DEFAULTS)
+             if getattr(args, k) is not None]  # fmt: skip
+    if given:  # (they were ignored without a word: no calibration file was written)
+        raise ValueError(
+            f"{', '.join(given)} {'apply' if len(given) > 1 else 'applies'} without a model "
+            "file, with --calibrate TABLE (prognos rul DATA.csv --column C ... --calibrate "
+            "TABLE): the calibration of prognose's interval"
         )
     given = [f"--{k}" for k in PROGNOSE_RUL_DEFAULTS if getattr(args, k) is not None]
     if given:
@@ -674,13 +748,24 @@ def _cmd_rul(args) -> int:
     return 0
 
 
-#: the workflow's argument names and the options that set them: an error about one names both
+#: the first words of the workflow's messages about an argument and the options that set it:
+#: an error about one names both
 _OPTION_OF = {
     "n_particles": "--particles",
     "n_paths": "--paths",
     "horizon": "--horizon",
     "filter_steps": "--filter-steps",
     "level": "--level",
+    "threshold must": "--threshold",  # (not "threshold 2 already reached": it names the value)
+    "holdout must": "--holdout",
+    "embedding dimension m": "--embedding",
+    "glitch_limit": "--glitch-limit",
+    "method must": "--method",
+    "direction must": "--direction",
+    "until": "--until",
+    "last must": "--last",
+    "fill must": "--fill",
+    "time_format": "--time-format",
 }
 
 
@@ -691,12 +776,19 @@ def _workflow(cmd):
     def wrapped(args) -> int:
         import torch
 
+        threads = torch.get_num_threads()  # the caller's count is restored afterwards
+        torch.set_num_threads(1)  # tiny matrices: threads only add overhead (see tests/conftest)
+        try:
+            return run(args)
+        finally:
+            torch.set_num_threads(threads)
+
+    def run(args) -> int:
         from .io import ModelFileError
         from .workflow.extrapolation import ExtrapolationWarning
         from .workflow.memory import allocation_failure
         from .workflow.predict import ThresholdWarning
 
-        torch.set_num_threads(1)  # tiny matrices: threads only add overhead (see tests/conftest)
         caught: list = []
         bad_input = (ValueError, TypeError, OSError, ModelFileError)
         try:
@@ -726,7 +818,7 @@ def _workflow(cmd):
             return 3
         except bad_input as exc:
             text = " ".join(str(exc).split()) or type(exc).__name__
-            option = _OPTION_OF.get(text.split(" ", 1)[0])
+            option = next((o for k, o in _OPTION_OF.items() if text.startswith(k + " ")), None)
             if option is not None:  # a message about an argument names the option that set it
                 text = f"{option}: {text}"
             print(f"error: {text}", file=sys.stderr)
@@ -758,8 +850,26 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _join_negative_values(argv: list[str]) -> list[str]:
+    """``--threshold -1e-3`` as ``--threshold=-1e-3``: argparse takes a value that starts with
+    ``-`` for an option unless it reads like ``-5`` or ``-.5``, so ``-1e-3``, ``-inf`` and
+    ``--seed -1,2`` failed with 'expected one argument'."""
+    out = []
+    for tok in argv:
+        prev = out[-1] if out else ""
+        number = tok[:1] == "-" and (tok[1:2].isdigit() or tok[1:2] == "." or tok[1:].lower()
+                                     in ("inf", "infinity", "nan"))  # fmt: skip
+        plain = re.fullmatch(r"-\d+|-\d*\.\d+", tok)  # (what argparse reads as a number)
+        if number and not plain and prev.startswith("--") and len(prev) > 2 and "=" not in prev \
+                and "--" not in out:  # fmt: skip
+            out[-1] = f"{prev}={tok}"
+        else:
+            out.append(tok)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
+    argv = _join_negative_values(sys.argv[1:] if argv is None else list(argv))
     if argv[:1] == ["rul"] and any(a == "--group-by" or a.startswith("--group-by=") for a in argv):
         from .fleet.cli import main as fleet_main  # fleet mode: a long table, one RUL per asset
 

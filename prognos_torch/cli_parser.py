@@ -18,6 +18,7 @@ __all__ = [
     "add_rul",
     "MODEL_RUL_DEFAULTS",
     "PROGNOSE_RUL_DEFAULTS",
+    "CALIBRATE_DEFAULTS",
 ]
 
 
@@ -351,14 +352,12 @@ def add_rul(sub, cmd) -> None:
     )
     g.add_argument(
         "--calibrate-group",
-        default="asset",
         metavar="COL",
         help="asset column of the --calibrate table (default asset)",
     )
     g.add_argument(
         "--calibrate-threshold",
         choices=("same", "protocol"),
-        default="same",
         help="failure of a history: the first crossing of --threshold by its 5-point moving "
         "median (same, default), or of 0.9 x its highest moving median (protocol: the bearing "
         "studies' rule, for a rising indicator)",
@@ -366,7 +365,6 @@ def add_rul(sub, cmd) -> None:
     g.add_argument(
         "--workers",
         type=int,
-        default=1,
         metavar="N",
         help="with --calibrate: replay the histories in N processes side by side (default 1); "
         "the calibration is the same",
@@ -389,6 +387,7 @@ def add_rul(sub, cmd) -> None:
     _add_prediction_options(p, "stpf")
     # None: not given (prognose, without a model file, refuses these; with one, the defaults;
     # and the other way round for PROGNOSE_RUL_DEFAULTS)
+    # (and CALIBRATE_DEFAULTS: given without --calibrate, they are refused)
     p.set_defaults(func=cmd, **{k: None for k in MODEL_RUL_DEFAULTS})
 
 
@@ -398,3 +397,6 @@ MODEL_RUL_DEFAULTS = {"horizon": 200, "filter": "stpf", "filter_steps": 100, "pa
 #: the options of ``prognos rul DATA`` (prognose) alone and their defaults there; ``prognos rul
 #: MODEL DATA`` refuses them
 PROGNOSE_RUL_DEFAULTS = {"method": "auto", "paths": 2000}
+#: the options that set how ``--calibrate`` replays its histories and their defaults; without
+#: ``--calibrate`` (and with a model file) they are refused
+CALIBRATE_DEFAULTS = {"calibrate_group": "asset", "calibrate_threshold": "same", "workers": 1}

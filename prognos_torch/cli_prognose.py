@@ -96,6 +96,12 @@ def reporter(args):
     return print
 
 
+def _to_stderr(text: str) -> None:
+    import sys
+
+    print(text, file=sys.stderr)
+
+
 def within_probability(res, within: float, hint: str = "") -> float | None:
     """``res.failure_probability(within)`` for ``--within``, read before anything is printed;
     a refusal names the option and, for a span beyond the horizon, ends with ``hint``."""
@@ -400,8 +406,8 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
     width = max(len(r[0]) for r in rows)
     for k, v in rows:
         say(f"  {k.ljust(width)}  {v}")
-    for f in list(res.flags) + cal_warn:
-        say(f"warning: {f}")
+    for f in list(res.flags) + cal_warn:  # (--json -: on stderr, beside the record, not lost)
+        (say if say is print else _to_stderr)(f"warning: {f}")
     if args.plot is not None:
         from .plots import plot_prognosis  # (matplotlib: only for a figure)
 
