@@ -239,3 +239,37 @@ def test_learner_trend_paths_refuse_a_bad_grid_count_or_generator():
         fit.first_passage(-1, 30.0, grid, 0, torch.Generator().manual_seed(1))
     with pytest.raises(TypeError, match="generator must be a torch.Generator"):
         fit.first_passage(-1, 30.0, grid, 8, None)
+
+
+def test_trend_paths_refuse_an_index_past_the_data_a_bad_keep_or_grid():
+    """TrendFit.first_passage and belief took index n + 5 as torch's IndexError and a bool as a
+    new dimension; keep=2.5 failed on slice indices and keep=-1 kept nothing; a list grid
+    raised AttributeError. The learner trend and the pool refuse the same way."""
+    from prognos_torch.prognosis import TrendPool
+
+    g = torch.Generator().manual_seed(0)
+    t = torch.linspace(0.0, 10.0, 40, dtype=F64)
+    y = 1.0 + 0.5 * torch.exp(0.3 * t + 0.05 * torch.randn(40, generator=g, dtype=F64))
+    fit = fit_trends(t, y, phi=1.0, sigma0=0.05, shapes=("exponential",))["exponential"]
+    grid = torch.tensor([10.5, 11.0, 12.0], dtype=F64)
+    gen = torch.Generator().manual_seed(1)
+    for bad in (40, 45, -41):
+        with pytest.raises(ValueError, match=r"index must be an observation index in \[-40, 40\)"):
+            fit.first_passage(bad, 30.0, grid, 8, gen)
+        with pytest.raises(ValueError, match="observation index"):
+            fit.belief(bad)
+    for bad in (True, 2.0):
+        with pytest.raises(TypeError, match="index must be an int"):
+            fit.first_passage(bad, 30.0, grid, 8, gen)
+    for bad in (2.5, True, -1):
+        with pytest.raises(ValueError, match="keep must be a non-negative int"):
+            fit.first_passage(-1, 30.0, grid, 8, gen, keep=bad)
+        with pytest.raises(ValueError, match="keep must be a non-negative int"):
+            TrendPool((fit, fit)).first_passage(-1, 30.0, grid, 8, gen, keep=bad)
+    with pytest.raises(TypeError, match=r"grid must be a torch.Tensor of shape \(J,\)"):
+        fit.first_passage(-1, 30.0, [10.5, 11.0], 8, gen)
+    # a valid index in either spelling is the same observation (the same draws)
+    a = fit.first_passage(39, 3.0, grid, 8, torch.Generator().manual_seed(2), keep=2)
+    b = fit.first_passage(np.int64(-1), 3.0, grid, 8, torch.Generator().manual_seed(2), keep=2)
+    assert torch.equal(a.times, b.times) and torch.equal(a.paths, b.paths)
+    assert torch.equal(fit.belief(-1).mean, fit.means[39])

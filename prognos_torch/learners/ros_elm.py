@@ -76,6 +76,8 @@ def ros_elm_init(elms: Sequence[nn.Module], z0: Tensor, p: int, lam: float) -> R
     z0 = check_float_tensor(z0, "z0", "(N0, ..., C)")
     p = check_pos_int(p, "p")
     C = len(elms)
+    if C == 0:  # (a state with no channel was returned)
+        raise ValueError("elms must hold one ELM per measurement channel (C >= 1), got none")
     if z0.dim() < 2 or z0.shape[-1] != C:
         raise ValueError(
             f"z0 must have shape (N0, ..., C) with C={C} channels, got {tuple(z0.shape)}"
@@ -87,6 +89,17 @@ def ros_elm_init(elms: Sequence[nn.Module], z0: Tensor, p: int, lam: float) -> R
     check_finite(z0, "z0", "(N0, ..., C)")
     check_nonneg(lam, "lam", numbers_only=True)
     for c, elm in enumerate(elms):
+        if not isinstance(getattr(elm, "a", None), Tensor) or not hasattr(elm, "hidden"):
+            # (a learner without the random hidden layer raised an AttributeError on 'a')
+            raise TypeError(
+                f"elms[{c}] must be an ELM (ROS-ELM learns on its random hidden layer a, b, "
+                f"Eq. 48), got {type(elm).__name__}"
+            )
+        if getattr(elm, "n_out", 1) != 1:  # (the ROS-ELM learns one output per channel)
+            raise ValueError(
+                f"elms[{c}] has n_out={elm.n_out}: each channel's ELM must have n_out=1 "
+                "(Eq. 47: one output, the next value of its channel)"
+            )
         if getattr(elm, "n_in", p) != p:
             raise ValueError(
                 f"elms[{c}] has n_in={elm.n_in}, the embedding dimension p={p}: each ELM takes "
@@ -130,7 +143,12 @@ def ros_elm_init(elms: Sequence[nn.Module], z0: Tensor, p: int, lam: float) -> R
 
 def _check_elms_match(elms: Sequence, state: ROSELMState) -> None:
     """The ELMs are those the state was made with: one per channel, with ``beta``'s hidden
-    size (an ELM swapped for another raised an IndexError or a matrix-shape error)."""
+    size (an ELM swapped for another raised an IndexError or a matrix-shape error) and the
+    window's length ``p`` as input size (else an error on an unnamed ``x``)."""
+    if not isinstance(state, ROSELMState):  # (an AttributeError on 'window' or 'beta')
+        raise TypeError(
+            f"state must be a ROSELMState (from ros_elm_init), got {type(state).__name__}"
+        )
     if len(elms) != len(state.beta):
         raise ValueError(
             f"elms has {len(elms)} learners, the state {len(state.beta)} channels: pass the "
@@ -142,6 +160,13 @@ def _check_elms_match(elms: Sequence, state: ROSELMState) -> None:
             raise ValueError(
                 f"elms[{c}] has n_hidden={L}, the state's channel {c} was made with "
                 f"{beta.shape[-1]} hidden units: pass the ELMs the state was made with"
+            )
+        p = state.window.shape[-1]
+        n_in = getattr(elm, "n_in", None)
+        if n_in is not None and n_in != p:
+            raise ValueError(
+                f"elms[{c}] has n_in={n_in}, the state's window holds p={p} values per channel: "
+                "pass the ELMs the state was made with"
             )
 
 
@@ -158,12 +183,16 @@ def ros_elm_update(elms: Sequence[nn.Module], state: ROSELMState, z: Tensor) -> 
     Args:
         z: ``(..., C)`` with the state's batch shape.
     """
+    _check_elms_match(elms, state)
     want = tuple(state.window.shape[:-1])
     z = check_float_tensor(z, "z", f"{want}")
     if tuple(z.shape) != want:
         raise ValueError(f"z must have shape {want} (batch shape + (C,)), got {tuple(z.shape)}")
+    if z.device != state.window.device:  # (an error of torch's on mixed devices, or none)
+        raise ValueError(
+            f"z is on {z.device}, the state on {state.window.device}: pass z on the state's device"
+        )
     check_finite(z, "z", f"{want}")
-    _check_elms_match(elms, state)
     z = z.to(state.window.dtype)
     betas, Ks = [], []
     for c, elm in enumerate(elms):
@@ -209,7 +238,16 @@ def ros_elm_forecast(
             else:
                 wc = w[..., c, :]
                 dt, _dev = learner_dtype_device(learner)
-                cols.append(learner(wc.to(dt))[..., 0].to(w.dtype))
+                zc = learner(wc.to(dt))
+                # one value per window: (..., 1) (an (..., 2) output lost its second column,
+                # a (...,) one gave an error on 'new_value')
+                if not isinstance(zc, Tensor) or tuple(zc.shape) != (*wc.shape[:-1], 1):
+                    got = tuple(zc.shape) if isinstance(zc, Tensor) else type(zc).__name__
+                    raise ValueError(
+                        f"elms[{c}] (a static learner) must map the window {tuple(wc.shape)} to "
+                        f"{(*wc.shape[:-1], 1)} (one value per window), got {got}"
+                    )
+                cols.append(zc[..., 0].to(w.dtype))
         zhat = torch.stack(cols, dim=-1)  # (..., C)
         out.append(zhat)
         w = shift_append(w, zhat)

@@ -40,6 +40,7 @@ become non-finite are *diverged* and counted as censored.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import torch
@@ -47,12 +48,29 @@ from torch import Tensor, nn
 
 from ..core.belief import GaussianBelief
 from ..core.random import standard_normal
-from ..core.validation import broadcast_shape, is_int, is_real
+from ..core.validation import (
+    broadcast_shape,
+    check_count,
+    check_float_tensor,
+    check_nonneg_int,
+    check_seed,
+    is_int,
+    is_real,
+)
 from ..learners import ELM
 from ..optim import KalmanOptimizer
-from .trends import Passage, TrendFit, TrendPool, check_path_draws
+from .trends import Passage, TrendFit, TrendPool, check_obs_index, check_path_draws
 
 __all__ = ["TimeELM", "LearnerTrendFit", "fit_learner_trend", "fit_learner_trends"]
+
+
+def _times(x, name: str, device: torch.device) -> Tensor:
+    """Times ``(J,)``: a floating tensor on the fit's ``device``, as float64 (a float32 one
+    was refused by the float64 ELM with an error on an unnamed ``x``)."""
+    x = check_float_tensor(x, name, "(J,)")
+    if x.device != device:
+        raise ValueError(f"{name} is on {x.device}, the fit on {device}: pass {name} on {device}")
+    return x.to(torch.float64)
 
 
 class TimeELM(nn.Module):
@@ -154,12 +172,12 @@ class LearnerTrendFit:
         """Std of ``g(tau(t); theta)`` under the parameter belief at ``index`` (no walk):
         ``sqrt(f^T P f)`` with ``f`` the features, ``(J,)`` -> ``(J,)``."""
         b = self.parameter_belief(index)
-        F = self.module.features(self.tau(t))
+        F = self.module.features(self.tau(_times(t, "t", self.level_fit.z.device)))
         return (F @ b.chol).square().sum(-1).sqrt()
 
     def parameter_belief(self, index: int = -1) -> GaussianBelief:
         """The parameter belief after the data up to ``index`` (a snapshot)."""
-        i = index % self.level_fit.t.shape[0]
+        i = check_obs_index(index, self.level_fit.t.shape[0])
         if i not in self.snapshots:
             raise KeyError(f"no parameter snapshot at index {index}; have {sorted(self.snapshots)}")
         return self.snapshots[i]
@@ -177,17 +195,19 @@ class LearnerTrendFit:
         """Crossing times of ``level`` (module docstring); the signature of
         :meth:`TrendFit.first_passage`."""
         check_path_draws(generator, n_paths)
+        keep = check_nonneg_int(keep, "keep")  # (2.5: an error on slice indices; True: 1)
         lf = self.level_fit
         zt = lf.to_z(level)
-        i = index % lf.t.shape[0]
+        i = check_obs_index(index, lf.t.shape[0])
         t_origin = float(lf.t[i])
+        g64 = _times(grid, "grid", lf.z.device)  # the times returned are grid's own
         # (a step back or a NaN time gave sqrt of a negative step: a path counted as diverged)
         if (
-            grid.dim() != 1
-            or grid.numel() < 1
-            or not bool(grid[0] > t_origin)
-            or not bool(torch.isfinite(grid).all())
-            or not bool((grid[1:] > grid[:-1]).all())
+            g64.dim() != 1
+            or g64.numel() < 1
+            or not bool(g64[0] > t_origin)
+            or not bool(torch.isfinite(g64).all())
+            or not bool((g64[1:] > g64[:-1]).all())
         ):
             raise ValueError("grid must be (J,) finite, strictly increasing times after the origin")
         dt, dev = torch.float64, lf.z.device
@@ -195,7 +215,7 @@ class LearnerTrendFit:
         eb = standard_normal((n_paths, pb.mean.shape[-1]), generator, dt, dev)
         theta = pb.mean + eb @ pb.chol.mT  # (N, P): sampled from the optimiser's belief
         J = grid.shape[0]
-        dts = torch.diff(torch.cat([grid.new_tensor([t_origin]), grid]))  # (J,)
+        dts = torch.diff(torch.cat([g64.new_tensor([t_origin]), g64]))  # (J,)
         qv = self.Q.to(dt)  # (P,) random walk of theta per median observation step
         ql = float(lf.noise.level)
         walk = torch.zeros_like(theta)
@@ -212,7 +232,7 @@ class LearnerTrendFit:
                 w = walk[:, None] + torch.cumsum(w * (qv * d[:, None] / self.dt_data).sqrt(), 1)
                 b = standard_normal((n_paths, j1 - j0), generator, dt, dev)
                 b = brown[:, None] + torch.cumsum(b * (ql * d).sqrt(), 1)
-                F = self.module.features(self.tau(grid[j0:j1]))  # (c, P)
+                F = self.module.features(self.tau(g64[j0:j1]))  # (c, P)
                 zc = ((theta[:, None, :] + w) * F[None]).sum(-1) + b  # (N, c)
                 bad = ~torch.isfinite(zc)
                 diverged |= bad.any(1) & (first == J)
@@ -227,7 +247,7 @@ class LearnerTrendFit:
         gpad = torch.cat([grid, grid.new_tensor([math.inf])])
         times = gpad[first]
         if zt == -math.inf:
-            times = torch.full((n_paths,), float(grid[0]), dtype=dt, device=dev)
+            times = torch.full((n_paths,), float(grid[0]), dtype=grid.dtype, device=dev)
         paths = None
         if keep > 0:
             z = torch.cat(kept, 1)
@@ -265,8 +285,20 @@ def fit_learner_trend(
     """
     if level_fit.shape != "exponential":
         raise ValueError(f"level_fit must be the exponential shape, got {level_fit.shape!r}")
+    seed = check_seed(seed)  # (1.7 was read as 1, "3" as 3, True as 1)
+    # (0: a ZeroDivisionError; -1, 2.5 and True were taken)
+    max_steps = check_count(max_steps, "max_steps", error=ValueError)
+    # (inf was refused as 'Q contains non-finite values')
+    if not is_real(drift) or not 0 <= drift < math.inf:
+        raise ValueError(f"drift must be a finite number >= 0, got {drift!r}")
     z, t = level_fit.z, level_fit.t
     n = z.shape[0]
+    if isinstance(snapshots, Tensor) and not snapshots.is_floating_point():
+        snapshots = snapshots.flatten().tolist()  # (an integer tensor of indices)
+    if not isinstance(snapshots, Iterable) or isinstance(snapshots, str):
+        raise TypeError(f"snapshots must be a sequence of observation indices, got {snapshots!r}")
+    # indices in [-n, n) (n + 2 was read as 2, 2.7 as 2, True as 1)
+    snapshots = tuple(check_obs_index(i, n, f"snapshots[{k}]") for k, i in enumerate(snapshots))
     ok = ~torch.isnan(z)
     idx = torch.nonzero(ok).flatten()
     if idx.numel() < 3:
@@ -274,7 +306,7 @@ def fit_learner_trend(
     zz = z[idx]
     t_on = float(t[0])
     scale = max(float(t[-1]) - t_on, 1e-12)
-    gen = torch.Generator().manual_seed(int(seed))
+    gen = torch.Generator().manual_seed(seed)
     module = TimeELM(n_hidden, gen).to(z.device)  # features drawn on the CPU, then moved
     with torch.no_grad():  # prior mean of c_0: the first value, so a change of units (a shift
         module.c[0, 0] = zz[0]  # of z = log(y - phi)) shifts g and leaves the RUL unchanged
@@ -287,14 +319,12 @@ def fit_learner_trend(
     nz = level_fit.noise
     R = float(nz.meas) + float(level_fit.a[ok].median()) + float(nz.wander)
     # the random walk lets g drift by about two noise std over the observed span
-    if not is_real(drift) or not drift >= 0:
-        raise ValueError(f"drift must be a number >= 0, got {drift!r}")
     q_c, q_b = drift * R / idx.numel(), drift * R / (idx.numel() * n_hidden / 4.0)
     Q = [q_c, q_c] + [q_b] * n_hidden
     opt = KalmanOptimizer(module, filter="ekf", P0=P0_flat, Q=torch.tensor(Q, **f64), R=R)
     tau = (t[idx] - t_on) / scale
     X, Y = tau[:, None], zz[:, None]
-    wanted = sorted({int(i) % n for i in snapshots} | {n - 1})
+    wanted = sorted(set(snapshots) | {n - 1})
     cuts = {w: int(torch.searchsorted(idx, idx.new_tensor(w), right=True)) for w in wanted}
     snaps: dict[int, GaussianBelief] = {w: opt.belief for w, c in cuts.items() if c == 0}
     stops = sorted({c for c in cuts.values() if c > 0})
@@ -354,11 +384,15 @@ def fit_learner_trends(
     """
     if not is_int(members) or members < 1:
         raise ValueError(f"members must be an int >= 1, got {members!r}")
+    # (a NumPy members overflowed in (seed * members + j) % 2**64; 1.5 was read as 1 for seed)
+    members, seed = int(members), check_seed(seed)
+    if isinstance(snapshots, Iterable) and not isinstance(snapshots, str):
+        snapshots = tuple(snapshots)  # (an iterator gave its indices to the first member only)
     fits = tuple(
         fit_learner_trend(
             level_fit,
             n_hidden=n_hidden,
-            seed=(int(seed) * members + j) % 2**64,
+            seed=(seed * members + j) % 2**64,
             snapshots=snapshots,
             **kwargs,
         )

@@ -58,7 +58,7 @@ from torch import Tensor
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
 from ..core.random import standard_normal
-from ..core.validation import is_int, is_real
+from ..core.validation import check_float_tensor, check_nonneg_int, is_int, is_real
 from ..filters import GaussianFilter, make_filter, stekf
 from ..filters import run as run_filter
 
@@ -307,6 +307,19 @@ def check_path_draws(generator, n_paths) -> None:
         raise ValueError(f"n_paths must be an int >= 1, got {n_paths!r}")
 
 
+def check_obs_index(index, n: int, name: str = "index") -> int:
+    """An observation index in ``[-n, n)`` as an int in ``[0, n)`` (a bool, a float or an
+    index past either end is refused: ``n + 5`` must not read as ``5``)."""
+    if not is_int(index):
+        raise TypeError(f"{name} must be an int (an observation index), got {index!r}")
+    if not -n <= index < n:
+        raise ValueError(
+            f"{name} must be an observation index in [-{n}, {n}) (the {n} values since onset), "
+            f"got {index}"
+        )
+    return int(index) % n
+
+
 def simulate_first_passage(
     means: Tensor,
     chols: Tensor,
@@ -339,6 +352,7 @@ def simulate_first_passage(
         none), and the kept levels or ``None``.
     """
     check_path_draws(generator, n_paths)
+    keep = check_nonneg_int(keep, "keep")
     if math.isnan(z_level):
         raise ValueError("z_level is NaN: the level to reach must be a number")
     if ds.dim() != 1 or not bool((ds > 0).all()) or not bool(torch.isfinite(ds).all()):
@@ -443,6 +457,7 @@ class TrendPool:
             raise ValueError(
                 f"n_paths must be an int >= the {k} members of the pool, got {n_paths!r}"
             )
+        keep = check_nonneg_int(keep, "keep")  # (before it is shared out: 2.5 // k is a float)
         parts = []
         for j, f in enumerate(self.members):
             n = n_paths // k + (n_paths % k if j == 0 else 0)
@@ -544,9 +559,11 @@ class TrendFit:
 
     def belief(self, index: int) -> GaussianBelief:
         """Posterior on ``[L, beta, c]`` after observation ``index`` (``-1``: the last)."""
-        return GaussianBelief(self.means[index], self.chols[index])
+        i = check_obs_index(index, self.t.shape[0])
+        return GaussianBelief(self.means[i], self.chols[i])
 
     def _steps(self, index: int, grid: Tensor) -> Tensor:
+        check_float_tensor(grid, "grid", "(J,)")
         t_origin = float(self.t[index])
         if (grid.dim() != 1 or grid.numel() < 1 or not bool(grid[0] > t_origin)
                 or not bool(torch.isfinite(grid).all()) or not bool((grid.diff() > 0).all())):  # fmt: skip
@@ -575,6 +592,7 @@ class TrendFit:
             :class:`Passage`: the first grid time with ``L >= to_z(level)`` per path (``inf``:
             none) and, with ``keep > 0``, the first ``keep`` paths in oriented indicator units.
         """
+        index = check_obs_index(index, self.t.shape[0])
         ds = self._steps(index, grid)
         first, levels = simulate_first_passage(
             self.means[index][None],
@@ -595,6 +613,7 @@ class TrendFit:
         self, index: int, level: float, grid: Tensor, n_paths: int, generator: torch.Generator
     ) -> Tensor:
         """Crossing times ``(G, N)`` for every noise grid point at once (``inf``: none)."""
+        index = check_obs_index(index, self.t.shape[0])
         ds = self._steps(index, grid)
         first, _ = simulate_first_passage(
             self.grid_means[index],
