@@ -43,18 +43,22 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 from torch import Tensor
 
 from ..core.model import StateSpaceModel
 from ..core.validation import (
+    broadcast_shape,
     check_count,
+    check_dtype_arg,
+    check_flag,
     check_params_finite,
     check_positive,
     check_std,
     diag_chol,
+    is_bool_or_complex,
     is_real,
 )
 from .noise_streams import draw_run_noise
@@ -132,15 +136,36 @@ class BatteryCircuitParams:
     x0: tuple[float, float, float, float] = (292.1, 7856.3254, 0.0, 0.0)
 
     def __post_init__(self):
+        for f in fields(self):  # a list x0 would leave the frozen (hashed) parameters mutable
+            object.__setattr__(self, f.name, _plain(getattr(self, f.name)))
         check_params_finite(self)
         check_positive(self, "qMax", "CMax", "VDropoff", "Rp", "Rs", "Cs", "Ccp", "Jt", "Ta")
-        if len(self.x0) != 4:
+        if not isinstance(self.x0, tuple) or len(self.x0) != 4:
             raise ValueError(f"BatteryCircuitParams.x0 must hold 4 numbers, got {self.x0!r}")
+
+
+def _plain(v):
+    """A parameter value with lists as tuples and NumPy reals as floats (same numbers)."""
+    if isinstance(v, (tuple, list)):
+        return tuple(_plain(e) for e in v)
+    return float(v) if is_real(v) and not isinstance(v, (int, float)) else v
+
+
+def _check_state(x, name: str = "x") -> Tensor:
+    """A floating-point state tensor ``(..., 4)``."""
+    if not isinstance(x, Tensor) or not x.is_floating_point():
+        got = x.dtype if isinstance(x, Tensor) else type(x).__name__
+        raise TypeError(f"{name} must be a floating-point tensor (..., 4), got {got}")
+    if x.dim() == 0 or x.shape[-1] != 4:
+        raise ValueError(
+            f"{name} must have shape (..., 4) [tb, qb, qcp, qcs], got {tuple(x.shape)}"
+        )
+    return x
 
 
 def _voltage_parts(x: Tensor, p: BatteryCircuitParams):
     """``tb, qb, Vcs, Vcp, v, SOC`` of the state ``x`` ``(..., 4)``; each ``(...)``."""
-    tb, qb, qcp, qcs = x.unbind(-1)
+    tb, qb, qcp, qcs = _check_state(x).unbind(-1)
     vcs = qcs * (1.0 / p.Cs)
     vcp = qcp * (1.0 / p.Ccp)
     soc = qb.mul(1.0 / p.CMax).add_((p.CMax - p.qMax) / p.CMax)
@@ -156,16 +181,24 @@ def _parts(x: Tensor, p: BatteryCircuitParams):
     return tb, vcs, vcp, rcp, v, soc
 
 
-def _current(u: Tensor | None) -> Tensor:
+def _current(u: Tensor | None, x: Tensor) -> Tensor:
+    """The current ``(...)`` of ``u`` ``(..., 1)``, whose leading shape broadcasts to ``x``'s."""
     if u is None:
         raise ValueError("the battery model needs the current u of shape (..., 1)")
-    if u.shape[-1] != 1:
+    if not isinstance(u, Tensor):
+        raise TypeError(f"u must be a tensor of shape (..., 1) (the current in A), got {u!r}")
+    if u.dim() == 0 or u.shape[-1] != 1:
         raise ValueError(f"u must have shape (..., 1) (the current in A), got {tuple(u.shape)}")
+    lead = x.shape[:-1]
+    if u.shape[:-1] != lead and broadcast_shape(u.shape[:-1], lead) != lead:
+        raise ValueError(
+            f"u {tuple(u.shape)} must broadcast to x's leading shape {tuple(lead)} + (1,)"
+        )
     return u.squeeze(-1)
 
 
 def _rates(x: Tensor, u: Tensor, p: BatteryCircuitParams) -> Tensor:
-    i = _current(u)
+    i = _current(u, _check_state(x))
     tb, vcs, vcp, rcp, v, _ = _parts(x, p)
     ib = torch.add(i, v, alpha=1.0 / p.Rp)  # i + v / Rp
     g = vcp / rcp  # Vcp / Rcp
@@ -221,7 +254,7 @@ def _stepper(p: BatteryCircuitParams, dt: float) -> Callable[..., Tensor]:
     none4 = (None, None, None, None)
 
     def step(x: Tensor, u: Tensor, out: Tensor | None = None) -> Tensor:
-        i = _current(u)
+        i = _current(u, x)
         key = (x.dtype, x.device)
         k = consts.get(key)
         if k is None:
@@ -269,11 +302,20 @@ def battery_circuit_step(
     ``(..., 4)`` view of component-major memory (not contiguous). With ``out`` (a ``(..., 4)``
     tensor of ``x``'s shape and dtype, any strides, not overlapping ``x``) the next state is
     written into it and ``out`` is returned (the same numbers; no stacking copy). ``out`` is for
-    plain tensors (not under ``torch.func`` transforms).
+    plain tensors (not under ``torch.func`` transforms). ``dt`` is a finite positive number.
     """
-    if out is not None and (not isinstance(out, Tensor) or out.shape != x.shape):
-        got = tuple(out.shape) if isinstance(out, Tensor) else type(out)
-        raise ValueError(f"out must be a tensor of x's shape {tuple(x.shape)}, got {got}")
+    _check_state(x)
+    if not is_real(dt) or not math.isfinite(dt) or dt <= 0:
+        raise ValueError(f"dt must be a finite positive number, got {dt!r}")
+    if out is not None and (
+        not isinstance(out, Tensor)
+        or (out.shape, out.dtype, out.device) != (x.shape, x.dtype, x.device)
+    ):
+        got = (tuple(out.shape), out.dtype, out.device) if isinstance(out, Tensor) else type(out)
+        raise ValueError(
+            f"out must be a tensor of x's shape, dtype and device "
+            f"{(tuple(x.shape), x.dtype, x.device)}, got {got}"
+        )
     return _stepper(params or BatteryCircuitParams(), float(dt))(x, u, out)
 
 
@@ -284,7 +326,8 @@ def battery_voltage(x: Tensor, params: BatteryCircuitParams | None = None) -> Te
 
 def battery_circuit_output(x: Tensor, params: BatteryCircuitParams | None = None) -> Tensor:
     """Outputs ``[t, v]`` (K, V) of ``x`` ``(..., 4)``: shape ``(..., 2)`` (progpy's ``output``)."""
-    return torch.stack([x[..., 0], battery_voltage(x, params)], dim=-1)
+    v = battery_voltage(x, params)  # (checks x)
+    return torch.stack([x[..., 0], v], dim=-1)
 
 
 def battery_event_state(x: Tensor, params: BatteryCircuitParams | None = None) -> Tensor:
@@ -309,7 +352,7 @@ def battery_eod_event(
     def event(x: Tensor) -> Tensor:
         # v = Vb - Vcp - Vcs in fused operations (the step's arrangement, 9 tensor operations;
         # it is evaluated on every state of every step)
-        key = (x.dtype, x.device)
+        key = (_check_state(x).dtype, x.device)
         k = consts.get(key)
         if k is None:
             k = consts[key] = _step_constants(p, 1.0, x.dtype, x.device)
@@ -354,6 +397,7 @@ def battery_circuit_model(
     if not is_real(dt) or not math.isfinite(dt) or dt <= 0:
         raise ValueError(f"dt must be a finite positive number, got {dt!r}")
     dt = float(dt)
+    check_dtype_arg(dtype)
     SQ = diag_chol(check_std(process_noise_std, 4, "process_noise_std"), dtype, device)
     SR = diag_chol(check_std(measurement_noise_std, 2, "measurement_noise_std"), dtype, device)
 
@@ -391,8 +435,7 @@ def piecewise_load(
     (:data:`LOAD_TIMES`, :data:`LOAD_CURRENTS`). The returned function maps a tensor of times
     ``(...)`` to ``(...)``.
     """
-    ts = [float(t) for t in times]
-    vs = [float(v) for v in values]
+    ts, vs = _numbers(times, "times"), _numbers(values, "values")
     if len(vs) != len(ts) + 1:
         raise ValueError(
             f"values must have one more entry than times, got {len(vs)} values for {len(ts)} times"
@@ -406,9 +449,22 @@ def piecewise_load(
         t = torch.as_tensor(t, dtype=torch.float64)
         edges = torch.tensor(ts, dtype=t.dtype, device=t.device)
         table = torch.tensor(vs, dtype=t.dtype, device=t.device)
-        return table[torch.bucketize(t, edges, right=True)]
+        value = table[torch.bucketize(t, edges, right=True)]
+        return value.masked_fill_(t.isnan(), math.nan)  # a missing time has a missing load
 
     return load
+
+
+def _numbers(seq, name: str) -> list[float]:
+    """``seq`` (a sequence, array or tensor of real numbers; not text or bools) as floats."""
+    if isinstance(seq, Tensor):
+        seq = seq.tolist() if seq.dim() == 1 and not is_bool_or_complex(seq) else [seq]
+    if isinstance(seq, (str, bytes)) or not hasattr(seq, "__iter__"):
+        raise TypeError(f"{name} must be a sequence of numbers, got {seq!r}")
+    vals = list(seq)
+    if not all(is_real(v) for v in vals):
+        raise TypeError(f"{name} must be a sequence of real numbers, got {seq!r}")
+    return [float(v) for v in vals]
 
 
 def load_controls(
@@ -423,15 +479,23 @@ def load_controls(
     """Controls ``(steps, 1)`` for steps ``k = 1..steps`` from ``t0``: ``u_k = load(t0 + (k - 1/2) dt)``.
 
     The midpoint rule is progpy's: the load of the step from ``t_{k-1}`` to ``t_k`` is read at
-    ``t_{k-1} + dt / 2``. ``load`` defaults to :func:`piecewise_load` (progpy's example load).
+    ``t_{k-1} + dt / 2``. ``load`` defaults to :func:`piecewise_load` (progpy's example load);
+    it must map the ``(steps,)`` times to ``(steps,)`` (or ``(steps, 1)``) currents.
     """
-    check_count(steps, "steps")
+    steps = check_count(steps, "steps")
     if not is_real(dt) or not math.isfinite(dt) or dt <= 0:
         raise ValueError(f"dt must be a finite positive number, got {dt!r}")
+    if not is_real(t0) or not math.isfinite(t0):
+        raise ValueError(f"t0 must be a finite number, got {t0!r}")
+    check_dtype_arg(dtype)
     load = load or piecewise_load()
     k = torch.arange(1, steps + 1, dtype=torch.float64)
     t_mid = (k - 0.5) * float(dt) + float(t0)
-    return load(t_mid).to(dtype=dtype, device=device).reshape(steps, 1)
+    i = load(t_mid)
+    if not isinstance(i, Tensor) or tuple(i.shape) not in ((steps,), (steps, 1)):
+        got = tuple(i.shape) if isinstance(i, Tensor) else type(i).__name__
+        raise ValueError(f"load must map the ({steps},) times to ({steps},) currents, got {got}")
+    return i.to(dtype=dtype, device=device).reshape(steps, 1)
 
 
 def simulate_battery(
@@ -465,7 +529,8 @@ def simulate_battery(
     p = params or BatteryCircuitParams()
     check_count(n_steps, "n_steps")
     check_count(runs, "runs")
-    gen = resolve_generator(generator, noise)
+    check_dtype_arg(dtype)
+    gen = resolve_generator(generator, check_flag(noise, "noise"))
     X0 = initial_state(p.x0 if x0 is None else x0, 4, runs, dtype, device)
     if u is None:
         u = load_controls(steps=n_steps, dt=dt, dtype=dtype, device=device)

@@ -75,7 +75,16 @@ import torch
 from torch import Tensor
 
 from ..core.model import StateSpaceModel, joint_state_parameter_model
-from ..core.validation import check_count, check_nonneg, check_params_finite, chol_from_std
+from ..core.validation import (
+    broadcast_shape,
+    check_count,
+    check_dtype_arg,
+    check_flag,
+    check_nonneg,
+    check_params_finite,
+    chol_from_std,
+    is_real,
+)
 from .noise_streams import draw_run_noise
 from .simulation import (
     SimulationResult,
@@ -160,7 +169,14 @@ class HSTParams:
     gamma: float = 1.05
 
     def __post_init__(self):
+        for f in dataclasses.fields(self):  # list fields would leave the frozen parameters mutable
+            object.__setattr__(self, f.name, _plain(getattr(self, f.name)))
         check_params_finite(self)
+        for name in ("m", "F_a", "F_s", "M"):
+            if not isinstance(getattr(self, name), tuple):
+                raise ValueError(
+                    f"HSTParams.{name} must be a sequence, got {getattr(self, name)!r}"
+                )
         n = len(self.m)
         if n < 2:
             raise ValueError(f"HSTParams.m must list at least 2 car masses, got {self.m!r}")
@@ -172,7 +188,7 @@ class HSTParams:
         if self.sigma <= 0:
             raise ValueError(f"HSTParams.sigma must be > 0, got {self.sigma!r}")
         s = 2 * n - 1
-        if len(self.F_a) != s or any(len(r) != 2 for r in self.F_a):
+        if len(self.F_a) != s or any(not isinstance(r, tuple) or len(r) != 2 for r in self.F_a):
             raise ValueError(f"HSTParams.F_a must have shape ({s}, 2) for {n} cars")
         for name in ("F_s", "M"):
             if len(getattr(self, name)) != s:
@@ -186,6 +202,40 @@ class HSTParams:
     def state_dim(self) -> int:
         """``2 n - 1`` (coupler extensions and car speeds)."""
         return 2 * len(self.m) - 1
+
+
+def _plain(v):
+    """A parameter value with lists as tuples and NumPy reals as floats (same numbers)."""
+    if isinstance(v, (tuple, list)):
+        return tuple(_plain(e) for e in v)
+    return float(v) if is_real(v) and not isinstance(v, (int, float)) else v
+
+
+def _check_psi(psi, s: int) -> Tensor:
+    """A floating-point state tensor ``(..., s)``."""
+    if not isinstance(psi, Tensor) or not psi.is_floating_point():
+        got = psi.dtype if isinstance(psi, Tensor) else type(psi).__name__
+        raise TypeError(f"psi must be a floating-point tensor (..., {s}), got {got}")
+    if psi.dim() == 0 or psi.shape[-1] != s:
+        raise ValueError(f"psi must have shape (..., {s}) (2n-1 = {s}), got {tuple(psi.shape)}")
+    return psi
+
+
+def _check_input(v, name: str, shape: str, d: int, lead) -> Tensor:
+    """A tensor ``(..., d)`` (``d = 0``: ``(...)``) whose leading shape broadcasts to ``lead``
+    (the state's), so that it cannot silently widen the result."""
+    if not isinstance(v, Tensor):
+        raise TypeError(f"{name} must be a tensor of shape {shape}, got {type(v).__name__}")
+    vl = v.shape
+    if d:
+        if v.dim() == 0 or v.shape[-1] != d:
+            raise ValueError(f"{name} must have shape {shape}, got {tuple(v.shape)}")
+        vl = v.shape[:-1]
+    if vl != lead and broadcast_shape(vl, lead) != lead:
+        raise ValueError(
+            f"{name} {tuple(v.shape)} must broadcast to psi's leading shape {tuple(lead)}"
+        )
+    return v
 
 
 # --------------------------------------------------------------------------- dynamics
@@ -202,6 +252,15 @@ def hst_rhs(psi: Tensor, u, f_a, v_r: float, params: HSTParams) -> Tensor:
     """
     p = params
     n = p.n_cars
+    lead = _check_psi(psi, p.state_dim).shape[:-1]
+    if u is not None:
+        _check_input(u, "u", f"(..., {n})", n, lead)
+    if isinstance(f_a, Tensor):
+        fa = _check_input(f_a, "f_a", "(..., 2)", 2, lead).to(psi.dtype)
+    elif isinstance(f_a, (tuple, list)) and len(f_a) == 2 and all(is_real(e) for e in f_a):
+        fa = psi.new_tensor(f_a)
+    else:
+        raise ValueError(f"f_a must be two numbers or a tensor (..., 2), got {f_a!r}")
     xc, v = psi[..., : n - 1], psi[..., n - 1 :]
     dx = v[..., :-1] - v[..., 1:]  # Eq. 4 line 1 (noise mu_i excluded)
     F = p.k * xc + p.d * dx  # coupler forces, Eq. 1
@@ -213,7 +272,6 @@ def hst_rhs(psi: Tensor, u, f_a, v_r: float, params: HSTParams) -> Tensor:
     v1 = v[..., :1]
     drag = p.eps_a * (sum(p.m) / p.m[0]) * (2.0 * v_r * v1 + v1 * v1)  # Eq. 3 about v_r (exact)
     acc = acc - torch.cat([drag, torch.zeros_like(v[..., 1:])], -1)
-    fa = f_a if isinstance(f_a, Tensor) else psi.new_tensor(f_a)
     return torch.cat([dx, acc], -1) + fa @ psi.new_tensor(p.F_a).mT  # + F_a f^a
 
 
@@ -223,9 +281,16 @@ def hst_step(psi: Tensor, u, f_a, v_r: float, params: HSTParams) -> Tensor:
 
 
 def hst_measure(psi: Tensor, f_s, params: HSTParams) -> Tensor:
-    """``C psi + F_s f^s`` with ``C = I`` (Eq. 11, 13); ``f_s`` a number or ``(...)`` tensor."""
+    """``C psi + F_s f^s`` with ``C = I`` (Eq. 11, 13); ``f_s`` a number or ``(...)`` tensor
+    (broadcasting to ``psi``'s leading shape)."""
+    lead = _check_psi(psi, params.state_dim).shape[:-1]
     Fs = psi.new_tensor(params.F_s)
-    fs = f_s.unsqueeze(-1) if isinstance(f_s, Tensor) else f_s
+    if isinstance(f_s, Tensor):
+        fs = _check_input(f_s, "f_s", "(...)", 0, lead).unsqueeze(-1)
+    elif is_real(f_s):
+        fs = f_s
+    else:
+        raise TypeError(f"f_s must be a number or a tensor (...), got {f_s!r}")
     return psi + fs * Fs
 
 
@@ -291,6 +356,7 @@ def hst_noise_variances(n_steps: int, *, dtype=torch.float64, device=None) -> tu
         ``(q, r)``, each ``(T,)``.
     """
     check_count(n_steps, "n_steps")
+    check_dtype_arg(dtype)
     q = [hst_process_variance(k - 1) for k in range(1, n_steps + 1)]
     r = [hst_measurement_variance(k) for k in range(1, n_steps + 1)]
     return torch.tensor(q, dtype=dtype, device=device), torch.tensor(r, dtype=dtype, device=device)
@@ -328,6 +394,13 @@ def hst_estimation_errors(
     """
     T = means.shape[0]
     s = var_R.shape[-1]
+    if not is_real(q_scale) or not 0 < q_scale < math.inf:
+        raise ValueError(f"q_scale must be a finite number > 0, got {q_scale!r}")
+    check_count(skip, "skip", minimum=0)
+    if skip >= T:
+        raise ValueError(
+            f"skip must be < T = {T} (the late scores need a step k > skip), got {skip}"
+        )
     if truth.shape[0] <= T or means.shape[-1] != s + 3 or truth.shape[1:] != means.shape[1:]:
         raise ValueError(
             f"means (T, ..., {s + 3}) and truth (T + 1, ..., {s + 3}) do not match: "
@@ -354,6 +427,7 @@ def hst_estimation_errors(
 
 
 def _noise_chols(params: HSTParams, q_scale, r_scale, dtype, device):
+    check_dtype_arg(dtype)
     qs = check_nonneg(q_scale, "q_scale", numbers_only=True)
     rs = check_nonneg(r_scale, "r_scale", numbers_only=True)
     eye = torch.eye(params.state_dim, dtype=dtype, device=device)
@@ -389,6 +463,7 @@ def hst_model(
     """
     p = params or HSTParams()
     chol_Q, chol_R = _noise_chols(p, q_scale, r_scale, dtype, device)
+    faults, control = check_flag(faults, "faults"), check_flag(control, "control")
 
     def f(psi, u, k):
         t = (k - 1) * p.sigma
@@ -436,6 +511,7 @@ def hst_fault_model(
     """
     p = params or HSTParams()
     chol_Q, chol_R = _noise_chols(p, q_scale, r_scale, dtype, device)
+    control = check_flag(control, "control")
     SD = chol_from_std(chol_D, 3, "chol_D", dtype, device)
 
     def f(psi, th, u, k):
@@ -528,7 +604,10 @@ def simulate_hst(
     p = params or HSTParams()
     check_count(n_steps, "n_steps")
     check_count(runs, "runs")
-    gen = resolve_generator(generator, noise)
+    check_dtype_arg(dtype)
+    faults = check_flag(faults, "faults")
+    measurement_uncertainty = check_flag(measurement_uncertainty, "measurement_uncertainty")
+    gen = resolve_generator(generator, check_flag(noise, "noise"))
     s = p.state_dim
     X0 = initial_state(torch.zeros(s) if x0 is None else x0, s, runs, dtype, device)
     U = input_sequence(u, n_steps, runs, p.n_cars, dtype, device)
