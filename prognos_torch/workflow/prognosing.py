@@ -807,8 +807,9 @@ def _history(x: Tensor, t: Tensor, src: Series | None) -> Series:
 
 
 def _uniform_paths(paths, grid, t_eval, bin_width, bins, sign) -> Tensor:
-    """Kept paths interpolated onto the RUL bins ``t_eval + bin_width (1..bins)`` (data units);
-    at most 4,000 columns are kept for long horizons (the tail is held)."""
+    """Kept paths ``(K, bins)`` interpolated onto the RUL bins ``t_eval + bin_width (1..bins)``
+    (data units; ``bins`` is at most about ``_MAX_BINS``; past the grid's end a path holds its
+    last value)."""
     import numpy as np
 
     if paths is None or paths.shape[0] == 0:
