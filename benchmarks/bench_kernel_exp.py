@@ -50,7 +50,8 @@ def main(argv=None):
     sigma = 3.0 * std
     gram: LSSVRGram = fit_lssvr_gram(X, y, sigma=sigma, C=1000.0)
 
-    def plain(x):  # Eq. 8 with plain exp (the evaluator's former code)
+    def plain(x):  # Eq. 8 with plain exp (the evaluator's former code), centred as it is
+        x = x - gram.centre
         logk = torch.addmm(gram.sv_log_norm, x, gram.sv_scaled_t)
         c = gram.inv_two_sigma2
         return torch.exp(logk - c * (x * x).sum(-1, keepdim=True)) @ gram.alpha + gram.b
