@@ -43,7 +43,7 @@ from torch import Tensor
 from ..core.belief import GaussianBelief
 from ..core.linalg import cho_solve_right, chol_downdate, safe_cholesky, symmetrize, tria
 from ..core.model import StateSpaceModel
-from ..core.validation import is_int
+from ..core.validation import check_flag, is_int
 from .gaussian import FilterState, GaussianFilter
 from .run import Trajectory, run
 
@@ -176,8 +176,7 @@ def smooth_trajectory(
         )
     if init.mean.dtype != tr.means.dtype or init.chol.dtype != tr.chols.dtype:
         raise ValueError(f"init must have the run's dtype {tr.means.dtype}, got {init.mean.dtype}")
-    if not isinstance(sqrt, bool):
-        raise TypeError(f"sqrt must be a bool, got {sqrt!r}")
+    sqrt = check_flag(sqrt, "sqrt")  # (a NumPy bool as GaussianFilter(sqrt=) takes it)
     lag = _check_lag(lag)
     b0 = init
     steps = tr.steps

@@ -58,17 +58,30 @@ def linear_model(A: Tensor, C: Tensor, chol_Q: Tensor, chol_R: Tensor) -> StateS
     points).
 
     Raises:
-        ValueError: at a filter call, the states' leading dims do not start with the
-            matrices' batch dims (per-series matrices with fewer dims than the belief's).
+        TypeError: ``A`` or ``C`` is not a tensor.
+        ValueError: ``A`` is not square or ``C`` has another ``n``; at a filter call, the
+            states' leading dims do not match the matrices' batch dims (per-series matrices
+            with fewer dims than the belief's, or a belief dim of size 1 against several).
     """
-    n, m = A.shape[-1], C.shape[-2]
+    for M, name in ((A, "A"), (C, "C")):
+        if not isinstance(M, Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(M).__name__}")
+    n = A.shape[-1] if A.dim() >= 2 else -1
+    if A.dim() < 2 or A.shape[-2] != n or C.dim() < 2 or C.shape[-1] != n:
+        raise ValueError(
+            f"A must have shape (..., n, n) and C (..., m, n) with the same n, got A "
+            f"{tuple(A.shape)} and C {tuple(C.shape)}"
+        )
+    m = C.shape[-2]
 
     def aligned(M: Tensor, x: Tensor, name: str) -> Tensor:
         batch = M.shape[:-2]
         extra = x.dim() - 1 - len(batch)  # the point dims after the series' dims
         if not batch:
             return M
-        if extra < 0 or any(a != b and 1 not in (a, b) for a, b in zip(batch, x.shape)):
+        # (a matrix dim of size 1 broadcasts over the states'; a states' dim of size 1 does
+        # not take the matrices' size: one series would become several)
+        if extra < 0 or any(a != b and a != 1 for a, b in zip(batch, x.shape)):
             raise ValueError(
                 f"{name} has batch dims {tuple(batch)}, the states {tuple(x.shape[:-1])}: "
                 f"per-series matrices carry all the belief's batch dims, first"
@@ -129,7 +142,9 @@ def _cols(x: Tensor) -> Tensor:
 def _check(x, name: str, shape: tuple, batch: tuple) -> Tensor:
     want = f"{shape} or {batch + shape}"
     if not isinstance(x, Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor of shape {want}")
+        raise TypeError(f"{name} must be a torch.Tensor of shape {want}, got {type(x).__name__}")
+    if x.is_complex() or x.dtype == torch.bool:  # (the cast to the belief's dtype read them)
+        raise TypeError(f"{name} must hold real numbers, got dtype {x.dtype}")
     if tuple(x.shape) not in (shape, batch + shape):
         raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
     return x
@@ -160,7 +175,7 @@ def em_linear_gaussian(
     Returns:
         :class:`EMFit` with the parameters broadcast to the batch dims.
     """
-    if isinstance(learn, str):  # ("init" is one name, not four letters)
+    if isinstance(learn, str) or not isinstance(learn, Iterable):  # ("init": not 4 letters)
         raise TypeError(f"learn must be a collection of names from {_LEARNABLE}, got {learn!r}")
     learn = tuple(learn)
     bad = [x for x in learn if x not in _LEARNABLE]
@@ -174,7 +189,9 @@ def em_linear_gaussian(
     n = init.dim
     bs = tuple(init.batch_shape)
     _check(A, "A", (n, n), bs)
-    if not isinstance(C, Tensor) or C.dim() < 2 or C.shape[-1] != n:
+    if not isinstance(C, Tensor):
+        raise TypeError(f"C must be a torch.Tensor of shape (m, {n}), got {type(C).__name__}")
+    if C.dim() < 2 or C.shape[-1] != n:
         raise ValueError(
             f"C must be a tensor of shape (m, {n}) or (..., m, {n}), got "
             f"{tuple(getattr(C, 'shape', ()))}"

@@ -17,6 +17,7 @@ independently in one pass, and parameters without them are shared by all series.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
@@ -124,9 +125,12 @@ def fit_likelihood(
         :class:`LikelihoodFit`. The minimised loss is ``-sum(log_likelihood) / T``.
     Raises:
         FloatingPointError: the log-likelihood became non-finite (lower the learning rate), or
-            is at the starting parameters. With an optimiser instance, its tensors are put
-            back to the last iterate with a finite log-likelihood; the exception's ``trace``
-            holds the log-likelihoods up to there (``(k, ...)``, or ``None``).
+            is at the starting parameters. With an optimiser instance, its tensors and its
+            state are put back to the last iterate with a finite log-likelihood (also when
+            another exception ends the fit); the exception's ``trace`` holds the
+            log-likelihoods up to there (``(k, ...)``, or ``None``).
+        ValueError: an optimiser instance does not hold every tensor of ``params``, or one
+            of them does not require grad.
     """
     if not callable(build_model):
         raise TypeError("build_model must be a callable params -> StateSpaceModel")
@@ -151,6 +155,13 @@ def fit_likelihood(
         missing = [n for n, p in leaves.items() if id(p) not in owned]
         if missing:
             raise ValueError(f"the optimizer does not hold params {missing}")
+        # (the loss had no graph: torch's "element 0 of tensors does not require grad")
+        frozen = [n for n, p in leaves.items() if not p.requires_grad]
+        if frozen:
+            raise ValueError(
+                f"params {frozen} do not require grad, so the optimizer cannot fit them: pass "
+                "leaf tensors with requires_grad=True (or an optimizer factory)"
+            )
     elif callable(optimizer):
         leaves = {n: p.detach().clone().requires_grad_(True) for n, p in params.items()}
         opt = optimizer(list(leaves.values()))
@@ -201,24 +212,38 @@ def fit_likelihood(
         loss.backward()
         return loss
 
-    taken, prev = 0, None
+    # an optimiser instance is the caller's: its state (Adam's moments, LBFGS's history) goes
+    # back with its tensors, or it would hold the steps that led to the failure
+    keep_opt = isinstance(optimizer, torch.optim.Optimizer)
+
+    def restore(params_at, opt_at) -> None:
+        if params_at is not None:
+            with torch.no_grad():
+                for n, p in leaves.items():
+                    p.copy_(params_at[n])
+        if opt_at is not None:
+            opt.load_state_dict(opt_at)
+
+    taken, prev, prev_opt = 0, None, None
     for _ in range(steps):
         state.clear()
         start = {n: p.detach().clone() for n, p in leaves.items()}
+        start_opt = copy.deepcopy(opt.state_dict()) if keep_opt else None
         try:
             opt.step(closure)
-        except FloatingPointError as exc:
+        except Exception as exc:
             # the caller's tensors (an optimiser instance) go back to the last finite iterate
-            # (the start of this step, or of the one before when its start failed)
-            last = start if "ll" in state else prev
-            if last is not None:
-                with torch.no_grad():
-                    for n, p in leaves.items():
-                        p.copy_(last[n])
-            done = trace + ([state["ll"]] if "ll" in state else [])
-            exc.trace = torch.stack(done) if done else None
+            # (the start of this step, or of the one before when its start failed), also when
+            # the model failed otherwise (e.g. a Cholesky in build_model) part-way through
+            if "ll" in state:
+                restore(start, start_opt)
+            elif prev is not None:
+                restore(prev, prev_opt)
+            if isinstance(exc, FloatingPointError):
+                done = trace + ([state["ll"]] if "ll" in state else [])
+                exc.trace = torch.stack(done) if done else None
             raise
-        prev = start
+        prev, prev_opt = start, start_opt
         trace.append(state["ll"])
         taken += 1
         if tol is not None and len(trace) >= 2:
@@ -231,13 +256,13 @@ def fit_likelihood(
             ll = loglik(final)
             if not bool(torch.isfinite(ll).all()):
                 raise FloatingPointError(f"the log-likelihood {where()}")
-        except FloatingPointError as exc:
+        except Exception as exc:
             # the last step diverged: as inside the loop, the caller's tensors go back to the
             # start of that step (the last finite iterate, trace[-1])
             if prev is not None:
-                for n, p in leaves.items():
-                    p.copy_(prev[n])
-            exc.trace = torch.stack(trace) if trace else None
+                restore(prev, prev_opt)
+            if isinstance(exc, FloatingPointError):
+                exc.trace = torch.stack(trace) if trace else None
             raise
         trace.append(ll)
         model = get_model(final)
