@@ -119,8 +119,9 @@ def crossing_scores(
 
 def crossing_table(crossings: Mapping[str, ThresholdCrossings], true_crossing: int) -> str:
     """Markdown table: per prediction time ``k_p`` the true RUL and, per method, the median
-    predicted RUL over the runs that predict a crossing (``—`` if none) and the fraction of runs
-    that do not (censored)."""
+    predicted RUL over the runs that predict a crossing (``—`` if none; ``torch.median``: the
+    lower of the two middle values for an even count) and the fraction of runs that do not
+    (censored)."""
     first = next(iter(crossings.values()))
     rows = []
     for j, kp in enumerate(first.times.tolist()):
@@ -138,6 +139,11 @@ def crossing_table(crossings: Mapping[str, ThresholdCrossings], true_crossing: i
 def run_errors(pred: Tensor, target: Tensor) -> dict[str, Tensor]:
     """Per-run MAE, RMSE (paper 003 Eq. 48-49) and MSE (``RMSE**2``) of ``pred`` ``(..., N)``
     against ``target`` ``(N,)`` (broadcast over the leading run dims); each ``(...)``."""
+    if target.dim() != 1 or pred.dim() < 1 or pred.shape[-1] != target.shape[0]:
+        raise ValueError(  # a (1,) target was broadcast over every sample
+            f"target must be (N,) with N = pred.shape[-1], got target {tuple(target.shape)} "
+            f"and pred {tuple(pred.shape)}"
+        )
     t = target.expand_as(pred)
     r = rmse(pred, t, dim=-1)
     return {"MAE": mae(pred, t, dim=-1), "RMSE": r, "MSE": r.square()}
@@ -145,7 +151,13 @@ def run_errors(pred: Tensor, target: Tensor) -> dict[str, Tensor]:
 
 def lowest_counts(scores: Mapping[str, Tensor]) -> dict[str, int]:
     """In how many runs each method has the lowest score: ``scores`` maps each method to its
-    ``(R,)`` per-run values (lower is better); a tie goes to the method named first."""
+    ``(R,)`` per-run values (lower is better); a tie goes to the method named first. A NaN score
+    (a diverged run) is never the lowest; a run where every score is NaN counts for no method."""
+    shapes = {k: tuple(v.shape) for k, v in scores.items()}
+    if not scores or len(set(shapes.values())) != 1 or len(next(iter(shapes.values()))) != 1:
+        raise ValueError(f"scores must map methods to (R,) tensors of one length, got {shapes}")
     m = torch.stack(list(scores.values()))  # (M, R)
-    counts = torch.bincount(m.argmin(0), minlength=len(scores)).tolist()
+    nan = torch.isnan(m)
+    best = torch.where(nan, math.inf, m).argmin(0)  # (argmin took a NaN for the lowest)
+    counts = torch.bincount(best[~nan.all(0)], minlength=len(scores)).tolist()
     return dict(zip(scores, counts))

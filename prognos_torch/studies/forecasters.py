@@ -33,6 +33,7 @@ import torch
 from torch import Tensor
 
 from ..core.belief import GaussianBelief
+from ..core.validation import is_int
 from ..datasets import embed
 from ..filters import GaussianFilter, ParticleFilter, multinomial
 from ..filters import run as filter_run
@@ -101,6 +102,14 @@ class ForecastProblem:
             raise ValueError(f"z must be (T,) with m <= s0 < T, got {self.z.shape}, s0={self.s0}")
         if self.threshold is not None and (self.days is None or self.t_eol is None):
             raise ValueError("a threshold needs days and t_eol (the observed first crossing)")
+        # a RUL time needs a belief before a later test target (rul_index in [0, T - s0 - 1]);
+        # one before s0 - 1 gave a negative index, read from the end of the test
+        lo, hi = self.s0 - 1, self.z.shape[0] - 2
+        bad = [i for i in self.rul_idx if not is_int(i) or not lo <= i <= hi]
+        if bad:
+            raise ValueError(
+                f"rul_idx must hold indices of z in [s0 - 1, T - 2] = [{lo}, {hi}], got {bad}"
+            )
 
     @property
     def targets(self) -> Tensor:

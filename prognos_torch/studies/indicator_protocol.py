@@ -27,6 +27,7 @@ Fig. 8-13; the figures: :mod:`~prognos_torch.studies.indicator_report`).
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -37,6 +38,7 @@ import torch
 from torch import Tensor, nn
 
 from ..core.model import StateSpaceModel
+from ..core.validation import check_pos_int, is_real
 from ..datasets import embed
 from ..filters import ParticleFilter, ekpf
 from ..learners import MultiStepCV, fit_lssvr_gram
@@ -136,10 +138,23 @@ def indicator_case(
     for at most ``round(horizon / dt)`` steps. ``start``: filter from the first sample at or
     after this time (``None``: from the first full window, ``k0 = m``).
     """
+    m = check_pos_int(m, "m")
+    if not is_real(rul_every) or not 0 < rul_every < math.inf:
+        raise ValueError(f"rul_every must be a positive number, got {rul_every!r}")
     t_eol = first_crossing_time(t, z, threshold)  # end of life: the indicator reaches it
+    if math.isnan(t_eol):
+        raise ValueError(f"z never reaches the threshold {threshold!r}: no end of life")
     dt = float(torch.diff(t).median())
-    k0 = m if start is None else max(m, int(torch.nonzero(t >= start).flatten()[0]))
+    after = torch.nonzero(t >= start).flatten() if start is not None else None
+    if after is not None and after.numel() == 0:
+        raise ValueError(f"start {start!r} lies after the last sample time {float(t[-1])!r}")
+    k0 = m if start is None else max(m, int(after[0]))
     rul_idx = last_sample_indices(t, np.arange(rul_start, t_eol, rul_every), first=k0)
+    if not rul_idx:
+        raise ValueError(
+            f"no RUL prediction time: none of rul_start={rul_start!r} + k rul_every before the "
+            f"end of life {t_eol!r} falls on a sample at or after k0={k0}"
+        )
     times = t[rul_idx].to(torch.float64)
     return IndicatorCase(
         z=z,

@@ -12,6 +12,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
+from ..core.validation import is_int
 from ..io import atomic_write
 
 __all__ = ["run_rows", "write_rows_csv", "method_mean"]
@@ -22,19 +23,29 @@ def run_rows(method: str, values: Mapping[str, object], runs: int | None = None)
 
     Args:
         method: the method's name (the table's row label).
-        values: ``key -> per-run values`` (a ``(R,)`` tensor or a sequence of length ``R``;
-            entry ``i`` is converted with ``float``) or one value shared by every run (a Python
-            number, a string or a 0-d tensor). Keys keep their order in the rows.
+        values: ``key -> per-run values`` (a ``(R,)`` tensor or NumPy array, or a sequence of
+            length ``R``; entry ``i`` is converted with ``float``) or one value shared by every
+            run (a Python or NumPy number, a string or a 0-d tensor or array). Keys keep their
+            order in the rows.
         runs: ``R``; by default the length of the per-run values.
     Returns:
         ``R`` rows (the keys of ``results.csv``).
     """
 
+    arrays = (torch.Tensor, np.ndarray)  # an array was shared whole by every row
+
     def per_run(v) -> bool:
-        if isinstance(v, torch.Tensor):
-            return v.dim() > 0
+        if isinstance(v, arrays):
+            return v.ndim > 0
         return isinstance(v, (list, tuple))
 
+    for k, v in values.items():  # a (R, k) value has no float per run
+        if isinstance(v, arrays) and v.ndim > 1:
+            raise ValueError(
+                f"values[{k!r}] must be (R,) per-run values, got shape {tuple(v.shape)}"
+            )
+    if runs is not None and (not is_int(runs) or runs < 0):
+        raise ValueError(f"runs must be a non-negative int, got {runs!r}")
     lengths = {k: len(v) for k, v in values.items() if per_run(v)}
     if runs is None:
         if not lengths:
@@ -46,7 +57,7 @@ def run_rows(method: str, values: Mapping[str, object], runs: int | None = None)
     return [
         {"run": i, "method": method}
         | {
-            k: (float(v[i]) if per_run(v) else v.item() if isinstance(v, torch.Tensor) else v)
+            k: (float(v[i]) if per_run(v) else v.item() if isinstance(v, arrays) else v)
             for k, v in values.items()
         }
         for i in range(runs)
@@ -63,6 +74,11 @@ def method_mean(rows: Sequence[Mapping], method: str, key: str) -> float:
 def write_rows_csv(path: str | os.PathLike, rows: Sequence[Mapping]) -> None:
     """Write ``rows`` as CSV, atomically: the columns are every key of the rows in order of first
     appearance, a row without a key leaves its cell empty."""
+    atomic_write(path, rows_csv_bytes(rows))
+
+
+def rows_csv_bytes(rows: Sequence[Mapping]) -> bytes:
+    """The bytes :func:`write_rows_csv` writes (built before anything is written)."""
     keys: list[str] = []
     for r in rows:
         keys += [k for k in r if k not in keys]
@@ -71,4 +87,4 @@ def write_rows_csv(path: str | os.PathLike, rows: Sequence[Mapping]) -> None:
     w.writeheader()
     for r in rows:
         w.writerow({k: r.get(k, "") for k in keys})
-    atomic_write(path, buf.getvalue().encode())
+    return buf.getvalue().encode()

@@ -24,6 +24,7 @@ import math
 import torch
 from torch import Tensor
 
+from ..core.validation import is_int
 from ..prognosis.conformal import leave_one_group_out
 from ..prognosis.protocol import (
     ProtocolCase,
@@ -70,8 +71,10 @@ def predict_rul(method: str, t: Tensor, y: Tensor, case: ProtocolCase, tp: float
     if method == "fit_series + rul(stpf)":
         res = rul(fit_series(series, seed=seed), series, case.threshold, filter="stpf", seed=seed)
         s = res.summary()
+        # every quantile from tp, not the last sample, and never below 0 (q95 was not clamped:
+        # an interval [0, -0.2])
         return {"pred": max(_inf(s["median"]) - shift, 0.0), "lo": max(_inf(s["q05"]) - shift, 0.0),
-                "hi": _inf(s["q95"]) - shift, "censored": res.censored_mass,
+                "hi": max(_inf(s["q95"]) - shift, 0.0), "censored": res.censored_mass,
                 "model": "anfis"}  # fmt: skip
     if method == "linear slope":
         p = linear_slope_rul(ts, ys, case.threshold, case.t_onset)
@@ -119,6 +122,10 @@ def protocol_rows(
         (markdown rows, or a "protocol not usable" row); and ``{(method, name): [prediction
         dicts]}``.
     """
+    # (a slice of the times said "step must be greater than zero")
+    if not is_int(every) or every < 1:
+        raise ValueError(f"every must be a positive int, got {every!r}")
+    every = int(every)
     rows, panels, per_series, results = [], [], [], {}
     for name, (t, y, held) in series.items():
         pc = known_threshold_protocol(t, y)
@@ -133,8 +140,11 @@ def protocol_rows(
             ps = [predict_rul(m, t, y, pc, float(tp), seed, time_unit) for tp in times]
             results[(m, name)] = ps
             pred = torch.tensor([p["pred"] for p in ps], dtype=torch.float64)
-            lo = None if ps[0]["lo"] is None else torch.tensor([p["lo"] for p in ps])
-            hi = None if ps[0]["hi"] is None else torch.tensor([p["hi"] for p in ps])
+            # float64 bounds: in the default float32 a q05 equal to the true RUL (one sampling
+            # step) rounded above it and the point counted as not covered
+            f64 = torch.float64
+            lo = None if ps[0]["lo"] is None else torch.tensor([p["lo"] for p in ps], dtype=f64)
+            hi = None if ps[0]["hi"] is None else torch.tensor([p["hi"] for p in ps], dtype=f64)
             sc = rul_scores(times, true, pred, t_onset=pc.t_onset, t_eol=pc.t_eol, lower=lo,
                             upper=hi)  # fmt: skip
             for i, p in enumerate(ps):
@@ -175,6 +185,11 @@ def conformal_rows(rows: list[dict], method: str, asset, coverage: float = 0.9) 
     mine = [r for r in rows if r["method"] == method]
     if not mine:
         return []
+    if any(r["q05"] is None or r["q95"] is None for r in mine):
+        raise ValueError(
+            f"method {method!r} has no intervals (q05/q95 None: a point baseline); calibrate a "
+            "prognose method"
+        )
     lo = torch.tensor([r["q05"] if math.isfinite(r["q05"]) else math.nan for r in mine],
                       dtype=torch.float64)  # fmt: skip
     hi = torch.tensor([r["q95"] for r in mine], dtype=torch.float64)

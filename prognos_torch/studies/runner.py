@@ -17,7 +17,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .rows import write_rows_csv
+from ..io import atomic_write
+from .rows import rows_csv_bytes
 from .study import Study, StudyConfig, StudyResult
 from .tables import format_table
 
@@ -114,8 +115,11 @@ def _command(name: str) -> str:
 def write_outputs(
     study: Study, cfg: StudyConfig, result: StudyResult, out_dir: Path, wall_s: float
 ) -> str:
-    """Write ``table.md``, ``results.csv`` and ``run.json``; return the table text."""
-    out_dir.mkdir(parents=True, exist_ok=True)
+    """Write ``table.md``, ``results.csv`` and ``run.json``; return the table text.
+
+    The three files are built first and each written atomically: an error while building them
+    (a malformed row, say) writes none of them, and no file is ever left half-written.
+    """
     table = format_table(result)
     # runs actually made (quick mode may use fewer than asked): the most rows of any method
     counts: dict[str, int] = {}
@@ -135,8 +139,7 @@ def write_outputs(
     if result.notes:
         text += ["", result.notes.strip()]
     text_s = "\n".join(text) + "\n"
-    (out_dir / "table.md").write_text(text_s)
-    write_rows_csv(out_dir / "results.csv", result.rows)
+    csv_b = rows_csv_bytes(result.rows)
     cfg_d = asdict(cfg)
     cfg_d["out"] = str(cfg.out)
     cfg_d["data"] = None if cfg.data is None else str(cfg.data)
@@ -154,7 +157,11 @@ def write_outputs(
         "versions": _versions(),
         "machine": _machine(),
     }
-    (out_dir / "run.json").write_text(json.dumps(meta, indent=2, default=str) + "\n")
+    json_s = json.dumps(meta, indent=2, default=str) + "\n"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write(out_dir / "table.md", text_s.encode())
+    atomic_write(out_dir / "results.csv", csv_b)
+    atomic_write(out_dir / "run.json", json_s.encode())
     return text_s
 
 
@@ -164,20 +171,22 @@ class StudyDataError(ValueError):
 
 
 def run_study(study: Study, cfg: StudyConfig) -> tuple[StudyResult, str]:
-    """Run ``study`` with ``cfg`` and write its outputs to ``cfg.out / study.name`` (a folder
-    made here and left empty by a failed run is removed again)."""
+    """Run ``study`` with ``cfg`` and write its outputs to ``cfg.out / study.name`` (the folders
+    made here and left empty by a failed run, ``cfg.out`` included, are removed again)."""
     missing = study.missing_data(cfg)
     if missing is not None:
         raise ValueError(missing)
     out_dir = Path(cfg.out) / study.name
-    made = not out_dir.exists()
+    made = [p for p in (out_dir, *out_dir.parents) if not p.exists()]  # deepest first
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     try:
         result = study.run(cfg, out_dir)
     except BaseException:
-        if made and not any(out_dir.iterdir()):
-            out_dir.rmdir()
+        for p in made:  # (only out_dir was: a new --out folder stayed behind, empty)
+            if any(p.iterdir()):
+                break
+            p.rmdir()
         raise
     wall = time.perf_counter() - t0
     text = write_outputs(study, cfg, result, out_dir, wall)

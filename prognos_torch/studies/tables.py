@@ -28,6 +28,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from ..core.validation import is_real
 from .study import StudyResult
 
 __all__ = [
@@ -54,7 +55,10 @@ class Stat(NamedTuple):
 def fmt_value(v: float | None) -> str:
     """``—`` for a missing value; 4 decimals, or 3 significant digits in e-notation when the
     magnitude is below 1e-3 or at least 1e4."""
-    if v is None or (isinstance(v, float) and math.isnan(v)):
+    if v is None:
+        return "—"
+    v = float(v)  # a NumPy float32 or 0-d tensor NaN was written as "nan"
+    if math.isnan(v):
         return "—"
     a = abs(v)
     if a != 0 and (a < 1e-3 or a >= 1e4):
@@ -100,13 +104,17 @@ def markdown_table(header: Sequence[str], rows: Iterable[Sequence[object]]) -> s
     """A markdown table: ``| a | b |`` lines with the ``|---|`` rule after the header.
 
     Cells are written with ``str`` (a ``|`` in a cell escaped as ``\\|``, so that a method
-    named ``"HI | ELM | none"`` stays one cell); format numbers before (e.g. with
-    :func:`fmt_value`).
+    named ``"HI | ELM | none"`` stays one cell, and a line break as ``<br>``, so that the row
+    stays one line); format numbers before (e.g. with :func:`fmt_value`).
     """
-    header = [str(h).replace("|", "\\|") for h in header]
+
+    def cell(c) -> str:
+        return str(c).replace("|", "\\|").replace("\r\n", "<br>").replace("\n", "<br>")
+
+    header = [cell(h) for h in header]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for row in rows:
-        cells = [str(c).replace("|", "\\|") for c in row]
+        cells = [cell(c) for c in row]
         if len(cells) != len(header):
             raise ValueError(f"a row has {len(cells)} cells, the header {len(header)}: {cells}")
         lines.append("| " + " | ".join(cells) + " |")
@@ -228,6 +236,8 @@ def threshold_census(values, threshold: float, *, verb: str = "lie", digits: int
     v = torch.as_tensor(values, dtype=torch.float64).flatten()
     if not bool(torch.isfinite(v).all()):
         raise ValueError("values must be finite")
+    if not is_real(threshold) or math.isnan(threshold):  # (NaN: no value on either side, "")
+        raise ValueError(f"threshold must be a real number, got {threshold!r}")
     parts = []
     for name, sel in (("below", v < threshold), ("above", v >= threshold)):
         if bool(sel.any()):

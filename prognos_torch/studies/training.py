@@ -218,6 +218,11 @@ def outcome_rows(
         ``train_MAE`` of ``out.pred_train``, and ``train_time_s``, ``test_time_s`` and their
         sum ``time_s``, rounded to the microsecond.
     """
+    if online and out.online_pred is None:
+        raise ValueError(
+            f"online=True needs the online reading, but {method!r} was run without it "
+            "(train_and_test(..., online=True))"
+        )
     pred, test_time = (out.online_pred, out.online_time) if online else (out.pred, out.test_time)
     err = run_errors(pred, y_test)
     err["train_MAE"] = run_errors(out.pred_train, y_train)["MAE"]
