@@ -225,7 +225,7 @@ def test_battery_params_freeze_lists_and_take_numpy_scalars():
     p = BatteryCircuitParams(x0=x0, Ta=np.float32(292.5), Jt=np.int64(800))
     x0[0] = -1.0
     assert p.x0 == (292.1, 7856.3254, 0.0, 0.0) and hash(p) == hash(p)
-    assert p.Ta == float(np.float32(292.5)) and type(p.Jt) is float and p.Jt == 800.0
+    assert p.Ta == float(np.float32(292.5)) and type(p.Jt) is int and p.Jt == 800
     model = battery_circuit_model(params=p)
     ref = battery_circuit_step(X_FULL, U2, 1.0, BatteryCircuitParams(Ta=p.Ta))
     torch.testing.assert_close(model.transition(X_FULL, U2, 1), ref)

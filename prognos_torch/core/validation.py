@@ -609,7 +609,10 @@ def check_weights(weights, batch_shape: Sequence[int], n: int, device, name: str
 
 # ------------------------------------------------------------------------------ simulators
 def check_params_finite(obj) -> None:
-    """``ValueError`` naming the first field of a parameter dataclass that is not finite."""
+    """``ValueError`` naming the first field of a parameter dataclass that is not finite.
+
+    Fields are real numbers (Python or NumPy, not ``bool``) or (nested) tuples / lists of them;
+    anything else is a ``TypeError`` naming the field."""
     for f in fields(obj):
         v = getattr(obj, f.name)
         vals = v if isinstance(v, (tuple, list)) else (v,)
@@ -617,7 +620,7 @@ def check_params_finite(obj) -> None:
         for e in vals:
             flat.extend(e if isinstance(e, (tuple, list)) else (e,))
         for e in flat:
-            if isinstance(e, bool) or not isinstance(e, (int, float)):
+            if not is_real(e):  # (np.float32, np.int64 too; np.bool_ is not real)
                 raise TypeError(f"{type(obj).__name__}.{f.name} must be a real number, got {e!r}")
             if not math.isfinite(e):
                 raise ValueError(f"{type(obj).__name__}.{f.name} must be finite, got {v!r}")

@@ -43,7 +43,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -66,6 +66,7 @@ from .simulation import (
     SimulationResult,
     initial_state,
     input_sequence,
+    plain_params,
     resolve_generator,
     simulate_model,
 )
@@ -136,19 +137,11 @@ class BatteryCircuitParams:
     x0: tuple[float, float, float, float] = (292.1, 7856.3254, 0.0, 0.0)
 
     def __post_init__(self):
-        for f in fields(self):  # a list x0 would leave the frozen (hashed) parameters mutable
-            object.__setattr__(self, f.name, _plain(getattr(self, f.name)))
+        plain_params(self)  # a list x0 would leave the frozen (hashed) parameters mutable
         check_params_finite(self)
         check_positive(self, "qMax", "CMax", "VDropoff", "Rp", "Rs", "Cs", "Ccp", "Jt", "Ta")
         if not isinstance(self.x0, tuple) or len(self.x0) != 4:
             raise ValueError(f"BatteryCircuitParams.x0 must hold 4 numbers, got {self.x0!r}")
-
-
-def _plain(v):
-    """A parameter value with lists as tuples and NumPy reals as floats (same numbers)."""
-    if isinstance(v, (tuple, list)):
-        return tuple(_plain(e) for e in v)
-    return float(v) if is_real(v) and not isinstance(v, (int, float)) else v
 
 
 def _check_state(x, name: str = "x") -> Tensor:

@@ -28,7 +28,6 @@ lists 0.037 and 402.35), which is the default initial state.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -38,8 +37,11 @@ from torch.func import jacfwd
 from ..core.model import StateSpaceModel, joint_state_parameter_model
 from ..core.validation import (
     check_count,
+    check_dtype_arg,
+    check_flag,
     check_params_finite,
     check_positive,
+    check_real,
     check_std,
     chol_from_std,
     diag_chol,
@@ -48,8 +50,12 @@ from .integrators import rk4_step
 from .simulation import (
     SimulationResult,
     accelerating_drift,
+    check_leading,
+    check_state,
     initial_state,
+    plain_params,
     resolve_generator,
+    resolve_params,
     simulate_with_parameter,
 )
 
@@ -103,6 +109,7 @@ class CSTRParams:
     drift_rate: float = 1e-5
 
     def __post_init__(self):
+        plain_params(self, scalars=True)  # NumPy values stored as Python numbers
         check_params_finite(self)
         check_positive(self, "k0", "E_R", "Q_F", "V", "rho_Cp", "T_F", "T_c", "dt")
         check_count(self.k_fault, "CSTRParams.k_fault", 0)
@@ -118,6 +125,7 @@ def cstr_rhs(x: Tensor, C_AF, params: CSTRParams) -> Tensor:
         ``(..., 2)`` time derivative (per minute).
     """
     p = params
+    check_leading(C_AF, "C_AF", check_state(x, 2, "[C_A, T]"))
     C_A, T = x[..., 0], x[..., 1]
     r = p.k0 * torch.exp(-p.E_R / T) * C_A  # reaction rate k0 e^{-E/(RT)} C_A
     dC_A = -r + p.Q_F * (C_AF - C_A) / p.V
@@ -138,7 +146,7 @@ def cstr_feed_drift(k: int, params: CSTRParams | None = None) -> float:
     ``C_AF,k = C_AF`` for ``k <= k_fault``, else ``C_AF + rate (k - k_fault)(k - k_fault + 1)/2``,
     the sum of the recursion's increments ``rate * (j - k_fault)``, ``j = k_fault+1..k``.
     """
-    p = params or CSTRParams()
+    p = resolve_params(params, CSTRParams)
     return accelerating_drift(k, p.C_AF, p.drift_rate, p.k_fault)
 
 
@@ -157,10 +165,9 @@ def cstr_steady_state(
     With Table II and ``C_AF = 1`` it returns ``[0.0372410, 402.3518]`` (Table II: 0.037, 402.35).
     ``x_init`` picks the branch (the reactor can have several steady states).
     """
-    p = params or CSTRParams()
-    caf = p.C_AF if C_AF is None else float(C_AF)
-    if not math.isfinite(caf):
-        raise ValueError(f"C_AF must be finite, got {C_AF!r}")
+    p = resolve_params(params, CSTRParams)
+    caf = p.C_AF if C_AF is None else check_real(C_AF, "C_AF")  # (text, bool refused)
+    check_dtype_arg(dtype)  # (an integer dtype truncated the state to [0, 402])
     # Newton in float64 whatever dtype is asked (the parameters are float64 and a float32
     # iteration could not reach tol), the answer returned in dtype
     x = torch.as_tensor(x_init, dtype=torch.float64, device=device).clone()
@@ -201,7 +208,9 @@ def cstr_model(
     ``drift=False``), ``h(x) = x``. ``u`` is ignored (no control input). Noise stds are per
     component ``[C_A, T]``; ``chol_Q``/``chol_R`` are the diagonal ``(2, 2)`` factors.
     """
-    p = params or CSTRParams()
+    p = resolve_params(params, CSTRParams)
+    drift = check_flag(drift, "drift")
+    check_dtype_arg(dtype)
     SQ, SR = _model_noise(process_noise_std, measurement_noise_std, dtype, device)
 
     def f(x, u, k):
@@ -239,7 +248,8 @@ def cstr_joint_model(
         process_noise_std: the filter's state-noise stds for ``[C_A, T]`` (a modelling choice;
             nonzero so that the filter's ``Q`` is positive definite).
     """
-    p = params or CSTRParams()
+    p = resolve_params(params, CSTRParams)
+    check_dtype_arg(dtype)
     SQ, SR = _model_noise(process_noise_std, measurement_noise_std, dtype, device)
     SD = chol_from_std(chol_D, 1, "chol_D", dtype, device)
     return joint_state_parameter_model(
@@ -283,9 +293,11 @@ def simulate_cstr(
         :class:`SimulationResult` with ``x`` ``(T+1, runs, 2)``, ``y`` ``(T, runs, 2)``,
         ``theta`` ``(T+1, runs, 1)`` = ``C_AF,k``, ``t`` in minutes.
     """
-    p = params or CSTRParams()
+    p = resolve_params(params, CSTRParams)
     check_count(n_steps, "n_steps")
     check_count(runs, "runs")
+    check_dtype_arg(dtype)
+    drift, noise = check_flag(drift, "drift"), check_flag(noise, "noise")
     g = resolve_generator(generator, noise)
     if x0 is None:
         x0 = cstr_steady_state(p, dtype=dtype, device=device)

@@ -90,6 +90,7 @@ from .simulation import (
     SimulationResult,
     initial_state,
     input_sequence,
+    plain_params,
     resolve_generator,
     simulate_model,
 )
@@ -169,8 +170,7 @@ class HSTParams:
     gamma: float = 1.05
 
     def __post_init__(self):
-        for f in dataclasses.fields(self):  # list fields would leave the frozen parameters mutable
-            object.__setattr__(self, f.name, _plain(getattr(self, f.name)))
+        plain_params(self)  # list fields would leave the frozen parameters mutable
         check_params_finite(self)
         for name in ("m", "F_a", "F_s", "M"):
             if not isinstance(getattr(self, name), tuple):
@@ -202,13 +202,6 @@ class HSTParams:
     def state_dim(self) -> int:
         """``2 n - 1`` (coupler extensions and car speeds)."""
         return 2 * len(self.m) - 1
-
-
-def _plain(v):
-    """A parameter value with lists as tuples and NumPy reals as floats (same numbers)."""
-    if isinstance(v, (tuple, list)):
-        return tuple(_plain(e) for e in v)
-    return float(v) if is_real(v) and not isinstance(v, (int, float)) else v
 
 
 def _check_psi(psi, s: int) -> Tensor:

@@ -22,10 +22,26 @@ import torch
 from torch import Tensor
 
 from ..core.model import StateSpaceModel
-from ..core.validation import check_count, check_params_finite, check_positive, check_std, diag_chol
+from ..core.validation import (
+    check_count,
+    check_dtype_arg,
+    check_flag,
+    check_params_finite,
+    check_positive,
+    check_std,
+    diag_chol,
+)
 from .integrators import rk4_step
 from .noise_streams import draw_run_noise
-from .simulation import SimulationResult, initial_state, resolve_generator, simulate_model
+from .simulation import (
+    SimulationResult,
+    check_state,
+    initial_state,
+    plain_params,
+    resolve_generator,
+    resolve_params,
+    simulate_model,
+)
 
 __all__ = [
     "LorenzParams",
@@ -57,6 +73,7 @@ class LorenzParams:
     substeps: int = 1
 
     def __post_init__(self):
+        plain_params(self, scalars=True)  # NumPy values stored as Python numbers
         check_params_finite(self)
         check_positive(self, "dt")
         check_count(self.substeps, "LorenzParams.substeps")
@@ -65,6 +82,7 @@ class LorenzParams:
 def lorenz_rhs(x: Tensor, params: LorenzParams) -> Tensor:
     """Paper 003 Eq. 47: ``(..., 3) -> (..., 3)``."""
     p = params
+    check_state(x, 3, "[x, y, z]")
     X, Y, Z = x[..., 0], x[..., 1], x[..., 2]
     return torch.stack([-p.a * (X - Y), p.b * X - Y - X * Z, X * Y - p.c * Z], dim=-1)
 
@@ -91,7 +109,8 @@ def lorenz_model(
     ``measurement_noise_std`` for the x component. Defaults zero (the paper's series is
     noise-free); a filter on this model should pass positive values.
     """
-    p = params or LorenzParams()
+    p = resolve_params(params, LorenzParams)
+    check_dtype_arg(dtype)  # (an integer dtype truncated chol_Q = 0.5 I to 0)
     SQ = diag_chol(check_std(process_noise_std, 3, "process_noise_std"), dtype, device)
     SR = diag_chol(check_std(measurement_noise_std, 1, "measurement_noise_std"), dtype, device)
     return StateSpaceModel(
@@ -131,10 +150,12 @@ def simulate_lorenz(
         :class:`SimulationResult`: ``x`` ``(T+1, runs, 3)``, ``y`` ``(T, runs, 1)`` (x component),
         ``theta`` ``(T+1, runs, 0)``.
     """
-    p = params or LorenzParams()
+    p = resolve_params(params, LorenzParams)
     check_count(n_steps, "n_steps")
     check_count(runs, "runs")
-    check_count(n_transient, "n_transient", 0)
+    n_transient = check_count(n_transient, "n_transient", 0)
+    check_dtype_arg(dtype)
+    noise = check_flag(noise, "noise")
     gen = resolve_generator(generator, noise)
     X0 = initial_state(x0, 3, runs, dtype, device)
     model = lorenz_model(

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.validation import is_int, is_real
+from ..core.validation import check_flag, check_seed, is_int, is_real
 
 __all__ = ["RUN_TO_FAILURE_FAMILIES", "RunToFailure", "simulate_run_to_failure",
            "run_to_failure_set"]  # fmt: skip
@@ -73,14 +73,12 @@ def _uniform(g: torch.Generator, lo: float, hi: float) -> float:
 
 
 def _range(v, name: str, lo: float, hi: float | None = None) -> tuple[float, float]:
-    if not (isinstance(v, tuple) and len(v) == 2) or not all(
-        is_real(x) for x in v
-    ):
+    if not (isinstance(v, tuple) and len(v) == 2) or not all(is_real(x) for x in v):
         raise TypeError(f"{name} must be a tuple (low, high) of numbers, got {v!r}")
     a, b = float(v[0]), float(v[1])
-    if not (lo <= a <= b) or (hi is not None and b > hi):
+    if not (lo <= a <= b < math.inf) or (hi is not None and b > hi):  # (inf: no draw)
         bound = f"[{lo:g}, {hi:g}]" if hi is not None else f">= {lo:g}"
-        raise ValueError(f"{name} must satisfy low <= high within {bound}, got {v!r}")
+        raise ValueError(f"{name} must satisfy low <= high within {bound} (finite), got {v!r}")
     return a, b
 
 
@@ -183,12 +181,16 @@ def simulate_run_to_failure(
     Returns:
         :class:`RunToFailure` with ``t``, ``y`` ``(T,)``.
     """
-    if family not in _FAMILY:
+    if not isinstance(family, str) or family not in _FAMILY:  # (a list was unhashable)
         raise ValueError(f"family must be one of {', '.join(_FAMILY)}, got {family!r}")
     if not isinstance(generator, torch.Generator):
         raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
-    if not is_real(dt) or not dt > 0:
-        raise ValueError(f"dt must be a positive number, got {dt!r}")
+    if generator.device.type != "cpu":  # (every draw is a CPU float64 tensor)
+        raise ValueError(f"generator must be a CPU torch.Generator, got one on {generator.device}")
+    if not is_real(dt) or not 0 < dt < math.inf:
+        raise ValueError(f"dt must be a positive number (finite), got {dt!r}")
+    dt = float(dt)  # (an np.float32 dt divided the life in float32: another sample count)
+    gaps = check_flag(gaps, "gaps")
     life_r = _range(life, "life", 0.0)
     onset_r = _range(onset, "onset", 0.0, 0.99)
     rise_r = _range(rise, "rise", 0.0)
@@ -197,7 +199,7 @@ def simulate_run_to_failure(
     n = int(_uniform(g, *life_r) / dt)
     if n < 50:
         raise ValueError(f"life / dt gives {n} samples; at least 50 are needed")
-    t = _times(n, float(dt), gaps, g)
+    t = _times(n, dt, gaps, g)
     t_on = _uniform(g, *onset_r) * float(t[-1])
     s = (t - t_on).clamp(min=0.0)
     S = float(t[-1]) - t_on
@@ -219,10 +221,16 @@ def run_to_failure_set(
     per_family: int = 8, *, seed: int = 0, families: tuple[str, ...] = RUN_TO_FAILURE_FAMILIES
 ) -> dict[str, RunToFailure]:
     """``per_family`` records of each family from one generator seeded with ``seed``, named
-    ``"<family> <i>"`` (the families interleaved in the stream in the order given)."""
+    ``"<family> <i>"`` (drawn from the stream family by family in the order given: all records
+    of the first family, then those of the next)."""
     if not is_int(per_family) or per_family < 1:
         raise ValueError(f"per_family must be an int >= 1, got {per_family!r}")
-    g = torch.Generator().manual_seed(int(seed))
+    fams = () if isinstance(families, str) else tuple(families)  # (str: read letter by letter)
+    if isinstance(families, str) or any(f not in RUN_TO_FAILURE_FAMILIES for f in fams):
+        raise ValueError(
+            f"families must be a sequence of names from {RUN_TO_FAILURE_FAMILIES}, got {families!r}"
+        )
+    g = torch.Generator().manual_seed(check_seed(seed))  # (a float seed was truncated)
     return {
-        f"{fam} {i}": simulate_run_to_failure(fam, g) for fam in families for i in range(per_family)
+        f"{fam} {i}": simulate_run_to_failure(fam, g) for fam in fams for i in range(per_family)
     }

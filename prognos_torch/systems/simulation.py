@@ -9,7 +9,7 @@ Noise comes from the per-run streams of :mod:`prognos_torch.systems.noise_stream
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from fractions import Fraction
 from types import MappingProxyType
 
@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from ..core.model import StateSpaceModel
+from ..core.validation import broadcast_shape, check_flag, is_bool_or_complex, is_int, is_real
 from .noise_streams import draw_run_noise
 
 __all__ = [
@@ -71,6 +72,8 @@ class SimulationResult:
 # --------------------------------------------------------------------------- inputs
 def initial_state(x0, n: int, runs: int, dtype, device, name: str = "x0") -> Tensor:
     """``x0`` of shape ``(n,)`` (shared) or ``(runs, n)`` -> finite ``(runs, n)`` tensor."""
+    if is_bool_or_complex(x0):  # (a cast read True as 1 or dropped the imaginary part)
+        raise TypeError(f"{name} must hold real numbers, got {getattr(x0, 'dtype', x0)!r}")
     if not isinstance(x0, Tensor):
         try:
             x0 = torch.as_tensor(x0, dtype=dtype, device=device)
@@ -92,6 +95,8 @@ def input_sequence(u, n_steps: int, runs: int, p: int, dtype, device) -> Tensor 
     """``u`` of shape ``(T, p)`` (shared by all runs) or ``(T, runs, p)`` -> ``(T, runs, p)``."""
     if u is None:
         return None
+    if is_bool_or_complex(u):  # (a cast read True as 1 or dropped the imaginary part)
+        raise TypeError(f"u must hold real numbers, got {getattr(u, 'dtype', u)!r}")
     if not isinstance(u, Tensor):
         try:
             u = torch.as_tensor(u, dtype=dtype, device=device)
@@ -114,7 +119,9 @@ def input_sequence(u, n_steps: int, runs: int, p: int, dtype, device) -> Tensor 
 
 
 def resolve_generator(generator, noise: bool) -> torch.Generator | None:
-    if not noise:
+    """``generator`` where ``noise`` (a bool: ``noise="no"`` is refused, not read as true), else
+    ``None``."""
+    if not check_flag(noise, "noise"):
         return None
     if not isinstance(generator, torch.Generator):
         raise ValueError(
@@ -122,6 +129,69 @@ def resolve_generator(generator, noise: bool) -> torch.Generator | None:
             f"noise-free run), got {generator!r}"
         )
     return generator
+
+
+def _plain(v):
+    """A parameter value with NumPy integers as ints, NumPy reals as floats and lists as tuples
+    (the same numbers; a frozen dataclass then holds what the Python values would give)."""
+    if isinstance(v, (tuple, list)):
+        return tuple(_plain(e) for e in v)
+    if is_int(v) and type(v) is not int:
+        return int(v)
+    return float(v) if is_real(v) and type(v) not in (int, float) else v
+
+
+def check_state(x, n: int, names: str) -> Tensor:
+    """A floating-point state tensor ``(..., n)`` (``names`` spells its components), refused
+    otherwise (a wider state was read by its first ``n`` components)."""
+    if not isinstance(x, Tensor) or not x.is_floating_point():
+        got = x.dtype if isinstance(x, Tensor) else type(x).__name__
+        raise TypeError(f"x must be a floating-point tensor (..., {n}) {names}, got {got}")
+    if x.dim() == 0 or x.shape[-1] != n:
+        raise ValueError(f"x must have shape (..., {n}) {names}, got {tuple(x.shape)}")
+    return x
+
+
+def check_leading(v, name: str, x: Tensor, tail: int = 0) -> None:
+    """A tensor ``v`` ``(..., tail)`` (``tail = 0``: ``(...)``) whose leading shape broadcasts to
+    ``x``'s ``(...)`` without widening it (numbers pass): a wider one gave the rate another shape
+    than ``x``."""
+    if not isinstance(v, Tensor):
+        return
+    lead, want = x.shape[:-1], "(...)" if tail == 0 else f"(..., {tail})"
+    vlead = v.shape if tail == 0 else v.shape[:-1]
+    ok = tail == 0 or (v.dim() >= 1 and v.shape[-1] == tail)
+    if ok and vlead != lead:
+        try:
+            ok = broadcast_shape(vlead, lead) == lead
+        except ValueError:
+            ok = False
+    if not ok:
+        raise ValueError(
+            f"{name} must have shape {want} with a leading shape that broadcasts to x's "
+            f"{tuple(lead)}, got {tuple(v.shape)}"
+        )
+
+
+def resolve_params(params, cls):
+    """``params`` (a ``cls``) or ``cls()`` where ``None``; anything else is a ``TypeError``
+    (a dict failed on a missing attribute, an empty one gave the defaults)."""
+    if params is None:
+        return cls()
+    if not isinstance(params, cls):
+        raise TypeError(f"params must be a {cls.__name__} or None, got {type(params).__name__}")
+    return params
+
+
+def plain_params(obj, *, scalars: bool = False) -> None:
+    """Replace the fields of the frozen parameter dataclass ``obj`` by :func:`_plain` values;
+    with ``scalars`` a sequence in a field is a ``TypeError`` (``(0.02,)`` failed later, in
+    the integrator or the right-hand side)."""
+    for f in fields(obj):
+        v = getattr(obj, f.name)
+        if scalars and isinstance(v, (tuple, list)):
+            raise TypeError(f"{type(obj).__name__}.{f.name} must be a real number, got {v!r}")
+        object.__setattr__(obj, f.name, _plain(v))
 
 
 # --------------------------------------------------------------------------- the loop

@@ -39,19 +39,26 @@ from torch import Tensor
 from ..core.model import StateSpaceModel, joint_state_parameter_model
 from ..core.validation import (
     check_count,
+    check_dtype_arg,
+    check_flag,
     check_params_finite,
     check_positive,
     check_std,
     chol_from_std,
     diag_chol,
+    is_real,
 )
 from .integrators import euler_step
 from .simulation import (
     SimulationResult,
     accelerating_drift,
+    check_leading,
+    check_state,
     initial_state,
     input_sequence,
+    plain_params,
     resolve_generator,
+    resolve_params,
     simulate_with_parameter,
 )
 
@@ -100,6 +107,7 @@ class ThreeTankParams:
     drift_rate: float = 1e-4
 
     def __post_init__(self):
+        plain_params(self, scalars=True)  # NumPy values stored as Python numbers
         check_params_finite(self)
         check_positive(self, "A_s", "S_n", "g", "dt")
         for name in ("az1", "az2", "az3"):  # (0: a closed valve; < 0 reverses the square root)
@@ -128,6 +136,12 @@ def three_tank_rhs(x: Tensor, az2, u, params: ThreeTankParams) -> Tensor:
         ``(..., 3)`` level rates (m/s).
     """
     p = params
+    check_state(x, 3, "[h1, h2, h3]")
+    check_leading(az2, "az2", x)
+    if u is not None:
+        if not isinstance(u, Tensor):
+            raise TypeError(f"u must be a tensor (..., 2) [Q1, Q2] or None, got {type(u).__name__}")
+        check_leading(u, "u", x, 2)  # (a third column was ignored)
     h1, h2, h3 = x[..., 0], x[..., 1], x[..., 2]
     c = p.S_n * (2.0 * p.g) ** 0.5
     Q13 = p.az1 * c * _signed_sqrt(h1 - h3)
@@ -151,7 +165,7 @@ def az2_drift(k: int, params: ThreeTankParams | None = None) -> float:
     ``az2_k = az2`` for ``k <= k_fault``, else ``az2 + rate (k - k_fault)(k - k_fault + 1) / 2``,
     the sum of the recursion's increments ``rate * (j - k_fault)``, ``j = k_fault+1..k``.
     """
-    p = params or ThreeTankParams()
+    p = resolve_params(params, ThreeTankParams)
     return accelerating_drift(k, p.az2, p.drift_rate, p.k_fault)
 
 
@@ -167,14 +181,16 @@ def three_tank_equilibrium(
     Flow balance: ``Q13 = Q32 = Q1`` and ``Q20 = Q1 + Q2``, so ``h2 = ((Q1+Q2)/(az2 S_n))^2/(2g)``,
     ``h3 = h2 + (Q1/(az3 S_n))^2/(2g)``, ``h1 = h3 + (Q1/(az1 S_n))^2/(2g)`` (needs ``Q1 >= 0``).
     """
-    p = params or ThreeTankParams()
-    a2 = p.az2 if az2 is None else float(az2)
-    if not (math.isfinite(a2) and a2 > 0):
+    p = resolve_params(params, ThreeTankParams)
+    a2 = p.az2 if az2 is None else az2
+    if not (is_real(a2) and math.isfinite(a2) and a2 > 0):  # (text, bool refused)
         raise ValueError(f"az2 must be a finite number > 0, got {a2!r}")
-    if p.Q1 < 0 or p.Q1 + p.Q2 < 0 or (p.Q1 > 0 and min(p.az1, p.az3) <= 0):
+    a2 = float(a2)
+    check_dtype_arg(dtype)  # (an integer dtype truncated the levels to 0)
+    if p.Q1 < 0 or p.Q1 + p.Q2 < 0 or min(p.az1, p.az3) <= 0:
         raise ValueError(
-            "three_tank_equilibrium needs Q1 >= 0, Q1 + Q2 >= 0, az2 > 0 and, with Q1 > 0, "
-            "az1 > 0 and az3 > 0 (tank 1 drains through tank 3)"
+            "three_tank_equilibrium needs Q1 >= 0, Q1 + Q2 >= 0, az2 > 0, az1 > 0 and az3 > 0 "
+            "(tank 1 drains through tank 3; a closed valve leaves its levels undetermined)"
         )
     head = lambda q, a: (q / (a * p.S_n)) ** 2 / (2.0 * p.g)  # noqa: E731
     h2 = head(p.Q1 + p.Q2, a2)
@@ -206,7 +222,9 @@ def three_tank_model(
     has ``control_dim = 0`` and uses ``params.Q1, Q2``; with ``control=True`` it takes
     ``u = [Q1, Q2]`` (m^3/s) each step (``control_dim = 2``, filters then require ``u``).
     """
-    p = params or ThreeTankParams()
+    p = resolve_params(params, ThreeTankParams)
+    drift, control = check_flag(drift, "drift"), check_flag(control, "control")
+    check_dtype_arg(dtype)
     SQ, SR = _noise(process_noise_std, measurement_noise_std, dtype, device)
 
     def f(x, u, k):
@@ -244,7 +262,9 @@ def three_tank_joint_model(
             increment in mid-horizon (``1e-4 * 90``).
         process_noise_std, measurement_noise_std: default the paper's ``1e-4`` and ``2e-4``.
     """
-    p = params or ThreeTankParams()
+    p = resolve_params(params, ThreeTankParams)
+    control = check_flag(control, "control")
+    check_dtype_arg(dtype)
     SQ, SR = _noise(process_noise_std, measurement_noise_std, dtype, device)
     SD = chol_from_std(chol_D, 1, "chol_D", dtype, device)
     return joint_state_parameter_model(
@@ -289,9 +309,11 @@ def simulate_three_tank(
         :class:`SimulationResult`: ``x`` ``(T+1, runs, 3)``, ``y`` ``(T, runs, 3)``, ``theta``
         ``(T+1, runs, 1)`` = ``az2_k``, ``t`` in seconds.
     """
-    p = params or ThreeTankParams()
+    p = resolve_params(params, ThreeTankParams)
     check_count(n_steps, "n_steps")
     check_count(runs, "runs")
+    check_dtype_arg(dtype)
+    drift, noise = check_flag(drift, "drift"), check_flag(noise, "noise")
     gen = resolve_generator(generator, noise)
     X0 = initial_state(x0, 3, runs, dtype, device)
     U = input_sequence(u, n_steps, runs, 2, dtype, device)
