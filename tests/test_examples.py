@@ -1,26 +1,16 @@
 """The examples run to the end; the RUL example prints the ``ims-rul`` study's ``prognose (auto)``
 rows (it says so)."""
 
-import os
 import re
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
+from _scripts import ROOT, run_script
 from test_study_ims_rul import QUICK_PRED_RUL
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_ims_rul_example_prints_the_study_rows(tmp_path):
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "examples" / "ims_rul.py"), "--out", str(tmp_path)],
-        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    rows = [line.split() for line in proc.stdout.splitlines() if line[:1] == " " and "[" in line]
+    stdout = run_script(ROOT / "examples" / "ims_rul.py", ["--out", str(tmp_path)], tmp_path)
+    rows = [line.split() for line in stdout.splitlines() if line[:1] == " " and "[" in line]
     assert len(rows) == 5  # 20/40/60/80/90 % of [onset, end of life]
     median = [float(r[2]) for r in rows]
     # test_study_ims_rul's quick reference: points 1, 3 and 5 of "T1 B3 rms"
@@ -32,8 +22,8 @@ def test_ims_rul_example_prints_the_study_rows(tmp_path):
     lo, hi = ([float(e[k]) for e in ends] for k in (0, 1))
     cov = sum(a <= t <= b for a, t, b in zip(lo, true, hi))
     cone = sum(0.7 * t <= m <= 1.3 * t for m, t in zip(median, true))
-    assert f"covers the true RUL at {cov} of 5 points" in proc.stdout
-    assert f"(alpha-lambda cone) at {cone} of 5" in proc.stdout
+    assert f"covers the true RUL at {cov} of 5 points" in stdout
+    assert f"(alpha-lambda cone) at {cone} of 5" in stdout
     assert (tmp_path / "ims_prognose_rul.png").stat().st_size > 0
 
 
@@ -45,11 +35,6 @@ def test_ims_rul_example_prints_the_study_rows(tmp_path):
 def test_every_other_example_runs_to_the_end(script, figures, tmp_path):
     """The examples call the public API as a user would; without this test they fall behind
     when it moves (both failed once RULResult.summary() gained its text fields)."""
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "examples" / script), "--out", str(tmp_path)],
-        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    run_script(ROOT / "examples" / script, ["--out", str(tmp_path)], tmp_path)
     for name in figures:
         assert (tmp_path / name).stat().st_size > 0
