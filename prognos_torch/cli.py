@@ -15,6 +15,7 @@ Run 'prognos COMMAND --help' for the options and examples of each command.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import re
 import sys
@@ -139,14 +140,25 @@ def _options(items, what: str) -> dict:
 
 
 def _holdout(text: str):
+    """``--holdout``: a count (``50``, also written ``5e1`` or ``50.0``) or a fraction in
+    ``[0, 1)``; a value >= 1 that is not whole is neither (``1e3`` was read as the fraction
+    1000.0 and refused)."""
     try:
         return int(text)
     except ValueError:
         pass
     try:
-        return float(text)
+        value = float(text)
     except ValueError:
         raise ValueError(f"--holdout must be a fraction or a count, got {text!r}") from None
+    if math.isfinite(value) and value >= 1.0:
+        if not value.is_integer():
+            raise ValueError(
+                f"holdout must be a fraction in (0, 1) or a count (a whole number; 0 for none), "
+                f"got {text!r}"
+            )
+        return int(value)
+    return value  # (a fraction; a negative or non-finite value is fit_series' to refuse)
 
 
 def _check_out_folder(path: str | Path | None, what: str) -> None:
@@ -757,7 +769,7 @@ _OPTION_OF = {
     "filter_steps": "--filter-steps",
     "level": "--level",
     "threshold must": "--threshold",  # (not "threshold 2 already reached": it names the value)
-    "holdout must": "--holdout",
+    "holdout": "--holdout",  # (holdout must ..., holdout=1000 leaves no training data)
     "embedding dimension m": "--embedding",
     "glitch_limit": "--glitch-limit",
     "method must": "--method",
@@ -818,7 +830,9 @@ def _workflow(cmd):
             return 3
         except bad_input as exc:
             text = " ".join(str(exc).split()) or type(exc).__name__
-            option = next((o for k, o in _OPTION_OF.items() if text.startswith(k + " ")), None)
+            option = next(  # ("until='2003-01-01' is a date-time ...": its value follows)
+                (o for k, o in _OPTION_OF.items() if text.startswith((k + " ", k + "="))), None
+            )
             if option is not None:  # a message about an argument names the option that set it
                 text = f"{option}: {text}"
             print(f"error: {text}", file=sys.stderr)

@@ -188,7 +188,9 @@ def add_fit(sub, cmd) -> None:
         "--learner-option", action="append", metavar="KEY=VALUE", help="e.g. n_hidden=40"
     )
     g.add_argument("--optimizer-option", action="append", metavar="KEY=VALUE", help="e.g. R=1e-2")
-    p.add_argument("--out", type=Path, required=True, help="model file to write")
+    # output files are kept as text, not Path: Path("new/") drops the "/", and the file "new"
+    # was written where a folder was meant (cli._check_out_folder refuses it up front)
+    p.add_argument("--out", required=True, help="model file to write")
     p.set_defaults(func=cmd)
 
 
@@ -224,7 +226,7 @@ def _add_prediction_options(p, default_filter: str) -> None:
             else ""
         ),
     )
-    g.add_argument("--plot", type=Path, help="figure to write (.png, .pdf or .svg)")
+    g.add_argument("--plot", help="figure to write (.png, .pdf or .svg)")  # (text: see --out)
 
 
 def _seeds(text: str) -> int | tuple[int, ...]:
@@ -259,8 +261,7 @@ def add_forecast(sub, cmd) -> None:
     p.add_argument("--horizon", type=int, required=True, help="steps to forecast")
     p.add_argument("--level", type=float, default=0.95, help="band probability (default 0.95)")
     p.add_argument(
-        "--csv",
-        type=Path,
+        "--csv",  # (text, not Path: see fit's --out)
         help="write every forecast step to this CSV (step, time, mean, lower, upper; date on "
         "date-times; with --until the observed value each step is compared with and its time)",
     )
@@ -370,8 +371,7 @@ def add_rul(sub, cmd) -> None:
         "the calibration is the same",
     )
     g.add_argument(
-        "--calibration-out",
-        type=Path,
+        "--calibration-out",  # (text, not Path: see fit's --out)
         metavar="FILE",
         help="with --calibrate: also write the calibration (its margin and the settings it "
         "holds for) to this JSON file, for --calibration",

@@ -25,6 +25,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
+from time import strptime as struct_strptime  # (its tm_zone: the %Z name read)
 
 import numpy as np
 import torch
@@ -140,10 +141,16 @@ def parse_where(where) -> dict[str, str]:
     out = {}
     for item in where:
         if not isinstance(item, str) or "=" not in item:
-            raise ValueError(f"where: expected COLUMN=VALUE, got {item!r}")
+            raise ValueError(
+                f"where: expected COLUMN=VALUE (--where COL=VALUE on the command line), got "
+                f"{item!r}"
+            )
         key, value = item.split("=", 1)
         if not key.strip():
-            raise ValueError(f"where: expected COLUMN=VALUE, got {item!r}")
+            raise ValueError(
+                f"where: expected COLUMN=VALUE (--where COL=VALUE on the command line), got "
+                f"{item!r}"
+            )
         if key.strip() in out:  # (the last one would win without a word)
             raise ValueError(
                 f"where: column {key.strip()!r} is named twice ({key.strip()}={out[key.strip()]}, "
@@ -159,9 +166,17 @@ def _cells_equal(cell: str, value: str, decimal: str = ".") -> bool:
     if cell == value:
         return True
     try:
-        return float(number_text(cell, decimal)) == float(number_text(value, decimal))
+        return _number(number_text(cell, decimal)) == _number(number_text(value, decimal))
     except ValueError:
         return False
+
+
+def _number(text: str) -> float:
+    """``float(text)`` without Python's digit-group underscores: ``1_000`` is no number in a
+    CSV file (``float`` read it as 1000); ``ValueError`` for it as for any other non-number."""
+    if "_" in text:
+        raise ValueError(f"{text!r} is not a number")
+    return float(text)
 
 
 def number_text(cell: str, decimal: str) -> str:
@@ -210,7 +225,7 @@ def _parse_number(cell: str, decimal: str = ".") -> float | None:
     text = cell.strip()
     if text.lower() in _MISSING:
         return None
-    value = float(number_text(text, decimal))  # raises ValueError for non-numbers
+    value = _number(number_text(text, decimal))  # raises ValueError for non-numbers
     if math.isnan(value):
         return None
     return value
@@ -243,6 +258,8 @@ def datetime_ns(text: str) -> np.datetime64:
     body = text.strip()
     if body.lower() in ("", "nan", "nat"):
         return np.datetime64("NaT", "ns")  # missing
+    if body.lower() in ("now", "today"):  # (NumPy reads them as the clock's date-time)
+        raise ValueError(f"{text!r} is not an ISO 8601 date-time")
     zone = _ZONE.search(body) if "T" in body or " " in body else None
     offset = np.timedelta64(0, "m")
     if zone is not None:
@@ -250,6 +267,8 @@ def datetime_ns(text: str) -> np.datetime64:
         body = body[: zone.start()].rstrip()
         if z != "Z":
             hh, mm = z[1:3], z[3:].lstrip(":") or "0"
+            if int(hh) > 23 or int(mm) > 59:  # (+99:99 shifted the time by 4 days)
+                raise ValueError(f"{text!r} has the offset {z!r}; hours 00-23, minutes 00-59")
             offset = (np.timedelta64(int(hh), "h") + np.timedelta64(int(mm), "m")) * (
                 1 if z[0] == "+" else -1
             )
@@ -456,8 +475,17 @@ def check_unique_columns(header: Sequence, names: Sequence, source: str) -> None
 
 def formatted_ns(text: str, fmt: str) -> np.datetime64:
     """A date-time written in ``fmt`` (``datetime.strptime`` codes) as ``datetime64[ns]`` in
-    UTC: a ``%z`` offset is applied, a time without one is taken as UTC, as ISO 8601 text is."""
+    UTC: a ``%z`` offset is applied, a time without one is taken as UTC, as ISO 8601 text is.
+    A ``%Z`` zone name other than UTC or GMT is refused: ``strptime`` matches the machine's
+    own zone names (EST, CET) but gives no offset for them (10:00 EST was read as 10:00 UTC)."""
     stamp = datetime.strptime(text.strip(), fmt)
+    if "%Z" in fmt and stamp.tzinfo is None:
+        zone = struct_strptime(text.strip(), fmt).tm_zone
+        if zone is not None and zone.upper() not in ("UTC", "GMT"):
+            raise ValueError(
+                f"the zone name {zone!r} (%Z) gives no offset; write the offset with %z "
+                "(e.g. -0500), or UTC times"
+            )
     if stamp.tzinfo is not None:
         stamp = stamp.astimezone(timezone.utc).replace(tzinfo=None)
     out = np.datetime64(stamp, "us")
@@ -494,11 +522,14 @@ def _parse_time(
         def label(i: int) -> str:
             return f"{path}, line {lines[i]}: time column {col!r} value {cells[i].strip()!r}"
 
-        return _days_since_first(formatted_stamps(cells, time_format, label))
+        try:
+            return _days_since_first(formatted_stamps(cells, time_format, label))
+        except ValueError as exc:
+            raise ValueError(f"{exc} (time_format: --time-format on the command line)") from None
     numeric = []
     for cell, line in zip(cells, lines):
         try:
-            numeric.append(float(number_text(cell, decimal)))
+            numeric.append(_number(number_text(cell, decimal)))
         except ValueError:
             if numeric:  # numbers first, then something else
                 raise _not_a_number(
@@ -506,8 +537,11 @@ def _parse_time(
                 ) from None
             break
     else:
-        if not all(math.isfinite(v) for v in numeric):
-            raise ValueError(f"{path}: time column {col!r} has non-finite values")
+        bad = [ln for v, ln in zip(numeric, lines) if not math.isfinite(v)]
+        if bad:  # (nan: a missing time; inf)
+            raise ValueError(
+                f"{path}: time column {col!r} has non-finite values at line(s) {_lines(bad)}"
+            )
         return np.asarray(numeric, dtype=np.float64), col, None
     stamps = []
     for cell, line in zip(cells, lines):
@@ -522,8 +556,8 @@ def _parse_time(
                 f"nor an ISO 8601 date-time in 1678-2262 ({exc}); for another layout give "
                 "time_format (--time-format), e.g. '%d/%m/%Y %H:%M'"
             ) from None
-        if np.isnat(stamps[-1]):
-            raise ValueError(f"{path}, line {line}: time column {col!r} is empty")
+        if np.isnat(stamps[-1]):  # ('nan' or 'NaT': empty cells are refused before)
+            raise ValueError(f"{path}, line {line}: time column {col!r} is missing ({cell!r})")
     return _days_since_first(np.asarray(stamps))
 
 
@@ -640,7 +674,10 @@ def load_series(
         if name is not None or time_unit is not None:
             raise ValueError("name and time_unit apply to arrays; a CSV series takes its names")
         if time_format is not None and time_column is None:
-            raise ValueError("time_format applies to a time column: give time_column as well")
+            raise ValueError(
+                "time_format applies to a time column: give time_column as well (--time-column "
+                "on the command line)"
+            )
         opts = (fill, last, until, decimal, time_format)
         return _load_csv(Path(source), column, time_column, parse_where(where), *opts)
     if any(v is not None for v in (column, time_column, where)) or decimal != ".":
@@ -668,7 +705,10 @@ def load_series(
     if until is not None:
         if tarr is None:
             raise ValueError("until needs a time axis: pass time=...")
-        keep = tarr <= time_value(until, start, "until")
+        if not np.isfinite(tarr).all():  # (a NaN time fell out of the cut without a word)
+            i = int(np.flatnonzero(~np.isfinite(tarr))[0])
+            raise ValueError(f"time has a non-finite value at index {i}")
+        keep = _cut(tarr, until, start, None, None, None)
         arr, tarr = arr[keep], tarr[keep]
     if last is not None:
         arr = arr[-last:]
@@ -738,6 +778,36 @@ def check_magnitude(values: np.ndarray, name: str, source=None, lines=None) -> N
         )
 
 
+def _check_increasing(time, time_name, start, source, lines) -> None:
+    """``time`` strictly increases (``ValueError`` naming the first row that does not)."""
+    steps = np.diff(time)
+    if (steps <= 0).any():
+        i = int(np.flatnonzero(steps <= 0)[0])
+        where = f"line {lines[i + 1]}" if lines is not None else f"index {i + 1}"
+        what = f"time column {time_name!r}" if time_name else "time"
+        prefix = f"{source}, " if source else ""
+        hint = ""
+        if source and time[i + 1] == time[i]:  # a long table: several series in one file
+            hint = (
+                "; a repeated time: if the file holds several series, select one with "
+                "--where COL=VALUE (where={COL: VALUE} in load_series)"
+            )
+        raise ValueError(
+            f"{prefix}{where}: {what} must be strictly increasing "
+            f"({_shown_time(time[i + 1], start)} follows {_shown_time(time[i], start)}){hint}"
+        )
+
+
+def _cut(time, until, start, time_name, source, lines) -> np.ndarray:
+    """The rows at or before ``until``: the first rows of a series in time order. Where a row
+    after the cut precedes one before it (rows out of order: ``0, 5, 2`` cut at 3 kept 0 and 2,
+    as if in order), the order is refused as :func:`_finish` refuses it."""
+    keep = time <= time_value(until, start, "until")
+    if not keep[: int(keep.sum())].all():  # (then the time decreases somewhere)
+        _check_increasing(time, time_name, start, source, lines)
+    return keep
+
+
 def _finish(values, time, name, time_name, unit, start, source, lines=None) -> Series:
     if values.shape[0] == 0:
         raise ValueError(f"series {name!r} is empty after selecting rows")
@@ -745,22 +815,7 @@ def _finish(values, time, name, time_name, unit, start, source, lines=None) -> S
     if time is not None:
         if not np.isfinite(time).all():
             raise ValueError(f"time of series {name!r} has non-finite values")
-        steps = np.diff(time)
-        if (steps <= 0).any():
-            i = int(np.flatnonzero(steps <= 0)[0])
-            where = f"line {lines[i + 1]}" if lines is not None else f"index {i + 1}"
-            what = f"time column {time_name!r}" if time_name else "time"
-            prefix = f"{source}, " if source else ""
-            hint = ""
-            if source and time[i + 1] == time[i]:  # a long table: several series in one file
-                hint = (
-                    "; a repeated time: if the file holds several series, select one with "
-                    "--where COL=VALUE (where={COL: VALUE} in load_series)"
-                )
-            raise ValueError(
-                f"{prefix}{where}: {what} must be strictly increasing "
-                f"({_shown_time(time[i + 1], start)} follows {_shown_time(time[i], start)}){hint}"
-            )
+        _check_increasing(time, time_name, start, source, lines)
     return Series(
         values=torch.as_tensor(values, dtype=torch.float64).clone(),
         time=None if time is None else torch.as_tensor(time, dtype=torch.float64).clone(),
@@ -780,7 +835,7 @@ def time_value(v, start: str | None, name: str) -> float:
     ``name``."""
     if isinstance(v, str):
         try:
-            v = float(v)
+            v = _number(v.strip())
         except ValueError:
             pass
     stamp = None
@@ -818,7 +873,8 @@ def _load_csv(path, column, time_column, where, fill, last, until, decimal, time
         others = [h for h in header if h != time_column and h not in where]
         if len(others) != 1:
             raise ValueError(
-                f"{path}: name the value column with column=...; columns: {', '.join(header)}"
+                f"{path}: name the value column with column=... (--column on the command "
+                f"line); columns: {', '.join(header)}"
             )
         column = others[0]
     if column not in index:
@@ -858,10 +914,14 @@ def _load_csv(path, column, time_column, where, fill, last, until, decimal, time
         time, unit, start = _parse_time(tcells, lines, str(path), time_column, decimal, time_format)
     if until is not None:
         if time is None:
-            raise ValueError("until needs a time column (time_column=...)")
-        keep = time <= time_value(until, start, "until")
+            raise ValueError(
+                "until needs a time column (time_column=..., --time-column on the command line)"
+            )
+        keep = _cut(time, until, start, time_column, str(path), lines)
         if not keep.any():
-            raise ValueError(f"{path}: no data rows at or before until={until!r}")
+            raise ValueError(
+                f"{path}: no data rows at or before until={until!r} (--until on the command line)"
+            )
         cells = [c for c, k in zip(cells, keep) if k]
         lines = [ln for ln, k in zip(lines, keep) if k]
         time = time[keep]
