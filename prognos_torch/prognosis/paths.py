@@ -24,12 +24,16 @@ from ..core.validation import (
     check_channel,
     check_controls,
     check_finite,
+    check_flag,
     check_float_tensor,
     check_generator,
     check_level,
+    check_nonneg_int,
     check_pos_int,
     check_weights,
     check_window,
+    is_int,
+    is_real,
 )
 from ..datasets.windows import shift_append
 from ..filters.gaussian import FilterState, GaussianFilter
@@ -128,8 +132,9 @@ class SamplePaths:
 
 
 def _weighted_quantile(samples: Tensor, weights: Tensor, q: float) -> Tensor:
-    if not 0.0 < q <= 1.0:
-        raise ValueError(f"q must lie in (0, 1], got {q}")
+    if not is_real(q) or not 0.0 < q <= 1.0:  # (True was read as q = 1, text failed on '<')
+        raise ValueError(f"q must be a number in (0, 1], got {q!r}")
+    q = float(q)
     s, order = samples.sort(dim=-2)  # (..., N, H)
     # The cumulative weights in float64 whatever the samples' dtype: a float32 cumsum of 1/N
     # falls short of q = k/N by more than the 1e-12 allowance and picks the next sample.
@@ -173,6 +178,7 @@ def recursive_predict(
         ``(..., H)`` predictions (differentiable; batch dims of ``window`` carried through).
     """
     horizon = check_pos_int(horizon, "horizon")
+    k0 = check_nonneg_int(k0, "k0")  # (as forecast: a float k0 reached f and h as k)
     if isinstance(learner_or_model, StateSpaceModel):
         model = learner_or_model
         x = check_window(window, model.state_dim, "window")
@@ -184,16 +190,29 @@ def recursive_predict(
             x = model.transition(x, u, k0 + j + 1)
             out.append(model.observe(x, u, k0 + j + 1)[..., channel])
         return torch.stack(out, dim=-1)
-    n_in, _ = learner_dims(learner_or_model)
+    n_in, n_out = learner_dims(learner_or_model)
     if not callable(learner_or_model):
         raise TypeError(
             f"learner_or_model must be a learner or a StateSpaceModel, got {type(learner_or_model)}"
         )
+    # as learner_transition_model (True added an axis, 0.0 or an index past n_out failed in
+    # the indexing)
+    if not is_int(n_out_index) or n_out_index < 0:
+        raise ValueError(f"n_out_index must be a non-negative int, got {n_out_index!r}")
+    n_out_index = int(n_out_index)
+    if n_out is not None and n_out_index >= n_out:
+        raise ValueError(f"n_out_index={n_out_index} is out of range for n_out={n_out}")
     m = n_in if n_in is not None else (window.shape[-1] if isinstance(window, Tensor) else 0)
     w = check_window(window, m, "window")
     out = []
     for _ in range(horizon):
-        nxt = learner_or_model(w)[..., n_out_index]  # Eq. 12-14
+        y = learner_or_model(w)
+        if y.shape[-1] <= n_out_index:
+            raise ValueError(
+                f"n_out_index={n_out_index} is out of range for the learner's output of shape "
+                f"{tuple(y.shape)}"
+            )
+        nxt = y[..., n_out_index]  # Eq. 12-14
         out.append(nxt)
         w = shift_append(w, nxt)  # P_{k-m+j+1}
     return torch.stack(out, dim=-1)
@@ -223,6 +242,7 @@ def settle(model: StateSpaceModel, states: Tensor, steps: int, *, k0: int = 0) -
             f"settle iterates a model without controls, got control_dim={model.control_dim}"
         )
     steps = check_pos_int(steps, "steps")
+    k0 = check_nonneg_int(k0, "k0")
     x = check_window(states, model.state_dim, "states")
     with torch.inference_mode():
         for k in range(k0, k0 + steps):
@@ -333,6 +353,8 @@ def particle_paths(
     horizon = check_pos_int(horizon, "horizon")
     level = check_level(level)
     check_channel(channel, model.obs_dim)
+    k0 = check_nonneg_int(k0, "k0")  # (a float k0 reached f, h and the noise as k)
+    measurement_noise = check_flag(measurement_noise, "measurement_noise")  # ("no" was true)
     n = model.state_dim
     x = check_float_tensor(particles, "particles", f"(..., N, {n})")
     if x.dim() < 2 or x.shape[-1] != n:
@@ -347,7 +369,9 @@ def particle_paths(
     for j in range(horizon):
         k = k0 + j + 1
         u = None if us is None else us[j].unsqueeze(-2)
-        noise = model.noise(k)
+        # checked: (n,) / (n, n) or the particles' batch dims first (a batched S_Q once widened
+        # unbatched particles into a batch of paths), finite
+        noise = model.checked_noise(k, batch, x, owner="particles")
         x = model.transition(x, u, k)
         if noise.q is not None:
             x = x + _noise_vec(noise.q, x)

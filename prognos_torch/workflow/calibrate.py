@@ -31,7 +31,7 @@ from dataclasses import replace
 import torch
 
 from .._workers import check_workers, process_map
-from ..core.validation import is_real
+from ..core.validation import is_int, is_real
 from ..prognosis.conformal import (
     RULCalibration,
     _check_bins,
@@ -123,6 +123,8 @@ def calibrate_rul(
         )
     if threshold is not None and not is_real(threshold):
         raise TypeError(f"threshold must be a real number or None, got {threshold!r}")
+    if threshold is not None and not math.isfinite(threshold):  # (was blamed on a history)
+        raise ValueError(f"threshold must be finite or None, got {threshold!r}")
     check_workers(workers)
     # checked before the replays (minutes to hours on a real archive), not after them
     _check_coverage(coverage)
@@ -197,7 +199,11 @@ def _settings(kwargs: dict, threshold, direction: str, fractions, seed) -> dict:
     repr), the failure ``threshold`` (``"protocol"``: each history's own) and ``direction``."""
     out = {k: p.default for k, p in inspect.signature(prognose).parameters.items()
            if p.kind is p.KEYWORD_ONLY and k not in ("time", "at", "seed", "direction")}  # fmt: skip
-    out = record_settings({**out, **kwargs})
+    # a NumPy number as the number it is (its repr, "np.int64(500)", made summary() refuse
+    # every result: n_paths 500 differed from it)
+    plain = {k: (int(v) if is_int(v) else float(v)) if is_real(v) and type(v) not in (int, float)
+             else v for k, v in kwargs.items()}  # fmt: skip
+    out = record_settings({**out, **plain})
     out.update(threshold="protocol" if threshold is None else float(threshold),
                direction=direction, fractions=list(fractions),
                seed=list(seed) if isinstance(seed, tuple) else seed)  # fmt: skip
@@ -216,6 +222,13 @@ def _items(histories) -> list[tuple[str, tuple[torch.Tensor, torch.Tensor]]]:
         )
     if not pairs:
         raise ValueError("histories is empty: give at least one run-to-failure series")
+    names = [str(name) for name, _ in pairs]
+    if len(set(names)) < len(names):  # ({1: a, "1": b}: one asset's points, counted once)
+        twice = next(n for n in names if names.count(n) > 1)
+        raise ValueError(
+            f"histories names {twice!r} twice (keys are compared as text): give each history "
+            "its own name"
+        )
     out = []
     for name, h in pairs:
         if not (isinstance(h, Series) or (isinstance(h, (tuple, list)) and len(h) == 2)):

@@ -48,12 +48,13 @@ from __future__ import annotations
 import math
 import numbers
 import time
+from collections.abc import Mapping
 
 import torch
 from torch import Tensor, nn
 
 from ..adapt.noise import SageHusa
-from ..core.validation import all_finite, check_seed, is_int, is_real
+from ..core.validation import all_finite, check_flag, check_seed, is_int, is_real
 from ..datasets.windows import MinMaxScaler, embed
 from ..learners import ANFIS, ELM, LSSVR
 from ..learners.lssvr_fixed import FixedSizeLSSVR
@@ -132,6 +133,8 @@ def _merge(defaults: dict, given: dict | None, what: str) -> dict:
             raise ValueError(
                 f"{what} option {key} must be {kind[0]} (like {defaults[key]!r}), got {v!r}"
             )
+        if kind is not None and kind[1] is not str and type(v) not in (int, float):
+            given[key] = int(v) if is_int(v) else float(v)  # a NumPy scalar: the config is JSON
     out = dict(defaults)
     out.update(given)
     return out
@@ -154,7 +157,8 @@ def build_learner(
     (:func:`~prognos_torch.workflow.memory.lssvr_support`; a model file passes its
     ``series.n_train``); ``None`` builds the exact :class:`~prognos_torch.learners.LSSVR`.
     """
-    gen = torch.Generator().manual_seed(seed)
+    # (manual_seed said "an integer is required" for np.int64, "expected a long" for 1.5)
+    gen = torch.Generator().manual_seed(check_seed(seed))
     if name == "elm":
         net = ELM(m, int(options["n_hidden"]), 1, options["activation"], gen, dtype)
     elif name == "lssvr":
@@ -214,6 +218,20 @@ def select_embedding(
         ``(m, {m: validation RMSE})``; every candidate validates on the same targets, the last
         ``ceil(0.2 T)`` values.
     """
+    seed = check_seed(seed)
+    if progress is not None:
+        progress = check_flag(progress, "progress")
+    if not isinstance(z, Tensor) or not z.is_floating_point() or z.dim() != 1:
+        got = tuple(z.shape) if isinstance(z, Tensor) else type(z).__name__
+        raise ValueError(f"z must be a floating tensor of shape (T,), got {got}")
+    z = z.to(torch.float64)  # (the learners are float64; a float32 z failed in their forward)
+    try:
+        given = list(candidates)
+    except TypeError:
+        given = []
+    if not given or any(not is_int(m) or m < 1 for m in given):  # (2.0: "slice indices must")
+        raise ValueError(f"candidates must be positive ints, got {candidates!r}")
+    candidates = [int(m) for m in given]
     T = z.shape[0]
     n_val = max(1, math.ceil(VALIDATION_FRACTION * T))
     split = T - n_val
@@ -401,8 +419,11 @@ def fit_series(
     lopts = _merge(LEARNER_DEFAULTS[learner], learner_options, f"{learner} learner")
     oopts = _merge(OPTIMIZER_DEFAULTS[optimizer], optimizer_options, f"{optimizer} optimizer")
     seed = check_seed(seed)
-    if not isinstance(refit, bool):
-        raise TypeError(f"refit must be a bool, got {refit!r}")
+    refit = check_flag(refit, "refit")  # (np.bool_ too)
+    if progress is not None:  # (read by its truth value: "no" drew the bars)
+        progress = check_flag(progress, "progress")
+    if data is not None and not isinstance(data, Mapping):  # (was found after the training)
+        raise TypeError(f"data must be a dict or None, got {type(data).__name__}")
     T = len(series)
     if m is not None:
         if not is_int(m) or m < 1:
