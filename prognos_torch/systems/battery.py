@@ -64,6 +64,7 @@ from ..core.validation import (
 from .noise_streams import draw_run_noise
 from .simulation import (
     SimulationResult,
+    check_state,
     initial_state,
     input_sequence,
     plain_params,
@@ -144,21 +145,12 @@ class BatteryCircuitParams:
             raise ValueError(f"BatteryCircuitParams.x0 must hold 4 numbers, got {self.x0!r}")
 
 
-def _check_state(x, name: str = "x") -> Tensor:
-    """A floating-point state tensor ``(..., 4)``."""
-    if not isinstance(x, Tensor) or not x.is_floating_point():
-        got = x.dtype if isinstance(x, Tensor) else type(x).__name__
-        raise TypeError(f"{name} must be a floating-point tensor (..., 4), got {got}")
-    if x.dim() == 0 or x.shape[-1] != 4:
-        raise ValueError(
-            f"{name} must have shape (..., 4) [tb, qb, qcp, qcs], got {tuple(x.shape)}"
-        )
-    return x
+_STATE = "[tb, qb, qcp, qcs]"  # the state's components, named in messages
 
 
 def _voltage_parts(x: Tensor, p: BatteryCircuitParams):
     """``tb, qb, Vcs, Vcp, v, SOC`` of the state ``x`` ``(..., 4)``; each ``(...)``."""
-    tb, qb, qcp, qcs = _check_state(x).unbind(-1)
+    tb, qb, qcp, qcs = check_state(x, 4, _STATE).unbind(-1)
     vcs = qcs * (1.0 / p.Cs)
     vcp = qcp * (1.0 / p.Ccp)
     soc = qb.mul(1.0 / p.CMax).add_((p.CMax - p.qMax) / p.CMax)
@@ -191,7 +183,7 @@ def _current(u: Tensor | None, x: Tensor) -> Tensor:
 
 
 def _rates(x: Tensor, u: Tensor, p: BatteryCircuitParams) -> Tensor:
-    i = _current(u, _check_state(x))
+    i = _current(u, check_state(x, 4, _STATE))
     tb, vcs, vcp, rcp, v, _ = _parts(x, p)
     ib = torch.add(i, v, alpha=1.0 / p.Rp)  # i + v / Rp
     g = vcp / rcp  # Vcp / Rcp
@@ -297,7 +289,7 @@ def battery_circuit_step(
     written into it and ``out`` is returned (the same numbers; no stacking copy). ``out`` is for
     plain tensors (not under ``torch.func`` transforms). ``dt`` is a finite positive number.
     """
-    _check_state(x)
+    check_state(x, 4, _STATE)
     if not is_real(dt) or not math.isfinite(dt) or dt <= 0:
         raise ValueError(f"dt must be a finite positive number, got {dt!r}")
     if out is not None and (
@@ -345,7 +337,7 @@ def battery_eod_event(
     def event(x: Tensor) -> Tensor:
         # v = Vb - Vcp - Vcs in fused operations (the step's arrangement, 9 tensor operations;
         # it is evaluated on every state of every step)
-        key = (_check_state(x).dtype, x.device)
+        key = (check_state(x, 4, _STATE).dtype, x.device)
         k = consts.get(key)
         if k is None:
             k = consts[key] = _step_constants(p, 1.0, x.dtype, x.device)

@@ -88,6 +88,7 @@ from ..core.validation import (
 from .noise_streams import draw_run_noise
 from .simulation import (
     SimulationResult,
+    check_state,
     initial_state,
     input_sequence,
     plain_params,
@@ -204,16 +205,6 @@ class HSTParams:
         return 2 * len(self.m) - 1
 
 
-def _check_psi(psi, s: int) -> Tensor:
-    """A floating-point state tensor ``(..., s)``."""
-    if not isinstance(psi, Tensor) or not psi.is_floating_point():
-        got = psi.dtype if isinstance(psi, Tensor) else type(psi).__name__
-        raise TypeError(f"psi must be a floating-point tensor (..., {s}), got {got}")
-    if psi.dim() == 0 or psi.shape[-1] != s:
-        raise ValueError(f"psi must have shape (..., {s}) (2n-1 = {s}), got {tuple(psi.shape)}")
-    return psi
-
-
 def _check_input(v, name: str, shape: str, d: int, lead) -> Tensor:
     """A tensor ``(..., d)`` (``d = 0``: ``(...)``) whose leading shape broadcasts to ``lead``
     (the state's), so that it cannot silently widen the result."""
@@ -245,7 +236,7 @@ def hst_rhs(psi: Tensor, u, f_a, v_r: float, params: HSTParams) -> Tensor:
     """
     p = params
     n = p.n_cars
-    lead = _check_psi(psi, p.state_dim).shape[:-1]
+    lead = check_state(psi, p.state_dim, "[x_c, v]", "psi").shape[:-1]
     if u is not None:
         _check_input(u, "u", f"(..., {n})", n, lead)
     if isinstance(f_a, Tensor):
@@ -276,7 +267,7 @@ def hst_step(psi: Tensor, u, f_a, v_r: float, params: HSTParams) -> Tensor:
 def hst_measure(psi: Tensor, f_s, params: HSTParams) -> Tensor:
     """``C psi + F_s f^s`` with ``C = I`` (Eq. 11, 13); ``f_s`` a number or ``(...)`` tensor
     (broadcasting to ``psi``'s leading shape)."""
-    lead = _check_psi(psi, params.state_dim).shape[:-1]
+    lead = check_state(psi, params.state_dim, "[x_c, v]", "psi").shape[:-1]
     Fs = psi.new_tensor(params.F_s)
     if isinstance(f_s, Tensor):
         fs = _check_input(f_s, "f_s", "(...)", 0, lead).unsqueeze(-1)

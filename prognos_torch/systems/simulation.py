@@ -141,14 +141,14 @@ def _plain(v):
     return float(v) if is_real(v) and type(v) not in (int, float) else v
 
 
-def check_state(x, n: int, names: str) -> Tensor:
-    """A floating-point state tensor ``(..., n)`` (``names`` spells its components), refused
-    otherwise (a wider state was read by its first ``n`` components)."""
+def check_state(x, n: int, names: str, name: str = "x") -> Tensor:
+    """A floating-point state tensor ``(..., n)`` (``names`` spells its components, ``name``
+    the argument), refused otherwise (a wider state was read by its first ``n`` components)."""
     if not isinstance(x, Tensor) or not x.is_floating_point():
         got = x.dtype if isinstance(x, Tensor) else type(x).__name__
-        raise TypeError(f"x must be a floating-point tensor (..., {n}) {names}, got {got}")
+        raise TypeError(f"{name} must be a floating-point tensor (..., {n}) {names}, got {got}")
     if x.dim() == 0 or x.shape[-1] != n:
-        raise ValueError(f"x must have shape (..., {n}) {names}, got {tuple(x.shape)}")
+        raise ValueError(f"{name} must have shape (..., {n}) {names}, got {tuple(x.shape)}")
     return x
 
 
