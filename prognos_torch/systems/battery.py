@@ -50,7 +50,6 @@ from torch import Tensor
 
 from ..core.model import StateSpaceModel
 from ..core.validation import (
-    broadcast_shape,
     check_count,
     check_dtype_arg,
     check_flag,
@@ -64,6 +63,7 @@ from ..core.validation import (
 from .noise_streams import draw_run_noise
 from .simulation import (
     SimulationResult,
+    check_leading,
     check_state,
     initial_state,
     input_sequence,
@@ -170,15 +170,7 @@ def _current(u: Tensor | None, x: Tensor) -> Tensor:
     """The current ``(...)`` of ``u`` ``(..., 1)``, whose leading shape broadcasts to ``x``'s."""
     if u is None:
         raise ValueError("the battery model needs the current u of shape (..., 1)")
-    if not isinstance(u, Tensor):
-        raise TypeError(f"u must be a tensor of shape (..., 1) (the current in A), got {u!r}")
-    if u.dim() == 0 or u.shape[-1] != 1:
-        raise ValueError(f"u must have shape (..., 1) (the current in A), got {tuple(u.shape)}")
-    lead = x.shape[:-1]
-    if u.shape[:-1] != lead and broadcast_shape(u.shape[:-1], lead) != lead:
-        raise ValueError(
-            f"u {tuple(u.shape)} must broadcast to x's leading shape {tuple(lead)} + (1,)"
-        )
+    check_leading(u, "u", x, 1, numbers=False)  # (the current in A)
     return u.squeeze(-1)
 
 

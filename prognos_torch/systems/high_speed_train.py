@@ -76,7 +76,6 @@ from torch import Tensor
 
 from ..core.model import StateSpaceModel, joint_state_parameter_model
 from ..core.validation import (
-    broadcast_shape,
     check_count,
     check_dtype_arg,
     check_flag,
@@ -88,6 +87,7 @@ from ..core.validation import (
 from .noise_streams import draw_run_noise
 from .simulation import (
     SimulationResult,
+    check_leading,
     check_state,
     initial_state,
     input_sequence,
@@ -205,23 +205,6 @@ class HSTParams:
         return 2 * len(self.m) - 1
 
 
-def _check_input(v, name: str, shape: str, d: int, lead) -> Tensor:
-    """A tensor ``(..., d)`` (``d = 0``: ``(...)``) whose leading shape broadcasts to ``lead``
-    (the state's), so that it cannot silently widen the result."""
-    if not isinstance(v, Tensor):
-        raise TypeError(f"{name} must be a tensor of shape {shape}, got {type(v).__name__}")
-    vl = v.shape
-    if d:
-        if v.dim() == 0 or v.shape[-1] != d:
-            raise ValueError(f"{name} must have shape {shape}, got {tuple(v.shape)}")
-        vl = v.shape[:-1]
-    if vl != lead and broadcast_shape(vl, lead) != lead:
-        raise ValueError(
-            f"{name} {tuple(v.shape)} must broadcast to psi's leading shape {tuple(lead)}"
-        )
-    return v
-
-
 # --------------------------------------------------------------------------- dynamics
 def hst_rhs(psi: Tensor, u, f_a, v_r: float, params: HSTParams) -> Tensor:
     """``dpsi/dt`` of paper 004 Eq. 8 (derived form, see module docstring).
@@ -236,11 +219,12 @@ def hst_rhs(psi: Tensor, u, f_a, v_r: float, params: HSTParams) -> Tensor:
     """
     p = params
     n = p.n_cars
-    lead = check_state(psi, p.state_dim, "[x_c, v]", "psi").shape[:-1]
+    check_state(psi, p.state_dim, "[x_c, v]", "psi")
     if u is not None:
-        _check_input(u, "u", f"(..., {n})", n, lead)
+        check_leading(u, "u", psi, n, state="psi", numbers=False)
     if isinstance(f_a, Tensor):
-        fa = _check_input(f_a, "f_a", "(..., 2)", 2, lead).to(psi.dtype)
+        check_leading(f_a, "f_a", psi, 2, state="psi")
+        fa = f_a.to(psi.dtype)
     elif isinstance(f_a, (tuple, list)) and len(f_a) == 2 and all(is_real(e) for e in f_a):
         fa = psi.new_tensor(f_a)
     else:
@@ -267,10 +251,11 @@ def hst_step(psi: Tensor, u, f_a, v_r: float, params: HSTParams) -> Tensor:
 def hst_measure(psi: Tensor, f_s, params: HSTParams) -> Tensor:
     """``C psi + F_s f^s`` with ``C = I`` (Eq. 11, 13); ``f_s`` a number or ``(...)`` tensor
     (broadcasting to ``psi``'s leading shape)."""
-    lead = check_state(psi, params.state_dim, "[x_c, v]", "psi").shape[:-1]
+    check_state(psi, params.state_dim, "[x_c, v]", "psi")
     Fs = psi.new_tensor(params.F_s)
     if isinstance(f_s, Tensor):
-        fs = _check_input(f_s, "f_s", "(...)", 0, lead).unsqueeze(-1)
+        check_leading(f_s, "f_s", psi, state="psi")
+        fs = f_s.unsqueeze(-1)
     elif is_real(f_s):
         fs = f_s
     else:

@@ -152,25 +152,33 @@ def check_state(x, n: int, names: str, name: str = "x") -> Tensor:
     return x
 
 
-def check_leading(v, name: str, x: Tensor, tail: int = 0) -> None:
+def check_leading(
+    v, name: str, x: Tensor, tail: int = 0, *, state: str = "x", numbers: bool = True
+) -> None:
     """A tensor ``v`` ``(..., tail)`` (``tail = 0``: ``(...)``) whose leading shape broadcasts to
-    ``x``'s ``(...)`` without widening it (numbers pass): a wider one gave the rate another shape
-    than ``x``."""
+    the leading shape of the state ``x`` ``(..., n)`` without widening it: a wider one gave the
+    rate or measurement another shape than ``x``. ``state`` names ``x`` in the messages; a
+    number passes unless ``numbers=False`` (then a ``TypeError``)."""
+    want = "(...)" if tail == 0 else f"(..., {tail})"
     if not isinstance(v, Tensor):
-        return
-    lead, want = x.shape[:-1], "(...)" if tail == 0 else f"(..., {tail})"
+        if numbers:
+            return
+        raise TypeError(f"{name} must be a tensor of shape {want}, got {type(v).__name__}")
+    if tail and (v.dim() == 0 or v.shape[-1] != tail):
+        raise ValueError(f"{name} must have shape {want}, got {tuple(v.shape)}")
+    lead = x.shape[:-1]
     vlead = v.shape if tail == 0 else v.shape[:-1]
-    ok = tail == 0 or (v.dim() >= 1 and v.shape[-1] == tail)
-    if ok and vlead != lead:
+    if vlead != lead:
         try:
             ok = broadcast_shape(vlead, lead) == lead
         except ValueError:
             ok = False
-    if not ok:
-        raise ValueError(
-            f"{name} must have shape {want} with a leading shape that broadcasts to x's "
-            f"{tuple(lead)}, got {tuple(v.shape)}"
-        )
+        if not ok:
+            raise ValueError(
+                f"{name} must have shape {want} with leading dimensions that broadcast to "
+                f"{state}'s without widening them: {name} {tuple(v.shape)} must broadcast to "
+                f"{state}'s leading shape {tuple(lead)}"
+            )
 
 
 def resolve_params(params, cls):
