@@ -12,34 +12,10 @@ from prognos_torch.filters import ekf, run
 from prognos_torch.optim import em_linear_gaussian
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _kalman_reference import rts_reference  # noqa: E402
+from _kalman_reference import numpy_em_step, rts_reference  # noqa: E402
 
 dt = torch.float64
 t = lambda a: torch.as_tensor(a, dtype=dt)  # noqa: E731
-
-
-def numpy_em_step(A, C, Q, R, m0, P0, ys, learn):
-    """One EM iteration (Shumway and Stoffer 1982; Ghahramani and Hinton 1996)."""
-    ref = rts_reference(A, C, Q, R, m0, P0, ys)
-    ms, Ps, L = ref["means"], ref["covs"], ref["cross"]
-    T = len(ys)
-    Exx = Ps + np.einsum("ti,tj->tij", ms, ms)
-    S11, S00 = Exx[1:].sum(0), Exx[:-1].sum(0)
-    S10 = (L + np.einsum("ti,tj->tij", ms[1:], ms[:-1])).sum(0)
-    if "A" in learn:
-        A = np.linalg.solve(S00.T, S10.T).T
-    if "Q" in learn:
-        Q = (S11 - A @ S10.T - S10 @ A.T + A @ S00 @ A.T) / T
-    o = ~np.isnan(ys).all(-1)
-    yo, xo = ys[o], ms[1:][o]
-    Syx, Sxx, Syy = yo.T @ xo, Exx[1:][o].sum(0), yo.T @ yo
-    if "C" in learn:
-        C = np.linalg.solve(Sxx.T, Syx.T).T
-    if "R" in learn:
-        R = (Syy - C @ Syx.T - Syx @ C.T + C @ Sxx @ C.T) / o.sum()
-    if "init" in learn:
-        m0, P0 = ms[0], Ps[0]
-    return A, C, Q, R, m0, P0, ref["ll"]
 
 
 def problem(seed, n=2, m=2, T=60, batch=2):

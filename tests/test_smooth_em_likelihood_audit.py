@@ -15,7 +15,7 @@ from prognos_torch.filters import ekf, run, sckf, smooth, smooth_trajectory
 from prognos_torch.optim import em_linear_gaussian, fit_likelihood, linear_model
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _kalman_reference import kalman_filter_observed, rts_reference  # noqa: E402
+from _kalman_reference import kalman_filter_observed, numpy_em_step, rts_reference  # noqa: E402
 
 d = torch.float64
 t = lambda a: torch.as_tensor(np.asarray(a), dtype=d)  # noqa: E731
@@ -143,27 +143,6 @@ def test_smooth_trajectory_takes_a_numpy_bool_for_sqrt():
 
 
 # ------------------------------------------------------------------------------ EM
-def em_step(A, C, Q, R, m0, P0, ys, learn):
-    """One closed-form M-step from the reference smoother's sufficient statistics."""
-    ref = rts_reference(A, C, Q, R, m0, P0, ys)
-    ms, Ps, L = ref["means"], ref["covs"], ref["cross"]
-    T = len(ys)
-    Exx = Ps + np.einsum("ti,tj->tij", ms, ms)
-    S11, S00 = Exx[1:].sum(0), Exx[:-1].sum(0)
-    S10 = (L + np.einsum("ti,tj->tij", ms[1:], ms[:-1])).sum(0)
-    A = S10 @ np.linalg.inv(S00) if "A" in learn else A
-    if "Q" in learn:
-        Q = (S11 - A @ S10.T - S10 @ A.T + A @ S00 @ A.T) / T
-    o = ~np.isnan(ys).all(-1)
-    Syx, Sxx, Syy = ys[o].T @ ms[1:][o], Exx[1:][o].sum(0), ys[o].T @ ys[o]
-    C = Syx @ np.linalg.inv(Sxx) if "C" in learn else C
-    if "R" in learn:
-        R = (Syy - C @ Syx.T - Syx @ C.T + C @ Sxx @ C.T) / o.sum()
-    if "init" in learn:
-        m0, P0 = ms[0], Ps[0]
-    return A, C, Q, R, m0, P0, ref["ll"]
-
-
 @pytest.mark.parametrize("learn", [("A", "C", "Q", "R", "init"), ("Q", "R")])
 def test_one_em_step_equals_the_closed_form_m_step_per_element_of_a_2d_batch(learn):
     g = np.random.default_rng(0)
@@ -180,7 +159,7 @@ def test_one_em_step_equals_the_closed_form_m_step_per_element_of_a_2d_batch(lea
     assert fit.trace.shape == (2, *bs)
     for i in range(N):
         j = np.unravel_index(i, bs)
-        An, Cn, Qn, Rn, m0n, P0n, ll = em_step(A[i], C[i], Q, R, m0[i], P0, ys[:, i], learn)
+        An, Cn, Qn, Rn, m0n, P0n, ll = numpy_em_step(A[i], C[i], Q, R, m0[i], P0, ys[:, i], learn)
         got = (fit.A[j], fit.C[j], (fit.chol_Q @ fit.chol_Q.mT)[j],
                (fit.chol_R @ fit.chol_R.mT)[j], fit.init.mean[j], fit.init.cov[j])  # fmt: skip
         for a, b in zip(got, (An, Cn, Qn, Rn, m0n, P0n)):
