@@ -344,6 +344,13 @@ def check_scalar(x, name: str) -> float:
     return value
 
 
+def check_positive_real(v, name: str) -> None:
+    """``ValueError`` naming ``name`` unless ``v`` is a finite real number ``> 0`` (a Python or
+    NumPy scalar; not a bool or text): a step size, a scale."""
+    if not is_real(v) or not math.isfinite(v) or v <= 0:
+        raise ValueError(f"{name} must be a finite positive number, got {v!r}")
+
+
 def check_real(v, name: str) -> float:
     """A finite real number as a float: a Python or NumPy scalar, or a 0-dim tensor or array.
     Unlike :func:`check_scalar`, text (``"20"``) and one-element vectors are refused, and every

@@ -33,7 +33,14 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.validation import as_tensor, check_scalar, check_weights, is_int, is_real
+from ..core.validation import (
+    as_tensor,
+    check_positive_real,
+    check_scalar,
+    check_weights,
+    is_int,
+    is_real,
+)
 
 __all__ = [
     "RULDistribution",
@@ -319,8 +326,7 @@ def rul_distribution(
     direction = _check_direction(direction)
     samples = _check_samples(samples)
     thr = check_scalar(threshold, "threshold")
-    if not is_real(dt) or not math.isfinite(dt) or dt <= 0:
-        raise ValueError(f"dt must be a finite positive number, got {dt!r}")
+    check_positive_real(dt, "dt")
     dt = float(dt)
     if not is_real(tol) or not 0.0 <= tol < 1.0:
         raise ValueError(f"tol must be a number in [0, 1), got {tol!r}")

@@ -55,6 +55,7 @@ from ..core.validation import (
     check_flag,
     check_params_finite,
     check_positive,
+    check_positive_real,
     check_std,
     diag_chol,
     is_bool_or_complex,
@@ -282,8 +283,7 @@ def battery_circuit_step(
     plain tensors (not under ``torch.func`` transforms). ``dt`` is a finite positive number.
     """
     check_state(x, 4, _STATE)
-    if not is_real(dt) or not math.isfinite(dt) or dt <= 0:
-        raise ValueError(f"dt must be a finite positive number, got {dt!r}")
+    check_positive_real(dt, "dt")
     if out is not None and (
         not isinstance(out, Tensor)
         or (out.shape, out.dtype, out.device) != (x.shape, x.dtype, x.device)
@@ -371,8 +371,7 @@ def battery_circuit_model(
             UKF default ``R = 1e-3 I``.
     """
     p = params or BatteryCircuitParams()
-    if not is_real(dt) or not math.isfinite(dt) or dt <= 0:
-        raise ValueError(f"dt must be a finite positive number, got {dt!r}")
+    check_positive_real(dt, "dt")
     dt = float(dt)
     check_dtype_arg(dtype)
     SQ = diag_chol(check_std(process_noise_std, 4, "process_noise_std"), dtype, device)
@@ -460,8 +459,7 @@ def load_controls(
     it must map the ``(steps,)`` times to ``(steps,)`` (or ``(steps, 1)``) currents.
     """
     steps = check_count(steps, "steps")
-    if not is_real(dt) or not math.isfinite(dt) or dt <= 0:
-        raise ValueError(f"dt must be a finite positive number, got {dt!r}")
+    check_positive_real(dt, "dt")
     if not is_real(t0) or not math.isfinite(t0):
         raise ValueError(f"t0 must be a finite number, got {t0!r}")
     check_dtype_arg(dtype)

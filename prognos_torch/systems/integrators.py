@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 from torch import Tensor
 
-from ..core.validation import is_real
+from ..core.validation import check_positive_real
 
 __all__ = ["rk4_step", "euler_step"]
 
@@ -17,8 +16,7 @@ def _check_step(x, dt) -> None:
     if not isinstance(x, Tensor) or not x.is_floating_point():
         got = x.dtype if isinstance(x, Tensor) else type(x).__name__
         raise TypeError(f"x must be a floating-point tensor (..., n), got {got}")
-    if not is_real(dt) or not math.isfinite(dt) or dt <= 0:
-        raise ValueError(f"dt must be a finite positive number, got {dt!r}")
+    check_positive_real(dt, "dt")
 
 
 def _rate(rhs: Callable[[Tensor], Tensor], x: Tensor) -> Tensor:
