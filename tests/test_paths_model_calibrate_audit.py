@@ -22,7 +22,7 @@ from torch import nn
 import prognos_torch.workflow.calibrate as calibrate_mod
 from prognos_torch.core.model import StateSpaceModel
 from prognos_torch.prognosis import particle_paths, recursive_predict, settle
-from prognos_torch.prognosis.paths import SamplePaths, _weighted_quantile
+from prognos_torch.prognosis.paths import SamplePaths, weighted_quantile
 from prognos_torch.workflow import fit_series, load_series
 from prognos_torch.workflow.calibrate import calibrate_rul
 from prognos_torch.workflow.model import LEARNER_DEFAULTS, build_learner, select_embedding
@@ -45,7 +45,7 @@ def _brute_quantile(s: np.ndarray, w: np.ndarray, q: float) -> float:
     return max(s)
 
 
-def test_weighted_quantile_matches_brute_force_batched_float32_and_zero_weights():
+def testweighted_quantile_matches_brute_force_batched_float32_and_zero_weights():
     g = torch.Generator().manual_seed(3)
     s = torch.randn(2, 7, 3, generator=g, dtype=F64).round(decimals=1)  # ties
     w = torch.rand(2, 7, generator=g, dtype=F64)
@@ -53,7 +53,7 @@ def test_weighted_quantile_matches_brute_force_batched_float32_and_zero_weights(
     w = w / w.sum(-1, keepdim=True)
     for dt in (F64, torch.float32):
         for q in (0.05, 0.3, 0.5, 0.975, 1.0):
-            got = _weighted_quantile(s.to(dt), w, q)
+            got = weighted_quantile(s.to(dt), w, q)
             assert got.dtype == dt and got.shape == (2, 3)
             for b in range(2):
                 for h in range(3):

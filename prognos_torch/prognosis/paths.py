@@ -128,10 +128,13 @@ class SamplePaths:
 
     def quantile(self, q: float) -> Tensor:
         """Weighted lower quantile ``min{s : P(x <= s) >= q}`` per step, ``(..., H)``."""
-        return _weighted_quantile(self.samples, self.weights, q)
+        return weighted_quantile(self.samples, self.weights, q)
 
 
-def _weighted_quantile(samples: Tensor, weights: Tensor, q: float) -> Tensor:
+def weighted_quantile(samples: Tensor, weights: Tensor, q: float) -> Tensor:
+    """The ``q`` quantile of ``samples`` ``(..., N, H)`` per column under ``weights`` ``(..., N)``
+    summing to 1: the smallest sample whose cumulative weight reaches ``q`` (to 1e-12);
+    ``(..., H)``."""
     if not is_real(q) or not 0.0 < q <= 1.0:  # (True was read as q = 1, text failed on '<')
         raise ValueError(f"q must be a number in (0, 1], got {q!r}")
     q = float(q)
@@ -395,8 +398,8 @@ def particle_paths(
         weights=w64,
         mean=mean,
         std=std,
-        lower=_weighted_quantile(samples, w64, lo),
-        upper=_weighted_quantile(samples, w64, hi),
+        lower=weighted_quantile(samples, w64, lo),
+        upper=weighted_quantile(samples, w64, hi),
         level=level,
     )
 
