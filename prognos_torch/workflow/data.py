@@ -140,17 +140,12 @@ def parse_where(where) -> dict[str, str]:
         where = [where]
     out = {}
     for item in where:
-        if not isinstance(item, str) or "=" not in item:
+        if not isinstance(item, str) or "=" not in item or not item.split("=", 1)[0].strip():
             raise ValueError(
                 f"where: expected COLUMN=VALUE (--where COL=VALUE on the command line), got "
                 f"{item!r}"
             )
         key, value = item.split("=", 1)
-        if not key.strip():
-            raise ValueError(
-                f"where: expected COLUMN=VALUE (--where COL=VALUE on the command line), got "
-                f"{item!r}"
-            )
         if key.strip() in out:  # (the last one would win without a word)
             raise ValueError(
                 f"where: column {key.strip()!r} is named twice ({key.strip()}={out[key.strip()]}, "
