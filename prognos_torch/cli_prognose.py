@@ -96,10 +96,14 @@ def reporter(args):
     return print
 
 
-def _to_stderr(text: str) -> None:
-    import sys
+def _warner(args):
+    """``print`` for the report's ``warning:`` lines, or a printer to standard error where
+    ``--json -`` takes standard output (they were lost with the report)."""
+    if getattr(args, "json", None) == "-":
+        import sys
 
-    print(text, file=sys.stderr)
+        return lambda text: print(text, file=sys.stderr)
+    return print
 
 
 def within_probability(res, within: float, hint: str = "") -> float | None:
@@ -354,7 +358,7 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
     cal_rows, cal_warn, made, calibrated = _calibration(args, res, filt, histories)
     where = data_cfg.get("where") or {}
     sel = f" ({', '.join(f'{k}={v}' for k, v in where.items())})" if where else ""
-    say = reporter(args)
+    say, warn = reporter(args), _warner(args)
     say(
         f"RUL of {series.name!r}{sel} from {series.source} at t = "
         f"{at_time(series, res.t_last, unit)}: "
@@ -407,7 +411,7 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
     for k, v in rows:
         say(f"  {k.ljust(width)}  {v}")
     for f in list(res.flags) + cal_warn:  # (--json -: on stderr, beside the record, not lost)
-        (say if say is print else _to_stderr)(f"warning: {f}")
+        warn(f"warning: {f}")
     if args.plot is not None:
         from .plots import plot_prognosis  # (matplotlib: only for a figure)
 
