@@ -59,7 +59,14 @@ from ..core.validation import (
 )
 from ..learners import ELM
 from ..optim import KalmanOptimizer
-from .trends import Passage, TrendFit, TrendPool, check_obs_index, check_path_draws
+from .trends import (
+    Passage,
+    TrendFit,
+    TrendPool,
+    check_obs_index,
+    check_path_draws,
+    check_path_grid,
+)
 
 __all__ = ["TimeELM", "LearnerTrendFit", "fit_learner_trend", "fit_learner_trends"]
 
@@ -201,15 +208,7 @@ class LearnerTrendFit:
         i = check_obs_index(index, lf.t.shape[0])
         t_origin = float(lf.t[i])
         g64 = _times(grid, "grid", lf.z.device)  # the times returned are grid's own
-        # (a step back or a NaN time gave sqrt of a negative step: a path counted as diverged)
-        if (
-            g64.dim() != 1
-            or g64.numel() < 1
-            or not bool(g64[0] > t_origin)
-            or not bool(torch.isfinite(g64).all())
-            or not bool((g64[1:] > g64[:-1]).all())
-        ):
-            raise ValueError("grid must be (J,) finite, strictly increasing times after the origin")
+        check_path_grid(g64, t_origin)
         dt, dev = torch.float64, lf.z.device
         pb = self.parameter_belief(i)
         eb = standard_normal((n_paths, pb.mean.shape[-1]), generator, dt, dev)

@@ -307,6 +307,15 @@ def check_path_draws(generator, n_paths) -> None:
         raise ValueError(f"n_paths must be an int >= 1, got {n_paths!r}")
 
 
+def check_path_grid(grid: Tensor, t_origin: float) -> None:
+    """``grid`` ``(J,)``: finite, strictly increasing times after the origin ``t_origin`` (a
+    step back or a NaN time gave the square root of a negative step, a path counted as
+    diverged)."""
+    if (grid.dim() != 1 or grid.numel() < 1 or not bool(grid[0] > t_origin)
+            or not bool(torch.isfinite(grid).all()) or not bool((grid.diff() > 0).all())):  # fmt: skip
+        raise ValueError("grid must be (J,) finite, strictly increasing times after the origin")
+
+
 def check_obs_index(index, n: int, name: str = "index") -> int:
     """An observation index in ``[-n, n)`` as an int in ``[0, n)`` (a bool, a float or an
     index past either end is refused: ``n + 5`` must not read as ``5``)."""
@@ -563,11 +572,8 @@ class TrendFit:
         return GaussianBelief(self.means[i], self.chols[i])
 
     def _steps(self, index: int, grid: Tensor) -> Tensor:
-        check_float_tensor(grid, "grid", "(J,)")
         t_origin = float(self.t[index])
-        if (grid.dim() != 1 or grid.numel() < 1 or not bool(grid[0] > t_origin)
-                or not bool(torch.isfinite(grid).all()) or not bool((grid.diff() > 0).all())):  # fmt: skip
-            raise ValueError("grid must be (J,) finite, strictly increasing times after the origin")
+        check_path_grid(check_float_tensor(grid, "grid", "(J,)"), t_origin)
         return torch.diff(self.clock(torch.cat([grid.new_tensor([t_origin]), grid])))
 
     # -- prediction -------------------------------------------------------------
