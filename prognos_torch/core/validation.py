@@ -509,11 +509,11 @@ def check_measurement(
         raise ValueError(f"y must have shape {want} (batch shape + (m,)), got {tuple(y.shape)}")
     if y.device != like.device:
         raise ValueError(f"y is on {y.device}, the {owner} on {like.device}")
-    _check_real(y, "y")
+    check_real_tensor(y, "y")
     return y.to(like.dtype), has_missing(y, "y", "measurement")
 
 
-def _check_real(x: Tensor, name: str) -> None:
+def check_real_tensor(x: Tensor, name: str) -> None:
     """Real numbers (integers are converted); a complex or bool tensor is refused (a cast would
     drop the imaginary part with a warning only, or read True as 1)."""
     if x.is_complex() or x.dtype == torch.bool:
@@ -566,7 +566,7 @@ def check_sequence(
         raise ValueError(f"{name} must have shape {want}; it is required, got None")
     if not isinstance(x, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor of shape (T, ..., {tail})")
-    _check_real(x, name)
+    check_real_tensor(x, name)
     mid = tuple(x.shape[1:-1])
     ok = (
         x.dim() >= 2

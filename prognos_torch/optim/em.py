@@ -38,7 +38,7 @@ from torch import Tensor
 from ..core.belief import GaussianBelief
 from ..core.linalg import cho_solve_right, tria
 from ..core.model import StateSpaceModel
-from ..core.validation import is_int, is_real
+from ..core.validation import check_real_tensor, is_int, is_real
 from ..filters.smooth import smooth
 from ..filters.variants import ekf
 
@@ -143,8 +143,7 @@ def _check(x, name: str, shape: tuple, batch: tuple) -> Tensor:
     want = f"{shape} or {batch + shape}"
     if not isinstance(x, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor of shape {want}, got {type(x).__name__}")
-    if x.is_complex() or x.dtype == torch.bool:  # (the cast to the belief's dtype read them)
-        raise TypeError(f"{name} must hold real numbers, got dtype {x.dtype}")
+    check_real_tensor(x, name)  # (the cast to the belief's dtype read bool and complex)
     if tuple(x.shape) not in (shape, batch + shape):
         raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
     return x
