@@ -190,6 +190,16 @@ def is_real(v) -> bool:
     return isinstance(v, numbers.Real) and not isinstance(v, bool)
 
 
+def plain_number(value):
+    """A NumPy integer or real as the Python ``int`` or ``float`` it is (the same value);
+    anything else unchanged. Settings that are recorded or saved keep Python numbers: JSON and
+    ``torch.load(weights_only=True)`` refuse NumPy scalars, and a recorded ``repr`` reads
+    ``np.int64(500)``."""
+    if type(value) in (int, float) or not is_real(value):
+        return value
+    return int(value) if is_int(value) else float(value)
+
+
 def check_pos_int(v, name: str) -> int:
     """An integral number ``>= 1`` as a Python ``int`` (``bool`` rejected)."""
     if not is_int(v) or v < 1:

@@ -118,15 +118,6 @@ def _as_float64(value, name: str, device=None) -> Tensor:
         ) from exc
 
 
-def _plain(value):
-    """A NumPy integer or real as a Python ``int`` or ``float`` (the same value), anything else
-    unchanged: the options are kept in ``param_groups``, and a state dict holding a NumPy
-    scalar is refused by ``torch.load`` (``weights_only=True``, its default)."""
-    if type(value) in (int, float) or not is_real(value):
-        return value
-    return int(value) if is_int(value) else float(value)
-
-
 #: The noise estimator of the ``"imsrukf"`` optimiser (paper 003 Eq. 41 and 43, see
 #: :class:`KalmanOptimizer`): ``Q`` and ``R`` only, ``Q`` diagonal, ``R`` in the post-fit form,
 #: the prior weighted as ``k0 - 1 = 299`` earlier steps.

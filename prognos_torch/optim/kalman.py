@@ -43,7 +43,7 @@ from ..adapt.noise import NoiseEstimatorState
 from ..adapt.strong_tracking import StrongTracking, StrongTrackingState
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
-from ..core.validation import is_int
+from ..core.validation import is_int, plain_number
 from ..filters.gaussian import FilterState, GaussianFilter, Taylor
 from ._buffers import batch_statistics_only, explain_transform_error, tracking_batch_norms
 from ._kalman_common import (
@@ -58,7 +58,6 @@ from ._kalman_common import (
     _dataclass_dict,
     _Group,
     _group_bridge,
-    _plain,
     _resolve_groups,
     _state_key,
     all_or_nothing_steps,
@@ -84,7 +83,7 @@ __all__ = [
 # ---------------------------------------------------------------------- the optimiser
 #: the group options read when the optimiser is built or loaded (``lr`` is read at each step)
 _FIXED_OPTIONS = ("filter", "P0", "Q", "R", "fading", "noise", "jacobian", "chunk_size")
-#: the group options kept as Python numbers when given as NumPy scalars (see ``_plain``)
+#: the group options kept as Python numbers when given as NumPy scalars (see ``plain_number``)
 _PLAIN_OPTIONS = ("P0", "Q", "R", "lr", "fading", "chunk_size", "runs")
 
 # torch wraps Optimizer.add_param_group in _disable_dynamo, whose first call imports
@@ -259,16 +258,16 @@ class KalmanOptimizer(torch.optim.Optimizer):
             raise ValueError("per_run_data=True needs runs=R (the number of runs)")
         defaults = dict(
             filter=filter,
-            P0=_plain(P0),  # (NumPy scalars as Python numbers: see _plain)
-            Q=_plain(Q),
-            R=_plain(R),
-            lr=_plain(lr),
-            fading=_plain(fading),
+            P0=plain_number(P0),  # (NumPy scalars as Python numbers: see plain_number)
+            Q=plain_number(Q),
+            R=plain_number(R),
+            lr=plain_number(lr),
+            fading=plain_number(fading),
             noise=noise,
-            runs=_plain(runs),
+            runs=plain_number(runs),
             per_run_data=per_run_data,
             jacobian=jacobian,
-            chunk_size=_plain(chunk_size),
+            chunk_size=plain_number(chunk_size),
         )
         self.module = module
         self._cfg: list[_Group] | None = []
@@ -302,7 +301,7 @@ class KalmanOptimizer(torch.optim.Optimizer):
             raise TypeError(f"param_group must be a dict, got {type(param_group)}")
         if "params" not in param_group:
             raise ValueError("param_group must have a 'params' entry (parameters of the module)")
-        group = {k: _plain(v) if k in _PLAIN_OPTIONS else v for k, v in param_group.items()}
+        group = {k: plain_number(v) if k in _PLAIN_OPTIONS else v for k, v in param_group.items()}
         for key in ("runs", "per_run_data"):
             if key in group and group[key] != self.defaults[key]:
                 raise ValueError(

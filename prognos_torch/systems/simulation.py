@@ -17,7 +17,12 @@ import torch
 from torch import Tensor
 
 from ..core.model import StateSpaceModel
-from ..core.validation import broadcast_shape, check_flag, is_bool_or_complex, is_int, is_real
+from ..core.validation import (
+    broadcast_shape,
+    check_flag,
+    is_bool_or_complex,
+    plain_number,
+)
 from .noise_streams import draw_run_noise
 
 __all__ = [
@@ -132,13 +137,11 @@ def resolve_generator(generator, noise: bool) -> torch.Generator | None:
 
 
 def _plain(v):
-    """A parameter value with NumPy integers as ints, NumPy reals as floats and lists as tuples
-    (the same numbers; a frozen dataclass then holds what the Python values would give)."""
+    """A parameter value with NumPy numbers as Python ones and lists as tuples (the same
+    numbers; a frozen dataclass then holds what the Python values would give)."""
     if isinstance(v, (tuple, list)):
         return tuple(_plain(e) for e in v)
-    if is_int(v) and type(v) is not int:
-        return int(v)
-    return float(v) if is_real(v) and type(v) not in (int, float) else v
+    return plain_number(v)
 
 
 def check_state(x, n: int, names: str, name: str = "x") -> Tensor:

@@ -31,7 +31,7 @@ from dataclasses import replace
 import torch
 
 from .._workers import check_workers, process_map
-from ..core.validation import is_int, is_real
+from ..core.validation import is_real, plain_number
 from ..prognosis.conformal import (
     RULCalibration,
     _check_bins,
@@ -201,9 +201,7 @@ def _settings(kwargs: dict, threshold, direction: str, fractions, seed) -> dict:
            if p.kind is p.KEYWORD_ONLY and k not in ("time", "at", "seed", "direction")}  # fmt: skip
     # a NumPy number as the number it is (its repr, "np.int64(500)", made summary() refuse
     # every result: n_paths 500 differed from it)
-    plain = {k: (int(v) if is_int(v) else float(v)) if is_real(v) and type(v) not in (int, float)
-             else v for k, v in kwargs.items()}  # fmt: skip
-    out = record_settings({**out, **plain})
+    out = record_settings({**out, **{k: plain_number(v) for k, v in kwargs.items()}})
     out.update(threshold="protocol" if threshold is None else float(threshold),
                direction=direction, fractions=list(fractions),
                seed=list(seed) if isinstance(seed, tuple) else seed)  # fmt: skip

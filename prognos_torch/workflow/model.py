@@ -54,7 +54,7 @@ import torch
 from torch import Tensor, nn
 
 from ..adapt.noise import SageHusa
-from ..core.validation import all_finite, check_flag, check_seed, is_int, is_real
+from ..core.validation import all_finite, check_flag, check_seed, is_int, is_real, plain_number
 from ..datasets.windows import MinMaxScaler, embed
 from ..learners import ANFIS, ELM, LSSVR
 from ..learners.lssvr_fixed import FixedSizeLSSVR
@@ -133,8 +133,8 @@ def _merge(defaults: dict, given: dict | None, what: str) -> dict:
             raise ValueError(
                 f"{what} option {key} must be {kind[0]} (like {defaults[key]!r}), got {v!r}"
             )
-        if kind is not None and kind[1] is not str and type(v) not in (int, float):
-            given[key] = int(v) if is_int(v) else float(v)  # a NumPy scalar: the config is JSON
+        if kind is not None and kind[1] is not str:
+            given[key] = plain_number(v)  # a NumPy scalar: the config is JSON
     out = dict(defaults)
     out.update(given)
     return out
