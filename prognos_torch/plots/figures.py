@@ -16,7 +16,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ..core.validation import is_real
+from ..core.validation import check_nonneg
 from ..metrics import alpha_bounds, lambda_index, lambda_time
 from ._arrays import as_numpy, write_png
 
@@ -89,8 +89,7 @@ def plot_prediction(
     if std is not None and (lower is not None or upper is not None):
         raise ValueError("give std or (lower, upper), not both")
     if std is not None:
-        if not (is_real(n_std) and math.isfinite(n_std) and n_std >= 0):
-            raise ValueError(f"n_std must be a finite number >= 0, got {n_std!r}")
+        check_nonneg(n_std, "n_std", numbers_only=True)
         std = _np(std, "std")
         _same_len(t, std, "t", "std")
         if np.any(std < 0):  # (NaN: missing, no band there)

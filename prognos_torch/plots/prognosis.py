@@ -20,7 +20,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ..core.validation import is_int, is_real
+from ..core.validation import check_nonneg, is_int
 from ._arrays import as_numpy, check_result, clip_for_drawing, time_axis, time_text, write_png
 
 if TYPE_CHECKING:  # annotations only: the workflow imports the plots, not the reverse
@@ -222,8 +222,7 @@ def plot_rul_trajectory(
         ncols: panels per row.
         time_unit: the unit of the times and RULs, for the axis labels (e.g. ``"days"``).
     """
-    if not (is_real(alpha) and math.isfinite(alpha) and alpha >= 0):  # fill_between would
-        raise ValueError(f"alpha must be a finite number >= 0, got {alpha!r}")  # flip a < 0
+    check_nonneg(alpha, "alpha", numbers_only=True)  # (fill_between would flip a < 0)
     if not is_int(ncols) or ncols < 1:
         raise ValueError(f"ncols must be a positive int, got {ncols!r}")
     n = len(panels)

@@ -52,10 +52,10 @@ from ..core.validation import (
     broadcast_shape,
     check_count,
     check_float_tensor,
+    check_nonneg,
     check_nonneg_int,
     check_seed,
     is_int,
-    is_real,
 )
 from ..learners import ELM
 from ..optim import KalmanOptimizer
@@ -288,8 +288,7 @@ def fit_learner_trend(
     # (0: a ZeroDivisionError; -1, 2.5 and True were taken)
     max_steps = check_count(max_steps, "max_steps", error=ValueError)
     # (inf was refused as 'Q contains non-finite values')
-    if not is_real(drift) or not 0 <= drift < math.inf:
-        raise ValueError(f"drift must be a finite number >= 0, got {drift!r}")
+    check_nonneg(drift, "drift", numbers_only=True)
     z, t = level_fit.z, level_fit.t
     n = z.shape[0]
     if isinstance(snapshots, Tensor) and not snapshots.is_floating_point():
