@@ -13,7 +13,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ..core.validation import is_int
+from ..core.validation import check_pos_int
 from ._arrays import write_png
 from .figures import PathLike, _np, _same_len
 
@@ -103,8 +103,7 @@ def plot_line_panels(
     xs = _np(x, "x")
     if not panels:
         raise ValueError("panels must hold at least one LinePanel")
-    if not is_int(ncols) or ncols < 1:
-        raise ValueError(f"ncols must be a positive int, got {ncols!r}")
+    check_pos_int(ncols, "ncols")
     ncols = min(int(ncols), len(panels))
     nrows = -(-len(panels) // ncols)
     if figsize is None:

@@ -15,7 +15,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ..core.validation import is_int
+from ..core.validation import check_pos_int
 from ._arrays import as_numpy, write_png
 
 __all__ = ["plot_panels"]
@@ -85,8 +85,7 @@ def plot_panels(
         names = [str(i + 1) for i in range(P)]
     if len(names) != P:
         raise ValueError(f"names must list {P} panel titles, got {len(names)}")
-    if not is_int(ncols) or ncols < 1:
-        raise ValueError(f"ncols must be a positive int, got {ncols!r}")
+    check_pos_int(ncols, "ncols")
     if clip is not None and (tr is None or not clip > 0):
         raise ValueError("clip needs truth and a value > 0")
     ncols = min(ncols, P)

@@ -20,7 +20,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ..core.validation import check_nonneg, is_int
+from ..core.validation import check_count, check_nonneg, check_pos_int
 from ._arrays import as_numpy, check_result, clip_for_drawing, time_axis, time_text, write_png
 
 if TYPE_CHECKING:  # annotations only: the workflow imports the plots, not the reverse
@@ -87,8 +87,7 @@ def plot_prognosis(
         ax: draw only the top panel into this matplotlib axis (no file is written).
     """
     check_result(result, "RULResult from prognose", "distribution", "plot_prognosis", "(or None) ")
-    if not is_int(n_paths) or n_paths < 0:
-        raise ValueError(f"n_paths must be an int >= 0, got {n_paths!r}")
+    check_count(n_paths, "n_paths", 0, error=ValueError)
     if truth is not None:
         if not isinstance(truth, (tuple, list)) or len(truth) != 2:
             raise ValueError("truth must be a pair (t, y) of (T,) values")
@@ -223,8 +222,7 @@ def plot_rul_trajectory(
         time_unit: the unit of the times and RULs, for the axis labels (e.g. ``"days"``).
     """
     check_nonneg(alpha, "alpha", numbers_only=True)  # (fill_between would flip a < 0)
-    if not is_int(ncols) or ncols < 1:
-        raise ValueError(f"ncols must be a positive int, got {ncols!r}")
+    check_pos_int(ncols, "ncols")
     n = len(panels)
     unit = f" ({time_unit})" if time_unit else ""
     nrows = max(1, math.ceil(n / ncols))

@@ -13,7 +13,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
-from ..core.validation import is_int, is_real
+from ..core.validation import check_count, is_real
 from ..metrics import alpha_bounds
 from ..prognosis.paths import weighted_quantile
 from ._arrays import as_numpy, write_png
@@ -117,8 +117,7 @@ def draw_paths(
     tf, p = _np(t, "t"), _np(paths, "paths", ndim=2)
     if p.shape[1] != tf.shape[0] or p.shape[0] == 0:
         raise ValueError(f"paths must have shape (N, {tf.shape[0]}) with N >= 1, got {p.shape}")
-    if not is_int(n_show) or n_show < 0:
-        raise ValueError(f"n_show must be an int >= 0, got {n_show!r}")
+    check_count(n_show, "n_show", 0, error=ValueError)
     w = np.full(p.shape[0], 1.0 / p.shape[0]) if weights is None else _np(weights, "weights")
     if w.shape != (p.shape[0],):
         raise ValueError(f"weights must have shape ({p.shape[0]},), got {w.shape}")

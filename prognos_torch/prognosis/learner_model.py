@@ -28,7 +28,7 @@ from torch.func import functional_call, jacrev, vmap
 
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
-from ..core.validation import check_finite, check_pos_int, is_int, is_real
+from ..core.validation import check_finite, check_nonneg_int, check_pos_int, is_int, is_real
 from ..learners.introspect import learner_dims, learner_dtype_device
 
 __all__ = ["learner_transition_model", "window_belief"]
@@ -148,8 +148,7 @@ def learner_transition_model(
     n_in, n_out = learner_dims(learner)
     if n_in is not None and n_in != m:
         raise ValueError(f"m={m} does not match the learner's input dimension {n_in}")
-    if not is_int(n_out_index) or n_out_index < 0:
-        raise ValueError(f"n_out_index must be a non-negative int, got {n_out_index!r}")
+    check_nonneg_int(n_out_index, "n_out_index")
     if n_out is not None and n_out_index >= n_out:
         raise ValueError(f"n_out_index={n_out_index} is out of range for n_out={n_out}")
     if jacobian not in _JACOBIANS:

@@ -32,7 +32,6 @@ from ..core.validation import (
     check_pos_int,
     check_weights,
     check_window,
-    is_int,
     is_real,
 )
 from ..datasets.windows import shift_append
@@ -200,9 +199,7 @@ def recursive_predict(
         )
     # as learner_transition_model (True added an axis, 0.0 or an index past n_out failed in
     # the indexing)
-    if not is_int(n_out_index) or n_out_index < 0:
-        raise ValueError(f"n_out_index must be a non-negative int, got {n_out_index!r}")
-    n_out_index = int(n_out_index)
+    n_out_index = check_nonneg_int(n_out_index, "n_out_index")
     if n_out is not None and n_out_index >= n_out:
         raise ValueError(f"n_out_index={n_out_index} is out of range for n_out={n_out}")
     m = n_in if n_in is not None else (window.shape[-1] if isinstance(window, Tensor) else 0)

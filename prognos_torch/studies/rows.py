@@ -12,7 +12,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
-from ..core.validation import is_int
+from ..core.validation import check_nonneg_int
 from ..io import atomic_write
 
 __all__ = ["run_rows", "write_rows_csv", "method_mean"]
@@ -44,8 +44,8 @@ def run_rows(method: str, values: Mapping[str, object], runs: int | None = None)
             raise ValueError(
                 f"values[{k!r}] must be (R,) per-run values, got shape {tuple(v.shape)}"
             )
-    if runs is not None and (not is_int(runs) or runs < 0):
-        raise ValueError(f"runs must be a non-negative int, got {runs!r}")
+    if runs is not None:
+        check_nonneg_int(runs, "runs")
     lengths = {k: len(v) for k, v in values.items() if per_run(v)}
     if runs is None:
         if not lengths:

@@ -24,7 +24,7 @@ import math
 import torch
 from torch import Tensor
 
-from ..core.validation import is_int
+from ..core.validation import check_pos_int
 from ..prognosis.conformal import leave_one_group_out
 from ..prognosis.protocol import (
     ProtocolCase,
@@ -122,10 +122,7 @@ def protocol_rows(
         (markdown rows, or a "protocol not usable" row); and ``{(method, name): [prediction
         dicts]}``.
     """
-    # (a slice of the times said "step must be greater than zero")
-    if not is_int(every) or every < 1:
-        raise ValueError(f"every must be a positive int, got {every!r}")
-    every = int(every)
+    every = check_pos_int(every, "every")  # (a slice of the times: "step must be greater ...")
     rows, panels, per_series, results = [], [], [], {}
     for name, (t, y, held) in series.items():
         pc = known_threshold_protocol(t, y)
