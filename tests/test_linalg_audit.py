@@ -11,6 +11,7 @@ import inspect
 
 import numpy as np
 import pytest
+import test_linalg
 import torch
 
 import prognos_torch.core.linalg as linalg
@@ -26,6 +27,9 @@ from prognos_torch.core.linalg import (
 )
 from prognos_torch.core.random import box_muller, standard_normal
 
+#: either implementation of the up/downdates (normally chosen by size): test_linalg's fixture
+path = test_linalg.path
+
 F64 = torch.float64
 
 
@@ -36,17 +40,6 @@ def _gen(seed):
 def _factor(g, *batch, n, dtype=F64):
     A = torch.randn(*batch, n, n + 2, generator=g, dtype=F64)
     return torch.linalg.cholesky(A @ A.mT).to(dtype)
-
-
-@pytest.fixture(params=["rank_one", "dense"])
-def path(request, monkeypatch):
-    """Either implementation of the up/downdates (normally chosen by size)."""
-    if request.param == "rank_one":
-        monkeypatch.setattr(linalg, "_RANK_ONE_MIN_NUMEL", 0)
-        monkeypatch.setattr(linalg, "_RANK_ONE_MIN_N_PER_RANK", 0)
-    else:
-        monkeypatch.setattr(linalg, "_RANK_ONE_MIN_NUMEL", 10**12)
-    return request.param
 
 
 # ------------------------------------------------------------------------------ references

@@ -9,15 +9,14 @@ it; round trips compare against the in-memory model's own forecasts, bit for bit
 from __future__ import annotations
 
 import copy
-import hashlib
 import json
 import os
-import struct
 import warnings
 
 import numpy as np
 import pytest
 import torch
+from test_model_file import _pack, _split  # the format-2 file by definition
 
 from prognos_torch import io as pio
 from prognos_torch.datasets.windows import MinMaxScaler
@@ -25,32 +24,12 @@ from prognos_torch.io import ModelFileError, atomic_write, load_model_file, save
 from prognos_torch.workflow import fit_series, forecast, load_model, load_series, save_model
 from prognos_torch.workflow.fitted import FittedModel
 
-U64 = struct.Struct("<Q")
-DIGEST = "prognos.sha256"
-
 
 def _series(T=40, seed=0):
     rng = np.random.default_rng(seed)
     t = np.arange(T) * 0.5
     x = 1.0 + 0.01 * t + 0.3 * np.sin(2 * np.pi * t / 12) + 0.03 * rng.standard_normal(T)
     return load_series(x)
-
-
-def _split(raw: bytes):
-    (n,) = U64.unpack(raw[:8])
-    return json.loads(raw[8 : 8 + n]), raw[8 + n :]
-
-
-def _pack(header: dict, data: bytes) -> bytes:
-    """A format-2 file with a valid checksum, from the module's definition (Python's json
-    writes NaN as the bare word NaN, as a hand edit would)."""
-    meta = header["__metadata__"]
-    meta[DIGEST] = "0" * 64
-    head = json.dumps(header, separators=(",", ":")).encode()
-    head += b" " * (-(len(head) + 8) % 8)
-    digest = hashlib.sha256(U64.pack(len(head)) + head + data).hexdigest()
-    head = head.replace(b'"' + b"0" * 64 + b'"', b'"' + digest.encode() + b'"')
-    return U64.pack(len(head)) + head + data
 
 
 def _rewrite(path, config=None, tensors=None):
