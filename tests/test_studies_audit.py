@@ -44,7 +44,7 @@ def test_study_config_numpy_ints_are_ints_and_bad_seed_or_flags_are_refused():
     assert rec["runs"] == 3 and rec["seed"] == 2  # (was "3" and "2": strings)
     a, b = cfg.generator(1), torch.Generator().manual_seed(3)
     assert torch.equal(torch.rand(3, generator=a), torch.rand(3, generator=b))
-    with pytest.raises(ValueError, match="seed must be an int, got 1.5"):
+    with pytest.raises(TypeError, match="seed must be an int, got 1.5"):
         StudyConfig(seed=1.5)  # (was accepted; manual_seed failed later)
     with pytest.raises(TypeError, match="quick must be a bool, got 'no'"):
         StudyConfig(quick="no")  # (was read as True: the quick protocol ran)

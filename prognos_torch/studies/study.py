@@ -8,7 +8,7 @@ from pathlib import Path
 
 import torch
 
-from ..core.validation import check_flag, is_int
+from ..core.validation import check_flag, check_pos_int, check_seed
 
 __all__ = ["Study", "StudyConfig", "StudyResult"]
 
@@ -36,14 +36,12 @@ class StudyConfig:
     data: Path | None = None
 
     def __post_init__(self):
-        if self.runs is not None and (not is_int(self.runs) or self.runs < 1):
-            raise ValueError(f"runs must be a positive int, got {self.runs!r}")
-        if not is_int(self.seed):  # a float seed failed only in the first manual_seed
-            raise ValueError(f"seed must be an int, got {self.seed!r}")
         # NumPy integers as Python ints (run.json recorded numpy.int64(3) as the string "3");
-        # flags as bools (quick="no" ran the quick protocol)
-        object.__setattr__(self, "runs", None if self.runs is None else int(self.runs))
-        object.__setattr__(self, "seed", int(self.seed))
+        # a float seed failed only in the first manual_seed; flags as bools (quick="no" ran
+        # the quick protocol)
+        runs = None if self.runs is None else check_pos_int(self.runs, "runs")
+        object.__setattr__(self, "runs", runs)
+        object.__setattr__(self, "seed", check_seed(self.seed))
         object.__setattr__(self, "quick", check_flag(self.quick, "quick"))
         object.__setattr__(self, "progress", check_flag(self.progress, "progress"))
         if self.device not in ("cpu", "cuda"):
