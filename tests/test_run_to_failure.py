@@ -84,7 +84,7 @@ def test_bad_input():
         simulate_run_to_failure("weibull", g)
     with pytest.raises(TypeError, match="generator must be a torch.Generator"):
         simulate_run_to_failure("paris", 0)
-    with pytest.raises(ValueError, match="dt must be a positive number"):
+    with pytest.raises(ValueError, match="dt must be a finite positive number"):
         simulate_run_to_failure("paris", g, dt=0.0)
     with pytest.raises(ValueError, match="onset must satisfy"):
         simulate_run_to_failure("paris", g, onset=(0.5, 1.2))

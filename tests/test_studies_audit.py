@@ -241,8 +241,8 @@ def test_indicator_case_bad_input_is_named():
     cases = [
         (dict(threshold=5.0), "never reaches the threshold 5.0"),  # (was "arange: ...")
         (dict(start=100.0), "start 100.0 lies after the last sample"),  # (was an IndexError)
-        (dict(rul_every=0.0), "rul_every must be a positive number"),  # (ZeroDivisionError)
-        (dict(rul_every=-1.0), "rul_every must be a positive number"),  # (stack of nothing)
+        (dict(rul_every=0.0), "rul_every must be a finite positive number"),  # (ZeroDivisionError)
+        (dict(rul_every=-1.0), "rul_every must be a finite positive number"),  # (stack of nothing)
         (dict(rul_start=3.6), "no RUL prediction time"),  # (stack of nothing)
     ]
     for bad, msg in cases:

@@ -680,7 +680,7 @@ def test_three_tank_refuses_negative_outflow_coefficients_and_a_nan_az2():
     for name in ("az1", "az2", "az3"):
         with pytest.raises(ValueError, match=rf"ThreeTankParams\.{name} must be >= 0"):
             ThreeTankParams(**{name: -0.5})
-    with pytest.raises(ValueError, match="az2 must be a finite number > 0, got nan"):
+    with pytest.raises(ValueError, match="az2 must be a finite positive number, got nan"):
         three_tank_equilibrium(az2=float("nan"))
     with pytest.raises(ValueError, match="az1 > 0"):
         three_tank_equilibrium(ThreeTankParams(az1=0.0))

@@ -175,7 +175,7 @@ def test_steady_state_and_equilibrium_refuse_text_and_bools():
     for bad in ("1", True):
         with pytest.raises(ValueError, match="C_AF must be a finite number"):
             cstr_steady_state(C_AF=bad)
-    with pytest.raises(ValueError, match="az2 must be a finite number > 0, got '0.6'"):
+    with pytest.raises(ValueError, match="az2 must be a finite positive number, got '0.6'"):
         three_tank_equilibrium(az2="0.6")
 
 
@@ -238,7 +238,7 @@ def test_run_to_failure_refuses_infinite_ranges_and_keeps_numpy_dt_in_float64():
         (name,) = kw
         with pytest.raises(ValueError, match=rf"{name} must satisfy low <= high .* \(finite\)"):
             simulate_run_to_failure("hump", gen(0), **kw)
-    with pytest.raises(ValueError, match="dt must be a positive number"):
+    with pytest.raises(ValueError, match="dt must be a finite positive number"):
         simulate_run_to_failure("hump", gen(0), dt=math.inf)
     a = simulate_run_to_failure("hump", gen(11377), dt=np.float32(0.01), gaps=False)
     b = simulate_run_to_failure("hump", gen(11377), dt=float(np.float32(0.01)), gaps=False)

@@ -38,7 +38,7 @@ import torch
 from torch import Tensor, nn
 
 from ..core.model import StateSpaceModel
-from ..core.validation import check_pos_int, is_real
+from ..core.validation import check_pos_int, check_positive_real
 from ..datasets import embed
 from ..filters import ParticleFilter, ekpf
 from ..learners import MultiStepCV, fit_lssvr_gram
@@ -139,8 +139,7 @@ def indicator_case(
     after this time (``None``: from the first full window, ``k0 = m``).
     """
     m = check_pos_int(m, "m")
-    if not is_real(rul_every) or not 0 < rul_every < math.inf:
-        raise ValueError(f"rul_every must be a positive number, got {rul_every!r}")
+    check_positive_real(rul_every, "rul_every")
     t_eol = first_crossing_time(t, z, threshold)  # end of life: the indicator reaches it
     if math.isnan(t_eol):
         raise ValueError(f"z never reaches the threshold {threshold!r}: no end of life")

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.validation import check_flag, check_seed, is_int, is_real
+from ..core.validation import check_flag, check_positive_real, check_seed, is_int, is_real
 
 __all__ = ["RUN_TO_FAILURE_FAMILIES", "RunToFailure", "simulate_run_to_failure",
            "run_to_failure_set"]  # fmt: skip
@@ -187,8 +187,7 @@ def simulate_run_to_failure(
         raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
     if generator.device.type != "cpu":  # (every draw is a CPU float64 tensor)
         raise ValueError(f"generator must be a CPU torch.Generator, got one on {generator.device}")
-    if not is_real(dt) or not 0 < dt < math.inf:
-        raise ValueError(f"dt must be a positive number (finite), got {dt!r}")
+    check_positive_real(dt, "dt")
     dt = float(dt)  # (an np.float32 dt divided the life in float32: another sample count)
     gaps = check_flag(gaps, "gaps")
     life_r = _range(life, "life", 0.0)

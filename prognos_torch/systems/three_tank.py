@@ -30,7 +30,6 @@ derivative of ``sgn(d) sqrt(|d|)`` at ``d = 0`` (infinite) is replaced by 0.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -43,10 +42,10 @@ from ..core.validation import (
     check_flag,
     check_params_finite,
     check_positive,
+    check_positive_real,
     check_std,
     chol_from_std,
     diag_chol,
-    is_real,
 )
 from .integrators import euler_step
 from .simulation import (
@@ -183,8 +182,7 @@ def three_tank_equilibrium(
     """
     p = resolve_params(params, ThreeTankParams)
     a2 = p.az2 if az2 is None else az2
-    if not (is_real(a2) and math.isfinite(a2) and a2 > 0):  # (text, bool refused)
-        raise ValueError(f"az2 must be a finite number > 0, got {a2!r}")
+    check_positive_real(a2, "az2")  # (text, bool refused)
     a2 = float(a2)
     check_dtype_arg(dtype)  # (an integer dtype truncated the levels to 0)
     if p.Q1 < 0 or p.Q1 + p.Q2 < 0 or min(p.az1, p.az3) <= 0:
