@@ -16,7 +16,14 @@ from torch import Tensor, nn
 from ..adapt.noise import MovingWindow, SageHusa
 from ..adapt.strong_tracking import StrongTracking
 from ..core.linalg import tria
-from ..core.validation import check_matches, has_missing, is_bool_or_complex, is_int, is_real
+from ..core.validation import (
+    check_matches,
+    has_missing,
+    is_bool_or_complex,
+    is_int,
+    is_real,
+    plain_number,
+)
 from ..filters.gaussian import GaussianFilter, StepInfo
 from ..filters.variants import make_filter
 from ._buffers import tracking_batch_norms
@@ -104,6 +111,23 @@ def noise_factor(value, dim: int, name: str, *, allow_singular: bool, device=Non
     return tria(V * w.clamp_min(0.0).sqrt().unsqueeze(-2))
 
 
+def plain_option(value, *, arrays: bool = True):
+    """An option as ``param_groups`` keeps it (``state_dict`` saves the groups, and
+    ``torch.load(weights_only=True)`` refuses NumPy objects): a NumPy number or 0-d array of
+    reals as the Python number it is (:func:`plain_number`), with ``arrays`` a NumPy array of
+    reals as a float64 tensor (a copy) and a dict's values (a per-parameter prior) likewise;
+    anything else unchanged (bool, complex and text arrays are refused by the option's check)."""
+    if isinstance(value, dict) and arrays:
+        return {k: plain_option(v) for k, v in value.items()}
+    kind = getattr(getattr(value, "dtype", None), "kind", "")  # (NumPy's; torch dtypes have none)
+    if kind in ("f", "i", "u"):
+        if getattr(value, "ndim", None) == 0:
+            return plain_number(value.item())
+        if arrays:
+            return torch.tensor(value, dtype=torch.float64)
+    return plain_number(value)
+
+
 def _as_float64(value, name: str, device=None) -> Tensor:
     """``value`` (a number, a vector or a matrix) as a float64 tensor. A bool or complex value
     (Python, NumPy or torch) is refused: the cast would read ``True`` as ``1`` and drop an
@@ -187,8 +211,8 @@ def _resolve_groups(params, module) -> tuple[nn.Module, list[dict]]:
 
 def _check_lr(lr, filt: GaussianFilter, where: str) -> float:
     """``lr`` as a float; it scales the measurement noise of its group (``R / lr``)."""
-    if isinstance(lr, Tensor) and lr.numel() == 1:
-        lr = float(lr)
+    if isinstance(lr, Tensor) and lr.numel() == 1 and not is_bool_or_complex(lr):
+        lr = lr.item()  # (a bool tensor was read as 1, a complex one lost its imaginary part)
     if not is_real(lr) or not math.isfinite(lr) or lr <= 0:
         raise ValueError(
             f"{where} must be a positive finite number (the learning rate divides the "

@@ -172,7 +172,8 @@ def em_linear_gaussian(
         learn: which of ``"A"``, ``"C"``, ``"Q"``, ``"R"``, ``"init"`` to update (others fixed).
         tol: stop when no series' log-likelihood rises by more than ``tol * (1 + |ll|)``.
     Returns:
-        :class:`EMFit` with the parameters broadcast to the batch dims.
+        :class:`EMFit` with the parameters broadcast to the batch dims (new tensors, never
+        views of the arguments).
     """
     if isinstance(learn, str) or not isinstance(learn, Iterable):  # ("init": not 4 letters)
         raise TypeError(f"learn must be a collection of names from {_LEARNABLE}, got {learn!r}")
@@ -270,4 +271,7 @@ def em_linear_gaussian(
         if "init" in learn:
             b0 = GaussianBelief(sm.initial.mean, sm.initial.chol)
         A, C = A_new, C_new
-    return EMFit(A, C, SQ, SR, b0, torch.stack(trace), it)
+    # copies: a parameter that was not learned (or iterations=0) is otherwise the caller's
+    # tensor or a view of it, which an in-place edit of the result would change
+    b0 = GaussianBelief(b0.mean.clone(), b0.chol.clone())
+    return EMFit(A.clone(), C.clone(), SQ.clone(), SR.clone(), b0, torch.stack(trace), it)

@@ -43,7 +43,7 @@ from ..adapt.noise import NoiseEstimatorState
 from ..adapt.strong_tracking import StrongTracking, StrongTrackingState
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
-from ..core.validation import is_int, plain_number
+from ..core.validation import check_flag, is_int
 from ..filters.gaussian import FilterState, GaussianFilter, Taylor
 from ._buffers import batch_statistics_only, explain_transform_error, tracking_batch_norms
 from ._kalman_common import (
@@ -63,6 +63,7 @@ from ._kalman_common import (
     all_or_nothing_steps,
     noise_factor,
     norm_statistics,
+    plain_option,
     restore_norm_statistics,
 )
 from ._step_model import step_model
@@ -83,8 +84,10 @@ __all__ = [
 # ---------------------------------------------------------------------- the optimiser
 #: the group options read when the optimiser is built or loaded (``lr`` is read at each step)
 _FIXED_OPTIONS = ("filter", "P0", "Q", "R", "fading", "noise", "jacobian", "chunk_size")
-#: the group options kept as Python numbers when given as NumPy scalars (see ``plain_number``)
+#: the group options kept as Python numbers or tensors when given as NumPy numbers or arrays
+#: (see ``plain_option``); arrays only for the covariances and ``lr`` (a tensor of one entry)
 _PLAIN_OPTIONS = ("P0", "Q", "R", "lr", "fading", "chunk_size", "runs")
+_ARRAY_OPTIONS = ("P0", "Q", "R", "lr")
 
 # torch wraps Optimizer.add_param_group in _disable_dynamo, whose first call imports
 # torch._dynamo (about 1.5 s of a command's start); a parameter group is never added inside a
@@ -250,24 +253,24 @@ class KalmanOptimizer(torch.optim.Optimizer):
         chunk_size: int | None = None,
     ) -> None:
         module, groups = _resolve_groups(params, module)
+        runs = plain_option(runs, arrays=False)
         if runs is not None and (not is_int(runs) or runs < 1):
             raise ValueError(f"runs must be None or a positive int, got {runs!r}")
-        if not isinstance(per_run_data, bool):
-            raise TypeError(f"per_run_data must be a bool, got {type(per_run_data)}")
+        per_run_data = check_flag(per_run_data, "per_run_data")  # (numpy.bool_ was refused)
         if per_run_data and runs is None:
             raise ValueError("per_run_data=True needs runs=R (the number of runs)")
         defaults = dict(
             filter=filter,
-            P0=plain_number(P0),  # (NumPy scalars as Python numbers: see plain_number)
-            Q=plain_number(Q),
-            R=plain_number(R),
-            lr=plain_number(lr),
-            fading=plain_number(fading),
+            P0=plain_option(P0),  # (NumPy numbers and arrays as Python numbers and tensors)
+            Q=plain_option(Q),
+            R=plain_option(R),
+            lr=plain_option(lr),
+            fading=plain_option(fading, arrays=False),
             noise=noise,
-            runs=plain_number(runs),
+            runs=runs,
             per_run_data=per_run_data,
             jacobian=jacobian,
-            chunk_size=plain_number(chunk_size),
+            chunk_size=plain_option(chunk_size, arrays=False),
         )
         self.module = module
         self._cfg: list[_Group] | None = []
@@ -301,7 +304,10 @@ class KalmanOptimizer(torch.optim.Optimizer):
             raise TypeError(f"param_group must be a dict, got {type(param_group)}")
         if "params" not in param_group:
             raise ValueError("param_group must have a 'params' entry (parameters of the module)")
-        group = {k: plain_number(v) if k in _PLAIN_OPTIONS else v for k, v in param_group.items()}
+        group = {
+            k: plain_option(v, arrays=k in _ARRAY_OPTIONS) if k in _PLAIN_OPTIONS else v
+            for k, v in param_group.items()
+        }
         for key in ("runs", "per_run_data"):
             if key in group and group[key] != self.defaults[key]:
                 raise ValueError(

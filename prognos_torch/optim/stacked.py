@@ -85,8 +85,14 @@ def _index(index, runs: int) -> Tensor | slice:
         if idx.shape != (runs,):
             raise ValueError(f"a boolean run mask must have shape ({runs},), got {idx.shape}")
         return idx.nonzero().flatten()
+    if idx.dim() == 1 and idx.numel() == 0:  # ([] is a float tensor: it was refused)
+        return idx.long()
     if idx.dim() != 1 or idx.dtype not in (torch.int32, torch.int64):
         raise TypeError("index must be a slice, an int, a (runs,) bool mask or a 1-D int index")
+    out = (idx < -runs) | (idx >= runs)
+    if bool(out.any()):  # (torch's IndexError named neither the runs nor the index)
+        bad = int(idx[out][0])
+        raise IndexError(f"run index {bad} is out of range for {runs} runs")
     return idx
 
 
@@ -264,7 +270,8 @@ class StackedLearner(nn.Module):
         return mod
 
     def select(self, index) -> StackedLearner:
-        """The runs picked by ``index`` (a ``(R,)`` bool mask, an int index, a slice)."""
+        """The runs picked by ``index`` (a ``(R,)`` bool mask, an int, a sequence of ints, a
+        slice); an empty index, like an all-False mask, picks no run (``runs == 0``)."""
         idx = _index(index, self.runs)
         params = {name: v[idx] for name, v in self.parameter_sets().items()}
         trainable = any(isinstance(v, nn.Parameter) for v in self.parameter_sets().values())
@@ -526,6 +533,8 @@ class StackedForecaster:
             raise TypeError("index must be a slice of runs")
         f0, C = self.inner, self.channels
         runs = range(self.runs)[index]
+        if not runs:  # (it failed on the inner forecaster's learners, C >= 1)
+            raise ValueError(f"index {index!r} selects no run of the {self.runs} runs")
         learners = [f0.learners[r * C + c] for r in runs for c in range(C)]
         return StackedForecaster(
             type(f0)(learners, f0.p, lam=f0.lam, online=f0.online), len(runs), C
