@@ -51,7 +51,6 @@ from ..core.random import standard_normal
 from ..core.validation import (
     broadcast_shape,
     check_count,
-    check_float_tensor,
     check_nonneg,
     check_nonneg_int,
     check_seed,
@@ -66,18 +65,10 @@ from .trends import (
     check_obs_index,
     check_path_draws,
     check_path_grid,
+    check_path_times,
 )
 
 __all__ = ["TimeELM", "LearnerTrendFit", "fit_learner_trend", "fit_learner_trends"]
-
-
-def _times(x, name: str, device: torch.device) -> Tensor:
-    """Times ``(J,)``: a floating tensor on the fit's ``device``, as float64 (a float32 one
-    was refused by the float64 ELM with an error on an unnamed ``x``)."""
-    x = check_float_tensor(x, name, "(J,)")
-    if x.device != device:
-        raise ValueError(f"{name} is on {x.device}, the fit on {device}: pass {name} on {device}")
-    return x.to(torch.float64)
 
 
 class TimeELM(nn.Module):
@@ -179,7 +170,7 @@ class LearnerTrendFit:
         """Std of ``g(tau(t); theta)`` under the parameter belief at ``index`` (no walk):
         ``sqrt(f^T P f)`` with ``f`` the features, ``(J,)`` -> ``(J,)``."""
         b = self.parameter_belief(index)
-        F = self.module.features(self.tau(_times(t, "t", self.level_fit.z.device)))
+        F = self.module.features(self.tau(check_path_times(t, "t", self.level_fit.z.device)))
         return (F @ b.chol).square().sum(-1).sqrt()
 
     def parameter_belief(self, index: int = -1) -> GaussianBelief:
@@ -207,7 +198,7 @@ class LearnerTrendFit:
         zt = lf.to_z(level)
         i = check_obs_index(index, lf.t.shape[0])
         t_origin = float(lf.t[i])
-        g64 = _times(grid, "grid", lf.z.device)  # the times returned are grid's own
+        g64 = check_path_times(grid, "grid", lf.z.device)  # the times returned are grid's own
         check_path_grid(g64, t_origin)
         dt, dev = torch.float64, lf.z.device
         pb = self.parameter_belief(i)
@@ -282,6 +273,8 @@ def fit_learner_trend(
     Returns:
         :class:`LearnerTrendFit`.
     """
+    if not isinstance(level_fit, TrendFit):  # (a str failed on 'str' has no attribute 'shape')
+        raise TypeError(f"level_fit must be a TrendFit, got {type(level_fit).__name__}")
     if level_fit.shape != "exponential":
         raise ValueError(f"level_fit must be the exponential shape, got {level_fit.shape!r}")
     seed = check_seed(seed)  # (1.7 was read as 1, "3" as 3, True as 1)

@@ -30,6 +30,7 @@ from ..core.validation import (
     check_level,
     check_nonneg_int,
     check_pos_int,
+    check_real_tensor,
     check_weights,
     check_window,
     is_real,
@@ -109,7 +110,8 @@ class SamplePaths:
             :func:`~prognos_torch.prognosis.rul.rul_distribution`.
         weights: ``(..., N)`` normalised weights (float64).
         mean: ``(..., H)`` weighted mean; std: ``(..., H)`` weighted std.
-        lower, upper: ``(..., H)`` weighted quantiles ``(1 -+ level) / 2``.
+        lower, upper: ``(..., H)`` weighted quantiles ``(1 -+ level) / 2``
+            (:func:`weighted_quantile`: NaN at a step where a path of positive weight is NaN).
         level: the band's probability.
     """
 
@@ -132,19 +134,38 @@ class SamplePaths:
 
 def weighted_quantile(samples: Tensor, weights: Tensor, q: float) -> Tensor:
     """The ``q`` quantile of ``samples`` ``(..., N, H)`` per column under ``weights`` ``(..., N)``
-    summing to 1: the smallest sample whose cumulative weight reaches ``q`` (to 1e-12);
-    ``(..., H)``."""
+    summing to 1: the smallest sample whose cumulative weight reaches ``q`` (to 1e-12), and at
+    most the largest sample of positive weight; ``(..., H)`` in the samples' dtype (integer
+    samples as float64).
+
+    NaN marks a missing value (a path that diverged): a column where a sample of positive
+    weight is NaN has no quantile and gives NaN, whatever ``q`` (the value of that sample could
+    lie anywhere); a NaN of weight zero is left out. ``inf`` and ``-inf`` are ordered as values.
+    """
     if not is_real(q) or not 0.0 < q <= 1.0:  # (True was read as q = 1, text failed on '<')
         raise ValueError(f"q must be a number in (0, 1], got {q!r}")
     q = float(q)
-    s, order = samples.sort(dim=-2)  # (..., N, H)
+    if isinstance(samples, Tensor) and not samples.is_floating_point():
+        check_real_tensor(samples, "samples")  # (a bool or complex tensor is refused)
+        samples = samples.to(torch.float64)
+    x = check_float_tensor(samples, "samples", "(..., N, H)")
+    if x.dim() < 2 or x.shape[-2] < 1:
+        raise ValueError(f"samples must have shape (..., N, H) with N >= 1, got {tuple(x.shape)}")
+    # (unnormalised weights gave the minimum, a weight (1,) was broadcast over the N samples)
+    w = check_weights(weights, x.shape[:-2], x.shape[-2], x.device)
+    nan = torch.isnan(x)
+    missing = (nan & (w.unsqueeze(-1) > 0)).any(-2)  # (..., H): a positive weight on a NaN
+    # (a NaN sorted as the largest sample: the upper quantiles ignored that its value is unknown)
+    s, order = x.masked_fill(nan, math.inf).sort(dim=-2)  # (..., N, H)
     # The cumulative weights in float64 whatever the samples' dtype: a float32 cumsum of 1/N
     # falls short of q = k/N by more than the 1e-12 allowance and picks the next sample.
-    w = weights.to(torch.float64).unsqueeze(-1).expand(samples.shape).gather(-2, order)
-    cdf = w.cumsum(-2)
-    n = samples.shape[-2]
-    idx = (cdf < q - 1e-12).sum(-2, keepdim=True).clamp(max=n - 1)  # first index with cdf >= q
-    return s.gather(-2, idx).squeeze(-2)
+    ws = w.unsqueeze(-1).expand(x.shape).gather(-2, order)
+    cdf = ws.cumsum(-2)
+    idx = (cdf < q - 1e-12).sum(-2, keepdim=True)  # first index with cdf >= q
+    pos = torch.arange(x.shape[-2], device=x.device).unsqueeze(-1)  # (N, 1)
+    last = torch.where(ws > 0, pos, 0).amax(-2, keepdim=True)  # largest sample of weight > 0
+    out = s.gather(-2, torch.minimum(idx, last)).squeeze(-2)
+    return torch.where(missing, torch.full_like(out, math.nan), out)
 
 
 def recursive_predict(

@@ -36,6 +36,7 @@ from torch import Tensor
 from ..core.validation import (
     as_tensor,
     check_positive_real,
+    check_real_tensor,
     check_scalar,
     check_weights,
     is_int,
@@ -61,7 +62,8 @@ def _check_direction(direction: str) -> str:
 
 def _check_samples(samples) -> Tensor:
     samples = as_tensor(samples, "samples")
-    if samples.is_complex():  # (a cast would drop the imaginary part with a warning only)
+    # (a cast would drop the imaginary part with a warning only, or read True as 1)
+    if samples.is_complex() or samples.dtype == torch.bool:
         raise TypeError(f"samples must be real, got dtype {samples.dtype}")
     if not samples.is_floating_point():
         samples = samples.to(torch.float64)
@@ -143,6 +145,8 @@ def fault_probability_gaussian(
     thr = check_scalar(threshold, "threshold")
     mean = as_tensor(mean, "mean")
     std = as_tensor(std, "std", device=mean.device)
+    check_real_tensor(mean, "mean")  # (True was read as 1, a complex mean lost its imaginary
+    check_real_tensor(std, "std")  # part with a warning only)
     if mean.dim() < 1:
         raise ValueError(f"mean must have shape (..., H), got {tuple(mean.shape)}")
     if mean.shape[-1] < 1:
@@ -275,6 +279,13 @@ class RULDistribution:
         the cumulative sum (a cdf that sums to ``0.5 - 1e-16`` still gives the median). A scalar
         ``q`` gives shape ``(...)``, a 1-D ``q`` gives ``(..., Q)``.
         """
+        vals = q.tolist() if isinstance(q, Tensor) or hasattr(q, "dtype") else q
+        flat = vals if isinstance(vals, (list, tuple)) else [vals]
+        # (True was read as q = 1, text and None failed inside torch.as_tensor)
+        if any(not is_real(v) and not isinstance(v, (list, tuple)) for v in flat):
+            raise ValueError(
+                f"q must be a probability in (0, 1] or a 1-D sequence of them, got {q!r}"
+            )
         qs = torch.as_tensor(q, dtype=torch.float64, device=self.pmf.device)
         if qs.dim() > 1:
             raise ValueError(f"q must be a scalar or 1-D, got shape {tuple(qs.shape)}")

@@ -58,7 +58,15 @@ from torch import Tensor
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
 from ..core.random import standard_normal
-from ..core.validation import check_float_tensor, check_nonneg_int, is_int, is_real
+from ..core.validation import (
+    all_finite,
+    check_float_tensor,
+    check_nonneg_int,
+    check_real,
+    has_missing,
+    is_int,
+    is_real,
+)
 from ..filters import GaussianFilter, make_filter, stekf
 from ..filters import run as run_filter
 
@@ -305,6 +313,17 @@ def check_path_draws(generator, n_paths) -> None:
         raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
     if not is_int(n_paths) or n_paths < 1:
         raise ValueError(f"n_paths must be an int >= 1, got {n_paths!r}")
+
+
+def check_path_times(x, name: str, device: torch.device) -> Tensor:
+    """Times ``(J,)`` of the paths of a fit on ``device``: a floating tensor there, returned as
+    float64 (a float32 grid was refused by the float64 ELM with an error on an unnamed ``x``,
+    or had its first step taken from an origin rounded to float32; a grid on another device
+    failed inside the simulation)."""
+    x = check_float_tensor(x, name, "(J,)")
+    if x.device != device:
+        raise ValueError(f"{name} is on {x.device}, the fit on {device}: pass {name} on {device}")
+    return x.to(torch.float64)
 
 
 def check_path_grid(grid: Tensor, t_origin: float) -> None:
@@ -573,8 +592,10 @@ class TrendFit:
 
     def _steps(self, index: int, grid: Tensor) -> Tensor:
         t_origin = float(self.t[index])
-        check_path_grid(check_float_tensor(grid, "grid", "(J,)"), t_origin)
-        return torch.diff(self.clock(torch.cat([grid.new_tensor([t_origin]), grid])))
+        g64 = check_path_times(grid, "grid", self.grid_means.device)
+        check_path_grid(g64, t_origin)
+        ds = torch.diff(self.clock(torch.cat([g64.new_tensor([t_origin]), g64])))
+        return ds.to(self.grid_means.dtype)  # (a float64 grid failed on a float32 fit)
 
     # -- prediction -------------------------------------------------------------
     def first_passage(
@@ -720,13 +741,29 @@ def fit_trends(
     Returns:
         ``{shape: TrendFit}``.
     """
+    t = check_float_tensor(t, "t", "(n,)")  # (a list raised AttributeError, an integer
+    y = check_float_tensor(y, "y", "(n,)")  # tensor failed in a median)
     if t.dim() != 1 or tuple(y.shape) != tuple(t.shape):
         raise ValueError(
             f"t and y must both have shape (n,), got {tuple(t.shape)}, {tuple(y.shape)}"
         )
+    if isinstance(shapes, str):  # (its letters were read as shapes: "got 'e'")
+        raise TypeError(f"shapes must be a tuple of shape names, got the text {shapes!r}")
+    if y.device != t.device:
+        raise ValueError(f"y is on {y.device}, t on {t.device}: pass both on one device")
+    # one dtype (float32 y beside float64 t failed with 'expected scalar type Double')
+    dt = torch.promote_types(t.dtype, y.dtype)
+    t, y = t.to(dt), y.to(dt)
     n = t.shape[0]
     if n < 3:
         raise ValueError(f"a trend fit needs at least 3 values since onset, got {n}")
+    # (a step back was taken as a negative clock step, its process noise clipped to zero; a NaN
+    # time failed as 'us contains non-finite values')
+    if not all_finite(t) or not bool((t.diff() > 0).all()):
+        raise ValueError("t must be finite, strictly increasing times, shape (n,)")
+    has_missing(y, "y")  # (inf failed as 'init.chol contains non-finite values')
+    # (True was read as 1; a NaN phi gave 'no trend shape has 3 usable values')
+    phi, sigma0 = check_real(phi, "phi"), check_real(sigma0, "sigma0")
     if not sigma0 > 0:
         raise ValueError(f"sigma0 must be positive, got {sigma0}")
     dtm = float(torch.diff(t).median())
