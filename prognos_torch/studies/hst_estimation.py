@@ -24,6 +24,7 @@ from tqdm import tqdm
 from ..adapt import MovingWindow
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
+from ..core.validation import check_positive_real
 from ..filters import GaussianFilter, arukf, rukf, run_in_segments, ukf
 from ..filters.segments import SegmentedTrajectory
 from ..quadrature import unscented
@@ -137,6 +138,14 @@ def hst_filters(
     }
 
 
+def _detail_columns(s: int) -> tuple[list[str], ...]:
+    """``STATE_COLS``, ``FAULT_COLS``, ``Q_COLS``, ``R_COLS`` for a train of ``s = 2n - 1``
+    states (the module's columns where ``n = 5``)."""
+    states = [f"RMSE {c}" for c in hst_state_names((s + 1) // 2)]
+    k = range(1, s + 1)
+    return states, FAULT_COLS, [f"Q{i} RMSE" for i in k], [f"R{i} RMSE" for i in k]
+
+
 def _belief0(std: Sequence[float], runs: int, dtype, device) -> GaussianBelief:
     s = torch.tensor(std, dtype=dtype, device=device)
     mean = torch.zeros(runs, len(std), dtype=dtype, device=device)
@@ -170,6 +179,7 @@ def score_filter(
         each table; ``time_s`` the batch wall time per run) and the filter's output.
     """
     qs = proto.q_scale if q_scale is None else q_scale
+    check_positive_real(r_scale, "r_scale")  # (0 gave inf R scores)
     t0 = time.perf_counter()
     b0 = _belief0(proto.p0_std, ys.shape[1], ys.dtype, ys.device)
     tr = run_in_segments(filt, model, b0, ys, segment=proto.segment)
@@ -179,8 +189,8 @@ def score_filter(
     )
     keys = ("state", "fault", "Q", "R", "Q_late", "R_late")
     vals = {name: e[k].mean(-1) for name, k in zip(SUMMARY, keys)}
-    if detail:
-        for cols, k in ((STATE_COLS, "state"), (FAULT_COLS, "fault"), (Q_COLS, "Q"), (R_COLS, "R")):
+    if detail:  # (the five-car columns named a wider state's components wrongly)
+        for cols, k in zip(_detail_columns(e["state"].shape[-1]), ("state", "fault", "Q", "R")):
             vals |= {c: e[k][:, j] for j, c in enumerate(cols)}
     return run_rows(method, vals | {"time_s": secs}), tr
 

@@ -41,6 +41,7 @@ from ..core.validation import (
     check_flag,
     check_params_finite,
     check_positive,
+    check_positive_real,
     check_real,
     check_std,
     chol_from_std,
@@ -168,6 +169,8 @@ def cstr_steady_state(
     p = resolve_params(params, CSTRParams)
     caf = p.C_AF if C_AF is None else check_real(C_AF, "C_AF")  # (text, bool refused)
     check_dtype_arg(dtype)  # (an integer dtype truncated the state to [0, 402])
+    check_positive_real(tol, "tol")  # (tol <= 0 or NaN never converged: "did not converge")
+    max_iter = check_count(max_iter, "max_iter")  # (2.5: "'float' object cannot be ...")
     # Newton in float64 whatever dtype is asked (the parameters are float64 and a float32
     # iteration could not reach tol), the answer returned in dtype
     x = torch.as_tensor(x_init, dtype=torch.float64, device=device).clone()

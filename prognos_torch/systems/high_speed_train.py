@@ -79,6 +79,7 @@ from ..core.validation import (
     check_count,
     check_dtype_arg,
     check_flag,
+    check_float_tensor,
     check_nonneg,
     check_params_finite,
     chol_from_std,
@@ -93,6 +94,7 @@ from .simulation import (
     input_sequence,
     plain_params,
     resolve_generator,
+    resolve_params,
     simulate_model,
 )
 
@@ -298,10 +300,13 @@ def hst_coupler_fault(t: float) -> float:
 
 
 def hst_sensor_fault(psi: Tensor, t: float) -> Tensor:
-    """``f_s(t)`` of Eq. 65 (drift of the car-1 speed sensor): ``(..., 2n-1) -> (...)``.
+    """``f_s(t)`` of Eq. 65 (drift of the car-1 speed sensor): ``(..., 9) -> (...)``.
 
     ``1e-3 (-1 + sin(0.1 psi_4 psi_5))`` (1-based components) for ``2.5 < t <= 15``, else 0.
+    Eq. 65 is written for the five-car train (``psi_4 psi_5`` = coupler 4 times car-1 speed);
+    a state of another width is refused (it read other components, or failed on an index).
     """
+    check_state(psi, 9, "[x_1..x_4, v_1..v_5] (Eq. 65 is written for five cars)", "psi")
     if 2.5 < t <= 15.0:
         return 1e-3 * (-1.0 + torch.sin(0.1 * psi[..., 3] * psi[..., 4]))
     return torch.zeros_like(psi[..., 0])
@@ -361,6 +366,15 @@ def hst_estimation_errors(
         ``(..., 2n-1)``: RMSE over the steps of each component (truth of ``Q``, ``R``:
         :func:`hst_noise_variances`).
     """
+    for name, v, want in (
+        ("means", means, "(T, ..., 2n+2)"),
+        ("var_Q", var_Q, "(T, ..., >= 2n-1)"),
+        ("var_R", var_R, "(T, ..., 2n-1)"),
+        ("truth", truth, "(T + 1, ..., 2n+2)"),
+    ):
+        check_float_tensor(v, name, want)
+        if v.dim() < 2:
+            raise ValueError(f"{name} must have shape {want}, got {tuple(v.shape)}")
     T = means.shape[0]
     s = var_R.shape[-1]
     if not is_real(q_scale) or not 0 < q_scale < math.inf:
@@ -380,6 +394,12 @@ def hst_estimation_errors(
             f"var_Q (T, ..., >= {s}) and var_R (T, ..., {s}) must have T = {T} rows, got "
             f"{tuple(var_Q.shape)}, {tuple(var_R.shape)}"
         )
+    lead = means.shape[1:-1]  # (a wider or shorter batch was broadcast against the truth's)
+    if var_Q.shape[1:-1] != lead or var_R.shape[1:-1] != lead:
+        raise ValueError(
+            f"var_Q and var_R must have the batch shape {tuple(lead)} of means (T, ..., {s + 3}), "
+            f"got {tuple(var_Q.shape)}, {tuple(var_R.shape)}"
+        )
     ref = truth[1 : T + 1]
     qt, rt = hst_noise_variances(T, dtype=means.dtype, device=means.device)
     shape = (T,) + (1,) * (var_R.dim() - 1)
@@ -393,6 +413,15 @@ def hst_estimation_errors(
         "Q_late": _rmse_t(Q[skip:], Qt[skip:]),
         "R_late": _rmse_t(R[skip:], Rt[skip:]),
     }
+
+
+def _check_five_cars(params: HSTParams, faults: bool) -> None:
+    """The faults of Eq. 63-65 need the five-car train (Eq. 65 reads ``psi_4 psi_5``)."""
+    if faults and params.n_cars != 5:
+        raise ValueError(
+            f"faults=True applies Eq. 63-65 of the five-car train (Eq. 65 reads psi_4 psi_5), "
+            f"got HSTParams with {params.n_cars} cars: pass faults=False"
+        )
 
 
 def _noise_chols(params: HSTParams, q_scale, r_scale, dtype, device):
@@ -430,9 +459,10 @@ def hst_model(
     (``control_dim = n``); by default ``control_dim = 0`` and ``u = 0``. The measurement uncertainty
     ``Delta E_k`` is not part of ``h``; a robust filter uses ``params.M``, ``params.N``.
     """
-    p = params or HSTParams()
+    p = resolve_params(params, HSTParams)
     chol_Q, chol_R = _noise_chols(p, q_scale, r_scale, dtype, device)
     faults, control = check_flag(faults, "faults"), check_flag(control, "control")
+    _check_five_cars(p, faults)
 
     def f(psi, u, k):
         t = (k - 1) * p.sigma
@@ -478,7 +508,7 @@ def hst_fault_model(
             ``u = 0`` and ``control_dim = 0``.
         q_scale, r_scale: multiply ``Q_k``/``R_k`` of Eq. 67-68.
     """
-    p = params or HSTParams()
+    p = resolve_params(params, HSTParams)
     chol_Q, chol_R = _noise_chols(p, q_scale, r_scale, dtype, device)
     control = check_flag(control, "control")
     SD = chol_from_std(chol_D, 3, "chol_D", dtype, device)
@@ -524,7 +554,7 @@ def hst_nominal_fault_model(
         ``blockdiag(sqrt(q_scale q_level) I, chol_D)``, ``chol_R`` ``(2n-1, 2n-1)`` =
         ``sqrt(r_level) I``, both constant.
     """
-    p = params or HSTParams()
+    p = resolve_params(params, HSTParams)
     check_nonneg(q_level, "q_level", numbers_only=True)
     check_nonneg(r_level, "r_level", numbers_only=True)
     model = hst_fault_model(p, chol_D=chol_D, q_scale=q_scale, dtype=dtype, device=device)
@@ -570,15 +600,18 @@ def simulate_hst(
         ``cat([x, theta], -1)`` is the state of :func:`hst_fault_model`), ``t`` in seconds;
         ``meta["delta_E"]`` ``(T, runs, 9)`` (or ``None``) and ``meta["v_r"]`` ``(T+1,)`` m/s.
     """
-    p = params or HSTParams()
+    p = resolve_params(params, HSTParams)
     check_count(n_steps, "n_steps")
     check_count(runs, "runs")
     check_dtype_arg(dtype)
     faults = check_flag(faults, "faults")
+    _check_five_cars(p, faults)
     measurement_uncertainty = check_flag(measurement_uncertainty, "measurement_uncertainty")
     gen = resolve_generator(generator, check_flag(noise, "noise"))
     s = p.state_dim
-    X0 = initial_state(torch.zeros(s) if x0 is None else x0, s, runs, dtype, device)
+    X0 = initial_state(
+        torch.zeros(s, dtype=dtype, device=device) if x0 is None else x0, s, runs, dtype, device
+    )
     U = input_sequence(u, n_steps, runs, p.n_cars, dtype, device)
     model = hst_model(
         p, faults=faults, q_scale=q_scale, r_scale=r_scale, dtype=dtype, device=device

@@ -21,6 +21,7 @@ from ..core.validation import (
     broadcast_shape,
     check_flag,
     is_bool_or_complex,
+    is_int,
     plain_number,
 )
 from .noise_streams import draw_run_noise
@@ -75,11 +76,25 @@ class SimulationResult:
 
 
 # --------------------------------------------------------------------------- inputs
+def _check_device(v: Tensor, name: str, device) -> None:
+    """A tensor argument on the simulation's ``device`` (``None``: torch's default device);
+    nothing is moved between devices (an array or list is created there)."""
+    want = torch.empty(0, device=device).device  # ("cuda" -> "cuda:<current>")
+    if v.device != want:
+        raise ValueError(
+            f"{name} is on {v.device} but the simulation runs on {want} (device={device!r}): "
+            f"create {name} on {want}"
+        )
+
+
 def initial_state(x0, n: int, runs: int, dtype, device, name: str = "x0") -> Tensor:
-    """``x0`` of shape ``(n,)`` (shared) or ``(runs, n)`` -> finite ``(runs, n)`` tensor."""
+    """``x0`` of shape ``(n,)`` (shared) or ``(runs, n)`` -> finite ``(runs, n)`` tensor on
+    ``device`` (a tensor ``x0`` must be there already)."""
     if is_bool_or_complex(x0):  # (a cast read True as 1 or dropped the imaginary part)
         raise TypeError(f"{name} must hold real numbers, got {getattr(x0, 'dtype', x0)!r}")
-    if not isinstance(x0, Tensor):
+    if isinstance(x0, Tensor):
+        _check_device(x0, name, device)
+    else:
         try:
             x0 = torch.as_tensor(x0, dtype=dtype, device=device)
         except (TypeError, ValueError, RuntimeError) as exc:
@@ -97,12 +112,15 @@ def initial_state(x0, n: int, runs: int, dtype, device, name: str = "x0") -> Ten
 
 
 def input_sequence(u, n_steps: int, runs: int, p: int, dtype, device) -> Tensor | None:
-    """``u`` of shape ``(T, p)`` (shared by all runs) or ``(T, runs, p)`` -> ``(T, runs, p)``."""
+    """``u`` of shape ``(T, p)`` (shared by all runs) or ``(T, runs, p)`` -> ``(T, runs, p)`` on
+    ``device`` (a tensor ``u`` must be there already)."""
     if u is None:
         return None
     if is_bool_or_complex(u):  # (a cast read True as 1 or dropped the imaginary part)
         raise TypeError(f"u must hold real numbers, got {getattr(u, 'dtype', u)!r}")
-    if not isinstance(u, Tensor):
+    if isinstance(u, Tensor):
+        _check_device(u, "u", device)
+    else:
         try:
             u = torch.as_tensor(u, dtype=dtype, device=device)
         except (TypeError, ValueError, RuntimeError):
@@ -129,9 +147,12 @@ def resolve_generator(generator, noise: bool) -> torch.Generator | None:
     if not check_flag(noise, "noise"):
         return None
     if not isinstance(generator, torch.Generator):
-        raise ValueError(
+        # a missing generator is a ValueError, an object of another type a TypeError (an int
+        # seed, a NumPy Generator)
+        err = ValueError if generator is None else TypeError
+        raise err(
             "generator must be a torch.Generator when noise=True (pass noise=False for a "
-            f"noise-free run), got {generator!r}"
+            f"noise-free run), got {type(generator).__name__}"
         )
     return generator
 
@@ -274,6 +295,8 @@ def accelerating_drift(k: int, base: float, rate: float, k_fault: int) -> float:
     Evaluated in exact rational arithmetic on the decimal values and rounded once: the correctly
     rounded value of the recursion (no accumulated floating-point error).
     """
+    if not is_int(k):  # (k = 52.5 gave the drift of a step between 52 and 53)
+        raise TypeError(f"k must be an int (a step index), got {k!r}")
     j = k - k_fault
     if j <= 0:
         return float(base)
