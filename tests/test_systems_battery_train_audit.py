@@ -380,9 +380,9 @@ def _scores_inputs(T=20, B=2):
         ({"skip": 20}, ValueError, "skip must be < T = 20"),
         ({"skip": True}, TypeError, "skip must be an int"),
         ({"skip": 2.0}, TypeError, "skip must be an int"),
-        ({"q_scale": 0.0}, ValueError, "q_scale must be a finite number > 0"),
-        ({"q_scale": -1.0}, ValueError, "q_scale must be a finite number > 0"),
-        ({"q_scale": math.nan}, ValueError, "q_scale must be a finite number > 0"),
+        ({"q_scale": 0.0}, ValueError, "q_scale must be a finite positive number"),
+        ({"q_scale": -1.0}, ValueError, "q_scale must be a finite positive number"),
+        ({"q_scale": math.nan}, ValueError, "q_scale must be a finite positive number"),
     ],
 )
 def test_hst_estimation_errors_refuse_a_bad_skip_or_q_scale(kw, err, match):

@@ -82,6 +82,7 @@ from ..core.validation import (
     check_float_tensor,
     check_nonneg,
     check_params_finite,
+    check_positive_real,
     chol_from_std,
     is_real,
 )
@@ -377,8 +378,7 @@ def hst_estimation_errors(
             raise ValueError(f"{name} must have shape {want}, got {tuple(v.shape)}")
     T = means.shape[0]
     s = var_R.shape[-1]
-    if not is_real(q_scale) or not 0 < q_scale < math.inf:
-        raise ValueError(f"q_scale must be a finite number > 0, got {q_scale!r}")
+    check_positive_real(q_scale, "q_scale")
     check_count(skip, "skip", minimum=0)
     if skip >= T:
         raise ValueError(
