@@ -164,12 +164,18 @@ _MAX_BINS = 20_000
 # ----------------------------------------------------------------------------- inputs
 def _as_series(series, time, time_format=None) -> tuple[Tensor, Tensor, Series | None]:
     # one series is a few thousand values: computed on the CPU wherever the data live
+    if time_format is not None and (not isinstance(time_format, str) or "%" not in time_format):
+        raise ValueError(  # as load_series words it
+            f"time_format must be strptime codes such as '%d/%m/%Y %H:%M', got {time_format!r}"
+        )
     if time_format is not None and time is None:
         raise ValueError("time_format applies to time= given as text: pass time= as well")
     if isinstance(series, Series):
         if time is not None:
             raise ValueError("time is taken from the Series; do not pass time= as well")
-        return series.values.to("cpu", torch.float64), series.t.to("cpu", torch.float64), series
+        x = series.values.to("cpu", torch.float64)
+        check_magnitude(x.numpy(), "series")  # a Series built by hand, as an array's values
+        return x, series.t.to("cpu", torch.float64), series
     x = torch.from_numpy(array_values(series, "series"))
     if x.dim() != 1:
         raise ValueError(f"series must be a Series or have shape (T,), got {tuple(x.shape)}")
@@ -369,9 +375,10 @@ def _flags(fit, level_thr: float, passage, n_since: int, censored: float) -> lis
 
 
 def _beyond_the_data(
-    y_on: Tensor, phi: float, sigma0: float, thr_o: float, chosen: str, flags: list[str]
+    y_on: Tensor, phi: float, sigma0: float, thr_o: float, method: str, flags: list[str]
 ) -> list[str]:
-    """Flags of the data since onset (oriented ``y_on``) that the fits cannot see.
+    """Flags of the data since onset (oriented ``y_on``) that the fits cannot see
+    (``method``: ``prognose``'s, whatever the number of filters and seeds pooled).
 
     * The extrapolation flag in data units: a threshold more than 10 x as far above the
       healthy level as the highest value since onset (in the log space of the shapes the
@@ -389,7 +396,7 @@ def _beyond_the_data(
             "healthy level as the highest value since onset (in data units); the RUL rests on "
             "the model's shape far beyond the data"
         )
-    if chosen != "linear" and bool((y_on[-5:] - phi < sigma0).all()):
+    if method != "linear" and bool((y_on[-5:] - phi < sigma0).all()):
         out.append(
             "back at the healthy level: the last 5 values lie within one baseline std of the "
             "healthy mean, where the log-shape trends have no measurement; the RUL extrapolates "
@@ -720,7 +727,7 @@ def prognose(
     if not ons.detected:
         flags += _onset_pending(medians, sign * base.mean + _K * base.std, sign, base.std)
         return _no_degradation(t, yo, thr_o, sign, base, reported, gen, t_eval, span_life,
-                               dt_data, filters[0], flags, common)  # fmt: skip
+                               dt_data, filters[0], flags, common, horizon_factor)  # fmt: skip
 
     i0 = ons.index
     t_on, y_on = t[i0:], yo[i0:]
@@ -770,7 +777,7 @@ def prognose(
         )
     censored = float(dist.censored_mass)
     flags += _flags(fit, thr_o, passage, int(t_on.shape[0]), censored)
-    flags += _beyond_the_data(y_on, phi, noise0, thr_o, chosen, flags)
+    flags += _beyond_the_data(y_on, phi, noise0, thr_o, method, flags)
     if block > 1:
         flags.append(f"{t_on.shape[0]} values since onset were averaged in blocks of {block}")
     paths = _uniform_paths(passage.paths, grid, t_eval, bin_width, bins, sign)
@@ -851,16 +858,18 @@ def _rul_at(
 
 
 def _no_degradation(
-    t, yo, thr_o, sign, base, ons, gen, t_eval, span_life, dt_data, filt, flags, common
-):
-    """Before onset: a lower bound from a linear trend on the healthy data (module doc)."""
+    t, yo, thr_o, sign, base, ons, gen, t_eval, span_life, dt_data, filt, flags, common,
+    horizon_factor,
+):  # fmt: skip
+    """Before onset: a lower bound from a linear trend on the healthy data (module doc), up to
+    the horizon ``horizon_factor x`` the observed life."""
     n = t.shape[0]
     first = max(0, n - 1000)
     noise0 = base.noise if base.noise is not None else base.std
     fits = fit_trends(t[first:], yo[first:], phi=sign * base.mean, sigma0=noise0,
                       shapes=("linear",), filter=filt)  # fmt: skip
     fit = fits["linear"]
-    horizon = max(2.0 * span_life, 10 * dt_data) + (t_eval - float(t[-1]))
+    horizon = max(horizon_factor * span_life, 10 * dt_data) + (t_eval - float(t[-1]))
     bin_width = max(dt_data, horizon / _MAX_BINS)
     grid = _rul_grid(float(t[-1]), float(t[-1]), t_eval, horizon, bin_width, 0.01)
     passage = fit.first_passage(-1, thr_o, grid, 2000, gen)
