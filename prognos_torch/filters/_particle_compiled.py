@@ -52,7 +52,7 @@ from ._particle_blocks import (
     _resample_some,
 )
 from ._particle_noise import _constant_noise, _Setup
-from ._particle_trees import gather_particles
+from ._particle_trees import _gather
 from .gaussian import deferred_fallbacks
 from .resampling import _arange, _cdf, _systematic_by_counts
 from .sequence import _compile_options, _compiled_scan, scan
@@ -277,7 +277,7 @@ def _step_functions(
             anc, lw_r = _resample_some(do, anc, lw)
         else:  # (one run resamples: the cond chose this branch)
             lw_r = torch.full_like(lw, log_uniform)
-        return (gather_particles(x, anc), lw_r, *(gather_particles(t, anc) for t in extra))
+        return (_gather(x, anc), lw_r, *(_gather(t, anc) for t in extra))
 
     def keep_all(W: Tensor, U: Tensor, do: Tensor, *carry: Tensor):
         return tuple(t.clone() for t in carry)

@@ -91,7 +91,6 @@ def gather_particles(obj, ancestors: Tensor, *, leading: dict[str, int] | None =
     Returns:
         The same structure with ``out[..., j, ...] = obj[..., ancestors[..., j], ...]``.
     """
-    leading = ENGINE_LEADING_DIMS if leading is None else leading
     # (a float index failed in gather, unnamed; int32 worked for one run only; a 0-dim one
     # selected along the last dim of every leaf)
     if not isinstance(ancestors, Tensor):
@@ -100,12 +99,37 @@ def gather_particles(obj, ancestors: Tensor, *, leading: dict[str, int] | None =
         raise TypeError(f"ancestors must be an int64 tensor (..., N), got {ancestors.dtype}")
     if ancestors.dim() == 0:
         raise ValueError("ancestors must have shape (..., N), got a 0-dim tensor")
-    ancestors = ancestors.long()
+    # (an index outside 0..N-1 failed inside gather or index_select, unnamed, and on a GPU as a
+    # device-side assert: checked at the first leaf, after its shape; one host read)
+    return _gather(obj, ancestors.long(), leading, check=True)
+
+
+def _check_ancestors(ancestors: Tensor, name: str) -> None:
+    """Refuse an int64 ``ancestors`` ``(..., N)`` with an index outside ``0 .. N-1``."""
+    N = ancestors.shape[-1]
+    if ancestors.numel() == 0:
+        return
+    lo, hi = torch.aminmax(ancestors)
+    if int(lo) < 0 or int(hi) >= N:
+        raise ValueError(
+            f"{name} must be indices in 0..{N - 1} (N = {N} particles, the last dim), got "
+            f"values from {int(lo)} to {int(hi)}"
+        )
+
+
+def _gather(obj, ancestors: Tensor, leading: dict[str, int] | None = None, *, check=False):
+    """:func:`gather_particles` for int64 ``ancestors`` ``(..., N)``; their range is checked
+    only with ``check`` (a host read: the compiled pass traces this without one)."""
+    leading = ENGINE_LEADING_DIMS if leading is None else leading
     want = tuple(ancestors.shape)
     nb = len(want) - 1
+    pending = [check]
 
     def fn(v, _others, lead, name):
         _check_leaf(v, name, lead, want)
+        if pending[0]:
+            _check_ancestors(ancestors, "ancestors")
+            pending[0] = False
         if lead + nb == 0:  # one run: a row selection (the same values as the gather)
             return v.index_select(0, ancestors)
         idx = _particle_view(ancestors, v, lead, nb).expand(v.shape)

@@ -73,6 +73,7 @@ from ..core.validation import (
     has_missing,
     is_int,
     is_real,
+    plain_number,
 )
 from ._particle_blocks import (
     _UNIFORM_CHECK,
@@ -94,7 +95,7 @@ from ._particle_noise import (
     _Setup,
     _sum_last,
 )
-from ._particle_trees import gather_particles, where_particles
+from ._particle_trees import _check_ancestors, _gather, gather_particles, where_particles
 from .gaussian import GaussianFilter, Taylor
 from .resampling import Resampler, _draw_ancestors, get_resampler
 from .sequence import scan
@@ -254,6 +255,10 @@ class ParticleFilter:
         thr = self.resample_threshold
         if not is_real(thr) or not 0.0 <= thr <= 1.0:
             raise ValueError(f"resample_threshold must be a number in [0, 1], got {thr!r}")
+        # NumPy scalars as the Python numbers they are: a numpy.float32 threshold times N was
+        # rounded to float32 (0.3 * 1000 = 300.0, not 300.0000119) and moved the decision
+        object.__setattr__(self, "num_particles", plain_number(N))
+        object.__setattr__(self, "resample_threshold", plain_number(thr))
         if self.proposal is not None and not isinstance(self.proposal, GaussianFilter):
             raise TypeError(
                 "proposal must be None (bootstrap) or a GaussianFilter (e.g. ekf(), ukf(), "
@@ -299,29 +304,54 @@ class ParticleFilter:
         if not isinstance(state, ParticleState):
             raise TypeError(f"state must be a ParticleState, got {type(state).__name__}")
         x, lw = state.particles, state.log_weights
+        if not isinstance(x, Tensor) or not isinstance(lw, Tensor):
+            raise TypeError(
+                "state.particles and state.log_weights must be tensors, got "
+                f"{type(x).__name__} and {type(lw).__name__}"
+            )
         if x.dim() < 2 or x.shape[-1] != model.state_dim or tuple(x.shape[:-1]) != tuple(lw.shape):
             raise ValueError(
                 f"state.particles must have shape (..., N, {model.state_dim}) and "
                 f"state.log_weights (..., N) with the same leading dims, got "
                 f"{tuple(x.shape)} and {tuple(lw.shape)}"
             )
+        # (integer log-weights failed in torch.finfo, unnamed; float32 ones were promoted)
+        if lw.dtype != x.dtype or lw.device != x.device:
+            raise ValueError(
+                f"state.log_weights must have the particles' dtype and device ({x.dtype}, "
+                f"{x.device}), got {lw.dtype}, {lw.device}"
+            )
         if (self.proposal is None) != (state.proposal is None):
             raise ValueError(
                 "state.proposal must be a FilterState for a Gaussian-proposal filter and None "
                 "for the bootstrap filter (build the state with this filter's init)"
             )
+        if state.proposal is not None:
+            # (another particle count failed in the engine's step, unnamed)
+            chol = getattr(getattr(state.proposal, "belief", None), "chol", None)
+            want = (*x.shape, x.shape[-1])
+            if not isinstance(chol, Tensor) or tuple(chol.shape) != want:
+                got = tuple(chol.shape) if isinstance(chol, Tensor) else type(chol).__name__
+                raise ValueError(
+                    f"state.proposal.belief.chol must have shape {want} (a factor per particle "
+                    f"of state.particles {tuple(x.shape)}), got {got}"
+                )
         _check_log_weights(lw)
 
     # ------------------------------------------------------------------ stages
     def _setup(self, model, bs: torch.Size, like: Tensor, k: int) -> _Setup:
-        """Checks and views shared by the steps of a run (noise: only when constant)."""
+        """Checks and views shared by the steps of a run (noise: only when constant), for the
+        particles ``like`` ``(..., N, n)``: a resumed state's count ``N`` may differ from
+        ``num_particles`` (which :meth:`init` draws); per-run noise was expanded to the
+        latter and failed in ``expand``, unnamed."""
         gauss = self.proposal is not None
         const = _constant_noise(model)
+        N = like.shape[-2]
         noise = _noise(model, k, bs, like, gauss) if const else None
-        pmodel = _particle_model(model, len(bs), self.num_particles) if gauss else None
+        pmodel = _particle_model(model, len(bs), N) if gauss else None
         engine_noise = None
         if gauss and const:
-            engine_noise = pmodel.checked_noise(k, (*bs, self.num_particles), like)
+            engine_noise = pmodel.checked_noise(k, (*bs, N), like)
         dev = like.device
         return _Setup(
             noise,
@@ -507,6 +537,19 @@ class ParticleFilter:
                 raise ValueError(
                     f"the resampler must return ancestors of shape {tuple(lw.shape)}, got {got}"
                 )
+            # (a float index failed in gather or index_select, unnamed; an index outside
+            # 0..N-1 there too, and on a GPU as a device-side assert)
+            if anc.is_floating_point() or anc.is_complex() or anc.dtype == torch.bool:
+                raise TypeError(
+                    f"the resampler must return integer ancestors (int64), got {anc.dtype}"
+                )
+            if anc.device != lw.device:
+                raise ValueError(
+                    f"the resampler must return ancestors on the weights' device {lw.device}, "
+                    f"got {anc.device}"
+                )
+            anc = anc.long()
+            _check_ancestors(anc, "the resampler's ancestors")
             return anc
         name = self.resampler.lower()
         w = torch.softmax(lw, dim=-1) if name == "residual" else W
@@ -685,7 +728,7 @@ class ParticleFilter:
             else:
                 lw = torch.full_like(lw, -math.log(N))
             if fs_new is not None:  # its belief's mean is x: gathered with it
-                fs_new = gather_particles(fs_new, anc)
+                fs_new = _gather(fs_new, anc)
                 x = fs_new.belief.mean
             elif anc.dim() == 1:
                 x = x.index_select(0, anc)
