@@ -139,6 +139,26 @@ def _options(items, what: str) -> dict:
     return out
 
 
+def _whole(opts: dict, defaults: dict) -> dict:
+    """``opts`` with a whole number in float notation (``n_hidden=1e3``, ``40.0``) as an int
+    where the option counts (its default is an int; ``max_support``): ``_options`` reads
+    ``1e3`` as the float 1000.0, which the learner refused ("must be an int"), as ``--holdout``
+    reads it as a count."""
+    for key, v in opts.items():
+        count = key == "max_support" or type(defaults.get(key)) is int
+        if count and isinstance(v, float) and math.isfinite(v) and v.is_integer():
+            opts[key] = int(v)
+    return opts
+
+
+def _not_twice(opts: dict, key: str, option: str, what: str) -> None:
+    """Refuse ``option`` where ``what`` sets ``key`` too (the option replaced it unsaid)."""
+    if key in opts:
+        raise ValueError(
+            f"{option} and {what} {key}={opts[key]!r} both set {key}: give one of them"
+        )
+
+
 def _holdout(text: str):
     """``--holdout``: a count (``50``, also written ``5e1`` or ``50.0``) or a fraction in
     ``[0, 1)``; a value >= 1 that is not whole is neither (``1e3`` was read as the fraction
@@ -338,20 +358,24 @@ def _cmd_fit(args) -> int:
     _check_overwrites({"--out": args.out}, {"the data file": args.data})
     series, data_cfg = _series_from_args(args)
     _warn_gaps(series)
-    oopts = _options(args.optimizer_option, "--optimizer-option")
-    if args.epochs is not None:
-        from .workflow.model import check_names
+    from .workflow.model import LEARNER_DEFAULTS, OPTIMIZER_DEFAULTS, check_names
 
-        if check_names(args.learner, args.optimizer)[1] == "closed-form":
+    learner, optimizer = check_names(args.learner, args.optimizer)
+    oopts = _whole(_options(args.optimizer_option, "--optimizer-option"),
+                   OPTIMIZER_DEFAULTS[optimizer])  # fmt: skip
+    if args.epochs is not None:
+        if optimizer == "closed-form":
             raise ValueError(
                 "--epochs applies to an iterative optimiser (--optimizer ekf, srukf, imsrukf, "
                 f"adam or lbfgs); {args.learner}'s closed-form solve has none"
             )
+        _not_twice(oopts, "epochs", "--epochs", "--optimizer-option")
         oopts["epochs"] = args.epochs
-    lopts = _options(args.learner_option, "--learner-option")
+    lopts = _whole(_options(args.learner_option, "--learner-option"), LEARNER_DEFAULTS[learner])
     if args.max_support is not None:
-        if str(args.learner).lower() != "lssvr":
+        if learner != "lssvr":
             raise ValueError(f"--max-support applies to --learner lssvr, not {args.learner!r}")
+        _not_twice(lopts, "max_support", "--max-support", "--learner-option")
         lopts["max_support"] = args.max_support
     model = fit_series(
         series,
@@ -778,6 +802,7 @@ _OPTION_OF = {
     "last must": "--last",
     "fill must": "--fill",
     "time_format": "--time-format",
+    "seed": "--seed",  # (seed must lie in ..., seed names a seed twice)
 }
 
 

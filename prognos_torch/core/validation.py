@@ -190,6 +190,24 @@ def is_real(v) -> bool:
     return isinstance(v, numbers.Real) and not isinstance(v, bool)
 
 
+def check_levels(q, name: str = "q", *, device=None) -> Tensor:
+    """Quantile levels: a probability in ``(0, 1]`` (a Python or NumPy real, a 0-d tensor) or a
+    non-empty 1-D sequence of them, as a float64 tensor ``()`` or ``(Q,)`` on ``device``.
+    Bools, text, ``None``, NaN and 2-D levels raise ``ValueError`` naming ``name`` (``True``
+    was read as ``q = 1``; text failed inside ``torch.as_tensor``)."""
+    vals = q.tolist() if isinstance(q, Tensor) or hasattr(q, "dtype") else q
+    flat = list(vals) if isinstance(vals, (list, tuple)) else [vals]
+    qs = None
+    if flat and all(is_real(v) for v in flat):
+        qs = torch.as_tensor(vals, dtype=torch.float64, device=device)
+    if qs is None or qs.dim() > 1 or bool(torch.isnan(qs).any()):
+        raise ValueError(f"{name} must be a probability in (0, 1] or a 1-D sequence of them, "
+                         f"got {q!r}")  # fmt: skip
+    if not bool(((qs > 0) & (qs <= 1)).all()):
+        raise ValueError(f"{name} must lie in (0, 1], got {q!r}")
+    return qs
+
+
 def plain_number(value):
     """A NumPy integer or real as the Python ``int`` or ``float`` it is (the same value);
     anything else unchanged. Settings that are recorded or saved keep Python numbers: JSON and

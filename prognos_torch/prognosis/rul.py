@@ -35,6 +35,7 @@ from torch import Tensor
 
 from ..core.validation import (
     as_tensor,
+    check_levels,
     check_positive_real,
     check_real_tensor,
     check_scalar,
@@ -279,18 +280,7 @@ class RULDistribution:
         the cumulative sum (a cdf that sums to ``0.5 - 1e-16`` still gives the median). A scalar
         ``q`` gives shape ``(...)``, a 1-D ``q`` gives ``(..., Q)``.
         """
-        vals = q.tolist() if isinstance(q, Tensor) or hasattr(q, "dtype") else q
-        flat = vals if isinstance(vals, (list, tuple)) else [vals]
-        # (True was read as q = 1, text and None failed inside torch.as_tensor)
-        if any(not is_real(v) and not isinstance(v, (list, tuple)) for v in flat):
-            raise ValueError(
-                f"q must be a probability in (0, 1] or a 1-D sequence of them, got {q!r}"
-            )
-        qs = torch.as_tensor(q, dtype=torch.float64, device=self.pmf.device)
-        if qs.dim() > 1:
-            raise ValueError(f"q must be a scalar or 1-D, got shape {tuple(qs.shape)}")
-        if not bool(((qs > 0) & (qs <= 1)).all()):
-            raise ValueError("q must lie in (0, 1]")
+        qs = check_levels(q, device=self.pmf.device)
         scalar = qs.dim() == 0
         qs = qs.reshape(-1)
         h = self.horizon

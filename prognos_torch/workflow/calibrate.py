@@ -101,6 +101,8 @@ def calibrate_rul(
 
     Raises:
         ValueError: ``histories`` empty or malformed, or no history gives a usable point.
+        TypeError: a keyword argument that is no ``prognose`` setting (checked before any
+            replay).
         RuntimeError: ``workers > 1`` and a worker process ended abruptly (no ``__main__``
             guard in the calling script, or a worker killed).
     """
@@ -109,6 +111,13 @@ def calibrate_rul(
         raise ValueError(
             "calibrate_rul sets at= and time= itself: do not pass them (nor time_format: "
             "give the histories' times as numbers or date-times)"
+        )
+    # checked before the replays: a misspelt setting failed in the first prognose call
+    unknown = sorted(k for k in prognose_kwargs if k not in _PROGNOSE_SETTINGS)
+    if unknown:
+        raise TypeError(
+            f"calibrate_rul got unexpected keyword argument(s) {', '.join(map(repr, unknown))}; "
+            f"prognose settings it passes on: {', '.join(_PROGNOSE_SETTINGS)}"
         )
     if direction not in ("above", "below"):
         raise ValueError(
@@ -177,6 +186,14 @@ def calibrate_rul(
                               groups=[p["name"] for p in usable])  # fmt: skip
     cal = replace(cal, settings=settings)
     return cal, points
+
+
+#: the keyword arguments of ``prognose`` that ``**prognose_kwargs`` may set (``time``, ``at``,
+#: ``time_format``, ``seed`` and ``direction`` are calibrate_rul's own)
+_PROGNOSE_SETTINGS = tuple(
+    k for k, p in inspect.signature(prognose).parameters.items()
+    if p.kind is p.KEYWORD_ONLY and k not in ("time", "at", "time_format", "seed", "direction")
+)  # fmt: skip
 
 
 def _predict(y, t, at, threshold, true, seed, direction, kwargs) -> dict:

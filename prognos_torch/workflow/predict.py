@@ -44,7 +44,7 @@ from torch import Tensor
 
 from .._text import json_number
 from ..core.belief import GaussianBelief
-from ..core.validation import check_count, check_real, check_seed, is_real
+from ..core.validation import check_count, check_levels, check_real, check_seed, is_real
 from ..filters import make_filter, make_particle_filter
 from ..filters import run as run_filter
 from ..learners import LSSVR
@@ -278,11 +278,7 @@ class RULResult:
             ``()`` for a scalar ``q``, else ``(Q,)`` (time units; NaN: beyond ``bound``, or no
             distribution estimated, ``status`` other than ``"ok"``).
         """
-        qs = torch.as_tensor(q, dtype=torch.float64)
-        if qs.dim() > 1 or qs.numel() == 0 or bool(torch.isnan(qs).any()):
-            raise ValueError(f"q must be a probability or a 1-D sequence of them, got {q!r}")
-        if not bool(((qs > 0) & (qs <= 1)).all()):
-            raise ValueError(f"q must lie in (0, 1], got {q!r}")
+        qs = check_levels(q)
         if self.status != "ok":
             return torch.full(qs.shape, math.nan, dtype=torch.float64)
         x = self._alive_ruls()
@@ -468,16 +464,19 @@ def _scaled(model: FittedModel, series: Series) -> Tensor:
 def _start(z: Tensor, m: int, filter_steps: int, what: str) -> int:
     """First row of the window the filter starts from: the window of ``m`` values that leaves
     ``filter_steps`` values to filter, or, where a value in it is missing (NaN), the last
-    complete window before it (the missing values after it are the filter's gaps)."""
+    complete window before it (the missing values after it are the filter's gaps); without
+    one before it (a series whose first value is missing, filtered whole), the first complete
+    window after it."""
     s0 = z.shape[0] - min(filter_steps, z.shape[0] - m) - m
-    complete = (~torch.isnan(z[: s0 + m]).unfold(0, m, 1).any(-1)).nonzero()[:, 0]
-    if not complete.numel():
+    complete = (~torch.isnan(z).unfold(0, m, 1).any(-1)).nonzero()[:, 0]
+    if not complete.numel():  # (more filter_steps cannot help: they move the start earlier)
         raise ValueError(
-            f"series {what!r} has no {m} consecutive observed values (NaN is missing) up to row "
-            f"{s0 + m - 1}: the filter starts from one complete window of the model's "
-            f"embedding m = {m}; fill the missing values or filter more steps (filter_steps)"
+            f"series {what!r} has no {m} consecutive observed values (NaN is missing): the "
+            f"filter starts from one complete window of the model's embedding m = {m}; fill "
+            "the missing values"
         )
-    return int(complete[-1])
+    before = complete[complete <= s0]
+    return int(before[-1] if before.numel() else complete[0])
 
 
 def _filtered(
@@ -537,7 +536,8 @@ def forecast(
         filter: a Gaussian filter name (``sckf``, ``stsckf``, ``ukf``, ``ekf``, ...) or a particle
             filter (``pf``, ``ekpf``, ``stpf``, ``upf``); see the module notes.
         filter_steps: observations filtered before predicting (at most ``T - m``; more where
-            a value of the window the filter would start from is missing).
+            a value of the window the filter would start from is missing, fewer where no
+            complete window lies before it).
         n_particles: particles (particle filters).
         seed: particle draws (default: the model's seed).
 
