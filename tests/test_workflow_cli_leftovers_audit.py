@@ -178,3 +178,16 @@ def test_rul_quantile_refuses_bool_and_text_and_takes_numpy_reals():
     for bad in (True, np.bool_(True), "0.5", None, [0.5, True], torch.tensor(True)):
         with pytest.raises(ValueError, match="q must be a probability"):
             r.quantile(bad)
+
+
+# ------------------------------------------------------------------------- model.py
+def test_an_lbfgs_max_iter_that_is_not_a_positive_int_is_refused(tmp_path, capsys):
+    """LBFGS with max_iter=0 took no iteration and the fit reported success (exit 0)."""
+    data = _csv(tmp_path / "d.csv")
+    for bad in ("0", "-2"):
+        code = main(["fit", str(data), "--column", "v", "--time-column", "t", "--learner",
+                     "elm", "--optimizer", "lbfgs", "--embedding", "2", "--optimizer-option",
+                     f"max_iter={bad}", "--out", str(tmp_path / "m.pt")])  # fmt: skip
+        assert code == 2
+        _one_error(capsys, f"lbfgs optimizer option max_iter must be a positive int, got {bad}")
+        assert not (tmp_path / "m.pt").exists()

@@ -54,7 +54,15 @@ import torch
 from torch import Tensor, nn
 
 from ..adapt.noise import SageHusa
-from ..core.validation import all_finite, check_flag, check_seed, is_int, is_real, plain_number
+from ..core.validation import (
+    all_finite,
+    check_flag,
+    check_pos_int,
+    check_seed,
+    is_int,
+    is_real,
+    plain_number,
+)
 from ..datasets.windows import MinMaxScaler, embed
 from ..learners import ANFIS, ELM, LSSVR
 from ..learners.lssvr_fixed import FixedSizeLSSVR
@@ -320,6 +328,8 @@ def _train(
     if not is_int(epochs) or epochs < 1:
         raise ValueError(f"epochs must be a positive int, got {epochs!r}")
     epochs = int(epochs)
+    if "max_iter" in oopts:  # (LBFGS took max_iter=0 and trained nothing, unsaid)
+        check_pos_int(oopts["max_iter"], f"{optimizer} optimizer option max_iter")
     if optimizer in KALMAN:
         n_state = sum(p.numel() for p in net.parameters() if p.requires_grad)
         if n_state > MAX_KALMAN_STATE:
