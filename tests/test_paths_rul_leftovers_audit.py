@@ -234,3 +234,16 @@ def test_fit_trends_refuses_bad_times_values_and_settings_by_name(series):
     got = fit_trends(t, y.float(), **kw)["exponential"]
     assert got.means.dtype == F64
     assert float((got.means - ref.means).abs().max()) <= 1e-12
+
+
+def test_protocol_fractions_take_a_tensor_or_array_of_values():
+    """A 1-D tensor of fractions was refused (its entries are 0-d tensors, not numbers), an
+    array of them taken; a bool tensor, a 0-d or 2-D tensor stay refused."""
+    from prognos_torch.prognosis.protocol import check_fractions
+
+    want = (0.25, 0.5)
+    assert check_fractions(torch.tensor(want, dtype=torch.float64)) == want
+    assert check_fractions(np.array(want)) == want
+    for bad in (torch.tensor([True, False]), torch.tensor(0.5), torch.tensor([[0.5]])):
+        with pytest.raises(ValueError, match=r"fractions must be distinct numbers in \(0, 1\)"):
+            check_fractions(bad)

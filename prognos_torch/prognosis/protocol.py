@@ -55,9 +55,9 @@ PROTOCOL_MIN_POINTS = 20
 def check_fractions(fractions) -> tuple[float, ...]:
     """Prediction times as distinct fractions in (0, 1) of [onset, end of life], as floats
     (``ValueError`` naming them: a fraction beyond 1 would replay rows past the end of life)."""
-    try:
-        fr = tuple(fractions)
-    except TypeError:
+    try:  # (a 1-D tensor or array by its values: a tensor's entries are 0-d tensors)
+        fr = tuple(fractions.tolist() if getattr(fractions, "ndim", None) == 1 else fractions)
+    except (TypeError, AttributeError):
         fr = ()
     if not fr or any(not is_real(f) or not 0 < f < 1 for f in fr) or len(set(fr)) != len(fr):
         raise ValueError(
