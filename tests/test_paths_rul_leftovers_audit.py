@@ -122,6 +122,12 @@ def test_particle_band_is_nan_from_the_step_a_weighted_path_becomes_nan():
     w = torch.tensor([0.0, 0.2, 0.3, 0.5], dtype=F64)  # the diverged path carries no weight
     sp = particle_paths(model, parts, 2, generator=_gen(0), weights=w, level=0.5)
     assert sp.lower.tolist() == [0.2, 0.2] and sp.upper.tolist() == [0.3, 0.3]
+    # ... and the mean and std are those of the weighted paths (0 x NaN made them NaN)
+    live = sp.samples[1:]
+    mean = (w[1:, None] * live).sum(0)
+    std = (w[1:, None] * (live - mean) ** 2).sum(0).sqrt()
+    assert torch.allclose(sp.mean, mean, rtol=1e-14, atol=0.0)
+    assert torch.allclose(sp.std, std, rtol=1e-14, atol=0.0)
 
 
 # ------------------------------------------------------------------------------ rul.py

@@ -408,8 +408,11 @@ def particle_paths(
         out.append(y[..., channel])
     samples = torch.stack(out, dim=-1)  # (..., N, H)
     wu = w.unsqueeze(-1)
-    mean = (wu * samples).sum(-2)
-    std = (wu * (samples - mean.unsqueeze(-2)) ** 2).sum(-2).sqrt()
+    # a path of weight zero does not count, even diverged (0 x NaN made the mean NaN); the
+    # same sums wherever the paths are finite
+    weighted = torch.where(wu > 0, samples, 0.0)
+    mean = (wu * weighted).sum(-2)
+    std = (wu * (weighted - mean.unsqueeze(-2)) ** 2).sum(-2).sqrt()
     lo, hi = (1.0 - level) / 2.0, (1.0 + level) / 2.0
     return SamplePaths(
         samples=samples,
