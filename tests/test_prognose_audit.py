@@ -71,6 +71,16 @@ def test_horizon_factor_sets_the_horizon_before_onset():
         assert res.summary()["bound"] == bins and res.censored_mass == pytest.approx(1.0, abs=1e-12)
 
 
+def test_n_paths_sets_the_paths_before_onset():
+    """Before onset 2000 paths were drawn whatever n_paths said (and n_particles read 2000):
+    with 50 the bound's distribution is one of 50 equally weighted paths."""
+    res = prognose(_healthy(), 1.5, n_paths=50)
+    assert res.status == "no degradation detected yet" and res.n_particles == 50
+    pmf = torch.cat([res.distribution.pmf, res.distribution.censored_mass.reshape(1)])
+    k = pmf * 50  # whole numbers of paths
+    assert torch.allclose(k, k.round(), atol=1e-9) and 0 < float(k[:-1].sum()) < 50
+
+
 def test_pooled_seeds_of_the_linear_trend_are_not_flagged_back_at_the_healthy_level(no_backtest):
     """The "back at the healthy level" flag concerns the log shapes (no measurement there):
     with seed=(0, 1) the linear trend's model name became "linear (ekf, seed 0) + ...", which

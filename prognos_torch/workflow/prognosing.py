@@ -727,7 +727,8 @@ def prognose(
     if not ons.detected:
         flags += _onset_pending(medians, sign * base.mean + _K * base.std, sign, base.std)
         return _no_degradation(t, yo, thr_o, sign, base, reported, gen, t_eval, span_life,
-                               dt_data, filters[0], flags, common, horizon_factor)  # fmt: skip
+                               dt_data, filters[0], flags, common, horizon_factor,
+                               n_paths)  # fmt: skip
 
     i0 = ons.index
     t_on, y_on = t[i0:], yo[i0:]
@@ -859,10 +860,10 @@ def _rul_at(
 
 def _no_degradation(
     t, yo, thr_o, sign, base, ons, gen, t_eval, span_life, dt_data, filt, flags, common,
-    horizon_factor,
+    horizon_factor, n_paths,
 ):  # fmt: skip
     """Before onset: a lower bound from a linear trend on the healthy data (module doc), up to
-    the horizon ``horizon_factor x`` the observed life."""
+    the horizon ``horizon_factor x`` the observed life, from ``n_paths`` paths."""
     n = t.shape[0]
     first = max(0, n - 1000)
     noise0 = base.noise if base.noise is not None else base.std
@@ -872,7 +873,7 @@ def _no_degradation(
     horizon = max(horizon_factor * span_life, 10 * dt_data) + (t_eval - float(t[-1]))
     bin_width = max(dt_data, horizon / _MAX_BINS)
     grid = _rul_grid(float(t[-1]), float(t[-1]), t_eval, horizon, bin_width, 0.01)
-    passage = fit.first_passage(-1, thr_o, grid, 2000, gen)
+    passage = fit.first_passage(-1, thr_o, grid, n_paths, gen)
     dist, _, bins = _rul_at(passage.times, t_eval, float(t[-1]), horizon, bin_width, grid)
     q05 = float(dist.quantile(0.05))
     bound = bins * bin_width if math.isnan(q05) else q05
@@ -884,7 +885,7 @@ def _no_degradation(
         paths=torch.zeros(1, bins, dtype=torch.float64),
         weights=torch.ones(1, dtype=torch.float64),
         filter=fit.filter,
-        n_particles=2000,
+        n_particles=n_paths,
         status="no degradation detected yet",
         onset=ons,
         model=None,
