@@ -265,6 +265,23 @@ def _run_ray(shards, method, threshold, options, progress, ray_init):
             ray.shutdown()
 
 
+def _check_part(part, method: str, n: int, extra) -> None:
+    """A RUL method's answer for a shard of ``n`` assets: ``(n,)`` arrays of every column and
+    ``n`` flags (and messages); ``ValueError`` naming the column (a ``(1,)`` column was spread
+    over the shard's assets, a short flag list failed with an IndexError)."""
+    for c in (*RUL_COLUMNS, *extra, "flags", "message"):
+        if c == "message" and c not in part:
+            continue
+        if c not in part:
+            raise ValueError(f"method {method!r} returned no {c!r} for a shard of {n} assets")
+        shape = np.shape(part[c])
+        if shape != (n,):
+            raise ValueError(
+                f"method {method!r} returned {c!r} of shape {shape} for a shard of {n} assets; "
+                f"expected ({n},)"
+            )
+
+
 def method_defaults(method: str) -> dict[str, object] | None:
     """The options ``fleet_rul(..., **options)`` accepts for ``method`` and their defaults: the
     keyword options of :data:`METHODS` ``[method]`` (for ``"prognose"`` also those of
@@ -376,7 +393,9 @@ def fleet_rul(
         raise ValueError(f"shard_size must be a positive int, got {shard_size!r}")
     shard_size = int(shard_size)
     seed = check_seed(seed)
-    check_workers(workers)
+    workers = check_workers(workers)  # (a NumPy count made shard_size a NumPy int)
+    if on_error not in ("raise", "flag"):  # (also where a FleetTable is given, not read here)
+        raise ValueError(f"on_error must be 'raise' or 'flag', got {on_error!r}")
     if workers > 1 and backend != "local":
         raise ValueError(
             f"workers={workers} applies to backend='local'; Ray places its tasks on its own "
@@ -418,6 +437,7 @@ def fleet_rul(
     extra = [c for c in EXTRA_COLUMNS if parts and c in parts[0]]
     numeric.update({c: np.full(n, np.nan) for c in extra})
     for (ids, _), part in zip(shards, parts):
+        _check_part(part, method, len(ids), extra)
         for c in (*RUL_COLUMNS, *extra):
             numeric[c][ids] = part[c]
         for j, i in enumerate(ids):

@@ -178,6 +178,11 @@ def _asset_text(col) -> np.ndarray:
     return np.array(text, dtype=object)
 
 
+def _na_cell(cell) -> bool:
+    """A cell that holds no value: None or pandas' NA (a nullable column's missing cell)."""
+    return cell is None or type(cell).__name__ == "NAType"
+
+
 def _numbers(col, what: str):
     """float64 array and the positions of cells that are not numbers (text or inf)."""
     arr = np.asarray(col)
@@ -199,7 +204,7 @@ def _numbers(col, what: str):
     out = np.empty(arr.size, dtype=np.float64)
     bad = []
     for i, cell in enumerate(arr.tolist()):
-        if cell is None:
+        if _na_cell(cell):  # (pandas' NA printed '<NA>' and was "not a number")
             out[i] = np.nan
             continue
         if isinstance(cell, (int, float)) and not isinstance(cell, bool):
@@ -231,9 +236,20 @@ def _times(col, where, time_format: str | None = None):
     arr = np.asarray(col)
     if time_format is not None and arr.dtype.kind not in "Miuf":
         cells = arr.tolist()
+        _no_missing_time(cells, where)
         stamps = formatted_stamps([str(c) for c in cells], time_format,
                                   lambda i: f"{where(i)}: time {cells[i]!r}")  # fmt: skip
     elif arr.dtype.kind == "M":
+        # datetime64[ns] holds 1678-2262; beyond, NumPy's cast wraps around silently (3000-01-01
+        # was 1830-11-23)
+        sec = arr.astype("datetime64[s]")
+        lo, hi = np.datetime64("1678-01-01", "s"), np.datetime64("2262-01-01", "s")
+        out = np.flatnonzero(~np.isnat(sec) & ((sec < lo) | (sec >= hi)))
+        if out.size:
+            raise ValueError(
+                f"{where(out[0])}: time {arr[out[0]]} lies outside 1678-2262, the range of "
+                "nanosecond times"
+            )
         stamps = arr.astype("datetime64[ns]")
     elif arr.dtype.kind in "iuf":
         t = arr.astype(np.float64)
@@ -256,6 +272,7 @@ def _times(col, where, time_format: str | None = None):
                     "not both"
                 )
             raise ValueError(f"{where(i)}: the time is missing or not finite")
+        _no_missing_time(cells, where)
         stamps = np.empty(len(cells), dtype="datetime64[ns]")
         for i, c in enumerate(cells):
             try:
@@ -276,6 +293,19 @@ def _times(col, where, time_format: str | None = None):
     # tables read apart (shards of one fleet, files of different days) compare and merge
     days = (stamps - _UNIX_EPOCH) / np.timedelta64(1, "D")
     return days.astype(np.float64), "days", iso_start(_UNIX_EPOCH)
+
+
+def _no_missing_time(cells: list, where) -> None:
+    """``ValueError`` at the first date-time cell that is missing: empty, None, pandas' NA, NaN
+    or ``NaT`` (None was "neither a number nor an ISO 8601 date-time", an empty cell with a
+    ``time_format`` did "not match" it)."""
+    for i, c in enumerate(cells):
+        if (
+            _na_cell(c)
+            or (isinstance(c, float) and math.isnan(c))
+            or (isinstance(c, str) and c.strip().lower() in ("", "nan", "nat"))
+        ):
+            raise ValueError(f"{where(i)}: the time is missing")
 
 
 def _comma_values(cells: list[str]) -> tuple[list[str], np.ndarray]:

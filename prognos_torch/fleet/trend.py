@@ -220,11 +220,16 @@ class PaddedBatch:
 def pad_batch(assets, times, values, seed: int = 0) -> PaddedBatch:
     """Pad per-asset 1-D arrays into a :class:`PaddedBatch` (float64, NaN padding). Each
     asset's times must be finite and strictly increasing (as a fleet table's are); its values
-    may be NaN (missing)."""
+    may be NaN (missing), not infinite."""
     seed = check_seed(seed)
     B = len(assets)
     if not (len(times) == len(values) == B) or B == 0:
         raise ValueError("assets, times and values must be non-empty and of one length")
+    for name, arrays in (("times", times), ("values", values)):
+        for a, arr in zip(assets, arrays):  # (a cast would read True as 1, drop an imaginary part)
+            if np.asarray(arr).dtype.kind in "bc":
+                raise ValueError(f"asset {a!r}: {name} must be real numbers, got dtype "
+                                 f"{np.asarray(arr).dtype}")  # fmt: skip
     times = [np.asarray(t, dtype=np.float64) for t in times]
     values = [np.asarray(v, dtype=np.float64) for v in values]
     lengths = [len(v) if v.ndim == 1 else -1 for v in values]
@@ -244,6 +249,11 @@ def pad_batch(assets, times, values, seed: int = 0) -> PaddedBatch:
                 f"asset {assets[i]!r}: times must be finite and strictly increasing, got "
                 f"{t.tolist() if t.size <= 6 else t}"
             )
+        if np.isinf(v).any():  # (the engine refused it for the whole shard, naming no asset)
+            raise ValueError(
+                f"asset {assets[i]!r}: values must be numbers or NaN (missing), got "
+                f"{v[np.isinf(v)][0]} at row {int(np.flatnonzero(np.isinf(v))[0]) + 1}"
+            )
         V[i, : len(v)] = v
         X[i, : len(t)] = t
     return PaddedBatch(
@@ -253,6 +263,43 @@ def pad_batch(assets, times, values, seed: int = 0) -> PaddedBatch:
         lengths=torch.tensor(lengths, dtype=torch.int64),
         seeds=[asset_seed(seed, a) for a in assets],
     )
+
+
+def check_rows(values, times, lengths) -> None:
+    """A padded batch's ``values`` and ``times`` ``(B, T)`` float tensors and ``lengths`` ``(B,)``
+    ints in ``[0, T]``; within each row's length, finite and strictly increasing times and values
+    that are numbers or NaN (missing), as :func:`pad_batch` makes them and the per-series rule
+    takes them (``ValueError`` naming the argument; a ``(1,)`` ``lengths`` was broadcast to
+    every row, infinite values were taken as numbers)."""
+    for name, x in (("values", values), ("times", times)):
+        if not isinstance(x, Tensor) or x.dim() != 2 or not x.is_floating_point():
+            got = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+            raise ValueError(f"{name} must be a (B, T) float tensor, got {got}")
+    if times.shape != values.shape:
+        raise ValueError(
+            f"times must have the shape of values {tuple(values.shape)}, got {tuple(times.shape)}"
+        )
+    B, T = values.shape
+    if (
+        not isinstance(lengths, Tensor)
+        or lengths.shape != (B,)
+        or lengths.dtype.is_floating_point
+        or lengths.dtype in (torch.bool, torch.complex64, torch.complex128)
+    ):
+        got = tuple(lengths.shape) if isinstance(lengths, Tensor) else type(lengths).__name__
+        raise ValueError(f"lengths must be a ({B},) int tensor, got {got}")
+    if B and not bool(((lengths >= 0) & (lengths <= T)).all()):
+        raise ValueError(
+            f"lengths must lie in [0, {T}] (the rows of values), got {lengths.tolist()}"
+        )
+    rows = torch.arange(T, device=values.device) < lengths[:, None]
+    if bool((rows & torch.isinf(values)).any()):
+        raise ValueError(
+            "values must be numbers or NaN (missing) within each row's length, got inf"
+        )
+    gaps = torch.diff(times, dim=1) > 0
+    if not bool(torch.isfinite(times[rows]).all()) or not bool((gaps | ~rows[:, 1:]).all()):
+        raise ValueError("times must be finite and strictly increasing within each row's length")
 
 
 # --------------------------------------------------------------------------- onset
@@ -292,6 +339,7 @@ def ksigma_onset_batch(
     baseline, k, window, consecutive, direction = check_onset_rule(
         baseline, k, window, consecutive, direction
     )
+    check_rows(values, times, lengths)
     B, T = values.shape
     sign = 1.0 if direction == "above" else -1.0
     cols = torch.arange(T, device=values.device)
@@ -625,6 +673,8 @@ def exponential_trend_rul(
         )  # fmt: skip
     if not per_asset and (not is_real(phi) or not math.isfinite(phi)):
         raise ValueError(f"phi must be a finite number, 'baseline' or 'auto', got {phi!r}")
+    if not per_asset:  # (a NumPy float32 phi made s (X - phi), log_thr, float32)
+        phi = float(phi)
     if not per_asset and not s * (thr - phi) > 0:
         side = "above" if s > 0 else "below"
         raise ValueError(
@@ -638,6 +688,7 @@ def exponential_trend_rul(
     samples = int(samples)
     min_rows = check_min_rows(min_rows)
     y, t, lengths = batch.values, batch.times, batch.lengths
+    check_rows(y, t, lengths)
     B, T = y.shape
     dev, dt = y.device, y.dtype
     cols = torch.arange(T, device=dev)
