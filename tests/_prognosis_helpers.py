@@ -86,3 +86,13 @@ def _drift_problem(T=110, R=3, onset=30, seed=0, extra=10):
         torch.ones(R, 1, dtype=F64), 0.1 * torch.eye(1, dtype=F64).expand(R, 1, 1)
     )
     return th, ys_all, model, init
+
+
+def degradation_history(seed: int, n: int = 60, onset: int = 30):
+    """A run-to-failure history ``(t, y)``: noise about 1 (std 0.01), then a power-law rise
+    ``0.05 (t - onset)^1.5`` from ``onset`` on."""
+    g = torch.Generator().manual_seed(seed)
+    t = torch.arange(n, dtype=F64)
+    y = 1.0 + 0.01 * torch.randn(n, generator=g, dtype=F64)
+    y[onset:] += 0.05 * (t[onset:] - onset) ** 1.5
+    return t, y

@@ -9,27 +9,12 @@ import math
 
 import pytest
 import torch
+from _cli_helpers import healthy_csv, one_error
 
 import prognos_torch.studies as studies  # (imported once, at collection, not in a test)
 import prognos_torch.workflow  # noqa: F401
 from prognos_torch._text import fmt_time
 from prognos_torch.cli import build_parser, main
-
-
-def _csv(path, n: int = 40):
-    """A healthy, slowly oscillating series on t = 0, 0.5, ... (no degradation)."""
-    t = [0.5 * i for i in range(n)]
-    y = [1.0 + 0.05 * math.sin(1.3 * i) for i in range(n)]
-    path.write_text("t,v\n" + "".join(f"{a!r},{b!r}\n" for a, b in zip(t, y)))
-    return path, t
-
-
-def _one_error(capsys, text: str) -> str:
-    cap = capsys.readouterr()
-    err = cap.err
-    assert err.count("\n") == 1 and err.startswith("error: "), err
-    assert text in err, err
-    return cap.out
 
 
 def test_negative_values_in_exponent_notation_or_inf_are_read_as_option_values(tmp_path, capsys):
@@ -45,10 +30,10 @@ def test_negative_values_in_exponent_notation_or_inf_are_read_as_option_values(t
     # what argparse reads as a number itself, a flag, and '--' stay as they were
     assert _join_negative_values(["--until", "-5", "--refit", "--", "--x", "-1e3"]) == [
         "--until", "-5", "--refit", "--", "--x", "-1e3"]  # fmt: skip
-    data, _ = _csv(tmp_path / "d.csv")
+    data, _ = healthy_csv(tmp_path / "d.csv")
     argv = ["rul", str(data), "--column", "v", "--time-column", "t", "--threshold", "-inf"]
     assert main(argv) == 2
-    _one_error(capsys, "error: --threshold: threshold must be a finite number, got -inf")
+    one_error(capsys, "error: --threshold: threshold must be a finite number, got -inf")
 
 
 @pytest.mark.parametrize(
@@ -64,10 +49,10 @@ def test_negative_values_in_exponent_notation_or_inf_are_read_as_option_values(t
     ],
 )
 def test_a_bad_prognose_option_is_named_in_its_error(tmp_path, capsys, extra, text):
-    data, _ = _csv(tmp_path / "d.csv")
+    data, _ = healthy_csv(tmp_path / "d.csv")
     base = ["rul", str(data), "--column", "v", "--time-column", "t", "--threshold", "3"]
     assert main(base + extra) == 2
-    assert _one_error(capsys, text) == ""
+    assert one_error(capsys, text) == ""
 
 
 @pytest.mark.parametrize(
@@ -78,17 +63,17 @@ def test_a_bad_prognose_option_is_named_in_its_error(tmp_path, capsys, extra, te
     ],
 )
 def test_a_bad_fit_option_is_named_in_its_error(tmp_path, capsys, extra, text):
-    data, _ = _csv(tmp_path / "d.csv")
+    data, _ = healthy_csv(tmp_path / "d.csv")
     out = tmp_path / "m.pt"
     assert main(["fit", str(data), "--column", "v", "--out", str(out), *extra]) == 2
-    _one_error(capsys, text)
+    one_error(capsys, text)
     assert not out.exists()
 
 
 def test_until_at_or_past_the_last_row_warns_that_nothing_follows(tmp_path, capsys):
     """--until 1000 on rows ending at t = 19.5 reported 'observed RUL: not reached in the
     data' with no word that no row follows the cut; inside the data, no such warning."""
-    data, t = _csv(tmp_path / "d.csv")
+    data, t = healthy_csv(tmp_path / "d.csv")
     base = ["rul", str(data), "--column", "v", "--time-column", "t", "--threshold", "3",
             "--paths", "100"]  # fmt: skip
     for until in ("1000", repr(t[-1])):
@@ -105,7 +90,7 @@ def test_until_at_or_past_the_last_row_warns_that_nothing_follows(tmp_path, caps
 def test_json_to_stdout_keeps_the_reports_warnings_on_stderr(tmp_path, capsys):
     """--json - silenced the whole report, and with it its 'warning:' lines (no degradation
     yet, a glitch, a calibration with too few histories): they go to stderr now."""
-    data, _ = _csv(tmp_path / "d.csv")
+    data, _ = healthy_csv(tmp_path / "d.csv")
     argv = ["rul", str(data), "--column", "v", "--time-column", "t", "--threshold", "3",
             "--paths", "100"]  # fmt: skip
     assert main(argv + ["--json", "-"]) == 0
@@ -122,50 +107,50 @@ def test_json_to_stdout_keeps_the_reports_warnings_on_stderr(tmp_path, capsys):
 def test_an_output_that_is_an_input_or_another_output_is_refused(tmp_path, capsys):
     """--csv DATA replaced the data just read with the forecast; fit --out DATA replaced the
     CSV with a model file; --plot and --csv on one name kept the last written."""
-    data, _ = _csv(tmp_path / "d.csv")
+    data, _ = healthy_csv(tmp_path / "d.csv")
     before = data.read_bytes()
     model = tmp_path / "none.pt"  # (refused before the model file is read)
     assert main(["forecast", str(model), str(data), "--horizon", "3", "--csv", str(data)]) == 2
-    _one_error(capsys, f"error: --csv: {data} is the data file, which this run reads")
+    one_error(capsys, f"error: --csv: {data} is the data file, which this run reads")
     assert main(["fit", str(data), "--column", "v", "--out", str(data)]) == 2
-    _one_error(capsys, f"error: --out: {data} is the data file, which this run reads")
+    one_error(capsys, f"error: --out: {data} is the data file, which this run reads")
     rul = ["rul", str(data), "--column", "v", "--time-column", "t", "--threshold", "3"]
     assert main(rul + ["--json", str(data)]) == 2
-    _one_error(capsys, f"error: --json: {data} is the data file, which this run reads")
+    one_error(capsys, f"error: --json: {data} is the data file, which this run reads")
     same = tmp_path / "f.png"
     argv = ["forecast", str(model), str(data), "--horizon", "3", "--csv", str(same), "--plot"]
     assert main(argv + [str(same)]) == 2
-    _one_error(capsys, f"error: --plot and --csv name the same file {same}")
+    one_error(capsys, f"error: --plot and --csv name the same file {same}")
     assert data.read_bytes() == before and not same.exists()
 
 
 def test_json_naming_a_folder_is_refused_before_anything_is_written(tmp_path, capsys):
     """--json out/ (a folder) passed the up-front check (Path() drops the '/'): the report was
     printed and the figure written before the record failed with exit 2."""
-    data, _ = _csv(tmp_path / "d.csv")
+    data, _ = healthy_csv(tmp_path / "d.csv")
     png = tmp_path / "r.png"
     argv = ["rul", str(data), "--column", "v", "--time-column", "t", "--threshold", "3",
             "--paths", "100", "--plot", str(png), "--json", str(tmp_path / "new") + "/"]  # fmt: skip
     assert main(argv) == 2
-    assert _one_error(capsys, "names a folder, expected a file name") == ""
+    assert one_error(capsys, "names a folder, expected a file name") == ""
     assert not png.exists() and not (tmp_path / "new").exists()
 
 
 def test_calibration_options_where_they_do_nothing_are_refused(tmp_path, capsys):
     """--calibration-out with a model file wrote no file and said nothing (exit 0); --workers
     or --calibrate-group without --calibrate were ignored alike."""
-    data, _ = _csv(tmp_path / "d.csv")
+    data, _ = healthy_csv(tmp_path / "d.csv")
     out = tmp_path / "cal.json"
     with_model = ["rul", str(tmp_path / "none.pt"), str(data), "--threshold", "3"]
     assert main(with_model + ["--calibration-out", str(out)]) == 2
-    _one_error(capsys, "error: --calibration-out applies without a model file, with --calibrate")
+    one_error(capsys, "error: --calibration-out applies without a model file, with --calibrate")
     assert main(with_model + ["--workers", "2", "--calibrate-threshold", "protocol"]) == 2
-    _one_error(capsys, "error: --calibrate-threshold, --workers apply without a model file")
+    one_error(capsys, "error: --calibrate-threshold, --workers apply without a model file")
     base = ["rul", str(data), "--column", "v", "--time-column", "t", "--threshold", "3"]
     assert main(base + ["--workers", "2"]) == 2
-    _one_error(capsys, "error: --workers applies with --calibrate TABLE")
+    one_error(capsys, "error: --workers applies with --calibrate TABLE")
     assert main(base + ["--calibrate-group", "unit"]) == 2
-    _one_error(capsys, "error: --calibrate-group applies with --calibrate TABLE")
+    one_error(capsys, "error: --calibrate-group applies with --calibrate TABLE")
     assert not out.exists()
 
 
@@ -186,5 +171,5 @@ def test_study_without_a_name_says_why_it_fails(capsys, monkeypatch):
     toy = studies.Study("elm-stsckf", "000", "Toy", run=None)
     monkeypatch.setattr(studies, "discover_studies", lambda: {toy.name: toy})
     assert main(["study"]) == 2
-    out = _one_error(capsys, "error: study needs a NAME from the list above, or all")
+    out = one_error(capsys, "error: study needs a NAME from the list above, or all")
     assert "elm-stsckf" in out

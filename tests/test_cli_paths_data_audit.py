@@ -12,23 +12,11 @@ import time
 
 import numpy as np
 import pytest
+from _cli_helpers import healthy_csv, one_error
 
 import prognos_torch.workflow  # noqa: F401  (imported once, at collection)
 from prognos_torch.cli import _holdout, main
 from prognos_torch.workflow import load_series
-
-
-def _csv(path, n: int = 40):
-    t = [0.5 * i for i in range(n)]
-    y = [1.0 + 0.05 * math.sin(1.3 * i) for i in range(n)]
-    path.write_text("t,v\n" + "".join(f"{a!r},{b!r}\n" for a, b in zip(t, y)))
-    return path
-
-
-def _one_error(capsys, text: str) -> None:
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and err.startswith("error: "), err
-    assert text in err, err
 
 
 @pytest.mark.parametrize(
@@ -48,11 +36,11 @@ def test_an_output_option_naming_a_folder_is_refused_before_anything_is_written(
 ):
     """type=Path dropped the '/': --csv new/ (no such folder) wrote a file named new, fit --out
     new/ a model file named new (as --json new/ is refused up front)."""
-    data = _csv(tmp_path / "d.csv")
+    data, _ = healthy_csv(tmp_path / "d.csv")
     new = str(tmp_path / "new") + "/"
     argv = [a.format(d=data, m=tmp_path / "none.pt") for a in argv] + [new]
     assert main(argv) == 2
-    _one_error(capsys, f"error: {option}: {new} names a folder, expected a file name")
+    one_error(capsys, f"error: {option}: {new} names a folder, expected a file name")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d.csv"]
 
 
@@ -61,14 +49,14 @@ def test_holdout_reads_a_whole_number_in_float_notation_as_a_count(tmp_path, cap
     assert _holdout("1e1") == 10 and type(_holdout("1e1")) is int
     assert _holdout("10.0") == 10 and type(_holdout("1E3")) is int and _holdout("1E3") == 1000
     assert _holdout("0.2") == 0.2 and _holdout("50") == 50 and _holdout("0") == 0
-    data = _csv(tmp_path / "d.csv")
+    data, _ = healthy_csv(tmp_path / "d.csv")
     fit = ["fit", str(data), "--column", "v", "--learner", "elm", "--embedding", "2"]
     assert main(fit + ["--holdout", "1e1", "--out", str(tmp_path / "m.pt")]) == 0
     assert "rows          40 (training 30, held out 10)" in capsys.readouterr().out
     assert main(fit + ["--holdout", "1e3", "--out", str(tmp_path / "x.pt")]) == 2
-    _one_error(capsys, "error: --holdout: holdout=1000 leaves no training data in a series of 40")
+    one_error(capsys, "error: --holdout: holdout=1000 leaves no training data in a series of 40")
     assert main(fit + ["--holdout", "2.5", "--out", str(tmp_path / "x.pt")]) == 2
-    _one_error(capsys, "error: --holdout: holdout must be a fraction in (0, 1) or a count (a "
+    one_error(capsys, "error: --holdout: holdout must be a fraction in (0, 1) or a count (a "
                        "whole number; 0 for none), got '2.5'")  # fmt: skip
     assert not (tmp_path / "x.pt").exists()
 
@@ -95,10 +83,10 @@ def test_holdout_reads_a_whole_number_in_float_notation_as_a_count(tmp_path, cap
 )  # fmt: skip
 def test_data_messages_name_the_command_line_option(tmp_path, capsys, extra, text):
     """load_series' messages named only its Python arguments (column=..., time_column=...)."""
-    data = _csv(tmp_path / "d.csv")
+    data, _ = healthy_csv(tmp_path / "d.csv")
     out = tmp_path / "m.pt"
     assert main(["fit", str(data), "--learner", "elm", "--out", str(out)] + extra) == 2
-    _one_error(capsys, text)
+    one_error(capsys, text)
     assert not out.exists()
 
 

@@ -17,6 +17,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from _prognosis_helpers import degradation_history
 from torch import nn
 
 import prognos_torch.workflow.calibrate as calibrate_mod
@@ -245,12 +246,6 @@ def test_select_embedding_and_build_learner_check_their_arguments():
 
 
 # ------------------------------------------------------------------------------ calibrate.py
-def _history(seed: int, n: int = 60, onset: int = 30):
-    g = torch.Generator().manual_seed(seed)
-    t = torch.arange(n, dtype=F64)
-    y = 1.0 + 0.01 * torch.randn(n, generator=g, dtype=F64)
-    y[onset:] += 0.05 * (t[onset:] - onset) ** 1.5
-    return t, y
 
 
 @pytest.fixture
@@ -271,7 +266,7 @@ def stub(monkeypatch):
 
 
 def test_calibrate_rul_bookkeeping_against_brute_force(stub):
-    (ta, ya), (tb, yb) = _history(0), _history(1)
+    (ta, ya), (tb, yb) = degradation_history(0), degradation_history(1)
     short = (torch.arange(10, dtype=F64), torch.ones(10, dtype=F64))
     cal, points = calibrate_rul({"a": (ta, ya), "b": (tb, yb), "c": short}, threshold=5.0)
     assert len(stub) == 10  # five fractions of each usable history
@@ -292,7 +287,7 @@ def test_calibrate_rul_bookkeeping_against_brute_force(stub):
 
 
 def test_calibrate_rul_records_numpy_settings_as_numbers(stub):
-    h = {"a": _history(0), "b": _history(1)}
+    h = {"a": degradation_history(0), "b": degradation_history(1)}
     cal, _ = calibrate_rul(h, n_paths=np.int64(500), horizon_factor=np.float32(2.0))
     ref, _ = calibrate_rul(h, n_paths=500, horizon_factor=2.0)
     assert cal.settings == ref.settings  # (was "np.int64(500)", the repr)
@@ -306,7 +301,7 @@ def test_calibrate_rul_records_numpy_settings_as_numbers(stub):
 def test_calibrate_rul_refuses_names_that_collide(stub):
     # {1: ..., "1": ...} pooled two assets' points under one name (assets = 1)
     with pytest.raises(ValueError, match="histories names '1' twice"):
-        calibrate_rul({1: _history(0), "1": _history(1)})
+        calibrate_rul({1: degradation_history(0), "1": degradation_history(1)})
     assert not stub
 
 
@@ -314,5 +309,5 @@ def test_calibrate_rul_refuses_a_non_finite_threshold_by_name(stub):
     for bad in (math.nan, math.inf, np.float64(-math.inf)):
         # (was "histories['a']: threshold must be finite", or nothing for short histories)
         with pytest.raises(ValueError, match=r"^threshold must be finite or None"):
-            calibrate_rul({"a": _history(0)}, threshold=bad)
+            calibrate_rul({"a": degradation_history(0)}, threshold=bad)
     assert not stub

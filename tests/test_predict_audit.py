@@ -10,23 +10,11 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from torch import nn
+from _ar2_reference import ar2_kalman_forecast, ar2_model
 
-from prognos_torch.datasets.windows import MinMaxScaler
 from prognos_torch.prognosis.paths import recursive_predict
 from prognos_torch.workflow import Series, fit_series, forecast, rul
 from prognos_torch.workflow.fitted import FittedModel
-
-
-def _linear_model(sigma: float):
-    """An AR(2) learner ``z' = 0.3 z_1 + 0.6 z_2 + 0.05`` on min-max scaled values."""
-    lin = nn.Linear(2, 1).to(torch.float64)
-    with torch.no_grad():
-        lin.weight.copy_(torch.tensor([[0.3, 0.6]], dtype=torch.float64))
-        lin.bias.fill_(0.05)
-    x = torch.tensor([1.0, 2.0, 1.5, 3.0, 2.5, 2.8, 3.1, 2.9, 3.3, 3.0], dtype=torch.float64)
-    scaler = MinMaxScaler((0.0, 1.0)).fit(x)
-    return FittedModel(lin, scaler, {"m": 2, "residual_rmse": sigma, "seed": 0}), x
 
 
 def test_forecast_of_a_linear_learner_is_the_closed_form_kalman_filter():
@@ -34,26 +22,11 @@ def test_forecast_of_a_linear_learner_is_the_closed_form_kalman_filter():
     over the last filter_steps values (NaN: predict only) started from the window with std r,
     then H predict steps, with q = r = sigma / sqrt(2) on the newest element."""
     sigma, H, fs = 0.04, 5, 5
-    model, x = _linear_model(sigma)
+    model, x = ar2_model(sigma)
     x[7] = x[9] = math.nan  # missing values inside the filtered steps, the last one too
     lo, span = 1.0, 2.3
-    z = ((x - lo) / span).numpy()
-    A, b = np.array([[0.0, 1.0], [0.3, 0.6]]), np.array([0.0, 0.05])
-    q = r = sigma / math.sqrt(2.0)
-    Q, R, h = np.diag([0.0, q * q]), r * r, np.array([0.0, 1.0])
-    mu, P = z[3:5].copy(), np.eye(2) * r * r
-    for y in z[5:]:
-        mu, P = A @ mu + b, A @ P @ A.T + Q
-        if not np.isnan(y):
-            S = h @ P @ h + R
-            K = P @ h / S
-            mu, P = mu + K * (y - mu[-1]), P - np.outer(K, K) * S
-    means, stds = [], []
-    for _ in range(H):
-        mu, P = A @ mu + b, A @ P @ A.T + Q
-        means.append(lo + span * mu[-1])
-        stds.append(span * math.sqrt(P[-1, -1] + R))
-    means, stds = np.array(means), np.array(stds)
+    means, stds = ar2_kalman_forecast(((x - lo) / span).numpy(), 3, H, sigma)
+    means, stds = lo + span * means, span * stds
     zq = 1.6448536269514722  # level 0.9
     for name in ("ekf", "sckf", "ukf"):
         fc = forecast(model, Series(x), H, filter=name, filter_steps=fs, level=0.9)

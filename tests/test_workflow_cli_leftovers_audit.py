@@ -9,28 +9,15 @@ import math
 import numpy as np
 import pytest
 import torch
-from torch import nn
+from _ar2_reference import ar2_kalman_forecast, ar2_model
+from _cli_helpers import healthy_csv, one_error
+from _prognosis_helpers import degradation_history
 
 import prognos_torch.workflow.calibrate as calibrate_mod
 from prognos_torch.cli import main
-from prognos_torch.datasets.windows import MinMaxScaler
 from prognos_torch.workflow import Series, calibrate_rul, forecast, load_model, rul
-from prognos_torch.workflow.fitted import FittedModel
 
 F64 = torch.float64
-
-
-def _csv(path, n: int = 40):
-    t = [0.5 * i for i in range(n)]
-    y = [1.0 + 0.05 * math.sin(1.3 * i) + 0.01 * i for i in range(n)]
-    path.write_text("t,v\n" + "".join(f"{a!r},{b!r}\n" for a, b in zip(t, y)))
-    return path
-
-
-def _one_error(capsys, text: str) -> None:
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and err.startswith("error: "), err
-    assert text in err, err
 
 
 # ------------------------------------------------------------------------------ cli.py
@@ -38,7 +25,7 @@ def test_an_integer_learner_option_in_float_notation_is_that_integer(tmp_path, c
     """n_hidden=3e1 was read as the float 30.0 and refused ('must be an int (like 20), got
     30.0'), though --holdout 1e3 is a count; it is the model of n_hidden=30. A value that is
     not whole stays refused."""
-    data = _csv(tmp_path / "d.csv")
+    data, _ = healthy_csv(tmp_path / "d.csv", slope=0.01)
     fit = ["fit", str(data), "--column", "v", "--learner", "elm", "--embedding", "2",
            "--holdout", "0"]  # fmt: skip
     a, b = tmp_path / "a.pt", tmp_path / "b.pt"
@@ -52,43 +39,37 @@ def test_an_integer_learner_option_in_float_notation_is_that_integer(tmp_path, c
     capsys.readouterr()
     bad = tmp_path / "c.pt"
     assert main(fit + ["--learner-option", "n_hidden=30.5", "--out", str(bad)]) == 2
-    _one_error(capsys, "elm learner option n_hidden must be an int (like 20), got 30.5")
+    one_error(capsys, "elm learner option n_hidden must be an int (like 20), got 30.5")
     assert not bad.exists()
 
 
 def test_an_option_and_its_key_value_twin_together_are_refused(tmp_path, capsys):
     """--epochs 1 replaced --optimizer-option epochs=2 (and --max-support 10 replaced
     --learner-option max_support=20) without a word."""
-    data = _csv(tmp_path / "d.csv")
+    data, _ = healthy_csv(tmp_path / "d.csv", slope=0.01)
     out = tmp_path / "m.pt"
     fit = ["fit", str(data), "--column", "v", "--embedding", "2", "--out", str(out)]
     assert main(fit + ["--learner", "elm", "--optimizer", "adam", "--epochs", "1",
                        "--optimizer-option", "epochs=2"]) == 2  # fmt: skip
-    _one_error(capsys, "error: --epochs and --optimizer-option epochs=2 both set epochs")
+    one_error(capsys, "error: --epochs and --optimizer-option epochs=2 both set epochs")
     assert main(fit + ["--learner", "lssvr", "--max-support", "10", "--learner-option",
                        "max_support=20"]) == 2  # fmt: skip
-    _one_error(capsys, "error: --max-support and --learner-option max_support=20 both set")
+    one_error(capsys, "error: --max-support and --learner-option max_support=20 both set")
     assert not out.exists()
 
 
 def test_a_bad_seed_names_the_seed_option(tmp_path, capsys):
     """'error: seed must lie in ...' named the Python argument, not --seed."""
-    data = _csv(tmp_path / "d.csv")
+    data, _ = healthy_csv(tmp_path / "d.csv", slope=0.01)
     assert main(["fit", str(data), "--column", "v", "--out", str(tmp_path / "m.pt"),
                  "--seed", str(2**70)]) == 2  # fmt: skip
-    _one_error(capsys, "error: --seed: seed must lie in [-2**63, 2**64)")
+    one_error(capsys, "error: --seed: seed must lie in [-2**63, 2**64)")
     assert main(["rul", str(data), "--column", "v", "--time-column", "t", "--threshold", "3",
                  "--seed", "1,1"]) == 2  # fmt: skip
-    _one_error(capsys, "error: --seed: seed names a seed twice")
+    one_error(capsys, "error: --seed: seed names a seed twice")
 
 
 # ------------------------------------------------------------------------------ calibrate.py
-def _history(seed: int, n: int = 60, onset: int = 30):
-    g = torch.Generator().manual_seed(seed)
-    t = torch.arange(n, dtype=F64)
-    y = 1.0 + 0.01 * torch.randn(n, generator=g, dtype=F64)
-    y[onset:] += 0.05 * (t[onset:] - onset) ** 1.5
-    return t, y
 
 
 def test_calibrate_rul_refuses_an_unknown_setting_before_any_replay(monkeypatch):
@@ -96,7 +77,7 @@ def test_calibrate_rul_refuses_an_unknown_setting_before_any_replay(monkeypatch)
     history's protocol; a stand-in for the replays shows none runs now."""
     calls = []
     monkeypatch.setattr(calibrate_mod, "_predict", lambda *a: calls.append(a))
-    h = {"a": _history(0), "b": _history(1)}
+    h = {"a": degradation_history(0), "b": degradation_history(1)}
     for bad, names in (({"n_path": 500}, "'n_path'"), ({"series": 1, "zz": 2}, "'series', 'zz'")):
         with pytest.raises(TypeError, match="unexpected keyword argument") as exc:
             calibrate_rul(h, threshold=5.0, **bad)
@@ -108,50 +89,18 @@ def test_calibrate_rul_refuses_an_unknown_setting_before_any_replay(monkeypatch)
 
 
 # ------------------------------------------------------------------------------ predict.py
-def _linear_model(sigma: float = 0.04):
-    """An AR(2) learner ``z' = 0.3 z_1 + 0.6 z_2 + 0.05`` on min-max scaled values."""
-    lin = nn.Linear(2, 1).to(F64)
-    with torch.no_grad():
-        lin.weight.copy_(torch.tensor([[0.3, 0.6]], dtype=F64))
-        lin.bias.fill_(0.05)
-    x = torch.tensor([1.0, 2.0, 1.5, 3.0, 2.5, 2.8, 3.1, 2.9, 3.3, 3.0], dtype=F64)
-    scaler = MinMaxScaler((0.0, 1.0)).fit(x)
-    return FittedModel(lin, scaler, {"m": 2, "residual_rmse": sigma, "seed": 0}), x
-
-
-def _kalman(z: np.ndarray, start: int, H: int, sigma: float):
-    """Kalman filter of the AR(2) model from the window ``z[start:start+2]`` (std r), over
-    ``z[start+2:]`` (NaN: predict only), then ``H`` predictions: means and measurement std."""
-    A, b = np.array([[0.0, 1.0], [0.3, 0.6]]), np.array([0.0, 0.05])
-    q = r = sigma / math.sqrt(2.0)
-    Q, R, h = np.diag([0.0, q * q]), r * r, np.array([0.0, 1.0])
-    mu, P = z[start : start + 2].copy(), np.eye(2) * r * r
-    for y in z[start + 2 :]:
-        mu, P = A @ mu + b, A @ P @ A.T + Q
-        if not np.isnan(y):
-            S = h @ P @ h + R
-            K = P @ h / S
-            mu, P = mu + K * (y - mu[-1]), P - np.outer(K, K) * S
-    means, stds = [], []
-    for _ in range(H):
-        mu, P = A @ mu + b, A @ P @ A.T + Q
-        means.append(mu[-1])
-        stds.append(math.sqrt(P[-1, -1] + R))
-    return np.array(means), np.array(stds)
-
-
 def test_a_missing_first_value_starts_the_filter_at_the_first_complete_window():
     """x[0] missing and filter_steps >= T - m (the default 100 on 10 values): 'has no 2
     consecutive observed values up to row 1 ... or filter more steps', though rows 1-9 are
     complete (and more steps cannot help); the filter starts from rows 1-2. The same where no
     complete window lies before the one filter_steps=3 asks (rows 5-6): rows 7-8 start it."""
     sigma, H = 0.04, 4
-    model, x = _linear_model(sigma)
+    model, x = ar2_model(sigma)
     lo, span = 1.0, 2.3
     for missing, steps, start in (((0,), 100, 1), ((0, 2, 4, 6), 3, 7)):
         xn = x.clone()
         xn[list(missing)] = math.nan
-        means, stds = _kalman(((xn - lo) / span).numpy(), start, H, sigma)
+        means, stds = ar2_kalman_forecast(((xn - lo) / span).numpy(), start, H, sigma)
         fc = forecast(model, Series(xn), H, filter="sckf", filter_steps=steps)
         np.testing.assert_allclose(fc.mean.numpy(), lo + span * means, rtol=0, atol=1e-12)
         np.testing.assert_allclose(fc.std.numpy(), span * stds, rtol=0, atol=1e-12)
@@ -169,7 +118,7 @@ def test_a_missing_first_value_starts_the_filter_at_the_first_complete_window():
 def test_rul_quantile_refuses_bool_and_text_and_takes_numpy_reals():
     """RULResult.quantile(True) was read as q = 1 (the largest RUL), '0.5' and None failed
     inside torch ('new(): invalid data type')."""
-    model, x = _linear_model()
+    model, x = ar2_model()
     r = rul(model, Series(x), 2.5, direction="below", filter="sckf", n_particles=20, horizon=30)
     q = r.quantile(0.5)
     assert math.isfinite(float(q))
@@ -183,11 +132,11 @@ def test_rul_quantile_refuses_bool_and_text_and_takes_numpy_reals():
 # ------------------------------------------------------------------------- model.py
 def test_an_lbfgs_max_iter_that_is_not_a_positive_int_is_refused(tmp_path, capsys):
     """LBFGS with max_iter=0 took no iteration and the fit reported success (exit 0)."""
-    data = _csv(tmp_path / "d.csv")
+    data, _ = healthy_csv(tmp_path / "d.csv", slope=0.01)
     for bad in ("0", "-2"):
         code = main(["fit", str(data), "--column", "v", "--time-column", "t", "--learner",
                      "elm", "--optimizer", "lbfgs", "--embedding", "2", "--optimizer-option",
                      f"max_iter={bad}", "--out", str(tmp_path / "m.pt")])  # fmt: skip
         assert code == 2
-        _one_error(capsys, f"lbfgs optimizer option max_iter must be a positive int, got {bad}")
+        one_error(capsys, f"lbfgs optimizer option max_iter must be a positive int, got {bad}")
         assert not (tmp_path / "m.pt").exists()
