@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from ..core.validation import is_int, is_real
+from ..core.validation import is_bool_or_complex, is_int, is_real
 
 __all__ = [
     "interval_scores",
@@ -59,7 +59,20 @@ __all__ = [
 
 def _vectors(lower, upper, truth=None) -> tuple[Tensor, ...]:
     names = ("lower", "upper", "truth")
-    xs = [torch.as_tensor(v, dtype=torch.float64) for v in (lower, upper, truth) if v is not None]
+    xs = []
+    for name, v in zip(names, (lower, upper, truth)):
+        if v is None:
+            continue
+        if is_bool_or_complex(v) or (
+            isinstance(v, (list, tuple)) and any(is_bool_or_complex(a) for a in v)
+        ):  # (True was read as a RUL of 1, a complex value stripped of its imaginary part)
+            raise TypeError(f"{name} must hold real numbers, got bool or complex values")
+        try:
+            xs.append(torch.as_tensor(v, dtype=torch.float64))
+        except (TypeError, ValueError, RuntimeError) as exc:  # ("too many dimensions 'str'")
+            raise TypeError(
+                f"{name} must be a tensor or array-like of numbers, got {v!r:.60}"
+            ) from exc
     for name, x in zip(names, xs):
         if x.dim() != 1:
             raise ValueError(f"{name} must have shape (n,), got {tuple(x.shape)}")
@@ -272,6 +285,10 @@ class RULCalibration:
         """The calibrated ends ``(lower e^-Q, upper e^Q)``, ``(n,)`` or scalars each (an open
         upper end stays ``inf``; NaN stays NaN); ``median``: the predicted median RULs, needed
         with bins (:meth:`margin_for`)."""
+        for name, v in (("lower", lower), ("upper", upper)):
+            if torch.as_tensor(v).dim() > 1:  # (was flattened to (n,) and returned so)
+                raise ValueError(f"{name} must have shape (n,) or be a scalar, got "
+                                 f"{tuple(torch.as_tensor(v).shape)}")  # fmt: skip
         scalar = torch.as_tensor(lower).dim() == 0 and torch.as_tensor(upper).dim() == 0
         lo, hi = _vectors(torch.as_tensor(lower).reshape(-1), torch.as_tensor(upper).reshape(-1))
         med = None if median is None else torch.as_tensor(median, dtype=torch.float64).reshape(-1)
@@ -373,11 +390,13 @@ def calibrate_intervals(
     n = int(ok.sum())
     assets = None
     if groups is not None:
-        if isinstance(groups, (str, bytes)) or len(groups) != scores.shape[0]:
+        if (isinstance(groups, (str, bytes)) or getattr(groups, "ndim", 1) != 1
+                or len(groups) != scores.shape[0]):  # fmt: skip
             raise ValueError(
                 f"groups must be {scores.shape[0]} labels (one per point), got {groups!r:.80}"
             )
-        assets = len({g for g, k in zip(groups, ok.tolist()) if k})
+        labels = _labels(groups)  # (a tensor's labels counted each point as an asset)
+        assets = len({g for g, k in zip(labels, ok.tolist()) if k})
     pooled = conformal_margin(scores, coverage)
     bins = _check_bins(bins)
     if bins == 1:
@@ -394,7 +413,9 @@ def calibrate_intervals(
     cuts = [int(round(n * j / bins)) for j in range(1, bins)]
     # a boundary halfway between neighbours; two equal medians stay in one bin, and a boundary
     # that a tie of medians leaves with no point on one side (e.g. tied top medians) is dropped
-    mids = sorted({0.5 * (float(order[c - 1]) + float(order[c])) for c in cuts})
+    # (between a finite and a censored median the boundary is the finite one: the midpoint is
+    # inf, and the boundary was dropped, leaving the censored medians in a finite bin)
+    mids = sorted({_cut(float(order[c - 1]), float(order[c])) for c in cuts})
     edges: list[float] = []
     for e in (e for e in mids if math.isfinite(e)):
         below = edges[-1] if edges else -math.inf
@@ -409,6 +430,18 @@ def calibrate_intervals(
     if not edges:
         return RULCalibration(pooled, float(coverage), n, assets=assets)
     return RULCalibration(pooled, float(coverage), n, {}, tuple(edges), margins, assets)
+
+
+def _cut(a: float, b: float) -> float:
+    """The boundary between neighbouring log medians ``a <= b``: halfway, or ``a`` when ``b``
+    is a censored median (``+inf``) and ``a`` is not."""
+    return a if b == math.inf and a < b else 0.5 * (a + b)
+
+
+def _labels(groups) -> list:
+    """Group labels as a list; a 1-D tensor's or array's by their values (a tensor's entries are
+    0-d tensors, each equal only to itself as a set member or dict key)."""
+    return groups.tolist() if getattr(groups, "ndim", None) == 1 else list(groups)
 
 
 def leave_one_group_out(
@@ -430,8 +463,8 @@ def leave_one_group_out(
     if isinstance(groups, (str, bytes)) or len(groups) != lo.shape[0]:
         got = f"the string {groups!r:.40}" if isinstance(groups, (str, bytes)) else len(groups)
         raise ValueError(f"groups must have {lo.shape[0]} labels (one per point), got {got}")
+    labels = _labels(groups)
     scores = interval_scores(lo, hi, tr)
-    labels = list(groups)
     margin = torch.full_like(lo, math.nan)
     new_lo, new_hi = lo.clone(), hi.clone()
     for g in dict.fromkeys(labels):

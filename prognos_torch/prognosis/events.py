@@ -29,7 +29,7 @@ from torch import Tensor
 
 from ..core.belief import GaussianBelief
 from ..core.model import StateSpaceModel
-from ..core.validation import check_weights, is_int, is_real
+from ..core.validation import check_flag, check_nonneg_int, check_weights, is_int, is_real
 from .rul import RULDistribution
 
 __all__ = ["EventPrediction", "sample_belief", "simulate_to_event"]
@@ -207,6 +207,8 @@ def simulate_to_event(
         max_steps = us.shape[0]
     if not is_int(max_steps) or max_steps < 1:
         raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
+    max_steps = int(max_steps)  # (a NumPy count came back as steps_run)
+    k0 = check_nonneg_int(k0, "k0")  # (a float k0 reached the transition as k)
     if us is not None and us.shape[0] < max_steps:
         raise ValueError(
             f"controls cover {us.shape[0]} steps, fewer than max_steps = {max_steps}; "
@@ -221,6 +223,8 @@ def simulate_to_event(
         chunk = max(2, min(32, 2**18 // max(1, x0.numel())))
     if not is_int(chunk) or chunk < 1:
         raise ValueError(f"chunk must be a positive int, got {chunk!r}")
+    chunk = int(chunk)
+    process_noise = check_flag(process_noise, "process_noise")  # ("no" was read as True)
     if process_noise and not isinstance(generator, torch.Generator):
         raise TypeError("process_noise=True needs a torch.Generator (generator=...)")
     w = check_weights(weights, x0.shape[:-1][:-1], x0.shape[-2], x0.device)

@@ -60,7 +60,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.validation import as_tensor, has_missing, is_int, is_real
+from ..core.validation import as_tensor, has_missing, is_bool_or_complex, is_int, is_real
 
 __all__ = [
     "Baseline",
@@ -163,7 +163,9 @@ def ksigma_false_alarm_rate(k: float, window: int) -> tuple[float, float]:
         ``(independent, any_dependence)``: ``P(Bin(w, p) >= j*)`` and ``w p / j*`` with
         ``p = Q(k)`` and ``j* = floor(w / 2) + 1``.
     """
-    p = _q(float(k))
+    k = _check_pos(k, "k")
+    window = _check_int(window, "window", 1)
+    p = _q(k)
     j_star = window // 2 + 1
     indep = sum(
         math.comb(window, j) * p**j * (1.0 - p) ** (window - j) for j in range(j_star, window + 1)
@@ -172,11 +174,16 @@ def ksigma_false_alarm_rate(k: float, window: int) -> tuple[float, float]:
 
 
 def cusum_arl0(drift: float, limit: float) -> float:
-    """Siegmund's approximation of the in-control ARL of a one-sided CUSUM (module docstring)."""
-    kappa, b = float(drift), float(limit) + 1.166
+    """Siegmund's approximation of the in-control ARL of a one-sided CUSUM (module docstring);
+    ``inf`` where ``exp(2 kappa b)`` overflows (a per-sample rate of 0)."""
+    kappa = _check_pos(drift, "drift", allow_zero=True)
+    b = _check_pos(limit, "limit") + 1.166
     a = 2.0 * kappa * b
     if a >= 0.5:
-        return (math.exp(a) - a - 1.0) / (2.0 * kappa * kappa)
+        try:
+            return (math.exp(a) - a - 1.0) / (2.0 * kappa * kappa)
+        except OverflowError:  # (exp overflows past a = 709.78: an ARL beyond 1e300 samples)
+            return math.inf
     # small drift: exp(a) - a - 1 cancels (to 0 below kappa ~ 1e-9); its series,
     # (exp(a) - a - 1) / (2 kappa^2) = b^2 sum_n 2 a^n / (n + 2)!, is b^2 at kappa = 0
     total, term, n = 1.0, 1.0, 0
@@ -188,6 +195,10 @@ def cusum_arl0(drift: float, limit: float) -> float:
 
 
 def _series(values, time, name: str = "values") -> tuple[Tensor, Tensor]:
+    seq = isinstance(values, (list, tuple))
+    if is_bool_or_complex(values) or (seq and any(is_bool_or_complex(v) for v in values)):
+        # (read as 0/1, or stripped of its imaginary part)
+        raise TypeError(f"{name} must hold real numbers, got bool or complex values")
     x = as_tensor(values, name)
     if not x.is_floating_point():
         x = x.to(torch.float64)
@@ -407,6 +418,12 @@ def _resolution(x: Tensor) -> float | None:
 
 def _resolve_baseline(x: Tensor, t: Tensor, baseline, sign: float) -> Baseline:
     if isinstance(baseline, Baseline):
+        # (a std of 0 made every median above the mean an exceedance, a negative one turned the
+        # direction round, NaN never alarmed)
+        if not (is_real(baseline.mean) and math.isfinite(baseline.mean)):
+            raise ValueError(f"baseline.mean must be a finite number, got {baseline.mean!r}")
+        if not (is_real(baseline.std) and math.isfinite(baseline.std) and baseline.std > 0):
+            raise ValueError(f"baseline.std must be a finite number > 0, got {baseline.std!r}")
         return baseline
     b = healthy_baseline(sign * x, t, fraction=baseline)  # statistics of the oriented series
     return Baseline(sign * b.mean, b.std, sign * b.median, b.n, b.t_end, b.noise, b.resolution)

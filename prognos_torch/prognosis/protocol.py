@@ -108,15 +108,19 @@ def known_threshold_protocol(
     ``threshold``: a known failure level of a rising indicator instead of ``0.9 x`` the highest
     moving median; a series whose moving median never reaches it is not usable.
     """
+    fractions = check_fractions(fractions)  # (1.5 gave a time past end of life, RUL < 0)
     t = torch.as_tensor(t, dtype=torch.float64)
     y = torch.as_tensor(y, dtype=torch.float64)
     if t.dim() != 1 or t.shape != y.shape or t.shape[0] < PROTOCOL_MIN_POINTS:
         raise ValueError(
             f"t and y must have the same shape (T,), T >= {PROTOCOL_MIN_POINTS}, got "
-            f"{tuple(y.shape)}"
+            f"t {tuple(t.shape)}, y {tuple(y.shape)}"
         )
     if bool(torch.isnan(y).any()):
         raise ValueError("y contains NaN; drop missing values first")
+    # (only the times up to end of life were checked, by the onset)
+    if not bool(torch.isfinite(t).all()) or not bool((t[1:] > t[:-1]).all()):
+        raise ValueError("t must be finite and strictly increasing, shape (T,)")
     m = moving_median(y, 5)
     if threshold is not None:
         if not is_real(threshold):
@@ -209,6 +213,13 @@ def rul_scores(
     times = torch.as_tensor(times, dtype=torch.float64)
     r = torch.as_tensor(true_rul, dtype=torch.float64)
     p = torch.as_tensor(pred_rul, dtype=torch.float64)
+    given = {"times": times, "true_rul": r, "pred_rul": p}
+    if lower is not None and upper is not None:
+        given.update(lower=torch.as_tensor(lower), upper=torch.as_tensor(upper))
+    if times.dim() != 1 or any(v.shape != times.shape for v in given.values()):
+        # (a (1,) prediction was broadcast, or failed with a mask IndexError)
+        shapes = ", ".join(f"{k} {tuple(v.shape)}" for k, v in given.items())
+        raise ValueError(f"{', '.join(given)} must have the same shape (P,), got {shapes}")
     p = torch.where(torch.isnan(p), torch.full_like(p, math.inf), p)
     out: dict = {"n": int(r.numel())}
     err = (p - r).abs()
