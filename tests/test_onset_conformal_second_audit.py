@@ -153,9 +153,9 @@ def test_false_alarm_formulas_take_numpy_scalars_as_python_numbers():
 @pytest.mark.parametrize(
     "base, match",
     [
-        (Baseline(0.0, 0.0, 0.0, 3, 0.0), r"baseline.std must be a finite number > 0, got 0.0"),
-        (Baseline(0.0, -1.0, 0.0, 3, 0.0), r"baseline.std must be a finite number > 0"),
-        (Baseline(0.0, math.nan, 0.0, 3, 0.0), r"baseline.std must be a finite number > 0"),
+        (Baseline(0.0, 0.0, 0.0, 3, 0.0), r"baseline.std must be > 0, got 0.0"),
+        (Baseline(0.0, -1.0, 0.0, 3, 0.0), r"baseline.std must be > 0, got -1.0"),
+        (Baseline(0.0, math.nan, 0.0, 3, 0.0), r"baseline.std must be a finite number, got nan"),
         (Baseline(math.nan, 1.0, 0.0, 3, 0.0), r"baseline.mean must be a finite number"),
     ],
 )

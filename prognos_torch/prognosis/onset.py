@@ -233,9 +233,11 @@ def _check_int(v, name: str, lo: int) -> int:
     return int(v)
 
 
-def _check_pos(v, name: str, allow_zero: bool = False) -> float:
+def _check_pos(v, name: str, allow_zero: bool = False, allow_negative: bool = False) -> float:
     if not is_real(v) or not math.isfinite(v):
         raise ValueError(f"{name} must be a finite number, got {v!r}")
+    if allow_negative:
+        return float(v)
     if v < 0 or (v == 0 and not allow_zero):
         raise ValueError(f"{name} must be {'>= 0' if allow_zero else '> 0'}, got {v!r}")
     return float(v)
@@ -420,10 +422,8 @@ def _resolve_baseline(x: Tensor, t: Tensor, baseline, sign: float) -> Baseline:
     if isinstance(baseline, Baseline):
         # (a std of 0 made every median above the mean an exceedance, a negative one turned the
         # direction round, NaN never alarmed)
-        if not (is_real(baseline.mean) and math.isfinite(baseline.mean)):
-            raise ValueError(f"baseline.mean must be a finite number, got {baseline.mean!r}")
-        if not (is_real(baseline.std) and math.isfinite(baseline.std) and baseline.std > 0):
-            raise ValueError(f"baseline.std must be a finite number > 0, got {baseline.std!r}")
+        _check_pos(baseline.mean, "baseline.mean", allow_negative=True)
+        _check_pos(baseline.std, "baseline.std")
         return baseline
     b = healthy_baseline(sign * x, t, fraction=baseline)  # statistics of the oriented series
     return Baseline(sign * b.mean, b.std, sign * b.median, b.n, b.t_end, b.noise, b.resolution)
