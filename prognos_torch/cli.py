@@ -22,7 +22,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from ._text import fmt_time
+from ._text import fmt_time, option_of
 from .cli_parser import (
     CALIBRATE_DEFAULTS,
     MODEL_RUL_DEFAULTS,
@@ -855,9 +855,7 @@ def _workflow(cmd):
             return 3
         except bad_input as exc:
             text = " ".join(str(exc).split()) or type(exc).__name__
-            option = next(  # ("until='2003-01-01' is a date-time ...": its value follows)
-                (o for k, o in _OPTION_OF.items() if text.startswith((k + " ", k + "="))), None
-            )
+            option = option_of(text, _OPTION_OF)
             if option is not None:  # a message about an argument names the option that set it
                 text = f"{option}: {text}"
             print(f"error: {text}", file=sys.stderr)

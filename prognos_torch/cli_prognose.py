@@ -139,6 +139,8 @@ def read_calibration(path):
         record = json.loads(path.read_text())
     except FileNotFoundError:
         raise FileNotFoundError(f"--calibration: no file {path}") from None
+    except OSError as exc:  # (a folder, a file it may not read: "[Errno 21] Is a directory")
+        raise OSError(f"--calibration: {path} cannot be read ({exc.strerror or exc})") from None
     except (ValueError, UnicodeDecodeError) as exc:
         raise ValueError(f"--calibration: {path} is not a JSON calibration file ({exc})") from None
     try:
@@ -202,10 +204,20 @@ def load_histories(args, series):
 
 def _check_settings(cal, path, run: dict) -> None:
     """Refuse a ``--calibration`` made under other settings than this run's."""
+    from .workflow.prognosing import filter_pool
+
+    def same(key, made, here) -> bool:  # filters by their names: "EKF" is "ekf"
+        if key == "filter" and isinstance(made, str) and isinstance(here, str):
+            try:
+                return filter_pool(made) == filter_pool(here)
+            except ValueError:
+                return False
+        return made == here
+
     st = cal.settings
     for key, option in (("method", "--method"), ("filter", "--filter"), ("n_paths", "--paths"),
                         ("direction", "--direction"), ("glitch_limit", "--glitch-limit")):  # fmt: skip
-        if key in st and st[key] != run[key]:
+        if key in st and not same(key, st[key], run[key]):
             raise ValueError(
                 f"--calibration: {path} was made with {option} {st[key]}, this run has "
                 f"{run[key]}: the guarantee holds for intervals made the same way (recalibrate "

@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 import time
 from collections import Counter
 from pathlib import Path
+
+from .._text import option_of
 
 __all__ = ["build_parser", "main"]
 
@@ -127,20 +130,52 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: the first words of the fleet's messages about an argument and the options that set it: an
+#: error about one names both (as ``prognos rul DATA.csv`` does)
+_OPTION_OF = {
+    "samples": "--samples",
+    "n_paths": "--samples",  # (--method prognose: prognose's paths)
+    "shard_size": "--shard-size",
+    "horizon": "--horizon",
+    "threshold must": "--threshold",
+    "direction must": "--direction",
+    "unknown method": "--method",
+    "backend must": "--backend",
+    "on_error must": "--on-error",
+    "seed": "--seed",
+}
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     import torch
 
+    threads = torch.get_num_threads()  # the caller's count is restored afterwards
+    torch.set_num_threads(1)
+    try:
+        return _run(args)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _run(args) -> int:
     from .calibrate import calibrate_fleet
     from .run import fleet_rul
     from .table import TABLE_SUFFIXES
 
-    torch.set_num_threads(1)
     try:
         if args.out.suffix.lower() not in TABLE_SUFFIXES:
             raise ValueError(f"--out must end in {', '.join(TABLE_SUFFIXES)}, got {args.out}")
         if not (args.out.parent if str(args.out.parent) else Path(".")).is_dir():
             raise ValueError(f"--out folder does not exist: {args.out.parent}")
+        if args.out.is_dir():  # (it failed after the whole run)
+            raise ValueError(f"--out: {args.out} is a folder, expected a file name")
+        for name, src in (("the table", args.table), ("the --calibrate table", args.calibrate)):
+            if src is not None and os.path.realpath(src) == os.path.realpath(args.out):
+                raise ValueError(
+                    f"--out: {args.out} is {name}, which this run reads; writing it would "
+                    "replace it (give another file name)"
+                )
         if args.phi is not None and args.method != "exponential":
             raise ValueError("--phi applies to --method exponential only")
         if args.min_rows < 1:
@@ -172,6 +207,8 @@ def main(argv: list[str] | None = None) -> int:
             except FileNotFoundError as exc:
                 raise FileNotFoundError(f"--calibrate: {exc}") from None
             except ValueError as exc:
+                if option_of(str(exc), _OPTION_OF) is not None:  # a setting of both runs, not the table
+                    raise
                 raise ValueError(f"--calibrate: {exc}") from None
         res = fleet_rul(
             args.table,
@@ -197,6 +234,9 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except (ValueError, TypeError, OSError, ImportError) as exc:
         text = " ".join(str(exc).split()) or type(exc).__name__
+        option = option_of(text, _OPTION_OF)
+        if option is not None:  # a message about an argument names the option that set it
+            text = f"{option}: {text}"
         print(f"error: {text}", file=sys.stderr)
         return 2
     n = len(res)

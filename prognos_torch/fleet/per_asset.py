@@ -15,8 +15,9 @@ the table does not depend on sharding; a last observed value at or beyond the th
 mean already lies there (``threshold_on_healthy_side``, no RUL: a falling indicator with
 ``direction="above"``, say); an input that ``prognose``
 rejects (too few values, a threshold inside the healthy band, ...) is reported in the asset's
-row (flag ``prognose_error`` and the message), never fatal for the fleet. ``p_fail_within_horizon``
-is :meth:`~prognos_torch.workflow.RULResult.failure_probability`; a ``horizon`` beyond
+row (flag ``prognose_error`` and the message), never fatal for the fleet; a bad option of
+``prognose`` (``n_paths=3``, an unknown ``filter``) is the call's error, raised before any
+asset. ``p_fail_within_horizon`` is :meth:`~prognos_torch.workflow.RULResult.failure_probability`; a ``horizon`` beyond
 ``prognose``'s own while paths are censored leaves it NaN (flag ``horizon_beyond_prognosis``).
 ``prognose``'s own flags
 are sentences; they are summarised as ``prognose_flags`` in ``flags`` and given in full in
@@ -65,6 +66,7 @@ def prognose_rul(
     import torch
 
     from ..workflow import prognose
+    from ..workflow.prognosing import check_prognose_options
 
     if direction not in DIRECTIONS:  # an argument, not an asset's input
         raise ValueError(f"direction must be 'above', 'below' or 'auto', got {direction!r}")
@@ -73,6 +75,8 @@ def prognose_rul(
     threshold = check_real(threshold, "threshold")
     if horizon is not None and not check_real(horizon, "horizon") > 0:
         raise ValueError(f"horizon must be a positive finite number or None, got {horizon!r}")
+    # prognose's settings once: a bad one (n_paths=3) flagged every asset prognose_error
+    check_prognose_options(direction=direction, **options)
     B = len(batch)
     out = {c: np.full(B, np.nan) for c in RUL_COLUMNS}
     flags, messages = [], []

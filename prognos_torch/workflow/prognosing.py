@@ -91,6 +91,7 @@ units of the data (scale, offset, sign) and of the clock (scale, origin), for ev
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Sequence
 from dataclasses import replace
@@ -143,6 +144,7 @@ __all__ = [
     "GLITCH_SCREEN",
     "GLITCH_WIDENING",
     "filter_pool",
+    "check_prognose_options",
 ]
 
 #: Trend models ``prognose`` accepts (``"auto"``: the :data:`AUTO_POOL`, every shape backtested).
@@ -242,6 +244,40 @@ def _filter_label(models: dict, pool: tuple[str, ...]) -> str:
     the exponential fit it learns from)."""
     fit = _level_fit(models, pool)
     return getattr(fit, "filter", None) or fit.level_fit.filter
+
+
+def check_prognose_options(**options) -> None:
+    """The checks ``prognose`` makes of its settings before it reads the data (``method``,
+    ``direction``, ``seed``, ``n_paths``, ``horizon_factor``, ``filter``, ...; a name it does
+    not take is a ``TypeError``), for a caller that passes the same ``options`` to many calls
+    (the fleet: a bad option is then the call's error, not every asset's)."""
+    bound = inspect.signature(prognose).bind_partial(None, 0.0, **options).arguments
+    bound = {k: v for k, v in bound.items() if k not in ("series", "threshold")}
+    defaults = {k: p.default for k, p in inspect.signature(prognose).parameters.items()}
+    get = {**defaults, **bound}.get
+    _settings(get("method"), get("direction"), get("seed"), get("n_paths"), get("max_points"),
+              get("learner_hidden"), get("learner_members"), get("horizon_factor"),
+              get("filter"))  # fmt: skip
+
+
+def _settings(method, direction, seed, n_paths, max_points, learner_hidden, learner_members,
+              horizon_factor, filter) -> tuple:  # fmt: skip
+    """``prognose``'s settings checked (ValueError naming each), as it uses them."""
+    if method not in PROGNOSE_METHODS:
+        raise ValueError(f"method must be one of {', '.join(PROGNOSE_METHODS)}, got {method!r}")
+    if direction not in ("auto", "above", "below"):
+        raise ValueError(f"direction must be 'auto', 'above' or 'below', got {direction!r}")
+    seeds = _check_seeds(seed)
+    n_paths = _check_int(n_paths, "n_paths", 10)
+    check_prognose_memory(n_paths)
+    max_points = _check_int(max_points, "max_points", 20)
+    learner_hidden = _check_int(learner_hidden, "learner_hidden", 1)
+    learner_members = _check_int(learner_members, "learner_members", 1)
+    horizon_factor = check_real(horizon_factor, "horizon_factor")
+    if horizon_factor <= 0:
+        raise ValueError(f"horizon_factor must be positive, got {horizon_factor}")
+    filters = filter_pool(filter)
+    return seeds, n_paths, max_points, learner_hidden, learner_members, horizon_factor, filters
 
 
 def _check_seeds(seed) -> tuple[int, ...]:
@@ -649,20 +685,9 @@ def prognose(
     """
     x, t, src = _as_series(series, time, time_format)
     thr = check_real(threshold, "threshold")
-    if method not in PROGNOSE_METHODS:
-        raise ValueError(f"method must be one of {', '.join(PROGNOSE_METHODS)}, got {method!r}")
-    if direction not in ("auto", "above", "below"):
-        raise ValueError(f"direction must be 'auto', 'above' or 'below', got {direction!r}")
-    seeds = _check_seeds(seed)
-    n_paths = _check_int(n_paths, "n_paths", 10)
-    check_prognose_memory(n_paths)
-    max_points = _check_int(max_points, "max_points", 20)
-    learner_hidden = _check_int(learner_hidden, "learner_hidden", 1)
-    learner_members = _check_int(learner_members, "learner_members", 1)
-    horizon_factor = check_real(horizon_factor, "horizon_factor")
-    if horizon_factor <= 0:
-        raise ValueError(f"horizon_factor must be positive, got {horizon_factor}")
-    filters = filter_pool(filter)
+    s = _settings(method, direction, seed, n_paths, max_points, learner_hidden,
+                  learner_members, horizon_factor, filter)  # fmt: skip
+    seeds, n_paths, max_points, learner_hidden, learner_members, horizon_factor, filters = s
     keep = ~torch.isnan(x)
     x, t = x[keep], t[keep]
     if x.shape[0] < MIN_POINTS:
