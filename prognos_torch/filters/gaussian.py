@@ -211,6 +211,14 @@ def _constant(shape, dtype: torch.dtype, device: torch.device, value) -> Tensor:
     return t
 
 
+def _check_state(state, method: str) -> None:
+    if not isinstance(state, FilterState):
+        raise TypeError(
+            f"state must be a FilterState, got {type(state).__name__}; start from "
+            f"state = filter.init(model, belief) (filter.{method})"
+        )
+
+
 def _bcast(x: Tensor, batch_shape: torch.Size, tail: tuple[int, ...]) -> Tensor:
     return x.expand(*batch_shape, *tail)
 
@@ -526,7 +534,10 @@ class GaussianFilter:
     def predict(
         self, model, state: FilterState, u: Tensor | None = None, k: int = 1
     ) -> FilterState:
-        """Time update only (multi-step-ahead prediction; ``lambda = 1``, noise estimates held)."""
+        """Time update only (multi-step-ahead prediction; noise estimates held). Strong
+        tracking predicts with ``lambda = 1``; a constant fading factor inflates ``A A^T`` as in
+        a step (paper 000 Eq. 36)."""
+        _check_state(state, "predict")
         u = check_control(u, model.control_dim, state.belief.batch_shape, state.belief.mean)
         noise = self._noise(model, state, k)
         prop = self._propagate(model, state.belief, u, k, noise.q)
@@ -545,6 +556,10 @@ class GaussianFilter:
         self, model, belief: GaussianBelief, u: Tensor | None = None, k: int = 1
     ) -> GaussianBelief:
         """Predictive distribution of ``y_k`` given a belief on ``x_k``: ``N(z, S_zz S_zz^T)``."""
+        if not isinstance(belief, GaussianBelief):  # (was an AttributeError on batch_shape)
+            what = type(belief).__name__
+            hint = ": pass state.belief" if isinstance(belief, FilterState) else ""
+            raise TypeError(f"belief must be a GaussianBelief, got {what}{hint}")
         u = check_control(u, model.control_dim, belief.batch_shape, belief.mean)
         noise = model.checked_noise(k, belief.batch_shape, belief.mean)
         prior = _Prior(belief.mean, belief.chol, belief.cov if not self.sqrt else None)
@@ -571,11 +586,7 @@ class GaussianFilter:
         Returns:
             The new state and a :class:`StepInfo`.
         """
-        if not isinstance(state, FilterState):
-            raise TypeError(
-                f"state must be a FilterState, got {type(state).__name__}; start from "
-                "state = filter.init(model, belief)"
-            )
+        _check_state(state, "step")
         belief = state.belief
         if _no_sync():
             y, any_missing = _check_measurement_traced(y, model.obs_dim, belief)

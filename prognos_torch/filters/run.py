@@ -9,10 +9,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..adapt.strong_tracking import StrongTracking, StrongTrackingState
 from ..core.belief import GaussianBelief, check_belief
 from ..core.model import StateSpaceModel
 from ..core.validation import (
     check_finite,
+    check_flag,
     check_nonneg_int,
     check_pos_int,
     check_sequence,
@@ -107,6 +109,31 @@ def _start(filt, model, init, k0) -> tuple[FilterState, int]:
     return filt.init(model, check_belief(init, model.state_dim, "init"), k0 + 1), k0
 
 
+def _check_resumed(filt: GaussianFilter, state: FilterState) -> None:
+    """A :class:`FilterState` to update from must carry the pieces ``filt`` adapts: strong
+    tracking's ``V_k`` and a noise estimator's statistics (without them the step failed with an
+    ``AttributeError``, or a noise-adaptive filter ran without adapting), and no noise
+    statistics for a filter without an estimator (its step cannot update them)."""
+    how = "resume from filter.init(model, belief) or from a run of this filter (Trajectory.final)"
+    if isinstance(filt.fading, StrongTracking) and not isinstance(
+        state.fading, StrongTrackingState
+    ):
+        raise ValueError(
+            "init.fading must be the StrongTrackingState of this strong-tracking filter, got "
+            f"{type(state.fading).__name__}: {how}"
+        )
+    if filt.noise is not None and state.noise is None:
+        raise ValueError(
+            "init.noise is None, but the filter estimates its noise "
+            f"({type(filt.noise).__name__}): {how}"
+        )
+    if filt.noise is None and state.noise is not None:
+        raise ValueError(
+            "init.noise holds noise-estimator statistics, but the filter has no noise "
+            f"estimator: {how}"
+        )
+
+
 def _record(state: FilterState, info: StepInfo) -> dict[str, Tensor | None]:
     """What :func:`run` keeps of each step (the noise in use only with a noise estimator)."""
     nz = state.noise
@@ -148,7 +175,12 @@ def run(
     the first under ``torch.inference_mode()`` (not with ``keep_steps``; the conditions of
     :meth:`~prognos_torch.filters.ParticleFilter.run`).
     """
+    # (text was read by its truth value: keep_steps="no" kept the steps)
+    keep_steps = check_flag(keep_steps, "keep_steps")
+    inference = check_flag(inference, "inference")
     state, k0 = _start(filt, model, init, k0)
+    if isinstance(init, FilterState):
+        _check_resumed(filt, state)
     bs = state.belief.batch_shape
     check_sequence(ys, "ys", model.obs_dim, bs)
     T = ys.shape[0]

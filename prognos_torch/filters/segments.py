@@ -91,12 +91,21 @@ def run_in_segments(
             var_Q.append(_diag(tr.chol_Q))
             var_R.append(_diag(tr.chol_R))
         state = tr.final
-    if var_Q:  # a noise estimator: step k uses the estimate after step k - 1
-        vq, vr = torch.cat(var_Q)[:T], torch.cat(var_R)[:T]
-    else:  # fixed statistics: the model's
-        n, m = model.state_dim, model.obs_dim
-        ks = range(k0 + 1, k0 + T + 1)
-        vq = torch.stack([_diag(model.noise(k).chol_Q).expand(*bs, n) for k in ks])
-        vr = torch.stack([_diag(model.noise(k).chol_R).expand(*bs, m) for k in ks])
+    ks = range(k0 + 1, k0 + T + 1)
+
+    def nominal(name: str, dim: int) -> Tensor:  # the model's at each step
+        return torch.stack([_diag(getattr(model.noise(k), name)).expand(*bs, dim) for k in ks])
+
+    # a noise estimator: step k uses the estimate after step k - 1, except for a statistic it
+    # holds (frozen, or not in its estimate) that the model gives per step: the filter takes
+    # the model's Q_k, R_k there (GaussianFilter._noise), not the value held from the start
+    held = set()
+    if var_Q:
+        est = filt.noise
+        held = {"Q", "R"} if est.frozen else {"Q", "R"} - set(est.estimate)
+        held = {name for name in held if callable(getattr(model, "chol_" + name))}
+    n, m = model.state_dim, model.obs_dim
+    vq = torch.cat(var_Q)[:T] if var_Q and "Q" not in held else nominal("chol_Q", n)
+    vr = torch.cat(var_R)[:T] if var_R and "R" not in held else nominal("chol_R", m)
     like = state.belief.mean  # (the filter ran in the belief's dtype; the model's noise is cast)
     return SegmentedTrajectory(torch.cat(means), vq.to(like), vr.to(like), state)

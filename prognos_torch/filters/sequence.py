@@ -19,7 +19,7 @@ from typing import Any, TypeVar
 import torch
 from torch import Tensor
 
-from ..core.validation import check_nonneg_int
+from ..core.validation import check_flag, check_nonneg_int
 
 __all__ = ["scan"]
 
@@ -97,6 +97,9 @@ def scan(
         raise ValueError(f"ys must have shape (T, ..., m) (time leading), got {tuple(ys.shape)}")
     # (a float k0 reached the step as k = 2.5, None failed in k0 + t + 1)
     k0 = check_nonneg_int(k0, "k0")
+    # (read by their truth value otherwise: compile="no" compiled the loop)
+    compile = check_flag(compile, "compile")
+    inference = check_flag(inference, "inference")
     T = ys.shape[0]
     if us is not None and (not isinstance(us, Tensor) or us.dim() < 1 or us.shape[0] != T):
         got = tuple(us.shape) if isinstance(us, Tensor) else type(us)
