@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import math
 
 import torch
 
@@ -96,3 +97,24 @@ def degradation_history(seed: int, n: int = 60, onset: int = 30):
     y = 1.0 + 0.01 * torch.randn(n, generator=g, dtype=F64)
     y[onset:] += 0.05 * (t[onset:] - onset) ** 1.5
     return t, y
+
+
+def lower_median(v):
+    """The lower of the two middle values for an even count (the library's moving median)."""
+    v = sorted(v)
+    return v[(len(v) - 1) // 2]
+
+
+def brute_weighted_quantile(x, w, q: float) -> float:
+    """One column of samples ``x`` (NumPy) under weights ``w``: NaN if a sample of positive
+    weight is NaN; else the smallest value ``v`` with ``sum(w[x <= v]) >= q`` (to 1e-12) among
+    the samples of positive weight, or their largest when no value reaches ``q``."""
+    import numpy as np
+
+    if np.any(np.isnan(x) & (w > 0)):
+        return math.nan
+    vals = sorted(v for v, wi in zip(x, w) if not np.isnan(v) and wi > 0)
+    for v in vals:
+        if w[(x <= v) & ~np.isnan(x)].sum() >= q - 1e-12:
+            return v
+    return vals[-1]

@@ -16,6 +16,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from _prognosis_helpers import lower_median
 
 from prognos_torch.prognosis import (
     Baseline,
@@ -33,11 +34,6 @@ from prognos_torch.prognosis import (
 from prognos_torch.prognosis.backtest import LEVELS, ORIGINS
 
 F64 = torch.float64
-
-
-def _lower_median(v):
-    v = sorted(v)
-    return v[(len(v) - 1) // 2]
 
 
 def _random_case(g, n_max=20, nan=0.2):
@@ -64,7 +60,7 @@ def test_moving_median_even_windows_and_empty_windows_against_a_loop():
         got = moving_median(x, w).tolist()
         for i in range(15):
             v = [a for a in x[max(0, i - w + 1) : i + 1].tolist() if not math.isnan(a)]
-            ref = _lower_median(v) if v else math.nan
+            ref = lower_median(v) if v else math.nan
             assert got[i] == ref or (math.isnan(ref) and math.isnan(got[i])), (w, i)
 
 
@@ -77,7 +73,7 @@ def _ksigma_reference(x, t, mu, sd, k, w, c, direction, after):
     xo = [s * x[i] for i in obs]
     ex = []
     for j in range(len(obs)):
-        m = _lower_median(xo[j - w + 1 : j + 1]) if j >= w - 1 else None
+        m = lower_median(xo[j - w + 1 : j + 1]) if j >= w - 1 else None
         ex.append(m is not None and (m - s * mu) / sd > k and (after is None or t[obs[j]] > after))
     for j in range(len(obs) - c + 1):
         if all(ex[j : j + c]):
@@ -211,7 +207,7 @@ def test_isolated_outliers_against_the_hampel_definition():
         xl = x.tolist()
         for i in range(T):
             v = [a for a in xl[max(0, i - 2) : i + 3] if not math.isnan(a)]
-            ref = not math.isnan(xl[i]) and abs(xl[i] - _lower_median(v)) > limit * scale
+            ref = not math.isnan(xl[i]) and abs(xl[i] - lower_median(v)) > limit * scale
             assert got[i] == ref, (xl, i)
 
 
@@ -263,7 +259,7 @@ def _pairs_reference(t, y, sigma0):
     moving median at or above each, origins the last sample at or before ``t_0 + g (t_c - t_0)``
     with at least 5 values up to it and the crossing after it."""
     n = len(y)
-    m = [_lower_median(y[max(0, i - 4) : i + 1]) for i in range(n)]
+    m = [lower_median(y[max(0, i - 4) : i + 1]) for i in range(n)]
     out = []
     if max(m) - m[0] > sigma0:
         for f in LEVELS:

@@ -12,6 +12,7 @@ import statistics
 import numpy as np
 import pytest
 import torch
+from _prognosis_helpers import lower_median
 
 from prognos_torch.core import StateSpaceModel
 from prognos_torch.prognosis import (
@@ -31,11 +32,6 @@ from prognos_torch.prognosis.conformal import (
 from prognos_torch.prognosis.protocol import known_threshold_protocol, rul_scores
 
 F64 = torch.float64
-
-
-def _lower_median(v):
-    v = sorted(v)
-    return v[(len(v) - 1) // 2]
 
 
 # --------------------------------------------------------------------------- onset
@@ -79,7 +75,7 @@ def test_ksigma_with_its_own_baseline_against_brute_force_with_numpy_settings():
         assert on.baseline.std == pytest.approx(sd, rel=1e-12)
         obs = [i for i in range(T) if not math.isnan(x[i])]
         xo = [s * x[i] for i in obs]
-        ex = [j >= w - 1 and (_lower_median(xo[j - w + 1 : j + 1]) - s * mu) / sd > float(k)
+        ex = [j >= w - 1 and (lower_median(xo[j - w + 1 : j + 1]) - s * mu) / sd > float(k)
               for j in range(len(obs))]  # fmt: skip
         ref = next(((obs[j], obs[j + c - 1]) for j in range(len(obs) - c + 1)
                     if all(ex[j : j + c])), (None, None))  # fmt: skip
@@ -194,7 +190,7 @@ def _protocol_ref(t, y, fractions):
     0.9 x their highest, EoL the first reaching it, baseline the first 30 % of [t0, t_EoL],
     onset the first of 5 consecutive full-window medians above mean + 4 std (up to EoL)."""
     n = len(y)
-    m = [_lower_median(y[max(0, i - 4) : i + 1]) for i in range(n)]
+    m = [lower_median(y[max(0, i - 4) : i + 1]) for i in range(n)]
     thr = 0.9 * max(m)
     ie = next(i for i in range(n) if m[i] >= thr)
     end = t[0] + 0.3 * (t[ie] - t[0])

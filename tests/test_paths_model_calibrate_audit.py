@@ -17,7 +17,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from _prognosis_helpers import degradation_history
+from _prognosis_helpers import brute_weighted_quantile, degradation_history
 from torch import nn
 
 import prognos_torch.workflow.calibrate as calibrate_mod
@@ -38,12 +38,6 @@ def _close(a: torch.Tensor, b: torch.Tensor, tol: float = 1e-12) -> None:
 
 
 # ------------------------------------------------------------------------------ paths.py
-def _brute_quantile(s: np.ndarray, w: np.ndarray, q: float) -> float:
-    """min{v : sum of the weights of samples <= v >= q}, one sample column."""
-    for v in sorted(s):
-        if w[s <= v].sum() >= q - 1e-12:
-            return v
-    return max(s)
 
 
 def testweighted_quantile_matches_brute_force_batched_float32_and_zero_weights():
@@ -58,7 +52,7 @@ def testweighted_quantile_matches_brute_force_batched_float32_and_zero_weights()
             assert got.dtype == dt and got.shape == (2, 3)
             for b in range(2):
                 for h in range(3):
-                    want = _brute_quantile(s[b, :, h].numpy(), w[b].numpy(), q)
+                    want = brute_weighted_quantile(s[b, :, h].numpy(), w[b].numpy(), q)
                     assert float(got[b, h]) == pytest.approx(want, abs=1e-6)
 
 
@@ -109,8 +103,8 @@ def test_particle_paths_bands_match_a_hand_recursion_with_batched_noise():
     for b in range(B):
         for h in range(H):
             col, wb = ref[b, :, h].numpy(), w[b].numpy()
-            assert float(p.lower[b, h]) == _brute_quantile(col, wb, 0.025)
-            assert float(p.upper[b, h]) == _brute_quantile(col, wb, 0.975)
+            assert float(p.lower[b, h]) == brute_weighted_quantile(col, wb, 0.025)
+            assert float(p.upper[b, h]) == brute_weighted_quantile(col, wb, 0.975)
 
 
 def test_particle_paths_check_the_model_noise_against_the_particles():

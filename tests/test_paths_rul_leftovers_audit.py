@@ -13,6 +13,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from _prognosis_helpers import brute_weighted_quantile
 
 from prognos_torch.prognosis import (
     fault_probability_gaussian,
@@ -31,17 +32,6 @@ def _gen(seed: int) -> torch.Generator:
 
 
 # ------------------------------------------------------------------------------ paths.py
-def _brute_quantile(x: np.ndarray, w: np.ndarray, q: float) -> float:
-    """One column: NaN if a sample of positive weight is NaN; else the smallest value ``v`` with
-    ``sum(w[x <= v]) >= q`` (to 1e-12) among the samples of positive weight, or their largest
-    when no value reaches ``q``."""
-    if np.any(np.isnan(x) & (w > 0)):
-        return math.nan
-    vals = sorted(v for v, wi in zip(x, w) if not np.isnan(v) and wi > 0)
-    for v in vals:
-        if w[(x <= v) & ~np.isnan(x)].sum() >= q - 1e-12:
-            return v
-    return vals[-1]
 
 
 def test_weighted_quantile_of_paths_with_nan_is_nan_where_a_weighted_path_is_missing():
@@ -63,7 +53,9 @@ def test_weighted_quantile_of_paths_with_nan_is_nan_where_a_weighted_path_is_mis
             assert got.dtype == dt and got.shape == (2, 4)
             for b in range(2):
                 for h in range(4):
-                    want = _brute_quantile(s[b, :, h].to(dt).double().numpy(), w[b].numpy(), q)
+                    want = brute_weighted_quantile(
+                        s[b, :, h].to(dt).double().numpy(), w[b].numpy(), q
+                    )
                     v = float(got[b, h])
                     assert (math.isnan(v) and math.isnan(want)) or v == want
     s4 = torch.tensor([[1.0], [2.0], [math.nan], [3.0]], dtype=F64)
