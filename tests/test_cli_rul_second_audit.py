@@ -118,6 +118,10 @@ def test_fleet_out_naming_an_input_or_a_folder_is_refused_before_the_run(tmp_pat
     assert main([*base, "--out", str(folder)]) == 2
     one_error(capsys, f"error: --out: {folder} is a folder, expected a file name")
     assert list(folder.iterdir()) == []
+    slash = f"{tmp_path / 'new.csv'}/"  # (a folder by its name: Path() dropped the slash and
+    assert main([*base, "--out", slash]) == 2  # the results were written to new.csv)
+    one_error(capsys, f"error: --out: {slash} names a folder, expected a file name")
+    assert not (tmp_path / "new.csv").exists()
 
 
 def test_fleet_command_restores_the_callers_thread_count(tmp_path, capsys):

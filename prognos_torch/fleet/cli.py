@@ -125,7 +125,7 @@ def build_parser() -> argparse.ArgumentParser:
         "20/40/60/80/90 %% of [onset, failure] with the same method, and the output gains "
         "rul_q05_calibrated and rul_q95_calibrated (prognos_torch.fleet.calibrate_fleet)",
     )
-    p.add_argument("--out", type=Path, required=True, help="output .csv or .parquet")
+    p.add_argument("--out", required=True, help="output .csv or .parquet")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -164,6 +164,9 @@ def _run(args) -> int:
     from .table import TABLE_SUFFIXES
 
     try:
+        if args.out.endswith(("/", os.sep)):  # (a folder: Path() drops the separator)
+            raise ValueError(f"--out: {args.out} names a folder, expected a file name")
+        args.out = Path(args.out)
         if args.out.suffix.lower() not in TABLE_SUFFIXES:
             raise ValueError(f"--out must end in {', '.join(TABLE_SUFFIXES)}, got {args.out}")
         if not (args.out.parent if str(args.out.parent) else Path(".")).is_dir():
