@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["fmt_time", "fmt_level", "json_number", "option_of"]
+__all__ = ["fmt_time", "fmt_level", "json_number"]
 
 
 def fmt_time(v: float) -> str:
@@ -33,10 +33,3 @@ def json_number(v) -> float | None:
     """``v`` as a float for a JSON record, ``None`` where it is missing or not finite (strict
     JSON has no NaN or infinity)."""
     return None if v is None or not math.isfinite(float(v)) else float(v)
-
-
-def option_of(text: str, options: dict[str, str]) -> str | None:
-    """The command-line option whose value the error message ``text`` is about: the option of
-    the first key of ``options`` (the first words of such messages) that ``text`` starts with,
-    followed by a space or ``=`` (``"until='2003-01-01' is a date-time ..."``); else ``None``."""
-    return next((o for k, o in options.items() if text.startswith((k + " ", k + "="))), None)

@@ -16,13 +16,13 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import re
 import sys
 import warnings
 from pathlib import Path
 
-from ._text import fmt_time, option_of
+from ._command import check_output_file, check_overwrites, one_torch_thread, option_of
+from ._text import fmt_time
 from .cli_parser import (
     CALIBRATE_DEFAULTS,
     MODEL_RUL_DEFAULTS,
@@ -181,46 +181,6 @@ def _holdout(text: str):
     return value  # (a fraction; a negative or non-finite value is fit_series' to refuse)
 
 
-def _check_out_folder(path: str | Path | None, what: str) -> None:
-    """An output file's folder exists and it is no folder itself; a figure (``--plot``) has
-    a figure suffix (:func:`~prognos_torch.io.figure_format`)."""
-    if path is None:
-        return
-    if str(path).endswith(("/", os.sep)):  # (a folder: Path() would drop the separator)
-        raise ValueError(f"{what}: {path} names a folder, expected a file name")
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise FileNotFoundError(f"{what}: folder {folder} does not exist")
-    if path.is_dir():
-        raise ValueError(f"{what}: {path} is a folder, expected a file name")
-    if what == "--plot":
-        from .io import figure_format
-
-        figure_format(path, what)
-
-
-def _check_overwrites(outputs: dict, inputs: dict) -> None:
-    """No output file is a file this run reads or another output (``--csv data.csv`` replaced
-    the data it had read; ``--plot`` and ``--json`` on one name kept the last one written)."""
-    seen: dict = {}
-    for what, path in outputs.items():
-        if path is None or str(path) == "-":  # (--json -: standard output)
-            continue
-        key = os.path.realpath(path)
-        for name, src in inputs.items():
-            if src is not None and os.path.realpath(src) == key:
-                raise ValueError(
-                    f"{what}: {path} is {name}, which this run reads; writing it would replace "
-                    "it (give another file name)"
-                )
-        if key in seen:
-            raise ValueError(
-                f"{seen[key]} and {what} name the same file {path}: one would replace the other"
-            )
-        seen[key] = what
-
-
 def _share(p: float) -> str:
     """A probability as a percentage to 3 digits (0.002: "0.2 %", where ".0f" said 0 %)."""
     return f"{100 * p:.3g} %"
@@ -354,8 +314,8 @@ def _warn_gaps(series) -> None:
 def _cmd_fit(args) -> int:
     from .workflow import fit_series, save_model
 
-    _check_out_folder(args.out, "--out")
-    _check_overwrites({"--out": args.out}, {"the data file": args.data})
+    check_output_file(args.out, "--out")
+    check_overwrites({"--out": args.out}, {"the data file": args.data})
     series, data_cfg = _series_from_args(args)
     _warn_gaps(series)
     from .workflow.model import LEARNER_DEFAULTS, OPTIMIZER_DEFAULTS, check_names
@@ -481,10 +441,10 @@ def _load_for_prediction(args):
     from .workflow import load_model
 
     for path, what in ((args.plot, "--plot"), (getattr(args, "csv", None), "--csv")):
-        _check_out_folder(path, what)
+        check_output_file(path, what)
     outputs = {"--plot": args.plot, "--csv": getattr(args, "csv", None)}
     outputs["--json"] = getattr(args, "json", None)
-    _check_overwrites(outputs, {"the model file": args.model, "the data file": args.data})
+    check_overwrites(outputs, {"the model file": args.model, "the data file": args.data})
     model = load_model(args.model)
     series, data_cfg = _series_from_args(args, model.config.get("data"))
     _warn_gaps(series)
@@ -621,7 +581,7 @@ def _cmd_rul(args) -> int:
     from .workflow import rul
 
     if args.json not in (None, "-"):
-        _check_out_folder(args.json, "--json")
+        check_output_file(args.json, "--json")
     if args.data is None:  # prognos rul DATA.csv ...: no model file
         from .cli_prognose import load_histories, run_prognose
 
@@ -648,9 +608,9 @@ def _cmd_rul(args) -> int:
             if getattr(args, k) is None:
                 setattr(args, k, v)
         args.data = args.model
-        _check_out_folder(args.plot, "--plot")
-        _check_out_folder(args.calibration_out, "--calibration-out")
-        _check_overwrites(
+        check_output_file(args.plot, "--plot")
+        check_output_file(args.calibration_out, "--calibration-out")
+        check_overwrites(
             {"--plot": args.plot, "--calibration-out": args.calibration_out, "--json": args.json},
             {"the data file": args.data, "the --calibrate table": args.calibrate,
              "the --calibration file": args.calibration},
@@ -811,14 +771,8 @@ def _workflow(cmd):
     extrapolation warnings as one ``warning:`` line each."""
 
     def wrapped(args) -> int:
-        import torch
-
-        threads = torch.get_num_threads()  # the caller's count is restored afterwards
-        torch.set_num_threads(1)  # tiny matrices: threads only add overhead (see tests/conftest)
-        try:
+        with one_torch_thread():
             return run(args)
-        finally:
-            torch.set_num_threads(threads)
 
     def run(args) -> int:
         from .io import ModelFileError

@@ -189,7 +189,7 @@ def add_fit(sub, cmd) -> None:
     )
     g.add_argument("--optimizer-option", action="append", metavar="KEY=VALUE", help="e.g. R=1e-2")
     # output files are kept as text, not Path: Path("new/") drops the "/", and the file "new"
-    # was written where a folder was meant (cli._check_out_folder refuses it up front)
+    # was written where a folder was meant (_command.check_output_file refuses it up front)
     p.add_argument("--out", required=True, help="model file to write")
     p.set_defaults(func=cmd)
 

@@ -140,7 +140,7 @@ def test_the_scanner_finds_a_cycle(tmp_path):
 
 
 #: top-level helper modules and the layer of the table they belong to
-HELPERS = {"_text": "workflow", "_workers": "workflow", "cli_parser": "cli",
+HELPERS = {"_text": "workflow", "_command": "workflow", "_workers": "workflow", "cli_parser": "cli",
            "cli_prognose": "cli", "__main__": "cli"}  # fmt: skip
 
 

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 import time
 from collections import Counter
 from pathlib import Path
 
-from .._text import option_of
+from .._command import check_output_file, check_overwrites, one_torch_thread, option_of
 
 __all__ = ["build_parser", "main"]
 
@@ -148,14 +147,8 @@ _OPTION_OF = {
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    import torch
-
-    threads = torch.get_num_threads()  # the caller's count is restored afterwards
-    torch.set_num_threads(1)
-    try:
+    with one_torch_thread():
         return _run(args)
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _run(args) -> int:
@@ -164,21 +157,14 @@ def _run(args) -> int:
     from .table import TABLE_SUFFIXES
 
     try:
-        if args.out.endswith(("/", os.sep)):  # (a folder: Path() drops the separator)
-            raise ValueError(f"--out: {args.out} names a folder, expected a file name")
+        # a folder (also by a final "/"), a missing folder or an input table: refused before the
+        # run (a folder failed after it, an input was replaced by the results)
+        check_output_file(args.out, "--out")
         args.out = Path(args.out)
         if args.out.suffix.lower() not in TABLE_SUFFIXES:
             raise ValueError(f"--out must end in {', '.join(TABLE_SUFFIXES)}, got {args.out}")
-        if not (args.out.parent if str(args.out.parent) else Path(".")).is_dir():
-            raise ValueError(f"--out folder does not exist: {args.out.parent}")
-        if args.out.is_dir():  # (it failed after the whole run)
-            raise ValueError(f"--out: {args.out} is a folder, expected a file name")
-        for name, src in (("the table", args.table), ("the --calibrate table", args.calibrate)):
-            if src is not None and os.path.realpath(src) == os.path.realpath(args.out):
-                raise ValueError(
-                    f"--out: {args.out} is {name}, which this run reads; writing it would "
-                    "replace it (give another file name)"
-                )
+        check_overwrites({"--out": args.out},
+                         {"the table": args.table, "the --calibrate table": args.calibrate})
         if args.phi is not None and args.method != "exponential":
             raise ValueError("--phi applies to --method exponential only")
         if args.min_rows < 1:
