@@ -650,10 +650,7 @@ def load_series(
         raise ValueError(f"fill must be None, 'linear' or 'drop', got {fill!r}")
     if decimal not in (".", ","):
         raise ValueError(f"decimal must be '.' or ',', got {decimal!r}")
-    if time_format is not None and (not isinstance(time_format, str) or "%" not in time_format):
-        raise ValueError(
-            f"time_format must be strptime codes such as '%d/%m/%Y %H:%M', got {time_format!r}"
-        )
+    check_time_format(time_format)
     if last is not None and (not is_int(last) or last < 1):
         raise ValueError(f"last must be a positive int, got {last!r}")
     last = None if last is None else int(last)
@@ -744,6 +741,14 @@ def _shown_time(days: float, start: str | None) -> str:
     """A time for a message: the date-time it was read from (to the microsecond) where the
     series has date-times, else the number (:func:`fmt_time`)."""
     return (None if start is None else date_after(start, days)) or fmt_time(days)
+
+
+def check_time_format(time_format) -> None:
+    """``None`` or text with ``datetime.strptime`` codes (a ``%``), else a ``ValueError``."""
+    if time_format is not None and (not isinstance(time_format, str) or "%" not in time_format):
+        raise ValueError(
+            f"time_format must be strptime codes such as '%d/%m/%Y %H:%M', got {time_format!r}"
+        )
 
 
 def check_magnitude(values: np.ndarray, name: str, source=None, lines=None) -> None:

@@ -125,6 +125,7 @@ from .data import (
     array_times,
     array_values,
     check_magnitude,
+    check_time_format,
     datetime_index,
     pandas_name,
     time_value,
@@ -166,10 +167,7 @@ _MAX_BINS = 20_000
 # ----------------------------------------------------------------------------- inputs
 def _as_series(series, time, time_format=None) -> tuple[Tensor, Tensor, Series | None]:
     # one series is a few thousand values: computed on the CPU wherever the data live
-    if time_format is not None and (not isinstance(time_format, str) or "%" not in time_format):
-        raise ValueError(  # as load_series words it
-            f"time_format must be strptime codes such as '%d/%m/%Y %H:%M', got {time_format!r}"
-        )
+    check_time_format(time_format)  # (as load_series: 5 failed inside strptime, unnamed)
     if time_format is not None and time is None:
         raise ValueError("time_format applies to time= given as text: pass time= as well")
     if isinstance(series, Series):
