@@ -184,6 +184,14 @@ def is_bool_or_complex(value) -> bool:
     )
 
 
+def holds_bool_or_complex(value) -> bool:
+    """:func:`is_bool_or_complex` of ``value`` or, for a list or tuple, of any of its entries
+    (values a cast to float would read as ``0``/``1`` or strip of an imaginary part)."""
+    return is_bool_or_complex(value) or (
+        isinstance(value, (list, tuple)) and any(is_bool_or_complex(v) for v in value)
+    )
+
+
 def is_real(v) -> bool:
     """A real number (``int``, ``float``, ``numpy.float32``, ``numpy.int64``, ...), not a
     ``bool``."""

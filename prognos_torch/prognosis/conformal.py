@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from ..core.validation import is_bool_or_complex, is_int, is_real
+from ..core.validation import holds_bool_or_complex, is_int, is_real
 
 __all__ = [
     "interval_scores",
@@ -63,9 +63,7 @@ def _vectors(lower, upper, truth=None) -> tuple[Tensor, ...]:
     for name, v in zip(names, (lower, upper, truth)):
         if v is None:
             continue
-        if is_bool_or_complex(v) or (
-            isinstance(v, (list, tuple)) and any(is_bool_or_complex(a) for a in v)
-        ):  # (True was read as a RUL of 1, a complex value stripped of its imaginary part)
+        if holds_bool_or_complex(v):  # (True was a RUL of 1; complex lost its imaginary part)
             raise TypeError(f"{name} must hold real numbers, got bool or complex values")
         try:
             xs.append(torch.as_tensor(v, dtype=torch.float64))

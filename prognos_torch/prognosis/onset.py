@@ -60,7 +60,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.validation import as_tensor, has_missing, is_bool_or_complex, is_int, is_real
+from ..core.validation import as_tensor, has_missing, holds_bool_or_complex, is_int, is_real
 
 __all__ = [
     "Baseline",
@@ -195,9 +195,7 @@ def cusum_arl0(drift: float, limit: float) -> float:
 
 
 def _series(values, time, name: str = "values") -> tuple[Tensor, Tensor]:
-    seq = isinstance(values, (list, tuple))
-    if is_bool_or_complex(values) or (seq and any(is_bool_or_complex(v) for v in values)):
-        # (read as 0/1, or stripped of its imaginary part)
+    if holds_bool_or_complex(values):  # (read as 0/1, or stripped of its imaginary part)
         raise TypeError(f"{name} must hold real numbers, got bool or complex values")
     x = as_tensor(values, name)
     if not x.is_floating_point():
