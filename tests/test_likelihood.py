@@ -319,7 +319,7 @@ def test_sgd_step_is_the_gradient_of_the_exact_joint_gaussian_log_likelihood():
     # here by central differences of the brute-force joint Gaussian (controls, a partly
     # observed and a missing row, parameters of f, Q, R and the initial mean)
     import numpy as np
-    from test_smooth import joint_gaussian_reference
+    from _kalman_reference import joint_gaussian_reference
 
     g = np.random.default_rng(5)
     n, m, T = 2, 3, 4

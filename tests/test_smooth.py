@@ -26,7 +26,7 @@ from prognos_torch.filters.gaussian import GaussianFilter
 from prognos_torch.quadrature import cubature, gauss_hermite, julier, unscented
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _kalman_reference import rts_reference  # noqa: E402
+from _kalman_reference import joint_gaussian_reference, rts_reference  # noqa: E402
 
 t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
 
@@ -392,48 +392,6 @@ def test_smooth_trajectory_checks_what_smooth_checks():
     rob = rukf(2.0, torch.eye(2, dtype=d))
     with pytest.raises(ValueError, match="robust filter's run"):
         smooth_trajectory(run(rob, model, init, ys, keep_steps=True), init)
-
-
-def joint_gaussian_reference(F, H, Qs, Rs, m0, P0, ys, Bu=None, qs=None, rs=None, upto=None):
-    """Brute force: the joint Gaussian of ``x_{0:T}`` and ``y_{1:T}`` of ``x_t = F x_{t-1} +
-    Bu_t + q_t + w_t``, ``y_t = H x_t + r_t + v_t`` (per-step ``Q_t``, ``R_t``), conditioned on
-    the observed components of ``ys[:upto]``. Returns the means ``(T+1, n)``, covariances
-    ``(T+1, n, n)``, ``Cov(x_t, x_{t-1})`` ``(T, n, n)`` and ``log p(y_obs)``."""
-    T, m = ys.shape
-    n = m0.size
-    Lx, c = [np.eye(n, n * (T + 1))], [m0]  # x_t = Lx_t [x_0 - m0, w_1..w_T] + c_t
-    for k in range(T):
-        L = F @ Lx[-1]
-        L[:, n * (k + 1) : n * (k + 2)] += np.eye(n)
-        Lx.append(L)
-        c.append(F @ c[-1] + (0 if Bu is None else Bu[k]) + (0 if qs is None else qs[k]))
-    Lx, mX = np.vstack(Lx), np.concatenate(c)
-    Pz = np.zeros((n * (T + 1),) * 2)
-    for k, P in enumerate([P0, *Qs]):
-        Pz[n * k : n * (k + 1), n * k : n * (k + 1)] = P
-    PX = Lx @ Pz @ Lx.T
-    Hb = np.kron(np.eye(T + 1), H)[m:]
-    mY = Hb @ mX + (0 if rs is None else np.concatenate(rs))
-    PY = Hb @ PX @ Hb.T
-    for k, R in enumerate(Rs):
-        PY[m * k : m * (k + 1), m * k : m * (k + 1)] += R
-    y = ys.copy()
-    if upto is not None:
-        y[upto:] = np.nan
-    o = ~np.isnan(y.reshape(-1))
-    S, e = PY[np.ix_(o, o)], y.reshape(-1)[o] - mY[o]
-    K = np.linalg.solve(S, Hb[o] @ PX).T
-    mean, cov = mX + K @ e, PX - K @ Hb[o] @ PX
-    ll = -0.5 * (
-        o.sum() * math.log(2 * math.pi) + np.linalg.slogdet(S)[1] + e @ np.linalg.solve(S, e)
-    )
-    blk = lambda i, j: cov[n * i : n * (i + 1), n * j : n * (j + 1)]  # noqa: E731
-    return (
-        mean.reshape(T + 1, n),
-        np.array([blk(k, k) for k in range(T + 1)]),
-        np.array([blk(k, k - 1) for k in range(1, T + 1)]),
-        ll,
-    )
 
 
 def test_rts_and_fixed_lag_equal_joint_gaussian_conditioning_with_controls_and_step_noise():

@@ -15,40 +15,15 @@ from prognos_torch.filters import ekf, run, sckf, smooth, smooth_trajectory
 from prognos_torch.optim import em_linear_gaussian, fit_likelihood, linear_model
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _kalman_reference import kalman_filter_observed, numpy_em_step, rts_reference  # noqa: E402
+from _kalman_reference import (  # noqa: E402
+    joint_gaussian_reference,
+    kalman_filter_observed,
+    numpy_em_step,
+    rts_reference,
+)
 
 d = torch.float64
 t = lambda a: torch.as_tensor(np.asarray(a), dtype=d)  # noqa: E731
-
-
-def brute_force(Fs, Qs, cs, H, R, m0, P0, ys):
-    """``x_{0:T}``, ``y_{1:T}`` of ``x_t = F_t x_{t-1} + c_t + w_t``, ``y_t = H x_t + v_t`` as one
-    Gaussian, conditioned on the observed components of ``ys``: smoothed means ``(T+1, n)``,
-    covariances, ``Cov(x_t, x_{t-1} | y)`` ``(T, n, n)`` and ``log p(y_obs)``."""
-    T, m = ys.shape
-    n = m0.size
-    Phi, c = [np.eye(n, n * (T + 1))], [m0]  # x_t = Phi_t [x_0 - m0, w_1..w_T] + c_t
-    for k in range(T):
-        L = Fs[k] @ Phi[-1]
-        L[:, n * (k + 1) : n * (k + 2)] += np.eye(n)
-        Phi.append(L)
-        c.append(Fs[k] @ c[-1] + cs[k])
-    Phi, mX = np.vstack(Phi), np.concatenate(c)
-    Pz = np.zeros((n * (T + 1),) * 2)
-    for k, P in enumerate([P0, *Qs]):
-        Pz[n * k : n * (k + 1), n * k : n * (k + 1)] = P
-    PX = Phi @ Pz @ Phi.T
-    Hb = np.kron(np.eye(T + 1), H)[m:]
-    PY = Hb @ PX @ Hb.T + np.kron(np.eye(T), R)
-    o = ~np.isnan(ys.reshape(-1))
-    S, e = PY[np.ix_(o, o)], ys.reshape(-1)[o] - (Hb @ mX)[o]
-    K = np.linalg.solve(S, Hb[o] @ PX).T
-    mean, cov = mX + K @ e, PX - K @ Hb[o] @ PX
-    ll = -0.5 * (o.sum() * math.log(2 * math.pi) + np.linalg.slogdet(S)[1]
-                 + e @ np.linalg.solve(S, e))  # fmt: skip
-    blk = lambda i, j: cov[n * i : n * (i + 1), n * j : n * (j + 1)]  # noqa: E731
-    return (mean.reshape(T + 1, n), np.array([blk(k, k) for k in range(T + 1)]),
-            np.array([blk(k, k - 1) for k in range(1, T + 1)]), ll)  # fmt: skip
 
 
 # ------------------------------------------------------------------------------ smoother
@@ -85,22 +60,22 @@ def test_smoother_equals_joint_conditioning_batched_time_varying_with_controls_a
     refs = []
     for i in range(N):
         Fs = [F0[i] + math.sin(k) * F1[i] for k in range(k0 + 1, k0 + T + 1)]
-        args = (Fs, SQs @ SQs.swapaxes(1, 2), [Bm[i] @ us[k, i] for k in range(T)], H[i],
-                SR[i] @ SR[i].T, m0[i], S0[i] @ S0[i].T)  # fmt: skip
-        refs.append((brute_force(*args, ys[:, i]), args))
+        args = (Fs, H[i], SQs @ SQs.swapaxes(1, 2), [SR[i] @ SR[i].T] * T, m0[i],
+                S0[i] @ S0[i].T, ys[:, i])  # fmt: skip
+        Bu = [Bm[i] @ us[k, i] for k in range(T)]
+        refs.append((joint_gaussian_reference(*args, Bu=Bu), (args, Bu)))
     close = lambda a, b: np.testing.assert_allclose(a.numpy(), b, atol=1e-10, rtol=0)  # noqa: E731
     for filt in (ekf(), ekf(sqrt=False), sckf()):
         sm = smooth(filt, model, b0, Y, U, k0=k0)
         lag1 = smooth(filt, model, b0, Y, U, k0=k0, lag=1)
-        for i, ((ms, Ps, cr, ll), args) in enumerate(refs):
+        for i, ((ms, Ps, cr, ll), (args, Bu)) in enumerate(refs):
             j = np.unravel_index(i, bs)
             close(sm.means[(slice(None), *j)], ms[1:]), close(sm.covs[(slice(None), *j)], Ps[1:])
             close(sm.cross_covs[(slice(None), *j)], cr)
             close(sm.initial.mean[j], ms[0]), close(sm.initial.cov[j], Ps[0])
             assert abs(float(sm.log_likelihood[j]) - ll) < 1e-10
-            y1 = ys[:, i].copy()
-            y1[2:] = np.nan  # x_1 given y_{1:2}: the fixed-lag (lag 1) row 0
-            ms1, Ps1, cr1, _ = brute_force(*args, y1)
+            # x_1 given y_{1:2}: the fixed-lag (lag 1) row 0
+            ms1, Ps1, cr1, _ = joint_gaussian_reference(*args, Bu=Bu, upto=2)
             close(lag1.means[(0, *j)], ms1[1]), close(lag1.covs[(0, *j)], Ps1[1])
             close(lag1.cross_covs[(0, *j)], cr1[0])
 
