@@ -34,6 +34,13 @@ def fleet():
     return synthetic_fleet(60, 200, seed=3, ragged=0.5, healthy_fraction=0.1)
 
 
+@pytest.fixture(scope="module")
+def whole(fleet):
+    """The fleet in one shard (the default shard size), 300 samples: the reference that other
+    shard sizes, worker processes and Ray are compared with (read only)."""
+    return fleet_rul(read_fleet_table(fleet.table), fleet.threshold, samples=300)
+
+
 def _assert_same(a, b, rtol=1e-12):
     assert a.columns["asset"] == b.columns["asset"]
     assert a.columns["flags"] == b.columns["flags"]
@@ -43,9 +50,9 @@ def _assert_same(a, b, rtol=1e-12):
         )
 
 
-def test_fleet_equals_the_per_asset_loop_and_does_not_depend_on_the_shard_size(fleet):
+def test_fleet_equals_the_per_asset_loop_and_does_not_depend_on_the_shard_size(fleet, whole):
     tab = read_fleet_table(fleet.table)
-    whole = fleet_rul(tab, fleet.threshold, samples=300, shard_size=len(tab))
+    assert whole.shard_size >= len(tab)  # one shard
     for size in (1, 7, 25):
         _assert_same(whole, fleet_rul(tab, fleet.threshold, samples=300, shard_size=size))
     # an explicit loop: each asset alone in its own table
@@ -702,23 +709,21 @@ def test_cli_writes_csv_and_parquet(tmp_path, fleet, capsys):
 
 
 # --------------------------------------------------------------------------- Ray
-def test_ray_backend_equals_local(fleet):
+def test_ray_backend_equals_local(fleet, whole):
     ray = pytest.importorskip("ray")
-    local = fleet_rul(fleet.table, fleet.threshold, samples=300, shard_size=16)
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
         remote = fleet_rul(fleet.table, fleet.threshold, samples=300, shard_size=16, backend="ray")
     finally:
         ray.shutdown()
-    _assert_same(local, remote)
+    _assert_same(whole, remote)  # (shards of 16 on Ray, one shard here)
 
 
-def test_workers_run_the_shards_side_by_side_and_give_the_same_table(fleet):
+def test_workers_run_the_shards_side_by_side_and_give_the_same_table(fleet, whole):
     """workers=2: the shards in two spawned processes (cut to one shard per worker at least):
     the table of the sequential run, to the 1e-12 of another shard size for the batched trend
     and bit for bit for the per-asset prognose; bad counts and Ray are refused by name."""
     tab = read_fleet_table(fleet.table)
-    whole = fleet_rul(tab, fleet.threshold, samples=300)
     par = fleet_rul(tab, fleet.threshold, samples=300, workers=2)
     assert par.shard_size == 30  # 60 assets, 2 workers: two shards instead of one
     _assert_same(whole, par)
