@@ -357,6 +357,13 @@ def add_rul(sub, cmd) -> None:
         help="asset column of the --calibrate table (default asset)",
     )
     g.add_argument(
+        "--calibrate-where",
+        action="append",
+        metavar="COL=VALUE",
+        help="keep the --calibrate table's rows whose COL equals VALUE (repeatable), e.g. "
+        "--calibrate-where channel=5 (--where selects the series' rows)",
+    )
+    g.add_argument(
         "--calibrate-threshold",
         choices=("same", "protocol"),
         help="failure of a history: the first crossing of --threshold by its 5-point moving "
@@ -399,4 +406,5 @@ MODEL_RUL_DEFAULTS = {"horizon": 200, "filter": "stpf", "filter_steps": 100, "pa
 PROGNOSE_RUL_DEFAULTS = {"method": "auto", "paths": 2000}
 #: the options that set how ``--calibrate`` replays its histories and their defaults; without
 #: ``--calibrate`` (and with a model file) they are refused
-CALIBRATE_DEFAULTS = {"calibrate_group": "asset", "calibrate_threshold": "same", "workers": 1}
+CALIBRATE_DEFAULTS = {"calibrate_group": "asset", "calibrate_where": None,
+                      "calibrate_threshold": "same", "workers": 1}  # fmt: skip

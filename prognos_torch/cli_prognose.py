@@ -184,10 +184,15 @@ def load_histories(args, series):
             time_column=args.time_column,
             decimal=args.decimal or ".",
             time_format=args.time_format,
+            where=args.calibrate_where,
         )
     except ValueError as exc:
         msg = str(exc).replace("(--group-by)", "(--calibrate-group)")
-        raise ValueError(f"--calibrate: {msg}") from None
+        if msg.startswith("where: "):  # the option's value, not the table
+            raise ValueError(
+                "--calibrate-where: " + msg[7:].replace("--where", "--calibrate-where")
+            ) from None
+        raise ValueError(f"--calibrate: {msg.replace('(where)', '(--calibrate-where)')}") from None
     except FileNotFoundError as exc:
         raise FileNotFoundError(f"--calibrate: {exc}") from None
     dates, tab_dates = series.start is not None, tab.time_unit == "days"

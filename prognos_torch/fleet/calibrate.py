@@ -68,6 +68,7 @@ def calibrate_fleet(
     decimal: str = ".",
     time_format: str | None = None,
     workers: int = 1,
+    where=None,
     **options,
 ) -> tuple[RULCalibration, dict[str, list]]:
     """Conformal calibration of :func:`~prognos_torch.fleet.fleet_rul`'s 90 % intervals.
@@ -88,6 +89,9 @@ def calibrate_fleet(
         seed, method, **options: ``fleet_rul``'s, to be used again for the live fleet.
         decimal, time_format: a CSV table's decimal mark and the layout of its date-times
             (:func:`~prognos_torch.fleet.read_fleet_table`).
+        where: keep only the table's rows whose cells equal these values (``{"channel": "5"}``
+            or ``["channel=5"]``; :func:`~prognos_torch.fleet.read_fleet_table`); refused with
+            a :class:`~prognos_torch.fleet.FleetTable`, which was read already.
         workers: processes that replay the points (``fleet_rul``'s; not a setting of the
             calibration: the intervals are the same); so are ``fleet_rul``'s ``shard_size``,
             ``backend``, ``progress`` and ``ray_init`` among ``**options``. ``on_error``
@@ -116,11 +120,17 @@ def calibrate_fleet(
         bins = _check_bins(bins)
     fractions = check_fractions(fractions)
     sign = 1.0 if direction == "above" else -1.0
+    if isinstance(source, FleetTable) and where is not None:
+        raise ValueError(
+            "where selects rows of a table read here; source is a FleetTable, read already "
+            "(pass where to read_fleet_table)"
+        )
     table = (
         source
         if isinstance(source, FleetTable)
         else read_fleet_table(
             source,
+            where=where,
             group_by=group_by,
             column=column,
             time_column=time_column,

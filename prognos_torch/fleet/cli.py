@@ -21,6 +21,9 @@ _EPILOG = """examples:
   prognos rul fleet.csv --group-by unit --threshold 20 --calibrate failed.csv --out results.csv
       (failed.csv: assets that ran to failure, same columns; adds rul_q05_calibrated and
        rul_q95_calibrated, the 90 % interval calibrated on them: split conformal)
+  prognos rul bearings.csv --group-by bearing --column rms --time-column timestamp \\
+      --where channel=1 --threshold 0.5 --out results.csv
+      (a table with a row per bearing, time and channel: the rows of channel 1)
 
 The table has one row per measurement (asset, time, value); assets may be interleaved, but
 each asset's times must increase. Output: one row per asset with the columns asset, n_rows,
@@ -80,6 +83,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="layout of date-times that are not ISO 8601, in strptime codes, e.g. "
         "'%%d/%%m/%%Y %%H:%%M'",
     )
+    p.add_argument(
+        "--where",
+        action="append",
+        metavar="COL=VALUE",
+        help="keep rows whose COL equals VALUE (repeatable), e.g. --where channel=5",
+    )
     p.add_argument("--threshold", type=float, required=True, help="failure threshold")
     p.add_argument("--direction", default="above", help="above (default) or below")
     p.add_argument(
@@ -124,6 +133,12 @@ def build_parser() -> argparse.ArgumentParser:
         "20/40/60/80/90 %% of [onset, failure] with the same method, and the output gains "
         "rul_q05_calibrated and rul_q95_calibrated (prognos_torch.fleet.calibrate_fleet)",
     )
+    p.add_argument(
+        "--calibrate-where",
+        action="append",
+        metavar="COL=VALUE",
+        help="keep the --calibrate table's rows whose COL equals VALUE (repeatable)",
+    )
     p.add_argument("--out", required=True, help="output .csv or .parquet")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -143,6 +158,20 @@ _OPTION_OF = {
     "on_error must": "--on-error",
     "seed": "--seed",
 }
+
+
+def _where(values: list[str] | None, option: str) -> dict[str, str] | None:
+    """``--where``/``--calibrate-where`` as a dict (``None``: not given); a malformed value
+    is refused by the option's name."""
+    from ..workflow.data import parse_where
+
+    if values is None:
+        return None
+    try:
+        return parse_where(values)
+    except ValueError as exc:
+        text = str(exc).removeprefix("where: ").replace("--where", option)
+        raise ValueError(f"{option}: {text}") from None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -171,6 +200,10 @@ def _run(args) -> int:
             raise ValueError(f"--min-rows must be at least 1, got {args.min_rows}")
         if args.workers < 1:
             raise ValueError(f"--workers must be at least 1 (processes), got {args.workers}")
+        if args.calibrate_where is not None and args.calibrate is None:
+            raise ValueError("--calibrate-where applies with --calibrate FAILED")
+        where = _where(args.where, "--where")
+        cal_where = _where(args.calibrate_where, "--calibrate-where")
         ray_init = {"address": args.ray_address} if args.ray_address else None
         t0 = time.perf_counter()
         method_options = dict(
@@ -191,14 +224,17 @@ def _run(args) -> int:
             try:
                 cal, cal_points = calibrate_fleet(
                     args.calibrate, args.threshold, **same, workers=args.workers,
-                    on_error=args.on_error, **method_options,
+                    on_error=args.on_error, where=cal_where, **method_options,
                 )  # fmt: skip
             except FileNotFoundError as exc:
                 raise FileNotFoundError(f"--calibrate: {exc}") from None
             except ValueError as exc:
                 if option_of(str(exc), _OPTION_OF) is not None:  # a setting of both runs, not the table
                     raise
-                raise ValueError(f"--calibrate: {exc}") from None
+                text = str(exc).replace("(where)", "(--calibrate-where)")
+                if text.startswith("where: "):
+                    raise ValueError(f"--calibrate-where: {text[7:]}") from None
+                raise ValueError(f"--calibrate: {text}") from None
         res = fleet_rul(
             args.table,
             args.threshold,
@@ -208,6 +244,7 @@ def _run(args) -> int:
             backend=args.backend,
             workers=args.workers,
             on_error=args.on_error,
+            where=where,
             progress=not args.no_progress,
             ray_init=ray_init,
             **method_options,
@@ -222,7 +259,9 @@ def _run(args) -> int:
         print("interrupted: nothing written", file=sys.stderr)
         return 130
     except (ValueError, TypeError, OSError, ImportError) as exc:
-        text = " ".join(str(exc).split()) or type(exc).__name__
+        text = " ".join(str(exc).split()).replace("(where)", "(--where)") or type(exc).__name__
+        if text.startswith("where: "):  # read_fleet_table's word for --where
+            text = f"--where: {text[7:]}"
         option = option_of(text, _OPTION_OF)
         if option is not None:  # a message about an argument names the option that set it
             text = f"{option}: {text}"

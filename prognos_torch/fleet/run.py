@@ -339,6 +339,7 @@ def fleet_rul(
     decimal: str = ".",
     time_format: str | None = None,
     workers: int = 1,
+    where=None,
     **options,
 ) -> FleetResult:
     """RUL for every asset of a long table (module docstring).
@@ -360,6 +361,9 @@ def fleet_rul(
         ray_init: keyword arguments of ``ray.init`` when Ray is started here.
         decimal, time_format: a CSV table's decimal mark and the layout of its date-times
             (:func:`~prognos_torch.fleet.read_fleet_table`).
+        where: keep only the table's rows whose cells equal these values (``{"channel": "5"}``
+            or ``["channel=5"]``; :func:`~prognos_torch.fleet.read_fleet_table`); refused with
+            a :class:`~prognos_torch.fleet.FleetTable`, which was read already.
         workers: processes for the local backend (``1``: this process). With more, the shards
             run side by side in spawned processes (one torch thread each), cut smaller where
             there are fewer shards than workers (the results are the same up to the ~1e-12 of
@@ -406,11 +410,17 @@ def fleet_rul(
         horizon = check_real(horizon, "horizon")
         if not horizon > 0:
             raise ValueError(f"horizon must be positive (or None: ever), got {horizon!r}")
+    if isinstance(source, FleetTable) and where is not None:
+        raise ValueError(
+            "where selects rows of a table read here; source is a FleetTable, read already "
+            "(pass where to read_fleet_table)"
+        )
     table = (
         source
         if isinstance(source, FleetTable)
         else read_fleet_table(
             source,
+            where=where,
             group_by=group_by,
             column=column,
             time_column=time_column,

@@ -40,12 +40,14 @@ import numpy as np
 from .._text import fmt_time
 from ..io import atomic_write, sniffed_csv
 from ..workflow.data import (
+    cells_equal,
     check_unique_columns,
     datetime_ns,
     decimal_hint,
     formatted_stamps,
     iso_start,
     number_text,
+    parse_where,
 )
 
 __all__ = ["FleetTable", "read_fleet_table", "write_table", "TABLE_SUFFIXES"]
@@ -349,6 +351,7 @@ def read_fleet_table(
     on_error: str = "raise",
     decimal: str = ".",
     time_format: str | None = None,
+    where=None,
 ) -> FleetTable:
     """Read and validate a long table (module docstring) and group it by asset.
 
@@ -362,6 +365,12 @@ def read_fleet_table(
         time_format: the layout of text date-times that are not ISO 8601, in
             ``datetime.strptime`` codes (e.g. ``"%d/%m/%Y %H:%M"``; a ``%z`` offset is applied,
             others are UTC); ``None``: numbers or ISO 8601.
+        where: keep only the rows whose cells equal the given values, as
+            :func:`~prognos_torch.workflow.load_series` does: ``{"channel": "5"}`` or
+            ``["channel=5"]`` (``--where channel=5``; ``5`` matches ``5.0``, a missing cell
+            matches nothing). A where column may be the asset column (a selection of assets),
+            not the time or value column. Row numbers in messages and in
+            :attr:`FleetTable.rows` stay those of the whole table.
     Returns:
         :class:`FleetTable`.
     """
@@ -377,6 +386,15 @@ def read_fleet_table(
                 raise ValueError(
                     f"the {whats[i]} and {whats[j]} columns must differ, both are {names[i]!r}"
                 )
+    where = parse_where(where)
+    for name, what in zip(names[1:], whats[1:]):
+        if name in where:  # (a time or a value is no selection of rows)
+            raise ValueError(
+                f"where: {name}={where[name]} selects on the {what} column; select rows by "
+                "another column (the asset column, a channel)"
+            )
+    extra = [c for c in where if c != group_by]  # read besides the three
+    names, whats = names + tuple(extra), whats + ("where",) * len(extra)
     lines = None
     if isinstance(source, (str, Path)):
         path = Path(source)
@@ -427,11 +445,27 @@ def read_fleet_table(
             )
     if n == 0:
         raise ValueError(f"{label}: the table has no data rows")
+    rowid = np.arange(n)  # the whole table's row of each row kept (0-based)
+    if where:
+        by_name = dict(zip(names, cols))
+        mark = decimal if lines is not None else "."  # (other sources hold numbers)
+        keep = np.ones(n, dtype=bool)
+        for name, value in where.items():
+            keep &= np.fromiter((cells_equal(_id_text(c), value, mark) for c in by_name[name]),
+                                dtype=bool, count=n)  # fmt: skip
+        if not keep.any():
+            sel = ", ".join(f"{k}={v}" for k, v in where.items())
+            raise ValueError(f"{label}: no data rows matching {sel} (where)")
+        rowid = np.flatnonzero(keep)
+        cols = [c[rowid] if isinstance(c, np.ndarray) else [c[i] for i in rowid] for c in cols]
+        lines = None if lines is None else [lines[i] for i in rowid]
+        n = rowid.size
+    cols = cols[:3]
 
     def where(i, asset=None):
         line = f" (line {lines[int(i)]})" if lines is not None else ""
         a = f"asset {asset!r}, " if asset is not None else ""
-        return f"{label}: {a}row {int(i) + 1}{line}"
+        return f"{label}: {a}row {int(rowid[int(i)]) + 1}{line}"
 
     asset = _asset_text(cols[0])
     empty = np.flatnonzero(asset == "")
@@ -483,13 +517,13 @@ def read_fleet_table(
     for j in np.flatnonzero(same & (step <= 0)).tolist():
         i_prev, i = int(order[j]), int(order[j + 1])
         if step[j] == 0:
-            fail(i, f"duplicate timestamp {shown(i)} (also at row {i_prev + 1})")
+            fail(i, f"duplicate timestamp {shown(i)} (also at row {rowid[i_prev] + 1})")
         else:
             fail(
                 i,
-                f"time {shown(i, i_prev)} comes after {shown(i_prev, i)} (row {i_prev + 1}): "
-                "times must "
-                "increase within each asset; sort the table by asset and time",
+                f"time {shown(i, i_prev)} comes after {shown(i_prev, i)} "
+                f"(row {rowid[i_prev] + 1}): times must increase within each asset; sort the "
+                "table by asset and time",
             )
     bounds = np.flatnonzero(np.diff(co)) + 1
     segs = np.split(order, bounds)
@@ -497,7 +531,7 @@ def read_fleet_table(
         assets=names_in_order,
         times=[t[s] for s in segs],
         values=[v[s] for s in segs],
-        rows=[s.astype(np.int64) + 1 for s in segs],
+        rows=[rowid[s].astype(np.int64) + 1 for s in segs],
         errors=errors,
         source=label,
         time_unit=unit,

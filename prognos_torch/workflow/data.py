@@ -156,7 +156,9 @@ def parse_where(where) -> dict[str, str]:
     return out
 
 
-def _cells_equal(cell: str, value: str, decimal: str = ".") -> bool:
+def cells_equal(cell: str, value: str, decimal: str = ".") -> bool:
+    """A ``where`` match: ``cell`` (text) equals ``value`` as text, or as a number (``5`` and
+    ``5.0``; with ``decimal`` the cell's decimal mark)."""
     cell = cell.strip()
     if cell == value:
         return True
@@ -896,7 +898,7 @@ def _load_csv(path, column, time_column, where, fill, last, until, decimal, time
             continue  # blank line
         if len(row) != len(header):
             raise ValueError(f"{path}, line {line}: {len(row)} cells, header has {len(header)}")
-        if not all(_cells_equal(row[k], v, decimal) for k, v in wj):
+        if not all(cells_equal(row[k], v, decimal) for k, v in wj):
             continue
         cells.append(row[j])
         tcells.append(row[jt] if jt is not None else None)
