@@ -35,10 +35,12 @@ from .cli_parser import (
 from .cli_prognose import (
     at_time,
     failure_dates,
+    figure_file,
     json_record,
+    json_text,
     reporter,
     within_probability,
-    write_json,
+    write_made,
 )
 
 __all__ = ["main", "build_parser"]
@@ -710,11 +712,11 @@ def _cmd_rul(args) -> int:
             ("quantity", "value"),
         )
     )
+    files, record = [], None  # made first, written together (write_made)
     if args.plot is not None:
         from .workflow import plot_rul
 
-        plot_rul(args.plot, res)
-        say(f"figure written to {args.plot}")
+        files.append(figure_file(args.plot, plot_rul(None, res)))
     if args.json is not None:
         extra = {"crossing_probability": res.crossing_probability,
                  # what made the answer: the model file and the settings it was run with
@@ -725,9 +727,8 @@ def _cmd_rul(args) -> int:
             extra["p_within"] = {"within": args.within, "p": p_within}
         if truth is not None:
             extra["observed_rul"] = obs if isinstance(obs, float) else None
-        write_json(args.json, json_record(res, series, data_cfg, **extra))
-        if args.json != "-":
-            say(f"record written to {args.json}")
+        record = json_text(json_record(res, series, data_cfg, **extra))
+    write_made(say, files, args.json, record)
     if res.fully_censored:
         raise _CensoredRUL(
             f"no predicted path reaches the threshold {res.threshold:g} within the horizon of "

@@ -7,13 +7,16 @@ The command line face of :func:`~prognos_torch.workflow.prognose`; ``prognos rul
 from __future__ import annotations
 
 import math
+import sys
 
 from ._text import fmt_time, json_number
 
 __all__ = [
     "run_prognose",
     "json_record",
-    "write_json",
+    "write_made",
+    "figure_file",
+    "json_text",
     "reporter",
     "observed_rul",
     "within_probability",
@@ -73,19 +76,35 @@ def json_record(res, series, data_cfg: dict, **extra) -> dict:
     return record
 
 
-def write_json(target: str, record: dict) -> None:
-    """``record`` as indented JSON to the file ``target``, whole or not at all
-    (:func:`~prognos_torch.io.atomic_write`), or to standard output for ``"-"``."""
+def json_text(record: dict) -> str:
+    """``record`` as indented JSON (``NaN`` and ``inf`` refused: JSON has no such numbers)."""
     import json
-    import sys
 
-    text = json.dumps(record, indent=2, allow_nan=False) + "\n"
-    if target == "-":
-        sys.stdout.write(text)
-        return
+    return json.dumps(record, indent=2, allow_nan=False) + "\n"
+
+
+def write_made(say, made: list[tuple[str, bytes, str]], json_target=None, record=None) -> None:
+    """Write a command's files once every one of them is made (a figure or record that cannot
+    be made leaves none written; each is written whole or not at all,
+    :func:`~prognos_torch.io.atomic_write`), saying each: ``made`` holds ``(path, bytes,
+    what)``; the JSON ``record`` (text) goes to ``json_target``, standard output for ``"-"``
+    (after the files, as the record alone)."""
     from .io import atomic_write
 
-    atomic_write(target, text.encode())
+    if json_target is not None and json_target != "-":
+        made = [*made, (json_target, record.encode(), "record")]
+    for path, data, what in made:
+        atomic_write(path, data)
+        say(f"{what} written to {path}")
+    if json_target == "-":
+        sys.stdout.write(record)
+
+
+def figure_file(path: str, fig) -> tuple[str, bytes, str]:
+    """A figure made for ``path`` (its format by the suffix), for :func:`write_made`."""
+    from .plots._arrays import figure_bytes
+
+    return (str(path), figure_bytes(fig, path), "figure")
 
 
 def reporter(args):
@@ -429,15 +448,18 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
         say(f"  {k.ljust(width)}  {v}")
     for f in list(res.flags) + cal_warn:  # (--json -: on stderr, beside the record, not lost)
         warn(f"warning: {f}")
+    # every file is made first and written after: a figure or record that cannot be made
+    # leaves none of them written (each is also written whole or not at all)
+    files: list[tuple[str, bytes, str]] = []
     if args.plot is not None:
         from .plots import plot_prognosis  # (matplotlib: only for a figure)
 
         tr = None if truth is None else (truth.t, truth.values)
-        plot_prognosis(args.plot, res, truth=tr)
-        say(f"figure written to {args.plot}")
+        files.append(figure_file(args.plot, plot_prognosis(None, res, truth=tr)))
     if made is not None and args.calibration_out is not None:
-        write_json(str(args.calibration_out), made.to_dict())
-        say(f"calibration written to {args.calibration_out}")
+        text = json_text(made.to_dict())
+        files.append((str(args.calibration_out), text.encode(), "calibration"))
+    record = None
     if args.json is not None:
         extra = {}
         if args.within is not None:
@@ -448,9 +470,8 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
             # the report's warnings (the calibration's own among them, as the report words it)
             own = {k: v for k, v in calibrated.items() if k != "warning"}
             extra["calibrated"] = dict(own, warnings=cal_warn)
-        write_json(args.json, json_record(res, series, data_cfg, **extra))
-        if args.json != "-":
-            say(f"record written to {args.json}")
+        record = json_text(json_record(res, series, data_cfg, **extra))
+    write_made(say, files, args.json, record)
     if res.status == "ok" and res.censored_mass > CENSORED_FLAG:
         return (
             f"{100 * res.censored_mass:.3g} % of the predicted paths do not reach the threshold "

@@ -423,3 +423,46 @@ def test_seed_list_pools_seeds_and_a_model_file_refuses_it(capsys, tmp_path):
     assert main(["rul", str(tmp_path / "m.pt"), str(IMS), "--threshold", "0.45",
                  "--seed", "0,1"]) == 2  # fmt: skip
     assert "with a model file give one seed" in capsys.readouterr().err
+
+
+def test_files_of_a_report_are_written_only_once_every_one_is_made(capsys, tmp_path, monkeypatch):
+    """--plot, --calibration-out and --json are made first and written after: a record that
+    cannot be made leaves no figure behind (the figure used to be written before the record
+    was made), with and without a model file."""
+    import prognos_torch.cli as cli_module
+    import prognos_torch.cli_prognose as report
+
+    g = torch.Generator().manual_seed(0)
+    y = 1.0 + 0.05 * torch.randn(300, generator=g, dtype=torch.float64)
+    y[200:] += 0.02 * torch.exp(0.04 * torch.arange(100, dtype=torch.float64))
+    data = _csv(tmp_path / "d.csv", y)
+    fig, rec = tmp_path / "f.png", tmp_path / "r.json"
+    base = ["rul", str(data), "--column", "value", "--time-column", "t", "--threshold", "3",
+            "--method", "exponential", "--paths", "200", "--plot", str(fig)]  # fmt: skip
+    assert main([*base, "--json", str(rec)]) in (0, 3)
+    out = capsys.readouterr().out
+    assert fig.stat().st_size > 0 and rec.stat().st_size > 0
+    assert out.index(f"figure written to {fig}") < out.index(f"record written to {rec}")
+    fig.unlink()
+    rec.unlink()
+
+    def no_record(*args, **kwargs):
+        raise ValueError("the record cannot be made")
+
+    monkeypatch.setattr(report, "json_record", no_record)
+    assert main([*base, "--json", str(rec)]) == 2
+    assert "the record cannot be made" in capsys.readouterr().err
+    assert not fig.exists() and not rec.exists()
+    # with a model file
+    model = tmp_path / "m.pt"
+    assert main(["fit", str(data), "--column", "value", "--time-column", "t", "--learner", "elm",
+                 "-m", "3", "--out", str(model)]) == 0  # fmt: skip
+    monkeypatch.setattr(cli_module, "json_record", no_record)
+    argv = ["rul", str(model), str(data), "--threshold", "1.5", "--particles", "50", "--plot",
+            str(fig), "--json", str(rec)]  # fmt: skip
+    assert main(argv) == 2
+    assert "the record cannot be made" in capsys.readouterr().err
+    assert not fig.exists() and not rec.exists()
+    monkeypatch.undo()
+    assert main(argv) in (0, 3)
+    assert fig.stat().st_size > 0 and rec.stat().st_size > 0

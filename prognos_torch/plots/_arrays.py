@@ -158,10 +158,17 @@ def write_png(fig: Figure, path: str | os.PathLike | None, *, make_folder: bool 
         fig.tight_layout()
     if path is None:
         return fig
-    fmt = figure_format(path)
-    buf = io.BytesIO()
-    fig.savefig(buf, format=fmt, dpi=dpi)  # rendered before any folder is made: a failed
+    data = figure_bytes(fig, path, dpi=dpi)  # rendered before any folder is made: a failed
     if make_folder:  # render leaves the file system as it was
         Path(path).parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(path, buf.getvalue())
+    atomic_write(path, data)
     return fig
+
+
+def figure_bytes(fig: Figure, path: str | os.PathLike, *, dpi: int = 100) -> bytes:
+    """``fig`` rendered as the file ``path`` would hold it (PNG at ``dpi``, or PDF or SVG by its
+    suffix, :func:`~prognos_torch.io.figure_format`), without writing anything: for a command
+    that writes its files only once every one of them is made."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format=figure_format(path), dpi=dpi)
+    return buf.getvalue()
