@@ -145,8 +145,8 @@ def test_bad_forecaster_and_fault_arguments_raise_clear_errors():
         fc.forecast(0)
     with pytest.raises(ValueError, match=r"z must have shape \(2,\)"):
         fc.update(torch.zeros(3, dtype=F64))
-    with pytest.raises(ValueError, match="z contains non-finite"):
-        fc.update(torch.tensor([0.0, float("nan")], dtype=F64))
+    with pytest.raises(ValueError, match=r"z contains inf \(use NaN to mark a missing"):
+        fc.update(torch.tensor([0.0, float("inf")], dtype=F64))
     with pytest.raises(ValueError, match="p=4"):
         MeasurementForecaster([ELM(3, 5)], 4)
 
@@ -164,3 +164,51 @@ def test_bad_forecaster_and_fault_arguments_raise_clear_errors():
         rolling_fault_prediction(sckf(), dmodel, ys_bad, fc, 3, 20, init=init)
     with pytest.raises(ValueError, match="param_index"):
         rolling_fault_prediction(sckf(), dmodel, ys_all[:40], fc, 3, 20, init=init, param_index=4)
+
+
+def test_ros_elm_update_predicts_a_missing_measurement_into_the_window():
+    """A NaN in ``z`` (it was refused) is a missing measurement: that channel of that run keeps
+    ``beta`` and ``K`` exactly, and its window shifts in the one-step prediction (Eq. 47), so
+    that it stays on the measurements' clock; every observed entry updates exactly as with a
+    complete ``z``. A ``z`` missing throughout is ``ros_elm_forecast``'s step: nothing learnt."""
+    from prognos_torch.datasets.windows import shift_append
+
+    p, L, C, R = 3, 6, 2, 3
+    g = _gen(4)
+    elms = [ELM(p, L, generator=g) for _ in range(C)]
+    z = torch.randn(30, R, C, generator=g, dtype=F64)
+    st = ros_elm_init(elms, z[:20], p, 1e-2)
+    zk = z[20].clone()
+    zk[0, 1] = zk[2, 0] = float("nan")
+    miss = torch.isnan(zk)
+    got = ros_elm_update(elms, st, zk)
+    full = ros_elm_update(elms, st, torch.where(miss, torch.zeros_like(zk), zk))
+    pred = ros_elm_forecast(elms, st, 1)[0]  # (R, C)
+    assert got.n_seen == st.n_seen + 1
+    for c in range(C):
+        for r in range(R):
+            if miss[r, c]:
+                assert torch.equal(got.beta[c][r], st.beta[c][r])
+                assert torch.equal(got.K[c][r], st.K[c][r])
+                want = shift_append(st.window[r, c], pred[r, c])
+                assert torch.equal(got.window[r, c], want)
+            else:
+                assert torch.equal(got.beta[c][r], full.beta[c][r])
+                assert torch.equal(got.K[c][r], full.K[c][r])
+                assert torch.equal(got.window[r, c], full.window[r, c])
+    # missing throughout: the forecast's first step, nothing absorbed
+    none = ros_elm_update(elms, st, torch.full((R, C), float("nan"), dtype=F64))
+    assert none.n_seen == st.n_seen
+    assert torch.equal(none.window[..., -1], pred)
+    assert all(torch.equal(a, b) for a, b in zip(none.beta, st.beta))
+    assert all(torch.equal(a, b) for a, b in zip(none.K, st.K))
+    # and the forecast from there continues the forecast from before
+    torch.testing.assert_close(ros_elm_forecast(elms, none, 4),
+                               ros_elm_forecast(elms, st, 5)[1:], rtol=0, atol=0)  # fmt: skip
+    # the forecaster's step 9 takes it too, a static learner included
+    fc = MeasurementForecaster(elms, p, online=False).initialize(z[:20])
+    before = fc.state.window.clone()
+    fc.update(zk)
+    zs = ros_elm_forecast(elms, fc.state, 1)  # (the static learners' own forward)
+    assert torch.isfinite(fc.state.window).all() and torch.isfinite(zs).all()
+    assert torch.equal(fc.state.window[0, 0], shift_append(before[0, 0], zk[0, 0]))

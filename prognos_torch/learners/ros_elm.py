@@ -15,7 +15,13 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from ..core.validation import check_finite, check_float_tensor, check_nonneg, check_pos_int
+from ..core.validation import (
+    check_finite,
+    check_float_tensor,
+    check_nonneg,
+    check_pos_int,
+    has_missing,
+)
 from ..datasets.windows import shift_append
 from .introspect import learner_dtype_device
 
@@ -30,7 +36,8 @@ class ROSELMState:
         window: ``(..., C, p)`` the last ``p`` measurements of each channel, oldest first.
         beta: per channel ``(..., L_c)`` output weights (float64); empty for static learners.
         K: per channel ``(..., L_c, L_c)`` ``(H^T H + lambda I)^{-1}`` (float64, Eq. 55).
-        n_seen: number of (window, target) pairs absorbed.
+        n_seen: number of updates that absorbed a (window, target) pair (at least one observed
+            entry of ``z``; :func:`ros_elm_init` counts its pairs).
     """
 
     window: Tensor
@@ -180,8 +187,14 @@ def ros_elm_update(elms: Sequence[nn.Module], state: ROSELMState, z: Tensor) -> 
 
     then the window shifts in ``z`` (Eq. 12-14 on real data).
 
+    A NaN entry of ``z`` marks a missing measurement (inf is refused): that channel of that run
+    keeps its ``beta`` and ``K``, and its window shifts in the one-step prediction
+    (:func:`ros_elm_forecast`, Eq. 47) in place of the value, so that the window stays on the
+    measurements' clock, as a Kalman filter predicts without updating; the other entries update.
+    ``n_seen`` counts the updates with at least one observed entry.
+
     Args:
-        z: ``(..., C)`` with the state's batch shape.
+        z: ``(..., C)`` with the state's batch shape; NaN: missing.
     """
     _check_elms_match(elms, state)
     want = tuple(state.window.shape[:-1])
@@ -192,8 +205,10 @@ def ros_elm_update(elms: Sequence[nn.Module], state: ROSELMState, z: Tensor) -> 
         raise ValueError(
             f"z is on {z.device}, the state on {state.window.device}: pass z on the state's device"
         )
-    check_finite(z, "z", f"{want}")
+    miss = torch.isnan(z) if has_missing(z, "z", "measurement") else None
     z = z.to(state.window.dtype)
+    if miss is not None:  # the prediction stands in for a missing value (Eq. 47)
+        z = torch.where(miss, ros_elm_forecast(elms, state, 1)[0], z)
     betas, Ks = [], []
     for c, elm in enumerate(elms):
         beta, K = state.beta[c], state.K[c]
@@ -208,10 +223,15 @@ def ros_elm_update(elms: Sequence[nn.Module], state: ROSELMState, z: Tensor) -> 
         K_new = 0.5 * (K_new + K_new.mT)
         err = z[..., c] - (h * beta).sum(-1)
         beta_new = beta + (K_new @ h.unsqueeze(-1)).squeeze(-1) * err.unsqueeze(-1)  # Eq. 56
+        if miss is not None:  # nothing observed in this channel of a run: no pair to absorb
+            m = miss[..., c]
+            K_new = torch.where(m[..., None, None], K, K_new)
+            beta_new = torch.where(m[..., None], beta, beta_new)
         betas.append(beta_new)
         Ks.append(K_new)
     window = shift_append(state.window, z)
-    return ROSELMState(window, tuple(betas), tuple(Ks), state.n_seen + 1)
+    seen = state.n_seen + (0 if miss is not None and bool(miss.all()) else 1)
+    return ROSELMState(window, tuple(betas), tuple(Ks), seen)
 
 
 def ros_elm_forecast(

@@ -152,6 +152,8 @@ class MeasurementForecaster:
         return ros_elm_forecast(self.learners, self._require(), n)
 
     def update(self, z: Tensor) -> MeasurementForecaster:
-        """Step 9: absorb the new real measurement ``z`` ``(..., C)`` (ROS-ELM Eq. 55-56)."""
+        """Step 9: absorb the new real measurement ``z`` ``(..., C)`` (ROS-ELM Eq. 55-56); a
+        NaN entry is missing: its window shifts in the prediction instead
+        (:func:`~prognos_torch.learners.ros_elm_update`)."""
         self.state = ros_elm_update(self.learners, self._require(), z)
         return self
