@@ -708,7 +708,8 @@ def _cmd_rul(args) -> int:
             ]
             + dates
             + within
-            + ([("observed RUL (" + unit + ")", obs)] if truth is not None else []),
+            # (the paths are of the raw indicator: its first value at the threshold)
+            + ([(f"observed RUL ({unit}, first value)", obs)] if truth is not None else []),
             ("quantity", "value"),
         )
     )

@@ -441,7 +441,11 @@ def run_prognose(args, series, data_cfg: dict, truth=None, histories=None) -> st
     obs = None if truth is None else observed_rul(truth, res.t_last, res.threshold, res.direction)
     if truth is not None:
         rows.append(
-            (f"observed RUL ({unit})", "not reached in the data" if obs is None else _fmt(obs))
+            # (the trend's level, as a moving median follows it: the protocol's end of life)
+            (
+                f"observed RUL ({unit}, 5-point median)",
+                "not reached in the data" if obs is None else _fmt(obs),
+            )
         )
     width = max(len(r[0]) for r in rows)
     for k, v in rows:

@@ -86,7 +86,7 @@ def test_rul_from_the_ims_table_with_until(capsys, tmp_path):
     assert cap.err == "" and re.search(r"censored mass\s+0\.012 \(RUL > ", out)
     assert "degradation onset" in out and "33.959" in out
     assert "trend model" in out and "90 % interval" in out and "censored mass" in out
-    assert re.search(r"observed RUL \(days\)\s+0\.4392", out)
+    assert re.search(r"observed RUL \(days, 5-point median\)\s+0\.4392", out)
     # --within: the planner's probability, the distribution's own P(RUL <= 0.5 d)
     from prognos_torch.workflow import load_series, prognose
 

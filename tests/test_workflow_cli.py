@@ -122,7 +122,7 @@ def test_cli_on_the_shipped_ims_table(tmp_path, capsys):
     out = capsys.readouterr().out
     lines = {ln.split("  ")[0]: ln for ln in out.splitlines()}
     assert "P(threshold reached within horizon)" in lines
-    assert "median RUL (days)" in lines and "observed RUL (days)" in lines
+    assert "median RUL (days)" in lines and "observed RUL (days, first value)" in lines
     median = float(lines["median RUL (days)"].split()[-1])
     assert 0 < median <= 150 * 10 / 1440 + 1e-9  # within the horizon (10-minute steps)
     # --within: P(RUL <= 0.5 d) of the same distribution; beyond the horizon it is refused
