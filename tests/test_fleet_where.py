@@ -132,6 +132,7 @@ def test_bad_selections_are_refused_by_name(fleet, tmp_path):
     both["channel"][0] = None
     got = read_fleet_table(both, where="channel=5")
     assert got.rows[0][0] == 3  # the asset's first row of channel 5 left is row 3
+    assert read_fleet_table(both, where="channel=").rows[0].tolist() == [1]  # (only it)
     # a FleetTable was read already: where would be ignored, so it is refused
     tab = read_fleet_table(path, where="channel=5")
     with pytest.raises(ValueError, match="source is a FleetTable, read already"):

@@ -368,9 +368,9 @@ def read_fleet_table(
         where: keep only the rows whose cells equal the given values, as
             :func:`~prognos_torch.workflow.load_series` does: ``{"channel": "5"}`` or
             ``["channel=5"]`` (``--where channel=5``; ``5`` matches ``5.0``, a missing cell
-            matches nothing). A where column may be the asset column (a selection of assets),
-            not the time or value column. Row numbers in messages and in
-            :attr:`FleetTable.rows` stay those of the whole table.
+            only an empty value, ``channel=``). A where column may be the asset column (a
+            selection of assets), not the time or value column. Row numbers in messages and
+            in :attr:`FleetTable.rows` stay those of the whole table.
     Returns:
         :class:`FleetTable`.
     """
@@ -450,9 +450,10 @@ def read_fleet_table(
         by_name = dict(zip(names, cols))
         mark = decimal if lines is not None else "."  # (other sources hold numbers)
         keep = np.ones(n, dtype=bool)
-        for name, value in where.items():
-            keep &= np.fromiter((cells_equal(_id_text(c), value, mark) for c in by_name[name]),
-                                dtype=bool, count=n)  # fmt: skip
+        for name, value in where.items():  # each distinct cell compared once
+            text, inverse = np.unique(_asset_text(by_name[name]).astype(str), return_inverse=True)
+            hits = np.array([cells_equal(str(c), value, mark) for c in text], dtype=bool)
+            keep &= hits[inverse.reshape(-1)]
         if not keep.any():
             sel = ", ".join(f"{k}={v}" for k, v in where.items())
             raise ValueError(f"{label}: no data rows matching {sel} (where)")
