@@ -9,7 +9,13 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["check_output_file", "check_overwrites", "one_torch_thread", "option_of"]
+__all__ = [
+    "check_output_file",
+    "check_overwrites",
+    "one_torch_thread",
+    "option_of",
+    "where_message",
+]
 
 
 def check_output_file(path: str | Path | None, what: str) -> None:
@@ -72,3 +78,13 @@ def option_of(text: str, options: dict[str, str]) -> str | None:
     the first key of ``options`` (the first words of such messages) that ``text`` starts with,
     followed by a space or ``=`` (``"until='2003-01-01' is a date-time ..."``); else ``None``."""
     return next((o for k, o in options.items() if text.startswith((k + " ", k + "="))), None)
+
+
+def where_message(text: str, option: str) -> str:
+    """An error message of ``where`` (``parse_where``, ``read_fleet_table``) in the words of the
+    command-line option that gave it (``--where``, ``--calibrate-where``): a message about the
+    selection itself (``"where: ..."``) starts with the option, and a table's ``(where)`` names
+    it; any other message is returned as it is."""
+    if text.startswith("where: "):
+        return f"{option}: " + text[len("where: ") :].replace("--where", option)
+    return text.replace("(where)", f"({option})")

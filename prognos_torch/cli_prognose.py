@@ -188,6 +188,7 @@ def load_histories(args, series):
         return None
     import torch
 
+    from ._command import where_message
     from .fleet.table import read_fleet_table
 
     if args.time_column is None:
@@ -206,12 +207,11 @@ def load_histories(args, series):
             where=args.calibrate_where,
         )
     except ValueError as exc:
-        msg = str(exc).replace("(--group-by)", "(--calibrate-group)")
-        if msg.startswith("where: "):  # the option's value, not the table
-            raise ValueError(
-                "--calibrate-where: " + msg[7:].replace("--where", "--calibrate-where")
-            ) from None
-        raise ValueError(f"--calibrate: {msg.replace('(where)', '(--calibrate-where)')}") from None
+        msg = where_message(str(exc).replace("(--group-by)", "(--calibrate-group)"),
+                            "--calibrate-where")  # fmt: skip
+        if msg.startswith("--calibrate-where: "):  # the option's value, not the table
+            raise ValueError(msg) from None
+        raise ValueError(f"--calibrate: {msg}") from None
     except FileNotFoundError as exc:
         raise FileNotFoundError(f"--calibrate: {exc}") from None
     dates, tab_dates = series.start is not None, tab.time_unit == "days"

@@ -9,7 +9,13 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from .._command import check_output_file, check_overwrites, one_torch_thread, option_of
+from .._command import (
+    check_output_file,
+    check_overwrites,
+    one_torch_thread,
+    option_of,
+    where_message,
+)
 
 __all__ = ["build_parser", "main"]
 
@@ -170,8 +176,7 @@ def _where(values: list[str] | None, option: str) -> dict[str, str] | None:
     try:
         return parse_where(values)
     except ValueError as exc:
-        text = str(exc).removeprefix("where: ").replace("--where", option)
-        raise ValueError(f"{option}: {text}") from None
+        raise ValueError(where_message(str(exc), option)) from None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -231,9 +236,9 @@ def _run(args) -> int:
             except ValueError as exc:
                 if option_of(str(exc), _OPTION_OF) is not None:  # a setting of both runs, not the table
                     raise
-                text = str(exc).replace("(where)", "(--calibrate-where)")
-                if text.startswith("where: "):
-                    raise ValueError(f"--calibrate-where: {text[7:]}") from None
+                text = where_message(str(exc), "--calibrate-where")
+                if text.startswith("--calibrate-where: "):  # the option's value, not the table
+                    raise ValueError(text) from None
                 raise ValueError(f"--calibrate: {text}") from None
         res = fleet_rul(
             args.table,
@@ -259,9 +264,7 @@ def _run(args) -> int:
         print("interrupted: nothing written", file=sys.stderr)
         return 130
     except (ValueError, TypeError, OSError, ImportError) as exc:
-        text = " ".join(str(exc).split()).replace("(where)", "(--where)") or type(exc).__name__
-        if text.startswith("where: "):  # read_fleet_table's word for --where
-            text = f"--where: {text[7:]}"
+        text = where_message(" ".join(str(exc).split()), "--where") or type(exc).__name__
         option = option_of(text, _OPTION_OF)
         if option is not None:  # a message about an argument names the option that set it
             text = f"{option}: {text}"
