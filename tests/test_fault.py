@@ -159,8 +159,8 @@ def test_bad_forecaster_and_fault_arguments_raise_clear_errors():
     with pytest.raises(ValueError, match="start"):
         rolling_fault_prediction(sckf(), dmodel, ys_all[:40], fc, 3, 41, init=init)
     ys_bad = ys_all[:40].clone()
-    ys_bad[7, 0, 1] = float("nan")
-    with pytest.raises(ValueError, match="ys contains non-finite"):
+    ys_bad[7, 0, 1] = float("inf")
+    with pytest.raises(ValueError, match=r"ys contains inf \(use NaN to mark a missing"):
         rolling_fault_prediction(sckf(), dmodel, ys_bad, fc, 3, 20, init=init)
     with pytest.raises(ValueError, match="param_index"):
         rolling_fault_prediction(sckf(), dmodel, ys_all[:40], fc, 3, 20, init=init, param_index=4)
@@ -212,3 +212,33 @@ def test_ros_elm_update_predicts_a_missing_measurement_into_the_window():
     zs = ros_elm_forecast(elms, fc.state, 1)  # (the static learners' own forward)
     assert torch.isfinite(fc.state.window).all() and torch.isfinite(zs).all()
     assert torch.equal(fc.state.window[0, 0], shift_append(before[0, 0], zk[0, 0]))
+
+
+def test_rolling_fault_prediction_reads_nan_as_missing():
+    """NaN in ``ys`` after ``start`` (it was refused) is a missing measurement: the real-time
+    filter is the engine's own run over the same ``ys`` (which predicts without updating
+    there), and the forecaster is the one that took each row by ``update`` (its window takes
+    its prediction for a missing value). NaN in the rows that train the forecaster is refused
+    by name, unless the forecaster was trained already."""
+    T, n, start = 60, 4, 30
+    th, ys_all, model, init = _drift_problem(T=T)
+    ys = ys_all[:T].clone()
+    ys[35, 0, 1] = ys[41, 2] = ys[44, 1, 0] = float("nan")  # one value, a whole row, another
+    fc = MeasurementForecaster.ros_elm(2, p=3, n_hidden=8, lam=1e-3, generator=_gen(1))
+    res = rolling_fault_prediction(sckf(), model, ys, fc, n, start, init=init, param_index=0)
+    full = run(sckf(), model, init, ys)
+    torch.testing.assert_close(res.filtered, full.means, rtol=1e-12, atol=1e-12)
+    assert bool(torch.isfinite(res.predicted).all() and torch.isfinite(res.predicted_std).all())
+    by_hand = fc.copy().initialize(ys[:start])
+    for k in range(start, T):
+        by_hand.update(ys[k])
+    got, want = res.forecaster.state, by_hand.state
+    assert torch.equal(got.window, want.window) and got.n_seen == want.n_seen
+    assert all(torch.equal(a, b) for a, b in zip(got.beta, want.beta))
+    # the rows that train the forecaster must be complete
+    early = ys.clone()
+    early[7, 0, 1] = float("nan")
+    with pytest.raises(ValueError, match=r"ys\[:start\] \(start=30\) trains the forecaster"):
+        rolling_fault_prediction(sckf(), model, early, fc, n, start, init=init)
+    trained = fc.copy().initialize(ys_all[:start])
+    rolling_fault_prediction(sckf(), model, early, trained, n, start, init=init)  # (taken)

@@ -25,6 +25,7 @@ from ..core.validation import (
     check_nonneg_int,
     check_pos_int,
     check_sequence,
+    has_missing,
 )
 from ..filters.gaussian import FilterState, GaussianFilter
 from ..filters.run import check_filter
@@ -201,7 +202,10 @@ def rolling_fault_prediction(
     Args:
         filt: Gaussian filter.
         model: joint state/parameter model.
-        ys: ``(T, ..., m)`` real measurements (finite).
+        ys: ``(T, ..., m)`` real measurements; NaN: missing (the filter predicts without
+            updating there, and the forecaster's window takes its prediction,
+            :func:`~prognos_torch.learners.ros_elm_update`), except in the ``ys[:start]`` that
+            train a forecaster not yet initialised.
         forecaster: :class:`MeasurementForecaster` (or any object with ``forecast(n)``,
             ``update(z)``, ``initialized`` and ``copy()``); it is copied, not modified.
         n: prediction horizon.
@@ -228,11 +232,17 @@ def rolling_fault_prediction(
     ys = check_float_tensor(ys, "ys", "(T, ..., m)")
     if ys.dim() < 2 or ys.shape[-1] != model.obs_dim:
         raise ValueError(f"ys must have shape (T, ..., {model.obs_dim}), got {tuple(ys.shape)}")
-    check_finite(ys, "ys", "(T, ..., m)")
+    missing = has_missing(ys, "ys", "measurement")
     T = ys.shape[0]
     start = check_pos_int(start, "start")
     if start > T:
         raise ValueError(f"start must satisfy 1 <= start <= T={T}, got {start}")
+    if missing and not forecaster.initialized and bool(torch.isnan(ys[:start]).any()):
+        raise ValueError(
+            f"ys[:start] (start={start}) trains the forecaster (paper 000 Sec. 5 step 1) and "
+            "holds NaN: train it on complete measurements (forecaster.initialize(z0)), or "
+            "start after the gap"
+        )
     if not isinstance(init, (GaussianBelief, FilterState)):
         raise TypeError(f"init must be a GaussianBelief or a FilterState, got {type(init)}")
     if model.control_dim:  # (a wrong batch shape was named against T = start, NaN found late)
