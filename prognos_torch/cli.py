@@ -470,7 +470,6 @@ def _load_for_prediction(args):
 def _cmd_forecast(args) -> int:
     import torch
 
-    from .io import atomic_write
     from .workflow import forecast
 
     model, series, data_cfg, truth = _load_for_prediction(args)
@@ -535,6 +534,7 @@ def _cmd_forecast(args) -> int:
             f"as the learner forecasts row by row (largest offset {_fmt(off)} {unit}, "
             f"{off / series.dt:.3g} steps)"
         )
+    files = []
     if args.csv is not None:
         dated = series.start is not None  # a date-time column: each step's date-time too
         # with --until, the observed row each step is compared with and its own time
@@ -558,13 +558,12 @@ def _cmd_forecast(args) -> int:
             + observed(i)
             for i in range(H)
         ]
-        atomic_write(args.csv, ("\n".join(lines) + "\n").encode())
-        print(f"forecast written to {args.csv}")
+        files.append((str(args.csv), ("\n".join(lines) + "\n").encode(), "forecast"))
     if args.plot is not None:
         from .workflow import plot_forecast
 
-        plot_forecast(args.plot, fc, truth=truth)
-        print(f"figure written to {args.plot}")
+        files.append(figure_file(args.plot, plot_forecast(None, fc, truth=truth)))
+    write_made(print, files)  # (both made first: a figure that cannot be made leaves no CSV)
     return 0
 
 

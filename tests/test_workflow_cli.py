@@ -666,3 +666,31 @@ def test_cli_fit_reports_the_time_of_the_embedding_search(tmp_path, capsys):
     assert main(base + ["--embedding", "3"]) == 0
     row = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("embedding m"))
     assert row.split()[-1] == "given"
+
+
+def test_forecast_writes_its_csv_and_figure_once_both_are_made(tmp_path, capsys, monkeypatch):
+    """--csv and --plot are made first and written after: a figure that cannot be made leaves
+    no forecast CSV behind (the CSV used to be written before the figure was drawn)."""
+    import prognos_torch.plots._arrays as arrays
+
+    data, model = tmp_path / "d.csv", tmp_path / "m.pt"
+    _make_csv(data)
+    assert main(["fit", str(data), "--column", "vibration", "--time-column", "hours",
+                 "--learner", "elm", "-m", "3", "--out", str(model)]) == 0  # fmt: skip
+    fc, png = tmp_path / "fc.csv", tmp_path / "fc.png"
+    argv = ["forecast", str(model), str(data), "--horizon", "5", "--csv", str(fc), "--plot",
+            str(png)]  # fmt: skip
+    capsys.readouterr()
+
+    def no_figure(*args, **kwargs):
+        raise ValueError("the figure cannot be made")
+
+    monkeypatch.setattr(arrays, "figure_bytes", no_figure)
+    assert main(argv) == 2
+    assert "the figure cannot be made" in capsys.readouterr().err
+    assert not fc.exists() and not png.exists()
+    monkeypatch.undo()
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert out.index(f"forecast written to {fc}") < out.index(f"figure written to {png}")
+    assert fc.read_text().startswith("step,time,mean") and png.read_bytes()[:4] == b"\x89PNG"
