@@ -17,7 +17,10 @@ after the header; a CSV message also gives the file line, blank lines skipped):
   and numeric time cells; a number written with a point there is refused (a thousands
   separator in those locales), never read as a decimal point;
 * per asset, times must be strictly increasing in table order: an equal time is a *duplicate
-  timestamp*, a smaller one *unsorted time*. Assets may be interleaved in the table.
+  timestamp*, a smaller one *unsorted time*. Assets may be interleaved in the table;
+* ``where`` (``--where channel=5``) keeps the rows whose cells equal the given values, before
+  any of these checks: a table with a row per asset, time and channel holds one series per
+  channel. Messages still count the rows of the whole table.
 
 Per-asset problems (non-numeric value, duplicate or unsorted time) raise ``ValueError`` by
 default; with ``on_error="flag"`` the asset is set aside with its message and the rest of the
