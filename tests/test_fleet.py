@@ -1076,3 +1076,30 @@ def test_a_healthy_window_of_one_repeated_value_has_no_baseline_whatever_its_rou
         y[40:] = level + 0.01 * np.exp((t[40:] - 40) / 5)
         assert fleet_rul({"asset": ["a"] * 60, "t": t, "value": y}, 5.0).row("a")["flags"] == \
             "no_baseline", level  # fmt: skip
+
+
+@pytest.mark.parametrize("direction", ["above", "below"])
+def test_prognose_method_reads_a_median_past_the_threshold_as_reached(direction):
+    """An asset whose last value dipped back below the threshold while the median of its last
+    5 values is past it: ``prognose``'s own rule says the threshold is reached (it refuses the
+    series, RUL 0), so the row is ``threshold_reached`` with RUL 0, as for a last value past
+    it (it was ``prognose_error``); a last value past it alone is reached as before."""
+    from prognos_torch.workflow import prognose
+
+    g = np.random.default_rng(0)
+    t = np.arange(160.0)
+    y = 1.0 + 0.02 * g.standard_normal(160)
+    y[150:] = [1.5, 2.0, 2.6, 3.1, 3.2, 3.3, 3.1, 3.4, 3.2, 2.9]  # median of the last 5: 3.2
+    sign = 1.0 if direction == "above" else -1.0
+    table = {"asset": ["m"] * 160, "t": t, "value": sign * y}
+    with pytest.raises(ValueError, match="already reached: the median of the last 5"):
+        prognose(torch.from_numpy(sign * y), sign * 3.0, time=torch.from_numpy(t),
+                 direction=direction)  # fmt: skip
+    row = fleet_rul(table, sign * 3.0, method="prognose", direction=direction,
+                    n_paths=100).row("m")  # fmt: skip
+    assert row["flags"] == "threshold_reached" and row["message"] == ""
+    assert (row["rul_median"], row["p_fail_within_horizon"]) == (0.0, 1.0)
+    spike = dict(table, value=sign * np.concatenate([y[:159], [3.5]]))
+    spike["value"][150:159] = sign * 1.5  # only the last value past it
+    assert fleet_rul(spike, sign * 3.0, method="prognose", direction=direction,
+                     n_paths=100).row("m")["flags"] == "threshold_reached"  # fmt: skip

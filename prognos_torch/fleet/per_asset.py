@@ -10,8 +10,10 @@ still run in parallel on the Ray backend. The default fleet method,
 the assets of a shard instead.
 
 Per asset: the seed is the asset's seed (:func:`~prognos_torch.fleet.trend.asset_seed`), so
-the table does not depend on sharding; a last observed value at or beyond the threshold is
-``threshold_reached`` with RUL 0, as in the exponential method, unless the healthy baseline's
+the table does not depend on sharding; a last observed value at or beyond the threshold, or
+a median of the last 5 values there (``prognose``'s own rule, under which it refuses the
+series), is ``threshold_reached`` with RUL 0, as in the exponential method, unless the healthy
+baseline's
 mean already lies there (``threshold_on_healthy_side``, no RUL: a falling indicator with
 ``direction="above"``, say); an input that ``prognose``
 rejects (too few values, a threshold inside the healthy band, ...) is reported in the asset's
@@ -31,6 +33,7 @@ import math
 import numpy as np
 
 from ..core.validation import check_real
+from ..prognosis.onset import moving_median
 from .trend import RUL_COLUMNS, PaddedBatch, check_min_rows
 
 __all__ = ["prognose_rul"]
@@ -91,7 +94,13 @@ def prognose_rul(
             continue
         seen = y[~torch.isnan(y)]
         sign = {"above": 1.0, "below": -1.0}.get(direction)
-        if sign is not None and sign * (float(seen[-1]) - float(threshold)) >= 0:
+        reached = False
+        if sign is not None:  # oriented: degradation raises sign * value
+            # the last value, or prognose's own rule, the median of the last 5 values (prognose
+            # refuses such a series: it was a prognose_error)
+            now = max(sign * float(seen[-1]), sign * float(moving_median(seen, 5)[-1]))
+            reached = now >= sign * float(threshold)
+        if reached:
             # a healthy level at or beyond the threshold is the wrong direction (or threshold),
             # not a failure: every healthy asset would read RUL 0 (as the exponential method)
             if _healthy_side(seen, t[~torch.isnan(y)], threshold, sign, options):
