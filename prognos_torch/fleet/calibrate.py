@@ -43,7 +43,7 @@ from ..prognosis.conformal import (
 )
 from ..prognosis.protocol import PROTOCOL_FRACTIONS, check_fractions, known_threshold_protocol
 from .run import fleet_rul, interval_columns, method_settings
-from .table import FleetTable, read_fleet_table
+from .table import FleetTable, as_fleet_table
 
 __all__ = ["calibrate_fleet"]
 
@@ -120,24 +120,15 @@ def calibrate_fleet(
         bins = _check_bins(bins)
     fractions = check_fractions(fractions)
     sign = 1.0 if direction == "above" else -1.0
-    if isinstance(source, FleetTable) and where is not None:
-        raise ValueError(
-            "where selects rows of a table read here; source is a FleetTable, read already "
-            "(pass where to read_fleet_table)"
-        )
-    table = (
-        source
-        if isinstance(source, FleetTable)
-        else read_fleet_table(
-            source,
-            where=where,
-            group_by=group_by,
-            column=column,
-            time_column=time_column,
-            decimal=decimal,
-            time_format=time_format,
-            on_error=on_error,
-        )
+    table = as_fleet_table(
+        source,
+        where=where,
+        group_by=group_by,
+        column=column,
+        time_column=time_column,
+        decimal=decimal,
+        time_format=time_format,
+        on_error=on_error,
     )
     if not table.assets:
         raise ValueError("the table of failed assets is empty")

@@ -13,17 +13,15 @@ Per asset: the seed is the asset's seed (:func:`~prognos_torch.fleet.trend.asset
 the table does not depend on sharding; a last observed value at or beyond the threshold, or
 a median of the last 5 values there (``prognose``'s own rule, under which it refuses the
 series), is ``threshold_reached`` with RUL 0, as in the exponential method, unless the healthy
-baseline's
-mean already lies there (``threshold_on_healthy_side``, no RUL: a falling indicator with
-``direction="above"``, say); an input that ``prognose``
-rejects (too few values, a threshold inside the healthy band, ...) is reported in the asset's
-row (flag ``prognose_error`` and the message), never fatal for the fleet; a bad option of
-``prognose`` (``n_paths=3``, an unknown ``filter``) is the call's error, raised before any
-asset. ``p_fail_within_horizon`` is :meth:`~prognos_torch.workflow.RULResult.failure_probability`; a ``horizon`` beyond
-``prognose``'s own while paths are censored leaves it NaN (flag ``horizon_beyond_prognosis``).
-``prognose``'s own flags
-are sentences; they are summarised as ``prognose_flags`` in ``flags`` and given in full in
-``message``.
+baseline's mean already lies there (``threshold_on_healthy_side``, no RUL: a falling indicator
+with ``direction="above"``, say); an input that ``prognose`` rejects (too few values, a
+threshold inside the healthy band, ...) is reported in the asset's row (flag
+``prognose_error`` and the message), never fatal for the fleet; a bad option of ``prognose``
+(``n_paths=3``, an unknown ``filter``) is the call's error, raised before any asset.
+``p_fail_within_horizon`` is :meth:`~prognos_torch.workflow.RULResult.failure_probability`; a
+``horizon`` beyond ``prognose``'s own while paths are censored leaves it NaN (flag
+``horizon_beyond_prognosis``). ``prognose``'s own flags are sentences; they are summarised as
+``prognose_flags`` in ``flags`` and given in full in ``message``.
 """
 
 from __future__ import annotations

@@ -41,7 +41,7 @@ from ..prognosis.conformal import record_settings
 from ..workflow.data import date_after
 from .per_asset import DIRECTIONS as prognose_directions
 from .per_asset import prognose_rul
-from .table import FleetTable, _id_text, read_fleet_table, write_table
+from .table import FleetTable, _id_text, as_fleet_table, write_table
 from .trend import DIRECTIONS as trend_directions
 from .trend import RUL_COLUMNS, check_min_rows, exponential_trend_rul, pad_batch
 
@@ -410,24 +410,15 @@ def fleet_rul(
         horizon = check_real(horizon, "horizon")
         if not horizon > 0:
             raise ValueError(f"horizon must be positive (or None: ever), got {horizon!r}")
-    if isinstance(source, FleetTable) and where is not None:
-        raise ValueError(
-            "where selects rows of a table read here; source is a FleetTable, read already "
-            "(pass where to read_fleet_table)"
-        )
-    table = (
-        source
-        if isinstance(source, FleetTable)
-        else read_fleet_table(
-            source,
-            where=where,
-            group_by=group_by,
-            column=column,
-            time_column=time_column,
-            on_error=on_error,
-            decimal=decimal,
-            time_format=time_format,
-        )
+    table = as_fleet_table(
+        source,
+        where=where,
+        group_by=group_by,
+        column=column,
+        time_column=time_column,
+        on_error=on_error,
+        decimal=decimal,
+        time_format=time_format,
     )
     opts = dict(options, direction=direction, horizon=horizon)
     if workers > 1:  # at least one shard per worker (as long as there are assets)

@@ -544,6 +544,21 @@ def read_fleet_table(
     )
 
 
+def as_fleet_table(source, *, where=None, **read) -> FleetTable:
+    """``source`` itself when it is a :class:`FleetTable`, read already (``where`` is then
+    refused: it would be ignored), else :func:`read_fleet_table` of it with ``where`` and the
+    reading options ``read`` (``group_by``, ``column``, ...): the table ``fleet_rul`` and
+    ``calibrate_fleet`` work on."""
+    if not isinstance(source, FleetTable):
+        return read_fleet_table(source, where=where, **read)
+    if where is not None:
+        raise ValueError(
+            "where selects rows of a table read here; source is a FleetTable, read already "
+            "(pass where to read_fleet_table)"
+        )
+    return source
+
+
 # --------------------------------------------------------------------------- writing
 def _csv_cell(v) -> str:
     if isinstance(v, (float, np.floating)):
