@@ -12,6 +12,7 @@ import io
 import numpy as np
 import pytest
 import torch
+from _prognosis_helpers import F64, _gen
 from torch import nn
 
 from prognos_torch.core.belief import GaussianBelief
@@ -22,12 +23,6 @@ from prognos_torch.optim import (
     em_linear_gaussian,
 )
 from prognos_torch.prognosis import MeasurementForecaster
-
-F64 = torch.float64
-
-
-def _gen(seed: int) -> torch.Generator:
-    return torch.Generator().manual_seed(seed)
 
 
 # ------------------------------------------------------------------------------ EM

@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from _prognosis_helpers import brute_weighted_quantile
+from _prognosis_helpers import F64, _gen, brute_weighted_quantile
 
 from prognos_torch.prognosis import (
     fault_probability_gaussian,
@@ -23,13 +23,6 @@ from prognos_torch.prognosis import (
     rul_distribution,
 )
 from prognos_torch.prognosis.paths import weighted_quantile
-
-F64 = torch.float64
-
-
-def _gen(seed: int) -> torch.Generator:
-    return torch.Generator().manual_seed(seed)
-
 
 # ------------------------------------------------------------------------------ paths.py
 
