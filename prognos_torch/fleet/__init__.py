@@ -14,20 +14,13 @@
   benchmarks.
 """
 
+from .batch import PaddedBatch, asset_seed, ksigma_onset_batch, pad_batch
 from .calibrate import calibrate_fleet
 from .per_asset import prognose_rul
 from .run import DATE_COLUMNS, METHODS, OUTPUT_COLUMNS, FleetResult, fleet_rul, run_shard
 from .synthetic import SyntheticFleet, synthetic_fleet
 from .table import TABLE_SUFFIXES, FleetTable, read_fleet_table, write_table
-from .trend import (
-    MISFIT_P,
-    RUL_COLUMNS,
-    PaddedBatch,
-    asset_seed,
-    exponential_trend_rul,
-    ksigma_onset_batch,
-    pad_batch,
-)
+from .trend import MISFIT_P, RUL_COLUMNS, exponential_trend_rul
 
 __all__ = [
     "FleetResult",

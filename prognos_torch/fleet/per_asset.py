@@ -9,7 +9,7 @@ still run in parallel on the Ray backend. The default fleet method,
 :func:`~prognos_torch.fleet.trend.exponential_trend_rul`, batches the exponential model over
 the assets of a shard instead.
 
-Per asset: the seed is the asset's seed (:func:`~prognos_torch.fleet.trend.asset_seed`), so
+Per asset: the seed is the asset's seed (:func:`~prognos_torch.fleet.batch.asset_seed`), so
 the table does not depend on sharding; a last observed value at or beyond the threshold, or
 a median of the last 5 values there (``prognose``'s own rule, under which it refuses the
 series), is ``threshold_reached`` with RUL 0, as in the exponential method, unless the healthy
@@ -32,7 +32,8 @@ import numpy as np
 
 from ..core.validation import check_real
 from ..prognosis.onset import moving_median
-from .trend import RUL_COLUMNS, PaddedBatch, check_min_rows
+from .batch import PaddedBatch, check_min_rows
+from .trend import RUL_COLUMNS
 
 __all__ = ["prognose_rul"]
 

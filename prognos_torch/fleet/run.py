@@ -2,7 +2,7 @@
 
 The assets of a validated table (:func:`~prognos_torch.fleet.table.read_fleet_table`) are cut
 into shards of ``shard_size`` assets in table order; each shard is padded with NaN
-(:func:`~prognos_torch.fleet.trend.pad_batch`) and goes through ONE call of the RUL method,
+(:func:`~prognos_torch.fleet.batch.pad_batch`) and goes through ONE call of the RUL method,
 which vectorises over the shard's assets. Every asset's randomness comes from its own seed,
 derived from ``(seed, asset id)``, so the table does not depend on the shard size or on the
 backend:
@@ -39,11 +39,12 @@ from .._workers import check_workers, process_map
 from ..core.validation import check_real, check_seed, is_int
 from ..prognosis.conformal import record_settings
 from ..workflow.data import date_after
+from .batch import DIRECTIONS as trend_directions
+from .batch import check_min_rows, pad_batch
 from .per_asset import DIRECTIONS as prognose_directions
 from .per_asset import prognose_rul
 from .table import FleetTable, _id_text, as_fleet_table, write_table
-from .trend import DIRECTIONS as trend_directions
-from .trend import RUL_COLUMNS, check_min_rows, exponential_trend_rul, pad_batch
+from .trend import RUL_COLUMNS, exponential_trend_rul
 
 __all__ = ["FleetResult", "fleet_rul", "METHODS", "OUTPUT_COLUMNS", "DATE_COLUMNS", "run_shard"]
 
