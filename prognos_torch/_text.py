@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["fmt_time", "fmt_level", "json_number"]
+__all__ = ["fmt_time", "fmt_level", "json_number", "shown_lines"]
 
 
 def fmt_time(v: float) -> str:
@@ -33,3 +33,9 @@ def json_number(v) -> float | None:
     """``v`` as a float for a JSON record, ``None`` where it is missing or not finite (strict
     JSON has no NaN or infinity)."""
     return None if v is None or not math.isfinite(float(v)) else float(v)
+
+
+def shown_lines(lines, limit: int = 5) -> str:
+    """Line numbers (or indices) for a message: the first ``limit``, then how many more."""
+    shown = ", ".join(str(v) for v in lines[:limit])
+    return shown + (f" and {len(lines) - limit} more" if len(lines) > limit else "")

@@ -565,7 +565,7 @@ def test_load_series_date_times_zones_fractions_and_duplicate_columns(tmp_path):
     of a second (until= used to count from the start truncated to the second), date-times
     outside 1678-2262 are refused (nanoseconds wrap there), and a column named twice is an
     error instead of a silent choice."""
-    from prognos_torch.workflow.data import datetime_ns
+    from prognos_torch.workflow.times import datetime_ns
 
     assert datetime_ns("2024-01-01T01:30:00+01:30") == datetime_ns("2024-01-01T00:00:00Z")
     assert datetime_ns("2024-01-01 00:00:00-0500") == datetime_ns("2024-01-01T05:00:00")
@@ -601,7 +601,7 @@ def test_figures_of_a_dated_series_put_dates_on_the_time_axis(tmp_path):
     # fall on round dates and say which, the title gives the prediction's date-time
     from prognos_torch.plots import plot_prognosis
     from prognos_torch.workflow import prognose
-    from prognos_torch.workflow.data import date_after
+    from prognos_torch.workflow.times import date_after
 
     g = torch.Generator().manual_seed(3)
     n = 240  # hourly for ten days, wear from day 5
@@ -661,7 +661,7 @@ def test_dates_far_beyond_2262_are_given_and_beyond_292000_years_are_none():
     # nanosecond date-times end in 2262: a RUL or horizon of a few centuries raised an
     # OverflowError in every dated report; the date is held in microseconds now
     from prognos_torch.fleet.run import _dates
-    from prognos_torch.workflow.data import date_after
+    from prognos_torch.workflow.times import date_after
 
     start = "2004-02-12T10:32:39"
     assert date_after(start, 1e5, "s") == "2277-11-27T10:32:39"  # NumPy's days, below

@@ -38,7 +38,7 @@ import torch
 from .._workers import check_workers, process_map
 from ..core.validation import check_real, check_seed, is_int
 from ..prognosis.conformal import record_settings
-from ..workflow.data import date_after
+from ..workflow.times import date_after
 from .batch import DIRECTIONS as trend_directions
 from .batch import check_min_rows, pad_batch
 from .per_asset import DIRECTIONS as prognose_directions

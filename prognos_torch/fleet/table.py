@@ -45,13 +45,11 @@ from ..io import atomic_write, sniffed_csv
 from ..workflow.data import (
     cells_equal,
     check_unique_columns,
-    datetime_ns,
     decimal_hint,
-    formatted_stamps,
-    iso_start,
     number_text,
     parse_where,
 )
+from ..workflow.times import datetime_ns, formatted_stamps, iso_start
 
 __all__ = ["FleetTable", "read_fleet_table", "write_table", "TABLE_SUFFIXES"]
 

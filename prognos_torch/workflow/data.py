@@ -18,22 +18,26 @@ names the file, column and line):
 from __future__ import annotations
 
 import math
-import numbers
 import os
-import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from datetime import datetime, timezone
 from pathlib import Path
-from time import strptime as struct_strptime  # (its tm_zone: the %Z name read)
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from .._text import fmt_time
+from .._text import fmt_time, shown_lines
 from ..core.validation import check_real, is_int
 from ..io import sniffed_csv
+from .arrays import array_times, array_values, check_real_numbers, datetime_index, pandas_name
+from .times import (
+    check_time_format,
+    date_after,
+    datetime_ns,
+    days_since_first,
+    formatted_stamps,
+)
 
 __all__ = ["Series", "load_series", "parse_where", "FILL_METHODS", "MAX_ABS_VALUE"]
 
@@ -78,7 +82,7 @@ class Series:
                 continue
             name = f"Series {attr}"
             if isinstance(v, Tensor):
-                _real_numbers(_kind_of(v), name)
+                check_real_numbers(v, name)
                 v = v.to(torch.float64)
             else:
                 v = torch.from_numpy(array_values(v, name))
@@ -237,228 +241,6 @@ def _read_csv(path: Path) -> tuple[list[str], list[list[str]]]:
     return header, rows[1:]
 
 
-def _lines(lines: Sequence[int], limit: int = 5) -> str:
-    shown = ", ".join(str(v) for v in lines[:limit])
-    return shown + (f" and {len(lines) - limit} more" if len(lines) > limit else "")
-
-
-_ZONE = re.compile(r"(Z|[+-]\d{2}(?::?\d{2})?)$")
-#: datetime64[ns] covers 1678-2262; outside it NumPy wraps around silently
-_NS_RANGE = (np.datetime64("1678-01-01", "us"), np.datetime64("2262-01-01", "us"))
-
-
-def datetime_ns(text: str) -> np.datetime64:
-    """An ISO 8601 date-time as ``datetime64[ns]`` in UTC: a zone designator (``Z``, ``+01:00``,
-    ``-0500``) is applied explicitly; a date-time outside 1678-2262 (where nanoseconds wrap) or
-    a text that is no date-time raises ``ValueError``; an empty cell, ``nan`` or ``NaT`` is
-    ``NaT`` (missing)."""
-    body = text.strip()
-    if body.lower() in ("", "nan", "nat"):
-        return np.datetime64("NaT", "ns")  # missing
-    if body.lower() in ("now", "today"):  # (NumPy reads them as the clock's date-time)
-        raise ValueError(f"{text!r} is not an ISO 8601 date-time")
-    zone = _ZONE.search(body) if "T" in body or " " in body else None
-    offset = np.timedelta64(0, "m")
-    if zone is not None:
-        z = zone.group(1)
-        body = body[: zone.start()].rstrip()
-        if z != "Z":
-            hh, mm = z[1:3], z[3:].lstrip(":") or "0"
-            if int(hh) > 23 or int(mm) > 59:  # (+99:99 shifted the time by 4 days)
-                raise ValueError(f"{text!r} has the offset {z!r}; hours 00-23, minutes 00-59")
-            offset = (np.timedelta64(int(hh), "h") + np.timedelta64(int(mm), "m")) * (
-                1 if z[0] == "+" else -1
-            )
-    if body.replace(".", "", 1).lstrip("+-").isdigit():
-        raise ValueError(f"{text!r} is a number, not an ISO 8601 date-time")
-    stamp = np.datetime64(body)  # ValueError if it is no date-time; NaT for "NaT"
-    if not np.isnat(stamp):
-        us = stamp.astype("datetime64[us]")
-        if not (_NS_RANGE[0] <= us < _NS_RANGE[1]):
-            raise ValueError(f"{text!r} lies outside 1678-2262, the range of nanosecond times")
-    return stamp.astype("datetime64[ns]") - offset
-
-
-def iso_start(stamp: np.datetime64) -> str:
-    """A ``datetime64[ns]`` as ISO 8601 text: to the second, or finer where it carries a
-    fraction of a second (never truncated)."""
-    seconds = stamp.astype("datetime64[s]")
-    return str(seconds) if seconds == stamp else str(np.datetime_as_string(stamp, unit="auto"))
-
-
-def array_values(v, name: str) -> np.ndarray:
-    """A 1-D array-like of numbers (tensor, NumPy array, pandas Series or Index, sequence) as
-    a float64 NumPy array of its own (pandas' read-only arrays are copied, never written).
-    A pandas object gives its values by position, not by index label; ``NA`` becomes NaN
-    (missing). Raises ``TypeError`` naming ``name`` for anything else."""
-    if isinstance(v, Tensor):
-        _real_numbers(_kind_of(v), name)
-        return v.detach().to("cpu", torch.float64).numpy().copy()
-    if v is None or isinstance(v, (str, bytes, numbers.Number)):  # (NumPy: a 0-d array)
-        raise TypeError(
-            f"{name} must be a 1-D array of numbers (a tensor, a NumPy array, a pandas Series "
-            f"or a sequence), got {type(v).__name__} {v!r:.40}"
-        )
-    if is_datetime(v) or is_duration(v):  # (pandas would give nanoseconds as numbers)
-        raise TypeError(f"{name} must be numbers, got date-times or durations ({v.dtype})")
-    dtype = getattr(v, "dtype", None)
-    _real_numbers(getattr(dtype, "kind", None) if dtype is not None else _kind_of(v), name)
-    try:
-        to_numpy = getattr(v, "to_numpy", None)
-        if to_numpy is not None:  # pandas
-            return np.array(to_numpy(dtype=np.float64, na_value=np.nan))
-        return np.array(v, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise TypeError(
-            f"{name} must be a 1-D array of numbers (a tensor, a NumPy array, a pandas Series "
-            f"or a sequence), got {type(v).__name__}"
-        ) from None
-
-
-def _kind_of(v) -> str | None:
-    """NumPy's dtype kind of a tensor's or a sequence's elements (``"b"``, ``"c"``, ...;
-    ``None``: not an array of one kind)."""
-    if isinstance(v, Tensor):
-        return "b" if v.dtype == torch.bool else "c" if v.dtype.is_complex else "f"
-    try:
-        return np.asarray(v).dtype.kind
-    except (TypeError, ValueError):
-        return None
-
-
-def _real_numbers(kind: str | None, name: str) -> None:
-    """Refuse booleans and complex values (a ``TypeError`` naming ``name``): read as numbers
-    they would become 0/1, or lose their imaginary part, without a word."""
-    if kind == "b":
-        raise TypeError(
-            f"{name} must be numbers, got booleans; convert them (e.g. .astype(float)) if the "
-            "0/1 values are meant"
-        )
-    if kind == "c":
-        raise TypeError(
-            f"{name} must be real numbers, got complex values (reading them would drop the "
-            "imaginary part); pass the real part or the magnitude"
-        )
-
-
-def is_datetime(v) -> bool:
-    """``v`` holds date-times: NumPy ``datetime64`` or a pandas datetime Series or Index
-    (with or without a time zone)."""
-    return getattr(getattr(v, "dtype", None), "kind", None) == "M"
-
-
-def is_duration(v) -> bool:
-    """``v`` holds durations: NumPy ``timedelta64`` or a pandas timedelta Series or Index."""
-    return getattr(getattr(v, "dtype", None), "kind", None) == "m"
-
-
-def datetime_index(v):
-    """The ``DatetimeIndex`` or ``TimedeltaIndex`` of a pandas Series on one (the series' own
-    time), else ``None``."""
-    index = getattr(v, "index", None)
-    return index if is_datetime(index) or is_duration(index) else None
-
-
-def pandas_name(v) -> str | None:
-    """The name of a pandas Series, when it is a non-empty string."""
-    name = getattr(v, "name", None)
-    return name if isinstance(name, str) and name else None
-
-
-def _iso_texts(v, name: str, time_format: str | None = None) -> np.ndarray | None:
-    """``datetime64[ns]`` (UTC) of a 1-D sequence of ISO 8601 texts (a list, an object or
-    string array, a pandas Series of text: date-times read from a CSV without parsing), or of
-    texts in ``time_format`` (``strptime`` codes, :func:`formatted_ns`), or ``None`` when ``v``
-    holds something else, numbers written as text included (unless ``time_format`` says how
-    to read them)."""
-    if isinstance(v, Tensor):
-        return None
-    to_numpy = getattr(v, "to_numpy", None)
-    try:
-        arr = np.asarray(to_numpy() if to_numpy is not None else v, dtype=object)
-    except (TypeError, ValueError):
-        return None
-    cells = arr.tolist() if arr.ndim == 1 else []
-    # text, with missing cells (None, NaN, pandas' NA) among it: they become NaT
-    texts = [c for c in cells if isinstance(c, str)]
-    if not texts or any(not isinstance(c, str) and not _missing_cell(c) for c in cells):
-        return None
-    if time_format is not None:  # missing cells NaT, the texts in the caller's layout
-        out = np.full(len(cells), np.datetime64("NaT"), dtype="datetime64[ns]")
-        at = [i for i, c in enumerate(cells) if isinstance(c, str)]
-        out[at] = formatted_stamps(texts, time_format, lambda j: f"{name}[{at[j]}] = {texts[j]!r}")
-        return out
-    try:
-        float(texts[0])
-        return None  # numbers as text: read as numbers
-    except ValueError:
-        pass
-    out = np.empty(len(cells), dtype="datetime64[ns]")
-    for i, c in enumerate(cells):
-        try:
-            out[i] = datetime_ns(c if isinstance(c, str) else "")
-        except ValueError as exc:
-            raise ValueError(
-                f"{name}[{i}] = {c!r} is not an ISO 8601 date-time in 1678-2262 ({exc}), while "
-                f"{texts[0]!r} is one"
-            ) from None
-    return out
-
-
-def _missing_cell(c) -> bool:
-    """``None``, a float NaN or pandas' ``NA``: a missing cell of a text column."""
-    return c is None or type(c).__name__ == "NAType" or (isinstance(c, float) and math.isnan(c))
-
-
-def _days_since_first(stamps: np.ndarray) -> tuple[np.ndarray, str, str]:
-    """``datetime64[ns]`` stamps as the reader's time axis: float64 days since the first, the
-    unit ``"days"`` and the first as ISO 8601 text (the series' ``start``)."""
-    days = (stamps - stamps[0]) / np.timedelta64(1, "D")
-    return days.astype(np.float64), "days", iso_start(stamps[0])
-
-
-def array_times(
-    v, name: str, time_format: str | None = None
-) -> tuple[np.ndarray, str | None, str | None]:
-    """Times as float64: numbers as given (unit ``None``: the caller's), or date-times (NumPy
-    ``datetime64``, a pandas datetime Series or ``DatetimeIndex``, zone-aware ones in UTC;
-    ISO 8601 texts, with their zone designators applied) as
-    days since the first, with the unit ``"days"`` and the first as ISO 8601 text, as the CSV
-    reader gives them; durations (NumPy ``timedelta64``, pandas timedelta) in days, with the
-    unit ``"days"`` and no start (read as plain numbers they would be nanoseconds).
-    ``time_format`` (``strptime`` codes) reads texts in another layout and applies to text
-    only (``ValueError`` otherwise)."""
-    if time_format is not None:
-        ns = _iso_texts(v, name, time_format)
-        if ns is None:
-            raise ValueError(
-                f"time_format applies to date-times written as text; {name} holds "
-                f"{type(v).__name__} of numbers or date-times"
-            )
-    elif is_duration(v):
-        ns = np.asarray(v).astype("timedelta64[ns]")
-        if np.isnat(ns).any():
-            where = _lines([int(i) for i in np.flatnonzero(np.isnat(ns))])
-            raise ValueError(f"{name} has missing durations (NaT) at index {where}")
-        return (ns / np.timedelta64(1, "D")).astype(np.float64), "days", None
-    elif is_datetime(v):
-        if getattr(v.dtype, "tz", None) is not None:  # pandas, zone-aware: to naive UTC
-            acc = getattr(v, "dt", None)
-            if acc is not None:  # a Series
-                v = acc.tz_convert("UTC").dt.tz_localize(None)
-            else:  # a DatetimeIndex
-                v = v.tz_convert("UTC").tz_localize(None)
-        ns = np.asarray(v).astype("datetime64[ns]")
-    else:
-        ns = _iso_texts(v, name)
-        if ns is None:
-            return array_values(v, name), None, None
-    if np.isnat(ns).any():
-        where = _lines([int(i) for i in np.flatnonzero(np.isnat(ns))])
-        raise ValueError(f"{name} has missing date-times (NaT) at index {where}")
-    return _days_since_first(ns)
-
-
 def check_unique_columns(header: Sequence, names: Sequence, source: str) -> None:
     """Each of ``names`` (``None`` skipped) appears at most once in ``header``: a column named
     twice is an error, not a silent choice of one of them."""
@@ -468,40 +250,6 @@ def check_unique_columns(header: Sequence, names: Sequence, source: str) -> None
             raise ValueError(
                 f"{source}: column {name!r} appears more than once in the header; rename one"
             )
-
-
-def formatted_ns(text: str, fmt: str) -> np.datetime64:
-    """A date-time written in ``fmt`` (``datetime.strptime`` codes) as ``datetime64[ns]`` in
-    UTC: a ``%z`` offset is applied, a time without one is taken as UTC, as ISO 8601 text is.
-    A ``%Z`` zone name other than UTC or GMT is refused: ``strptime`` matches the machine's
-    own zone names (EST, CET) but gives no offset for them (10:00 EST was read as 10:00 UTC)."""
-    stamp = datetime.strptime(text.strip(), fmt)
-    if "%Z" in fmt and stamp.tzinfo is None:
-        zone = struct_strptime(text.strip(), fmt).tm_zone
-        if zone is not None and zone.upper() not in ("UTC", "GMT"):
-            raise ValueError(
-                f"the zone name {zone!r} (%Z) gives no offset; write the offset with %z "
-                "(e.g. -0500), or UTC times"
-            )
-    if stamp.tzinfo is not None:
-        stamp = stamp.astimezone(timezone.utc).replace(tzinfo=None)
-    out = np.datetime64(stamp, "us")
-    if not (_NS_RANGE[0] <= out < _NS_RANGE[1]):
-        raise ValueError(f"{text!r} lies outside 1678-2262, the range of nanosecond times")
-    return out.astype("datetime64[ns]")
-
-
-def formatted_stamps(cells: Sequence[str], fmt: str, label) -> np.ndarray:
-    """``datetime64[ns]`` of the texts ``cells`` written in ``fmt`` (:func:`formatted_ns`); a
-    cell that does not match raises ``ValueError`` ``"{label(i)} does not match time_format
-    ..."`` (``label(i)``: where the cell stands and what it holds, in the caller's words)."""
-    out = np.empty(len(cells), dtype="datetime64[ns]")
-    for i, c in enumerate(cells):
-        try:
-            out[i] = formatted_ns(c, fmt)
-        except ValueError as exc:
-            raise ValueError(f"{label(i)} does not match time_format {fmt!r} ({exc})") from None
-    return out
 
 
 def _parse_time(
@@ -520,7 +268,7 @@ def _parse_time(
             return f"{path}, line {lines[i]}: time column {col!r} value {cells[i].strip()!r}"
 
         try:
-            return _days_since_first(formatted_stamps(cells, time_format, label))
+            return days_since_first(formatted_stamps(cells, time_format, label))
         except ValueError as exc:
             raise ValueError(f"{exc} (time_format: --time-format on the command line)") from None
     numeric = []
@@ -537,7 +285,7 @@ def _parse_time(
         bad = [ln for v, ln in zip(numeric, lines) if not math.isfinite(v)]
         if bad:  # (nan: a missing time; inf)
             raise ValueError(
-                f"{path}: time column {col!r} has non-finite values at line(s) {_lines(bad)}"
+                f"{path}: time column {col!r} has non-finite values at line(s) {shown_lines(bad)}"
             )
         return np.asarray(numeric, dtype=np.float64), col, None
     stamps = []
@@ -555,7 +303,7 @@ def _parse_time(
             ) from None
         if np.isnat(stamps[-1]):  # ('nan' or 'NaT': empty cells are refused before)
             raise ValueError(f"{path}, line {line}: time column {col!r} is missing ({cell!r})")
-    return _days_since_first(np.asarray(stamps))
+    return days_since_first(np.asarray(stamps))
 
 
 def _fill(values: np.ndarray, time: np.ndarray | None, where: list, fill, lines, label: str):
@@ -565,7 +313,7 @@ def _fill(values: np.ndarray, time: np.ndarray | None, where: list, fill, lines,
     bad = [lines[i] for i in np.flatnonzero(missing)]
     if fill is None:
         raise ValueError(
-            f"{label} has {len(bad)} missing value(s) at {where[0]} {_lines(bad)}; pass "
+            f"{label} has {len(bad)} missing value(s) at {where[0]} {shown_lines(bad)}; pass "
             "fill='linear' (interpolate) or fill='drop' (remove those rows); --fill linear or "
             "--fill drop on the command line"
         )
@@ -582,7 +330,7 @@ def _fill(values: np.ndarray, time: np.ndarray | None, where: list, fill, lines,
         for end, rows in (("start", range(observed[0])), ("end", range(observed[-1] + 1,
                                                                      len(values)))):  # fmt: skip
             if len(rows):
-                ends.append(f"the {end} ({where[0]} {_lines([lines[i] for i in rows])})")
+                ends.append(f"the {end} ({where[0]} {shown_lines([lines[i] for i in rows])})")
         raise ValueError(
             f"{label} has missing value(s) at {' and '.join(ends)} that cannot be "
             "interpolated; use fill='drop' (--fill drop)"
@@ -717,40 +465,10 @@ def load_series(
     return _finish(arr, tarr, name, None, unit, start, None)
 
 
-_UNIT_NS = {"s": 10**9, "ms": 10**6, "us": 10**3}
-
-
-#: microseconds that NumPy's ``datetime64[us]`` holds either side of 1970 (about 292,000 years)
-_US_RANGE = 2**63 - 1
-
-
-def date_after(start: str, days: float, unit: str = "us") -> str | None:
-    """The ISO 8601 date-time ``days`` (finite) after ``start`` (ISO 8601, UTC), rounded to
-    ``unit`` (``"s"``, ``"ms"`` or ``"us"``): seconds where the fraction is zero. Computed in
-    whole nanoseconds and held in microseconds, so that a RUL far beyond 2262 (the end of
-    nanosecond date-times) still has its date; ``None`` beyond the years +-292,000."""
-    if unit not in _UNIT_NS:
-        raise ValueError(f"unit must be 's', 'ms' or 'us', got {unit!r}")
-    q = _UNIT_NS[unit]
-    ns = int(datetime_ns(start).astype(np.int64)) + round(float(days) * 86400e9)
-    us = (ns + q // 2) // q * q // 1000  # (q is a whole number of microseconds)
-    if abs(us) >= _US_RANGE:
-        return None
-    return iso_start(np.datetime64(us, "us"))
-
-
 def _shown_time(days: float, start: str | None) -> str:
     """A time for a message: the date-time it was read from (to the microsecond) where the
     series has date-times, else the number (:func:`fmt_time`)."""
     return (None if start is None else date_after(start, days)) or fmt_time(days)
-
-
-def check_time_format(time_format) -> None:
-    """``None`` or text with ``datetime.strptime`` codes (a ``%``), else a ``ValueError``."""
-    if time_format is not None and (not isinstance(time_format, str) or "%" not in time_format):
-        raise ValueError(
-            f"time_format must be strptime codes such as '%d/%m/%Y %H:%M', got {time_format!r}"
-        )
 
 
 def check_magnitude(values: np.ndarray, name: str, source=None, lines=None) -> None:
@@ -911,7 +629,7 @@ def _load_csv(path, column, time_column, where, fill, last, until, decimal, time
         empty = [ln for c, ln in zip(tcells, lines) if not c.strip()]
         if empty:
             raise ValueError(
-                f"{path}: time column {time_column!r} is empty at line(s) {_lines(empty)}"
+                f"{path}: time column {time_column!r} is empty at line(s) {shown_lines(empty)}"
             )
         time, unit, start = _parse_time(tcells, lines, str(path), time_column, decimal, time_format)
     if until is not None:
