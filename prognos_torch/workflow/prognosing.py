@@ -120,18 +120,22 @@ from ..prognosis.onset import (
 )
 from ..prognosis.rul import RULDistribution
 from ..prognosis.trends import TREND_SHAPES, TrendPool, fit_trends, path_grid
-from .data import (
-    Series,
-    array_times,
-    array_values,
-    check_magnitude,
-    check_time_format,
-    datetime_index,
-    pandas_name,
-    time_value,
+from .arrays import array_times, array_values, datetime_index, pandas_name
+from .data import Series, check_magnitude, time_value
+from .guards import (
+    BAND_K,
+    CENSORED_FLAG,
+    away_from_threshold,
+    baseline_flags,
+    beyond_the_data,
+    fit_flags,
+    glitch_flags,
+    onset_pending,
+    threshold_side,
 )
 from .memory import check_prognose_memory
 from .predict import RULResult
+from .times import check_time_format
 
 __all__ = [
     "prognose",
@@ -158,9 +162,6 @@ AUTO_POOL = ("exponential", "elm")
 BACKTEST_PATHS = 256
 #: Fewest observed values ``prognose`` accepts.
 MIN_POINTS = 10
-_K = 4.0  # healthy band and onset limit in baseline standard deviations
-#: Censored mass above which a result is flagged (its 95 % quantile is then unknown).
-CENSORED_FLAG = 0.05
 _MAX_BINS = 20_000
 
 
@@ -349,171 +350,7 @@ def _rul_grid(origin: float, t_last: float, t_eval: float, horizon: float, bin_w
                       path_grid(t_eval, horizon - (t_eval - t_last), bin_width, rel=rel)])  # fmt: skip
 
 
-def _glitch_flags(base: Baseline, screened: Baseline) -> list[str]:
-    """A flag when the healthy window's gross isolated outliers (``screened``, the baseline
-    without them) widen its band by :data:`GLITCH_WIDENING` or more."""
-    if not screened.glitches or not base.std >= GLITCH_WIDENING * screened.std:
-        return []
-    n = len(screened.glitches)
-    return [
-        f"glitches in the healthy window: {n} isolated value{'s' * (n > 1)} more than "
-        f"{GLITCH_SCREEN:g} noise std from {'their' if n > 1 else 'its'} neighbours (first at "
-        f"t = {fmt_time(screened.glitches[0])}) widen{'s' * (n == 1)} the healthy band {base.std / screened.std:.1f} "
-        f"times (std {base.std:.4g}, {screened.std:.4g} without them), which can delay the "
-        f"onset; glitch_limit={GLITCH_SCREEN:g} (--glitch-limit) leaves them out"
-    ]
-
-
-def _baseline_flags(base: Baseline) -> list[str]:
-    out = []
-    if base.glitches:
-        n = len(base.glitches)
-        out.append(
-            f"glitches left out of the healthy window: {n} isolated value{'s' * (n > 1)} "
-            f"(first at t = {fmt_time(base.glitches[0])})"
-        )
-    if base.resolution is None:
-        return out
-    return out + [
-        "the healthy window is constant: its spread is the quantisation noise of the data's "
-        f"step {base.resolution:.4g} (step / sqrt(12))"
-    ]
-
-
-def _flags(fit, level_thr: float, passage, n_since: int, censored: float) -> list[str]:
-    out = []
-    z = fit.level_fit.z if hasattr(fit, "level_fit") else fit.z
-    zz = z[~torch.isnan(z)]
-    zt = fit.to_z(level_thr)
-    rise = float(zz.max() - zz.min()) if zz.numel() else 0.0
-    now = float(fit.level_fit.means[-1, 0] if hasattr(fit, "level_fit") else fit.means[-1, 0])
-    if rise > 0 and math.isfinite(zt) and (zt - now) > 3.0 * rise:
-        out.append(
-            f"extrapolation: the threshold is {(zt - now) / rise:.1f} times the rise seen since "
-            "onset away (in the model's measurement space); the RUL rests on the model's shape "
-            "far beyond the data"
-        )
-    div = float(passage.diverged.to(torch.float64).mean())
-    if div > 0.01:
-        out.append(f"diverging paths: {100 * div:.1f} % of the paths left every sensible range")
-    if censored > CENSORED_FLAG:
-        out.append(
-            f"censored: {100 * censored:.0f} % of the paths do not reach the threshold within "
-            "the horizon"
-        )
-    if n_since < 20:
-        out.append(
-            f"few data since onset ({n_since} values): the interval rests mostly on the prior"
-        )
-    return out
-
-
-def _beyond_the_data(
-    y_on: Tensor, phi: float, sigma0: float, thr_o: float, method: str, flags: list[str]
-) -> list[str]:
-    """Flags of the data since onset (oriented ``y_on``) that the fits cannot see
-    (``method``: ``prognose``'s, whatever the number of filters and seeds pooled).
-
-    * The extrapolation flag in data units: a threshold more than 10 x as far above the
-      healthy level as the highest value since onset (in the log space of the shapes the
-      measurement-space rule of :func:`_flags` can miss a threshold 1000 x beyond the data).
-    * Back at the healthy level: the last 5 values within ``sigma0`` of it, where the log
-      shapes have no measurement (``y - phi < sigma0`` is missing), so their RUL extrapolates
-      the values before them.
-    """
-    out = []
-    seen = float((y_on - phi).max())
-    far = seen > 0 and (thr_o - phi) > 10.0 * seen
-    if far and not any(f.startswith("extrapolation") for f in flags):
-        out.append(
-            f"extrapolation: the threshold is {(thr_o - phi) / seen:.3g} times as far from the "
-            "healthy level as the highest value since onset (in data units); the RUL rests on "
-            "the model's shape far beyond the data"
-        )
-    if method != "linear" and bool((y_on[-5:] - phi < sigma0).all()):
-        out.append(
-            "back at the healthy level: the last 5 values lie within one baseline std of the "
-            "healthy mean, where the log-shape trends have no measurement; the RUL extrapolates "
-            "the values before them and is doubtful (the degradation may have receded)"
-        )
-    return out
-
-
-def _onset_pending(medians: Tensor, limit: float, sign: float, spread: float) -> list[str]:
-    """Before onset: the newest 5-value medians (oriented) above the onset limit, fewer than
-    the 5 in a row that declare onset (``spread``: the healthy std, for the digits printed)."""
-    above = (medians >= limit).flip(0).to(torch.int64)
-    run = int(above.cumprod(0).sum())
-    if run == 0:
-        return []
-    return [
-        f"onset pending: the last {run} median(s) of 5 values lie beyond the onset limit "
-        f"{fmt_level(sign * limit, spread)} (healthy mean -+ {_K:g} std); onset is declared "
-        "after 5 in a row, so a degradation may be starting and the bound may not hold"
-    ]
-
-
 # ----------------------------------------------------------------------------- steps
-def _side(thr: float, direction: str, base: Baseline) -> str:
-    """``"above"`` or ``"below"``: the side of the healthy band ``mean -+ 4 std`` that the
-    threshold must lie on (``"auto"``: the side it is on; inside the band it is refused)."""
-    lo_band, hi_band = base.mean - _K * base.std, base.mean + _K * base.std
-
-    def lv(v: float) -> str:  # digits that resolve the band
-        return fmt_level(v, base.std)
-
-    if direction == "auto":
-        if lo_band <= thr <= hi_band:
-            raise ValueError(
-                f"threshold {lv(thr)} lies inside the healthy band [{lv(lo_band)}, {lv(hi_band)}] "
-                f"(baseline mean -+ {_K:g} std): the healthy asset would already count as failed"
-            )
-        direction = "above" if thr > hi_band else "below"
-    elif (direction == "above" and thr <= hi_band) or (direction == "below" and thr >= lo_band):
-        side = "above" if direction == "above" else "below"
-        edge = hi_band if direction == "above" else lo_band
-        raise ValueError(
-            f"threshold {lv(thr)} is on the wrong side for direction {direction!r}: it must lie "
-            f"{side} the healthy band edge {lv(edge)} (baseline mean {lv(base.mean)}, std "
-            f"{base.std:.4g})"
-        )
-    return direction
-
-
-def _away_from_threshold(
-    x: Tensor, t: Tensor, medians: Tensor, thr: float, direction: str, base: Baseline, onset: str
-) -> list[str]:
-    """The wrong-side rule of ``direction="auto"`` for a series with no onset towards the
-    threshold: an excursion from the healthy band on the other side, at least as far from the
-    healthy mean as the threshold lies on its side, is refused (the threshold looks to be on the
-    wrong side); a smaller one is returned as a flag (a drift of the healthy level).
-    ``medians``: ``(T,)`` the 5-point moving medians of the series oriented to ``direction``."""
-    other = "below" if direction == "above" else "above"
-    sign = 1.0 if direction == "above" else -1.0
-    away = detect_onset(x, t, method=onset, baseline=base, direction=other, after=base.t_end)
-    if away.detected:  # the series left the band, away from the threshold
-        # how far the median went the other way, against the threshold's distance
-        low = torch.nan_to_num(medians[away.index :], nan=math.inf).min()
-        gone, dist = sign * base.mean - float(low), sign * (thr - base.mean)
-        if gone >= dist:
-            raise ValueError(
-                f"threshold {fmt_level(thr, base.std)} is {direction} the healthy band, but the series "
-                f"left the band {other} it (onset at {fmt_time(away.time)}, last value "
-                f"{fmt_level(float(x[-1]), base.std)}; its median moved {gone:.4g} from the "
-                f"healthy mean {fmt_level(base.mean, base.std)}, the threshold lies {dist:.4g} on the other side): the "
-                f"threshold looks to be on the wrong side; set direction={direction!r} "
-                f"(--direction {direction} on the command line) to predict a crossing on that "
-                "side regardless"
-            )
-        return [
-            f"the series left its healthy band {other} it at {fmt_time(away.time)}, away from the "
-            f"threshold (its median moved {gone:.4g} from the healthy mean, the threshold "
-            f"lies {dist:.4g} on the other side): read as a drift of the healthy level; if "
-            f"failure is an excursion {other} the band, the threshold is on the wrong side"
-        ]
-    return []
-
-
 def _trend_models(
     tb: Tensor, yb: Tensor, phi: float, s0b: float, method: str, filt, seed: int,
     gen: torch.Generator, hidden: int, members: int,
@@ -709,7 +546,7 @@ def prognose(
     else:
         base = healthy_baseline(x, t, fraction=baseline, glitch_limit=glitch_limit)
     auto_side = direction == "auto"
-    direction = _side(thr, direction, base)
+    direction = threshold_side(thr, direction, base)
     sign = 1.0 if direction == "above" else -1.0
     yo, thr_o = sign * x, sign * thr  # oriented: degradation raises yo
     medians = moving_median(yo, 5)
@@ -719,9 +556,9 @@ def prognose(
             f"threshold {fmt_level(thr, base.std)} already reached: the median of the last 5 "
             f"values is {fmt_level(sign * now, base.std)} (direction {direction!r}); the RUL is 0"
         )
-    flags = _baseline_flags(base)
+    flags = baseline_flags(base)
     if not isinstance(baseline, Baseline) and glitch_limit is None:
-        flags += _glitch_flags(base, healthy_baseline(x, t, fraction=baseline,
+        flags += glitch_flags(base, healthy_baseline(x, t, fraction=baseline,
                                                       glitch_limit=GLITCH_SCREEN))  # fmt: skip
     over = torch.nonzero(medians >= thr_o).flatten()
     if over.numel():  # (the newest median is below it: checked above)
@@ -737,7 +574,7 @@ def prognose(
         )
     ons = detect_onset(x, t, method=onset, baseline=base, direction=direction, after=base.t_end)
     if auto_side and not ons.detected:
-        flags += _away_from_threshold(x, t, medians, thr, direction, base, onset)
+        flags += away_from_threshold(x, t, medians, thr, direction, base, onset)
     gen = torch.Generator().manual_seed(seeds[0])
     span_life = t_last - float(t[0])
     dt_data = float(torch.diff(t).median())
@@ -748,7 +585,7 @@ def prognose(
 
     reported = _on_input(ons, keep)
     if not ons.detected:
-        flags += _onset_pending(medians, sign * base.mean + _K * base.std, sign, base.std)
+        flags += onset_pending(medians, sign * base.mean + BAND_K * base.std, sign, base.std)
         return _no_degradation(t, yo, thr_o, sign, base, reported, gen, t_eval, span_life,
                                dt_data, filters[0], flags, common, horizon_factor,
                                n_paths)  # fmt: skip
@@ -800,8 +637,8 @@ def prognose(
             "the asset has already failed; evaluate at the last observation instead"
         )
     censored = float(dist.censored_mass)
-    flags += _flags(fit, thr_o, passage, int(t_on.shape[0]), censored)
-    flags += _beyond_the_data(y_on, phi, noise0, thr_o, method, flags)
+    flags += fit_flags(fit, thr_o, passage, int(t_on.shape[0]), censored)
+    flags += beyond_the_data(y_on, phi, noise0, thr_o, method, flags)
     if block > 1:
         flags.append(f"{t_on.shape[0]} values since onset were averaged in blocks of {block}")
     paths = _uniform_paths(passage.paths, grid, t_eval, bin_width, bins, sign)
