@@ -340,6 +340,62 @@ def _iterated_smoother(
     return _at(sm.means, last), _at(sm.chols, last), z, w
 
 
+def _sample_rul(
+    mean: Tensor, chol: Tensor, seeds: list[int], samples: int, log_thr: Tensor,
+    tau_last: Tensor, horizon: float | None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
+    """Step 4 of the module docstring: ``samples`` draws of ``[a, beta]`` from ``N(mean, chol
+    chol^T)`` ``(B, 2)``, ``(B, 2, 2)``, each asset from its own generator (``seeds``), their
+    closed-form first passage of ``log_thr`` ``(B, 1)`` after ``tau_last`` ``(B, 1)``. Returns
+    the ``(B,)`` median, q05, q95 (lower empirical quantiles), censored mass and
+    ``P(RUL <= horizon)``."""
+    dt = mean.dtype
+    eps = torch.stack(
+        [
+            torch.randn(samples, 2, generator=torch.Generator().manual_seed(sd), dtype=dt)
+            for sd in seeds
+        ]
+    ).to(mean.device)
+    theta = mean[:, None, :] + (chol[:, None, :, :] * eps[:, :, None, :]).sum(-1)
+    a, b = theta[..., 0], theta[..., 1]
+    cross = torch.where(b > 0, (log_thr - a) / torch.where(b > 0, b, 1.0), torch.inf)
+    rul = torch.clamp(cross - tau_last, min=0.0)
+    rul = torch.where(a + b * tau_last >= log_thr, torch.zeros_like(rul), rul)
+    srt = rul.sort(-1).values
+    censored = torch.isinf(rul).to(dt).mean(-1)
+    if horizon is None:
+        p_fail = 1.0 - censored
+    else:
+        p_fail = (rul <= float(horizon)).to(dt).mean(-1)
+    q = [_lower_quantile(srt, level) for level in (0.5, 0.05, 0.95)]
+    return q[0], q[1], q[2], censored, p_fail
+
+
+def _flag_strings(checks: list[tuple[str, Tensor]], B: int) -> list[str]:
+    """Per asset, the ``;``-separated names of the ``(B,)`` boolean ``checks`` it fails."""
+    masks = [(name, m.cpu().numpy()) for name, m in checks]
+    return [";".join(name for name, m in masks if m[i]) for i in range(B)]
+
+
+def _prior_scales(t: Tensor, lengths: Tensor, prior_std: tuple) -> tuple[float, Tensor]:
+    """The prior std of ``a`` (a number) and of ``beta`` ``(B,)``: ``prior_std[1]``, or with
+    ``None`` one log unit per median sampling interval of each asset."""
+    T = t.shape[1]
+    step = torch.diff(t, dim=1)
+    step = torch.where(torch.isnan(step), torch.inf, step)
+    if T > 1:
+        med_dt = torch.where(
+            (lengths > 1),
+            step.sort(1).values.gather(1, ((lengths - 2) // 2).clamp(min=0)[:, None])[:, 0],
+            1.0,
+        )
+    else:  # a shard of one-row assets (flagged too_few_rows below)
+        med_dt = torch.ones_like(t[:, 0])
+    sa = float(prior_std[0])
+    sb = (1.0 / med_dt) if prior_std[1] is None else torch.full_like(med_dt, float(prior_std[1]))
+    return sa, sb
+
+
 def exponential_trend_rul(
     batch: PaddedBatch,
     threshold: float,
@@ -504,18 +560,7 @@ def exponential_trend_rul(
         weight = torch.ones_like(zs)
 
     # prior and noise per asset
-    step = torch.diff(t, dim=1)
-    step = torch.where(torch.isnan(step), torch.inf, step)
-    if T > 1:
-        med_dt = torch.where(
-            (lengths > 1),
-            step.sort(1).values.gather(1, ((lengths - 2) // 2).clamp(min=0)[:, None])[:, 0],
-            1.0,
-        )
-    else:  # a shard of one-row assets (flagged too_few_rows below)
-        med_dt = torch.ones_like(t[:, 0])
-    sa = float(prior_std[0])
-    sb = (1.0 / med_dt) if prior_std[1] is None else torch.full_like(med_dt, float(prior_std[1]))
+    sa, sb = _prior_scales(t, lengths, prior_std)
     if per_asset:  # prior level: the first usable value since onset (no log-domain baseline)
         first = (~torch.isnan(zs)).to(torch.int64).argmax(1, keepdim=True)
         a0 = torch.nan_to_num(zs.gather(1, first)[:, 0], nan=0.0)
@@ -544,28 +589,9 @@ def exponential_trend_rul(
         mean, chol, zs, weight = _gauss_newton(filt, drift, prior, prior_sd, data, mean)
     misfit_p = _lack_of_fit(zs, taus, weight, mean, zb_std, nzb)
 
-    # RUL from posterior samples, each asset with its own generator
-    eps = torch.stack(
-        [
-            torch.randn(samples, 2, generator=torch.Generator().manual_seed(sd), dtype=dt)
-            for sd in batch.seeds
-        ]
-    ).to(dev)
-    theta = mean[:, None, :] + (chol[:, None, :, :] * eps[:, :, None, :]).sum(-1)
-    a, b = theta[..., 0], theta[..., 1]
-    tau_last = (t_last - t_on)[:, None]
-    cross = torch.where(b > 0, (log_thr - a) / torch.where(b > 0, b, 1.0), torch.inf)
-    rul = torch.clamp(cross - tau_last, min=0.0)
-    rul = torch.where(a + b * tau_last >= log_thr, torch.zeros_like(rul), rul)
-    srt = rul.sort(-1).values
-    censored = torch.isinf(rul).to(dt).mean(-1)
-    if horizon is None:
-        p_fail = 1.0 - censored
-    else:
-        p_fail = (rul <= float(horizon)).to(dt).mean(-1)
-    med = _lower_quantile(srt, 0.5)
-    q05 = _lower_quantile(srt, 0.05)
-    q95 = _lower_quantile(srt, 0.95)
+    med, q05, q95, censored, p_fail = _sample_rul(
+        mean, chol, batch.seeds, samples, log_thr, (t_last - t_on)[:, None], horizon
+    )
     far = torch.nan_to_num(med, nan=math.inf) > extrapolation_limit * (t_last - t_on).clamp(
         min=torch.finfo(dt).tiny
     )
@@ -597,7 +623,6 @@ def exponential_trend_rul(
     ):
         out[key] = torch.where(reached & enough, val, out[key])
     res: dict[str, object] = {key: v.cpu().numpy() for key, v in out.items()}
-    flags = []
     checks = [
         ("too_few_rows", ~enough),
         ("no_baseline", enough & ~base_ok),
@@ -612,10 +637,7 @@ def exponential_trend_rul(
         ("fit_past_threshold", past),
         ("last_rows_missing", usable & (last_obs < lengths - 1)),
     ]
-    masks = [(name, m.cpu().numpy()) for name, m in checks]
-    for i in range(B):
-        flags.append(";".join(name for name, m in masks if m[i]))
-    res["flags"] = flags
+    res["flags"] = _flag_strings(checks, B)
     if return_posterior:
         res.update(
             posterior_mean=mean,
