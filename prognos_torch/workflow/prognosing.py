@@ -560,18 +560,7 @@ def prognose(
     if not isinstance(baseline, Baseline) and glitch_limit is None:
         flags += glitch_flags(base, healthy_baseline(x, t, fraction=baseline,
                                                       glitch_limit=GLITCH_SCREEN))  # fmt: skip
-    over = torch.nonzero(medians >= thr_o).flatten()
-    if over.numel():  # (the newest median is below it: checked above)
-        flags.append(
-            f"the median of 5 values already reached the threshold at {fmt_time(float(t[over[0]]))} "
-            f"and fell back ({over.numel()} such medians): the asset may already count as "
-            "failed; the RUL is that of a new crossing"
-        )
-    if float(yo[-1]) >= thr_o:
-        flags.append(
-            "the last value is beyond the threshold while the median of the last 5 is not "
-            "(a spike or the start of failure)"
-        )
+    flags += _touched_threshold(t, yo, medians, thr_o)
     ons = detect_onset(x, t, method=onset, baseline=base, direction=direction, after=base.t_end)
     if auto_side and not ons.detected:
         flags += away_from_threshold(x, t, medians, thr, direction, base, onset)
@@ -594,30 +583,15 @@ def prognose(
     t_on, y_on = t[i0:], yo[i0:]
     noise0 = base.noise if base.noise is not None else base.std
     tb, yb, s0b, block = _blocks(t_on, y_on, noise0, max_points)
-    plan = [(filt, s) for filt in filters for s in seeds]
-    runs = []  # per filter and seed: its models, pool and selection
-    for j, (filt, s) in enumerate(plan):
-        # each run's noise choice draws from its own stream seeded with its seed, so its
-        # models are those of prognose(filter=that filter, seed=that seed); the final paths
-        # continue the first run's stream
-        g = gen if j == 0 else torch.Generator().manual_seed(s)
-        models, per_pair, pairs = _trend_models(
-            tb, yb, phi, s0b, method, filt, s, g, learner_hidden, learner_members
-        )
-        runs.append((models, *_pool(models, per_pair, len(pairs), method)))
-    models, pool, selection, _ = runs[0]
+    runs = _fit_runs(tb, yb, phi, s0b, method, filters, seeds, gen, learner_hidden,
+                     learner_members)  # fmt: skip
     for _, _, _, doubt in runs:
         flags += [f for f in doubt if f not in flags]
+    models, pool, selection, _ = runs[0]
     fit = _level_fit(models, pool)
     pooled = tuple(m[k] for m, pl, _, _ in runs for k in pl)
     filter_names = [_filter_label(m, pl) for m, pl, _, _ in runs]
-    names = [n + (f", seed {s}" if len(seeds) > 1 else "") for n, (_, s) in zip(filter_names, plan)]
-    chosen = selection["chosen"]
-    if len(runs) > 1:  # the pools of every filter and seed, with equal weights
-        chosen = " + ".join(f"{sel['chosen']} ({n})" for (_, _, sel, _), n in zip(runs, names))
-        key = "by_filter" if len(seeds) == 1 else "by_run"
-        selection = dict(selection, chosen=chosen,
-                         **{key: {n: sel for (_, _, sel, _), n in zip(runs, names)}})  # fmt: skip
+    chosen, selection = _pooled_selection(runs, filter_names, filters, seeds)
     horizon = max(horizon_factor * span_life, 10.0 * (t_last - float(t[i0])), 10 * dt_data)
     horizon += t_eval - t_last
     bin_width = max(dt_data, horizon / _MAX_BINS)
@@ -664,6 +638,61 @@ def prognose(
 
 
 # ----------------------------------------------------------------------------- helpers
+def _touched_threshold(t: Tensor, yo: Tensor, medians: Tensor, thr_o: float) -> list[str]:
+    """Flags of a threshold touched but not held: 5-value medians that reached it and fell
+    back, and a last value beyond it while the newest median is not (``yo``, ``medians``
+    ``(T,)``: the series and its medians oriented to the direction of degradation)."""
+    out = []
+    over = torch.nonzero(medians >= thr_o).flatten()
+    if over.numel():  # (the newest median is below it: checked before)
+        out.append(
+            f"the median of 5 values already reached the threshold at {fmt_time(float(t[over[0]]))} "
+            f"and fell back ({over.numel()} such medians): the asset may already count as "
+            "failed; the RUL is that of a new crossing"
+        )
+    if float(yo[-1]) >= thr_o:
+        out.append(
+            "the last value is beyond the threshold while the median of the last 5 is not "
+            "(a spike or the start of failure)"
+        )
+    return out
+
+
+def _fit_runs(
+    tb: Tensor, yb: Tensor, phi: float, s0b: float, method: str, filters: tuple, seeds: tuple,
+    gen: torch.Generator, hidden: int, members: int,
+) -> list[tuple]:  # fmt: skip
+    """Steps 3-4 once per filter and seed (filters outer): each run's ``(models, pool,
+    selection, doubt flags)``. Each run's noise choice draws from its own stream seeded with
+    its seed, so its models are those of ``prognose(filter=that filter, seed=that seed)``; the
+    first run draws from ``gen``, whose stream the final paths continue."""
+    runs = []
+    for j, (filt, s) in enumerate((filt, s) for filt in filters for s in seeds):
+        g = gen if j == 0 else torch.Generator().manual_seed(s)
+        models, per_pair, pairs = _trend_models(
+            tb, yb, phi, s0b, method, filt, s, g, hidden, members
+        )
+        runs.append((models, *_pool(models, per_pair, len(pairs), method)))
+    return runs
+
+
+def _pooled_selection(
+    runs: list[tuple], filter_names: list[str], filters: tuple, seeds: tuple
+) -> tuple[str, dict]:
+    """The model name and the ``selection`` record of the result: the first run's, or with
+    several runs (filters x seeds, pooled with equal weights) every run's pool named by its
+    filter (and seed), with each run's selection under ``by_filter`` (``by_run`` with seeds)."""
+    selection = runs[0][2]
+    if len(runs) == 1:
+        return selection["chosen"], selection
+    plan = [(filt, s) for filt in filters for s in seeds]
+    names = [n + (f", seed {s}" if len(seeds) > 1 else "") for n, (_, s) in zip(filter_names, plan)]
+    chosen = " + ".join(f"{sel['chosen']} ({n})" for (_, _, sel, _), n in zip(runs, names))
+    key = "by_filter" if len(seeds) == 1 else "by_run"
+    by = {n: sel for (_, _, sel, _), n in zip(runs, names)}
+    return chosen, dict(selection, chosen=chosen, **{key: by})
+
+
 def _unit(src: Series | None) -> str:
     return src.time_unit if src is not None else "steps"
 
