@@ -579,53 +579,63 @@ def _observed_rul(res, truth) -> str | float:
 
 
 def _cmd_rul(args) -> int:
-    from .workflow import rul
-
     if args.json not in (None, "-"):
         check_output_file(args.json, "--json")
     if args.data is None:  # prognos rul DATA.csv ...: no model file
-        from .cli_prognose import load_histories, run_prognose
+        return _rul_from_data(args)
+    return _rul_from_model(args)
 
-        given = [
-            f"--{k.replace('_', '-')}"
-            for k in MODEL_RUL_DEFAULTS
-            if k != "filter" and getattr(args, k) is not None
-        ]
-        if given:
-            raise ValueError(
-                f"{', '.join(given)} {'apply' if len(given) > 1 else 'applies'} with a model "
-                "file (prognos rul MODEL DATA.csv); "
-                "without one, prognose sets its horizon from the observed life and filters "
-                "every value since onset (--paths, --method, --filter, --seed, --direction apply)"
-            )
-        given = [f"--{k.replace('_', '-')}" for k in CALIBRATE_DEFAULTS
-                 if getattr(args, k) is not None]  # fmt: skip
-        if given and args.calibrate is None:  # (they were ignored without a word)
-            raise ValueError(
-                f"{', '.join(given)} {'apply' if len(given) > 1 else 'applies'} with "
-                "--calibrate TABLE: the replay of its histories"
-            )
-        for k, v in {**PROGNOSE_RUL_DEFAULTS, **CALIBRATE_DEFAULTS}.items():
-            if getattr(args, k) is None:
-                setattr(args, k, v)
-        args.data = args.model
-        check_output_file(args.plot, "--plot")
-        check_output_file(args.calibration_out, "--calibration-out")
-        check_overwrites(
-            {"--plot": args.plot, "--calibration-out": args.calibration_out, "--json": args.json},
-            {"the data file": args.data, "the --calibrate table": args.calibrate,
-             "the --calibration file": args.calibration},
-        )  # fmt: skip
-        if args.workers < 1:
-            raise ValueError(f"--workers must be >= 1 (processes), got {args.workers}")
-        series, data_cfg = _series_from_args(args)
-        truth = _series_from_args(args, data_cfg, truth=True)[0] if args.until else None
-        _warn_nothing_after(truth, series, args.until)
-        histories = load_histories(args, series)
-        censored = run_prognose(args, series, data_cfg, truth, histories)
-        if censored:
-            raise _CensoredRUL(censored)
-        return 0
+
+def _rul_from_data(args) -> int:
+    """``prognos rul DATA.csv ...`` (no model file): ``prognose``, optionally calibrated on a
+    table of failed histories (``cli_prognose``); options of the model-file path refused."""
+    from .cli_prognose import load_histories, run_prognose
+
+    given = [
+        f"--{k.replace('_', '-')}"
+        for k in MODEL_RUL_DEFAULTS
+        if k != "filter" and getattr(args, k) is not None
+    ]
+    if given:
+        raise ValueError(
+            f"{', '.join(given)} {'apply' if len(given) > 1 else 'applies'} with a model "
+            "file (prognos rul MODEL DATA.csv); "
+            "without one, prognose sets its horizon from the observed life and filters "
+            "every value since onset (--paths, --method, --filter, --seed, --direction apply)"
+        )
+    given = [f"--{k.replace('_', '-')}" for k in CALIBRATE_DEFAULTS
+             if getattr(args, k) is not None]  # fmt: skip
+    if given and args.calibrate is None:  # (they were ignored without a word)
+        raise ValueError(
+            f"{', '.join(given)} {'apply' if len(given) > 1 else 'applies'} with "
+            "--calibrate TABLE: the replay of its histories"
+        )
+    for k, v in {**PROGNOSE_RUL_DEFAULTS, **CALIBRATE_DEFAULTS}.items():
+        if getattr(args, k) is None:
+            setattr(args, k, v)
+    args.data = args.model
+    check_output_file(args.plot, "--plot")
+    check_output_file(args.calibration_out, "--calibration-out")
+    check_overwrites(
+        {"--plot": args.plot, "--calibration-out": args.calibration_out, "--json": args.json},
+        {"the data file": args.data, "the --calibrate table": args.calibrate,
+         "the --calibration file": args.calibration},
+    )  # fmt: skip
+    if args.workers < 1:
+        raise ValueError(f"--workers must be >= 1 (processes), got {args.workers}")
+    series, data_cfg = _series_from_args(args)
+    truth = _series_from_args(args, data_cfg, truth=True)[0] if args.until else None
+    _warn_nothing_after(truth, series, args.until)
+    histories = load_histories(args, series)
+    censored = run_prognose(args, series, data_cfg, truth, histories)
+    if censored:
+        raise _CensoredRUL(censored)
+    return 0
+
+
+def _check_model_rul_options(args) -> None:
+    """With a model file, the options of ``prognose`` and its calibration are refused by name
+    (they were ignored without a word)."""
     if args.glitch_limit is not None:
         raise ValueError(
             "--glitch-limit applies without a model file (prognos rul DATA.csv --column C ...): "
@@ -657,6 +667,13 @@ def _cmd_rul(args) -> int:
             "--seed: several seeds pool prognose's models (prognos rul DATA.csv --column C "
             "...); with a model file give one seed for the particle draws"
         )
+
+
+def _rul_from_model(args) -> int:
+    """``prognos rul MODEL DATA.csv``: the fitted learner's particle-filter RUL (``workflow.rul``)."""
+    from .workflow import rul
+
+    _check_model_rul_options(args)
     for k, v in MODEL_RUL_DEFAULTS.items():
         if getattr(args, k) is None:
             setattr(args, k, v)
