@@ -378,6 +378,38 @@ def _holdout_size(holdout, T: int) -> int:
     return n
 
 
+def _training_size(series: Series, learner: str, m, holdout) -> tuple[int | None, int, int]:
+    """``m`` (an int >= 1 or ``None``), the held-out count and the training count, with the
+    refusals of a series too short for them (``ValueError`` naming ``m`` and the counts)."""
+    T = len(series)
+    if m is not None:
+        if not is_int(m) or m < 1:
+            raise ValueError(f"embedding dimension m must be a positive int, got {m!r}")
+        m = int(m)
+        if T < m + 1:
+            raise ValueError(
+                f"series {series.name!r} has {T} values; embedding m={m} needs at least "
+                f"m + 1 = {m + 1} (one window and its next value)"
+            )
+    n_hold = _holdout_size(holdout, T)
+    n_train = T - n_hold
+    min_train = (m + 1) if m is not None else 2 * min(M_CANDIDATES[learner]) + 3
+    if n_train < min_train or n_train < 3:
+        raise ValueError(
+            f"series {series.name!r} has {T} values, {n_train} after holding out {n_hold}: too "
+            f"short to train (need at least {max(min_train, 3)}"
+            + (f" for m={m})" if m is not None else " to choose m; or give m)")
+        )
+    if m is not None and n_train - m < m + 1:  # fewer windows than a linear map's m + 1 terms
+        raise ValueError(
+            f"series {series.name!r} has {n_train} training values: embedding m={m} leaves "
+            f"{n_train - m} training window(s), fewer than the m + 1 = {m + 1} coefficients of "
+            f"even a linear map on them; give m <= {(n_train - 1) // 2} (--embedding) or leave "
+            "it out to have it chosen"
+        )
+    return m, n_hold, n_train
+
+
 def fit_series(
     series: Series,
     learner: str = "anfis",
@@ -434,32 +466,8 @@ def fit_series(
         progress = check_flag(progress, "progress")
     if data is not None and not isinstance(data, Mapping):  # (was found after the training)
         raise TypeError(f"data must be a dict or None, got {type(data).__name__}")
+    m, n_hold, n_train = _training_size(series, learner, m, holdout)
     T = len(series)
-    if m is not None:
-        if not is_int(m) or m < 1:
-            raise ValueError(f"embedding dimension m must be a positive int, got {m!r}")
-        m = int(m)
-        if T < m + 1:
-            raise ValueError(
-                f"series {series.name!r} has {T} values; embedding m={m} needs at least "
-                f"m + 1 = {m + 1} (one window and its next value)"
-            )
-    n_hold = _holdout_size(holdout, T)
-    n_train = T - n_hold
-    min_train = (m + 1) if m is not None else 2 * min(M_CANDIDATES[learner]) + 3
-    if n_train < min_train or n_train < 3:
-        raise ValueError(
-            f"series {series.name!r} has {T} values, {n_train} after holding out {n_hold}: too "
-            f"short to train (need at least {max(min_train, 3)}"
-            + (f" for m={m})" if m is not None else " to choose m; or give m)")
-        )
-    if m is not None and n_train - m < m + 1:  # fewer windows than a linear map's m + 1 terms
-        raise ValueError(
-            f"series {series.name!r} has {n_train} training values: embedding m={m} leaves "
-            f"{n_train - m} training window(s), fewer than the m + 1 = {m + 1} coefficients of "
-            f"even a linear map on them; give m <= {(n_train - 1) // 2} (--embedding) or leave "
-            "it out to have it chosen"
-        )
     train = series.values[:n_train]
     scaler = MinMaxScaler((0.0, 1.0))
     try:
