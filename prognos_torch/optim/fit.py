@@ -346,28 +346,14 @@ def fit(
     )
 
 
-def _fit(
-    module: nn.Module,
-    optimizer: torch.optim.Optimizer,
-    train: tuple[Tensor, Tensor],
-    *,
-    epochs: int,
-    batch_size: int,
-    shuffle: bool,
-    generator: torch.Generator | None,
-    val: tuple[Tensor, Tensor] | None,
-    early_stopping: int | None,
-    restore_best: bool,
-    drop_last: bool,
-    progress: bool | None,
-    metrics: Sequence[str | Callable],
-    loss_fn: Callable[[Tensor, Tensor], Tensor] | None,
-    compile: bool,
-    observed: bool = True,
-) -> History:
-    """:func:`fit`; with ``observed=False`` a ``train`` whose targets (of a run) are all missing
-    is taken too (a block of a stream, :mod:`~prognos_torch.optim.online`: the Kalman steps are
-    predictions, a gradient optimiser takes none, the losses and metrics are NaN)."""
+def _checked(
+    module: nn.Module, optimizer: torch.optim.Optimizer, train, val, epochs, batch_size,
+    shuffle: bool, generator, early_stopping, metrics, loss_fn, compile, observed: bool,
+) -> tuple:  # fmt: skip
+    """The checks of :func:`fit` before any step, as ``(X, Y, Xv, Yv, missing, per_run, kalman,
+    fns, loss_fn)`` (``Xv``, ``Yv`` ``None`` without ``val``; ``missing``: ``train`` has NaN
+    targets; ``fns``: the named metrics; ``loss_fn`` the default one where ``None``)."""
+    Xv = Yv = None
     per_run = isinstance(optimizer, KalmanOptimizer) and optimizer.per_run_data
     runs = optimizer.runs if per_run else None
     X, Y = _check_data(train, "train", runs)
@@ -442,6 +428,101 @@ def _fit(
             )
     if val is not None:
         _check_outputs(module, optimizer, Xv, Yv, "val", per_run)
+    return X, Y, Xv, Yv, missing, per_run, kalman, fns, loss_fn
+
+
+def _epoch_steps(
+    module: nn.Module, optimizer: torch.optim.Optimizer, X: Tensor, Y: Tensor, order: Tensor,
+    n_batches: int, batch_size: int, shuffle: bool, per_run: bool, kalman: bool, missing: bool,
+    compile: bool, loss_fn: Callable, losses: list, hist: History, bar,
+) -> float:  # fmt: skip
+    """One epoch's steps over the mini-batches of ``order``: the full ones through the compiled
+    pass with ``compile``, the rest eager (a Kalman step, or a gradient step by a closure).
+    Appends each step's loss to ``losses``, counts ``hist.steps``; returns the compile time."""
+    N = X.shape[1 if per_run else 0]
+    compiled_time = 0.0
+    done = 0
+    full = N // batch_size
+    if compile and full > 0:  # (no full mini-batch: the one smaller one is eager)
+        idx = order[: full * batch_size]
+        xs, ys = (X[:, idx], Y[:, idx]) if per_run else (X[idx], Y[idx])
+        shape = (full, batch_size)
+        xs = xs.reshape(*shape, *xs.shape[1:])
+        ys = ys.reshape(*shape, *ys.shape[1:])
+        losses.extend(optimizer.steps(xs, ys, compile=True).to(torch.float64).unbind(0))
+        compiled_time = optimizer.compile_time
+        done = full
+        hist.steps += full
+        if bar is not None:
+            bar.update(full)
+    for b in range(done, n_batches):
+        if shuffle:
+            idx = order[b * batch_size : (b + 1) * batch_size]
+            xb, yb = (X[:, idx], Y[:, idx]) if per_run else (X[idx], Y[idx])
+        else:  # in order: views, no gather
+            sl = slice(b * batch_size, (b + 1) * batch_size)
+            xb, yb = (X[:, sl], Y[:, sl]) if per_run else (X[sl], Y[sl])
+        if kalman:
+            loss = optimizer.step(xb, yb).loss
+        elif missing and not bool((~torch.isnan(yb)).any()):
+            # no observed target: nothing to learn from, no step (a zero gradient
+            # would still move a momentum optimiser); its loss is NaN, left out
+            loss = torch.tensor(math.nan, dtype=torch.float64, device=X.device)
+        else:
+
+            def closure(xb=xb, yb=yb):
+                optimizer.zero_grad()
+                out = loss_fn(module(xb), yb)
+                out.backward()
+                return out
+
+            loss = optimizer.step(closure)
+            if loss is None:  # an optimiser whose step does not return the loss
+                loss = torch.tensor(math.nan, dtype=torch.float64, device=X.device)
+        losses.append(loss.detach().to(torch.float64))
+        hist.steps += 1
+        if bar is not None:
+            bar.update(1)
+    return compiled_time
+
+
+def _fit(
+    module: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    train: tuple[Tensor, Tensor],
+    *,
+    epochs: int,
+    batch_size: int,
+    shuffle: bool,
+    generator: torch.Generator | None,
+    val: tuple[Tensor, Tensor] | None,
+    early_stopping: int | None,
+    restore_best: bool,
+    drop_last: bool,
+    progress: bool | None,
+    metrics: Sequence[str | Callable],
+    loss_fn: Callable[[Tensor, Tensor], Tensor] | None,
+    compile: bool,
+    observed: bool = True,
+) -> History:
+    """:func:`fit`; with ``observed=False`` a ``train`` whose targets (of a run) are all missing
+    is taken too (a block of a stream, :mod:`~prognos_torch.optim.online`: the Kalman steps are
+    predictions, a gradient optimiser takes none, the losses and metrics are NaN)."""
+    X, Y, Xv, Yv, missing, per_run, kalman, fns, loss_fn = _checked(
+        module,
+        optimizer,
+        train,
+        val,
+        epochs,
+        batch_size,
+        shuffle,
+        generator,
+        early_stopping,
+        metrics,
+        loss_fn,
+        compile,
+        observed,
+    )
     N = X.shape[1 if per_run else 0]  # per-run data: (runs, N, ...)
     n_batches = N // batch_size if drop_last else -(-N // batch_size)
     if n_batches == 0:
@@ -477,49 +558,24 @@ def _fit(
             losses = []
             _synchronize(X.device)  # device work queued before the epoch is not its time
             t0 = time.perf_counter()
-            compiled_time = 0.0
-            done = 0
-            full = N // batch_size
-            if compile and full > 0:  # (no full mini-batch: the one smaller one is eager)
-                idx = order[: full * batch_size]
-                xs, ys = (X[:, idx], Y[:, idx]) if per_run else (X[idx], Y[idx])
-                shape = (full, batch_size)
-                xs = xs.reshape(*shape, *xs.shape[1:])
-                ys = ys.reshape(*shape, *ys.shape[1:])
-                losses.extend(optimizer.steps(xs, ys, compile=True).to(torch.float64).unbind(0))
-                compiled_time = optimizer.compile_time
-                done = full
-                hist.steps += full
-                if bar is not None:
-                    bar.update(full)
-            for b in range(done, n_batches):
-                if shuffle:
-                    idx = order[b * batch_size : (b + 1) * batch_size]
-                    xb, yb = (X[:, idx], Y[:, idx]) if per_run else (X[idx], Y[idx])
-                else:  # in order: views, no gather
-                    sl = slice(b * batch_size, (b + 1) * batch_size)
-                    xb, yb = (X[:, sl], Y[:, sl]) if per_run else (X[sl], Y[sl])
-                if kalman:
-                    loss = optimizer.step(xb, yb).loss
-                elif missing and not bool((~torch.isnan(yb)).any()):
-                    # no observed target: nothing to learn from, no step (a zero gradient
-                    # would still move a momentum optimiser); its loss is NaN, left out
-                    loss = torch.tensor(math.nan, dtype=torch.float64, device=X.device)
-                else:
-
-                    def closure(xb=xb, yb=yb):
-                        optimizer.zero_grad()
-                        out = loss_fn(module(xb), yb)
-                        out.backward()
-                        return out
-
-                    loss = optimizer.step(closure)
-                    if loss is None:  # an optimiser whose step does not return the loss
-                        loss = torch.tensor(math.nan, dtype=torch.float64, device=X.device)
-                losses.append(loss.detach().to(torch.float64))
-                hist.steps += 1
-                if bar is not None:
-                    bar.update(1)
+            compiled_time = _epoch_steps(
+                module,
+                optimizer,
+                X,
+                Y,
+                order,
+                n_batches,
+                batch_size,
+                shuffle,
+                per_run,
+                kalman,
+                missing,
+                compile,
+                loss_fn,
+                losses,
+                hist,
+                bar,
+            )
             _synchronize(X.device)  # the steps' queued device work is their time
             hist.time.append(time.perf_counter() - t0 - compiled_time)
             hist.compile_time.append(compiled_time)
