@@ -343,42 +343,9 @@ def _comma_times(cells: list[str], where) -> list[str]:
     return out
 
 
-def read_fleet_table(
-    source,
-    *,
-    group_by: str = "asset",
-    column: str = "value",
-    time_column: str = "t",
-    on_error: str = "raise",
-    decimal: str = ".",
-    time_format: str | None = None,
-    where=None,
-) -> FleetTable:
-    """Read and validate a long table (module docstring) and group it by asset.
-
-    Args:
-        source: a ``.csv`` / ``.parquet`` path, a pandas DataFrame, or a mapping of column
-            name to a 1-D array (all of one length).
-        group_by, column, time_column: the asset, value and time column names.
-        on_error: ``"raise"`` (default) or ``"flag"`` (set the asset aside with its message).
-        decimal: a CSV's decimal mark, ``"."`` (default) or ``","`` (module docstring); Parquet,
-            DataFrames and mappings hold numbers, so it does not apply to them.
-        time_format: the layout of text date-times that are not ISO 8601, in
-            ``datetime.strptime`` codes (e.g. ``"%d/%m/%Y %H:%M"``; a ``%z`` offset is applied,
-            others are UTC); ``None``: numbers or ISO 8601.
-        where: keep only the rows whose cells equal the given values, as
-            :func:`~prognos_torch.workflow.load_series` does: ``{"channel": "5"}`` or
-            ``["channel=5"]`` (``--where channel=5``; ``5`` matches ``5.0``, a missing cell
-            only an empty value, ``channel=``). A where column may be the asset column (a
-            selection of assets), not the time or value column. Row numbers in messages and
-            in :attr:`FleetTable.rows` stay those of the whole table.
-    Returns:
-        :class:`FleetTable`.
-    """
-    if on_error not in ("raise", "flag"):
-        raise ValueError(f"on_error must be 'raise' or 'flag', got {on_error!r}")
-    if decimal not in (".", ","):
-        raise ValueError(f"decimal must be '.' or ',', got {decimal!r}")
+def _roles(group_by: str, time_column: str, column: str, where) -> tuple[tuple, tuple, dict]:
+    """The columns to read, ``(names, whats, where)``: asset, time and value (each in one role)
+    and the ``where`` columns besides them, which may not be the time or value column."""
     names = (group_by, time_column, column)
     whats = ("asset (--group-by)", "time (--time-column)", "value (--column)")
     for i in range(3):
@@ -396,6 +363,13 @@ def read_fleet_table(
             )
     extra = [c for c in where if c != group_by]  # read besides the three
     names, whats = names + tuple(extra), whats + ("where",) * len(extra)
+    return names, whats, where
+
+
+def _source_columns(source, names: tuple, whats: tuple) -> tuple[list, list | None, str]:
+    """The columns ``names`` of a CSV or Parquet path, a DataFrame or a mapping, as
+    ``(columns, lines, label)`` (``lines``: a CSV row's line in its file, else ``None``;
+    ``label``: the source in messages)."""
     lines = None
     if isinstance(source, (str, Path)):
         path = Path(source)
@@ -432,6 +406,72 @@ def read_fleet_table(
             "source must be a .csv/.parquet path, a pandas DataFrame or a mapping of columns, "
             f"got {type(source).__name__}"
         )
+    return cols, lines, label
+
+
+def _selected_rows(
+    cols: list, lines: list | None, names: tuple, where: dict, decimal: str, label: str
+) -> tuple[list, list | None, np.ndarray]:
+    """The rows whose ``where`` cells match (each distinct cell compared once), as ``(columns,
+    lines, rowid)`` (``rowid``: each kept row's 0-based row in the whole table); every row
+    without ``where``."""
+    n = len(cols[0])
+    if not where:
+        return cols, lines, np.arange(n)
+    by_name = dict(zip(names, cols))
+    mark = decimal if lines is not None else "."  # (other sources hold numbers)
+    keep = np.ones(n, dtype=bool)
+    for name, value in where.items():  # each distinct cell compared once
+        text, inverse = np.unique(_asset_text(by_name[name]).astype(str), return_inverse=True)
+        hits = np.array([cells_equal(str(c), value, mark) for c in text], dtype=bool)
+        keep &= hits[inverse.reshape(-1)]
+    if not keep.any():
+        sel = ", ".join(f"{k}={v}" for k, v in where.items())
+        raise ValueError(f"{label}: no data rows matching {sel} (where)")
+    rowid = np.flatnonzero(keep)
+    cols = [c[rowid] if isinstance(c, np.ndarray) else [c[i] for i in rowid] for c in cols]
+    lines = None if lines is None else [lines[i] for i in rowid]
+    return cols, lines, rowid
+
+
+def read_fleet_table(
+    source,
+    *,
+    group_by: str = "asset",
+    column: str = "value",
+    time_column: str = "t",
+    on_error: str = "raise",
+    decimal: str = ".",
+    time_format: str | None = None,
+    where=None,
+) -> FleetTable:
+    """Read and validate a long table (module docstring) and group it by asset.
+
+    Args:
+        source: a ``.csv`` / ``.parquet`` path, a pandas DataFrame, or a mapping of column
+            name to a 1-D array (all of one length).
+        group_by, column, time_column: the asset, value and time column names.
+        on_error: ``"raise"`` (default) or ``"flag"`` (set the asset aside with its message).
+        decimal: a CSV's decimal mark, ``"."`` (default) or ``","`` (module docstring); Parquet,
+            DataFrames and mappings hold numbers, so it does not apply to them.
+        time_format: the layout of text date-times that are not ISO 8601, in
+            ``datetime.strptime`` codes (e.g. ``"%d/%m/%Y %H:%M"``; a ``%z`` offset is applied,
+            others are UTC); ``None``: numbers or ISO 8601.
+        where: keep only the rows whose cells equal the given values, as
+            :func:`~prognos_torch.workflow.load_series` does: ``{"channel": "5"}`` or
+            ``["channel=5"]`` (``--where channel=5``; ``5`` matches ``5.0``, a missing cell
+            only an empty value, ``channel=``). A where column may be the asset column (a
+            selection of assets), not the time or value column. Row numbers in messages and
+            in :attr:`FleetTable.rows` stay those of the whole table.
+    Returns:
+        :class:`FleetTable`.
+    """
+    if on_error not in ("raise", "flag"):
+        raise ValueError(f"on_error must be 'raise' or 'flag', got {on_error!r}")
+    if decimal not in (".", ","):
+        raise ValueError(f"decimal must be '.' or ',', got {decimal!r}")
+    names, whats, where = _roles(group_by, time_column, column, where)
+    cols, lines, label = _source_columns(source, names, whats)
     for name, c in zip(names, cols):  # one cell per row: a single id or time is not spread
         if np.ndim(c) != 1:
             raise ValueError(
@@ -446,22 +486,8 @@ def read_fleet_table(
             )
     if n == 0:
         raise ValueError(f"{label}: the table has no data rows")
-    rowid = np.arange(n)  # the whole table's row of each row kept (0-based)
-    if where:
-        by_name = dict(zip(names, cols))
-        mark = decimal if lines is not None else "."  # (other sources hold numbers)
-        keep = np.ones(n, dtype=bool)
-        for name, value in where.items():  # each distinct cell compared once
-            text, inverse = np.unique(_asset_text(by_name[name]).astype(str), return_inverse=True)
-            hits = np.array([cells_equal(str(c), value, mark) for c in text], dtype=bool)
-            keep &= hits[inverse.reshape(-1)]
-        if not keep.any():
-            sel = ", ".join(f"{k}={v}" for k, v in where.items())
-            raise ValueError(f"{label}: no data rows matching {sel} (where)")
-        rowid = np.flatnonzero(keep)
-        cols = [c[rowid] if isinstance(c, np.ndarray) else [c[i] for i in rowid] for c in cols]
-        lines = None if lines is None else [lines[i] for i in rowid]
-        n = rowid.size
+    cols, lines, rowid = _selected_rows(cols, lines, names, where, decimal, label)
+    n = rowid.size
     cols = cols[:3]
 
     def where(i, asset=None):
