@@ -185,8 +185,77 @@ def main(argv: list[str] | None = None) -> int:
         return _run(args)
 
 
-def _run(args) -> int:
+def _calibration(args, same: dict, cal_where, method_options: dict) -> tuple:
+    """``--calibrate FAILED``: the fleet's calibration on its failed assets, ``(calibration,
+    points)``; an error about the table or ``--calibrate-where`` names that option."""
     from .calibrate import calibrate_fleet
+
+    try:
+        cal, cal_points = calibrate_fleet(
+            args.calibrate, args.threshold, **same, workers=args.workers,
+            on_error=args.on_error, where=cal_where, **method_options,
+        )  # fmt: skip
+    except FileNotFoundError as exc:
+        raise FileNotFoundError(f"--calibrate: {exc}") from None
+    except ValueError as exc:
+        if option_of(str(exc), _OPTION_OF) is not None:  # a setting of both runs, not the table
+            raise
+        text = where_message(str(exc), "--calibrate-where")
+        if text.startswith("--calibrate-where: "):  # the option's value, not the table
+            raise ValueError(text) from None
+        raise ValueError(f"--calibrate: {text}") from None
+    return cal, cal_points
+
+
+def _report(args, res, cal, cal_points, seconds: float) -> None:
+    """What a fleet run printed: the counts, each flag's assets, the calibration's margin and
+    the set-aside assets (their messages on stderr)."""
+    n = len(res)
+    with_rul = sum(1 for v in res.columns["rul_median"] if v == v)
+    counts = Counter(f for fl in res.columns["flags"] for f in fl.split(";") if f)
+    unit = f" {res.time_unit}" if res.time_unit else ""
+    print(
+        f"{n} assets, {with_rul} with a RUL, in {seconds:.1f} s "
+        f"({args.backend}{f', {args.workers} workers' if args.workers > 1 else ''}, shards of "
+        f"{res.shard_size}); written to {args.out}"
+        + (f" (times in{unit} since {res.epoch}; dates in the *_date columns)" if res.epoch else "")
+    )
+    if args.phi in (None, "auto") and "phi" in res.columns:  # which offset each trend took
+        rul = [p for p, m in zip(res.columns["phi"], res.columns["rul_median"]) if m == m]
+        level = sum(1 for p in rul if p != 0)
+        print(f"  trend offset (--phi auto): the healthy level for {level}, 0 for "
+              f"{len(rul) - level} of the {len(rul)} with a RUL")  # fmt: skip
+    for flag, c in sorted(counts.items()):
+        print(f"  {flag}: {c} asset(s)")
+    if cal is not None:
+        how = (
+            f"margin {cal.margin:+.3g} on the log RUL: ends moved "
+            f"{'out' if cal.margin >= 0 else 'in'} by a factor {math.exp(abs(cal.margin)):.3g}"
+            if math.isfinite(cal.margin)
+            else "too few points for 90 % coverage: the calibrated interval is [0, inf)"
+        )
+        if cal.margins:
+            how = (
+                f"{len(cal.margins)} bins of the predicted median RUL, margins "
+                + ", ".join(f"{q:+.3g}" for q in cal.margins)
+                + " on the log RUL (shortest RUL first)"
+            )
+        print(f"  calibrated on {cal.n} points of {cal.assets} failed assets ({args.calibrate}): {how}")
+        if (few := cal.warning("failed assets")) is not None:
+            print(f"  warning: {few}")
+        # failed assets that gave no point (set aside, too short, no onset): their reasons
+        aside = [(a, s) for a, s in zip(cal_points["asset"], cal_points["status"]) if "@" not in a]
+        if aside:
+            print(f"  {len(aside)} failed asset(s) gave no calibration point (first, {aside[0][0]!r}: "
+                  f"{aside[0][1]})", file=sys.stderr)  # fmt: skip
+    bad = [m for m in res.columns["message"] if m]
+    for m in bad[:5]:
+        print(f"  {m}", file=sys.stderr)
+    if len(bad) > 5:
+        print(f"  ... and {len(bad) - 5} more set-aside assets", file=sys.stderr)
+
+
+def _run(args) -> int:
     from .run import fleet_rul
     from .table import TABLE_SUFFIXES
 
@@ -226,20 +295,7 @@ def _run(args) -> int:
                     time_format=args.time_format)  # fmt: skip
         cal, cal_points = None, None
         if args.calibrate is not None:
-            try:
-                cal, cal_points = calibrate_fleet(
-                    args.calibrate, args.threshold, **same, workers=args.workers,
-                    on_error=args.on_error, where=cal_where, **method_options,
-                )  # fmt: skip
-            except FileNotFoundError as exc:
-                raise FileNotFoundError(f"--calibrate: {exc}") from None
-            except ValueError as exc:
-                if option_of(str(exc), _OPTION_OF) is not None:  # a setting of both runs, not the table
-                    raise
-                text = where_message(str(exc), "--calibrate-where")
-                if text.startswith("--calibrate-where: "):  # the option's value, not the table
-                    raise ValueError(text) from None
-                raise ValueError(f"--calibrate: {text}") from None
+            cal, cal_points = _calibration(args, same, cal_where, method_options)
         res = fleet_rul(
             args.table,
             args.threshold,
@@ -270,47 +326,5 @@ def _run(args) -> int:
             text = f"{option}: {text}"
         print(f"error: {text}", file=sys.stderr)
         return 2
-    n = len(res)
-    with_rul = sum(1 for v in res.columns["rul_median"] if v == v)
-    counts = Counter(f for fl in res.columns["flags"] for f in fl.split(";") if f)
-    unit = f" {res.time_unit}" if res.time_unit else ""
-    print(
-        f"{n} assets, {with_rul} with a RUL, in {time.perf_counter() - t0:.1f} s "
-        f"({args.backend}{f', {args.workers} workers' if args.workers > 1 else ''}, shards of "
-        f"{res.shard_size}); written to {args.out}"
-        + (f" (times in{unit} since {res.epoch}; dates in the *_date columns)" if res.epoch else "")
-    )
-    if args.phi in (None, "auto") and "phi" in res.columns:  # which offset each trend took
-        rul = [p for p, m in zip(res.columns["phi"], res.columns["rul_median"]) if m == m]
-        level = sum(1 for p in rul if p != 0)
-        print(f"  trend offset (--phi auto): the healthy level for {level}, 0 for "
-              f"{len(rul) - level} of the {len(rul)} with a RUL")  # fmt: skip
-    for flag, c in sorted(counts.items()):
-        print(f"  {flag}: {c} asset(s)")
-    if cal is not None:
-        how = (
-            f"margin {cal.margin:+.3g} on the log RUL: ends moved "
-            f"{'out' if cal.margin >= 0 else 'in'} by a factor {math.exp(abs(cal.margin)):.3g}"
-            if math.isfinite(cal.margin)
-            else "too few points for 90 % coverage: the calibrated interval is [0, inf)"
-        )
-        if cal.margins:
-            how = (
-                f"{len(cal.margins)} bins of the predicted median RUL, margins "
-                + ", ".join(f"{q:+.3g}" for q in cal.margins)
-                + " on the log RUL (shortest RUL first)"
-            )
-        print(f"  calibrated on {cal.n} points of {cal.assets} failed assets ({args.calibrate}): {how}")
-        if (few := cal.warning("failed assets")) is not None:
-            print(f"  warning: {few}")
-        # failed assets that gave no point (set aside, too short, no onset): their reasons
-        aside = [(a, s) for a, s in zip(cal_points["asset"], cal_points["status"]) if "@" not in a]
-        if aside:
-            print(f"  {len(aside)} failed asset(s) gave no calibration point (first, {aside[0][0]!r}: "
-                  f"{aside[0][1]})", file=sys.stderr)  # fmt: skip
-    bad = [m for m in res.columns["message"] if m]
-    for m in bad[:5]:
-        print(f"  {m}", file=sys.stderr)
-    if len(bad) > 5:
-        print(f"  ... and {len(bad) - 5} more set-aside assets", file=sys.stderr)
+    _report(args, res, cal, cal_points, time.perf_counter() - t0)
     return 0
