@@ -313,13 +313,10 @@ def _warn_gaps(series) -> None:
     )
 
 
-def _cmd_fit(args) -> int:
-    from .workflow import fit_series, save_model
-
-    check_output_file(args.out, "--out")
-    check_overwrites({"--out": args.out}, {"the data file": args.data})
-    series, data_cfg = _series_from_args(args)
-    _warn_gaps(series)
+def _fit_options(args) -> tuple[dict, dict]:
+    """The learner's and the optimiser's options of ``prognos fit``: the defaults, then
+    ``--learner-option``/``--optimizer-option``, then ``--max-support``/``--epochs`` (an option
+    given twice, or one that does not apply, is refused by name)."""
     from .workflow.model import LEARNER_DEFAULTS, OPTIMIZER_DEFAULTS, check_names
 
     learner, optimizer = check_names(args.learner, args.optimizer)
@@ -339,19 +336,12 @@ def _cmd_fit(args) -> int:
             raise ValueError(f"--max-support applies to --learner lssvr, not {args.learner!r}")
         _not_twice(lopts, "max_support", "--max-support", "--learner-option")
         lopts["max_support"] = args.max_support
-    model = fit_series(
-        series,
-        args.learner,
-        args.optimizer,
-        args.embedding,
-        holdout=_holdout(args.holdout),
-        seed=args.seed,
-        learner_options=lopts,
-        optimizer_options=oopts,
-        data=data_cfg,
-        progress=None,  # bars on a terminal only: stderr stays one line per warning otherwise
-        refit=args.refit,
-    )
+    return lopts, oopts
+
+
+def _fit_report(model, series, data_cfg) -> None:
+    """What ``prognos fit`` prints of a fitted model: its training, the choice of ``m`` and its
+    scores on the held-out tail."""
     cfg = model.config
     span = float(model.scaler.data_max - model.scaler.data_min)
     n_hold = cfg["holdout"]["n"]
@@ -413,6 +403,33 @@ def _cmd_fit(args) -> int:
                 ("metric", "value"),
             )
         )
+
+
+def _cmd_fit(args) -> int:
+    from .workflow import fit_series, save_model
+
+    check_output_file(args.out, "--out")
+    check_overwrites({"--out": args.out}, {"the data file": args.data})
+    series, data_cfg = _series_from_args(args)
+    _warn_gaps(series)
+    lopts, oopts = _fit_options(args)
+    model = fit_series(
+        series,
+        args.learner,
+        args.optimizer,
+        args.embedding,
+        holdout=_holdout(args.holdout),
+        seed=args.seed,
+        learner_options=lopts,
+        optimizer_options=oopts,
+        data=data_cfg,
+        progress=None,  # bars on a terminal only: stderr stays one line per warning otherwise
+        refit=args.refit,
+    )
+    _fit_report(model, series, data_cfg)
+    cfg = model.config
+    n_hold = cfg["holdout"]["n"]
+    n_train = cfg["series"]["n"] - n_hold  # (the scored model's; --refit's file has them all)
     # trained coefficients (the LS-SVR has one per window by design, its C regularises them)
     n_coef = sum(p.numel() for p in model.learner.parameters() if p.requires_grad)
     windows = cfg["series"]["n_train"] - model.m
