@@ -321,6 +321,39 @@ def method_settings(method: str, options: Mapping) -> dict:
     return dict(record_settings(full), method=method)
 
 
+def _gathered_columns(table: FleetTable, shards: list, parts: list, method: str) -> dict:
+    """The result table's columns in the assets' order: each shard's outputs (checked against
+    the method's contract) at its assets' rows, and the set-aside assets as ``bad_input``
+    with their message and row count."""
+    n = len(table.assets)
+    cols: dict[str, list] = {"asset": list(table.assets)}
+    numeric = {c: np.full(n, np.nan) for c in RUL_COLUMNS}
+    flags = [""] * n
+    message = [""] * n
+    extra = [c for c in EXTRA_COLUMNS if parts and c in parts[0]]
+    numeric.update({c: np.full(n, np.nan) for c in extra})
+    for (ids, _), part in zip(shards, parts):
+        _check_part(part, method, len(ids), extra)
+        for c in (*RUL_COLUMNS, *extra):
+            numeric[c][ids] = part[c]
+        for j, i in enumerate(ids):
+            flags[i] = part["flags"][j]
+            if "message" in part:
+                message[i] = part["message"][j]
+    for i, a in enumerate(table.assets):
+        if a in table.errors:
+            flags[i] = "bad_input"
+            message[i] = table.errors[a]
+            numeric["n_rows"][i] = len(table.values[i])
+    for c in RUL_COLUMNS:  # (a count is an int: 200, not 200.0, in the table)
+        cols[c] = [int(v) if c == "n_rows" else float(v) for v in numeric[c]]
+    cols["flags"] = flags
+    cols["message"] = message
+    for c in extra:
+        cols[c] = [float(v) for v in numeric[c]]
+    return cols
+
+
 def fleet_rul(
     source,
     threshold: float,
@@ -431,32 +464,7 @@ def fleet_rul(
     else:
         parts = _run_ray(shards, method, thr, opts, progress, ray_init)
 
-    n = len(table.assets)
-    cols: dict[str, list] = {"asset": list(table.assets)}
-    numeric = {c: np.full(n, np.nan) for c in RUL_COLUMNS}
-    flags = [""] * n
-    message = [""] * n
-    extra = [c for c in EXTRA_COLUMNS if parts and c in parts[0]]
-    numeric.update({c: np.full(n, np.nan) for c in extra})
-    for (ids, _), part in zip(shards, parts):
-        _check_part(part, method, len(ids), extra)
-        for c in (*RUL_COLUMNS, *extra):
-            numeric[c][ids] = part[c]
-        for j, i in enumerate(ids):
-            flags[i] = part["flags"][j]
-            if "message" in part:
-                message[i] = part["message"][j]
-    for i, a in enumerate(table.assets):
-        if a in table.errors:
-            flags[i] = "bad_input"
-            message[i] = table.errors[a]
-            numeric["n_rows"][i] = len(table.values[i])
-    for c in RUL_COLUMNS:  # (a count is an int: 200, not 200.0, in the table)
-        cols[c] = [int(v) if c == "n_rows" else float(v) for v in numeric[c]]
-    cols["flags"] = flags
-    cols["message"] = message
-    for c in extra:
-        cols[c] = [float(v) for v in numeric[c]]
+    cols = _gathered_columns(table, shards, parts, method)
     if table.epoch is not None:
         cols.update(date_columns(cols, table.epoch))
     return FleetResult(
