@@ -52,6 +52,42 @@ __all__ = ["calibrate_fleet"]
 _RUN_OPTIONS = ("shard_size", "backend", "progress", "ray_init")
 
 
+def _replay(table: FleetTable, fractions, sign: float, thr: float) -> tuple:
+    """The protocol's prediction points of the failed assets as a table of truncated
+    histories (asset ``a`` at fraction ``f`` named ``"a@f"``), ``(replay, truth, t_pred,
+    t_last, skipped)``: the true RUL from each point's last row, the prediction times, those
+    rows' times, and the assets that give no point with the reason."""
+    names, times, values, rows, truth, t_pred, t_last = [], [], [], [], [], [], []
+    skipped: dict[str, str] = dict(table.errors)  # set aside by the table checks
+    for a, t, y, r in zip(table.assets, table.times, table.values, table.rows):
+        if a in skipped:
+            continue
+        ok = ~np.isnan(y)
+        if int(ok.sum()) < 20:
+            skipped[a] = f"{int(ok.sum())} observed values, the protocol needs 20"
+            continue
+        pc = known_threshold_protocol(torch.from_numpy(t[ok]), torch.from_numpy(sign * y[ok]),
+                                      fractions=fractions, threshold=sign * thr)  # fmt: skip
+        if not pc.valid:
+            skipped[a] = f"protocol not usable: {pc.reason}"
+            continue
+        for f, tp in zip(fractions, pc.times.tolist()):
+            keep = t <= tp
+            last = float(t[keep][-1])  # the replayed row's t_last, where its RUL counts from
+            names.append(f"{a}@{f:g}")
+            times.append(t[keep]), values.append(y[keep]), rows.append(r[keep])
+            truth.append(pc.t_eol - last), t_pred.append(tp), t_last.append(last)
+    if not names:
+        first = next(iter(skipped.items()), ("", ""))
+        raise ValueError(
+            f"no failed asset gives a prediction point (first, {first[0]!r}: {first[1]}): "
+            "nothing to calibrate on"
+        )
+    replay = FleetTable(names, times, values, rows, source=f"{table.source} (replayed)",
+                        time_unit=table.time_unit, epoch=table.epoch)  # fmt: skip
+    return replay, truth, t_pred, t_last, skipped
+
+
 def calibrate_fleet(
     source,
     threshold: float,
@@ -132,34 +168,8 @@ def calibrate_fleet(
     )
     if not table.assets:
         raise ValueError("the table of failed assets is empty")
-    names, times, values, rows, truth, t_pred, t_last = [], [], [], [], [], [], []
-    skipped: dict[str, str] = dict(table.errors)  # set aside by the table checks
-    for a, t, y, r in zip(table.assets, table.times, table.values, table.rows):
-        if a in skipped:
-            continue
-        ok = ~np.isnan(y)
-        if int(ok.sum()) < 20:
-            skipped[a] = f"{int(ok.sum())} observed values, the protocol needs 20"
-            continue
-        pc = known_threshold_protocol(torch.from_numpy(t[ok]), torch.from_numpy(sign * y[ok]),
-                                      fractions=fractions, threshold=sign * thr)  # fmt: skip
-        if not pc.valid:
-            skipped[a] = f"protocol not usable: {pc.reason}"
-            continue
-        for f, tp in zip(fractions, pc.times.tolist()):
-            keep = t <= tp
-            last = float(t[keep][-1])  # the replayed row's t_last, where its RUL counts from
-            names.append(f"{a}@{f:g}")
-            times.append(t[keep]), values.append(y[keep]), rows.append(r[keep])
-            truth.append(pc.t_eol - last), t_pred.append(tp), t_last.append(last)
-    if not names:
-        first = next(iter(skipped.items()), ("", ""))
-        raise ValueError(
-            f"no failed asset gives a prediction point (first, {first[0]!r}: {first[1]}): "
-            "nothing to calibrate on"
-        )
-    replay = FleetTable(names, times, values, rows, source=f"{table.source} (replayed)",
-                        time_unit=table.time_unit, epoch=table.epoch)  # fmt: skip
+    replay, truth, t_pred, t_last, skipped = _replay(table, fractions, sign, thr)
+    names = replay.assets
     res = fleet_rul(replay, thr, direction=direction, seed=seed, method=method, workers=workers,
                     **run, **options)  # fmt: skip
     lo, hi, med = interval_columns(res.columns)
