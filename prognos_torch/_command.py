@@ -15,6 +15,7 @@ __all__ = [
     "one_torch_thread",
     "option_of",
     "where_message",
+    "calibrate_message",
 ]
 
 
@@ -88,3 +89,11 @@ def where_message(text: str, option: str) -> str:
     if text.startswith("where: "):
         return f"{option}: " + text[len("where: ") :].replace("--where", option)
     return text.replace("(where)", f"({option})")
+
+
+def calibrate_message(text: str) -> str:
+    """An error of reading or replaying the ``--calibrate`` table, in the command line's
+    words: one about ``--calibrate-where``'s own value names that option (:func:`where_message`),
+    any other is prefixed ``--calibrate:``, the table it is about."""
+    text = where_message(text, "--calibrate-where")
+    return text if text.startswith("--calibrate-where: ") else f"--calibrate: {text}"

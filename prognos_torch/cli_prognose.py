@@ -188,7 +188,7 @@ def load_histories(args, series):
         return None
     import torch
 
-    from ._command import where_message
+    from ._command import calibrate_message
     from .fleet.table import read_fleet_table
 
     if args.time_column is None:
@@ -207,11 +207,8 @@ def load_histories(args, series):
             where=args.calibrate_where,
         )
     except ValueError as exc:
-        msg = where_message(str(exc).replace("(--group-by)", "(--calibrate-group)"),
-                            "--calibrate-where")  # fmt: skip
-        if msg.startswith("--calibrate-where: "):  # the option's value, not the table
-            raise ValueError(msg) from None
-        raise ValueError(f"--calibrate: {msg}") from None
+        msg = str(exc).replace("(--group-by)", "(--calibrate-group)")
+        raise ValueError(calibrate_message(msg)) from None
     except FileNotFoundError as exc:
         raise FileNotFoundError(f"--calibrate: {exc}") from None
     dates, tab_dates = series.start is not None, tab.time_unit == "days"

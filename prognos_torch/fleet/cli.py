@@ -10,6 +10,7 @@ from collections import Counter
 from pathlib import Path
 
 from .._command import (
+    calibrate_message,
     check_output_file,
     check_overwrites,
     one_torch_thread,
@@ -200,10 +201,7 @@ def _calibration(args, same: dict, cal_where, method_options: dict) -> tuple:
     except ValueError as exc:
         if option_of(str(exc), _OPTION_OF) is not None:  # a setting of both runs, not the table
             raise
-        text = where_message(str(exc), "--calibrate-where")
-        if text.startswith("--calibrate-where: "):  # the option's value, not the table
-            raise ValueError(text) from None
-        raise ValueError(f"--calibrate: {text}") from None
+        raise ValueError(calibrate_message(str(exc))) from None
     return cal, cal_points
 
 
